@@ -1,0 +1,39 @@
+"""Field files (netCDF), ParaView export and figures.
+
+>>> from latticedft.io import read_field, write_field, write_paraview
+"""
+
+from __future__ import annotations
+
+from latticedft.io.fields import COMPONENT_DIM as COMPONENT_DIM
+from latticedft.io.fields import field_periodic as field_periodic
+from latticedft.io.fields import field_spacing as field_spacing
+from latticedft.io.fields import lattice_dims as lattice_dims
+from latticedft.io.fields import read_field as read_field
+from latticedft.io.fields import validate_field as validate_field
+from latticedft.io.fields import write_field as write_field
+from latticedft.io.vtk import read_pvd as read_pvd
+from latticedft.io.vtk import write_paraview as write_paraview
+from latticedft.io.vtk import write_pvd as write_pvd
+
+__all__ = [
+    "COMPONENT_DIM",
+    "field_periodic",
+    "field_spacing",
+    "lattice_dims",
+    "read_field",
+    "validate_field",
+    "write_field",
+    "read_pvd",
+    "write_paraview",
+    "write_pvd",
+    "plot_prediction",
+]
+
+
+def __getattr__(name: str):  # matplotlib is imported only when figures are wanted
+    if name == "plot_prediction":
+        from latticedft.io.figures import plot_prediction
+
+        return plot_prediction
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
