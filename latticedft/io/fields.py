@@ -176,7 +176,8 @@ def _check_components(da: xr.DataArray, source: str, components: Sequence[str] |
     if COMPONENT_DIM not in dims:
         if components is not None:
             raise InputError(
-                f"{source}: field {da.name!r} has no '{COMPONENT_DIM}' dim; "
+                f"{source}: {'field' if da.name is None else f'field {da.name!r}'} has no "
+                f"'{COMPONENT_DIM}' dim; "
                 f"expected components {list(components)!r}"
             )
         return
@@ -242,21 +243,22 @@ def validate_field(
     >>> validate_field(da, "a.nc")
     Traceback (most recent call last):
     ...
-    latticedft._errors.InputError: a.nc: field None holds 1 NaN/inf value(s), first at (t=1); expected finite values
+    latticedft._errors.InputError: a.nc: field holds 1 NaN/inf value(s), first at (t=1); expected finite values
     """
     if not isinstance(da, xr.DataArray):
         raise InputError(f"{source}: expected an xarray.DataArray, got {type(da).__name__}")
     _check_components(da, source, components)
+    what = "field" if da.name is None else f"field {da.name!r}"
     dims = lattice_dims(da)
     if not dims:
         raise InputError(
-            f"{source}: field {da.name!r} has no lattice dims; expected e.g. psi(t), psi(t, x)"
+            f"{source}: {what} has no lattice dims; expected e.g. psi(t), psi(t, x)"
         )
     for dim in dims:
         _check_coordinate(da, dim, source)
     if not (np.issubdtype(da.dtype, np.floating) or np.issubdtype(da.dtype, np.integer)) \
             or da.dtype == bool:
-        raise InputError(f"{source}: field {da.name!r} has dtype {da.dtype}; expected real numbers")
+        raise InputError(f"{source}: {what} has dtype {da.dtype}; expected real numbers")
     if da.dtype != np.float64:
         da = da.astype(np.float64)
     if not allow_nan:
@@ -266,7 +268,7 @@ def validate_field(
             first = np.unravel_index(int(np.argmax(bad.reshape(-1))), bad.shape)
             where = ", ".join(f"{d}={int(i)}" for d, i in zip(da.dims, first))
             raise InputError(
-                f"{source}: field {da.name!r} holds {n_bad} NaN/inf value(s), "
+                f"{source}: {what} holds {n_bad} NaN/inf value(s), "
                 f"first at ({where}); expected finite values"
             )
     field_periodic(da, source)
