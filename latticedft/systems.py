@@ -492,12 +492,6 @@ PLANETS: dict[str, Planet] = {
     "Jupiter": Planet(5.20288700, 0.04838624),
 }
 
-_KEPLER_COORD_ATTRS = {
-    "t": _time_attrs(f"{KEPLER_TIME_UNIT_DAYS} days"),
-    "x": {},
-}
-
-
 def kepler_period(a: ArrayLike) -> Any:
     """Orbital period ``T = 2 pi a^{3/2}`` (GM = 1) of an orbit with semi-major axis `a`.
 
