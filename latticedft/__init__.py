@@ -1,0 +1,48 @@
+"""latticedft: learn discrete field theories from lattice data and serve them.
+
+The method is H. Qin, "Machine learning and serving of discrete field
+theories", Sci. Rep. 10, 19329 (2020): learn a discrete Lagrangian density
+``L_d`` whose discrete Euler–Lagrange equations the data obey, then predict
+new solutions by solving those equations slice by slice — a variational
+(symplectic) integrator nobody wrote by hand.
+
+>>> import latticedft as ldft
+>>> sorted(ldft.MODELS)
+['mlp', 'polynomial']
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+
+from . import lagrangians as lagrangians
+from ._action import action as action
+from ._action import del_residual as del_residual
+from ._errors import ConfigError as ConfigError
+from ._errors import InputError as InputError
+from ._errors import LatticeDFTError as LatticeDFTError
+from ._errors import ModelFileError as ModelFileError
+from ._errors import ServeError as ServeError
+from ._lattice import LatticeField as LatticeField
+from ._lattice import as_lattice_field as as_lattice_field
+from ._learn import GAUGES as GAUGES
+from ._learn import LearnReport as LearnReport
+from ._learn import diagnose as diagnose
+from ._learn import learn as learn
+from ._modelfile import load_model as load_model
+from ._modelfile import save_model as save_model
+from ._models import MODELS as MODELS
+from ._models import PRESETS as PRESETS
+from ._models import AbstractLagrangian as AbstractLagrangian
+from ._models import AnalyticLagrangian as AnalyticLagrangian
+from ._models import MLPLagrangian as MLPLagrangian
+from ._models import PolynomialLagrangian as PolynomialLagrangian
+from ._serve import ServeResult as ServeResult
+from ._serve import compare as compare
+from ._serve import serve as serve
+from ._stencil import Stencil as Stencil
+
+try:
+    __version__ = version("latticedft")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    __version__ = "0+unknown"

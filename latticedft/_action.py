@@ -1,0 +1,90 @@
+"""The discrete action, the DEL residual and the mixed time Hessian (DESIGN.md §1).
+
+``A_d = prod(h) * sum_cells L_d(psi[x+s_0], ..., psi[x+s_{K-1}])`` and
+``EL_y = dA_d / dpsi_y``, evaluated on a whole field by one reverse-mode pass
+(Qin 2020, Eqs. 2-3).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ._lattice import LatticeField, gather_cells, interior_slices
+from ._stencil import Stencil
+
+__all__ = ["action", "del_residual", "mixed_hessian", "cell_derivatives", "second_time_difference"]
+
+
+
+def action(model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: tuple[bool, ...]) -> torch.Tensor:
+    """Total discrete action of one field ``psi`` with shape ``(*N, m)``."""
+    cells = gather_cells(psi, model.stencil, periodic)
+    return math.prod(spacing) * model(cells).sum()
+
+
+def del_residual(model, f: LatticeField, *, create_graph: bool = False) -> torch.Tensor:
+    """DEL residual ``EL_y`` on the interior sites of ``f``: shape ``(*interior, m)``.
+
+    With ``create_graph=True`` the result is differentiable in the model's
+    parameters (for training).
+    """
+    psi = f.values.detach().clone().requires_grad_(True)
+    with torch.enable_grad():
+        a = action(model, psi, f.spacing, f.periodic)
+        (g,) = torch.autograd.grad(a, psi, create_graph=create_graph)
+    return g[interior_slices(f.shape, model.stencil, f.periodic)]
+
+
+def cell_derivatives(model, cells: torch.Tensor, pairs: list[tuple[int, int]], *,
+                     create_graph: bool = False) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]]:
+    """Per-cell gradient ``dL/dx_a`` (``(*cells, K, m)``) and Hessian blocks.
+
+    ``pairs`` lists the ``(a, b)`` stencil positions whose ``m x m`` blocks
+    ``d^2 L / dx_a dx_b`` (shape ``(*cells, m, m)``, row = component of
+    ``x_a``) are wanted. Costs one backward pass per distinct ``b`` and
+    component.
+    """
+    x = cells.detach().requires_grad_(True) if not cells.requires_grad else cells
+    m = x.shape[-1]
+    with torch.enable_grad():
+        lval = model(x)
+        (g,) = torch.autograd.grad(lval.sum(), x, create_graph=True)
+        blocks: dict[tuple[int, int], torch.Tensor] = {}
+        bs = sorted({b for _, b in pairs})
+        cols: dict[int, list[torch.Tensor]] = {}
+        for b in bs:
+            cols[b] = []
+            for j in range(m):
+                (hj,) = torch.autograd.grad(g[..., b, j].sum(), x, retain_graph=True, create_graph=create_graph,
+                                            allow_unused=True)
+                if hj is None:
+                    hj = torch.zeros_like(x)
+                cols[b].append(hj)  # d/dx_b,j of dL/dx  -> (*cells, K, m)
+        for a, b in pairs:
+            # H[a, i; b, j] = d^2L/dx_{a,i} dx_{b,j}
+            blocks[(a, b)] = torch.stack([c[..., a, :] for c in cols[b]], dim=-1)
+    if not create_graph:
+        g = g.detach()
+        blocks = {k: v.detach() for k, v in blocks.items()}
+    return g, blocks
+
+
+def mixed_hessian(model, f: LatticeField, *, create_graph: bool = False) -> torch.Tensor:
+    """The mixed time Hessian ``M = d^2 L_d / dpsi_x dpsi_{x+e_0}`` on every cell of ``f``: ``(ncells, m, m)``."""
+    st = model.stencil
+    cells = gather_cells(f.values, st, f.periodic)
+    pair = (st.anchor, st.forward)
+    _, blocks = cell_derivatives(model, cells, [pair], create_graph=create_graph)
+    m = f.ncomp
+    return blocks[pair].reshape(-1, m, m)
+
+
+def second_time_difference(f: LatticeField, stencil: Stencil) -> torch.Tensor:
+    """``psi_{y+e0} - 2 psi_y + psi_{y-e0}`` on the interior sites of ``f``."""
+    v = f.values
+    d2 = v[2:] - 2 * v[1:-1] + v[:-2]
+    inner = interior_slices(f.shape, stencil, f.periodic)
+    pad = torch.nn.functional.pad(d2, [0, 0] * (v.ndim - 1) + [1, 1])  # back to full time length
+    return pad[inner]

@@ -1,0 +1,95 @@
+"""Model files: a plain dict that loads with ``torch.load(..., weights_only=True)``."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ._errors import ModelFileError
+from ._models import MODELS, AbstractLagrangian
+from ._stencil import Stencil
+
+__all__ = ["save_model", "load_model", "FORMAT_VERSION", "model_record"]
+
+FORMAT_VERSION = 1
+
+
+def model_record(model: AbstractLagrangian, gauge: str = "unit-mass") -> dict[str, Any]:
+    """Everything of a model file except ``state_dict`` (JSON-compatible)."""
+    if not model.saveable:
+        raise ModelFileError(f"model: a {type(model).__name__} cannot be written to a model file")
+    model._require_bound()
+    return {
+        "format": "latticedft-model",
+        "format_version": FORMAT_VERSION,
+        "kind": model.kind,
+        "options": model.options(),
+        "stencil": model.stencil.to_list(),
+        "gauge": gauge,
+        "n": model.n,
+        "m": model.m,
+        "spacing": list(model.spacing),
+        "components": list(model.components) if model.components else None,
+    }
+
+
+def save_model(model: AbstractLagrangian, path: str | os.PathLike, *, gauge: str | None = None) -> Path:
+    """Write ``model`` to ``path`` (atomically: a temporary file, then a rename)."""
+    report = getattr(model, "report_", None)
+    record = model_record(model, gauge or (report.gauge if report else "unit-mass"))
+    record["state_dict"] = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(record, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_model(path: str | os.PathLike) -> AbstractLagrangian:
+    """Read a model file written by :func:`save_model`; never unpickles arbitrary objects.
+
+    >>> load_model("no-such-file.pt")
+    Traceback (most recent call last):
+    ...
+    latticedft._errors.ModelFileError: no-such-file.pt: model file not found
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"{path}: model file not found")
+    try:
+        rec = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # corrupt zip, truncated file, or a pickled object refused by weights_only
+        text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if "weights_only" in str(exc) or "Unsupported global" in str(exc) or "GLOBAL" in str(exc):
+            raise ModelFileError(f"{path}: refused to load: it holds pickled Python objects, not a plain "
+                                 "latticedft model dict (loaded with weights_only=True)") from None
+        raise ModelFileError(f"{path}: not a readable model file ({type(exc).__name__}: {text[:120]})") from None
+    if not isinstance(rec, dict) or rec.get("format") != "latticedft-model":
+        raise ModelFileError(f"{path}: not a latticedft model file (expected a dict with format 'latticedft-model')")
+    if rec.get("format_version") != FORMAT_VERSION:
+        raise ModelFileError(f"{path}: format version {rec.get('format_version')!r}; this latticedft reads "
+                             f"version {FORMAT_VERSION}")
+    kind = rec.get("kind")
+    if kind not in MODELS:
+        raise ModelFileError(f"{path}: unknown model kind {kind!r}; expected one of {sorted(MODELS)}")
+    try:
+        model = MODELS[kind](**rec["options"], stencil=Stencil(rec["stencil"]))
+        comps = tuple(rec["components"]) if rec.get("components") else None
+        model.bind(int(rec["n"]), int(rec["m"]), tuple(rec["spacing"]), comps)
+        model.load_state_dict(rec["state_dict"])
+    except ModelFileError:
+        raise
+    except Exception as exc:
+        raise ModelFileError(f"{path}: inconsistent model file ({type(exc).__name__}: "
+                             f"{str(exc).strip().splitlines()[0][:160] if str(exc).strip() else ''})") from None
+    model.gauge_ = rec.get("gauge", "unit-mass")
+    return model

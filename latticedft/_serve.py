@@ -1,0 +1,535 @@
+"""Serving a learned theory: fill a lattice slice by slice by solving the DEL (DESIGN.md §1).
+
+On slice ``i`` every interior site ``y`` gives one equation ``EL_y = 0`` for
+the values on slice ``i + 1``. ``mode="newton"`` solves a whole slice by
+Newton's method with the sparse (block lower-triangular for the first-order
+stencil) Jacobian assembled from per-cell Hessian blocks; ``mode="sweep"`` is
+the paper's site-by-site sweep (Qin 2020, Sec. 2, Steps 1-5), kept as a
+reference. In 1D a slice is one site and a batch of trajectories is stepped
+together.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+import scipy.sparse.linalg
+import torch
+import xarray as xr
+from tqdm.auto import tqdm
+
+from ._action import cell_derivatives
+from ._errors import InputError, ServeError
+from ._lattice import BoundaryKinds, LatticeField, as_lattice_field, gather_cells, interior_slices
+from ._learn import _check_model_lattice
+from ._models import AbstractLagrangian, AnalyticLagrangian
+
+__all__ = ["serve", "ServeResult", "compare"]
+
+MODES = ("newton", "sweep")
+
+
+@dataclass
+class ServeResult:
+    """A served field and how serving went."""
+
+    field: xr.DataArray
+    complete: bool
+    reason: str
+    slices: int
+    newton_iterations: int
+    max_newton_iterations: int
+    wall_time: float
+    sites_per_second: float
+    max_residual: float
+    mode: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in ("complete", "reason", "slices", "newton_iterations",
+                                              "max_newton_iterations", "wall_time", "sites_per_second",
+                                              "max_residual", "mode")}
+
+
+def compare(pred: xr.DataArray, ref: xr.DataArray) -> dict[str, float]:
+    """Max and RMS error of ``pred`` against ``ref`` over the time slices both hold.
+
+    >>> import numpy as np, xarray as xr
+    >>> a = xr.DataArray(np.zeros(4), dims="t", coords={"t": np.arange(4.0)})
+    >>> compare(a, a + 0.5)
+    {'max_error': 0.5, 'rms_error': 0.5, 'slices': 4}
+    """
+    tdim = pred.dims[0]
+    n = min(pred.sizes[tdim], ref.sizes[tdim])
+    if pred.shape[1:] != ref.shape[1:]:
+        raise InputError(f"compare: shapes {pred.shape} and {ref.shape} differ beyond the time axis")
+    d = pred.values[:n] - ref.values[:n]
+    return {"max_error": float(np.abs(d).max()), "rms_error": float(np.sqrt(np.mean(d ** 2))), "slices": int(n)}
+
+
+# -- helpers ------------------------------------------------------------------------------------------------
+def _bar(total: int, desc: str, progress: bool | None):
+    return tqdm(total=total, desc=desc, disable=None if progress is None else not progress, leave=False)
+
+
+def _prepare_model(model: AbstractLagrangian, f: LatticeField) -> None:
+    if not isinstance(model, AbstractLagrangian):
+        raise InputError(f"model: expected a latticedft model, got {type(model).__name__}")
+    if not model.bound:
+        if isinstance(model, AnalyticLagrangian):
+            model.bind(f.ndim, f.ncomp, f.spacing, f.components)
+        else:
+            raise InputError(f"model: {type(model).__name__} has not been learned yet (latticedft.learn)")
+    _check_model_lattice(model, f, "init")
+
+
+def _steps(steps: int | None, f: LatticeField) -> int:
+    if steps is None:
+        return f.shape[0]
+    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 3:
+        raise InputError(f"steps: expected an integer >= 3 (time slices of the served field), got {steps!r}")
+    return steps
+
+
+class _SliceSystem:
+    """Index maps of one slice's equations and unknowns, built once per lattice."""
+
+    def __init__(self, model: AbstractLagrangian, f: LatticeField):
+        st = model.stencil
+        self.st = st
+        self.m = f.ncomp
+        spatial = f.shape[1:]
+        self.spatial = spatial
+        self.periodic = f.periodic
+        self.nsite = int(np.prod(spatial))
+        inner = interior_slices(f.shape, st, f.periodic)[1:]
+        mask = np.zeros(spatial, dtype=bool)
+        mask[inner] = True
+        self.interior = mask.reshape(-1)
+        self.index = -np.ones(self.nsite, dtype=np.int64)  # site -> equation row / unknown column
+        self.index[self.interior] = np.arange(int(self.interior.sum()))
+        self.n = int(self.interior.sum())
+        # cells anchored on one slice: shape of the cell grid along the spatial axes
+        lo, width = st.lo, st.width
+        cshape = [nk if f.periodic[k + 1] else nk - int(width[k + 1]) for k, nk in enumerate(spatial)]
+        self.cshape = tuple(cshape)
+        grids = np.meshgrid(*[np.arange(c) for c in cshape], indexing="ij")
+        self.site_of: list[np.ndarray] = []  # per stencil point: flat site index of that point for every cell
+        for off in st.offsets:
+            idx = []
+            for k, gk in enumerate(grids):
+                v = gk + off[k + 1] - lo[k + 1]
+                if f.periodic[k + 1]:
+                    v = v % spatial[k]
+                idx.append(v.reshape(-1))
+            self.site_of.append(np.ravel_multi_index(idx, spatial) if idx else np.zeros(1, dtype=np.int64))
+        self.now = [a for a, o in enumerate(st.offsets) if o[0] == 0]
+        self.nxt = [a for a, o in enumerate(st.offsets) if o[0] == 1]
+        self.pairs = [(a, b) for a in self.now for b in self.nxt]
+        # Jacobian structure: rows (equation sites on slice i) x cols (unknowns on slice i+1)
+        self.jac: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        for a, b in self.pairs:
+            r = self.index[self.site_of[a]]
+            c = self.index[self.site_of[b]]
+            keep = (r >= 0) & (c >= 0)
+            self.jac[(a, b)] = (np.nonzero(keep)[0], r[keep], c[keep])
+        m = self.m
+        rows = np.concatenate([r for _, r, _ in self.jac.values()]) if self.jac else np.zeros(0, np.int64)
+        cols = np.concatenate([c for _, _, c in self.jac.values()]) if self.jac else np.zeros(0, np.int64)
+        self.lower = int(max(0, (rows - cols).max() if rows.size else 0)) * m + m - 1
+        self.upper = int(max(0, (cols - rows).max() if rows.size else 0)) * m + m - 1
+        self.banded = len(spatial) == 1 and not any(f.periodic[1:])
+        self.triangular = bool(rows.size == 0 or (cols <= rows).all()) and not any(f.periodic[1:])
+        self.diag_pairs = [(a, b) for (a, b), (_, r, c) in self.jac.items() if np.any(r == c)]
+
+    # EL on slice i (equation rows) from the per-cell gradients of the cells anchored at i-1 and i
+    def residual(self, g_prev: torch.Tensor, g_cur: torch.Tensor, vol: float) -> np.ndarray:
+        m = self.m
+        el = torch.zeros(self.nsite, m, dtype=torch.float64)
+        gp = g_prev.reshape(-1, self.st.size, m)
+        gc = g_cur.reshape(-1, self.st.size, m)
+        for a in self.nxt:
+            el.index_add_(0, torch.from_numpy(self.site_of[a]), gp[:, a])
+        for a in self.now:
+            el.index_add_(0, torch.from_numpy(self.site_of[a]), gc[:, a])
+        return (vol * el).numpy()[self.interior].reshape(-1)
+
+    def matrix_entries(self, blocks: dict[tuple[int, int], torch.Tensor], vol: float):
+        m = self.m
+        rs, cs, vs = [], [], []
+        ii, jj = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
+        for key, (cells, r, c) in self.jac.items():
+            v = blocks[key].reshape(-1, m, m).numpy()[cells] * vol  # (nnz, m, m)
+            rs.append((r[:, None, None] * m + ii).reshape(-1))
+            cs.append((c[:, None, None] * m + jj).reshape(-1))
+            vs.append(v.reshape(-1))
+        return np.concatenate(rs), np.concatenate(cs), np.concatenate(vs)
+
+    def solve(self, blocks, vol: float, rhs: np.ndarray) -> np.ndarray:
+        rows, cols, vals = self.matrix_entries(blocks, vol)
+        size = self.n * self.m
+        if self.banded:
+            lo, up = self.lower, self.upper
+            ab = np.zeros((lo + up + 1, size))
+            np.add.at(ab, (up + rows - cols, cols), vals)
+            if not np.all(ab[up] != 0):
+                raise np.linalg.LinAlgError("zero on the diagonal")
+            return scipy.linalg.solve_banded((lo, up), ab, rhs, check_finite=False)
+        mat = scipy.sparse.csc_matrix((vals, (rows, cols)), shape=(size, size))
+        try:
+            return scipy.sparse.linalg.splu(mat).solve(rhs)
+        except RuntimeError as exc:  # "Factor is exactly singular"
+            raise np.linalg.LinAlgError(str(exc)) from None
+
+
+def _site_label(f: LatticeField, sys: _SliceSystem, tslice: int, row: int) -> tuple[int, ...]:
+    site = int(np.nonzero(sys.interior)[0][row // sys.m])
+    return (tslice, *[int(v) for v in np.unravel_index(site, sys.spatial)])
+
+
+# -- n-D serving (n >= 2) --------------------------------------------------------------------------------------
+def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, mode: str, rtol: float, max_newton: int,
+                 progress: bool | None) -> ServeResult:
+    st = model.stencil
+    sys = _SliceSystem(model, f)
+    nt_given = f.shape[0]
+    m = f.ncomp
+    dirichlet_axes = [f.dims[k] for k in range(1, f.ndim) if not f.periodic[k]]
+    if dirichlet_axes and nt_given < steps:
+        raise InputError(f"init: holds {nt_given} time slices but the Dirichlet boundary along "
+                         f"{dirichlet_axes[0]!r} needs its strips on all {steps} slices; give the whole field, "
+                         "fewer steps, or a periodic boundary")
+    psi = torch.full((steps, *f.shape[1:], m), math.nan, dtype=torch.float64)
+    psi[:2] = f.values[:2]
+    known = np.ones(sys.nsite, dtype=bool)
+    known[sys.interior] = False
+    flat = psi.reshape(steps, sys.nsite, m)
+    if known.any():
+        kidx = torch.from_numpy(np.nonzero(known)[0])
+        flat[:, kidx] = f.values[:steps].reshape(-1, sys.nsite, m)[:, kidx]
+    unk = torch.from_numpy(np.nonzero(sys.interior)[0])
+    vol = math.prod(model.spacing)
+    t0 = time.perf_counter()
+    total_it, max_it, worst = 0, 0, 0.0
+    periodic = f.periodic
+
+    def cells_at(i: int) -> torch.Tensor:
+        return gather_cells(psi[i:i + 2], st, periodic)
+
+    g_prev, _ = cell_derivatives(model, cells_at(0), [])
+    bar = _bar(steps - 2, f"serve ({mode})", progress)
+
+    def fail(i: int, msg: str, row: int | None, res: float) -> ServeError:
+        bar.close()
+        part = LatticeField.with_values(f, psi[: i + 1].clone())
+        wall = time.perf_counter() - t0
+        solved = (i + 1 - 2) * sys.n
+        result = ServeResult(field=part.to_dataarray(), complete=False, reason=msg, slices=i + 1,
+                             newton_iterations=total_it, max_newton_iterations=max_it, wall_time=wall,
+                             sites_per_second=solved / wall if wall > 0 else 0.0, max_residual=res, mode=mode)
+        site = _site_label(f, sys, i, row) if row is not None else None
+        tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
+        text = f"slice {i + 1} (t = {tval:.6g}): {msg}" + (f" at site {site}" if site else "") + \
+            (f", residual {res:.3e}" if math.isfinite(res) else "")
+        return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
+
+    for i in range(1, steps - 1):
+        # predictor 2 psi_i - psi_{i-1} on the unknown sites
+        flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
+        if mode == "newton":
+            it, res, g_prev, err = _newton_slice(model, sys, psi, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at)
+        else:
+            it, res, g_prev, err = _sweep_slice(model, sys, psi, flat, i, vol, rtol, max_newton, f)
+        total_it += it
+        max_it = max(max_it, it)
+        worst = max(worst, res)
+        if err is not None:
+            msg, row, rval = err
+            raise fail(i, msg, row, rval)
+        bar.update(1)
+    bar.close()
+    wall = time.perf_counter() - t0
+    out = LatticeField.with_values(f, psi)
+    solved = (steps - 2) * sys.n
+    return ServeResult(field=out.to_dataarray(), complete=True, reason="complete", slices=steps,
+                       newton_iterations=total_it, max_newton_iterations=max_it, wall_time=wall,
+                       sites_per_second=solved / wall if wall > 0 else math.inf, max_residual=worst, mode=mode)
+
+
+def _scale(flat: torch.Tensor, i: int, unk: torch.Tensor) -> float:
+    return float(max(flat[i - 1].abs().max(), flat[i].abs().max(), flat[i + 1, unk].abs().max(), 1e-300))
+
+
+def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at):
+    m = sys.m
+    rscale = None
+    res = math.inf
+    for it in range(1, max_newton + 1):
+        g_cur, blocks = cell_derivatives(model, cells_at(i), sys.pairs)
+        r = sys.residual(g_prev, g_cur, vol)
+        res = float(np.abs(r).max()) if r.size else 0.0
+        if not math.isfinite(res):
+            return it, res, g_cur, ("residual is not finite", None, res)
+        if rscale is None:
+            dmax = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
+            rscale = vol * dmax * _scale(flat, i, unk)
+        if res <= rtol * rscale:
+            # the cells anchored at slice i are evaluated at the solution: reuse them for slice i + 1
+            return it, res, g_cur, None
+        try:
+            delta = sys.solve(blocks, vol, -r)
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            row = int(np.argmax(np.abs(r)))
+            return it, res, g_cur, (f"singular Jacobian (mixed Hessian) of the slice: {exc}", row, res)
+        flat[i + 1, unk] += torch.from_numpy(delta.reshape(-1, m))
+        if not np.all(np.isfinite(delta)):
+            return it, res, g_cur, ("Newton step is not finite (singular mixed Hessian?)", int(np.argmax(np.abs(r))),
+                                    res)
+    row = int(np.argmax(np.abs(r))) if r.size else None
+    return max_newton, res, g_cur, (f"Newton did not converge in {max_newton} iterations", row, res)
+
+
+def _sweep_slice(model, sys: _SliceSystem, psi, flat, i, vol, rtol, max_newton, f):
+    """The paper's site-by-site sweep (Gauss-Seidel when the slice system is not triangular)."""
+    st = sys.st
+    m = sys.m
+    nsp = len(sys.spatial)
+    offs = np.array(st.offsets)
+    sites = np.nonzero(sys.interior)[0]
+    e0 = np.zeros(nsp + 1, dtype=np.int64)
+    e0[0] = 1
+    unk_scale = _scale(flat, i, torch.from_numpy(sites))
+    total_it = 0
+    worst = 0.0
+    sweeps = 1 if sys.triangular else 100
+    for sweep in range(sweeps):
+        change = 0.0
+        for row, site in enumerate(sites):
+            y = np.array([i, *np.unravel_index(site, sys.spatial)])
+            # the K cells y - s_a, each with its K points y - s_a + s_b
+            pts = y[None, None, :] - offs[:, None, :] + offs[None, :, :]
+            for k in range(nsp):
+                if f.periodic[k + 1]:
+                    pts[..., k + 1] %= sys.spatial[k]
+            unknown = np.all(pts == (y + e0), axis=-1)  # (K, K)
+            idx = tuple(torch.from_numpy(pts[..., d]) for d in range(nsp + 1))
+            base = psi[idx].clone()  # (K, K, m)
+            u = psi[tuple(int(v) for v in y + e0)].clone()
+            mask = torch.from_numpy(unknown)
+            for it in range(1, max_newton + 1):
+                total_it += 1
+                uu = u.clone().requires_grad_(True)
+                with torch.enable_grad():
+                    x = torch.where(mask[..., None], uu.expand_as(base), base)
+                    (g,) = torch.autograd.grad(model(x).sum(), x, create_graph=True)
+                    el = vol * g[torch.arange(st.size), torch.arange(st.size)].sum(0)  # sum_a d_a L(cell y - s_a)
+                    jac = torch.stack([torch.autograd.grad(el[c], uu, retain_graph=True)[0] for c in range(m)])
+                res = float(el.detach().abs().max())
+                if not math.isfinite(res):
+                    return total_it, res, None, ("residual is not finite", row * m, res)
+                try:
+                    step = torch.linalg.solve(jac, -el.detach())
+                except RuntimeError:
+                    return total_it, res, None, ("singular mixed Hessian", row * m, res)
+                u = u + step
+                if float(step.abs().max()) <= rtol * unk_scale:
+                    break
+            else:
+                return total_it, res, None, (f"Newton did not converge in {max_newton} iterations", row * m, res)
+            old = psi[tuple(int(v) for v in y + e0)]
+            change = max(change, float((u - old).abs().max()))
+            psi[tuple(int(v) for v in y + e0)] = u
+            worst = max(worst, res)
+        if sys.triangular or change <= 10 * rtol * unk_scale:
+            break
+    else:
+        return total_it, worst, None, ("site-by-site sweeps did not converge", None, worst)
+    return total_it, worst, None, None
+
+
+# -- 1D serving: a batch of trajectories stepped together -------------------------------------------------------
+def _serve_batch(model: AbstractLagrangian, fs: list[LatticeField], steps: list[int], mode: str, rtol: float,
+                 max_newton: int, box: float | None, progress: bool | None) -> list[ServeResult]:
+    st = model.stencil
+    a0, a1 = st.anchor, st.forward
+    b = len(fs)
+    m = fs[0].ncomp
+    nmax = max(steps)
+    psi = torch.full((b, nmax, m), math.nan, dtype=torch.float64)
+    for k, f in enumerate(fs):
+        psi[k, :2] = f.values[:2]
+    vol = math.prod(model.spacing)
+    length = torch.tensor(steps)
+    status = ["complete"] * b
+    done = torch.zeros(b, dtype=torch.bool)
+    failed = torch.zeros(b, dtype=torch.bool)
+    last_res = torch.zeros(b, dtype=torch.float64)
+    iters = torch.zeros(b, dtype=torch.long)
+    max_iters = torch.zeros(b, dtype=torch.long)
+    t0 = time.perf_counter()
+    groups = [list(range(b))] if mode == "newton" else [[k] for k in range(b)]
+    bar = _bar(nmax - 2, f"serve ({mode}, {b} trajectories)", progress)
+    g_prev_all = cell_derivatives(model, psi[:, 0:2], [])[0]
+    for i in range(1, nmax - 1):
+        for group in groups:
+            act = torch.tensor([k for k in group if not done[k] and length[k] > i + 1], dtype=torch.long)
+            if act.numel() == 0:
+                continue
+            g_prev = g_prev_all[act]
+            u = 2 * psi[act, i] - psi[act, i - 1]
+            alive = torch.ones(act.numel(), dtype=torch.bool)
+            conv = torch.zeros(act.numel(), dtype=torch.bool)
+            rscale = None
+            g_keep = g_prev.clone()
+            res = torch.full((act.numel(),), math.inf, dtype=torch.float64)
+            step_it = torch.zeros(act.numel(), dtype=torch.long)
+            for it in range(1, max_newton + 1):
+                sel = alive & ~conv
+                if not sel.any():
+                    break
+                cells = torch.stack([psi[act[sel], i], u[sel]], dim=1)
+                g, blocks = cell_derivatives(model, cells, [(a0, a1)])
+                r = vol * (g[:, a0] + g_prev[sel][:, a1])
+                rabs = r.abs().amax(-1)
+                res[sel] = rabs
+                iters[act[sel]] += 1
+                if rscale is None:  # size of the kinetic terms, per trajectory
+                    mag = torch.stack([psi[act, i].abs().amax(-1), psi[act, i - 1].abs().amax(-1),
+                                       u.abs().amax(-1)]).amax(0).clamp_min(1e-300)
+                    rscale = vol * torch.linalg.matrix_norm(blocks[(a0, a1)], ord=math.inf).clamp_min(1e-300) * mag
+                step_it[sel] += 1
+                idx_sel = torch.nonzero(sel).squeeze(-1)
+                ok = rabs <= rtol * rscale[sel]
+                gk = g_keep.clone()
+                gk[idx_sel] = g
+                g_keep = gk
+                conv[idx_sel[ok]] = True
+                todo = ~ok & torch.isfinite(rabs)
+                alive[idx_sel[~torch.isfinite(rabs)]] = False
+                if not todo.any():
+                    continue
+                jac = vol * blocks[(a0, a1)][todo]  # d r_i / d u_j = vol d^2 L / dx_{a0,i} dx_{a1,j}
+                step, info = torch.linalg.solve_ex(jac, -r[todo])
+                bad = info != 0
+                tidx = idx_sel[todo]
+                alive[tidx[bad]] = False
+                good = tidx[~bad]
+                u[good] = u[good] + step[~bad]
+            for j, k in enumerate(act.tolist()):
+                max_iters[k] = max(int(max_iters[k]), int(step_it[j]))
+                if conv[j]:
+                    psi[k, i + 1] = u[j]
+                    last_res[k] = max(float(last_res[k]), float(res[j]))
+                    if box is not None and float(u[j].norm()) > box:
+                        done[k] = True
+                        length[k] = i + 2
+                        status[k] = f"left the box |psi| <= {box:g} at slice {i + 1}"
+                else:
+                    done[k] = failed[k] = True
+                    length[k] = i + 1
+                    why = "singular mixed Hessian or non-finite residual" if not alive[j] else \
+                        f"Newton did not converge in {max_newton} iterations"
+                    tval = float(fs[k].coords[fs[k].dims[0]][0] + (i + 1) * fs[k].spacing[0])
+                    status[k] = f"slice {i + 1} (t = {tval:.6g}): {why}, residual {float(res[j]):.3e}"
+                    last_res[k] = float(res[j])
+            g_prev_all[act] = g_keep
+        bar.update(1)
+    bar.close()
+    wall = time.perf_counter() - t0
+    solved = int(sum(int(length[k]) - 2 for k in range(b)))
+    out = []
+    for k, f in enumerate(fs):
+        n = int(length[k])
+        lf = LatticeField.with_values(f, psi[k, :n].clone())
+        out.append(ServeResult(field=lf.to_dataarray(), complete=not bool(failed[k]), reason=status[k], slices=n,
+                               newton_iterations=int(iters[k]), max_newton_iterations=int(max_iters[k]),
+                               wall_time=wall, sites_per_second=solved / wall if wall > 0 else math.inf,
+                               max_residual=float(last_res[k]), mode=mode))
+    return out
+
+
+# -- public ----------------------------------------------------------------------------------------------------
+def serve(model: AbstractLagrangian, init: xr.DataArray | Sequence[xr.DataArray], *, steps: int | None = None,
+          boundary: BoundaryKinds | None = None, mode: str = "newton", rtol: float = 1e-10, max_newton: int = 30,
+          box: float | None = None, progress: bool | None = None) -> ServeResult | list[ServeResult]:
+    """Predict a field from its first two time slices (and boundary strips) with the learned ``L_d``.
+
+    Parameters
+    ----------
+    model : AbstractLagrangian
+        A learned (or analytic) model.
+    init : DataArray, or a list of 1D DataArrays
+        The first two time slices, and for Dirichlet axes the boundary strips
+        on every slice to serve (so usually the whole reference field). A
+        list of 1D fields is served as one batch.
+    steps : int, optional
+        Number of time slices of the served field, the two initial ones
+        included (default: the length of ``init`` along time).
+    boundary : "dirichlet", "periodic" or dict axis -> kind, optional
+        Per spatial axis; default from the coordinates' ``periodic`` attribute,
+        else Dirichlet.
+    mode : "newton" or "sweep"
+        Whole-slice Newton (fast) or the paper's site-by-site sweep (reference).
+    rtol : float
+        Newton stops when the residual is below ``rtol`` times the size of the
+        kinetic terms.
+    box : float, optional
+        1D only: a trajectory stops (completed) once ``|psi| > box``.
+    progress : bool, optional
+        Progress bar; ``None`` shows it only on a terminal.
+
+    Returns
+    -------
+    ServeResult, or a list of them for a list ``init``.
+
+    Raises
+    ------
+    ServeError
+        When Newton fails; the message names the slice, site and residual,
+        and ``err.result`` holds what was solved.
+
+    Examples
+    --------
+    Störmer–Verlet for the harmonic oscillator, served from its Lagrangian:
+
+    >>> import numpy as np, xarray as xr, latticedft as ldft
+    >>> osc = ldft.lagrangians.verlet(lambda q: 0.5 * q ** 2)
+    >>> t = np.arange(2) * 0.1
+    >>> init = xr.DataArray([1.0, np.cos(0.1)], dims="t", coords={"t": t}, name="psi")
+    >>> out = ldft.serve(osc, init, steps=64)
+    >>> out.complete, out.field.sizes["t"]
+    (True, 64)
+    """
+    if mode not in MODES:
+        raise InputError(f"mode: expected one of {list(MODES)}, got {mode!r}")
+    if not (isinstance(rtol, float) and 0 < rtol < 1):
+        raise InputError(f"rtol: expected a float in (0, 1), got {rtol!r}")
+    if box is not None and not (isinstance(box, (int, float)) and box > 0):
+        raise InputError(f"box: expected a positive number, got {box!r}")
+    batch = isinstance(init, (list, tuple))
+    items = list(init) if batch else [init]
+    if not items:
+        raise InputError("init: no initial fields given")
+    fs = [as_lattice_field(d, source="init" if not batch else f"init[{k}]", boundary=boundary, min_slices=2)
+          for k, d in enumerate(items)]
+    _prepare_model(model, fs[0])
+    for k, f in enumerate(fs):
+        _check_model_lattice(model, f, "init" if not batch else f"init[{k}]")
+    n = fs[0].ndim
+    if n == 1:
+        results = _serve_batch(model, fs, [_steps(steps, f) for f in fs], mode, rtol, max_newton, box, progress)
+        failed = [r for r in results if not r.complete]
+        if failed:
+            first = failed[0]
+            raise ServeError(first.reason, result=results if batch else first)
+        return results if batch else results[0]
+    if box is not None:
+        raise InputError("box: stopping when leaving a box is for 1D trajectories only")
+    out = [_serve_field(model, f, _steps(steps, f), mode, rtol, max_newton, progress) for f in fs]
+    return out if batch else out[0]
