@@ -1,0 +1,279 @@
+"""The stages of a case run: check, train, serve, export (used by the command line).
+
+Each stage logs INFO lines (to stderr via the CLI) and DEBUG details (to
+``results/run.log``). Bad input raises :class:`latticedft.InputError` or
+:class:`latticedft.ConfigError` before anything is written.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from ._case import Case, ServeTask, load_invariant
+from ._errors import ConfigError, InputError, LatticeDFTError, ServeError
+from ._lattice import as_lattice_field
+from .io.fields import field_spacing, lattice_dims, read_field
+
+__all__ = ["CaseData", "TaskData", "TaskOutcome", "check_case", "train_model", "serve_task"]
+
+log = logging.getLogger("latticedft")
+
+
+@dataclass
+class TaskData:
+    """What one serving task needs: the initial field, its reference and baseline."""
+
+    task: ServeTask
+    init: xr.DataArray
+    reference: xr.DataArray | None
+    baseline: xr.DataArray | None
+    steps: int
+    invariant: Callable[[xr.DataArray], Any] | None = None
+
+
+@dataclass
+class CaseData:
+    """Every field a case reads, validated."""
+
+    train: list[xr.DataArray]
+    tasks: list[TaskData]
+    dims: tuple[str, ...]
+    spacing: tuple[float, ...]
+    components: tuple[str, ...] | None
+
+    def summary_lines(self, case: Case) -> list[str]:
+        lines = [f"case {case.name}: lattice dims {self.dims}, spacing "
+                 f"{tuple(float(f'{h:.6g}') for h in self.spacing)}"
+                 + (f", components {list(self.components)}" if self.components else "")]
+        opts = ", ".join(f"{k}={v!r}" for k, v in case.model.options.items())
+        lines.append(f"model: {case.model.kind}({opts})" + (f", stencil {case.model.stencil}" if case.model.stencil
+                                                             else ""))
+        for path, da in zip(case.train.data, self.train):
+            lines.append(f"train: {_rel(path, case.root)} {dict(da.sizes)}")
+        for td in self.tasks:
+            t = td.task
+            lines.append(f"serve {t.name}: from {_rel(t.source, case.root)} {dict(td.init.sizes)}, "
+                         f"{td.steps} slices, boundary {t.boundary or 'from file/dirichlet'}, mode {t.mode}"
+                         + (", reference" if td.reference is not None else ", no reference")
+                         + (", baseline" if td.baseline is not None else ""))
+        return lines
+
+
+def _rel(path: Path, root: Path) -> str:
+    try:
+        return str(path.relative_to(root))
+    except ValueError:
+        return str(path)
+
+
+def _same_spacing(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
+    return len(a) == len(b) and all(math.isclose(x, y, rel_tol=1e-6) for x, y in zip(a, b))
+
+
+def _components(da: xr.DataArray) -> tuple[str, ...] | None:
+    if "component" not in da.dims:
+        return None
+    return tuple(str(c) for c in da.coords["component"].values.tolist())
+
+
+def _read(path: Path, case: Case, components: tuple[str, ...] | None) -> xr.DataArray:
+    return read_field(path, case.field.variable, components=list(components) if components else None)
+
+
+def _boundary_error(exc: LatticeDFTError, key: str) -> ConfigError:
+    text = str(exc)
+    if text.startswith("boundary:"):
+        text = text[len("boundary:"):].strip()
+    return ConfigError(f"case.toml: {key}: {text}")
+
+
+def check_case(case: Case) -> CaseData:
+    """Read and validate every field of the case (nothing is written)."""
+    comps = case.field.components
+    train: list[xr.DataArray] = []
+    dims: tuple[str, ...] = ()
+    spacing: tuple[float, ...] = ()
+    for path in case.train.data:
+        da = _read(path, case, comps)
+        if comps is None:
+            comps = _components(da)
+            if comps is None and train:
+                pass
+        if not train:
+            dims, spacing = lattice_dims(da), field_spacing(da, str(path))
+            first = path
+        else:
+            if lattice_dims(da) != dims:
+                raise InputError(f"{path}: lattice dims {lattice_dims(da)} differ from {dims} of {first}")
+            if not _same_spacing(field_spacing(da, str(path)), spacing):
+                raise InputError(f"{path}: spacing {field_spacing(da, str(path))} differs from {spacing} of {first}")
+        try:
+            as_lattice_field(da, source=str(path), boundary=case.train.boundary)
+        except ConfigError:
+            raise
+        except InputError as exc:
+            if str(exc).startswith("boundary:"):
+                raise _boundary_error(exc, "train.boundary") from None
+            raise
+        train.append(da)
+    if comps is None and any(_components(d) is not None for d in train):  # pragma: no cover - caught above
+        raise InputError("train.data: some files have components and some do not")
+    tasks = [_check_task(case, t, dims, spacing, comps) for t in case.serve]
+    return CaseData(train=train, tasks=tasks, dims=dims, spacing=spacing, components=comps)
+
+
+def _check_task(case: Case, t: ServeTask, dims: tuple[str, ...], spacing: tuple[float, ...],
+                comps: tuple[str, ...] | None) -> TaskData:
+    init = _read(t.source, case, comps)
+    if lattice_dims(init) != dims:
+        raise InputError(f"{t.source}: lattice dims {lattice_dims(init)} differ from the training data's {dims} "
+                         f"({t.label}.from)")
+    if not _same_spacing(field_spacing(init, str(t.source)), spacing):
+        raise InputError(f"{t.source}: spacing {field_spacing(init, str(t.source))} differs from the training "
+                         f"data's {spacing}; a learned L_d serves on the lattice it was learned on")
+    nt = init.sizes[dims[0]]
+    if nt < 2:
+        raise InputError(f"{t.source}: holds {nt} time slice(s); expected at least the first two")
+    steps = t.steps if t.steps is not None else nt
+    try:
+        f = as_lattice_field(init, source=str(t.source), boundary=t.boundary, min_slices=2)
+    except InputError as exc:
+        if str(exc).startswith("boundary:"):
+            raise _boundary_error(exc, f"{t.label}.boundary") from None
+        raise
+    dirichlet = [f.dims[k] for k in range(1, f.ndim) if not f.periodic[k]]
+    if dirichlet and steps > nt:
+        raise ConfigError(f"case.toml: {t.label}.steps: {steps} slices need the Dirichlet strips along "
+                          f"{dirichlet[0]!r} on every slice, but {t.source.name} holds {nt}; give the whole field "
+                          "or fewer steps")
+    if t.box is not None and len(dims) != 1:
+        raise ConfigError(f"case.toml: {t.label}.box: stopping at a box is for 1D trajectories only")
+    if t.reference is not None:
+        ref = _read(t.reference, case, comps)
+        if ref.shape[1:] != init.shape[1:] or lattice_dims(ref) != dims:
+            raise InputError(f"{t.reference}: shape {dict(ref.sizes)} does not match {t.source.name} "
+                             f"{dict(init.sizes)} beyond time ({t.label}.reference)")
+    else:
+        ref = init if nt > 2 else None
+    base = None
+    if t.baseline is not None:
+        base = _read(t.baseline, case, comps)
+        if base.shape[1:] != init.shape[1:] or lattice_dims(base) != dims:
+            raise InputError(f"{t.baseline}: shape {dict(base.sizes)} does not match {t.source.name} "
+                             f"{dict(init.sizes)} beyond time ({t.label}.baseline)")
+        if ref is None:
+            raise ConfigError(f"case.toml: {t.label}.baseline: a baseline needs a reference to be scored against")
+    inv = None
+    if t.invariant is not None:
+        try:
+            inv = load_invariant(t.invariant, case.root)
+        except ConfigError as exc:
+            raise ConfigError(f"case.toml: {t.label}.{exc}") from None
+    return TaskData(task=t, init=init, reference=ref, baseline=base, steps=steps, invariant=inv)
+
+
+def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
+    """Build the model of ``[model]`` and learn it from the training fields."""
+    from ._learn import learn
+
+    model = case.model.build(len(data.dims))
+    log.info("training %s model on %d field(s) ...", case.model.kind, len(data.train))
+    try:
+        report = learn(model, data.train, boundary=case.train.boundary, progress=None, **case.train.learn)
+    except ConfigError:
+        raise
+    except InputError as exc:
+        key = str(exc).split(":", 1)[0]
+        if key in case.train.learn:
+            raise ConfigError(f"case.toml: train.{exc}") from None
+        raise
+    log.info("%s", report.summary_line())
+    log.debug("training report: %s", {k: v for k, v in report.to_dict().items() if k != "history"})
+    if report.hessian_min_sv < 1e-8:
+        log.warning("the mixed time Hessian M is nearly singular over the data (min sv %.2e): serving may fail",
+                    report.hessian_min_sv)
+    return model, report
+
+
+@dataclass
+class TaskOutcome:
+    """A served task: its field, reference and the numbers that go into summary.json."""
+
+    name: str
+    field: xr.DataArray
+    reference: xr.DataArray | None
+    invariant: xr.DataArray | None
+    record: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def complete(self) -> bool:
+        return bool(self.record.get("complete"))
+
+
+def serve_task(model: Any, td: TaskData) -> TaskOutcome:
+    """Serve one task; a Newton failure gives an incomplete outcome (with a warning), not an exception."""
+    from ._serve import compare, serve
+
+    t = td.task
+    log.info("serving %s: %d slices from %s (%s)", t.name, td.steps, t.source.name, t.mode)
+    t0 = time.perf_counter()
+    try:
+        result = serve(model, td.init, progress=None, **t.serve_kwargs())
+    except ServeError as err:
+        result = err.result
+        if isinstance(result, list):  # pragma: no cover - a single init gives one result
+            result = result[0]
+        log.warning("task %s stopped at %s; %d of %d slices written", t.name, err, result.slices, td.steps)
+    wall = time.perf_counter() - t0
+    pred = result.field
+    rec: dict[str, Any] = result.to_dict()
+    rec["wall_time"] = wall
+    rec["steps"] = td.steps
+    rec["from"] = t.source.name
+    rec["reference"] = None
+    if td.reference is not None:
+        cmp = compare(pred, td.reference)
+        rec.update(max_error=cmp["max_error"], rms_error=cmp["rms_error"], compared_slices=cmp["slices"])
+        rec["reference"] = (t.reference or t.source).name
+        if td.baseline is not None:
+            b = compare(td.baseline, td.reference)
+            b_same = compare(td.baseline.isel({pred.dims[0]: slice(0, cmp["slices"])}), td.reference)
+            rec["baseline"] = {"file": t.baseline.name if t.baseline else None, "max_error": b["max_error"],
+                               "rms_error": b["rms_error"], "slices": b["slices"],
+                               "max_error_same_slices": b_same["max_error"],
+                               "rms_error_same_slices": b_same["rms_error"]}
+    inv = None
+    if td.invariant is not None:
+        try:
+            inv = td.invariant(pred)
+            values = np.asarray(inv, dtype=np.float64)
+            if not isinstance(inv, xr.DataArray) or inv.dims != (pred.dims[0],):
+                raise TypeError(f"expected a DataArray over {pred.dims[0]!r}, got {type(inv).__name__}")
+        except Exception as exc:
+            raise InputError(f"{t.label}.invariant {t.invariant!r}: failed on the served field "
+                             f"({type(exc).__name__}: {' '.join(str(exc).split())[:120]})") from None
+        finite = values[np.isfinite(values)]
+        if finite.size and finite[0] != 0:
+            rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0])) / abs(finite[0]))
+        else:
+            rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0]))) if finite.size else None
+        rec["invariant"] = t.invariant
+    msg = (f"task {t.name}: {'complete' if result.complete else 'INCOMPLETE'}, {result.slices} slices, "
+           f"{result.newton_iterations} Newton iterations, {wall:.2f} s")
+    if "max_error" in rec:
+        msg += f", max error {rec['max_error']:.3e}, rms {rec['rms_error']:.3e}"
+    if "baseline" in rec:
+        msg += f" (baseline max {rec['baseline']['max_error_same_slices']:.3e})"
+    if "invariant_drift" in rec and rec["invariant_drift"] is not None:
+        msg += f", invariant drift {rec['invariant_drift']:.2e}"
+    log.info("%s", msg)
+    return TaskOutcome(name=t.name, field=pred, reference=td.reference, invariant=inv, record=rec)

@@ -1,0 +1,231 @@
+"""Results of a run (DESIGN.md §2): staging folder, model files, task files, exports, summary.
+
+Everything is first written into a temporary folder beside the destination
+(``CASE/.results.tmp-XXXX``) and renamed to ``CASE/results/`` only when the
+stage succeeded, so a failed or interrupted run never leaves a half-written
+``results/`` and never touches the previous one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import platform
+import shutil
+import uuid
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from ._errors import InputError
+
+__all__ = ["Staging", "write_model", "write_task", "export_task", "read_task", "write_summary",
+           "read_summary", "versions", "json_safe", "RUN_LOG"]
+
+log = logging.getLogger("latticedft")
+RUN_LOG = "run.log"
+
+
+class Staging:
+    """A temporary folder beside ``dest`` that replaces ``dest`` on :meth:`publish`.
+
+    ``copy_existing=True`` starts from a copy of an existing ``dest`` (stages
+    that update results: ``serve``, ``export``).
+    """
+
+    def __init__(self, dest: Path, *, copy_existing: bool = False):
+        self.dest = Path(dest)
+        self.dest.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = self.dest.parent / f"{self.dest.name}.tmp-{uuid.uuid4().hex[:10]}"
+        if copy_existing and self.dest.is_dir():
+            shutil.copytree(self.dest, self.tmp)
+        else:
+            self.tmp.mkdir()
+        self.published = False
+
+    def publish(self) -> Path:
+        old = None
+        if self.dest.exists():
+            old = self.dest.parent / f"{self.dest.name}.tmp-old-{uuid.uuid4().hex[:10]}"
+            os.rename(self.dest, old)
+        try:
+            os.rename(self.tmp, self.dest)
+        except BaseException:
+            if old is not None:
+                os.rename(old, self.dest)
+            raise
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        self.published = True
+        return self.dest
+
+    def discard(self) -> None:
+        if not self.published:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+def versions() -> dict[str, str]:
+    import torch
+
+    from . import __version__
+
+    return {"latticedft": __version__, "torch": torch.__version__, "numpy": np.__version__,
+            "xarray": xr.__version__, "python": platform.python_version()}
+
+
+def json_safe(obj: Any) -> Any:
+    """Recursively turn numpy scalars/arrays, paths and non-finite floats into JSON values (nan/inf -> None)."""
+    if isinstance(obj, Mapping):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_safe(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    if obj is None or isinstance(obj, str):
+        return obj
+    return str(obj)
+
+
+def _write_json(path: Path, data: Any) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(json_safe(data), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def write_model(folder: Path, model: Any, report: Any, meta: Mapping[str, Any]) -> dict[str, Any]:
+    """``model.pt`` (:func:`latticedft.save_model`) and ``model.json`` (same record, no tensors)."""
+    from ._modelfile import model_record, save_model
+
+    pt = save_model(model, folder / "model.pt", gauge=report.gauge if report is not None else None)
+    record = model_record(model, report.gauge if report is not None else "unit-mass")
+    record["n_parameters"] = model.n_parameters()
+    record["training"] = report.to_dict() if report is not None else None
+    record["sha256"] = sha256(pt)
+    record["file"] = pt.name
+    record.update(meta)
+    _write_json(folder / "model.json", record)
+    log.debug("wrote %s (sha256 %s) and model.json", pt.name, record["sha256"])
+    return record
+
+
+def _config_attr(config: Mapping[str, Any]) -> str:
+    return json.dumps(json_safe(config), sort_keys=True)
+
+
+def align_reference(pred: xr.DataArray, ref: xr.DataArray | None) -> xr.DataArray | None:
+    """``ref`` on ``pred``'s slices (truncated to them), or None when it is shorter or on another lattice."""
+    if ref is None:
+        return None
+    tdim = pred.dims[0]
+    n = pred.sizes[tdim]
+    if ref.sizes.get(tdim, 0) < n or ref.shape[1:] != pred.shape[1:]:
+        return None
+    return pred.copy(data=np.asarray(ref.values[:n], dtype=np.float64))
+
+
+def write_task(folder: Path, name: str, variable: str, pred: xr.DataArray, ref: xr.DataArray | None,
+               invariant: xr.DataArray | None, *, attrs: Mapping[str, Any], history: str) -> Path:
+    """``<name>.nc``: the served field, ``<var>_ref`` and ``<var>_err`` when a reference covers it."""
+    pred = pred.rename(variable)
+    pred.attrs = {**pred.attrs, "long_name": f"{variable} served by the learned theory"}
+    fields: dict[str, xr.DataArray] = {variable: pred}
+    ref_al = align_reference(pred, ref)
+    if ref_al is not None:
+        fields[f"{variable}_ref"] = ref_al.assign_attrs(long_name=f"reference {variable}")
+        err = (pred - ref_al).assign_attrs(long_name=f"{variable} - {variable}_ref")
+        fields[f"{variable}_err"] = err
+    if invariant is not None:
+        fields["invariant"] = invariant.rename("invariant")
+    return write_field(folder / f"{name}.nc", fields, attrs=attrs, history=history)
+
+
+def write_field(path: Path, fields: Mapping[str, xr.DataArray], *, attrs: Mapping[str, Any], history: str) -> Path:
+    from .io.fields import write_field as _write
+
+    return _write(path, fields, attrs=dict(attrs), history=history)
+
+
+def read_task(path: Path, variable: str) -> tuple[xr.DataArray, xr.DataArray | None, xr.DataArray | None]:
+    """Reload ``<name>.nc``: (served field, reference or None, error or None)."""
+    from .io.fields import read_field
+
+    if not path.is_file():
+        raise InputError(f"{path}: file not found; run `latticedft serve` first")
+    with xr.open_dataset(path, engine="netcdf4", decode_times=False) as ds:
+        names = set(str(v) for v in ds.data_vars)
+    pred = read_field(path, variable, allow_nan=True)
+    ref = read_field(path, f"{variable}_ref") if f"{variable}_ref" in names else None
+    err = read_field(path, f"{variable}_err", allow_nan=True) if f"{variable}_err" in names else None
+    return pred, ref, err
+
+
+def export_task(folder: Path, name: str, variable: str, pred: xr.DataArray, ref: xr.DataArray | None,
+                err: xr.DataArray | None, *, paraview: bool, figures: bool, max_frames: int | None,
+                train: list[xr.DataArray] | None = None, title: str | None = None) -> list[Path]:
+    """ParaView files (``<name>.pvd`` + frames) and the figure ``<name>.png``."""
+    written: list[Path] = []
+    pred = pred.rename(variable)
+    if paraview:
+        from .io.vtk import write_paraview
+
+        extra = {}
+        if ref is not None and err is not None:
+            extra = {f"{variable}_ref": ref, f"{variable}_err": err}
+        written += write_paraview(folder, name, pred, extra, max_frames=max_frames)
+    if figures:
+        from .io.figures import plot_prediction
+
+        full_ref = ref
+        written.append(plot_prediction(folder / f"{name}.png", pred, full_ref, title=title or name,
+                                       train=train if len(pred.dims) == 1 or pred.dims[1:] == ("component",)
+                                       else None))
+    for p in written:
+        log.debug("wrote %s", p.name)
+    return written
+
+
+def write_summary(folder: Path, summary: Mapping[str, Any]) -> Path:
+    path = folder / "summary.json"
+    _write_json(path, summary)
+    return path
+
+
+def read_summary(folder: Path) -> dict[str, Any] | None:
+    path = folder / "summary.json"
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable summary ({type(exc).__name__})") from None
+    return data if isinstance(data, dict) else None
+
+
+def config_attrs(config: Mapping[str, Any], overrides: tuple[str, ...], command: str) -> dict[str, Any]:
+    """Global attributes of a task file."""
+    from . import __version__
+
+    return {"source": f"latticedft {__version__}", "latticedft_config": _config_attr(config),
+            "latticedft_overrides": json.dumps(list(overrides)), "latticedft_command": command}

@@ -1,0 +1,64 @@
+"""The ``latticedft`` command line (stdlib argparse; one module per subcommand).
+
+``main(argv)`` returns the exit status: 0 when every stage and task
+completed, 1 for bad input (a one-line message on stderr, nothing written),
+3 when a serving task stopped part-way (its partial field is still written
+and the results are published).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .._errors import LatticeDFTError
+from . import check as _check
+from . import export as _export
+from . import info as _info
+from . import run as _run
+from . import serve as _serve
+from . import train as _train
+from ._common import BAD_INPUT, detach, setup_logging
+
+__all__ = ["main", "build_parser"]
+
+SUBCOMMANDS = {"run": _run, "check": _check, "train": _train, "serve": _serve, "export": _export, "info": _info}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .. import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="latticedft",
+        description="Learn a discrete field theory from lattice data and serve it (H. Qin, Sci. Rep. 10, "
+                    "19329, 2020). Runs case folders: CASE/case.toml, CASE/data/ -> CASE/results/.")
+    parser.add_argument("--version", action="version", version=f"latticedft {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, mod in SUBCOMMANDS.items():
+        mod.add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, usage errors
+        return int(exc.code or 0) if not isinstance(exc.code, str) else 2
+    handler = setup_logging(args)
+    try:
+        return int(SUBCOMMANDS[args.command].main(args, argv))
+    except LatticeDFTError as exc:
+        print(f"latticedft: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return BAD_INPUT
+    except KeyboardInterrupt:
+        print("latticedft: interrupted; nothing was published", file=sys.stderr)
+        return 130
+    finally:
+        detach(handler)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

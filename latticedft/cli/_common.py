@@ -1,0 +1,116 @@
+"""Shared pieces of the subcommands: arguments, logging, the results folder, the summary."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import logging
+import os
+import shlex
+import sys
+from pathlib import Path
+from typing import Any
+
+from .._case import Case, load_case
+from .._errors import InputError
+from .._results import RUN_LOG, versions
+
+log = logging.getLogger("latticedft")
+
+#: exit statuses
+OK, BAD_INPUT, INCOMPLETE = 0, 1, 3
+
+
+def add_case_arguments(p: argparse.ArgumentParser, *, overwrite: bool = False, out: bool = True) -> None:
+    p.add_argument("case", help="case folder (holding case.toml)")
+    if out:
+        p.add_argument("--out", metavar="DIR", help="results folder (default: CASE/results)")
+    p.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
+                   help="override a case.toml key for this run (TOML value), e.g. model.orders=[2,2], "
+                        "train.max_time=10, serve.test.steps=30; repeatable")
+    if overwrite:
+        p.add_argument("--overwrite", action="store_true", help="replace an existing results folder")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors on stderr")
+    g.add_argument("-v", "--verbose", action="store_true", help="debug messages on stderr too")
+
+
+class _Formatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        msg = record.getMessage()
+        if record.levelno >= logging.WARNING:
+            return f"latticedft: {record.levelname.lower()}: {msg}"
+        return msg
+
+
+def setup_logging(args: argparse.Namespace) -> logging.Handler:
+    """INFO (or WARNING with -q, DEBUG with -v) to the current stderr."""
+    log.setLevel(logging.DEBUG)
+    log.propagate = False
+    handler = logging.StreamHandler(sys.stderr)
+    level = logging.WARNING if getattr(args, "quiet", False) else (
+        logging.DEBUG if getattr(args, "verbose", False) else logging.INFO)
+    handler.setLevel(level)
+    handler.setFormatter(_Formatter())
+    log.addHandler(handler)
+    return handler
+
+
+def attach_run_log(folder: Path) -> logging.Handler:
+    """DEBUG lines, with times, appended to ``folder/run.log``."""
+    handler = logging.FileHandler(folder / RUN_LOG, encoding="utf-8")
+    handler.setLevel(logging.DEBUG)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    log.addHandler(handler)
+    return handler
+
+
+def detach(handler: logging.Handler | None) -> None:
+    if handler is not None:
+        log.removeHandler(handler)
+        handler.close()
+
+
+def command_line(argv: list[str]) -> str:
+    return "latticedft " + " ".join(shlex.quote(a) for a in argv)
+
+
+def open_case(args: argparse.Namespace) -> Case:
+    case = load_case(args.case, args.overrides)
+    log.debug("case %s, overrides %s", case.root, list(case.overrides))
+    return case
+
+
+def results_dir(args: argparse.Namespace, case: Case) -> Path:
+    out = getattr(args, "out", None)
+    return Path(out) if out else case.results
+
+
+def refuse_existing(dest: Path, args: argparse.Namespace) -> None:
+    if dest.exists() and not getattr(args, "overwrite", False):
+        raise InputError(f"{_show(dest)}/ exists; use --overwrite to replace it")
+
+
+def require_results(dest: Path, what: str) -> None:
+    if not (dest / what).is_file():
+        raise InputError(f"{_show(dest)}/{what}: not found; run `latticedft run` (or `train`) first")
+
+
+def _show(p: Path) -> str:
+    try:
+        return os.path.relpath(p)
+    except ValueError:  # pragma: no cover - other drive on Windows
+        return str(p)
+
+
+def set_threads(case: Case) -> None:
+    import torch
+
+    torch.set_num_threads(case.run.threads)
+    log.debug("torch threads: %d", case.run.threads)
+
+
+def summary_head(case: Case, argv: list[str], stage: str) -> dict[str, Any]:
+    return {"case": case.name, "case_path": str(case.root), "stage": stage, "command": command_line(argv),
+            "versions": versions(), "overrides": list(case.overrides), "config": case.raw,
+            "finished": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}

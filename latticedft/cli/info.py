@@ -1,0 +1,58 @@
+"""``latticedft info CASE``: print the case and, when results/ holds one, the learned model and its summary."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+
+from .._modelfile import load_model
+from .._results import read_summary
+from ._common import OK, add_case_arguments, open_case, results_dir
+
+log = logging.getLogger("latticedft")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("info", help="print the case and the learned model (if any)", description=__doc__)
+    add_case_arguments(p)
+
+
+def _fmt(v: object) -> str:
+    return f"{v:.3e}" if isinstance(v, float) else str(v)
+
+
+def main(args: argparse.Namespace, argv: list[str]) -> int:
+    case = open_case(args)
+    print(f"case {case.name} ({case.root})")
+    opts = ", ".join(f"{k}={v!r}" for k, v in case.model.options.items())
+    print(f"  model: {case.model.kind}({opts})" + (f", stencil {case.model.stencil}" if case.model.stencil else ""))
+    print(f"  train: {', '.join(case.train.patterns)} -> {len(case.train.data)} file(s)")
+    for t in case.serve:
+        print(f"  serve {t.name}: from {t.source.name}, steps {t.steps or 'all'}, mode {t.mode}")
+    if case.overrides:
+        print(f"  overrides: {', '.join(case.overrides)}")
+    dest = results_dir(args, case)
+    if not (dest / "model.pt").is_file():
+        print(f"no learned model in {dest}")
+        return OK
+    model = load_model(dest / "model.pt")
+    print(f"learned model ({dest / 'model.pt'}):")
+    print(model)
+    summary = read_summary(dest)
+    if summary:
+        train = summary.get("train") or {}
+        keys = ("loss", "rel_res", "iterations", "wall_time", "gauge_residual", "hessian_min_sv", "hessian_cond")
+        print("training: " + ", ".join(f"{k} {_fmt(train[k])}" for k in keys if k in train))
+        for name, t in (summary.get("tasks") or {}).items():
+            parts = [("complete" if t.get("complete") else "INCOMPLETE"), f"{t.get('slices')} slices"]
+            for k in ("max_error", "rms_error", "newton_iterations", "wall_time", "sites_per_second",
+                      "invariant_drift"):
+                if t.get(k) is not None:
+                    parts.append(f"{k} {_fmt(t[k])}")
+            if t.get("baseline"):
+                parts.append(f"baseline max_error {_fmt(t['baseline'].get('max_error_same_slices'))}")
+            print(f"task {name}: " + ", ".join(parts))
+        print(f"exit status of the last run: {summary.get('exit_status')}; versions "
+              f"{json.dumps(summary.get('versions', {}))}")
+    return OK

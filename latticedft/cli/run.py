@@ -1,0 +1,49 @@
+"""``latticedft run CASE``: check, train, serve every task, export; publish CASE/results/."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+
+from .._pipeline import check_case
+from .._results import Staging
+from ._common import (add_case_arguments, attach_run_log, detach, open_case, refuse_existing, results_dir,
+                      set_threads, summary_head)
+from ._work import finish, serve_into, train_into
+
+log = logging.getLogger("latticedft")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="check, train, serve every task and export (the whole case)",
+                       description=__doc__)
+    add_case_arguments(p, overwrite=True)
+
+
+def main(args: argparse.Namespace, argv: list[str]) -> int:
+    t0 = time.perf_counter()
+    case = open_case(args)
+    dest = results_dir(args, case)
+    refuse_existing(dest, args)
+    set_threads(case)
+    data = check_case(case)
+    log.info("checked %s: %d training field(s), %d serving task(s)", case.name, len(data.train), len(data.tasks))
+    staging = Staging(dest)
+    handler = attach_run_log(staging.tmp)
+    try:
+        for line in data.summary_lines(case):
+            log.debug("%s", line)
+        model, train = train_into(staging.tmp, case, data, argv)
+        tasks = serve_into(staging.tmp, case, data, model, argv)
+        summary = summary_head(case, argv, "run")
+        summary.update(train=train, tasks=tasks, wall_time=time.perf_counter() - t0)
+        status = finish(staging.tmp, summary)
+        log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
+        detach(handler)
+        handler = None
+        staging.publish()
+    finally:
+        detach(handler)
+        staging.discard()
+    return status

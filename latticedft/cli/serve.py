@@ -1,0 +1,49 @@
+"""``latticedft serve CASE``: serve every task with the learned results/model.pt, re-export, update results/."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+
+from .._modelfile import load_model
+from .._pipeline import check_case
+from .._results import Staging, read_summary
+from ._common import (add_case_arguments, attach_run_log, detach, open_case, require_results, results_dir,
+                      set_threads, summary_head)
+from ._work import finish, serve_into
+
+log = logging.getLogger("latticedft")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="serve every task with an existing results/model.pt",
+                       description=__doc__)
+    add_case_arguments(p)
+
+
+def main(args: argparse.Namespace, argv: list[str]) -> int:
+    t0 = time.perf_counter()
+    case = open_case(args)
+    dest = results_dir(args, case)
+    require_results(dest, "model.pt")
+    model = load_model(dest / "model.pt")
+    old = read_summary(dest) or {}
+    set_threads(case)
+    data = check_case(case)
+    staging = Staging(dest, copy_existing=True)
+    handler = attach_run_log(staging.tmp)
+    try:
+        log.debug("serving with %s", dest / "model.pt")
+        tasks = serve_into(staging.tmp, case, data, model, argv)
+        summary = summary_head(case, argv, "serve")
+        summary.update(train=old.get("train"), tasks=tasks, wall_time=time.perf_counter() - t0)
+        status = finish(staging.tmp, summary)
+        detach(handler)
+        handler = None
+        staging.publish()
+        log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
+    finally:
+        detach(handler)
+        staging.discard()
+    return status

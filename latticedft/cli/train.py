@@ -1,0 +1,45 @@
+"""``latticedft train CASE``: check and train only; publish results/ holding the model."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+
+from .._pipeline import check_case
+from .._results import Staging
+from ._common import (add_case_arguments, attach_run_log, detach, open_case, refuse_existing, results_dir,
+                      set_threads, summary_head)
+from ._work import finish, train_into
+
+log = logging.getLogger("latticedft")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="learn the model only (results/ with model.pt, model.json, summary.json)",
+                       description=__doc__)
+    add_case_arguments(p, overwrite=True)
+
+
+def main(args: argparse.Namespace, argv: list[str]) -> int:
+    t0 = time.perf_counter()
+    case = open_case(args)
+    dest = results_dir(args, case)
+    refuse_existing(dest, args)
+    set_threads(case)
+    data = check_case(case)
+    staging = Staging(dest)
+    handler = attach_run_log(staging.tmp)
+    try:
+        _, train = train_into(staging.tmp, case, data, argv)
+        summary = summary_head(case, argv, "train")
+        summary.update(train=train, tasks={}, wall_time=time.perf_counter() - t0)
+        status = finish(staging.tmp, summary)
+        detach(handler)
+        handler = None
+        staging.publish()
+        log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
+    finally:
+        detach(handler)
+        staging.discard()
+    return status
