@@ -501,3 +501,24 @@ def test_sine_gordon_energy():
 def test_sine_gordon_rejects(call, arg):
     with pytest.raises(InputError, match=arg):
         call()
+
+
+def test_field_energy_string_membrane_and_klein_gordon():
+    # standing mode of a string: E = (k pi / L)^2 A^2 L / 4 (c = 1)
+    s = S.wave_string([(2, 0.5, 0.3)], nx=801, nt=9)
+    e = S.wave_energy(s)
+    assert e.dims == ("t",) and e.sizes["t"] == 9
+    np.testing.assert_array_equal(e["t"].values, s["t"].values)
+    np.testing.assert_allclose(e.values, (2 * np.pi) ** 2 * 0.25 / 4, rtol=1e-4)
+    # membrane mode (k, l) on the unit square: E = omega^2 A^2 / 8
+    m = S.wave_membrane([(1, 2, 0.3)], nx=201, ny=201, nt=5)
+    np.testing.assert_allclose(S.wave_energy(m).values, np.pi ** 2 * 5 * 0.09 / 8, rtol=1e-3)
+    # the explicit scheme conserves the discrete energy exactly: periodic Klein-Gordon, fixed-frame membrane
+    ek = S.klein_gordon_energy(S.klein_gordon_test_field(steps=400)).values
+    assert np.ptp(ek) < 1e-12 * ek[0]
+    m0 = S.wave_membrane([(1, 1, 1.0), (3, 2, 0.2)], nx=21, ny=21, nt=2)
+    lf = S.leapfrog(m0.isel(t=0, drop=True), m0.isel(t=1, drop=True), steps=300, dt=float(m0.t[1]))
+    ew = S.wave_energy(lf).values
+    assert np.ptp(ew) < 1e-12 * ew[0]
+    with pytest.raises(InputError, match="psi"):
+        S.field_energy(np.zeros((3, 3)))  # type: ignore[arg-type]
