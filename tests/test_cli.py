@@ -141,9 +141,9 @@ def test_threads_from_case(tmp_path: Path, capsys) -> None:
 
 
 def test_subprocess_python_m(tmp_path: Path) -> None:
-    case = copy_wave(tmp_path)
+    case = tiny_wave(tmp_path)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "-m", "latticedft", "run", str(case), *FAST],
+    proc = subprocess.run([sys.executable, "-m", "latticedft", "run", str(case)],
                           capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "task test: complete" in proc.stderr and proc.stdout == ""
@@ -168,11 +168,18 @@ def test_incomplete_task_exit_3(tmp_path: Path, capsys) -> None:
 
 
 # -- bad input: exit 1, one line, nothing written, earlier results untouched -----------------------------------
+@pytest.fixture(scope="module")
+def _earlier_template(tmp_path_factory) -> Path:
+    case = tiny_wave(tmp_path_factory.mktemp("earlier"))
+    assert latticedft.cli.main(["run", str(case), "-q"]) == 0
+    return case
+
+
 @pytest.fixture()
-def earlier(tmp_path: Path, capsys) -> Path:
-    """A tiny case with earlier results."""
-    case = tiny_wave(tmp_path)
-    assert run_cli(capsys, "run", case, "-q")[0] == 0
+def earlier(tmp_path: Path, _earlier_template: Path) -> Path:
+    """A tiny case with earlier results (a copy per test)."""
+    case = tmp_path / "tiny"
+    shutil.copytree(_earlier_template, case)
     return case
 
 

@@ -1,0 +1,97 @@
+"""Results of a run: task files reload to the served field, ParaView files match them, staging is atomic."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import pyvista as pv
+from case_helpers import tiny_wave
+
+import latticedft as ldft
+from latticedft._results import Staging, json_safe
+from latticedft.cli import main
+from latticedft.io import read_field, read_pvd
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> Path:
+    case = tiny_wave(tmp_path_factory.mktemp("results"))
+    assert main(["run", str(case), "-q", "--set", "export.max_frames=30"]) == 0
+    return case
+
+
+def test_task_file_reloads_to_the_served_field(run: Path) -> None:
+    res = run / "results"
+    psi = read_field(res / "test.nc")
+    ref = read_field(res / "test.nc", "psi_ref")
+    err = read_field(res / "test.nc", "psi_err")
+    model = ldft.load_model(res / "model.pt")
+    served = ldft.serve(model, read_field(run / "data" / "test.nc")).field
+    assert psi.dims == served.dims == ("t", "x")
+    np.testing.assert_array_equal(psi.values, served.values)
+    np.testing.assert_array_equal(psi.t.values, served.t.values)
+    np.testing.assert_array_equal(ref.values, read_field(run / "data" / "test.nc").values)
+    np.testing.assert_allclose(err.values, psi.values - ref.values, rtol=0, atol=1e-15)
+    summary = json.loads((res / "summary.json").read_text())
+    assert summary["tasks"]["test"]["max_error"] == pytest.approx(float(np.abs(err.values).max()))
+    assert psi.x.attrs.get("axis") == "X" and psi.t.attrs.get("axis") == "T"
+
+
+def test_pvd_matches_the_task_file(run: Path) -> None:
+    res = run / "results"
+    psi = read_field(res / "test.nc")
+    ref = read_field(res / "test.nc", "psi_ref")
+    entries = read_pvd(res / "test.pvd")
+    assert len(entries) == psi.sizes["t"] == 30  # every slice: 30 <= max_frames
+    times = np.array([t for t, _ in entries])
+    np.testing.assert_allclose(times, psi.t.values, rtol=1e-12)
+    for i, (t, path) in enumerate(entries):
+        mesh = pv.read(path)
+        np.testing.assert_allclose(np.asarray(mesh.point_data["psi"]).ravel(), psi.values[i], rtol=0, atol=1e-14)
+        np.testing.assert_allclose(np.asarray(mesh.point_data["psi_ref"]).ravel(), ref.values[i], atol=1e-14)
+        assert float(np.asarray(mesh.field_data["TimeValue"]).ravel()[0]) == pytest.approx(t)
+        np.testing.assert_allclose(np.asarray(mesh.points)[:, 0], psi.x.values)
+    st = pv.read(res / "test_spacetime.vtr")
+    assert st.n_points == psi.size
+
+
+def test_staging_publishes_or_leaves_everything(tmp_path: Path) -> None:
+    dest = tmp_path / "results"
+    dest.mkdir()
+    (dest / "old.txt").write_text("old")
+    s = Staging(dest)
+    (s.tmp / "new.txt").write_text("new")
+    s.discard()
+    assert [p.name for p in tmp_path.iterdir()] == ["results"] and (dest / "old.txt").is_file()
+    s = Staging(dest, copy_existing=True)
+    (s.tmp / "new.txt").write_text("new")
+    s.publish()
+    s.discard()  # no-op after publish
+    assert sorted(p.name for p in dest.iterdir()) == ["new.txt", "old.txt"]
+    assert [p.name for p in tmp_path.iterdir()] == ["results"]
+
+
+def test_json_safe() -> None:
+    out = json_safe({"a": np.float64(1.5), "b": float("inf"), "c": [np.int64(2), Path("x")], "d": np.nan})
+    assert out == {"a": 1.5, "b": None, "c": [2, "x"], "d": None}
+
+
+@pytest.mark.paraview
+@pytest.mark.skipif(shutil.which("pvpython") is None, reason="pvpython not found")
+def test_paraview_opens_every_result(run: Path, tmp_path: Path) -> None:
+    from test_paraview import _run_pvpython
+
+    res = run / "results"
+    files = sorted(p for p in res.iterdir() if p.suffix in (".pvd", ".vtr", ".vtp"))
+    report = _run_pvpython(tmp_path, files)
+    assert set(report) == {str(f) for f in files}
+    psi = read_field(res / "test.nc")
+    pvd = report[str(res / "test.pvd")]
+    assert pvd["times"] == pytest.approx(psi.t.values.tolist())
+    for i, step in enumerate(pvd["steps"]):
+        assert {"psi", "psi_ref", "psi_err"} <= set(step["ranges"])
+        assert step["ranges"]["psi"] == pytest.approx([psi.values[i].min(), psi.values[i].max()], abs=1e-14)
