@@ -324,44 +324,57 @@ def _objective(model, fields, gauge, penalty, nsites, norm2):
 
 def _learn_neural(model, fields, gauge, optimizer, nsites, *, max_iter, max_time, tol, rel_tol, lr, penalty,
                   progress):
+    """Full-batch L-BFGS (strong Wolfe line search, in chunks of up to 20 iterations) or Adam."""
     norm2 = _kinetic_scale(fields, model, None) ** 2 or 1.0
     params = [p for p in model.parameters() if p.requires_grad]
+    chunk = 20 if optimizer == "lbfgs" else 1
     if optimizer == "lbfgs":
-        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=1, history_size=50, line_search_fn="strong_wolfe",
-                                tolerance_grad=1e-30, tolerance_change=1e-30)
+        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=chunk, history_size=50, line_search_fn="strong_wolfe",
+                                tolerance_grad=1e-14, tolerance_change=1e-16)
     else:
         opt = torch.optim.Adam(params, lr=lr)
-    history: list[tuple[int, float, float]] = []
-    t0 = time.perf_counter()
-    best = (math.inf, None)
-    state: dict[str, Any] = {}
+
+    def objective() -> float:
+        with torch.enable_grad():
+            return float(_objective(model, fields, gauge, penalty, nsites, norm2)[0].detach())
 
     def closure():
         opt.zero_grad()
-        obj, loss = _objective(model, fields, gauge, penalty, nsites, norm2)
+        obj, _ = _objective(model, fields, gauge, penalty, nsites, norm2)
         obj.backward()
-        state["obj"], state["loss"] = float(obj), float(loss)
         return obj
 
-    with torch.enable_grad():
-        obj0, _ = _objective(model, fields, gauge, penalty, nsites, norm2)
-    initial = float(obj0)
+    def snapshot():
+        return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+    history: list[tuple[int, float, float]] = []
+    t0 = time.perf_counter()
+    initial = objective()
+    best = (initial, snapshot())
     reason = "max_iter"
-    it = 0
+    done = 0
     bar = tqdm(total=max_iter, desc=f"train ({optimizer})", disable=None if progress is None else not progress,
                leave=False)
     try:
-        for it in range(1, max_iter + 1):
-            opt.step(closure)
-            obj = state["obj"]
+        while done < max_iter:
+            if optimizer == "lbfgs":
+                opt.param_groups[0]["max_iter"] = min(chunk, max_iter - done)
+                before = opt.state[params[0]].get("n_iter", 0)
+                opt.step(closure)
+                step_its = max(opt.state[params[0]].get("n_iter", 0) - before, 1)
+                obj = objective()
+            else:
+                obj = float(opt.step(closure).detach())  # Adam: the objective before this update
+                step_its = 1
+            done += step_its
+            history.append((done, obj, time.perf_counter() - t0))
+            bar.update(step_its)
+            bar.set_postfix(objective=f"{obj:.3e}")
             if not math.isfinite(obj):
-                reason = "non-finite loss"
+                reason = "non-finite objective"
                 break
             if obj < best[0]:
-                best = (obj, {k: v.detach().clone() for k, v in model.state_dict().items()})
-            history.append((it, obj, time.perf_counter() - t0))
-            bar.update(1)
-            bar.set_postfix(objective=f"{obj:.3e}")
+                best = (obj, snapshot())
             if obj <= tol:
                 reason = f"objective <= tol ({tol:g})"
                 break
@@ -371,11 +384,14 @@ def _learn_neural(model, fields, gauge, optimizer, nsites, *, max_iter, max_time
             if max_time is not None and time.perf_counter() - t0 >= max_time:
                 reason = f"max_time ({max_time:g} s)"
                 break
+            if optimizer == "lbfgs" and step_its < min(chunk, max_iter - done + step_its) and \
+                    len(history) > 1 and history[-2][1] - obj <= 1e-14 * abs(obj):
+                reason = "converged (no further decrease)"
+                break
     finally:
         bar.close()
-    if best[1] is not None:
-        model.load_state_dict(best[1])
-    return it, history, initial, reason
+    model.load_state_dict(best[1])
+    return done, history, initial, reason
 
 
 # -- public -----------------------------------------------------------------------------------------------------

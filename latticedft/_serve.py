@@ -356,6 +356,7 @@ def _sweep_slice(model, sys: _SliceSystem, psi, flat, i, vol, rtol, max_newton, 
 # -- 1D serving: a batch of trajectories stepped together -------------------------------------------------------
 def _serve_batch(model: AbstractLagrangian, fs: list[LatticeField], steps: list[int], mode: str, rtol: float,
                  max_newton: int, box: float | None, progress: bool | None) -> list[ServeResult]:
+    """Step a batch of 1D trajectories together; a member that fails or leaves the box retires alone."""
     st = model.stencil
     a0, a1 = st.anchor, st.forward
     b = len(fs)
@@ -365,92 +366,86 @@ def _serve_batch(model: AbstractLagrangian, fs: list[LatticeField], steps: list[
     for k, f in enumerate(fs):
         psi[k, :2] = f.values[:2]
     vol = math.prod(model.spacing)
-    length = torch.tensor(steps)
-    status = ["complete"] * b
-    done = torch.zeros(b, dtype=torch.bool)
-    failed = torch.zeros(b, dtype=torch.bool)
-    last_res = torch.zeros(b, dtype=torch.float64)
+    length = list(steps)
+    reason = ["complete"] * b
+    failed = [False] * b
+    fail_at: dict[int, tuple[int, float]] = {}
+    active = list(range(b))
+    worst = torch.zeros(b, dtype=torch.float64)
     iters = torch.zeros(b, dtype=torch.long)
     max_iters = torch.zeros(b, dtype=torch.long)
     t0 = time.perf_counter()
-    groups = [list(range(b))] if mode == "newton" else [[k] for k in range(b)]
+    groups = [active] if mode == "newton" else [[k] for k in active]
+    g_prev_all, _ = cell_derivatives(model, psi[:, 0:2], [])
+    g_prev_all = g_prev_all[:, a1].clone()  # d L(q_{i-1}, q_i) / d q_i, per member
     bar = _bar(nmax - 2, f"serve ({mode}, {b} trajectories)", progress)
-    g_prev_all = cell_derivatives(model, psi[:, 0:2], [])[0]
+
+    def retire(k: int, slices: int, why: str, bad: bool, res: float = math.nan) -> None:
+        length[k] = slices
+        reason[k] = why
+        failed[k] = bad
+        if bad:
+            fail_at[k] = (slices, res)
+
     for i in range(1, nmax - 1):
         for group in groups:
-            act = torch.tensor([k for k in group if not done[k] and length[k] > i + 1], dtype=torch.long)
-            if act.numel() == 0:
+            act_list = [k for k in group if length[k] > i + 1 and reason[k] == "complete"]
+            if not act_list:
                 continue
+            act = torch.tensor(act_list, dtype=torch.long)
+            q_now, q_old = psi[act, i], psi[act, i - 1]
             g_prev = g_prev_all[act]
-            u = 2 * psi[act, i] - psi[act, i - 1]
-            alive = torch.ones(act.numel(), dtype=torch.bool)
-            conv = torch.zeros(act.numel(), dtype=torch.bool)
+            u = 2 * q_now - q_old
+            mag = torch.maximum(torch.maximum(q_now.abs().amax(-1), q_old.abs().amax(-1)), u.abs().amax(-1))
             rscale = None
-            g_keep = g_prev.clone()
-            res = torch.full((act.numel(),), math.inf, dtype=torch.float64)
-            step_it = torch.zeros(act.numel(), dtype=torch.long)
+            ok = torch.zeros(len(act_list), dtype=torch.bool)
+            sing = torch.zeros(len(act_list), dtype=torch.bool)
             for it in range(1, max_newton + 1):
-                sel = alive & ~conv
-                if not sel.any():
-                    break
-                cells = torch.stack([psi[act[sel], i], u[sel]], dim=1)
-                g, blocks = cell_derivatives(model, cells, [(a0, a1)])
-                r = vol * (g[:, a0] + g_prev[sel][:, a1])
+                g, blocks = cell_derivatives(model, torch.stack([q_now, u], dim=1), [(a0, a1)])
+                r = vol * (g[:, a0] + g_prev)
                 rabs = r.abs().amax(-1)
-                res[sel] = rabs
-                iters[act[sel]] += 1
+                jac = vol * blocks[(a0, a1)]  # d r_i / d u_j = vol d^2 L / dx_{a0,i} dx_{a1,j}
                 if rscale is None:  # size of the kinetic terms, per trajectory
-                    mag = torch.stack([psi[act, i].abs().amax(-1), psi[act, i - 1].abs().amax(-1),
-                                       u.abs().amax(-1)]).amax(0).clamp_min(1e-300)
-                    rscale = vol * torch.linalg.matrix_norm(blocks[(a0, a1)], ord=math.inf).clamp_min(1e-300) * mag
-                step_it[sel] += 1
-                idx_sel = torch.nonzero(sel).squeeze(-1)
-                ok = rabs <= rtol * rscale[sel]
-                gk = g_keep.clone()
-                gk[idx_sel] = g
-                g_keep = gk
-                conv[idx_sel[ok]] = True
-                todo = ~ok & torch.isfinite(rabs)
-                alive[idx_sel[~torch.isfinite(rabs)]] = False
-                if not todo.any():
-                    continue
-                jac = vol * blocks[(a0, a1)][todo]  # d r_i / d u_j = vol d^2 L / dx_{a0,i} dx_{a1,j}
-                step, info = torch.linalg.solve_ex(jac, -r[todo])
-                bad = info != 0
-                tidx = idx_sel[todo]
-                alive[tidx[bad]] = False
-                good = tidx[~bad]
-                u[good] = u[good] + step[~bad]
-            for j, k in enumerate(act.tolist()):
-                max_iters[k] = max(int(max_iters[k]), int(step_it[j]))
-                if conv[j]:
-                    psi[k, i + 1] = u[j]
-                    last_res[k] = max(float(last_res[k]), float(res[j]))
-                    if box is not None and float(u[j].norm()) > box:
-                        done[k] = True
-                        length[k] = i + 2
-                        status[k] = f"left the box |psi| <= {box:g} at slice {i + 1}"
-                else:
-                    done[k] = failed[k] = True
-                    length[k] = i + 1
-                    why = "singular mixed Hessian or non-finite residual" if not alive[j] else \
+                    rscale = torch.linalg.matrix_norm(jac, ord=math.inf).clamp_min(1e-300) * mag.clamp_min(1e-300)
+                ok = rabs <= rtol * rscale
+                iters[act] += (~ok).long() if it > 1 else 1
+                if bool(ok.all()) or it == max_newton:
+                    break
+                step, info = torch.linalg.solve_ex(jac, -r)
+                sing = sing | (info != 0) | ~torch.isfinite(step).all(-1)
+                u = torch.where((ok | sing)[:, None], u, u + step)
+            psi[act, i + 1] = u
+            g_prev_all[act] = g[:, a1]
+            max_iters[act] = torch.maximum(max_iters[act], torch.tensor(it))
+            worst[act] = torch.maximum(worst[act], torch.where(ok, rabs, worst[act]))
+            bad = ~ok
+            if bool(bad.any()):
+                for j in torch.nonzero(bad).flatten().tolist():
+                    k = act_list[j]
+                    f = fs[k]
+                    tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
+                    why = "singular mixed Hessian" if bool(sing[j]) else \
                         f"Newton did not converge in {max_newton} iterations"
-                    tval = float(fs[k].coords[fs[k].dims[0]][0] + (i + 1) * fs[k].spacing[0])
-                    status[k] = f"slice {i + 1} (t = {tval:.6g}): {why}, residual {float(res[j]):.3e}"
-                    last_res[k] = float(res[j])
-            g_prev_all[act] = g_keep
+                    res = float(rabs[j])
+                    retire(k, i + 1, f"slice {i + 1} (t = {tval:.6g}): {why}, residual {res:.3e}", True, res)
+                    worst[k] = max(float(worst[k]), res)
+            if box is not None:
+                out = (u.norm(dim=-1) > box) & ok
+                for j in torch.nonzero(out).flatten().tolist():
+                    retire(act_list[j], i + 2, f"left the box |psi| <= {box:g} at slice {i + 1}", False)
         bar.update(1)
     bar.close()
     wall = time.perf_counter() - t0
-    solved = int(sum(int(length[k]) - 2 for k in range(b)))
+    solved = sum(max(n - 2, 0) for n in length)
     out = []
     for k, f in enumerate(fs):
-        n = int(length[k])
+        n = length[k]
         lf = LatticeField.with_values(f, psi[k, :n].clone())
-        out.append(ServeResult(field=lf.to_dataarray(), complete=not bool(failed[k]), reason=status[k], slices=n,
+        out.append(ServeResult(field=lf.to_dataarray(), complete=not failed[k], reason=reason[k], slices=n,
                                newton_iterations=int(iters[k]), max_newton_iterations=int(max_iters[k]),
                                wall_time=wall, sites_per_second=solved / wall if wall > 0 else math.inf,
-                               max_residual=float(last_res[k]), mode=mode))
+                               max_residual=float(worst[k]), mode=mode))
+        out[-1].fail_at = fail_at.get(k)  # type: ignore[attr-defined]
     return out
 
 
@@ -527,7 +522,8 @@ def serve(model: AbstractLagrangian, init: xr.DataArray | Sequence[xr.DataArray]
         failed = [r for r in results if not r.complete]
         if failed:
             first = failed[0]
-            raise ServeError(first.reason, result=results if batch else first)
+            at_slice, res = first.fail_at
+            raise ServeError(first.reason, result=results if batch else first, slice=at_slice, residual=res)
         return results if batch else results[0]
     if box is not None:
         raise InputError("box: stopping when leaving a box is for 1D trajectories only")

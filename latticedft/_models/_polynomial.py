@@ -110,21 +110,74 @@ class PolynomialLagrangian(AbstractLagrangian):
         self.center.copy_(center)
         self.halfwidth.copy_(half)
 
+    def _tables(self, z: torch.Tensor, order: int) -> list[torch.Tensor]:
+        """Basis polynomials of every variable and their first ``order`` derivatives: each ``(..., V, D+1)``."""
+        deg = int(max(self.orders))
+        one, zero = torch.ones_like(z), torch.zeros_like(z)
+        val, d1, d2 = [one, z], [zero, one], [zero, zero]
+        for k in range(1, deg):
+            if self.basis == "legendre":  # (k+1) P_{k+1} = (2k+1) z P_k - k P_{k-1}
+                val.append(((2 * k + 1) * z * val[k] - k * val[k - 1]) / (k + 1))
+                if order >= 1:
+                    d1.append(((2 * k + 1) * (val[k] + z * d1[k]) - k * d1[k - 1]) / (k + 1))
+                if order >= 2:
+                    d2.append(((2 * k + 1) * (2 * d1[k] + z * d2[k]) - k * d2[k - 1]) / (k + 1))
+            else:
+                val.append(z * val[k])
+                if order >= 1:
+                    d1.append(val[k] + z * d1[k])
+                if order >= 2:
+                    d2.append(2 * d1[k] + z * d2[k])
+        tables = [val, d1, d2][: order + 1]
+        return [torch.stack(t[: deg + 1], dim=-1) for t in tables]
+
+    def _select(self, table: torch.Tensor) -> torch.Tensor:
+        """Per term and variable, the table entry of that variable's exponent: ``(..., C, V)``."""
+        nvar, width = table.shape[-2], table.shape[-1]
+        flat = table.reshape(*table.shape[:-2], nvar * width)
+        idx = torch.arange(nvar, device=table.device) * width + self.exponents
+        return flat[..., idx]
+
     def features(self, cells: torch.Tensor) -> torch.Tensor:
         """All basis functions on every cell: ``(..., n_terms)``."""
         z = (self.variables(cells) - self.center) / self.halfwidth
-        deg = int(max(self.orders))
-        pw = [torch.ones_like(z), z]
-        for k in range(1, deg):
-            if self.basis == "legendre":
-                pw.append(((2 * k + 1) * z * pw[k] - k * pw[k - 1]) / (k + 1))
-            else:
-                pw.append(z * pw[k])
-        pw_t = torch.stack(pw[: deg + 1], dim=-1)  # (..., V, D+1)
-        nvar = z.shape[-1]
-        flat = pw_t.reshape(*pw_t.shape[:-2], nvar * (deg + 1))
-        idx = torch.arange(nvar, device=z.device) * (deg + 1) + self.exponents  # (C, V)
-        return flat[..., idx].prod(dim=-1)
+        return self._select(self._tables(z, 0)[0]).prod(dim=-1)
+
+    def fast_derivatives(self, cells: torch.Tensor, pairs: list[tuple[int, int]]):
+        """Closed-form ``dL/dx`` and Hessian blocks (no autograd): what serving needs, several times faster."""
+        with torch.no_grad():
+            z = (self.variables(cells) - self.center) / self.halfwidth
+            order = 2 if pairs else 1
+            tabs = [self._select(t) for t in self._tables(z, order)]
+            val, d1 = tabs[0], tabs[1]
+            nvar = z.shape[-1]
+            coef = self.coef
+            gz = []
+            for v in range(nvar):
+                f = val.clone()
+                f[..., v] = d1[..., v]
+                gz.append(f.prod(-1) @ coef)
+            n1, m = self.n + 1, self.m
+            scale = self.halfwidth.reshape(n1, m)
+            gzt = torch.stack(gz, -1).reshape(*z.shape[:-1], n1, m) / scale
+            grad = torch.einsum("pk,...pm->...km", self.proj, gzt)
+            blocks: dict[tuple[int, int], torch.Tensor] = {}
+            if pairs:
+                d2 = tabs[2]
+                hz = torch.zeros(*z.shape, nvar, dtype=z.dtype)
+                for v in range(nvar):
+                    for w in range(v, nvar):
+                        f = val.clone()
+                        if v == w:
+                            f[..., v] = d2[..., v]
+                        else:
+                            f[..., v] = d1[..., v]
+                            f[..., w] = d1[..., w]
+                        hz[..., v, w] = hz[..., w, v] = f.prod(-1) @ coef
+                hz = hz.reshape(*z.shape[:-1], n1, m, n1, m) / (scale[:, :, None, None] * scale[None, None])
+                for a, b in pairs:
+                    blocks[(a, b)] = torch.einsum("p,q,...piqj->...ij", self.proj[:, a], self.proj[:, b], hz)
+        return grad, blocks
 
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
         return self.features(cells) @ self.coef

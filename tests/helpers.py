@@ -1,0 +1,51 @@
+"""Small fields and theories shared by the core tests."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import xarray as xr
+
+import latticedft as ldft
+from latticedft import lagrangians, systems
+
+
+def series(values, dt: float, name: str = "psi", components=None) -> xr.DataArray:
+    values = np.asarray(values, dtype=float)
+    t = np.arange(values.shape[0]) * dt
+    if components is None:
+        return xr.DataArray(values, dims="t", coords={"t": t}, name=name)
+    return xr.DataArray(values, dims=("t", "component"), coords={"t": t, "component": list(components)}, name=name)
+
+
+def quartic(q: torch.Tensor) -> torch.Tensor:
+    """An anharmonic potential ``V = q^2/2 + q^4/4``."""
+    return 0.5 * q ** 2 + 0.25 * q ** 4
+
+
+def oscillator_data(amplitudes=(0.4, 0.8, 1.2), dt: float = 0.1, steps: int = 120):
+    """Trajectories served from the Störmer–Verlet ``L_d`` of the quartic oscillator (zero initial velocity)."""
+    truth = lagrangians.verlet(quartic)
+    out = []
+    for a in amplitudes:
+        q1 = a - 0.5 * dt ** 2 * (a + a ** 3)  # a Taylor step; any second slice defines a discrete solution
+        out.append(ldft.serve(truth, series([a, q1], dt), steps=steps).field)
+    return truth, out
+
+
+def wave_field(nx: int = 33, nt: int = 40, modes=((1, 1.0), (3, 0.3)), courant: float = 0.5):
+    dx = 1.0 / (nx - 1)
+    return systems.wave_string(list(modes), nx=nx, nt=nt, dt=courant * dx)
+
+
+def membrane_field(n: int = 12, nt: int = 16):
+    return systems.wave_membrane([(1, 1, 1.0), (2, 1, 0.4)], nx=n, ny=n + 2, nt=nt)
+
+
+def leapfrog_of(field: xr.DataArray, c: float = 1.0, boundary: str = "dirichlet") -> np.ndarray:
+    """The explicit leapfrog of ``psi_tt = c^2 Laplacian psi`` from the first two slices (and strips) of ``field``."""
+    v = field.values
+    spacing = tuple(float(field[d][1] - field[d][0]) for d in field.dims[1:])
+    dt = float(field[field.dims[0]][1] - field[field.dims[0]][0])
+    kw = {"boundary_values": v} if boundary == "dirichlet" else {}
+    return np.asarray(systems.leapfrog(v[0], v[1], v.shape[0] - 1, dt, spacing, c=c, boundary=boundary, **kw))

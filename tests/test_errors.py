@@ -1,0 +1,116 @@
+"""Bad input raises one clear, one-line error."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import xarray as xr
+
+import latticedft as ldft
+from latticedft import lagrangians
+
+from helpers import oscillator_data, series, wave_field
+
+
+def _one_line(exc):
+    text = str(exc.value)
+    assert "\n" not in text and text
+    return text
+
+
+def test_nan_in_data():
+    _, data = oscillator_data(steps=20)
+    bad = data[0].copy()
+    bad[5] = np.nan
+    with pytest.raises(ldft.InputError) as err:
+        ldft.learn(ldft.PolynomialLagrangian((2, 2)), [data[1], bad])
+    assert "NaN" in _one_line(err)
+
+
+def test_shape_mismatch_between_fields():
+    _, data = oscillator_data(steps=20)
+    with pytest.raises(ldft.InputError) as err:
+        ldft.learn(ldft.PolynomialLagrangian((2, 2)), [data[0], wave_field(nt=20)])
+    assert "data[1]" in _one_line(err) and "lattice dims" in str(err.value)
+
+
+def test_component_mismatch():
+    dt = 0.1
+    a = series(np.random.rand(10, 2), dt, components=["x", "y"])
+    b = series(np.random.rand(10, 2), dt, components=["x", "z"])
+    with pytest.raises(ldft.InputError) as err:
+        ldft.learn(ldft.PolynomialLagrangian((2, 2)), [a, b])
+    assert "component" in _one_line(err) and "'z'" in str(err.value)
+
+
+def test_component_mismatch_at_serve():
+    dt = 0.05
+    model = ldft.PolynomialLagrangian((2, 1))
+    data = [ldft.serve(lagrangians.kepler(), series([[1.0, 0.0], [1.0, v * dt]], dt, components=["x", "y"]),
+                       steps=60).field for v in (0.9, 1.0, 1.1)]
+    ldft.learn(model, data)
+    other = series([[1.0, 0.0], [1.0, 0.05]], dt, components=["q", "p"])
+    with pytest.raises(ldft.InputError) as err:
+        ldft.serve(model, other, steps=10)
+    assert "component labels" in _one_line(err)
+
+
+def test_fewer_than_three_time_slices():
+    with pytest.raises(ldft.InputError) as err:
+        ldft.learn(ldft.PolynomialLagrangian((2, 2)), series([0.1, 0.2], 0.1))
+    assert "at least 3" in _one_line(err)
+
+
+def test_spacing_mismatch_at_serve():
+    _, data = oscillator_data(steps=20)
+    model = ldft.PolynomialLagrangian((2, 2))
+    ldft.learn(model, data)
+    with pytest.raises(ldft.InputError) as err:
+        ldft.serve(model, series([0.1, 0.2], 0.2), steps=5)
+    assert "spacing" in _one_line(err) and "0.1" in str(err.value)
+
+
+def test_unlearned_model_cannot_serve():
+    with pytest.raises(ldft.InputError) as err:
+        ldft.serve(ldft.PolynomialLagrangian((2, 2)), series([0.1, 0.2], 0.1), steps=5)
+    assert "not been learned" in _one_line(err)
+
+
+def test_bad_options():
+    with pytest.raises(ldft.InputError, match="orders"):
+        ldft.PolynomialLagrangian(orders=(2,))
+    with pytest.raises(ldft.InputError, match="activation"):
+        ldft.MLPLagrangian(activation="relu")
+    with pytest.raises(ldft.InputError, match="gauge"):
+        ldft.learn(ldft.PolynomialLagrangian((2, 2)), oscillator_data(steps=20)[1], gauge="wrong")
+    with pytest.raises(ldft.InputError, match="mode"):
+        ldft.serve(lagrangians.wave(), wave_field(nt=5), mode="fast")
+    with pytest.raises(ldft.InputError, match="steps"):
+        ldft.serve(lagrangians.wave(), wave_field(nt=5), steps=2)
+    with pytest.raises(ldft.InputError, match="boundary"):
+        ldft.serve(lagrangians.wave(), wave_field(nt=5), boundary={"y": "periodic"})
+
+
+def test_not_a_dataarray():
+    with pytest.raises(ldft.InputError, match="DataArray"):
+        ldft.learn(ldft.PolynomialLagrangian((2, 2)), np.zeros(10))
+
+
+def test_bad_stencils():
+    with pytest.raises(ldft.InputError, match="anchor"):
+        ldft.Stencil([[1, 0], [1, 1]])
+    with pytest.raises(ldft.InputError, match="time offsets"):
+        ldft.Stencil([[0, 0], [1, 0], [2, 0]])
+    with pytest.raises(ldft.InputError, match="distinct"):
+        ldft.Stencil([[0], [1], [1]])
+    model = ldft.PolynomialLagrangian((2, 2), stencil=ldft.Stencil.first_order(3))
+    with pytest.raises(ldft.InputError, match="stencil"):
+        ldft.learn(model, wave_field(nt=10))
+
+
+def test_non_uniform_coordinate():
+    field = wave_field(nt=10)
+    t = field.t.values.copy()
+    t[3] += 1e-3
+    with pytest.raises(ldft.InputError, match="uniform"):
+        ldft.learn(ldft.PolynomialLagrangian((2, 2)), field.assign_coords(t=t))

@@ -1,0 +1,130 @@
+"""Serving: slice-Newton against the site-by-site sweep, 1D batches, escapes, failures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import latticedft as ldft
+from latticedft import lagrangians
+
+from helpers import membrane_field, oscillator_data, quartic, series, wave_field
+
+
+def _sine_gordon():
+    def fn(c, h):
+        u = c[..., 0, 0]
+        return (0.5 * ((c[..., 1, 0] - u) / h[0]) ** 2 - 0.5 * ((c[..., 2, 0] - u) / h[1]) ** 2
+                - (1 - torch.cos(u)))
+    return ldft.AnalyticLagrangian(fn, name="sine-Gordon")
+
+
+@pytest.mark.parametrize("boundary", ["dirichlet", "periodic"])
+def test_newton_and_sweep_agree_nonlinear_1p1d(boundary):
+    field = wave_field(nx=17, nt=12)
+    sg = _sine_gordon()
+    a = ldft.serve(sg, field, boundary=boundary)
+    b = ldft.serve(sg, field, boundary=boundary, mode="sweep")
+    assert a.mode == "newton" and b.mode == "sweep"
+    np.testing.assert_allclose(a.field.values, b.field.values, atol=1e-12)
+
+
+def test_newton_and_sweep_agree_2p1d():
+    field = membrane_field(n=8, nt=8)
+    a = ldft.serve(lagrangians.wave(1.0), field)
+    b = ldft.serve(lagrangians.wave(1.0), field, mode="sweep")
+    np.testing.assert_allclose(a.field.values, b.field.values, atol=1e-12)
+
+
+def test_non_triangular_stencil_serves_in_both_modes():
+    st = ldft.Stencil.full_cell(2)
+
+    def full(c, h):
+        gt = (c[..., 2, 0] + c[..., 3, 0] - c[..., 0, 0] - c[..., 1, 0]) / (2 * h[0])
+        gx = (c[..., 1, 0] + c[..., 3, 0] - c[..., 0, 0] - c[..., 2, 0]) / (2 * h[1])
+        return 0.5 * gt ** 2 - 0.5 * gx ** 2 - 0.5 * c[..., 0, 0] ** 2
+
+    model = ldft.AnalyticLagrangian(full, stencil=st)
+    field = wave_field(nx=15, nt=10)
+    a = ldft.serve(model, field)
+    b = ldft.serve(model, field, mode="sweep")  # Gauss-Seidel sweeps: the slice system is tridiagonal
+    np.testing.assert_allclose(a.field.values, b.field.values, atol=1e-9)
+    assert np.isfinite(a.field.values).all()
+
+
+def test_batch_equals_one_by_one_and_sweep():
+    _, data = oscillator_data(steps=50)
+    model = ldft.PolynomialLagrangian(orders=(4, 4))
+    ldft.learn(model, data)
+    inits = [f.isel(t=slice(0, 2)) for f in data]
+    batch = ldft.serve(model, inits, steps=50)
+    for r, f in zip(batch, inits):
+        one = ldft.serve(model, f, steps=50)
+        sweep = ldft.serve(model, f, steps=50, mode="sweep")
+        np.testing.assert_allclose(r.field.values, one.field.values, atol=1e-14)
+        np.testing.assert_allclose(r.field.values, sweep.field.values, atol=1e-12)
+
+
+
+def test_box_stops_an_escaping_trajectory_as_complete():
+    dt = 0.05
+    kep = lagrangians.kepler()
+    fast = series([[1.0, 0.0], [1.0, 1.6 * dt]], dt, components=["x", "y"])
+    slow = series([[1.0, 0.0], [1.0, 1.0 * dt]], dt, components=["x", "y"])
+    out = ldft.serve(kep, [fast, slow], steps=400, box=3.0)
+    assert out[0].complete and "box" in out[0].reason and out[0].slices < 400
+    assert np.linalg.norm(out[0].field.values[-1]) > 3.0 >= np.linalg.norm(out[0].field.values[-2])
+    assert out[1].complete and out[1].slices == 400
+
+
+def test_singular_mixed_hessian_is_reported_with_slice_and_partial_result():
+    def no_kinetic(c, h):  # L_d without a term coupling psi_x and psi_{x+e0}
+        return -0.5 * c[..., 0, 0] ** 2 - 0.5 * c[..., 1, 0] ** 2
+
+    model = ldft.AnalyticLagrangian(no_kinetic)
+    with pytest.raises(ldft.ServeError) as err:
+        ldft.serve(model, series([1.0, 0.9], 0.1), steps=10)
+    assert "slice 2" in str(err.value) and "\n" not in str(err.value)
+    assert err.value.result.slices == 2 and not err.value.result.complete
+
+
+def test_singular_slice_jacobian_1p1d_names_slice_and_site():
+    def no_kinetic(c, h):
+        return -0.5 * ((c[..., 2, 0] - c[..., 0, 0]) / h[1]) ** 2
+
+    model = ldft.AnalyticLagrangian(no_kinetic)
+    with pytest.raises(ldft.ServeError) as err:
+        ldft.serve(model, wave_field(nx=9, nt=6))
+    msg = str(err.value)
+    assert "slice 2" in msg and "site" in msg and "singular" in msg
+    part = err.value.result
+    assert part.field.sizes["t"] == 2 and not part.complete
+
+
+def test_newton_failure_keeps_the_solved_part():
+    osc = lagrangians.verlet(quartic)
+    with pytest.raises(ldft.ServeError) as err:
+        ldft.serve(osc, series([1.0, 0.99], 0.1), steps=40, max_newton=1)
+    msg = str(err.value)
+    assert "did not converge" in msg and "residual" in msg
+    assert err.value.slice == 2
+
+
+def test_periodic_serving_from_two_slices_only():
+    field = wave_field(nx=16, nt=30)
+    full = ldft.serve(lagrangians.wave(1.0), field, boundary="periodic")
+    short = ldft.serve(lagrangians.wave(1.0), field.isel(t=slice(0, 2)), boundary="periodic", steps=30)
+    np.testing.assert_allclose(short.field.values, full.field.values, atol=1e-14)
+    assert short.field.sizes["t"] == 30 and np.allclose(short.field.t.values, field.t.values)
+
+
+def test_dirichlet_needs_the_strips():
+    field = wave_field(nx=16, nt=30)
+    with pytest.raises(ldft.InputError, match="Dirichlet boundary along 'x'"):
+        ldft.serve(lagrangians.wave(1.0), field.isel(t=slice(0, 2)), steps=30)
+
+
+def test_serve_reports_throughput():
+    out = ldft.serve(lagrangians.wave(1.0), wave_field(nx=64, nt=64))
+    assert out.sites_per_second > 0 and out.newton_iterations >= 62 and out.max_residual >= 0
