@@ -1,7 +1,7 @@
 """Results of a run (DESIGN.md §2): staging folder, model files, task files, exports, summary.
 
 Everything is first written into a temporary folder beside the destination
-(``CASE/.results.tmp-XXXX``) and renamed to ``CASE/results/`` only when the
+(``CASE/results.tmp-XXXX``) and renamed to ``CASE/results/`` only when the
 stage succeeded, so a failed or interrupted run never leaves a half-written
 ``results/`` and never touches the previous one.
 """
