@@ -14,7 +14,7 @@ import torch
 from ._lattice import LatticeField, gather_cells, interior_slices
 from ._stencil import Stencil
 
-__all__ = ["action", "del_residual", "mixed_hessian", "cell_derivatives", "second_time_difference"]
+__all__ = ["action", "del_residual", "mixed_hessian", "cell_derivatives", "CellDerivatives", "second_time_difference"]
 
 
 
@@ -72,6 +72,36 @@ def cell_derivatives(model, cells: torch.Tensor, pairs: list[tuple[int, int]], *
         g = g.detach()
         blocks = {k: v.detach() for k, v in blocks.items()}
     return g, blocks
+
+
+class CellDerivatives:
+    """Per-cell gradient now, Hessian blocks on demand (serving skips them once Newton has converged)."""
+
+    def __init__(self, model, cells: torch.Tensor):
+        self.model = model
+        self._fast = getattr(model, "fast_derivatives", None)
+        if self._fast is not None:
+            self.cells = cells.detach()
+            self.grad, _ = self._fast(self.cells, [])
+            return
+        self.cells = cells.detach().requires_grad_(True)
+        with torch.enable_grad():
+            (self._g,) = torch.autograd.grad(model(self.cells).sum(), self.cells, create_graph=True)
+        self.grad = self._g.detach()
+
+    def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
+        if self._fast is not None:
+            return self._fast(self.cells, pairs)[1]
+        x, g = self.cells, self._g
+        m = x.shape[-1]
+        cols: dict[int, list[torch.Tensor]] = {}
+        with torch.enable_grad():
+            for b in sorted({b for _, b in pairs}):
+                cols[b] = []
+                for j in range(m):
+                    (hj,) = torch.autograd.grad(g[..., b, j].sum(), x, retain_graph=True, allow_unused=True)
+                    cols[b].append(torch.zeros_like(x) if hj is None else hj)
+        return {(a, b): torch.stack([c[..., a, :] for c in cols[b]], dim=-1) for a, b in pairs}
 
 
 def mixed_hessian(model, f: LatticeField, *, create_graph: bool = False) -> torch.Tensor:

@@ -25,7 +25,7 @@ import torch
 import xarray as xr
 from tqdm.auto import tqdm
 
-from ._action import cell_derivatives
+from ._action import CellDerivatives, cell_derivatives
 from ._errors import InputError, ServeError
 from ._lattice import BoundaryKinds, LatticeField, as_lattice_field, gather_cells, interior_slices
 from ._learn import _check_model_lattice
@@ -81,11 +81,10 @@ def _bar(total: int, desc: str, progress: bool | None):
 def _prepare_model(model: AbstractLagrangian, f: LatticeField) -> None:
     if not isinstance(model, AbstractLagrangian):
         raise InputError(f"model: expected a latticedft model, got {type(model).__name__}")
+    if isinstance(model, AnalyticLagrangian):
+        model.bind(f.ndim, f.ncomp, f.spacing, f.components)  # a formula in h: valid on any lattice
     if not model.bound:
-        if isinstance(model, AnalyticLagrangian):
-            model.bind(f.ndim, f.ncomp, f.spacing, f.components)
-        else:
-            raise InputError(f"model: {type(model).__name__} has not been learned yet (latticedft.learn)")
+        raise InputError(f"model: {type(model).__name__} has not been learned yet (latticedft.learn)")
     _check_model_lattice(model, f, "init")
 
 
@@ -171,7 +170,8 @@ class _SliceSystem:
             vs.append(v.reshape(-1))
         return np.concatenate(rs), np.concatenate(cs), np.concatenate(vs)
 
-    def solve(self, blocks, vol: float, rhs: np.ndarray) -> np.ndarray:
+    def factor(self, blocks, vol: float):
+        """Assemble and factorise the slice Jacobian; returns ``solve(rhs)``."""
         rows, cols, vals = self.matrix_entries(blocks, vol)
         size = self.n * self.m
         if self.banded:
@@ -180,10 +180,10 @@ class _SliceSystem:
             np.add.at(ab, (up + rows - cols, cols), vals)
             if not np.all(ab[up] != 0):
                 raise np.linalg.LinAlgError("zero on the diagonal")
-            return scipy.linalg.solve_banded((lo, up), ab, rhs, check_finite=False)
+            return lambda rhs: scipy.linalg.solve_banded((lo, up), ab, rhs, check_finite=False)
         mat = scipy.sparse.csc_matrix((vals, (rows, cols)), shape=(size, size))
         try:
-            return scipy.sparse.linalg.splu(mat).solve(rhs)
+            return scipy.sparse.linalg.splu(mat).solve
         except RuntimeError as exc:  # "Factor is exactly singular"
             raise np.linalg.LinAlgError(str(exc)) from None
 
@@ -222,8 +222,9 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, mode: s
     def cells_at(i: int) -> torch.Tensor:
         return gather_cells(psi[i:i + 2], st, periodic)
 
-    g_prev, _ = cell_derivatives(model, cells_at(0), [])
+    g_prev = CellDerivatives(model, cells_at(0)).grad
     bar = _bar(steps - 2, f"serve ({mode})", progress)
+    cache: dict[str, Any] = {}
 
     def fail(i: int, msg: str, row: int | None, res: float) -> ServeError:
         bar.close()
@@ -243,7 +244,8 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, mode: s
         # predictor 2 psi_i - psi_{i-1} on the unknown sites
         flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
         if mode == "newton":
-            it, res, g_prev, err = _newton_slice(model, sys, psi, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at)
+            it, res, g_prev, err = _newton_slice(model, sys, psi, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at,
+                                                 cache)
         else:
             it, res, g_prev, err = _sweep_slice(model, sys, psi, flat, i, vol, rtol, max_newton, f)
         total_it += it
@@ -266,33 +268,45 @@ def _scale(flat: torch.Tensor, i: int, unk: torch.Tensor) -> float:
     return float(max(flat[i - 1].abs().max(), flat[i].abs().max(), flat[i + 1, unk].abs().max(), 1e-300))
 
 
-def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at):
+def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at, cache):
+    """Newton on one slice. The first step reuses the previous slice's factorised Jacobian (a chord step,
+    exact for quadratic ``L_d``); when that does not converge, fresh Hessian blocks are assembled."""
     m = sys.m
-    rscale = None
     res = math.inf
+    r = np.zeros(0)
+    rscale = None
     for it in range(1, max_newton + 1):
-        g_cur, blocks = cell_derivatives(model, cells_at(i), sys.pairs)
-        r = sys.residual(g_prev, g_cur, vol)
+        ev = CellDerivatives(model, cells_at(i))
+        r = sys.residual(g_prev, ev.grad, vol)
         res = float(np.abs(r).max()) if r.size else 0.0
         if not math.isfinite(res):
-            return it, res, g_cur, ("residual is not finite", None, res)
+            return it, res, ev.grad, ("residual is not finite", None, res)
+        stale = it == 1 and "solve" in cache
+        if not stale:
+            blocks = ev.blocks(sys.pairs)
+            cache["dmax"] = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
         if rscale is None:
-            dmax = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
-            rscale = vol * dmax * _scale(flat, i, unk)
+            rscale = vol * cache["dmax"] * _scale(flat, i, unk)
         if res <= rtol * rscale:
             # the cells anchored at slice i are evaluated at the solution: reuse them for slice i + 1
-            return it, res, g_cur, None
+            return it, res, ev.grad, None
         try:
-            delta = sys.solve(blocks, vol, -r)
+            if not stale:
+                cache["solve"] = sys.factor(blocks, vol)
+            delta = cache["solve"](-r)
         except (np.linalg.LinAlgError, ValueError) as exc:
+            cache.pop("solve", None)
             row = int(np.argmax(np.abs(r)))
-            return it, res, g_cur, (f"singular Jacobian (mixed Hessian) of the slice: {exc}", row, res)
-        flat[i + 1, unk] += torch.from_numpy(delta.reshape(-1, m))
+            return it, res, ev.grad, (f"singular Jacobian (mixed Hessian) of the slice: {exc}", row, res)
         if not np.all(np.isfinite(delta)):
-            return it, res, g_cur, ("Newton step is not finite (singular mixed Hessian?)", int(np.argmax(np.abs(r))),
-                                    res)
+            cache.pop("solve", None)
+            if stale:
+                continue
+            return it, res, ev.grad, ("Newton step is not finite (singular mixed Hessian?)",
+                                      int(np.argmax(np.abs(r))), res)
+        flat[i + 1, unk] += torch.from_numpy(delta.reshape(-1, m))
     row = int(np.argmax(np.abs(r))) if r.size else None
-    return max_newton, res, g_cur, (f"Newton did not converge in {max_newton} iterations", row, res)
+    return max_newton, res, ev.grad, (f"Newton did not converge in {max_newton} iterations", row, res)
 
 
 def _sweep_slice(model, sys: _SliceSystem, psi, flat, i, vol, rtol, max_newton, f):

@@ -40,6 +40,13 @@ class AnalyticLagrangian(AbstractLagrangian):
             raise InputError(f"fn: expected a callable fn(cells, h), got {type(fn).__name__}")
         self.fn = fn
         self.name = name or getattr(fn, "__name__", "analytic")
+        self._given_stencil = stencil
+
+    def bind(self, n: int, m: int, spacing: tuple[float, ...], components: tuple[str, ...] | None = None) -> None:
+        """Analytic models have no parameters: they rebind to any lattice they are served on."""
+        self.stencil = self._given_stencil
+        self.n = self.m = self.spacing = None
+        super().bind(n, m, spacing, components)
 
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
         self._require_bound()
