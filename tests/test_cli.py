@@ -111,10 +111,11 @@ def test_train_then_serve_then_export(tmp_path: Path, capsys) -> None:
 def test_out_and_overwrite(tmp_path: Path, capsys) -> None:
     case = tiny_wave(tmp_path)
     out = tmp_path / "elsewhere" / "res"
-    assert run_cli(capsys, "run", case, "--out", out, "-q")[0] == 0
+    fast = ("--set", "export.figures=false", "--set", "export.paraview=false")
+    assert run_cli(capsys, "run", case, "--out", out, "-q", *fast)[0] == 0
     assert (out / "model.pt").is_file() and not (case / "results").exists()
     (out / "stale.txt").write_text("old")
-    assert run_cli(capsys, "run", case, "--out", out, "--overwrite", "-q")[0] == 0
+    assert run_cli(capsys, "run", case, "--out", out, "--overwrite", "-q", *fast)[0] == 0
     assert not (out / "stale.txt").exists() and (out / "summary.json").is_file()
 
 
@@ -123,9 +124,9 @@ def test_version_and_verbosity(tmp_path: Path, capsys) -> None:
     out, _ = capsys.readouterr()
     assert code == 0 and out.strip() == f"latticedft {latticedft.__version__}"
     case = tiny_wave(tmp_path)
-    _, _, err_v = run_cli(capsys, "run", case, "-v")
+    _, _, err_v = run_cli(capsys, "train", case, "-v")
     assert "torch threads: 1" in err_v  # DEBUG reaches stderr with -v
-    _, _, err_q = run_cli(capsys, "run", case, "-q", "--overwrite")
+    _, _, err_q = run_cli(capsys, "train", case, "-q", "--overwrite")
     assert err_q == ""
 
 
@@ -143,7 +144,7 @@ def test_threads_from_case(tmp_path: Path, capsys) -> None:
 def test_subprocess_python_m(tmp_path: Path) -> None:
     case = tiny_wave(tmp_path)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "-m", "latticedft", "run", str(case)],
+    proc = subprocess.run([sys.executable, "-m", "latticedft", "run", str(case), "--set", "export.figures=false"],
                           capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "task test: complete" in proc.stderr and proc.stdout == ""
