@@ -53,6 +53,12 @@ def main(argv: list[str] | None = None) -> int:
     except LatticeDFTError as exc:
         print(f"latticedft: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return BAD_INPUT
+    except BrokenPipeError:  # e.g. `latticedft info CASE | head`: stop quietly
+        import os
+
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
     except KeyboardInterrupt:
         print("latticedft: interrupted; nothing was published", file=sys.stderr)
         return 130
