@@ -414,6 +414,14 @@ def _serve_batch(model: AbstractLagrangian, fs: list[LatticeField], steps: list[
             rscale = None
             ok = torch.zeros(len(act_list), dtype=torch.bool)
             sing = torch.zeros(len(act_list), dtype=torch.bool)
+            # Backtracking: a Newton step that does not lower the residual (a poor predictor at a stiff
+            # turning point, say) is halved instead, so Newton finds the root near the predictor rather
+            # than a spurious one far away. A step below rtol times the values counts as converged, as
+            # in the n-D slice Newton (the residual can stall at round-off just above rtol * rscale).
+            prev = torch.full((len(act_list),), math.inf, dtype=torch.float64)
+            last = torch.zeros_like(u)
+            halved = torch.zeros(len(act_list), dtype=torch.long)
+            small = torch.zeros(len(act_list), dtype=torch.bool)
             for it in range(1, max_newton + 1):
                 g, blocks = cell_derivatives(model, torch.stack([q_now, u], dim=1), [(a0, a1)])
                 r = vol * (g[:, a0] + g_prev)
@@ -421,13 +429,20 @@ def _serve_batch(model: AbstractLagrangian, fs: list[LatticeField], steps: list[
                 jac = vol * blocks[(a0, a1)]  # d r_i / d u_j = vol d^2 L / dx_{a0,i} dx_{a1,j}
                 if rscale is None:  # size of the kinetic terms, per trajectory
                     rscale = torch.linalg.matrix_norm(jac, ord=math.inf).clamp_min(1e-300) * mag.clamp_min(1e-300)
-                ok = rabs <= rtol * rscale
+                ok = (rabs <= rtol * rscale) | (small & torch.isfinite(rabs))
                 iters[act] += (~ok).long() if it > 1 else 1
                 if bool(ok.all()) or it == max_newton:
                     break
+                worse = ~ok & ~sing & ~(rabs < prev) & (halved < 12)
+                last = torch.where(worse[:, None], last / 2, last)
                 step, info = torch.linalg.solve_ex(jac, -r)
-                sing = sing | (info != 0) | ~torch.isfinite(step).all(-1)
-                u = torch.where((ok | sing)[:, None], u, u + step)
+                sing = sing | (~worse & ((info != 0) | ~torch.isfinite(step).all(-1)))
+                take = ~ok & ~sing & ~worse
+                u = torch.where(worse[:, None], u - last, torch.where(take[:, None], u + step, u))
+                prev = torch.where(take, rabs, prev)
+                last = torch.where(take[:, None], step, last)
+                halved = torch.where(take, 0, halved + worse.long())
+                small = (take | worse) & (last.abs().amax(-1) <= rtol * mag)
             psi[act, i + 1] = u
             g_prev_all[act] = g[:, a1]
             max_iters[act] = torch.maximum(max_iters[act], torch.tensor(it))
