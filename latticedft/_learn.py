@@ -1,6 +1,6 @@
 """Learning ``L_d`` from observed fields with an explicit gauge fix (DESIGN.md §1).
 
-The loss ``F = mean over interior sites of |EL_y|^2`` (Qin 2020, Eq. 5) is
+The loss ``F = mean over interior sites of |EL_y|^2`` (Qin 2020, Eq. 7) is
 ill-posed: ``L_d = const`` gives ``F = 0``. The gauge is fixed by the
 unit-mass normalisation of the mixed time Hessian,
 ``mean over training cells of d^2 L_d / dpsi_x dpsi_{x+e_0} = -I / h_0^2``.

@@ -19,7 +19,7 @@ def wave(c: float = 1.0) -> AnalyticLagrangian:
     """``L_d = ((psi_{x+e0} - psi_x)/h_0)^2 - c^2 sum_k ((psi_{x+e_k} - psi_x)/h_k)^2``.
 
     Serves exactly the explicit leapfrog scheme of ``psi_tt = c^2 Laplacian psi``
-    (Qin 2020, Eq. 6, with ``c = 1``).
+    (Qin 2020, Eq. 5, with ``c = 1``).
     """
 
     def fn(cells: torch.Tensor, h: tuple[float, ...]) -> torch.Tensor:
