@@ -275,7 +275,7 @@ def _learn_linear(model, fields, gauge, ridge, nsites):
         else:
             split = _time_split(fields[0])
             if split is None:
-                raise InputError("ridge: 'auto' needs two or more fields, or one field of at least 10 time slices")
+                raise InputError("ridge: 'auto' needs two or more fields, or one field of at least 9 time slices")
             folds.append(([_residual_matrix(model, split[0])], [_residual_matrix(model, split[1])], [split[1]]))
         best, best_score = 0.0, math.inf
         for lam in _RIDGE_GRID:
