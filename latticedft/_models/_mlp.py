@@ -20,14 +20,19 @@ _ACTIVATIONS = {
     "gelu": torch.nn.GELU,
 }
 _FORMS = ("free", "kinetic-potential")
-_FEATURES = ("values", "differences", "invariant")
+_FEATURES = ("values", "differences", "invariant", "inverse-radius")
 
 #: Named settings. ``paper``: Qin (2020) Sec. 4, a 2x40 sigmoid network on the
-#: raw stencil values.
+#: raw stencil values. ``kinetic-potential``: unit-mass kinetic term minus a
+#: learned on-site potential of the values. ``radial``: the same with the
+#: potential a function of ``1 / |psi|`` (central forces; cases/kepler).
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": {"hidden": [40, 40], "activation": "sigmoid", "form": "free", "features": "values", "scale": False},
     "kinetic-potential": {"hidden": [32, 32], "activation": "tanh", "form": "kinetic-potential",
                           "features": "values", "scale": True},
+    # central forces (Kepler): unit-mass kinetic term plus a learned potential of 1/|psi|
+    "radial": {"hidden": [32, 32], "activation": "tanh", "form": "kinetic-potential",
+               "features": "inverse-radius", "scale": True},
 }
 
 
@@ -52,6 +57,10 @@ class MLPLagrangian(AbstractLagrangian):
         value (potential). ``differences``: stencil mean and per-axis
         differences (free form only). ``invariant``: rotation invariants — the
         Gram matrix of the stencil vectors (free form) or ``|psi|`` (potential).
+        ``inverse-radius`` (kinetic-potential form, vector fields): ``1 / |psi|``,
+        so that ``V`` extrapolates gently to large ``|psi|`` (``1/|psi| -> 0``
+        there, a small step outside the training range) where ``|psi|`` would
+        leave the range of the scaled inputs by far.
     scale : bool
         Scale inputs to the training data's range and the output to the
         kinetic energy's scale.
@@ -91,6 +100,9 @@ class MLPLagrangian(AbstractLagrangian):
             raise InputError(f"features: expected one of {list(_FEATURES)}, got {base['features']!r}")
         if base["form"] == "kinetic-potential" and base["features"] == "differences":
             base["features"] = "values"
+        if base["features"] == "inverse-radius" and base["form"] != "kinetic-potential":
+            raise InputError("features: 'inverse-radius' is a feature of the potential; use it with "
+                             "form='kinetic-potential'")
         if not isinstance(seed, int) or isinstance(seed, bool):
             raise InputError(f"seed: expected an integer, got {seed!r}")
         self.hidden = [int(h) for h in hid]
@@ -117,11 +129,11 @@ class MLPLagrangian(AbstractLagrangian):
             if self.features == "differences":
                 return (n + 1) * m
             return k * (k + 1) // 2
-        return 1 if (self.features == "invariant") else m
+        return 1 if self.features in ("invariant", "inverse-radius") else m
 
     def _build(self) -> None:
-        if self.features == "invariant" and self.m < 2:
-            raise InputError("features: 'invariant' needs a vector field (m >= 2); use 'values' for scalars")
+        if self.features in ("invariant", "inverse-radius") and self.m < 2:
+            raise InputError(f"features: {self.features!r} needs a vector field (m >= 2); use 'values' for scalars")
         gen_state = torch.random.get_rng_state()
         torch.manual_seed(self.seed)
         try:
@@ -154,6 +166,8 @@ class MLPLagrangian(AbstractLagrangian):
             return gram[..., iu[0], iu[1]]
         if self.features == "invariant":
             return torch.sqrt((cells * cells).sum(-1, keepdim=True))
+        if self.features == "inverse-radius":
+            return torch.rsqrt((cells * cells).sum(-1, keepdim=True))
         return cells
 
     def prepare(self, cells: list[torch.Tensor]) -> None:
