@@ -1,0 +1,11 @@
+"""latticedft benchmarks (issue 6): serving throughput, training time, long-run fidelity, memory.
+
+Run by hand, never by the test suite (which only smoke-tests ``--quick``)::
+
+    python -m benchmarks [--quick] [--only NAME ...] [--out DIR]
+
+Each benchmark is a small module exposing ``NAME``, ``TITLE`` and
+``run(cfg) -> Table``; :mod:`benchmarks.run` prints the tables side by side
+with the targets of issue 6 and writes ``results.json`` and ``results.md``
+(and figures) into ``--out``.
+"""

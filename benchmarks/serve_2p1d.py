@@ -1,0 +1,26 @@
+"""2+1D serving: the wave L_d on a membrane, sites per second and peak memory (issue 6, item 2)."""
+
+from __future__ import annotations
+
+from ._common import Config, Table, in_subprocess
+
+NAME = "serve-2+1d"
+TITLE = "2+1D serving (wave L_d, Dirichlet frame): sites per second and peak memory"
+
+
+def run(cfg: Config) -> Table:
+    n, nt = (24, 8) if cfg.quick else (256, 100)
+    r = in_subprocess("serve_membrane", cfg.threads, inline=cfg.quick, n=n, nt=nt)
+    table = Table(NAME, TITLE, ["lattice (y * x * t)", "Newton sites/s", "leapfrog sites/s",
+                                "Newton / leapfrog time", "Newton iters/slice", "max |Newton - leapfrog|",
+                                "peak RSS (MiB)", "RSS growth while serving (MiB)", "field size (MiB)"])
+    table.rows.append([f"{n} x {n} x {nt}", r["sites"] / r["t_newton"], r["sites"] / r["t_leapfrog"],
+                       r["t_newton"] / r["t_leapfrog"], r["iterations"] / (nt - 2), r["error"], r["rss_peak"],
+                       r["rss_peak"] - r["rss_before"], r["field_mib"]])
+    table.notes += [
+        "Served in a fresh subprocess; peak RSS is that process's `ru_maxrss` (interpreter, torch and the "
+        "inputs included); the growth is `ru_maxrss` after serving minus before.",
+        "Membrane 1 x 1 with a fixed frame, dt = h / 2, two by one half waves; leapfrog: "
+        "`latticedft.systems.leapfrog` (numpy), one run.",
+    ]
+    return table
