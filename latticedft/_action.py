@@ -2,7 +2,7 @@
 
 ``A_d = prod(h) * sum_cells L_d(psi[x+s_0], ..., psi[x+s_{K-1}])`` and
 ``EL_y = dA_d / dpsi_y``, evaluated on a whole field by one reverse-mode pass
-(Qin 2020, Eqs. 2-3).
+(Qin 2020, Eqs. 3 and 6).
 """
 
 from __future__ import annotations

@@ -275,6 +275,7 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
     res = math.inf
     r = np.zeros(0)
     rscale = None
+    small = False
     for it in range(1, max_newton + 1):
         ev = CellDerivatives(model, cells_at(i))
         r = sys.residual(g_prev, ev.grad, vol)
@@ -287,7 +288,8 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
             cache["dmax"] = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
         if rscale is None:
             rscale = vol * cache["dmax"] * _scale(flat, i, unk)
-        if res <= rtol * rscale:
+        if res <= rtol * rscale or small:
+            # converged (or the last step was below rtol times the values: the residual stalls at round-off);
             # the cells anchored at slice i are evaluated at the solution: reuse them for slice i + 1
             return it, res, ev.grad, None
         try:
@@ -305,6 +307,7 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
             return it, res, ev.grad, ("Newton step is not finite (singular mixed Hessian?)",
                                       int(np.argmax(np.abs(r))), res)
         flat[i + 1, unk] += torch.from_numpy(delta.reshape(-1, m))
+        small = not stale and float(np.abs(delta).max()) <= rtol * _scale(flat, i, unk)
     row = int(np.argmax(np.abs(r))) if r.size else None
     return max_newton, res, ev.grad, (f"Newton did not converge in {max_newton} iterations", row, res)
 
