@@ -24,6 +24,7 @@ class Config:
     quick: bool = False
     out: Path | None = None
     threads: int = 1
+    fidelity_steps: int | None = None  # None: 1e5 (300 when quick)
 
 
 @dataclass

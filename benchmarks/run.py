@@ -43,6 +43,8 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"run only these benchmarks (repeat or comma-separate): {', '.join(mods)}")
     p.add_argument("--out", type=Path, help="folder for results.json, results.md and figures")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1; the machine is shared)")
+    p.add_argument("--fidelity-steps", type=int, metavar="N",
+                   help="steps of the long-run fidelity benchmark (default 100000; 300 with --quick)")
     args = p.parse_args(argv)
     only = [n for item in args.only for n in item.split(",") if n]
     unknown = [n for n in only if n not in mods]
@@ -54,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
-    cfg = Config(quick=args.quick, out=args.out, threads=args.threads)
+    cfg = Config(quick=args.quick, out=args.out, threads=args.threads, fidelity_steps=args.fidelity_steps)
     command = "python -m benchmarks " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     info = machine(args.threads)
     print(f"# {command}\n# {info['cpu']}, {info['cores']} cores, torch threads {args.threads}, "

@@ -38,7 +38,7 @@ def root_per_step(model: ldft.AbstractLagrangian, q0: np.ndarray, q1: np.ndarray
 
 def run(cfg: Config) -> Table:
     model = kepler_mlp(cfg.quick)
-    n, n_base, batch = (40, 5, 16) if cfg.quick else (2000, 40, 16)
+    n, n_base, batch = (20, 3, 16) if cfg.quick else (2000, 40, 16)
     table = Table(NAME, TITLE, ["serving", "trajectories x steps", "wall time (s)", "trajectory-steps/s",
                                 "x root-per-step baseline", "max |q - q_baseline|"])
     init = kepler_inits(1)[0]

@@ -18,7 +18,7 @@ TITLE = "1+1D serving: sites per second, slice-Newton vs site-by-site sweep vs n
 
 def _sizes(quick: bool) -> list[tuple[int, int, int]]:
     """(nx, time slices served by Newton, slices solved by the sweep)."""
-    return [(48, 16, 1)] if quick else [(256, 256, 2), (1024, 64, 1)]
+    return [(24, 8, 1)] if quick else [(256, 256, 2), (1024, 64, 1)]
 
 
 def run(cfg: Config) -> Table:

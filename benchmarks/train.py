@@ -35,7 +35,7 @@ def run(cfg: Config) -> Table:
     t_exact, rep = best_time(lambda: ldft.learn(model, data, progress=False), repeat=2 if cfg.quick else 5)
     table.rows.append(["polynomial (4, 8), paper Example 1", "1 sequence, 51 samples", "exact", t_exact,
                        rep.iterations, None, rep.rel_res, rep.stop_reason])
-    cap = 3.0 if cfg.quick else 90.0
+    cap = 1.0 if cfg.quick else 90.0
     orbits = kepler_training(cfg.quick)
     reports = {}
     for opt in ("lbfgs", "adam"):

@@ -1,0 +1,44 @@
+"""Smoke test of the benchmark runner (issue 6): ``--quick`` runs end to end and prints its tables.
+
+No timing is asserted: the benchmarks are run by hand (docs/performance.md).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.mark.slow
+def test_quick_run_prints_every_table_and_writes_results(tmp_path):
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.run([sys.executable, "-m", "benchmarks", "--quick", "--out", str(tmp_path)], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = proc.stdout
+    for title in ("1+1D serving", "2+1D serving", "1D serving", "Training", "Long-run fidelity",
+                  "Peak resident memory", "Targets of issue 6"):
+        assert f"== {title}" in out, f"table {title!r} missing from:\n{out}"
+    results = json.loads((tmp_path / "results.json").read_text())
+    names = [b["name"] for b in results["benchmarks"]]
+    assert names == ["serve-1+1d", "serve-2+1d", "serve-1d", "train", "fidelity", "memory"]
+    assert not results["failed"]
+    assert all(b["rows"] for b in results["benchmarks"])
+    checks = [c for b in results["benchmarks"] for c in b["checks"]]
+    assert len(checks) >= 8 and all(isinstance(c["met"], bool) for c in checks)
+    assert "| Newton sites/s |" in (tmp_path / "results.md").read_text()
+    assert (tmp_path / "fidelity_energy.png").stat().st_size > 0
+
+
+def test_unknown_benchmark_is_refused():
+    proc = subprocess.run([sys.executable, "-m", "benchmarks", "--only", "nope"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120, check=False)
+    assert proc.returncode == 2
+    assert "unknown benchmark 'nope'" in proc.stderr
