@@ -53,14 +53,18 @@ def run(cfg: Config) -> Table:
     t_one = time.perf_counter() - t0
     diff = float(np.abs(one.field.values[: n_base + 2] - base).max())
     table.rows.append(["ldft.serve, one trajectory", f"1 x {n}", t_one, n / t_one, n / t_one / sps_base, diff])
-    inits = [init] + kepler_inits(batch)[1:]
-    t0 = time.perf_counter()
-    many = ldft.serve(model, inits, steps=n + 2, progress=False)
-    t_many = time.perf_counter() - t0
-    done = sum(r.slices - 2 for r in many)
-    diff_b = float(np.abs(many[0].field.values[: n_base + 2] - base).max())
-    table.rows.append([f"ldft.serve, batch of {batch} (a list)", f"{batch} x {n}", t_many, done / t_many,
-                       done / t_many / sps_base, diff_b])
+    diff_b = 0.0
+    for size in (batch, 64 if cfg.quick else 256):
+        inits = [init] + kepler_inits(size)[1:]
+        t0 = time.perf_counter()
+        many = ldft.serve(model, inits, steps=n + 2, progress=False)
+        t_many = time.perf_counter() - t0
+        done = sum(r.slices - 2 for r in many)
+        diff_b = float(np.abs(many[0].field.values[: n_base + 2] - base).max())
+        table.rows.append([f"ldft.serve, batch of {size} (a list)", f"{size} x {n}", t_many, done / t_many,
+                           done / t_many / sps_base, diff_b])
+        if size == batch:
+            ratio = done / t_many / sps_base
     table.notes += [
         "Model: `MLPLagrangian(form='kinetic-potential', hidden=[40, 40], activation='tanh', "
         "features='inverse-radius')`, V = net(1/|q|), bound to dt = 0.05, m = 2, learned briefly (L-BFGS) on the "
@@ -69,9 +73,9 @@ def run(cfg: Config) -> Table:
         f"Baseline: per step `scipy.optimize.root` (hybr, finite-difference Jacobian, default tolerance) on the "
         f"DEL residual from torch autograd of the same model, {n_base} steps timed; the last column compares the "
         "first steps of the served orbit with it (root's default tolerance is ~1.5e-8).",
-        "Orbits: radii 0.6 .. 2.5 au, near-circular speeds, all bound; every member completed.",
+        "Orbits: radii 0.6 .. 2.5 au, near-circular speeds, all bound. The target is checked on the batch of "
+        f"{batch} (issue 6); the larger batch shows how the rate scales with the batch size.",
     ]
-    ratio = done / t_many / sps_base
     table.checks.append(Check(">= 1e4x the root-per-step baseline per trajectory-step, batched",
                               f"{ratio:.3g}x", ratio >= 1e4))
     return table
