@@ -127,3 +127,13 @@ def test_print_shows_the_learned_theory():
     assert "Dt^2" in text and "rel_res" in text and "gauge residual" in text
     # the kinetic coefficient: the unit mass 1/(2 h^2) = 50 for h = 0.1, plus -1/8 from V(q0)+V(q1)
     assert math.isclose(model.monomials()[(0, 2)], 50.0 - 0.125, rel_tol=1e-9)  # V(q)=q^2/2 adds -d^2/8
+
+
+@pytest.mark.parametrize("stencil", [None, "full-cell"])
+def test_kinetic_potential_has_unit_mass_on_any_stencil(stencil):
+    st = ldft.Stencil.full_cell(2) if stencil else None
+    train = ldft.serve(lagrangians.wave(1.0), wave_field(nt=16)).field
+    model = ldft.MLPLagrangian(hidden=[6], activation="tanh", form="kinetic-potential", stencil=st)
+    rep = ldft.learn(model, train, max_iter=5)
+    assert model.unit_mass_by_construction
+    assert rep.gauge_residual < 1e-12 and abs(rep.hessian_min_sv - 1) < 1e-12

@@ -114,7 +114,17 @@ class MLPLagrangian(AbstractLagrangian):
 
     @property
     def unit_mass_by_construction(self) -> bool:  # type: ignore[override]
-        return self.form == "kinetic-potential"
+        """The kinetic-potential form has ``M = -I / h_0^2`` exactly when every spatial edge ``e_k`` is in the
+        stencil (its differences then never couple ``psi_x`` with ``psi_{x+e_0}``); otherwise the gauge
+        penalty applies."""
+        if self.form != "kinetic-potential":
+            return False
+        return self.stencil is None or all(self._edge(k) is not None for k in range(1, self.stencil.ndim))
+
+    def _edge(self, k: int) -> int | None:
+        e = [0] * self.stencil.ndim
+        e[k] = 1
+        return self.stencil.offsets.index(tuple(e)) if tuple(e) in self.stencil.offsets else None
 
     def options(self) -> dict[str, Any]:
         return {"hidden": list(self.hidden), "activation": self.activation, "form": self.form,
@@ -188,11 +198,17 @@ class MLPLagrangian(AbstractLagrangian):
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
         if self.form == "free":
             return self._net(self._inputs(cells))
+        # kinetic term from the time edge psi[x+e0] - psi[x]: its mixed Hessian is -I/h0^2 on every stencil;
+        # spatial terms from the edges psi[x+e_k] - psi[x] when present, else the stencil's least-squares slope
         z = self.mean_and_differences(cells)  # (..., n+1, m)
         h = self.spacing
-        lag = 0.5 * (z[..., 1, :] ** 2).sum(-1) / h[0] ** 2
+        st = self.stencil
+        x0 = cells[..., st.anchor, :]
+        lag = 0.5 * ((cells[..., st.forward, :] - x0) ** 2).sum(-1) / h[0] ** 2
         for k in range(1, self.n):
-            lag = lag - 0.5 * self.stiffness[k - 1] * (z[..., k + 1, :] ** 2).sum(-1) / h[k] ** 2
+            edge = self._edge(k)
+            dk = cells[..., edge, :] - x0 if edge is not None else z[..., k + 1, :]
+            lag = lag - 0.5 * self.stiffness[k - 1] * (dk ** 2).sum(-1) / h[k] ** 2
         potential = self._net(self._inputs(cells)).mean(-1)  # mean over the K stencil sites
         return lag - potential
 
