@@ -133,6 +133,34 @@ def maxrss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _status_mib(key: str) -> float | None:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+class PeakRSS:
+    """Peak resident memory of a stretch of work: the kernel's high-water mark ``VmHWM``, reset at the start
+    (``echo 5 > /proc/self/clear_refs``, Linux); where that is not possible, ``ru_maxrss`` (a process-wide
+    high-water mark, so then the start's own peak may hide the work's)."""
+
+    def __init__(self) -> None:
+        try:
+            Path("/proc/self/clear_refs").write_text("5")
+            self.reset = _status_mib("VmHWM") is not None
+        except OSError:
+            self.reset = False
+        self.before = _status_mib("VmRSS") if self.reset else maxrss_mib()
+
+    def peak(self) -> float:
+        value = _status_mib("VmHWM") if self.reset else None
+        return value if value is not None else maxrss_mib()
+
+
 def in_subprocess(probe: str, threads: int, inline: bool = False, **kwargs: Any) -> dict[str, Any]:
     """Run ``benchmarks._probes.<probe>(**kwargs)`` in a fresh Python and return its JSON answer.
 

@@ -1,8 +1,8 @@
 """Work run in a fresh Python (see ``_common.in_subprocess``) so its peak resident memory is its own.
 
-Each probe builds its inputs, reads ``ru_maxrss`` (the baseline: interpreter, torch, inputs), does the
-work, and reads ``ru_maxrss`` again. ``ru_maxrss`` is the kernel's high-water mark of the process's resident
-set (KiB on Linux), so it includes torch's and numpy's allocations and the allocator's slack.
+Each probe warms up, builds its inputs, resets the kernel's resident-set high-water mark and reads the
+resident memory (the baseline: interpreter, torch, inputs), does the work, and reads the high-water mark
+(see ``_common.PeakRSS``). It counts torch's and numpy's allocations and the allocator's slack alike.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import torch
 import latticedft as ldft
 from latticedft import systems
 
-from ._common import maxrss_mib
+from ._common import PeakRSS
 from ._fixtures import DT, DX, membrane_field, string_field
 
 
@@ -35,22 +35,22 @@ def serve_membrane(n: int, nt: int) -> dict[str, Any]:
     t0 = time.perf_counter()
     lf = systems.leapfrog(ref[0], ref[1], nt - 1, dt, h, boundary_values=ref)
     t_lf = time.perf_counter() - t0
-    rss0 = maxrss_mib()
+    mem = PeakRSS()
     t0 = time.perf_counter()
     res = ldft.serve(ldft.lagrangians.wave(), da, progress=False)
     t_newton = time.perf_counter() - t0
     return {"sites": (nt - 2) * (n - 2) ** 2, "t_newton": t_newton, "t_leapfrog": t_lf,
             "iterations": res.newton_iterations, "error": float(np.abs(res.field.values - lf).max()),
-            "rss_before": rss0, "rss_peak": maxrss_mib(), "field_mib": ref.nbytes / 2 ** 20}
+            "rss_before": mem.before, "rss_peak": mem.peak(), "reset": mem.reset, "field_mib": ref.nbytes / 2 ** 20}
 
 
 def serve_string(nx: int, nt: int, boundary: str) -> dict[str, Any]:
     _warm_up_serving()
     ref, da = string_field(nx, nt, boundary)
-    rss0 = maxrss_mib()
+    mem = PeakRSS()
     t0 = time.perf_counter()
     ldft.serve(ldft.lagrangians.wave(), da, boundary=boundary, progress=False)
-    return {"seconds": time.perf_counter() - t0, "rss_before": rss0, "rss_peak": maxrss_mib(),
+    return {"seconds": time.perf_counter() - t0, "rss_before": mem.before, "rss_peak": mem.peak(), "reset": mem.reset,
             "field_mib": ref.nbytes / 2 ** 20}
 
 
@@ -59,20 +59,20 @@ def train_kg_mlp(n: int, iterations: int) -> dict[str, Any]:
     model = ldft.MLPLagrangian(hidden=[10, 10], activation="tanh", form="kinetic-potential", seed=0)
     ldft.learn(ldft.MLPLagrangian(hidden=[10, 10], activation="tanh", form="kinetic-potential"), data[:1],
                optimizer="lbfgs", max_iter=1, progress=False)  # warm-up
-    rss0 = maxrss_mib()
+    mem = PeakRSS()
     rep = ldft.learn(model, data, optimizer="lbfgs", max_iter=iterations, progress=False)
-    return {"seconds": rep.wall_time, "iterations": rep.iterations, "sites": rep.n_sites, "rss_before": rss0,
-            "rss_peak": maxrss_mib()}
+    return {"seconds": rep.wall_time, "iterations": rep.iterations, "sites": rep.n_sites, "rss_before": mem.before,
+            "rss_peak": mem.peak(), "reset": mem.reset}
 
 
 def train_kepler_paper(iterations: int, planets: list[str]) -> dict[str, Any]:
     data = [systems.planet_orbit(p, dt=0.05) for p in planets]
     model = ldft.MLPLagrangian(preset="paper", seed=0)
     ldft.learn(ldft.MLPLagrangian(preset="paper"), data[:1], optimizer="lbfgs", max_iter=1, progress=False)
-    rss0 = maxrss_mib()
+    mem = PeakRSS()
     rep = ldft.learn(model, data, optimizer="lbfgs", max_iter=iterations, progress=False)
-    return {"seconds": rep.wall_time, "iterations": rep.iterations, "sites": rep.n_sites, "rss_before": rss0,
-            "rss_peak": maxrss_mib()}
+    return {"seconds": rep.wall_time, "iterations": rep.iterations, "sites": rep.n_sites, "rss_before": mem.before,
+            "rss_peak": mem.peak(), "reset": mem.reset}
 
 
 PROBES = {f.__name__: f for f in (serve_membrane, serve_string, train_kg_mlp, train_kepler_paper)}

@@ -10,9 +10,12 @@ the user's; nothing is committed). Exit status 0 when every benchmark ran
 from __future__ import annotations
 
 import argparse
+import cProfile
+import io
 import importlib
 import json
 import os
+import pstats
 import shlex
 import sys
 import time
@@ -26,6 +29,15 @@ BENCHMARKS = ["serve_1p1d", "serve_2p1d", "serve_1d", "train", "fidelity", "memo
 
 def _load():
     return {m.NAME: m for m in (importlib.import_module(f"benchmarks.{name}") for name in BENCHMARKS)}
+
+
+def _profile_text(prof: cProfile.Profile, top: int = 15) -> str:
+    buf = io.StringIO()
+    stats = pstats.Stats(prof, stream=buf)
+    stats.strip_dirs().sort_stats("tottime").print_stats(top)
+    lines = [ln for ln in buf.getvalue().splitlines() if ln.strip()]
+    start = next((k for k, ln in enumerate(lines) if ln.lstrip().startswith("ncalls")), 0)
+    return "\n".join(lines[start:])
 
 
 def _targets(tables: list[Table]) -> Table:
@@ -43,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"run only these benchmarks (repeat or comma-separate): {', '.join(mods)}")
     p.add_argument("--out", type=Path, help="folder for results.json, results.md and figures")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1; the machine is shared)")
+    p.add_argument("--profile", action="store_true",
+                   help="run each benchmark under cProfile and print (and write) its top functions by own time")
     p.add_argument("--fidelity-steps", type=int, metavar="N",
                    help="steps of the long-run fidelity benchmark (default 100000; 300 with --quick)")
     args = p.parse_args(argv)
@@ -68,15 +82,26 @@ def main(argv: list[str] | None = None) -> int:
         if only and name not in only:
             continue
         t0 = time.perf_counter()
+        prof = cProfile.Profile() if args.profile else None
         try:
+            if prof is not None:
+                prof.enable()
             table = mod.run(cfg)
         except Exception as exc:  # report and go on: one broken benchmark must not hide the others
             traceback.print_exc()
             failed.append(name)
             table = Table(name, mod.TITLE, ["error"], [[f"{type(exc).__name__}: {exc}"]])
+        finally:
+            if prof is not None:
+                prof.disable()
         table.seconds = time.perf_counter() - t0
         tables.append(table)
         print("\n" + text(table), flush=True)
+        if prof is not None:
+            report = _profile_text(prof)
+            print(f"\n-- cProfile of {name} (top functions by own time; subprocess probes not included)\n{report}")
+            if args.out is not None:
+                (args.out / f"profile_{name}.txt").write_text(report)
     targets = _targets(tables)
     print("\n" + text(targets).replace(" (0.0 s)", ""))
     info["load_average_after"] = [round(x, 2) for x in os.getloadavg()]

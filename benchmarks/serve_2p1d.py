@@ -18,8 +18,9 @@ def run(cfg: Config) -> Table:
                        r["t_newton"] / r["t_leapfrog"], r["iterations"] / (nt - 2), r["error"], r["rss_peak"],
                        r["rss_peak"] - r["rss_before"], r["field_mib"]])
     table.notes += [
-        "Served in a fresh subprocess; peak RSS is that process's `ru_maxrss` (interpreter, torch and the "
-        "inputs included); the growth is `ru_maxrss` after serving minus before.",
+        "Served in a fresh subprocess (with --quick: in the runner); peak RSS is the kernel's high-water mark "
+        "`VmHWM` reset just before serving (interpreter, torch and the inputs included); the growth is that "
+        "peak minus the resident memory just before serving.",
         "Membrane 1 x 1 with a fixed frame, dt = h / 2, two by one half waves; leapfrog: "
         "`latticedft.systems.leapfrog` (numpy), one run.",
     ]
