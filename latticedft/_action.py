@@ -18,9 +18,10 @@ __all__ = ["action", "del_residual", "mixed_hessian", "cell_derivatives", "CellD
 
 
 
-def action(model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: tuple[bool, ...]) -> torch.Tensor:
-    """Total discrete action of one field ``psi`` with shape ``(*N, m)``."""
-    cells = gather_cells(psi, model.stencil, periodic)
+def action(model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: tuple[bool, ...],
+           batch: int = 0) -> torch.Tensor:
+    """Total discrete action of one field ``psi`` with shape ``(*N, m)`` (summed over ``batch`` leading axes)."""
+    cells = gather_cells(psi, model.stencil, periodic, batch)
     return math.prod(spacing) * model(cells).sum()
 
 
@@ -32,9 +33,9 @@ def del_residual(model, f: LatticeField, *, create_graph: bool = False) -> torch
     """
     psi = f.values.detach().clone().requires_grad_(True)
     with torch.enable_grad():
-        a = action(model, psi, f.spacing, f.periodic)
+        a = action(model, psi, f.spacing, f.periodic, f.batch)
         (g,) = torch.autograd.grad(a, psi, create_graph=create_graph)
-    return g[interior_slices(f.shape, model.stencil, f.periodic)]
+    return g[(slice(None),) * f.batch + interior_slices(f.shape, model.stencil, f.periodic)]
 
 
 def cell_derivatives(model, cells: torch.Tensor, pairs: list[tuple[int, int]], *,
@@ -107,7 +108,7 @@ class CellDerivatives:
 def mixed_hessian(model, f: LatticeField, *, create_graph: bool = False) -> torch.Tensor:
     """The mixed time Hessian ``M = d^2 L_d / dpsi_x dpsi_{x+e_0}`` on every cell of ``f``: ``(ncells, m, m)``."""
     st = model.stencil
-    cells = gather_cells(f.values, st, f.periodic)
+    cells = gather_cells(f.values, st, f.periodic, f.batch)
     pair = (st.anchor, st.forward)
     _, blocks = cell_derivatives(model, cells, [pair], create_graph=create_graph)
     m = f.ncomp

@@ -48,7 +48,8 @@ class LatticeField:
 
     @property
     def shape(self) -> tuple[int, ...]:
-        return tuple(self.values.shape[:-1])
+        """Lattice shape (without leading batch dims and the component axis)."""
+        return tuple(self.values.shape[self.batch:-1])
 
     def with_values(self, values: torch.Tensor, t0: float | None = None) -> LatticeField:
         """The same lattice description around new values (time length may differ)."""
@@ -80,6 +81,8 @@ class LatticeField:
                             attrs=dict(self.attrs))
 
     coord_attrs: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Leading batch dims of ``values``: fields of one shape stacked for training (never coupled).
+    batch: int = 0
 
 
 def _periodic_flags(da: xr.DataArray, dims: tuple[str, ...], boundary: BoundaryKinds | None,
@@ -150,29 +153,31 @@ def as_lattice_field(data: xr.DataArray | LatticeField, *, source: str | None = 
     )
 
 
-def gather_cells(psi: torch.Tensor, stencil: Stencil, periodic: tuple[bool, ...]) -> torch.Tensor:
-    """Stack the stencil's sites of every cell: ``(*cells, K, m)``.
+def gather_cells(psi: torch.Tensor, stencil: Stencil, periodic: tuple[bool, ...], batch: int = 0) -> torch.Tensor:
+    """Stack the stencil's sites of every cell: ``(*batch, *cells, K, ...)``.
 
-    Non-periodic axis ``k`` holds ``N_k - width_k`` cells; a periodic axis holds
-    ``N_k`` cells and wraps. Differentiable in ``psi``.
+    The lattice axes of ``psi`` follow ``batch`` leading batch axes; any axes
+    after them (components, ...) are carried along. Non-periodic axis ``k``
+    holds ``N_k - width_k`` cells; a periodic axis holds ``N_k`` cells and
+    wraps. Differentiable in ``psi``.
     """
     n = stencil.ndim
-    shape = psi.shape[:n]
+    shape = psi.shape[batch:batch + n]
     lo, width = stencil.lo, stencil.width
     parts = []
     for off in stencil.offsets:
         v = psi
-        index: list[slice] = []
+        index: list[slice] = [slice(None)] * batch
         for k in range(n):
             start = off[k] - lo[k]
             if periodic[k]:
                 if start:
-                    v = torch.roll(v, shifts=-int(start), dims=k)
+                    v = torch.roll(v, shifts=-int(start), dims=batch + k)
                 index.append(slice(None))
             else:
                 index.append(slice(int(start), int(start + shape[k] - width[k])))
         parts.append(v[tuple(index)])
-    return torch.stack(parts, dim=n)
+    return torch.stack(parts, dim=batch + n)
 
 
 def interior_slices(shape: tuple[int, ...], stencil: Stencil, periodic: tuple[bool, ...]) -> tuple[slice, ...]:

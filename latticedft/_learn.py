@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -322,10 +322,20 @@ def _objective(model, fields, gauge, penalty, nsites, norm2):
     return obj, loss
 
 
+def _stacked(fields: list[LatticeField]) -> list[LatticeField]:
+    """Fields of one shape and periodicity stacked along a batch axis: one pass instead of one per field."""
+    groups: dict[tuple, list[LatticeField]] = {}
+    for f in fields:
+        groups.setdefault((f.shape, f.periodic), []).append(f)
+    return [g[0] if len(g) == 1 else replace(g[0], values=torch.stack([f.values for f in g]), batch=1)
+            for g in groups.values()]
+
+
 def _learn_neural(model, fields, gauge, optimizer, nsites, *, max_iter, max_time, tol, rel_tol, lr, penalty,
                   progress):
     """Full-batch L-BFGS (strong Wolfe line search, in chunks of up to 20 iterations) or Adam."""
     norm2 = _kinetic_scale(fields, model, None) ** 2 or 1.0
+    fields = _stacked(fields)
     params = [p for p in model.parameters() if p.requires_grad]
     chunk = 20 if optimizer == "lbfgs" else 1
     if optimizer == "lbfgs":
