@@ -64,11 +64,13 @@ def main(argv: list[str] | None = None) -> int:
         fn()
         prof.disable()
         wall = time.perf_counter() - t0
-        buf = io.StringIO()
-        pstats.Stats(prof, stream=buf).strip_dirs().sort_stats("tottime").print_stats(12)
-        lines = [ln for ln in buf.getvalue().splitlines() if ln.strip()]
-        start = next((k for k, ln in enumerate(lines) if ln.lstrip().startswith("ncalls")), 0)
-        print(f"== {name}: {wall:.3f} s under cProfile\n" + "\n".join(lines[start:]) + "\n", flush=True)
+        print(f"== {name}: {wall:.3f} s under cProfile", flush=True)
+        for key, top in (("tottime", 12), ("cumulative", 10)):
+            buf = io.StringIO()
+            pstats.Stats(prof, stream=buf).strip_dirs().sort_stats(key).print_stats(top)
+            lines = [ln for ln in buf.getvalue().splitlines() if ln.strip()]
+            start = next((k for k, ln in enumerate(lines) if ln.lstrip().startswith("ncalls")), 0)
+            print(f"-- by {key} time\n" + "\n".join(lines[start:]) + "\n", flush=True)
     return 0
 
 
