@@ -73,9 +73,12 @@ def fmt(v: Any) -> str:
 
 def markdown(table: Table) -> str:
     """A table as GitHub markdown, notes as a list below it."""
-    lines = [f"### {table.title}", "", "| " + " | ".join(table.columns) + " |",
+    def cell(v: Any) -> str:
+        return fmt(v).replace("|", "\\|")
+
+    lines = [f"### {table.title}", "", "| " + " | ".join(cell(c) for c in table.columns) + " |",
              "|" + "|".join("---" for _ in table.columns) + "|"]
-    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in table.rows]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in table.rows]
     if table.notes:
         lines.append("")
         lines += [f"- {n}" for n in table.notes]
