@@ -76,33 +76,29 @@ def cell_derivatives(model, cells: torch.Tensor, pairs: list[tuple[int, int]], *
 
 
 class CellDerivatives:
-    """Per-cell gradient now, Hessian blocks on demand (serving skips them once Newton has converged)."""
+    """Per-cell gradient now, Hessian blocks on demand (serving skips them while a cached Jacobian serves).
+
+    The gradient is taken without a graph; only when blocks are asked for is
+    it taken again with one (one extra pass, saved on every slice that needs
+    no fresh Jacobian).
+    """
 
     def __init__(self, model, cells: torch.Tensor):
         self.model = model
         self._fast = getattr(model, "fast_derivatives", None)
+        self.cells = cells.detach()
         if self._fast is not None:
-            self.cells = cells.detach()
             self.grad, _ = self._fast(self.cells, [])
             return
-        self.cells = cells.detach().requires_grad_(True)
+        x = self.cells.requires_grad_(True)
         with torch.enable_grad():
-            (self._g,) = torch.autograd.grad(model(self.cells).sum(), self.cells, create_graph=True)
-        self.grad = self._g.detach()
+            (g,) = torch.autograd.grad(model(x).sum(), x)
+        self.grad = g.detach()
 
     def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
         if self._fast is not None:
             return self._fast(self.cells, pairs)[1]
-        x, g = self.cells, self._g
-        m = x.shape[-1]
-        cols: dict[int, list[torch.Tensor]] = {}
-        with torch.enable_grad():
-            for b in sorted({b for _, b in pairs}):
-                cols[b] = []
-                for j in range(m):
-                    (hj,) = torch.autograd.grad(g[..., b, j].sum(), x, retain_graph=True, allow_unused=True)
-                    cols[b].append(torch.zeros_like(x) if hj is None else hj)
-        return {(a, b): torch.stack([c[..., a, :] for c in cols[b]], dim=-1) for a, b in pairs}
+        return cell_derivatives(self.model, self.cells.detach(), pairs)[1]
 
 
 def mixed_hessian(model, f: LatticeField, *, create_graph: bool = False) -> torch.Tensor:

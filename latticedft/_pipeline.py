@@ -267,8 +267,9 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         else:
             rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0]))) if finite.size else None
         rec["invariant"] = t.invariant
-    msg = (f"task {t.name}: {'complete' if result.complete else 'INCOMPLETE'}, {result.slices} slices, "
-           f"{result.newton_iterations} Newton iterations, {wall:.2f} s")
+    how = (f"{result.newton_iterations} Newton iterations" if result.solver != "affine" else
+           f"affine recurrence (quadratic L_d, {result.newton_iterations} linear solves)")
+    msg = f"task {t.name}: {'complete' if result.complete else 'INCOMPLETE'}, {result.slices} slices, {how}, {wall:.2f} s"
     if "max_error" in rec:
         msg += f", max error {rec['max_error']:.3e}, rms {rec['rms_error']:.3e}"
     if "baseline" in rec:

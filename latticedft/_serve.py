@@ -25,7 +25,7 @@ import torch
 import xarray as xr
 from tqdm.auto import tqdm
 
-from ._action import CellDerivatives, cell_derivatives
+from ._action import CellDerivatives, cell_derivatives, del_residual
 from ._errors import InputError, ServeError
 from ._lattice import BoundaryKinds, LatticeField, as_lattice_field, gather_cells, interior_slices
 from ._learn import _check_model_lattice
@@ -50,11 +50,15 @@ class ServeResult:
     sites_per_second: float
     max_residual: float
     mode: str
+    #: how the slices were solved: "newton", "sweep", "affine" (a quadratic L_d: the DEL's affine recurrence,
+    #: one factorised solve per slice, checked afterwards) or "affine+newton" (Newton from the first slice
+    #: that failed that check)
+    solver: str = "newton"
 
     def to_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in ("complete", "reason", "slices", "newton_iterations",
                                               "max_newton_iterations", "wall_time", "sites_per_second",
-                                              "max_residual", "mode")}
+                                              "max_residual", "mode", "solver")}
 
 
 def compare(pred: xr.DataArray, ref: xr.DataArray) -> dict[str, float]:
@@ -188,6 +192,130 @@ class _SliceSystem:
             raise np.linalg.LinAlgError(str(exc)) from None
 
 
+class _AffineSlices:
+    """The DEL of a quadratic ``L_d`` as an affine recurrence ``P psi_{i-1} + C psi_i + N psi_{i+1} + c = 0``.
+
+    Built from the model's (constant) per-cell Hessian, without the cell
+    volume (a common factor of every equation; leaving it out keeps sums such
+    as a discrete Laplacian's rows exact); ``N`` restricted to the unknown
+    sites is factorised once. ``probe`` decides whether the model's
+    DEL is affine (equal Hessians and affine gradients at random states); the
+    served field is checked against the model's own DEL afterwards anyway.
+    """
+
+    def __init__(self, sys: _SliceSystem, hess: np.ndarray, grad0: np.ndarray):
+        m = sys.m
+        now, nxt = sys.now, sys.nxt
+        size = sys.nsite * m
+        ii, jj = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
+
+        def assemble(pairs: list[tuple[int, int]]) -> scipy.sparse.csr_matrix:
+            rows, cols, vals = [], [], []
+            for a, b in pairs:
+                ra, cb = sys.site_of[a], sys.site_of[b]
+                rows.append((ra[:, None, None] * m + ii).reshape(-1))
+                cols.append((cb[:, None, None] * m + jj).reshape(-1))
+                vals.append(np.broadcast_to(hess[a, b], (ra.size, m, m)).reshape(-1))
+            if not rows:
+                return scipy.sparse.csr_matrix((size, size))
+            mat = scipy.sparse.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                                          shape=(size, size)).tocsr()
+            mat.sum_duplicates()
+            mat.eliminate_zeros()  # e.g. the wave L_d has no coupling between a cell's spatial and time neighbours
+            return mat
+
+        rows_in = (np.nonzero(sys.interior)[0][:, None] * m + np.arange(m)).reshape(-1)
+        unknown = np.zeros(size, dtype=bool)
+        unknown[rows_in] = True
+        self.ucols = rows_in
+        self.kcols = np.nonzero(~unknown)[0]
+        self.all_unknown = self.kcols.size == 0
+        p_mat = assemble([(a, b) for a in nxt for b in now])[rows_in]
+        c_mat = assemble([(a, b) for a in nxt for b in nxt] + [(a, b) for a in now for b in now])[rows_in]
+        n_mat = assemble([(a, b) for a in now for b in nxt])[rows_in]
+        # Solved about the predictor 2 psi_i - psi_{i-1}: psi_{i+1} = 2 psi_i - psi_{i-1} + w, so that
+        # (P - N) psi_{i-1} + (C + 2 N) psi_i + N_known dk + N_unknown w + c = 0. The large kinetic entries
+        # (~ 1/h0^2) cancel in the matrices, not in the arithmetic on the field: w carries the rounding of a
+        # small correction, as Newton's step does, and the wave L_d serves the leapfrog to ~1e-15, not 1e-13.
+        self.pc = scipy.sparse.hstack([p_mat - n_mat, c_mat + 2 * n_mat]).tocsr()
+        self.nk = n_mat[:, self.kcols].tocsr()
+        nu = n_mat[:, self.ucols].tocsc()
+        cvec = np.zeros(size)
+        for a in nxt + now:
+            np.add.at(cvec, (sys.site_of[a][:, None] * m + np.arange(m)).reshape(-1),
+                      np.broadcast_to(grad0[a], (sys.site_of[a].size, m)).reshape(-1))
+        self.c = cvec[rows_in]
+        self.dmax = max((float(np.abs(hess[a, b]).max()) for a, b in sys.diag_pairs), default=1.0)
+        diag = nu.diagonal()
+        if nu.nnz == np.count_nonzero(diag) and nu.nnz == nu.shape[0]:  # diagonal (first-order stencil)
+            inv = 1.0 / diag
+            self.solve = lambda rhs: inv * rhs
+        else:
+            try:
+                self.solve = scipy.sparse.linalg.splu(nu).solve
+            except RuntimeError as exc:
+                raise np.linalg.LinAlgError(str(exc)) from None
+
+    @staticmethod
+    def probe(model: AbstractLagrangian, st, m: int, scale: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(H, g0)``: per-cell Hessian ``(K, K, m, m)`` and gradient at zero, if the DEL is affine; else None."""
+        k = st.size
+        gen = torch.Generator().manual_seed(12345)
+        x = scale * (2 * torch.rand(3, 4, k, m, generator=gen, dtype=torch.float64) - 1)
+        x[0, 0] = 0.0  # the constant term is the gradient at zero itself (g - H x there would carry round-off)
+        pairs = [(a, b) for a in range(k) for b in range(k)]
+        try:
+            g, blocks = cell_derivatives(model, x, pairs)
+        except (RuntimeError, ValueError):
+            return None
+        h = torch.stack([torch.stack([blocks[(a, b)] for b in range(k)], -3) for a in range(k)], -4)  # (3,4,K,K,m,m)
+        if not (torch.isfinite(h).all() and torch.isfinite(g).all()):
+            return None
+        h0 = h[0, 0]
+        big = float(h0.abs().max())
+        if big == 0.0 or float((h - h0).abs().max()) > 1e-10 * big:
+            return None
+        # affine gradient: g(x) - H x is the same constant at every state
+        hx = torch.einsum("abij,...bj->...ai", h0, x)
+        g0 = g - hx
+        gscale = float(g.abs().max()) + big * scale
+        if float((g0 - g[0, 0]).abs().max()) > 1e-10 * gscale:
+            return None
+        return h0.numpy().copy(), g[0, 0].numpy().copy()
+
+    def run(self, v: np.ndarray, start: int, stop: int) -> None:
+        """Fill slices ``start + 1 .. stop`` of ``v`` (``(steps, nsite * m)``, known entries already set)."""
+        pc, nk, c, solve, ucols, kcols = self.pc, self.nk, self.c, self.solve, self.ucols, self.kcols
+        with np.errstate(all="ignore"):
+            for i in range(start, stop):
+                two = v[i - 1:i + 1]
+                rhs = pc @ two.reshape(-1)
+                rhs += c
+                pred = 2 * two[1] - two[0]
+                if self.all_unknown:
+                    v[i + 1] = pred
+                    v[i + 1] -= solve(rhs)
+                else:
+                    if nk.nnz:
+                        rhs += nk @ (v[i + 1, kcols] - pred[kcols])
+                    v[i + 1, ucols] = pred[ucols] - solve(rhs)
+
+
+def _slice_residuals(model: AbstractLagrangian, f: LatticeField, psi: torch.Tensor, start: int, stop: int) -> np.ndarray:
+    """Max |DEL residual| on slices ``start .. stop - 1`` of ``psi`` (one vectorised pass per chunk of slices)."""
+    nsite = max(int(np.prod(psi.shape[1:-1])), 1)
+    width = max(3, min(stop - start + 2, 2_000_000 // nsite + 2))
+    out = np.empty(stop - start)
+    j = start - 1
+    while j + 2 <= stop:
+        hi = min(j + width, stop + 1)
+        chunk = f.with_values(psi[j:hi])
+        el = del_residual(model, chunk)
+        out[j + 1 - start: hi - 1 - start] = el.abs().reshape(el.shape[0], -1).amax(1).numpy()
+        j = hi - 2
+    return out
+
+
 def _site_label(f: LatticeField, sys: _SliceSystem, tslice: int, row: int) -> tuple[int, ...]:
     site = int(np.nonzero(sys.interior)[0][row // sys.m])
     return (tslice, *[int(v) for v in np.unravel_index(site, sys.spatial)])
@@ -195,7 +323,7 @@ def _site_label(f: LatticeField, sys: _SliceSystem, tslice: int, row: int) -> tu
 
 # -- n-D serving (n >= 2) --------------------------------------------------------------------------------------
 def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, mode: str, rtol: float, max_newton: int,
-                 progress: bool | None) -> ServeResult:
+                 progress: bool | None, affine: bool = True) -> ServeResult:
     st = model.stencil
     sys = _SliceSystem(model, f)
     nt_given = f.shape[0]
@@ -222,9 +350,39 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, mode: s
     def cells_at(i: int) -> torch.Tensor:
         return gather_cells(psi[i:i + 2], st, periodic)
 
-    g_prev = CellDerivatives(model, cells_at(0)).grad
     bar = _bar(steps - 2, f"serve ({mode})", progress)
     cache: dict[str, Any] = {}
+    start = 1  # first slice whose equations Newton (or the sweep) solves
+    affine_slices = 0
+    if mode == "newton" and affine and steps > 2:
+        scale = float(f.values[:2].abs().max()) or 1.0
+        probe = _AffineSlices.probe(model, st, m, scale)
+        if probe is not None:
+            try:
+                op = _AffineSlices(sys, probe[0], probe[1])
+            except np.linalg.LinAlgError:
+                op = None  # singular slice matrix: Newton reports it with the slice and site
+            if op is not None:
+                v = flat.reshape(steps, sys.nsite * m).numpy()
+                op.run(v, 1, steps - 1)
+                res = _slice_residuals(model, f, psi, 1, steps - 1)
+                absmax = np.abs(v).max(1)
+                unkmax = np.abs(v[:, op.ucols]).max(1) if op.ucols.size else np.zeros(steps)
+                scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), unkmax[2:]).clip(1e-300)
+                good = np.isfinite(res) & (res <= rtol * vol * op.dmax * scl)
+                affine_slices = int(np.argmin(good)) if not good.all() else steps - 2
+                start = 1 + affine_slices
+                if affine_slices:
+                    worst = float(res[:affine_slices].max())
+                    total_it, max_it = affine_slices, 1
+                    cache["dmax"] = op.dmax
+                bar.update(affine_slices)
+    g_prev = CellDerivatives(model, cells_at(start - 1)).grad
+
+    def solver() -> str:
+        if mode == "sweep":
+            return "sweep"
+        return "newton" if not affine_slices else ("affine" if start >= steps - 1 else "affine+newton")
 
     def fail(i: int, msg: str, row: int | None, res: float) -> ServeError:
         bar.close()
@@ -233,14 +391,15 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, mode: s
         solved = (i + 1 - 2) * sys.n
         result = ServeResult(field=part.to_dataarray(), complete=False, reason=msg, slices=i + 1,
                              newton_iterations=total_it, max_newton_iterations=max_it, wall_time=wall,
-                             sites_per_second=solved / wall if wall > 0 else 0.0, max_residual=res, mode=mode)
+                             sites_per_second=solved / wall if wall > 0 else 0.0, max_residual=res, mode=mode,
+                             solver=solver())
         site = _site_label(f, sys, i, row) if row is not None else None
         tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
         text = f"slice {i + 1} (t = {tval:.6g}): {msg}" + (f" at site {site}" if site else "") + \
             (f", residual {res:.3e}" if math.isfinite(res) else "")
         return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
 
-    for i in range(1, steps - 1):
+    for i in range(start, steps - 1):
         # predictor 2 psi_i - psi_{i-1} on the unknown sites
         flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
         if mode == "newton":
@@ -261,7 +420,8 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, mode: s
     solved = (steps - 2) * sys.n
     return ServeResult(field=out.to_dataarray(), complete=True, reason="complete", slices=steps,
                        newton_iterations=total_it, max_newton_iterations=max_it, wall_time=wall,
-                       sites_per_second=solved / wall if wall > 0 else math.inf, max_residual=worst, mode=mode)
+                       sites_per_second=solved / wall if wall > 0 else math.inf, max_residual=worst, mode=mode,
+                       solver=solver())
 
 
 def _scale(flat: torch.Tensor, i: int, unk: torch.Tensor) -> float:
@@ -269,8 +429,8 @@ def _scale(flat: torch.Tensor, i: int, unk: torch.Tensor) -> float:
 
 
 def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at, cache):
-    """Newton on one slice. The first step reuses the previous slice's factorised Jacobian (a chord step,
-    exact for quadratic ``L_d``); when that does not converge, fresh Hessian blocks are assembled."""
+    """Newton on one slice. The first step reuses the cached factorised Jacobian (a chord step, exact for
+    quadratic ``L_d``); fresh Hessian blocks are assembled only when that step did not converge."""
     m = sys.m
     res = math.inf
     r = np.zeros(0)
@@ -283,7 +443,8 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
         if not math.isfinite(res):
             return it, res, ev.grad, ("residual is not finite", None, res)
         stale = it == 1 and "solve" in cache
-        if not stale:
+        blocks = None
+        if "dmax" not in cache:
             blocks = ev.blocks(sys.pairs)
             cache["dmax"] = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
         if rscale is None:
@@ -294,6 +455,9 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
             return it, res, ev.grad, None
         try:
             if not stale:
+                if blocks is None:
+                    blocks = ev.blocks(sys.pairs)
+                cache["dmax"] = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
                 cache["solve"] = sys.factor(blocks, vol)
             delta = cache["solve"](-r)
         except (np.linalg.LinAlgError, ValueError) as exc:
@@ -476,7 +640,7 @@ def _serve_batch(model: AbstractLagrangian, fs: list[LatticeField], steps: list[
         out.append(ServeResult(field=lf.to_dataarray(), complete=not failed[k], reason=reason[k], slices=n,
                                newton_iterations=int(iters[k]), max_newton_iterations=int(max_iters[k]),
                                wall_time=wall, sites_per_second=solved / wall if wall > 0 else math.inf,
-                               max_residual=float(worst[k]), mode=mode))
+                               max_residual=float(worst[k]), mode=mode, solver=mode))
         out[-1].fail_at = fail_at.get(k)  # type: ignore[attr-defined]
     return out
 
@@ -484,7 +648,8 @@ def _serve_batch(model: AbstractLagrangian, fs: list[LatticeField], steps: list[
 # -- public ----------------------------------------------------------------------------------------------------
 def serve(model: AbstractLagrangian, init: xr.DataArray | Sequence[xr.DataArray], *, steps: int | None = None,
           boundary: BoundaryKinds | None = None, mode: str = "newton", rtol: float = 1e-10, max_newton: int = 30,
-          box: float | None = None, progress: bool | None = None) -> ServeResult | list[ServeResult]:
+          box: float | None = None, affine: bool = True,
+          progress: bool | None = None) -> ServeResult | list[ServeResult]:
     """Predict a field from its first two time slices (and boundary strips) with the learned ``L_d``.
 
     Parameters
@@ -508,6 +673,15 @@ def serve(model: AbstractLagrangian, init: xr.DataArray | Sequence[xr.DataArray]
         kinetic terms.
     box : float, optional
         1D only: a trajectory stops (completed) once ``|psi| > box``.
+    affine : bool
+        n-D ``mode="newton"`` only. When the DEL is affine in the field (a
+        quadratic ``L_d`` such as the wave or Klein-Gordon ``L_d``: detected
+        from the model's Hessian and gradient at random states), serve the
+        affine recurrence ``P psi_{i-1} + C psi_i + N psi_{i+1} + c = 0`` with
+        ``N`` factorised once: one sparse solve per slice instead of Newton's
+        autograd passes. The served field is then checked against the model's
+        own DEL (the same residual test as Newton's); from the first slice that
+        fails it, Newton takes over. ``False``: always Newton.
     progress : bool, optional
         Progress bar; ``None`` shows it only on a terminal.
 
@@ -559,5 +733,5 @@ def serve(model: AbstractLagrangian, init: xr.DataArray | Sequence[xr.DataArray]
         return results if batch else results[0]
     if box is not None:
         raise InputError("box: stopping when leaving a box is for 1D trajectories only")
-    out = [_serve_field(model, f, _steps(steps, f), mode, rtol, max_newton, progress) for f in fs]
+    out = [_serve_field(model, f, _steps(steps, f), mode, rtol, max_newton, progress, bool(affine)) for f in fs]
     return out if batch else out[0]

@@ -128,3 +128,46 @@ def test_dirichlet_needs_the_strips():
 def test_serve_reports_throughput():
     out = ldft.serve(lagrangians.wave(1.0), wave_field(nx=64, nt=64))
     assert out.sites_per_second > 0 and out.newton_iterations >= 62 and out.max_residual >= 0
+
+
+def test_quadratic_ld_is_served_by_its_affine_recurrence():
+    # the wave L_d (first-order stencil: diagonal slice matrix) and a full-cell Klein-Gordon L_d (tridiagonal)
+    def full(c, h):
+        gt = (c[..., 2, 0] + c[..., 3, 0] - c[..., 0, 0] - c[..., 1, 0]) / (2 * h[0])
+        gx = (c[..., 1, 0] + c[..., 3, 0] - c[..., 0, 0] - c[..., 2, 0]) / (2 * h[1])
+        return 0.5 * gt ** 2 - 0.5 * gx ** 2 - 0.5 * c[..., 0, 0] ** 2 + 0.1 * c[..., 0, 0]
+
+    cases = [(lagrangians.wave(1.0), wave_field(nx=33, nt=60), "dirichlet"),
+             (lagrangians.wave(1.0), wave_field(nx=32, nt=60), "periodic"),
+             (ldft.AnalyticLagrangian(full, stencil=ldft.Stencil.full_cell(2)), wave_field(nx=15, nt=30), "dirichlet"),
+             (lagrangians.wave(1.0), membrane_field(n=10, nt=20), "dirichlet")]
+    for model, field, boundary in cases:
+        fast = ldft.serve(model, field, boundary=boundary)
+        slow = ldft.serve(model, field, boundary=boundary, affine=False)
+        assert fast.solver == "affine" and slow.solver == "newton"
+        assert fast.max_newton_iterations == 1 and fast.complete
+        np.testing.assert_allclose(fast.field.values, slow.field.values, rtol=0, atol=1e-12)
+        assert fast.max_residual <= 1e-10 * np.abs(field.values).max() * 1e4  # residual of the model's own DEL
+
+
+def test_nonquadratic_ld_is_served_by_newton():
+    res = ldft.serve(_sine_gordon(), wave_field(nx=17, nt=12))
+    assert res.solver == "newton" and res.max_newton_iterations >= 2
+
+
+def test_affine_recurrence_hands_over_to_newton_where_the_del_stops_being_affine():
+    # quadratic for psi < 0.6 (all the probe sees: the initial data stay below 0.5), a cubic force above:
+    # the affine recurrence is wrong from the first slice where psi exceeds 0.6, which the check finds
+    def kg_kink(c, h):
+        u = c[..., 0, 0]
+        return (0.5 * ((c[..., 1, 0] - u) / h[0]) ** 2 - 0.5 * ((c[..., 2, 0] - u) / h[1]) ** 2
+                - 0.5 * u ** 2 + 3.0 * torch.relu(u - 0.6) ** 3)
+
+    model = ldft.AnalyticLagrangian(kg_kink)
+    field = wave_field(nx=33, nt=80, modes=((1, 0.45),))
+    field[1] = field[0] * 1.02  # starts growing: psi exceeds 0.6 after some slices
+    mixed = ldft.serve(model, field, boundary="periodic", steps=80)
+    newton = ldft.serve(model, field, boundary="periodic", steps=80, affine=False)
+    assert np.abs(newton.field.values).max() > 0.6
+    assert mixed.solver == "affine+newton" and mixed.complete
+    np.testing.assert_allclose(mixed.field.values, newton.field.values, rtol=0, atol=1e-11)
