@@ -559,6 +559,12 @@ def _serve_batch(model: AbstractLagrangian, fs: list[LatticeField], steps: list[
     groups = [active] if mode == "newton" else [[k] for k in active]
     g_prev_all, _ = cell_derivatives(model, psi[:, 0:2], [])
     g_prev_all = g_prev_all[:, a1].clone()  # d L(q_{i-1}, q_i) / d q_i, per member
+    # A model whose mixed Hessian is constant by construction (the kinetic-potential MLP) has the same
+    # Jacobian d r / d u at every state: it is assembled once, and Newton needs only gradients after that
+    # (an exact Newton step, not a chord). Other models get fresh Hessian blocks every iteration: a chord
+    # step with a stale Jacobian was seen to land near a spurious root at a stiff turning point.
+    const_model = bool(getattr(model, "constant_mixed_hessian", False))
+    jac_const: torch.Tensor | None = None
     bar = _bar(nmax - 2, f"serve ({mode}, {b} trajectories)", progress)
 
     def retire(k: int, slices: int, why: str, bad: bool, res: float = math.nan) -> None:
@@ -590,10 +596,17 @@ def _serve_batch(model: AbstractLagrangian, fs: list[LatticeField], steps: list[
             halved = torch.zeros(len(act_list), dtype=torch.long)
             small = torch.zeros(len(act_list), dtype=torch.bool)
             for it in range(1, max_newton + 1):
-                g, blocks = cell_derivatives(model, torch.stack([q_now, u], dim=1), [(a0, a1)])
+                cells = torch.stack([q_now, u], dim=1)
+                if jac_const is not None:  # constant mixed Hessian: the gradient is all that changes
+                    g = CellDerivatives(model, cells).grad
+                    jac = jac_const.expand(len(act_list), m, m)
+                else:
+                    g, blocks = cell_derivatives(model, cells, [(a0, a1)])
+                    jac = vol * blocks[(a0, a1)]  # d r_i / d u_j = vol d^2 L / dx_{a0,i} dx_{a1,j}
+                    if const_model:
+                        jac_const = jac[0].clone()
                 r = vol * (g[:, a0] + g_prev)
                 rabs = r.abs().amax(-1)
-                jac = vol * blocks[(a0, a1)]  # d r_i / d u_j = vol d^2 L / dx_{a0,i} dx_{a1,j}
                 if rscale is None:  # size of the kinetic terms, per trajectory
                     rscale = torch.linalg.matrix_norm(jac, ord=math.inf).clamp_min(1e-300) * mag.clamp_min(1e-300)
                 ok = (rabs <= rtol * rscale) | (small & torch.isfinite(rabs))

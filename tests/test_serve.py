@@ -171,3 +171,25 @@ def test_affine_recurrence_hands_over_to_newton_where_the_del_stops_being_affine
     assert np.abs(newton.field.values).max() > 0.6
     assert mixed.solver == "affine+newton" and mixed.complete
     np.testing.assert_allclose(mixed.field.values, newton.field.values, rtol=0, atol=1e-11)
+
+
+def test_constant_mixed_hessian_assembles_the_1d_jacobian_once(monkeypatch):
+    from latticedft import _serve, systems
+
+    orbits = [systems.kepler_orbit(r, 1.0 / np.sqrt(r), dt=0.05, n=40) for r in (0.8, 1.0, 1.3)]
+    model = ldft.MLPLagrangian(hidden=[8, 8], activation="tanh", form="kinetic-potential",
+                               features="inverse-radius", seed=0)
+    ldft.learn(model, orbits, max_iter=5)
+    assert model.constant_mixed_hessian
+    inits = [o.isel(t=slice(0, 2)) for o in orbits]
+    calls = []
+    real = _serve.cell_derivatives
+    monkeypatch.setattr(_serve, "cell_derivatives", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+    fast = ldft.serve(model, inits, steps=60)
+    hessians = sum(1 for pairs in calls if pairs)
+    monkeypatch.setattr(type(model), "constant_mixed_hessian", False)
+    calls.clear()
+    slow = ldft.serve(model, inits, steps=60)
+    assert hessians == 1 and sum(1 for pairs in calls if pairs) > 58
+    for a, b in zip(fast, slow):
+        np.testing.assert_allclose(a.field.values, b.field.values, rtol=0, atol=1e-12)

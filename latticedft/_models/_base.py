@@ -32,6 +32,9 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     linear: ClassVar[bool] = False
     #: True when the mixed time Hessian is ``-I / h_0^2`` by construction.
     unit_mass_by_construction: ClassVar[bool] = False
+    #: True when every block coupling two different stencil sites is constant (1D serving then assembles
+    #: the Newton Jacobian once).
+    constant_mixed_hessian: ClassVar[bool] = False
     #: False for models that cannot be written to a model file.
     saveable: ClassVar[bool] = True
 

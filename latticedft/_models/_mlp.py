@@ -121,6 +121,12 @@ class MLPLagrangian(AbstractLagrangian):
             return False
         return self.stencil is None or all(self._edge(k) is not None for k in range(1, self.stencil.ndim))
 
+    @property
+    def constant_mixed_hessian(self) -> bool:
+        """Kinetic-potential form: the potential is a sum of one-site terms, so every block coupling two
+        stencil sites comes from the quadratic kinetic and gradient terms and is constant."""
+        return self.form == "kinetic-potential"
+
     def _edge(self, k: int) -> int | None:
         e = [0] * self.stencil.ndim
         e[k] = 1
