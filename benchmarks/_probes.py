@@ -39,9 +39,17 @@ def serve_membrane(n: int, nt: int) -> dict[str, Any]:
     t0 = time.perf_counter()
     res = ldft.serve(ldft.lagrangians.wave(), da, progress=False)
     t_newton = time.perf_counter() - t0
-    return {"sites": (nt - 2) * (n - 2) ** 2, "t_newton": t_newton, "t_leapfrog": t_lf,
-            "iterations": res.newton_iterations, "error": float(np.abs(res.field.values - lf).max()),
-            "rss_before": mem.before, "rss_peak": mem.peak(), "reset": mem.reset, "field_mib": ref.nbytes / 2 ** 20}
+    out = {"sites": (nt - 2) * (n - 2) ** 2, "t_newton": t_newton, "t_leapfrog": t_lf, "solver": res.solver,
+           "iterations": res.newton_iterations, "error": float(np.abs(res.field.values - lf).max()),
+           "rss_before": mem.before, "rss_peak": mem.peak(), "reset": mem.reset, "field_mib": ref.nbytes / 2 ** 20}
+    del res
+    mem = PeakRSS()
+    t0 = time.perf_counter()
+    forced = ldft.serve(ldft.lagrangians.wave(), da, progress=False, affine=False)
+    out.update(t_forced=time.perf_counter() - t0, forced_iterations=forced.newton_iterations,
+               forced_error=float(np.abs(forced.field.values - lf).max()), forced_rss_before=mem.before,
+               forced_rss_peak=mem.peak())
+    return out
 
 
 def serve_string(nx: int, nt: int, boundary: str) -> dict[str, Any]:
