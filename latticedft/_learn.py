@@ -180,15 +180,20 @@ def _unit(x: torch.Tensor, a: int, i: int) -> torch.Tensor:
 def _residual_matrix(model: AbstractLagrangian, f: LatticeField) -> np.ndarray:
     """Rows: DEL residual components on interior sites; columns: basis functions. ``EL = R @ coef``.
 
-    Per-cell derivatives of every basis function by forward mode (one pass
-    per stencil point and component), then the adjoint of the cell gather
-    puts them on the sites.
+    Per-cell derivatives of every basis function, in closed form when the
+    model offers them (``feature_derivatives``), else by forward mode (one
+    pass per stencil point and component); then the adjoint of the cell
+    gather puts them on the sites.
     """
     st = model.stencil
     x = gather_cells(f.values, st, f.periodic)
     k, m = st.size, f.ncomp
-    d = torch.stack([torch.stack([torch.func.jvp(model.features, (x,), (_unit(x, a, i),))[1] for i in range(m)], -2)
-                     for a in range(k)], -3)  # (*cells, K, m, C)
+    closed = getattr(model, "feature_derivatives", None)
+    if closed is not None:
+        d, _ = closed(x)  # (*cells, K, m, C)
+    else:
+        d = torch.stack([torch.stack([torch.func.jvp(model.features, (x,), (_unit(x, a, i),))[1]
+                                      for i in range(m)], -2) for a in range(k)], -3)  # (*cells, K, m, C)
     c = d.shape[-1]
     z = torch.zeros(*f.values.shape, c, dtype=torch.float64, requires_grad=True)
     with torch.enable_grad():
@@ -206,9 +211,14 @@ def _gauge_matrix(model: AbstractLagrangian, fields: list[LatticeField], gauge: 
     c = model.n_terms
     total = torch.zeros(c, m, m, dtype=torch.float64)
     ncells = 0
+    closed = getattr(model, "feature_derivatives", None)
     for f in fields:
         x = gather_cells(f.values, st, f.periodic)
         ncells += x[..., 0, 0].numel()
+        if closed is not None:
+            _, blocks = closed(x, [(a0, a1)], first=False)
+            total += blocks[(a0, a1)].reshape(-1, m, m, c).sum(0).permute(2, 0, 1)
+            continue
         for i in range(m):
             first = _unit(x, a0, i)
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import functools
 import itertools
+from fractions import Fraction
 from typing import Any
 
 import numpy as np
@@ -15,8 +17,64 @@ from ._base import AbstractLagrangian
 __all__ = ["PolynomialLagrangian"]
 
 
+#: Highest degree whose basis tables are built as a Vandermonde matrix times constant coefficients; the
+#: monomial coefficients of Legendre polynomials grow like 2^k, so above this the recurrence is kept.
+_VANDERMONDE_MAX_DEGREE = 12
+#: Elements of the closed-form derivatives' intermediates (cells x terms x derivatives) above which the
+#: cells are taken in chunks.
+_CHUNK_ELEMENTS = 1 << 22
+
+
 def _multi_indices(nvars: int, max_total: int) -> list[tuple[int, ...]]:
     return [e for e in itertools.product(range(max_total + 1), repeat=nvars) if sum(e) <= max_total]
+
+
+@functools.cache
+def _coefficient_rows(basis: str, deg: int) -> tuple[tuple[Fraction, ...], ...]:
+    """Monomial coefficients of the basis polynomials, exact: row ``k`` holds ``P_k`` (or ``z^k``)."""
+    rows = [[Fraction(0)] * (deg + 1) for _ in range(deg + 1)]
+    for k in range(deg + 1):
+        if basis != "legendre" or k < 2:
+            rows[k][k] = Fraction(1)
+            continue
+        j = k - 1  # (j+1) P_{j+1} = (2j+1) z P_j - j P_{j-1}
+        for e in range(deg + 1):
+            rows[k][e] = (Fraction(2 * j + 1, j + 1) * (rows[j][e - 1] if e else 0)
+                          - Fraction(j, j + 1) * rows[j - 1][e])
+    return tuple(tuple(r) for r in rows)
+
+
+@functools.cache
+def _coefficient_matrix_f64(basis: str, deg: int) -> torch.Tensor:
+    rows = _coefficient_rows(basis, deg)
+    w = deg + 1
+    mat = np.zeros((w, 3 * w))  # powers (rows) -> [values | first derivatives | second derivatives] (columns)
+    for k in range(w):
+        for e in range(w):
+            a = float(rows[k][e])
+            mat[e, k] = a
+            if e >= 1:
+                mat[e - 1, w + k] = e * a
+            if e >= 2:
+                mat[e - 2, 2 * w + k] = e * (e - 1) * a
+    return torch.from_numpy(mat)
+
+
+def _coefficient_matrix(basis: str, deg: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``(D+1, 3 (D+1))``: the Vandermonde row of ``z`` times this is the basis table and its two derivatives."""
+    mat = _coefficient_matrix_f64(basis, deg)
+    return mat if mat.dtype == dtype and mat.device == device else mat.to(dtype=dtype, device=device)
+
+
+def _times(a: torch.Tensor | None, b: torch.Tensor | None) -> torch.Tensor | None:
+    """Product where ``None`` stands for 1 (an empty product)."""
+    return b if a is None else a if b is None else a * b
+
+
+@functools.cache
+def _pairs(nvar: int) -> tuple[tuple[int, int], ...]:
+    """Unordered variable pairs ``v <= w`` in the order of the second derivatives of ``_term_derivatives``."""
+    return tuple((v, w) for v in range(nvar) for w in range(v, nvar))
 
 
 class PolynomialLagrangian(AbstractLagrangian):
@@ -111,7 +169,25 @@ class PolynomialLagrangian(AbstractLagrangian):
         self.halfwidth.copy_(half)
 
     def _tables(self, z: torch.Tensor, order: int) -> list[torch.Tensor]:
-        """Basis polynomials of every variable and their first ``order`` derivatives: each ``(..., V, D+1)``."""
+        """Basis polynomials of every variable and their first ``order`` derivatives: each ``(..., V, D+1)``.
+
+        A Vandermonde matrix of ``z`` times constant coefficient matrices (a handful of tensor operations
+        whatever the degree); above degree 12 the three-term recurrence, whose round-off does not grow with
+        the monomial coefficients of high-degree Legendre polynomials.
+        """
+        deg = int(max(self.orders))
+        if deg > _VANDERMONDE_MAX_DEGREE:
+            return self._tables_recurrence(z, order)
+        width = deg + 1
+        # powers by repeated products (autograd-safe at z = 0 to any order, unlike pow with a zero exponent)
+        pw = [torch.ones_like(z), z]
+        for _ in range(2, width):
+            pw.append(pw[-1] * z)
+        table = torch.stack(pw[:width], dim=-1) @ _coefficient_matrix(self.basis, deg, z.dtype, z.device)[
+            :, : (order + 1) * width]
+        return list(table.split(width, dim=-1))
+
+    def _tables_recurrence(self, z: torch.Tensor, order: int) -> list[torch.Tensor]:
         deg = int(max(self.orders))
         one, zero = torch.ones_like(z), torch.zeros_like(z)
         val, d1, d2 = [one, z], [zero, one], [zero, zero]
@@ -141,42 +217,156 @@ class PolynomialLagrangian(AbstractLagrangian):
     def features(self, cells: torch.Tensor) -> torch.Tensor:
         """All basis functions on every cell: ``(..., n_terms)``."""
         z = (self.variables(cells) - self.center) / self.halfwidth
-        return self._select(self._tables(z, 0)[0]).prod(dim=-1)
+        factors = self._select(self._tables(z, 0)[0]).unbind(-1)
+        # explicit products, not prod(): autograd's second derivatives of prod() divide by the factors and
+        # lose all accuracy where one nearly vanishes (a mean at the centre, a zero difference)
+        out = factors[0]
+        for f in factors[1:]:
+            out = out * f
+        return out
+
+    # -- closed-form derivatives (no autograd) --------------------------------------------------------------
+    def _affine(self) -> dict[str, Any]:
+        """Constant matrices of the chain rule, cached until ``proj`` or ``halfwidth`` change.
+
+        ``P[(k, i), (p, i)] = proj[p, k]`` gives ``z = (cells.flatten(-2) @ P - center) / halfwidth``;
+        ``W = dz/dx = P / halfwidth`` (``(K m, V)``), so ``dL/dx = W @ dL/dz``.
+        """
+        key = tuple((t.data_ptr(), t._version, t.dtype) for t in (self.proj, self.halfwidth))
+        cached = self.__dict__.get("_affine_cache")
+        if cached is None or cached[0] != key:
+            hw = self.halfwidth
+            eye = torch.eye(self.m, dtype=hw.dtype, device=hw.device)
+            p = torch.einsum("pk,ij->kipj", self.proj.to(hw.dtype), eye).reshape(-1, hw.numel())
+            cached = (key, {"P": p, "W": p / hw, "pairs": {}})
+            self.__dict__["_affine_cache"] = cached
+        return cached[1]
+
+    def _pair_matrix(self, aff: dict[str, Any], a: int, b: int) -> torch.Tensor:
+        """``(npairs, m m)``: the block ``d^2/dx_a dx_b`` (flattened) from the second derivatives in ``z``
+        listed once per unordered pair ``v <= w`` (the order of :func:`_pairs`)."""
+        mat = aff["pairs"].get((a, b))
+        if mat is None:
+            rows = aff["W"].unflatten(0, (-1, self.m))  # (K, m, V): dz/dx_a
+            full = torch.einsum("iv,jw->vwij", rows[a], rows[b])  # block[i, j] = sum_vw full[v, w, i, j] H[v, w]
+            mat = torch.stack([full[v, w] + full[w, v] if v != w else full[v, v]
+                               for v, w in _pairs(rows.shape[-1])]).reshape(-1, self.m ** 2)
+            aff["pairs"][(a, b)] = mat
+        return mat
+
+    def _scaled(self, cells: torch.Tensor, aff: dict[str, Any]) -> torch.Tensor:
+        return (cells.detach().flatten(-2) @ aff["P"] - self.center) / self.halfwidth  # (..., V)
+
+    def _factors(self, z: torch.Tensor, order: int) -> list[torch.Tensor]:
+        """Per variable and term, the basis factor and its first ``order`` derivatives in the scaled
+        variable ``z`` (``(..., V)``): each ``(..., V, C)``, a term being the product of its factors."""
+        deg = int(max(self.orders))
+        width, r = deg + 1, order + 1
+        key = (self.exponents.data_ptr(), self.exponents._version, z.dtype, z.device)
+        cache = self.__dict__.get("_factor_cache")
+        if cache is None or cache[0] != key:
+            cache = (key, {})
+            self.__dict__["_factor_cache"] = cache
+        if r not in cache[1]:  # where each term's factors sit in the flattened tables, the powers, the matrix
+            exps = self.exponents.T.to(z.device)  # (V, C)
+            offs = (torch.arange(exps.shape[0], device=z.device) * (r * width))[None, :, None] \
+                + (torch.arange(r, device=z.device) * width)[:, None, None]
+            cache[1][r] = ((offs + exps[None]).reshape(-1), torch.arange(width, dtype=z.dtype, device=z.device),
+                           _coefficient_matrix(self.basis, deg, z.dtype, z.device)[:, : r * width].contiguous())
+        index, powers, mat = cache[1][r]
+        if deg > _VANDERMONDE_MAX_DEGREE:
+            table = torch.cat(self._tables_recurrence(z, order), dim=-1)
+        else:
+            table = z.unsqueeze(-1).pow(powers) @ mat  # (..., V, r * width)
+        picked = table.flatten(-2).index_select(-1, index)
+        return list(picked.unflatten(-1, (r, z.shape[-1], -1)).unbind(-3))
+
+    def _term_derivatives(self, z: torch.Tensor, second: bool) -> torch.Tensor:
+        """``(..., V [+ npairs], C)``: ``d phi_c / dz_v`` for every ``v``, then (``second``)
+        ``d^2 phi_c / dz_v dz_w`` for the pairs ``v <= w`` of :func:`_pairs`.
+
+        Each term is a product of one factor per variable; the products of the other factors are built
+        from prefix and suffix products (no division: factors may vanish).
+        """
+        tabs = self._factors(z, 2 if second else 1)
+        val, d1 = tabs[0].unbind(-2), tabs[1].unbind(-2)
+        nvar = len(val)
+        pre: list[torch.Tensor | None] = [None] * nvar  # product of the factors before v
+        suf: list[torch.Tensor | None] = [None] * nvar  # ... and after v
+        for v in range(1, nvar):
+            pre[v] = _times(pre[v - 1], val[v - 1])
+        for v in range(nvar - 2, -1, -1):
+            suf[v] = _times(suf[v + 1], val[v + 1])
+        excl = [_times(pre[v], suf[v]) for v in range(nvar)]
+        out = [d1[v] if excl[v] is None else d1[v] * excl[v] for v in range(nvar)]
+        if second:
+            d2 = tabs[2].unbind(-2)
+            for v in range(nvar):
+                out.append(d2[v] if excl[v] is None else d2[v] * excl[v])
+                between = pre[v]  # times the factors strictly between v and w
+                for w in range(v + 1, nvar):
+                    if w > v + 1:
+                        between = _times(between, val[w - 1])
+                    others = _times(between, suf[w])
+                    dd = d1[v] * d1[w]
+                    out.append(dd if others is None else dd * others)
+        return torch.stack(out, dim=-2)
+
+    def _by_chunks(self, z: torch.Tensor, per_cell: int, fn) -> list[torch.Tensor]:
+        """``fn`` on the cells of ``z``, in chunks (of the flattened cells) that bound the intermediates."""
+        size = max(1, _CHUNK_ELEMENTS // max(per_cell, 1))
+        if z.numel() <= size * z.shape[-1]:
+            return list(fn(z))
+        zf = z.reshape(-1, z.shape[-1])
+        parts = [fn(zf[s: s + size]) for s in range(0, zf.shape[0], size)]
+        return [torch.cat(p).reshape(*z.shape[:-1], *p[0].shape[1:]) for p in zip(*parts)]
+
+    def feature_derivatives(self, cells: torch.Tensor, pairs: list[tuple[int, int]] = (), *, first: bool = True):
+        """Closed-form derivatives of every basis function with respect to the stencil values.
+
+        Returns ``(d, blocks)``: ``d[..., a, i, c] = d phi_c / d x_{a,i}`` with shape ``(*cells, K, m, C)``
+        (``None`` when ``first`` is false), and for each ``(a, b)`` in ``pairs`` the mixed second
+        derivatives ``blocks[(a, b)][..., i, j, c] = d^2 phi_c / d x_{a,i} d x_{b,j}`` with shape
+        ``(*cells, m, m, C)``. The chain rule of :meth:`fast_derivatives`, term by term instead of summed
+        with ``coef``: what the exact solve needs (the DEL residual and the gauge are linear in these).
+        """
+        self._require_bound()
+        k, m = cells.shape[-2], cells.shape[-1]
+        pairs = list(pairs)
+        with torch.no_grad():
+            aff = self._affine()
+            z = self._scaled(cells, aff)
+            lead, nvar, c = z.shape[:-1], z.shape[-1], self.n_terms
+            w = aff["W"]
+            mats = [self._pair_matrix(aff, a, b).T for a, b in pairs]
+
+            def part(zc: torch.Tensor) -> list[torch.Tensor]:
+                t = self._term_derivatives(zc, bool(pairs))
+                res = [w @ t[..., :nvar, :]] if first else []  # (..., K m, C)
+                return res + [mat @ t[..., nvar:, :] for mat in mats]  # (..., m m, C)
+
+            npairs = nvar * (nvar + 1) // 2 if pairs else 0
+            per_cell = c * (4 * nvar + 2 * npairs + (k * m if first else 0) + len(pairs) * m * m)
+            outs = self._by_chunks(z, per_cell, part)
+            d = outs.pop(0).reshape(*lead, k, m, c) if first else None
+            blocks = {pr: o.reshape(*lead, m, m, c) for pr, o in zip(pairs, outs)}
+        return d, blocks
 
     def fast_derivatives(self, cells: torch.Tensor, pairs: list[tuple[int, int]]):
         """Closed-form ``dL/dx`` and Hessian blocks (no autograd): what serving needs, several times faster."""
+        k, m = cells.shape[-2], cells.shape[-1]
         with torch.no_grad():
-            z = (self.variables(cells) - self.center) / self.halfwidth
-            order = 2 if pairs else 1
-            tabs = [self._select(t) for t in self._tables(z, order)]
-            val, d1 = tabs[0], tabs[1]
+            aff = self._affine()
+            coef = self.coef.detach()
+            z = self._scaled(cells, aff)
             nvar = z.shape[-1]
-            coef = self.coef
-            gz = []
-            for v in range(nvar):
-                f = val.clone()
-                f[..., v] = d1[..., v]
-                gz.append(f.prod(-1) @ coef)
-            n1, m = self.n + 1, self.m
-            scale = self.halfwidth.reshape(n1, m)
-            gzt = torch.stack(gz, -1).reshape(*z.shape[:-1], n1, m) / scale
-            grad = torch.einsum("pk,...pm->...km", self.proj, gzt)
-            blocks: dict[tuple[int, int], torch.Tensor] = {}
-            if pairs:
-                d2 = tabs[2]
-                hz = torch.zeros(*z.shape, nvar, dtype=z.dtype)
-                for v in range(nvar):
-                    for w in range(v, nvar):
-                        f = val.clone()
-                        if v == w:
-                            f[..., v] = d2[..., v]
-                        else:
-                            f[..., v] = d1[..., v]
-                            f[..., w] = d1[..., w]
-                        hz[..., v, w] = hz[..., w, v] = f.prod(-1) @ coef
-                hz = hz.reshape(*z.shape[:-1], n1, m, n1, m) / (scale[:, :, None, None] * scale[None, None])
-                for a, b in pairs:
-                    blocks[(a, b)] = torch.einsum("p,q,...piqj->...ij", self.proj[:, a], self.proj[:, b], hz)
+            npairs = nvar * (nvar + 1) // 2 if pairs else 0
+            (s,) = self._by_chunks(z, self.n_terms * (4 * nvar + 2 * npairs),
+                                   lambda zc: (self._term_derivatives(zc, bool(pairs)) @ coef,))
+            # s: dL/dz_v, then d^2L/dz_v dz_w (v <= w)
+            grad = (s[..., :nvar] @ aff["W"].T).unflatten(-1, (k, m))
+            blocks = {(a, b): (s[..., nvar:] @ self._pair_matrix(aff, a, b)).unflatten(-1, (m, m))
+                      for a, b in pairs}
         return grad, blocks
 
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
