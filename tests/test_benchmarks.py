@@ -33,7 +33,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
     assert all(b["rows"] for b in results["benchmarks"])
     checks = [c for b in results["benchmarks"] for c in b["checks"]]
     assert len(checks) >= 8 and all(isinstance(c["met"], bool) for c in checks)
-    assert "| Newton sites/s |" in (tmp_path / "results.md").read_text()
+    assert "| serve sites/s | Newton sites/s (affine=False) |" in (tmp_path / "results.md").read_text()
     assert (tmp_path / "fidelity_energy.png").stat().st_size > 0
 
 
