@@ -304,7 +304,7 @@ class _AffineSlices:
 def _slice_residuals(model: AbstractLagrangian, f: LatticeField, psi: torch.Tensor, start: int, stop: int) -> np.ndarray:
     """Max |DEL residual| on slices ``start .. stop - 1`` of ``psi`` (one vectorised pass per chunk of slices)."""
     nsite = max(int(np.prod(psi.shape[1:-1])), 1)
-    width = max(3, min(stop - start + 2, 2_000_000 // nsite + 2))
+    width = max(3, min(stop - start + 2, 250_000 // nsite + 2))  # ~250k sites a pass: bounded memory
     out = np.empty(stop - start)
     j = start - 1
     while j + 2 <= stop:
