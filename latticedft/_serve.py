@@ -366,9 +366,8 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, mode: s
                 v = flat.reshape(steps, sys.nsite * m).numpy()
                 op.run(v, 1, steps - 1)
                 res = _slice_residuals(model, f, psi, 1, steps - 1)
-                absmax = np.abs(v).max(1)
-                unkmax = np.abs(v[:, op.ucols]).max(1) if op.ucols.size else np.zeros(steps)
-                scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), unkmax[2:]).clip(1e-300)
+                absmax = np.array([np.abs(row).max() for row in v])  # per slice, without a copy of the field
+                scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), absmax[2:]).clip(1e-300)
                 good = np.isfinite(res) & (res <= rtol * vol * op.dmax * scl)
                 affine_slices = int(np.argmin(good)) if not good.all() else steps - 2
                 start = 1 + affine_slices
