@@ -1,8 +1,10 @@
 """Profiles behind docs/performance.md: ``python -m benchmarks.profiles [NAME ...]``.
 
 Each target is one call of the library at a benchmark's size, run once to warm up and then under cProfile;
-the top functions by own time are printed. Names: ``wave-1+1d`` (slice-Newton, wave L_d, 256 x 256
-periodic), ``kepler-1d`` (one Kepler MLP trajectory, 500 steps), ``poly-1d`` (the fidelity benchmark's
+the top functions by own time are printed. Names: ``wave-1+1d`` (the wave L_d, 256 x 256 periodic: its
+affine recurrence), ``mlp-1+1d`` (slice-Newton, the Klein-Gordon MLP of the serving benchmark, 256 x 256
+periodic), ``membrane-2+1d`` (the wave L_d on a 256 x 256 membrane, 30 slices: affine recurrence and
+its DEL check), ``kepler-1d`` (one Kepler MLP trajectory, 500 steps), ``poly-1d`` (the fidelity benchmark's
 polynomial L_d, 1000 steps), ``exact-learn`` (polynomial (4, 8) exact solve, paper Example 1).
 """
 
@@ -19,11 +21,22 @@ import torch
 import latticedft as ldft
 from latticedft import systems
 
-from ._fixtures import kepler_inits, kepler_mlp, string_field
+from ._fixtures import kepler_inits, kepler_mlp, kg_force, kg_mlp, membrane_field, string_field
 
 
 def _wave():
     _, da = string_field(256, 256, "periodic")
+    return lambda: ldft.serve(ldft.lagrangians.wave(), da, progress=False)
+
+
+def _mlp():
+    model = kg_mlp(False)
+    _, da = string_field(256, 256, "periodic", kg_force)
+    return lambda: ldft.serve(model, da, progress=False)
+
+
+def _membrane():
+    _, da = membrane_field(256, 30)
     return lambda: ldft.serve(ldft.lagrangians.wave(), da, progress=False)
 
 
@@ -46,7 +59,8 @@ def _exact():
     return lambda: ldft.learn(ldft.PolynomialLagrangian(orders=(4, 8)), data, progress=False)
 
 
-TARGETS = {"wave-1+1d": _wave, "kepler-1d": _kepler, "poly-1d": _poly, "exact-learn": _exact}
+TARGETS = {"wave-1+1d": _wave, "mlp-1+1d": _mlp, "membrane-2+1d": _membrane, "kepler-1d": _kepler, "poly-1d": _poly,
+           "exact-learn": _exact}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -229,6 +229,9 @@ class _AffineSlices:
         unknown[rows_in] = True
         self.ucols = rows_in
         self.kcols = np.nonzero(~unknown)[0]
+        # a contiguous block of unknowns (e.g. a 1+1D Dirichlet string) is addressed by a slice, not fancy indexing
+        contiguous = rows_in.size > 0 and rows_in[-1] - rows_in[0] + 1 == rows_in.size
+        self.usel: slice | np.ndarray = slice(int(rows_in[0]), int(rows_in[-1]) + 1) if contiguous else rows_in
         self.all_unknown = self.kcols.size == 0
         p_mat = assemble([(a, b) for a in nxt for b in now])[rows_in]
         c_mat = assemble([(a, b) for a in nxt for b in nxt] + [(a, b) for a in now for b in now])[rows_in]
@@ -285,7 +288,7 @@ class _AffineSlices:
 
     def run(self, v: np.ndarray, start: int, stop: int) -> None:
         """Fill slices ``start + 1 .. stop`` of ``v`` (``(steps, nsite * m)``, known entries already set)."""
-        pc, nk, c, solve, ucols, kcols = self.pc, self.nk, self.c, self.solve, self.ucols, self.kcols
+        pc, nk, c, solve, ucols, kcols = self.pc, self.nk, self.c, self.solve, self.usel, self.kcols
         with np.errstate(all="ignore"):
             for i in range(start, stop):
                 two = v[i - 1:i + 1]
