@@ -227,7 +227,6 @@ class _AffineSlices:
         rows_in = (np.nonzero(sys.interior)[0][:, None] * m + np.arange(m)).reshape(-1)
         unknown = np.zeros(size, dtype=bool)
         unknown[rows_in] = True
-        self.ucols = rows_in
         self.kcols = np.nonzero(~unknown)[0]
         # a contiguous block of unknowns (e.g. a 1+1D Dirichlet string) is addressed by a slice, not fancy indexing
         contiguous = rows_in.size > 0 and rows_in[-1] - rows_in[0] + 1 == rows_in.size
@@ -242,7 +241,7 @@ class _AffineSlices:
         # small correction, as Newton's step does, and the wave L_d serves the leapfrog to ~1e-15, not 1e-13.
         self.pc = scipy.sparse.hstack([p_mat - n_mat, c_mat + 2 * n_mat]).tocsr()
         self.nk = n_mat[:, self.kcols].tocsr()
-        nu = n_mat[:, self.ucols].tocsc()
+        nu = n_mat[:, rows_in].tocsc()
         cvec = np.zeros(size)
         for a in nxt + now:
             np.add.at(cvec, (sys.site_of[a][:, None] * m + np.arange(m)).reshape(-1),
@@ -430,6 +429,13 @@ def _scale(flat: torch.Tensor, i: int, unk: torch.Tensor) -> float:
     return float(max(flat[i - 1].abs().max(), flat[i].abs().max(), flat[i + 1, unk].abs().max(), 1e-300))
 
 
+def _fresh_blocks(ev: CellDerivatives, sys: _SliceSystem, cache: dict[str, Any]) -> dict:
+    """Hessian blocks of the slice at the current state; records their diagonal size (the residual scale)."""
+    blocks = ev.blocks(sys.pairs)
+    cache["dmax"] = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
+    return blocks
+
+
 def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at, cache):
     """Newton on one slice. The first step reuses the cached factorised Jacobian (a chord step, exact for
     quadratic ``L_d``); fresh Hessian blocks are assembled only when that step did not converge."""
@@ -445,10 +451,7 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
         if not math.isfinite(res):
             return it, res, ev.grad, ("residual is not finite", None, res)
         stale = it == 1 and "solve" in cache
-        blocks = None
-        if "dmax" not in cache:
-            blocks = ev.blocks(sys.pairs)
-            cache["dmax"] = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
+        blocks = _fresh_blocks(ev, sys, cache) if "dmax" not in cache else None
         if rscale is None:
             rscale = vol * cache["dmax"] * _scale(flat, i, unk)
         if res <= rtol * rscale or small:
@@ -458,8 +461,7 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
         try:
             if not stale:
                 if blocks is None:
-                    blocks = ev.blocks(sys.pairs)
-                cache["dmax"] = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
+                    blocks = _fresh_blocks(ev, sys, cache)
                 cache["solve"] = sys.factor(blocks, vol)
             delta = cache["solve"](-r)
         except (np.linalg.LinAlgError, ValueError) as exc:
