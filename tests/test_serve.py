@@ -174,7 +174,8 @@ def test_affine_recurrence_hands_over_to_newton_where_the_del_stops_being_affine
 
 
 def test_constant_mixed_hessian_assembles_the_1d_jacobian_once(monkeypatch):
-    from latticedft import _serve, systems
+    from latticedft import systems
+    from latticedft._serve import _batch
 
     orbits = [systems.kepler_orbit(r, 1.0 / np.sqrt(r), dt=0.05, n=40) for r in (0.8, 1.0, 1.3)]
     model = ldft.MLPLagrangian(hidden=[8, 8], activation="tanh", form="kinetic-potential",
@@ -183,8 +184,8 @@ def test_constant_mixed_hessian_assembles_the_1d_jacobian_once(monkeypatch):
     assert model.constant_mixed_hessian
     inits = [o.isel(t=slice(0, 2)) for o in orbits]
     calls = []
-    real = _serve.cell_derivatives
-    monkeypatch.setattr(_serve, "cell_derivatives", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+    real = _batch.cell_derivatives
+    monkeypatch.setattr(_batch, "cell_derivatives", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
     fast = ldft.serve(model, inits, steps=60)
     hessians = sum(1 for pairs in calls if pairs)
     monkeypatch.setattr(type(model), "constant_mixed_hessian", False)

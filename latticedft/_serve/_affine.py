@@ -1,0 +1,169 @@
+"""The DEL of a quadratic ``L_d`` as an affine recurrence: one factorised solve per slice, checked afterwards
+against the model's own DEL."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+import torch
+
+from .._action import cell_derivatives, del_residual
+from .._lattice import LatticeField
+from .._models import AbstractLagrangian
+from ._slices import _SliceSystem
+
+
+class _AffineSlices:
+    """The DEL of a quadratic ``L_d`` as an affine recurrence ``P psi_{i-1} + C psi_i + N psi_{i+1} + c = 0``.
+
+    Built from the model's (constant) per-cell Hessian, without the cell
+    volume (a common factor of every equation; leaving it out keeps sums such
+    as a discrete Laplacian's rows exact); ``N`` restricted to the unknown
+    sites is factorised once. ``probe`` decides whether the model's
+    DEL is affine (equal Hessians and affine gradients at random states); the
+    served field is checked against the model's own DEL afterwards anyway.
+    """
+
+    def __init__(self, sys: _SliceSystem, hess: np.ndarray, grad0: np.ndarray):
+        m = sys.m
+        now, nxt = sys.now, sys.nxt
+        size = sys.nsite * m
+        ii, jj = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
+
+        def assemble(pairs: list[tuple[int, int]]) -> scipy.sparse.csr_matrix:
+            rows, cols, vals = [], [], []
+            for a, b in pairs:
+                ra, cb = sys.site_of[a], sys.site_of[b]
+                rows.append((ra[:, None, None] * m + ii).reshape(-1))
+                cols.append((cb[:, None, None] * m + jj).reshape(-1))
+                vals.append(np.broadcast_to(hess[a, b], (ra.size, m, m)).reshape(-1))
+            if not rows:
+                return scipy.sparse.csr_matrix((size, size))
+            mat = scipy.sparse.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                                          shape=(size, size)).tocsr()
+            mat.sum_duplicates()
+            mat.eliminate_zeros()  # e.g. the wave L_d has no coupling between a cell's spatial and time neighbours
+            return mat
+
+        rows_in = (np.nonzero(sys.interior)[0][:, None] * m + np.arange(m)).reshape(-1)
+        unknown = np.zeros(size, dtype=bool)
+        unknown[rows_in] = True
+        self.kcols = np.nonzero(~unknown)[0]
+        # a contiguous block of unknowns (e.g. a 1+1D Dirichlet string) is addressed by a slice, not fancy indexing
+        contiguous = rows_in.size > 0 and rows_in[-1] - rows_in[0] + 1 == rows_in.size
+        self.usel: slice | np.ndarray = slice(int(rows_in[0]), int(rows_in[-1]) + 1) if contiguous else rows_in
+        self.all_unknown = self.kcols.size == 0
+        p_mat = assemble([(a, b) for a in nxt for b in now])[rows_in]
+        c_mat = assemble([(a, b) for a in nxt for b in nxt] + [(a, b) for a in now for b in now])[rows_in]
+        n_mat = assemble([(a, b) for a in now for b in nxt])[rows_in]
+        # Solved about the predictor 2 psi_i - psi_{i-1}: psi_{i+1} = 2 psi_i - psi_{i-1} + w, so that
+        # (P - N) psi_{i-1} + (C + 2 N) psi_i + N_known dk + N_unknown w + c = 0. The large kinetic entries
+        # (~ 1/h0^2) cancel in the matrices, not in the arithmetic on the field: w carries the rounding of a
+        # small correction, as Newton's step does, and the wave L_d serves the leapfrog to ~1e-15, not 1e-13.
+        self.pc = scipy.sparse.hstack([p_mat - n_mat, c_mat + 2 * n_mat]).tocsr()
+        self.nk = n_mat[:, self.kcols].tocsr()
+        nu = n_mat[:, rows_in].tocsc()
+        cvec = np.zeros(size)
+        for a in nxt + now:
+            np.add.at(cvec, (sys.site_of[a][:, None] * m + np.arange(m)).reshape(-1),
+                      np.broadcast_to(grad0[a], (sys.site_of[a].size, m)).reshape(-1))
+        self.c = cvec[rows_in]
+        self.dmax = max((float(np.abs(hess[a, b]).max()) for a, b in sys.diag_pairs), default=1.0)
+        diag = nu.diagonal()
+        if nu.nnz == np.count_nonzero(diag) and nu.nnz == nu.shape[0]:  # diagonal (first-order stencil)
+            inv = 1.0 / diag
+            self.solve = lambda rhs: inv * rhs
+        else:
+            try:
+                self.solve = scipy.sparse.linalg.splu(nu).solve
+            except RuntimeError as exc:
+                raise np.linalg.LinAlgError(str(exc)) from None
+
+    @staticmethod
+    def probe(model: AbstractLagrangian, st, m: int, scale: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(H, g0)``: per-cell Hessian ``(K, K, m, m)`` and gradient at zero, if the DEL is affine; else None."""
+        k = st.size
+        gen = torch.Generator().manual_seed(12345)
+        x = scale * (2 * torch.rand(3, 4, k, m, generator=gen, dtype=torch.float64) - 1)
+        x[0, 0] = 0.0  # the constant term is the gradient at zero itself (g - H x there would carry round-off)
+        pairs = [(a, b) for a in range(k) for b in range(k)]
+        try:
+            g, blocks = cell_derivatives(model, x, pairs)
+        except (RuntimeError, ValueError):
+            return None
+        h = torch.stack([torch.stack([blocks[(a, b)] for b in range(k)], -3) for a in range(k)], -4)  # (3,4,K,K,m,m)
+        if not (torch.isfinite(h).all() and torch.isfinite(g).all()):
+            return None
+        h0 = h[0, 0]
+        big = float(h0.abs().max())
+        if big == 0.0 or float((h - h0).abs().max()) > 1e-10 * big:
+            return None
+        # affine gradient: g(x) - H x is the same constant at every state
+        hx = torch.einsum("abij,...bj->...ai", h0, x)
+        g0 = g - hx
+        gscale = float(g.abs().max()) + big * scale
+        if float((g0 - g[0, 0]).abs().max()) > 1e-10 * gscale:
+            return None
+        return h0.numpy().copy(), g[0, 0].numpy().copy()
+
+    def run(self, v: np.ndarray, start: int, stop: int) -> None:
+        """Fill slices ``start + 1 .. stop`` of ``v`` (``(steps, nsite * m)``, known entries already set)."""
+        pc, nk, c, solve, ucols, kcols = self.pc, self.nk, self.c, self.solve, self.usel, self.kcols
+        with np.errstate(all="ignore"):
+            for i in range(start, stop):
+                two = v[i - 1:i + 1]
+                rhs = pc @ two.reshape(-1)
+                rhs += c
+                pred = 2 * two[1] - two[0]
+                if self.all_unknown:
+                    v[i + 1] = pred
+                    v[i + 1] -= solve(rhs)
+                else:
+                    if nk.nnz:
+                        rhs += nk @ (v[i + 1, kcols] - pred[kcols])
+                    v[i + 1, ucols] = pred[ucols] - solve(rhs)
+
+
+def _slice_residuals(model: AbstractLagrangian, f: LatticeField, psi: torch.Tensor, start: int,
+                     stop: int) -> np.ndarray:
+    """Max |DEL residual| on slices ``start .. stop - 1`` of ``psi`` (one vectorised pass per chunk of slices)."""
+    nsite = max(int(np.prod(psi.shape[1:-1])), 1)
+    width = max(3, min(stop - start + 2, 250_000 // nsite + 2))  # ~250k sites a pass: bounded memory
+    out = np.empty(stop - start)
+    j = start - 1
+    while j + 2 <= stop:
+        hi = min(j + width, stop + 1)
+        chunk = f.with_values(psi[j:hi])
+        el = del_residual(model, chunk)
+        out[j + 1 - start: hi - 1 - start] = el.abs().reshape(el.shape[0], -1).amax(1).numpy()
+        j = hi - 2
+    return out
+
+
+def _affine_prefix(model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem, psi: torch.Tensor,
+                   flat: torch.Tensor, rtol: float, vol: float) -> tuple[int, float, float] | None:
+    """Serve every slice of ``psi`` by the affine recurrence, if the model's DEL is affine, and check them.
+
+    Returns ``(slices, worst, dmax)``: how many leading slices pass the residual test (Newton serves the rest),
+    the largest residual among them and the Hessian scale of that test; ``None`` when the DEL is not affine
+    or its slice matrix is singular (Newton then reports it with the slice and site).
+    """
+    steps, m = psi.shape[0], sys.m
+    scale = float(f.values[:2].abs().max()) or 1.0
+    probe = _AffineSlices.probe(model, sys.st, m, scale)
+    if probe is None:
+        return None
+    try:
+        op = _AffineSlices(sys, probe[0], probe[1])
+    except np.linalg.LinAlgError:
+        return None  # singular slice matrix: Newton reports it with the slice and site
+    v = flat.reshape(steps, sys.nsite * m).numpy()
+    op.run(v, 1, steps - 1)
+    res = _slice_residuals(model, f, psi, 1, steps - 1)
+    absmax = np.array([np.abs(row).max() for row in v])  # per slice, without a copy of the field
+    scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), absmax[2:]).clip(1e-300)
+    good = np.isfinite(res) & (res <= rtol * vol * op.dmax * scl)
+    affine_slices = int(np.argmin(good)) if not good.all() else steps - 2
+    worst = float(res[:affine_slices].max()) if affine_slices else 0.0
+    return affine_slices, worst, op.dmax

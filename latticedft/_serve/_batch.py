@@ -1,0 +1,182 @@
+"""1D serving: a batch of trajectories stepped together. In 1D a slice is one site: each member's slice is a
+dense ``m x m`` Newton solve, batched over the members still running."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import torch
+
+from .._action import CellDerivatives, cell_derivatives
+from .._lattice import LatticeField
+from .._models import AbstractLagrangian
+from ._result import ServeResult, _bar
+
+
+@dataclass
+class _GroupStep:
+    """What Newton made of one slice of a group of members."""
+
+    act: torch.Tensor  # the members solved (indices into the batch)
+    u: torch.Tensor  # their values on the new slice
+    g: torch.Tensor  # per-cell gradients at those values
+    rabs: torch.Tensor  # max |residual| per member
+    ok: torch.Tensor  # converged
+    sing: torch.Tensor  # stopped at a singular Jacobian (mixed Hessian)
+    it: int  # Newton iterations taken
+
+
+class _Batch:
+    """The values of a batch of 1D trajectories and each member's bookkeeping (length, reason, iterations)."""
+
+    def __init__(self, model: AbstractLagrangian, fs: list[LatticeField], steps: list[int]):
+        st = model.stencil
+        self.model, self.fs = model, fs
+        self.a0, self.a1 = st.anchor, st.forward
+        b = len(fs)
+        self.m = fs[0].ncomp
+        self.nmax = max(steps)
+        self.psi = torch.full((b, self.nmax, self.m), math.nan, dtype=torch.float64)
+        for k, f in enumerate(fs):
+            self.psi[k, :2] = f.values[:2]
+        self.vol = math.prod(model.spacing)
+        self.length = list(steps)
+        self.reason = ["complete"] * b
+        self.failed = [False] * b
+        self.fail_at: dict[int, tuple[int, float]] = {}
+        self.worst = torch.zeros(b, dtype=torch.float64)
+        self.iters = torch.zeros(b, dtype=torch.long)
+        self.max_iters = torch.zeros(b, dtype=torch.long)
+        self.t0 = time.perf_counter()
+        g_prev, _ = cell_derivatives(model, self.psi[:, 0:2], [])
+        self.g_prev = g_prev[:, self.a1].clone()  # d L(q_{i-1}, q_i) / d q_i, per member
+        # A model whose mixed Hessian is constant by construction (the kinetic-potential MLP) has the same
+        # Jacobian d r / d u at every state: it is assembled once, and Newton needs only gradients after that
+        # (an exact Newton step, not a chord). Other models get fresh Hessian blocks every iteration: a chord
+        # step with a stale Jacobian was seen to land near a spurious root at a stiff turning point.
+        self.const_model = bool(getattr(model, "constant_mixed_hessian", False))
+        self.jac_const: torch.Tensor | None = None
+
+    def retire(self, k: int, slices: int, why: str, bad: bool, res: float = math.nan) -> None:
+        """Member ``k`` stops after ``slices`` slices; ``bad``: it failed (with residual ``res``)."""
+        self.length[k] = slices
+        self.reason[k] = why
+        self.failed[k] = bad
+        if bad:
+            self.fail_at[k] = (slices, res)
+
+    def members(self, group: list[int], i: int) -> list[int]:
+        """The members of ``group`` that still have slice ``i + 1`` to solve."""
+        return [k for k in group if self.length[k] > i + 1 and self.reason[k] == "complete"]
+
+    def derivatives(self, cells: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-cell gradients and the Jacobian ``d r / d u`` of ``n`` members' cells."""
+        if self.jac_const is not None:  # constant mixed Hessian: the gradient is all that changes
+            return CellDerivatives(self.model, cells).grad, self.jac_const.expand(n, self.m, self.m)
+        g, blocks = cell_derivatives(self.model, cells, [(self.a0, self.a1)])
+        jac = self.vol * blocks[(self.a0, self.a1)]  # d r_i / d u_j = vol d^2 L / dx_{a0,i} dx_{a1,j}
+        if self.const_model:
+            self.jac_const = jac[0].clone()
+        return g, jac
+
+    def newton(self, act_list: list[int], i: int, rtol: float, max_newton: int) -> _GroupStep:
+        """Newton with backtracking for slice ``i + 1`` of the members ``act_list``, from the predictor."""
+        act = torch.tensor(act_list, dtype=torch.long)
+        n = len(act_list)
+        q_now, q_old = self.psi[act, i], self.psi[act, i - 1]
+        g_prev = self.g_prev[act]
+        u = 2 * q_now - q_old
+        mag = torch.maximum(torch.maximum(q_now.abs().amax(-1), q_old.abs().amax(-1)), u.abs().amax(-1))
+        rscale = None
+        ok = torch.zeros(n, dtype=torch.bool)
+        sing = torch.zeros(n, dtype=torch.bool)
+        # Backtracking: a Newton step that does not lower the residual (a poor predictor at a stiff
+        # turning point, say) is halved instead, so Newton finds the root near the predictor rather
+        # than a spurious one far away. A step below rtol times the values counts as converged, as
+        # in the n-D slice Newton (the residual can stall at round-off just above rtol * rscale).
+        prev = torch.full((n,), math.inf, dtype=torch.float64)
+        last = torch.zeros_like(u)
+        halved = torch.zeros(n, dtype=torch.long)
+        small = torch.zeros(n, dtype=torch.bool)
+        for it in range(1, max_newton + 1):
+            g, jac = self.derivatives(torch.stack([q_now, u], dim=1), n)
+            r = self.vol * (g[:, self.a0] + g_prev)
+            rabs = r.abs().amax(-1)
+            if rscale is None:  # size of the kinetic terms, per trajectory
+                rscale = torch.linalg.matrix_norm(jac, ord=math.inf).clamp_min(1e-300) * mag.clamp_min(1e-300)
+            ok = (rabs <= rtol * rscale) | (small & torch.isfinite(rabs))
+            self.iters[act] += (~ok).long() if it > 1 else 1
+            if bool(ok.all()) or it == max_newton:
+                break
+            worse = ~ok & ~sing & ~(rabs < prev) & (halved < 12)
+            last = torch.where(worse[:, None], last / 2, last)
+            step, info = torch.linalg.solve_ex(jac, -r)
+            sing = sing | (~worse & ((info != 0) | ~torch.isfinite(step).all(-1)))
+            take = ~ok & ~sing & ~worse
+            u = torch.where(worse[:, None], u - last, torch.where(take[:, None], u + step, u))
+            prev = torch.where(take, rabs, prev)
+            last = torch.where(take[:, None], step, last)
+            halved = torch.where(take, 0, halved + worse.long())
+            small = (take | worse) & (last.abs().amax(-1) <= rtol * mag)
+        return _GroupStep(act, u, g, rabs, ok, sing, it)
+
+    def record(self, act_list: list[int], i: int, s: _GroupStep, max_newton: int, box: float | None) -> None:
+        """Store slice ``i + 1`` of the members solved; retire those that failed or left the box."""
+        act = s.act
+        self.psi[act, i + 1] = s.u
+        self.g_prev[act] = s.g[:, self.a1]
+        self.max_iters[act] = torch.maximum(self.max_iters[act], torch.tensor(s.it))
+        self.worst[act] = torch.maximum(self.worst[act], torch.where(s.ok, s.rabs, self.worst[act]))
+        bad = ~s.ok
+        if bool(bad.any()):
+            for j in torch.nonzero(bad).flatten().tolist():
+                k = act_list[j]
+                f = self.fs[k]
+                tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
+                why = "singular mixed Hessian" if bool(s.sing[j]) else \
+                    f"Newton did not converge in {max_newton} iterations"
+                res = float(s.rabs[j])
+                self.retire(k, i + 1, f"slice {i + 1} (t = {tval:.6g}): {why}, residual {res:.3e}", True, res)
+                self.worst[k] = max(float(self.worst[k]), res)
+        if box is not None:
+            out = (s.u.norm(dim=-1) > box) & s.ok
+            for j in torch.nonzero(out).flatten().tolist():
+                self.retire(act_list[j], i + 2, f"left the box |psi| <= {box:g} at slice {i + 1}", False)
+
+    def results(self, wall: float, mode: str) -> list[ServeResult]:
+        """One result per member; a failed member's ``fail_at`` is ``(slice, residual)``."""
+        solved = sum(max(n - 2, 0) for n in self.length)
+        out = []
+        for k, f in enumerate(self.fs):
+            n = self.length[k]
+            lf = LatticeField.with_values(f, self.psi[k, :n].clone())
+            out.append(ServeResult(field=lf.to_dataarray(), complete=not self.failed[k], reason=self.reason[k],
+                                   slices=n, newton_iterations=int(self.iters[k]),
+                                   max_newton_iterations=int(self.max_iters[k]), wall_time=wall,
+                                   sites_per_second=solved / wall if wall > 0 else math.inf,
+                                   max_residual=float(self.worst[k]), mode=mode, solver=mode))
+            out[-1].fail_at = self.fail_at.get(k)  # type: ignore[attr-defined]
+        return out
+
+
+def _serve_batch(model: AbstractLagrangian, fs: list[LatticeField], steps: list[int], mode: str, rtol: float,
+                 max_newton: int, box: float | None, progress: bool | None) -> list[ServeResult]:
+    """Step a batch of 1D trajectories together; a member that fails or leaves the box retires alone.
+
+    ``mode="newton"`` solves all running members' slices in one batched Newton; ``"sweep"`` one member at a
+    time (in 1D the site-by-site sweep is that same Newton on the one site).
+    """
+    batch = _Batch(model, fs, steps)
+    members = list(range(len(fs)))
+    groups = [members] if mode == "newton" else [[k] for k in members]
+    bar = _bar(batch.nmax - 2, f"serve ({mode}, {len(fs)} trajectories)", progress)
+    for i in range(1, batch.nmax - 1):
+        for group in groups:
+            act_list = batch.members(group, i)
+            if act_list:
+                batch.record(act_list, i, batch.newton(act_list, i, rtol, max_newton), max_newton, box)
+        bar.update(1)
+    bar.close()
+    return batch.results(time.perf_counter() - batch.t0, mode)

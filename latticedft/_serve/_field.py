@@ -1,0 +1,145 @@
+"""n-D serving (n >= 2): a field filled slice by slice, by the affine recurrence where the DEL is affine, then by
+slice-Newton or the site-by-site sweep."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from .._action import CellDerivatives
+from .._errors import InputError, ServeError
+from .._lattice import LatticeField, gather_cells
+from .._models import AbstractLagrangian
+from ._affine import _affine_prefix
+from ._newton import _newton_slice
+from ._result import ServeResult, _bar
+from ._slices import _site_label, _SliceSystem
+from ._sweep import _sweep_slice
+
+
+def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int) -> torch.Tensor:
+    """``(steps, *spatial, m)`` values: the first two slices and the boundary (known) sites, NaN elsewhere."""
+    nt_given = f.shape[0]
+    m = f.ncomp
+    dirichlet_axes = [f.dims[k] for k in range(1, f.ndim) if not f.periodic[k]]
+    if dirichlet_axes and nt_given < steps:
+        raise InputError(f"init: holds {nt_given} time slices but the Dirichlet boundary along "
+                         f"{dirichlet_axes[0]!r} needs its strips on all {steps} slices; give the whole field, "
+                         "fewer steps, or a periodic boundary")
+    psi = torch.full((steps, *f.shape[1:], m), math.nan, dtype=torch.float64)
+    psi[:2] = f.values[:2]
+    known = np.ones(sys.nsite, dtype=bool)
+    known[sys.interior] = False
+    flat = psi.reshape(steps, sys.nsite, m)
+    if known.any():
+        kidx = torch.from_numpy(np.nonzero(known)[0])
+        flat[:, kidx] = f.values[:steps].reshape(-1, sys.nsite, m)[:, kidx]
+    return psi
+
+
+class _FieldRun:
+    """One n-D field being served: its slice system, values, iteration counters and progress bar."""
+
+    def __init__(self, model: AbstractLagrangian, f: LatticeField, steps: int, mode: str, progress: bool | None):
+        self.model, self.f, self.steps, self.mode = model, f, steps, mode
+        self.sys = _SliceSystem(model, f)
+        self.psi = _initial_values(f, self.sys, steps)
+        self.flat = self.psi.reshape(steps, self.sys.nsite, f.ncomp)  # (steps, site, m): a view of psi
+        self.unk = torch.from_numpy(np.nonzero(self.sys.interior)[0])
+        self.vol = math.prod(model.spacing)
+        self.t0 = time.perf_counter()
+        self.total_it, self.max_it, self.worst = 0, 0, 0.0
+        self.bar = _bar(steps - 2, f"serve ({mode})", progress)
+        self.cache: dict[str, Any] = {}
+        self.start = 1  # first slice whose equations Newton (or the sweep) solves
+        self.affine_slices = 0
+
+    def cells_at(self, i: int) -> torch.Tensor:
+        """The cells anchored on slice ``i``."""
+        return gather_cells(self.psi[i:i + 2], self.model.stencil, self.f.periodic)
+
+    def serve_affine(self, rtol: float) -> None:
+        """Fill the leading slices that the affine recurrence serves to within ``rtol``; Newton starts after."""
+        out = _affine_prefix(self.model, self.f, self.sys, self.psi, self.flat, rtol, self.vol)
+        if out is None:
+            return
+        self.affine_slices, worst, dmax = out
+        self.start = 1 + self.affine_slices
+        if self.affine_slices:
+            self.worst = worst
+            self.total_it, self.max_it = self.affine_slices, 1
+            self.cache["dmax"] = dmax
+        self.bar.update(self.affine_slices)
+
+    def solver(self) -> str:
+        """The ``solver`` name of the result."""
+        if self.mode == "sweep":
+            return "sweep"
+        if not self.affine_slices:
+            return "newton"
+        return "affine" if self.start >= self.steps - 1 else "affine+newton"
+
+    def solve_slice(self, i: int, g_prev: torch.Tensor, rtol: float, max_newton: int) -> torch.Tensor:
+        """Solve slice ``i``'s equations for slice ``i + 1``; returns the gradients of the cells anchored at ``i``."""
+        sys, flat, unk = self.sys, self.flat, self.unk
+        # predictor 2 psi_i - psi_{i-1} on the unknown sites
+        flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
+        if self.mode == "newton":
+            it, res, g_prev, err = _newton_slice(self.model, sys, self.psi, flat, unk, i, g_prev, self.vol, rtol,
+                                                 max_newton, self.cells_at, self.cache)
+        else:
+            it, res, g_prev, err = _sweep_slice(self.model, sys, self.psi, flat, i, self.vol, rtol, max_newton,
+                                                self.f)
+        self.total_it += it
+        self.max_it = max(self.max_it, it)
+        self.worst = max(self.worst, res)
+        if err is not None:
+            msg, row, rval = err
+            raise self.fail(i, msg, row, rval)
+        self.bar.update(1)
+        return g_prev
+
+    def _result(self, field: LatticeField, complete: bool, reason: str, slices: int, wall: float,
+                rate: float, residual: float) -> ServeResult:
+        return ServeResult(field=field.to_dataarray(), complete=complete, reason=reason, slices=slices,
+                           newton_iterations=self.total_it, max_newton_iterations=self.max_it, wall_time=wall,
+                           sites_per_second=rate, max_residual=residual, mode=self.mode, solver=self.solver())
+
+    def fail(self, i: int, msg: str, row: int | None, res: float) -> ServeError:
+        """The error for slice ``i``'s equations failing (at equation ``row``), holding the slices solved."""
+        f, sys = self.f, self.sys
+        self.bar.close()
+        part = LatticeField.with_values(f, self.psi[: i + 1].clone())
+        wall = time.perf_counter() - self.t0
+        solved = (i + 1 - 2) * sys.n
+        result = self._result(part, False, msg, i + 1, wall, solved / wall if wall > 0 else 0.0, res)
+        site = _site_label(f, sys, i, row) if row is not None else None
+        tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
+        text = f"slice {i + 1} (t = {tval:.6g}): {msg}" + (f" at site {site}" if site else "") + \
+            (f", residual {res:.3e}" if math.isfinite(res) else "")
+        return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
+
+    def finish(self) -> ServeResult:
+        """The complete served field."""
+        self.bar.close()
+        wall = time.perf_counter() - self.t0
+        out = LatticeField.with_values(self.f, self.psi)
+        solved = (self.steps - 2) * self.sys.n
+        return self._result(out, True, "complete", self.steps, wall, solved / wall if wall > 0 else math.inf,
+                             self.worst)
+
+
+def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, mode: str, rtol: float, max_newton: int,
+                 progress: bool | None, affine: bool = True) -> ServeResult:
+    """Serve one n-D field: the affine recurrence first where allowed, then Newton (or the sweep) slice by slice."""
+    run = _FieldRun(model, f, steps, mode, progress)
+    if mode == "newton" and affine and steps > 2:
+        run.serve_affine(rtol)
+    g_prev = CellDerivatives(model, run.cells_at(run.start - 1)).grad
+    for i in range(run.start, steps - 1):
+        g_prev = run.solve_slice(i, g_prev, rtol, max_newton)
+    return run.finish()

@@ -1,0 +1,116 @@
+"""One time slice as a system of equations: the index maps of its equations and unknowns, its residual and its
+factorised Jacobian, shared by the slice solvers (affine recurrence, slice-Newton, site-by-site sweep)."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+import scipy.sparse.linalg
+import torch
+
+from .._lattice import LatticeField, interior_slices
+from .._models import AbstractLagrangian
+
+
+class _SliceSystem:
+    """Index maps of one slice's equations and unknowns, built once per lattice."""
+
+    def __init__(self, model: AbstractLagrangian, f: LatticeField):
+        st = model.stencil
+        self.st = st
+        self.m = f.ncomp
+        spatial = f.shape[1:]
+        self.spatial = spatial
+        self.periodic = f.periodic
+        self.nsite = int(np.prod(spatial))
+        inner = interior_slices(f.shape, st, f.periodic)[1:]
+        mask = np.zeros(spatial, dtype=bool)
+        mask[inner] = True
+        self.interior = mask.reshape(-1)
+        self.index = -np.ones(self.nsite, dtype=np.int64)  # site -> equation row / unknown column
+        self.index[self.interior] = np.arange(int(self.interior.sum()))
+        self.n = int(self.interior.sum())
+        # cells anchored on one slice: shape of the cell grid along the spatial axes
+        lo, width = st.lo, st.width
+        cshape = [nk if f.periodic[k + 1] else nk - int(width[k + 1]) for k, nk in enumerate(spatial)]
+        self.cshape = tuple(cshape)
+        grids = np.meshgrid(*[np.arange(c) for c in cshape], indexing="ij")
+        self.site_of: list[np.ndarray] = []  # per stencil point: flat site index of that point for every cell
+        for off in st.offsets:
+            idx = []
+            for k, gk in enumerate(grids):
+                v = gk + off[k + 1] - lo[k + 1]
+                if f.periodic[k + 1]:
+                    v = v % spatial[k]
+                idx.append(v.reshape(-1))
+            self.site_of.append(np.ravel_multi_index(idx, spatial) if idx else np.zeros(1, dtype=np.int64))
+        self.now = [a for a, o in enumerate(st.offsets) if o[0] == 0]
+        self.nxt = [a for a, o in enumerate(st.offsets) if o[0] == 1]
+        self.pairs = [(a, b) for a in self.now for b in self.nxt]
+        # Jacobian structure: rows (equation sites on slice i) x cols (unknowns on slice i+1)
+        self.jac: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        for a, b in self.pairs:
+            r = self.index[self.site_of[a]]
+            c = self.index[self.site_of[b]]
+            keep = (r >= 0) & (c >= 0)
+            self.jac[(a, b)] = (np.nonzero(keep)[0], r[keep], c[keep])
+        m = self.m
+        rows = np.concatenate([r for _, r, _ in self.jac.values()]) if self.jac else np.zeros(0, np.int64)
+        cols = np.concatenate([c for _, _, c in self.jac.values()]) if self.jac else np.zeros(0, np.int64)
+        self.lower = int(max(0, (rows - cols).max() if rows.size else 0)) * m + m - 1
+        self.upper = int(max(0, (cols - rows).max() if rows.size else 0)) * m + m - 1
+        self.banded = len(spatial) == 1 and not any(f.periodic[1:])
+        self.triangular = bool(rows.size == 0 or (cols <= rows).all()) and not any(f.periodic[1:])
+        self.diag_pairs = [(a, b) for (a, b), (_, r, c) in self.jac.items() if np.any(r == c)]
+
+    # EL on slice i (equation rows) from the per-cell gradients of the cells anchored at i-1 and i
+    def residual(self, g_prev: torch.Tensor, g_cur: torch.Tensor, vol: float) -> np.ndarray:
+        m = self.m
+        el = torch.zeros(self.nsite, m, dtype=torch.float64)
+        gp = g_prev.reshape(-1, self.st.size, m)
+        gc = g_cur.reshape(-1, self.st.size, m)
+        for a in self.nxt:
+            el.index_add_(0, torch.from_numpy(self.site_of[a]), gp[:, a])
+        for a in self.now:
+            el.index_add_(0, torch.from_numpy(self.site_of[a]), gc[:, a])
+        return (vol * el).numpy()[self.interior].reshape(-1)
+
+    def matrix_entries(self, blocks: dict[tuple[int, int], torch.Tensor], vol: float):
+        m = self.m
+        rs, cs, vs = [], [], []
+        ii, jj = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
+        for key, (cells, r, c) in self.jac.items():
+            v = blocks[key].reshape(-1, m, m).numpy()[cells] * vol  # (nnz, m, m)
+            rs.append((r[:, None, None] * m + ii).reshape(-1))
+            cs.append((c[:, None, None] * m + jj).reshape(-1))
+            vs.append(v.reshape(-1))
+        return np.concatenate(rs), np.concatenate(cs), np.concatenate(vs)
+
+    def factor(self, blocks, vol: float):
+        """Assemble and factorise the slice Jacobian; returns ``solve(rhs)``."""
+        rows, cols, vals = self.matrix_entries(blocks, vol)
+        size = self.n * self.m
+        if self.banded:
+            lo, up = self.lower, self.upper
+            ab = np.zeros((lo + up + 1, size))
+            np.add.at(ab, (up + rows - cols, cols), vals)
+            if not np.all(ab[up] != 0):
+                raise np.linalg.LinAlgError("zero on the diagonal")
+            return lambda rhs: scipy.linalg.solve_banded((lo, up), ab, rhs, check_finite=False)
+        mat = scipy.sparse.csc_matrix((vals, (rows, cols)), shape=(size, size))
+        try:
+            return scipy.sparse.linalg.splu(mat).solve
+        except RuntimeError as exc:  # "Factor is exactly singular"
+            raise np.linalg.LinAlgError(str(exc)) from None
+
+
+def _site_label(f: LatticeField, sys: _SliceSystem, tslice: int, row: int) -> tuple[int, ...]:
+    """The lattice index ``(slice, site...)`` of equation row ``row`` of slice ``tslice``."""
+    site = int(np.nonzero(sys.interior)[0][row // sys.m])
+    return (tslice, *[int(v) for v in np.unravel_index(site, sys.spatial)])
+
+
+def _scale(flat: torch.Tensor, i: int, unk: torch.Tensor) -> float:
+    """Size of the values on slices ``i - 1``, ``i`` and the unknowns of ``i + 1``: the scale of a Newton step."""
+    return float(max(flat[i - 1].abs().max(), flat[i].abs().max(), flat[i + 1, unk].abs().max(), 1e-300))
