@@ -175,8 +175,8 @@ def test_export_formats_and_aliases(case: Path, lines: str, overrides: list[str]
 
 
 @pytest.mark.parametrize("lines,overrides,message", [
-    ('formats = ["paraveiw"]', [], "case.toml: export.formats: unknown format 'paraveiw'; did you mean 'paraview'? "
-                                   "(formats: paraview, figures, xdmf)"),
+    ('formats = ["paraveiw"]', [], ("case.toml: export.formats: unknown format 'paraveiw'; did you mean 'paraview'? "
+                                    "(formats: paraview, figures, xdmf)")),
     ('formats = ["figures", "figures"]', [], "case.toml: export.formats: format 'figures' listed twice"),
     ("formats = [1]", [], "case.toml: export.formats: expected a string or a list of strings, got [1]"),
     ('formats = ["paraview"]\nparaview = false', [],

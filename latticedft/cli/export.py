@@ -14,8 +14,8 @@ log = logging.getLogger("latticedft")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="re-export the [export] formats (ParaView files, figures ...) from results/<task>.nc",
-                       description=__doc__)
+    p = sub.add_parser("export", description=__doc__,
+                       help="re-export the [export] formats (ParaView files, figures ...) from results/<task>.nc")
     add_case_arguments(p)
 
 
