@@ -219,8 +219,9 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "threads": (t_pos_int, None),
     },
     "export": {
-        "paraview": (t_bool, True),
-        "figures": (t_bool, True),
+        "formats": (t_str_list, None),  # None: latticedft.io.exporters.DEFAULT_FORMATS
+        "paraview": (t_bool, None),  # alias: true adds "paraview" to formats, false removes it
+        "figures": (t_bool, None),  # alias: the same for "figures"
         "max_frames": (t_pos_int, 200),
     },
 }
@@ -319,11 +320,19 @@ class RunConfig:
 
 @dataclass(frozen=True)
 class ExportConfig:
-    """``[export]``: ParaView files, figures and the number of ParaView frames per task."""
+    """``[export]``: the export formats of every task (names of ``latticedft.io.exporters.EXPORTERS``, written
+    in this order) and the most frames per task of the time-series formats."""
 
-    paraview: bool = True
-    figures: bool = True
+    formats: tuple[str, ...] = ("paraview", "figures")
     max_frames: int | None = 200
+
+    @property
+    def paraview(self) -> bool:
+        return "paraview" in self.formats
+
+    @property
+    def figures(self) -> bool:
+        return "figures" in self.formats
 
 
 @dataclass(frozen=True)
@@ -579,10 +588,43 @@ def _validate(raw: dict[str, Any], root: Path, file: Path, overrides: tuple[str,
     # [run], [export]
     rn = _table(ctx, raw, "run", SCHEMA["run"])
     run_cfg = RunConfig(threads=rn["threads"] or max(1, min(2, os.cpu_count() or 1)))
-    ex = _table(ctx, raw, "export", SCHEMA["export"])
-    export_cfg = ExportConfig(**ex)
+    export_cfg = _export_config(ctx, _table(ctx, raw, "export", SCHEMA["export"]))
     return Case(root=root, field=field_cfg, model=model_cfg, train=train_cfg, serve=tuple(tasks), run=run_cfg,
                 export=export_cfg, raw=raw, overrides=overrides)
+
+
+def _export_config(ctx: _Ctx, ex: dict[str, Any]) -> ExportConfig:
+    """``formats`` checked against the registry; the aliases ``paraview``/``figures`` add or remove their format.
+
+    An alias that contradicts an explicit ``formats`` is an error, unless one of the two comes from
+    ``--set`` (the override wins).
+    """
+    from .io.exporters import DEFAULT_FORMATS, EXPORTERS
+
+    given = ex["formats"] is not None
+    formats = list(ex["formats"]) if given else list(DEFAULT_FORMATS)
+    for i, fmt in enumerate(formats):
+        if fmt not in EXPORTERS:
+            raise ctx.error("export.formats", f"unknown format {fmt!r}{_closest(fmt, list(EXPORTERS))} "
+                                              f"(formats: {', '.join(EXPORTERS)})")
+        if fmt in formats[:i]:
+            raise ctx.error("export.formats", f"format {fmt!r} listed twice")
+    for alias in ("paraview", "figures"):
+        on = ex[alias]
+        if on is None or on == (alias in formats):
+            continue
+        if given:
+            alias_set, formats_set = f"export.{alias}" in ctx.overridden, "export.formats" in ctx.overridden
+            if alias_set == formats_set:
+                raise ctx.error(f"export.{alias}", f"{'true' if on else 'false'} contradicts export.formats = "
+                                                   f"{ex['formats']!r}; set one of them")
+            if formats_set:
+                continue
+        if on:
+            formats.append(alias)
+        else:
+            formats.remove(alias)
+    return ExportConfig(formats=tuple(formats), max_frames=ex["max_frames"])
 
 
 def load_invariant(spec: str, root: Path) -> Callable[[Any], Any]:

@@ -1,9 +1,10 @@
-"""Results of a run (DESIGN.md §2): staging folder, model files, task files, exports, summary.
+"""Results of a run: the staging folder, model files, task files, exports, summary.
 
 Everything is first written into a temporary folder beside the destination
 (``CASE/results.tmp-XXXX``) and renamed to ``CASE/results/`` only when the
 stage succeeded, so a failed or interrupted run never leaves a half-written
-``results/`` and never touches the previous one.
+``results/`` and never touches the previous one. :func:`staged_results` is
+the one place that stages and publishes; every command uses it.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ import os
 import platform
 import shutil
 import uuid
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +27,7 @@ import xarray as xr
 
 from ._errors import InputError
 
-__all__ = ["Staging", "write_model", "write_task", "export_task", "read_task", "write_summary",
+__all__ = ["Staging", "staged_results", "write_model", "write_task", "export_task", "read_task", "write_summary",
            "read_summary", "versions", "json_safe", "RUN_LOG"]
 
 log = logging.getLogger("latticedft")
@@ -36,7 +38,8 @@ class Staging:
     """A temporary folder beside ``dest`` that replaces ``dest`` on :meth:`publish`.
 
     ``copy_existing=True`` starts from a copy of an existing ``dest`` (stages
-    that update results: ``serve``, ``export``).
+    that update results: ``serve``, ``export``). Use it through
+    :func:`staged_results`.
     """
 
     def __init__(self, dest: Path, *, copy_existing: bool = False):
@@ -68,6 +71,42 @@ class Staging:
     def discard(self) -> None:
         if not self.published:
             shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+@contextmanager
+def staged_results(dest: str | os.PathLike[str], *, copy_existing: bool = False,
+                   run_log: bool = True) -> Iterator[Path]:
+    """Write a stage's results into a temporary folder; publish it as ``dest`` when the block succeeds.
+
+    ``with staged_results(dest) as folder:`` yields the temporary folder beside
+    ``dest`` (a copy of ``dest`` with ``copy_existing=True``). With ``run_log``
+    the ``latticedft`` logger also writes DEBUG lines, with times, to
+    ``folder/run.log`` during the block. When the block ends normally the log is
+    closed and the folder renamed to ``dest`` (an existing ``dest`` is replaced);
+    when it raises (an error, KeyboardInterrupt) the folder is deleted and
+    ``dest`` is left as it was.
+    """
+    staging = Staging(Path(dest), copy_existing=copy_existing)
+    handler: logging.Handler | None = None
+    try:
+        if run_log:
+            handler = logging.FileHandler(staging.tmp / RUN_LOG, encoding="utf-8")
+            handler.setLevel(logging.DEBUG)
+            handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+            log.addHandler(handler)
+        yield staging.tmp
+        _close(handler)
+        handler = None
+        staging.publish()
+    finally:
+        _close(handler)
+        staging.discard()
+
+
+def _close(handler: logging.Handler | None) -> None:
+    if handler is not None:
+        log.removeHandler(handler)
+        handler.close()
 
 
 def versions() -> dict[str, str]:
@@ -182,28 +221,19 @@ def read_task(path: Path, variable: str) -> tuple[xr.DataArray, xr.DataArray | N
 
 
 def export_task(folder: Path, name: str, variable: str, pred: xr.DataArray, ref: xr.DataArray | None,
-                err: xr.DataArray | None, *, paraview: bool, figures: bool, max_frames: int | None,
-                train: list[xr.DataArray] | None = None, title: str | None = None) -> list[Path]:
-    """ParaView files (``<name>.pvd`` + frames) and the figure ``<name>.png``."""
-    written: list[Path] = []
-    pred = pred.rename(variable)
-    if paraview:
-        from .io.vtk import write_paraview
+                err: xr.DataArray | None, *, formats: Sequence[str], max_frames: int | None,
+                train: Sequence[xr.DataArray] | None = None, title: str | None = None) -> list[Path]:
+    """Write task ``name`` in each export format of ``formats``; the files written.
 
-        extra = {}
-        if ref is not None and err is not None:
-            extra = {f"{variable}_ref": ref, f"{variable}_err": err}
-        written += write_paraview(folder, name, pred, extra, max_frames=max_frames)
-    if figures:
-        from .io.figures import plot_prediction
+    Formats are the names of :data:`latticedft.io.exporters.EXPORTERS`
+    (``"paraview"``, ``"figures"``, ``"xdmf"``).
+    """
+    from .io.exporters import ExportTask, export_formats
 
-        full_ref = ref
-        written.append(plot_prediction(folder / f"{name}.png", pred, full_ref, title=title or name,
-                                       train=train if len(pred.dims) == 1 or pred.dims[1:] == ("component",)
-                                       else None))
-    for p in written:
-        log.debug("wrote %s", p.name)
-    return written
+    task = ExportTask(folder=Path(folder), name=name, field=pred.rename(variable), reference=ref, error=err,
+                      max_frames=max_frames, train=tuple(train) if train is not None else None,
+                      title=title or name)
+    return export_formats(task, formats)
 
 
 def write_summary(folder: Path, summary: Mapping[str, Any]) -> Path:

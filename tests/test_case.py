@@ -151,3 +151,43 @@ def test_schema_is_documented() -> None:
     for kind in ("polynomial", "mlp"):
         for key in model_options(kind):
             assert f"`{key}`" in doc, f"model.{key} missing from docs/case-toml.md"
+
+
+# -- [export] formats and its aliases --------------------------------------------------------------------------
+@pytest.mark.parametrize("lines,overrides,formats", [
+    ("", [], ("paraview", "figures")),
+    ('formats = ["xdmf"]', [], ("xdmf",)),
+    ('formats = "xdmf"', [], ("xdmf",)),
+    ("formats = []", [], ()),
+    ("paraview = false", [], ("figures",)),
+    ("figures = false\nparaview = false", [], ()),
+    ('formats = ["xdmf", "paraview"]\nparaview = true', [], ("xdmf", "paraview")),  # agrees: fine
+    ('formats = ["figures", "xdmf"]', ["export.figures=false"], ("xdmf",)),  # --set wins over the file
+    ('formats = ["xdmf"]', ["export.paraview=true"], ("xdmf", "paraview")),
+    ("figures = false", ['export.formats=["figures"]'], ("figures",)),
+    ("", ['export.formats=["xdmf", "figures"]', "export.max_frames=9"], ("xdmf", "figures")),
+])
+def test_export_formats_and_aliases(case: Path, lines: str, overrides: list[str], formats: tuple[str, ...]) -> None:
+    _edit(case, "[export]\n", f"[export]\n{lines}\n")
+    c = load_case(case, overrides)
+    assert c.export.formats == formats and c.export.max_frames == (9 if "export.max_frames=9" in overrides else 4)
+    assert c.export.paraview == ("paraview" in formats) and c.export.figures == ("figures" in formats)
+
+
+@pytest.mark.parametrize("lines,overrides,message", [
+    ('formats = ["paraveiw"]', [], ("case.toml: export.formats: unknown format 'paraveiw'; did you mean 'paraview'? "
+                                    "(formats: paraview, figures, xdmf)")),
+    ('formats = ["figures", "figures"]', [], "case.toml: export.formats: format 'figures' listed twice"),
+    ("formats = [1]", [], "case.toml: export.formats: expected a string or a list of strings, got [1]"),
+    ('formats = ["paraview"]\nparaview = false', [],
+     "case.toml: export.paraview: false contradicts export.formats = ['paraview']; set one of them"),
+    ('formats = ["xdmf"]\nfigures = true', [],
+     "case.toml: export.figures: true contradicts export.formats = ['xdmf']; set one of them"),
+    ("", ['export.formats=["figures"]', "export.figures=false"],
+     "--set: export.figures: false contradicts export.formats = ['figures']; set one of them"),
+    ("", ['export.formats=["xdmf5"]'], "--set: export.formats: unknown format 'xdmf5'; did you mean 'xdmf'?"),
+    ("paraview = 1", [], "case.toml: export.paraview: expected true or false, got 1"),
+])
+def test_export_formats_errors(case: Path, lines: str, overrides: list[str], message: str) -> None:
+    _edit(case, "[export]\n", f"[export]\n{lines}\n")
+    assert _error(case, overrides).startswith(message)

@@ -3,16 +3,17 @@
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 import pyvista as pv
-from case_helpers import tiny_wave
+from case_helpers import leftovers, tiny_wave
 
 import latticedft as ldft
-from latticedft._results import Staging, json_safe
+from latticedft._results import RUN_LOG, Staging, json_safe, staged_results
 from latticedft.cli import main
 from latticedft.io import read_field, read_pvd
 
@@ -73,6 +74,51 @@ def test_staging_publishes_or_leaves_everything(tmp_path: Path) -> None:
     s.discard()  # no-op after publish
     assert sorted(p.name for p in dest.iterdir()) == ["new.txt", "old.txt"]
     assert [p.name for p in tmp_path.iterdir()] == ["results"]
+
+
+def _handlers() -> list:
+    return [h for h in logging.getLogger("latticedft").handlers if isinstance(h, logging.FileHandler)]
+
+
+@pytest.mark.parametrize("exc", [RuntimeError("boom"), KeyboardInterrupt()])
+def test_staged_results_discards_on_failure(tmp_path: Path, exc: BaseException) -> None:
+    dest = tmp_path / "results"
+    dest.mkdir()
+    (dest / "old.txt").write_text("old")
+    before = _handlers()
+    with pytest.raises(type(exc)):
+        with staged_results(dest, copy_existing=True) as folder:
+            assert folder.parent == tmp_path and folder.name.startswith("results.tmp-")
+            assert (folder / "old.txt").read_text() == "old"  # a copy of dest
+            (folder / "old.txt").write_text("changed")
+            (folder / "new.txt").write_text("new")
+            logging.getLogger("latticedft").debug("half-way")
+            raise exc
+    assert [p.name for p in tmp_path.iterdir()] == ["results"]  # no staging folder left
+    assert sorted(p.name for p in dest.iterdir()) == ["old.txt"] and (dest / "old.txt").read_text() == "old"
+    assert _handlers() == before  # run.log detached
+
+
+def test_staged_results_publishes_on_success(tmp_path: Path) -> None:
+    dest = tmp_path / "sub" / "results"
+    before = _handlers()
+    with staged_results(dest) as folder:
+        assert not dest.exists() and folder.is_dir()
+        (folder / "a.txt").write_text("a")
+        logging.getLogger("latticedft").debug("written a.txt")
+        assert len(_handlers()) == len(before) + 1
+    assert _handlers() == before
+    assert sorted(p.name for p in dest.iterdir()) == ["a.txt", RUN_LOG]
+    assert "DEBUG written a.txt" in (dest / RUN_LOG).read_text()
+    logging.getLogger("latticedft").debug("after the block")
+    assert "after the block" not in (dest / RUN_LOG).read_text()
+    (dest / "stale.txt").write_text("stale")
+    with staged_results(dest, run_log=False) as folder:  # a fresh folder replaces dest
+        (folder / "b.txt").write_text("b")
+    assert [p.name for p in dest.iterdir()] == ["b.txt"] and leftovers(tmp_path / "sub") == []
+    with staged_results(dest, copy_existing=True) as folder:  # a copy of dest, and a run.log
+        (folder / "c.txt").write_text("c")
+    assert sorted(p.name for p in dest.iterdir()) == ["b.txt", "c.txt", RUN_LOG]
 
 
 def test_json_safe() -> None:

@@ -1,4 +1,7 @@
-"""Shared pieces of the subcommands: arguments, logging, the results folder, the summary."""
+"""Shared pieces of the subcommands: arguments, logging, the results folder, the summary.
+
+Staging and publishing the results folder is :func:`latticedft._results.staged_results`.
+"""
 
 from __future__ import annotations
 
@@ -13,7 +16,7 @@ from typing import Any
 
 from .._case import Case, load_case
 from .._errors import InputError
-from .._results import RUN_LOG, versions
+from .._results import versions
 
 log = logging.getLogger("latticedft")
 
@@ -52,15 +55,6 @@ def setup_logging(args: argparse.Namespace) -> logging.Handler:
         logging.DEBUG if getattr(args, "verbose", False) else logging.INFO)
     handler.setLevel(level)
     handler.setFormatter(_Formatter())
-    log.addHandler(handler)
-    return handler
-
-
-def attach_run_log(folder: Path) -> logging.Handler:
-    """DEBUG lines, with times, appended to ``folder/run.log``."""
-    handler = logging.FileHandler(folder / RUN_LOG, encoding="utf-8")
-    handler.setLevel(logging.DEBUG)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
     log.addHandler(handler)
     return handler
 

@@ -1,17 +1,25 @@
-"""The work shared by ``run``, ``train``, ``serve`` and ``export``: write into a staging folder."""
+"""The work shared by ``run``, ``train``, ``serve`` and ``export``, done inside a staging folder.
+
+Exports: each task's files are those its last export wrote, as recorded in
+``summary.json`` (``tasks.<name>.exports``); a new export of a task first
+deletes exactly those files, so one task never deletes another's.
+"""
 
 from __future__ import annotations
 
 import logging
-import re
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 from tqdm.auto import tqdm
 
 from .._case import Case
+from .._errors import InputError
 from .._pipeline import CaseData, TaskOutcome, serve_task, train_model
-from .._results import (config_attrs, export_task, read_task, write_model, write_summary, write_task)
+from .._results import (config_attrs, export_task, read_summary, read_task, write_model, write_summary,
+                        write_task)
+from ..io.exporters import remove_exports
 from ._common import INCOMPLETE, OK, command_line
 
 log = logging.getLogger("latticedft")
@@ -31,11 +39,13 @@ def train_into(folder: Path, case: Case, data: CaseData, argv: list[str]) -> tup
     return model, train
 
 
-def _clear_exports(folder: Path, name: str) -> None:
-    pattern = re.compile(rf"^{re.escape(name)}(_(\d+|spacetime))?\.(pvd|vtr|vtp|png)$")
-    for p in folder.iterdir():
-        if pattern.match(p.name):
-            p.unlink()
+def recorded_exports(folder: Path) -> dict[str, list[str]]:
+    """Task name -> the files its last export wrote, from ``folder/summary.json`` (empty when none)."""
+    tasks = (read_summary(folder) or {}).get("tasks") or {}
+    if not isinstance(tasks, dict):
+        return {}
+    return {str(name): [str(f) for f in (t.get("exports") or [])] for name, t in tasks.items()
+            if isinstance(t, dict) and isinstance(t.get("exports"), list)}
 
 
 def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[str]) -> dict[str, Any]:
@@ -43,6 +53,8 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
     tasks: dict[str, Any] = {}
     attrs = config_attrs(case.raw, case.overrides, command_line(argv))
     history = command_line(argv) + (f" (overrides: {', '.join(case.overrides)})" if case.overrides else "")
+    previous = recorded_exports(folder)
+    owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
         out: TaskOutcome = serve_task(model, td)
         path = write_task(folder, out.name, case.field.variable, out.field, out.reference, out.invariant,
@@ -51,19 +63,33 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
                           history=history)
         out.record["file"] = path.name
         log.debug("wrote %s", path.name)
-        out.record["exports"] = export_one(folder, case, out.name, data)
+        out.record["exports"] = export_one(folder, case, out.name, data, previous.get(out.name, ()), owners)
         tasks[out.name] = out.record
     return tasks
 
 
-def export_one(folder: Path, case: Case, name: str, data: CaseData | None) -> list[str]:
-    """Re-export ParaView files and the figure of one task from its ``<task>.nc``."""
-    _clear_exports(folder, name)
+def export_one(folder: Path, case: Case, name: str, data: CaseData | None, previous: Iterable[str] = (),
+               owners: dict[str, str] | None = None) -> list[str]:
+    """Re-export one task from its ``<task>.nc`` in the case's formats; the names of the files written.
+
+    ``previous`` are the files the task's last export wrote: they are deleted
+    first, unless another task of this stage wrote them. ``owners`` (file ->
+    task) collects the files of the stage's tasks; a file that two tasks would
+    write is refused.
+    """
+    owners = {} if owners is None else owners
+    remove_exports(folder, [f for f in previous if f not in owners])
     pred, ref, err = read_task(folder / f"{name}.nc", case.field.variable)
-    files = export_task(folder, name, case.field.variable, pred, ref, err, paraview=case.export.paraview,
-                        figures=case.export.figures, max_frames=case.export.max_frames,
-                        train=data.train if data is not None else None, title=f"{case.name}: {name}")
-    return [p.name for p in files]
+    files = [p.name for p in export_task(folder, name, case.field.variable, pred, ref, err,
+                                         formats=case.export.formats, max_frames=case.export.max_frames,
+                                         train=data.train if data is not None else None,
+                                         title=f"{case.name}: {name}")]
+    for f in files:
+        if owners.get(f, name) != name:
+            raise InputError(f"export file {f} of task {name!r} is also a file of task {owners[f]!r}; "
+                             f"rename one of the tasks")
+        owners[f] = name
+    return files
 
 
 def finish(folder: Path, summary: dict[str, Any]) -> int:

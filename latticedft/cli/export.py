@@ -1,4 +1,4 @@
-"""``latticedft export CASE``: rewrite ParaView files and figures from the existing results/<task>.nc."""
+"""``latticedft export CASE``: rewrite the export files ([export] formats) from the existing results/<task>.nc."""
 
 from __future__ import annotations
 
@@ -6,16 +6,16 @@ import argparse
 import logging
 import time
 
-from .._results import Staging, read_summary, write_summary
-from ._common import (OK, add_case_arguments, attach_run_log, detach, open_case, require_results, results_dir)
-from ._work import export_one
+from .._results import read_summary, staged_results, write_summary
+from ._common import OK, add_case_arguments, open_case, require_results, results_dir
+from ._work import export_one, recorded_exports
 
 log = logging.getLogger("latticedft")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="re-export ParaView files and figures from results/<task>.nc",
-                       description=__doc__)
+    p = sub.add_parser("export", description=__doc__,
+                       help="re-export the [export] formats (ParaView files, figures ...) from results/<task>.nc")
     add_case_arguments(p)
 
 
@@ -25,24 +25,18 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
     dest = results_dir(args, case)
     for task in case.serve:
         require_results(dest, f"{task.name}.nc")
-    staging = Staging(dest, copy_existing=True)
-    handler = attach_run_log(staging.tmp)
-    try:
-        summary = read_summary(staging.tmp) or {}
+    with staged_results(dest, copy_existing=True) as folder:
+        summary = read_summary(folder) or {}
+        previous = recorded_exports(folder)
+        owners: dict[str, str] = {}
         for task in case.serve:
-            files = export_one(staging.tmp, case, task.name, None)
+            files = export_one(folder, case, task.name, None, previous.get(task.name, ()), owners)
             log.info("exported %s: %s", task.name, ", ".join(files[:3]) + (" ..." if len(files) > 3 else ""))
             if task.name in summary.get("tasks", {}):
                 summary["tasks"][task.name]["exports"] = files
         if summary:
             summary.setdefault("exports", []).append({"command": " ".join(["latticedft", *argv]),
                                                       "overrides": list(case.overrides)})
-            write_summary(staging.tmp, summary)
-        detach(handler)
-        handler = None
-        staging.publish()
-        log.info("exported into %s (%.1f s)", dest, time.perf_counter() - t0)
-    finally:
-        detach(handler)
-        staging.discard()
+            write_summary(folder, summary)
+    log.info("exported into %s (%.1f s)", dest, time.perf_counter() - t0)
     return OK

@@ -7,9 +7,8 @@ import logging
 import time
 
 from .._pipeline import check_case
-from .._results import Staging
-from ._common import (add_case_arguments, attach_run_log, detach, open_case, refuse_existing, results_dir,
-                      set_threads, summary_head)
+from .._results import staged_results
+from ._common import add_case_arguments, open_case, refuse_existing, results_dir, set_threads, summary_head
 from ._work import finish, serve_into, train_into
 
 log = logging.getLogger("latticedft")
@@ -29,21 +28,13 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
     set_threads(case)
     data = check_case(case)
     log.info("checked %s: %d training field(s), %d serving task(s)", case.name, len(data.train), len(data.tasks))
-    staging = Staging(dest)
-    handler = attach_run_log(staging.tmp)
-    try:
+    with staged_results(dest) as folder:
         for line in data.summary_lines(case):
             log.debug("%s", line)
-        model, train = train_into(staging.tmp, case, data, argv)
-        tasks = serve_into(staging.tmp, case, data, model, argv)
+        model, train = train_into(folder, case, data, argv)
+        tasks = serve_into(folder, case, data, model, argv)
         summary = summary_head(case, argv, "run")
         summary.update(train=train, tasks=tasks, wall_time=time.perf_counter() - t0)
-        status = finish(staging.tmp, summary)
+        status = finish(folder, summary)
         log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
-        detach(handler)
-        handler = None
-        staging.publish()
-    finally:
-        detach(handler)
-        staging.discard()
     return status

@@ -8,9 +8,8 @@ import time
 
 from .._modelfile import load_model
 from .._pipeline import check_case
-from .._results import Staging, read_summary
-from ._common import (add_case_arguments, attach_run_log, detach, open_case, require_results, results_dir,
-                      set_threads, summary_head)
+from .._results import read_summary, staged_results
+from ._common import add_case_arguments, open_case, require_results, results_dir, set_threads, summary_head
 from ._work import finish, serve_into
 
 log = logging.getLogger("latticedft")
@@ -31,19 +30,11 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
     old = read_summary(dest) or {}
     set_threads(case)
     data = check_case(case)
-    staging = Staging(dest, copy_existing=True)
-    handler = attach_run_log(staging.tmp)
-    try:
+    with staged_results(dest, copy_existing=True) as folder:
         log.debug("serving with %s", dest / "model.pt")
-        tasks = serve_into(staging.tmp, case, data, model, argv)
+        tasks = serve_into(folder, case, data, model, argv)
         summary = summary_head(case, argv, "serve")
         summary.update(train=old.get("train"), tasks=tasks, wall_time=time.perf_counter() - t0)
-        status = finish(staging.tmp, summary)
-        detach(handler)
-        handler = None
-        staging.publish()
-        log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
-    finally:
-        detach(handler)
-        staging.discard()
+        status = finish(folder, summary)
+    log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
     return status

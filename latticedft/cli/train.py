@@ -7,9 +7,8 @@ import logging
 import time
 
 from .._pipeline import check_case
-from .._results import Staging
-from ._common import (add_case_arguments, attach_run_log, detach, open_case, refuse_existing, results_dir,
-                      set_threads, summary_head)
+from .._results import staged_results
+from ._common import add_case_arguments, open_case, refuse_existing, results_dir, set_threads, summary_head
 from ._work import finish, train_into
 
 log = logging.getLogger("latticedft")
@@ -28,18 +27,10 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
     refuse_existing(dest, args)
     set_threads(case)
     data = check_case(case)
-    staging = Staging(dest)
-    handler = attach_run_log(staging.tmp)
-    try:
-        _, train = train_into(staging.tmp, case, data, argv)
+    with staged_results(dest) as folder:
+        _, train = train_into(folder, case, data, argv)
         summary = summary_head(case, argv, "train")
         summary.update(train=train, tasks={}, wall_time=time.perf_counter() - t0)
-        status = finish(staging.tmp, summary)
-        detach(handler)
-        handler = None
-        staging.publish()
-        log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
-    finally:
-        detach(handler)
-        staging.discard()
+        status = finish(folder, summary)
+    log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
     return status

@@ -1,6 +1,8 @@
-"""Field files (netCDF), ParaView export and figures.
+"""Field files (netCDF) and the export formats of a run: ParaView files, figures, XDMF/HDF5 series.
 
->>> from latticedft.io import read_field, write_field, write_paraview
+The formats by name are :data:`latticedft.io.exporters.EXPORTERS`.
+
+>>> from latticedft.io import read_field, write_field, write_paraview, write_xdmf
 """
 
 from __future__ import annotations
@@ -28,12 +30,18 @@ __all__ = [
     "write_paraview",
     "write_pvd",
     "plot_prediction",
+    "write_xdmf",
+    "read_xdmf",
 ]
 
 
-def __getattr__(name: str):  # matplotlib is imported only when figures are wanted
+def __getattr__(name: str):  # matplotlib and meshio are imported only when figures or XDMF are wanted
     if name == "plot_prediction":
         from latticedft.io.figures import plot_prediction
 
         return plot_prediction
+    if name in ("write_xdmf", "read_xdmf"):
+        from latticedft.io import xdmf
+
+        return getattr(xdmf, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -29,9 +29,10 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from latticedft._errors import InputError
+from latticedft.io.exporters import Exporter, ExportTask
 from latticedft.io.fields import COMPONENT_DIM, lattice_dims
 
-__all__ = ["plot_prediction"]
+__all__ = ["plot_prediction", "FigureExporter"]
 
 _MAX_MARKERS = 200  # markers drawn per 1D curve; more points are thinned
 
@@ -203,7 +204,7 @@ def plot_prediction(
     path
         Output image; written atomically (temporary file, then rename).
     pred
-        The served field (layout of DESIGN §2; NaN where it stopped early).
+        The served field (a lattice field; NaN where it stopped early).
     ref
         The reference on the same lattice, or None. When the lengths differ
         the common leading part is compared.
@@ -275,3 +276,13 @@ def plot_prediction(
         tmp.unlink(missing_ok=True)
         raise
     return target
+
+
+class FigureExporter(Exporter):
+    name = "figures"
+    summary = "<task>.png: the prediction against its reference (training fields behind 1D plots)"
+
+    def write(self, task: ExportTask) -> list[Path]:
+        one_d = len(lattice_dims(task.field)) == 1
+        return [plot_prediction(task.folder / f"{task.name}.png", task.field, task.reference,
+                                title=task.title or task.name, train=task.train if one_d else None)]

@@ -1,4 +1,4 @@
-"""ParaView export of lattice fields (DESIGN §2, "Results of a run").
+"""ParaView export of lattice fields: the ``paraview`` export format of a run.
 
 pyvista writes the VTK XML frames; the ``.pvd`` collection that lists them
 with their time values is a few lines of XML written here. Every frame
@@ -14,8 +14,9 @@ carries a one-value field-data array ``TimeValue``. Layouts:
   A vector field with 2 or 3 components is drawn in its own space (points
   ``(x, y[, z])``); a scalar one as the graph ``(t, psi, 0)``.
 
-Formats avoided on purpose: meshio's XDMF time series and ``.vtkhdf``
-(ParaView 5.11 cannot read them well).
+This is the default ParaView export: plain VTK XML files that every ParaView
+version reads. The XDMF/HDF5 time series (two files per task whatever the
+number of frames) is the separate format ``xdmf`` (:mod:`latticedft.io.xdmf`).
 """
 
 from __future__ import annotations
@@ -32,9 +33,10 @@ import pyvista as pv
 import xarray as xr
 
 from latticedft._errors import InputError
+from latticedft.io.exporters import Exporter, ExportTask
 from latticedft.io.fields import COMPONENT_DIM, lattice_dims, validate_field
 
-__all__ = ["write_paraview", "read_pvd", "write_pvd", "DEFAULT_MAX_POLYLINE_FRAMES"]
+__all__ = ["write_paraview", "read_pvd", "write_pvd", "DEFAULT_MAX_POLYLINE_FRAMES", "ParaViewExporter"]
 
 #: Frames written for a polyline time series when ``max_frames`` is None.
 #: Frame ``i`` holds ``i + 1`` points, so the total size grows like frames x steps.
@@ -179,6 +181,15 @@ def _flat(values: np.ndarray, n_lattice: int) -> np.ndarray:
 # ----------------------------------------------------------------------------- writers
 
 
+class ParaViewExporter(Exporter):
+    name = "paraview"
+    summary = ("<task>.pvd + one .vtr (lattice) or .vtp (1D) frame per written slice, at most max_frames; "
+               "1+1D also <task>_spacetime.vtr, 1D also <task>.vtp")
+
+    def write(self, task: ExportTask) -> list[Path]:
+        return write_paraview(task.folder, task.name, task.field, task.extra, max_frames=task.max_frames)
+
+
 def write_paraview(
     folder: str | os.PathLike[str],
     stem: str,
@@ -196,7 +207,8 @@ def write_paraview(
     stem
         Base name of the files, e.g. the serving task's name.
     field
-        The field in the layout of DESIGN §2; stored as point data named
+        A lattice field (``psi(t)``, ``psi(t, x)`` ... ``psi(t, z, y, x)``,
+        optionally with a trailing ``component`` dim); stored as point data named
         after ``field.name`` (``"psi"`` if unnamed). NaN values are allowed.
     extra
         More arrays on the same lattice, e.g. ``{"psi_ref": ref,

@@ -1,0 +1,146 @@
+"""The export formats of a run, by name: ``[export] formats = ["paraview", "figures"]`` in case.toml.
+
+Each format is one :class:`Exporter` subclass living in its own module, and one
+line of :data:`EXPORTERS` (``name -> "module:Class"``, imported only when the
+format is written, so reading a case imports neither pyvista nor matplotlib
+nor meshio). An exporter writes the files of one serving task and returns the
+exact list of files it wrote; the command line records that list in
+``summary.json`` (``tasks.<name>.exports``) and, before the next export of the
+same task, deletes exactly those files (:func:`remove_exports`), never files
+found by a name pattern.
+
+A new format is a module with its exporter, e.g. ``latticedft/io/xdmf.py``::
+
+    class XdmfExporter(Exporter):
+        name = "xdmf"
+        summary = "..."
+
+        def write(self, task: ExportTask) -> list[Path]:
+            return write_xdmf(task.folder, task.name, task.field, task.extra, max_frames=task.max_frames)
+
+plus its line in :data:`EXPORTERS`.
+
+>>> sorted(EXPORTERS)
+['figures', 'paraview', 'xdmf']
+>>> get_exporter("xdmf").name
+'xdmf'
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
+
+import xarray as xr
+
+from latticedft._errors import InputError
+
+__all__ = ["EXPORTERS", "DEFAULT_FORMATS", "Exporter", "ExportTask", "get_exporter", "export_formats",
+           "remove_exports"]
+
+log = logging.getLogger("latticedft")
+
+#: Every export format: name -> ``"module:Class"`` of its :class:`Exporter`.
+EXPORTERS: dict[str, str] = {
+    "paraview": "latticedft.io.vtk:ParaViewExporter",
+    "figures": "latticedft.io.figures:FigureExporter",
+    "xdmf": "latticedft.io.xdmf:XdmfExporter",
+}
+
+#: The formats written when case.toml names none.
+DEFAULT_FORMATS: tuple[str, ...] = ("paraview", "figures")
+
+# Files of a results folder that no export owns, whatever a summary says.
+_NOT_EXPORTS = frozenset({"model.pt", "model.json", "summary.json", "run.log"})
+
+
+@dataclass(frozen=True)
+class ExportTask:
+    """What an exporter gets: one served task and the export options.
+
+    ``field`` is the served field, named after the case's variable (``psi``);
+    ``reference`` and ``error`` (``field - reference``) lie on the same slices
+    when a reference covers them, else they are None. Every file an exporter
+    writes goes into ``folder`` and starts with ``name``.
+    """
+
+    folder: Path
+    name: str
+    field: xr.DataArray
+    reference: xr.DataArray | None = None
+    error: xr.DataArray | None = None
+    max_frames: int | None = None
+    train: tuple[xr.DataArray, ...] | None = None
+    title: str | None = None
+
+    @property
+    def variable(self) -> str:
+        return str(self.field.name) if self.field.name is not None else "psi"
+
+    @property
+    def extra(self) -> dict[str, xr.DataArray]:
+        """``{"<var>_ref": reference, "<var>_err": error}`` when both are known, else ``{}``."""
+        if self.reference is None or self.error is None:
+            return {}
+        return {f"{self.variable}_ref": self.reference, f"{self.variable}_err": self.error}
+
+
+class Exporter:
+    """One export format: :attr:`name` (its key in :data:`EXPORTERS`), a one-line :attr:`summary`
+    and :meth:`write`."""
+
+    name: ClassVar[str] = ""
+    summary: ClassVar[str] = ""
+
+    def write(self, task: ExportTask) -> list[Path]:
+        """Write the files of ``task`` into ``task.folder``; return exactly the files written."""
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f"<exporter {self.name!r}>"
+
+
+def get_exporter(name: str) -> Exporter:
+    """The exporter of format ``name`` (its module is imported now)."""
+    if name not in EXPORTERS:
+        raise InputError(f"unknown export format {name!r} (formats: {', '.join(EXPORTERS)})")
+    module, _, cls = EXPORTERS[name].partition(":")
+    exporter = getattr(importlib.import_module(module), cls)()
+    if exporter.name != name:  # pragma: no cover - a registry line that names the wrong class
+        raise RuntimeError(f"EXPORTERS[{name!r}] names an exporter called {exporter.name!r}")
+    return exporter
+
+
+def export_formats(task: ExportTask, formats: Sequence[str]) -> list[Path]:
+    """Write ``task`` in every format of ``formats`` (in that order); the files written, each once."""
+    written: list[Path] = []
+    for fmt in formats:
+        files = get_exporter(fmt).write(task)
+        for p in files:
+            log.debug("wrote %s (%s)", p.name, fmt)
+        written += [p for p in files if p not in written]
+    return written
+
+
+def remove_exports(folder: Path, names: Iterable[str]) -> list[str]:
+    """Delete the files ``names`` (plain file names recorded by an earlier export) from ``folder``.
+
+    Names that are not plain file names, that a task or the model owns
+    (``*.nc``, ``model.pt``, ``summary.json`` ...) or that no longer exist are
+    skipped. Returns the names deleted.
+    """
+    removed = []
+    for name in names:
+        if (not isinstance(name, str) or not name or Path(name).name != name or name in (".", "..")
+                or name in _NOT_EXPORTS or name.endswith(".nc")):
+            log.debug("not removing %r: not an export file", name)
+            continue
+        path = Path(folder) / name
+        if path.is_file() and not path.is_symlink():
+            path.unlink()
+            removed.append(name)
+    return removed
