@@ -1,4 +1,4 @@
-"""Peak resident memory of serving a 1024 x 1024 lattice and of training the largest cases (issue 6, item 6)."""
+"""Peak resident memory of serving a 1024 x 1024 lattice and of training the largest cases."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""1+1D serving: slice-Newton vs the paper's site-by-site sweep vs a hand-written numpy leapfrog (issue 6, item 1)."""
+"""1+1D serving: slice-Newton vs the paper's site-by-site sweep vs a hand-written numpy leapfrog."""
 
 from __future__ import annotations
 
@@ -74,7 +74,7 @@ def run(cfg: Config) -> Table:
         "does not depend on how many slices follow.",
         "Leapfrog: `latticedft.systems.leapfrog` (numpy, whole-slice stencil) of the true equation "
         "(wave; Klein-Gordon `psi_tt = psi_xx - psi` for the MLP rows), best of 3; for the wave L_d the last "
-        "column is round-off (DESIGN: the wave L_d serves exactly the leapfrog), for the MLP it is the learned "
+        "column is round-off (the wave L_d serves exactly the leapfrog), for the MLP it is the learned "
         "model's error.",
         "MLP: `MLPLagrangian(form='kinetic-potential', hidden=[10, 10], activation='tanh')` learned with "
         "L-BFGS on 8 periodic Klein-Gordon fields (20 x 20 sites); dt = 0.025, dx = 0.05 on every lattice.",

@@ -1,4 +1,4 @@
-"""Known discrete Lagrangians serve known schemes exactly (DESIGN.md §1, ground truths)."""
+"""Known discrete Lagrangians serve known schemes exactly (docs/mathematics.md, section 9)."""
 
 from __future__ import annotations
 
