@@ -16,12 +16,12 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "latticedft"
-DESIGN = REPO / "docs" / "design.md"
+LAYERS_PAGE = REPO / "docs" / "design.md"
 
 
 def _layers() -> dict[str, int]:
     """Module (or package) name -> layer number, from the table of docs/design.md."""
-    text = DESIGN.read_text()
+    text = LAYERS_PAGE.read_text()
     section = text.split("## Layers", 1)[1].split("\n## ", 1)[0]
     out: dict[str, int] = {}
     for row in section.splitlines():
