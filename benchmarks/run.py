@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import argparse
 import cProfile
-import io
 import importlib
+import io
 import json
 import os
 import pstats

@@ -25,7 +25,7 @@ def root_per_step(model: ldft.AbstractLagrangian, q0: np.ndarray, q1: np.ndarray
         prev = torch.as_tensor(out[-2])
         cur = out[-1]
 
-        def residual(u: np.ndarray) -> np.ndarray:
+        def residual(u: np.ndarray, cur: np.ndarray = cur, prev: torch.Tensor = prev) -> np.ndarray:
             q = torch.tensor(cur, requires_grad=True)
             cells = torch.stack([torch.stack([prev, q]), torch.stack([q, torch.as_tensor(u)])])
             (g,) = torch.autograd.grad(model(cells).sum(), q)

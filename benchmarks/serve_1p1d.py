@@ -36,8 +36,9 @@ def run(cfg: Config) -> Table:
                 inner = nx - 2 if boundary == "dirichlet" else nx
                 sites = (nt - 2) * inner
                 bvals = ref if boundary == "dirichlet" else None
-                t_lf, lf = best_time(lambda: systems.leapfrog(ref[0], ref[1], nt - 1, DT, DX, force=force,
-                                                              boundary=boundary, boundary_values=bvals))
+                t_lf, lf = best_time(lambda ref=ref, nt=nt, force=force, boundary=boundary, bvals=bvals:
+                                     systems.leapfrog(ref[0], ref[1], nt - 1, DT, DX, force=force, boundary=boundary,
+                                                      boundary_values=bvals))
                 t0 = time.perf_counter()
                 res = ldft.serve(model, da, boundary=boundary, progress=False)
                 t_newton = time.perf_counter() - t0
