@@ -1,4 +1,4 @@
-"""latticedft benchmarks (issue 6): serving throughput, training time, long-run fidelity, memory.
+"""latticedft benchmarks: serving throughput, training time, long-run fidelity, memory.
 
 Run by hand, never by the test suite (which only smoke-tests ``--quick``)::
 
@@ -6,6 +6,6 @@ Run by hand, never by the test suite (which only smoke-tests ``--quick``)::
 
 Each benchmark is a small module exposing ``NAME``, ``TITLE`` and
 ``run(cfg) -> Table``; :mod:`benchmarks.run` prints the tables side by side
-with the targets of issue 6 and writes ``results.json`` and ``results.md``
+with their targets and writes ``results.json`` and ``results.md``
 (and figures) into ``--out``.
 """

@@ -29,7 +29,7 @@ class Config:
 
 @dataclass
 class Check:
-    """One target of issue 6 and whether this run met it."""
+    """One benchmark target and whether this run met it."""
 
     target: str
     measured: str

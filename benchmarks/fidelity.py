@@ -1,4 +1,4 @@
-"""Long-run fidelity: a learned 1D oscillator served for 1e5 steps vs RK4 on the true ODE (issue 6, item 5)."""
+"""Long-run fidelity: a learned 1D oscillator served for 1e5 steps vs RK4 on the true ODE."""
 
 from __future__ import annotations
 

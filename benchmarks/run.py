@@ -1,6 +1,6 @@
 """The benchmark runner: ``python -m benchmarks [--quick] [--only NAME ...] [--out DIR] [--threads N]``.
 
-Prints one table per benchmark as it finishes, then every target of issue 6
+Prints one table per benchmark as it finishes, then every target
 with the measured figure and whether it was met. With ``--out DIR`` it also
 writes ``results.json``, ``results.md`` and the figures there (the folder is
 the user's; nothing is committed). Exit status 0 when every benchmark ran
@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import argparse
 import cProfile
-import io
 import importlib
+import io
 import json
 import os
 import pstats
@@ -41,7 +41,7 @@ def _profile_text(prof: cProfile.Profile, top: int = 15) -> str:
 
 
 def _targets(tables: list[Table]) -> Table:
-    out = Table("targets", "Targets of issue 6", ["benchmark", "target", "measured", "met"])
+    out = Table("targets", "Targets", ["benchmark", "target", "measured", "met"])
     for t in tables:
         out.rows += [[t.name, c.target, c.measured, "yes" if c.met else "NO"] for c in t.checks]
     return out

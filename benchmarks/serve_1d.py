@@ -25,7 +25,7 @@ def root_per_step(model: ldft.AbstractLagrangian, q0: np.ndarray, q1: np.ndarray
         prev = torch.as_tensor(out[-2])
         cur = out[-1]
 
-        def residual(u: np.ndarray) -> np.ndarray:
+        def residual(u: np.ndarray, cur: np.ndarray = cur, prev: torch.Tensor = prev) -> np.ndarray:
             q = torch.tensor(cur, requires_grad=True)
             cells = torch.stack([torch.stack([prev, q]), torch.stack([q, torch.as_tensor(u)])])
             (g,) = torch.autograd.grad(model(cells).sum(), q)
@@ -74,7 +74,7 @@ def run(cfg: Config) -> Table:
         f"DEL residual from torch autograd of the same model, {n_base} steps timed; the last column compares the "
         "first steps of the served orbit with it (root's default tolerance is ~1.5e-8).",
         "Orbits: radii 0.6 .. 2.5 au, near-circular speeds, all bound. The target is checked on the batch of "
-        f"{batch} (issue 6); the larger batch shows how the rate scales with the batch size.",
+        f"{batch}; the larger batch shows how the rate scales with the batch size.",
     ]
     table.checks.append(Check(">= 1e4x the root-per-step baseline per trajectory-step, batched",
                               f"{ratio:.3g}x", ratio >= 1e4))

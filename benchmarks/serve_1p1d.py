@@ -1,4 +1,4 @@
-"""1+1D serving: slice-Newton vs the paper's site-by-site sweep vs a hand-written numpy leapfrog (issue 6, item 1)."""
+"""1+1D serving: slice-Newton vs the paper's site-by-site sweep vs a hand-written numpy leapfrog."""
 
 from __future__ import annotations
 
@@ -36,8 +36,9 @@ def run(cfg: Config) -> Table:
                 inner = nx - 2 if boundary == "dirichlet" else nx
                 sites = (nt - 2) * inner
                 bvals = ref if boundary == "dirichlet" else None
-                t_lf, lf = best_time(lambda: systems.leapfrog(ref[0], ref[1], nt - 1, DT, DX, force=force,
-                                                              boundary=boundary, boundary_values=bvals))
+                t_lf, lf = best_time(lambda ref=ref, nt=nt, force=force, boundary=boundary, bvals=bvals:
+                                     systems.leapfrog(ref[0], ref[1], nt - 1, DT, DX, force=force, boundary=boundary,
+                                                      boundary_values=bvals))
                 t0 = time.perf_counter()
                 res = ldft.serve(model, da, boundary=boundary, progress=False)
                 t_newton = time.perf_counter() - t0
@@ -74,7 +75,7 @@ def run(cfg: Config) -> Table:
         "does not depend on how many slices follow.",
         "Leapfrog: `latticedft.systems.leapfrog` (numpy, whole-slice stencil) of the true equation "
         "(wave; Klein-Gordon `psi_tt = psi_xx - psi` for the MLP rows), best of 3; for the wave L_d the last "
-        "column is round-off (DESIGN: the wave L_d serves exactly the leapfrog), for the MLP it is the learned "
+        "column is round-off (the wave L_d serves exactly the leapfrog), for the MLP it is the learned "
         "model's error.",
         "MLP: `MLPLagrangian(form='kinetic-potential', hidden=[10, 10], activation='tanh')` learned with "
         "L-BFGS on 8 periodic Klein-Gordon fields (20 x 20 sites); dt = 0.025, dx = 0.05 on every lattice.",

@@ -1,4 +1,4 @@
-"""2+1D serving: the wave L_d on a membrane, sites per second and peak memory (issue 6, item 2)."""
+"""2+1D serving: the wave L_d on a membrane, sites per second and peak memory."""
 
 from __future__ import annotations
 

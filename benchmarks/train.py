@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-
-
 import latticedft as ldft
 from latticedft import systems
 

@@ -61,7 +61,7 @@ class LatticeField:
         return replace(self, values=values, coords=coords)
 
     def to_dataarray(self, values: torch.Tensor | np.ndarray | None = None, name: str | None = None) -> xr.DataArray:
-        """Back to the DESIGN.md layout (``psi(t, ..., x[, component])``)."""
+        """Back to the field-file layout of docs/design.md (``psi(t, ..., x[, component])``)."""
         v = self.values if values is None else values
         v = v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else np.asarray(v)
         nt = v.shape[0]
@@ -119,7 +119,7 @@ def _boundary_dict(boundary: BoundaryKinds, dims: tuple[str, ...], source: str) 
 
 def as_lattice_field(data: xr.DataArray | LatticeField, *, source: str | None = None,
                      boundary: BoundaryKinds | None = None, min_slices: int = 3) -> LatticeField:
-    """Validate a DataArray in the DESIGN.md layout and convert it to a :class:`LatticeField`."""
+    """Validate a DataArray in the field-file layout (docs/design.md) and convert it to a :class:`LatticeField`."""
     if isinstance(data, LatticeField):
         return data
     if not isinstance(data, xr.DataArray):

@@ -1,4 +1,4 @@
-"""Stencils: which lattice sites one cell of ``L_d`` sees (DESIGN.md §1)."""
+"""Stencils: which lattice sites one cell of ``L_d`` sees (docs/mathematics.md, section 1)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Known discrete Lagrangians (ground truths): wave, Störmer–Verlet, Klein–Gordon, Kepler.
 
 Each returns an :class:`~latticedft.AnalyticLagrangian` for the first-order
-stencil (DESIGN.md §1).
+stencil (docs/mathematics.md, sections 1 and 9).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Smoke test of the benchmark runner (issue 6): ``--quick`` runs end to end and prints its tables.
+"""Smoke test of the benchmark runner: ``--quick`` runs end to end and prints its tables.
 
 No timing is asserted: the benchmarks are run by hand (docs/performance.md).
 """
@@ -24,7 +24,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = proc.stdout
     for title in ("1+1D serving", "2+1D serving", "1D serving", "Training", "Long-run fidelity",
-                  "Peak resident memory", "Targets of issue 6"):
+                  "Peak resident memory", "Targets"):
         assert f"== {title}" in out, f"table {title!r} missing from:\n{out}"
     results = json.loads((tmp_path / "results.json").read_text())
     names = [b["name"] for b in results["benchmarks"]]

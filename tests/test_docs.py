@@ -1,7 +1,9 @@
-"""The Python examples of docs/api.md and docs/mathematics.md run, so the docs cannot rot.
+"""The documentation runs: every ```python block of README.md, docs/*.md and the case READMEs.
 
-Every fenced ```python block of a page is executed in order, in one namespace per page (later
-blocks use names defined by earlier ones). The blocks assert what they claim.
+One runner for every page: the blocks of a page are executed in order in one namespace (later blocks use
+names defined by earlier ones), in a temporary working directory, with tracebacks pointing at the line of
+the Markdown file. The blocks assert what they claim; a page may add checks of its own below (``CHECKS``).
+Also: README.md's commands are the ones CI runs, and docs/index.md links every page.
 """
 
 from __future__ import annotations
@@ -14,27 +16,48 @@ from pathlib import Path
 
 import pytest
 
-DOCS = Path(__file__).resolve().parents[1] / "docs"
-PAGES = ["api.md", "mathematics.md"]
+REPO = Path(__file__).resolve().parents[1]
+DOCS = REPO / "docs"
+README = REPO / "README.md"
 
 
-def _python_blocks(page: Path) -> list[tuple[int, str]]:
-    """(first line number, code) of every ```python block."""
+def _blocks(page: Path, lang: str) -> list[tuple[int, str]]:
+    """(first line number, code) of every ```lang block."""
     text = page.read_text()
     out = []
-    for match in re.finditer(r"^```python\n(.*?)^```", text, flags=re.S | re.M):
-        line = text.count("\n", 0, match.start(1)) + 1
-        out.append((line, match.group(1)))
+    for match in re.finditer(rf"^```{lang}\n(.*?)^```", text, flags=re.S | re.M):
+        out.append((text.count("\n", 0, match.start(1)) + 1, match.group(1)))
     return out
+
+
+def _check_readme(namespace: dict, printed: str, blocks: list[tuple[int, str]]) -> None:
+    """The ten-line example is (about) ten lines, learns exactly and serves within its error."""
+    ((_, code),) = blocks
+    assert len(code.strip().splitlines()) <= 12
+    assert "learned by exact" in printed and "L_d =" in printed
+    errors = namespace["ldft"].compare(namespace["served"].field, namespace["test"])
+    assert errors["slices"] == 201 and errors["max_error"] < 0.05
+
+
+#: Extra checks of a page, beyond "its blocks run and print something".
+CHECKS = {"README.md": _check_readme}
+#: Pages that must hold python blocks (so the runner cannot silently find none).
+REQUIRED = ["README.md", "docs/api.md", "docs/mathematics.md"]
+
+PAGES = sorted(str(p.relative_to(REPO)) for p in [README, *DOCS.glob("*.md"), *REPO.glob("cases/*/README.md")]
+               if _blocks(p, "python"))
+
+
+def test_required_pages_hold_python_blocks() -> None:
+    assert set(REQUIRED) <= set(PAGES), f"no python blocks found in {sorted(set(REQUIRED) - set(PAGES))}"
 
 
 @pytest.mark.parametrize("page", PAGES)
 def test_python_blocks_run(page: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    path = DOCS / page
-    blocks = _python_blocks(path)
-    assert blocks, f"{page}: no python blocks found"
+    path = REPO / page
+    blocks = _blocks(path, "python")
     monkeypatch.chdir(tmp_path)  # blocks that write files write them here
-    namespace: dict = {"__name__": f"docs_{page.replace('.', '_')}"}
+    namespace: dict = {"__name__": "docs_" + re.sub(r"\W", "_", page)}
     out = io.StringIO()
     for line, code in blocks:
         # pad with newlines so tracebacks show the line number in the Markdown file
@@ -42,6 +65,16 @@ def test_python_blocks_run(page: str, tmp_path: Path, monkeypatch: pytest.Monkey
         with contextlib.redirect_stdout(out):
             exec(compiled, namespace)
     assert out.getvalue(), f"{page}: the examples printed nothing"
+    if page in CHECKS:
+        CHECKS[page](namespace, out.getvalue(), blocks)
+
+
+def test_readme_commands_match_ci() -> None:
+    ((_, bash),) = _blocks(README, "bash")
+    install, tests = bash.strip().splitlines()
+    assert install.startswith('pip install -e ".[test]"') and tests == "python -m pytest -q"
+    ci = (REPO / ".ci" / "run").read_text()
+    assert 'pip install -e ".[test]"' in ci and "python -m pytest -q" in ci
 
 
 def test_index_links_every_page() -> None:

@@ -45,9 +45,13 @@ def main() -> None:
     for f in sorted((HERE / "data").glob("train_*.nc")):
         o = xr.open_dataarray(f).values
         ax.plot(o[:, 0], o[:, 1], ".", ms=2, label=f.stem[6:].capitalize())
-    ax.set_aspect("equal"); ax.legend(fontsize=7); ax.set_xlabel("x [au]"); ax.set_ylabel("y [au]")
+    ax.set_aspect("equal")
+    ax.legend(fontsize=7)
+    ax.set_xlabel("x [au]")
+    ax.set_ylabel("y [au]")
     ax.set_title("training orbits (one period each, dt = 0.05)")
-    fig.savefig(res / "orbits_training.png", dpi=120); plt.close(fig)
+    fig.savefig(res / "orbits_training.png", dpi=120)
+    plt.close(fig)
     for body, lim in (("earth", 6), ("mercury", 3)):
         fig, ax = plt.subplots(figsize=(6, 6))
         for name in summary["tasks"]:
@@ -60,10 +64,15 @@ def main() -> None:
             ax.annotate(f"v={name.split('_')[1]}", p[min(len(p) - 1, len(p) // 3)], fontsize=7)
         ax.plot([], [], "o", mfc="none", color="tab:blue", label="Newton")
         ax.plot([], [], ".", color="tab:red", label="learned L_d")
-        ax.set_xlim(-lim, lim); ax.set_ylim(-lim, lim); ax.set_aspect("equal"); ax.legend()
+        ax.set_xlim(-lim, lim)
+        ax.set_ylim(-lim, lim)
+        ax.set_aspect("equal")
+        ax.legend()
         ax.set_title(f"launches from {body.capitalize()}'s aphelion point")
-        ax.set_xlabel("x [au]"); ax.set_ylabel("y [au]")
-        fig.savefig(res / f"orbits_{body}.png", dpi=120); plt.close(fig)
+        ax.set_xlabel("x [au]")
+        ax.set_ylabel("y [au]")
+        fig.savefig(res / f"orbits_{body}.png", dpi=120)
+        plt.close(fig)
 
 
 if __name__ == "__main__":

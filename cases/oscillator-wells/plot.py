@@ -32,9 +32,13 @@ def main() -> None:
         y = -0.0195 - 0.0006 * k
         ax.plot([lo, hi], [y, y], "-", lw=3, color="tab:gray" if f.stem.startswith("train") else "tab:red")
         ax.annotate(f.stem, (hi, y), fontsize=6, va="center")
-    ax.set_xlabel("psi"); ax.set_ylabel("V"); ax.legend(fontsize=7, loc="upper center")
+    ax.set_xlabel("psi")
+    ax.set_ylabel("V")
+    ax.legend(fontsize=7, loc="upper center")
     ax.set_title("potential; bars: range of each training (grey) and test (red) sequence")
-    fig.tight_layout(); fig.savefig(res / "potential.png", dpi=120); plt.close(fig)
+    fig.tight_layout()
+    fig.savefig(res / "potential.png", dpi=120)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -15,8 +15,9 @@ their first two slices and their end strips (Dirichlet) and scores them against 
 
 from __future__ import annotations
 
-import numpy as np
 from pathlib import Path
+
+import numpy as np
 
 from latticedft import systems
 from latticedft.io import write_field

@@ -1,4 +1,4 @@
-"""Field files: read, validate and write lattice fields as netCDF (DESIGN §2).
+"""Field files: read, validate and write lattice fields as netCDF (docs/design.md, "Field files").
 
 A field is a :class:`xarray.DataArray` (default name ``psi``) whose dims are the
 lattice dims in CF order -- time first, then the spatial dims with x last:
@@ -212,7 +212,7 @@ def validate_field(
     components: Sequence[str] | None = None,
     allow_nan: bool = False,
 ) -> xr.DataArray:
-    """Check that ``da`` follows the field layout of DESIGN §2.
+    """Check that ``da`` follows the field-file layout (docs/design.md).
 
     Parameters
     ----------
