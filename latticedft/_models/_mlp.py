@@ -39,8 +39,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "radial": {"hidden": [32, 32], "activation": "tanh", "form": "kinetic-potential",
                "features": "inverse-radius", "scale": True},
 }
-_DEFAULTS: dict[str, Any] = {"hidden": [40, 40], "activation": "sigmoid", "form": "free", "features": None,
-                             "scale": True}
+_DEFAULTS: dict[str, Any] = {"hidden": [40, 40], "activation": "sigmoid", "features": None, "scale": True}
 
 
 class _Inputs(NamedTuple):
@@ -62,9 +61,10 @@ def _gram(model: AbstractLagrangian, cells: torch.Tensor) -> torch.Tensor:
     return gram[..., iu[0], iu[1]]
 
 
-def _settings(hidden: Any, activation: Any, form: Any, features: Any, scale: Any, preset: Any) -> dict[str, Any]:
+def _settings(hidden: Any, activation: Any, form: Any, features: Any, scale: Any, preset: Any,
+              default_form: str = "free") -> dict[str, Any]:
     """The defaults, then the preset's settings, then the arguments given (``None``: not given)."""
-    out = dict(_DEFAULTS)
+    out = dict(_DEFAULTS, form=default_form)
     if preset is not None:
         if preset not in PRESETS:
             raise InputError(f"preset: unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
@@ -134,14 +134,14 @@ class MLPLagrangian(AbstractLagrangian):
             form = kwargs.get("form")
             if form is None and kwargs.get("preset") is not None:
                 form = _settings(None, None, None, None, None, kwargs["preset"])["form"]
-            cls = _FORM_CLASSES.get(form or _DEFAULTS["form"], FreeMLPLagrangian)  # unknown form: __init__ says so
+            cls = _FORM_CLASSES.get(form or "free", FreeMLPLagrangian)  # an unknown form: __init__ says so
         return super().__new__(cls)
 
     def __init__(self, hidden: Sequence[int] | None = None, activation: str | None = None, *,
                  form: str | None = None, features: str | None = None, scale: bool | None = None,
                  seed: int = 0, preset: str | None = None, stencil: Stencil | None = None):
         super().__init__(stencil)
-        opts = _settings(hidden, activation, form, features, scale, preset)
+        opts = _settings(hidden, activation, form, features, scale, preset, default_form=self.form)
         hid = opts["hidden"]
         if (not isinstance(hid, (list, tuple)) or not hid
                 or not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in hid)):
