@@ -1,4 +1,4 @@
-"""Known discrete Lagrangians serve known schemes exactly (DESIGN.md §1, ground truths)."""
+"""Known discrete Lagrangians serve known schemes exactly (ground truths)."""
 
 from __future__ import annotations
 

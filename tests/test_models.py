@@ -10,14 +10,13 @@ import numpy as np
 import pytest
 import torch
 from case_helpers import write_toml
+from helpers import oscillator_data, series
 
 import latticedft as ldft
 from latticedft import ConfigError
 from latticedft._case import ModelConfig, load_case
 from latticedft._learn._gauge import GAUGES, gauge_named
 from latticedft._models import FreeMLPLagrangian, KineticPotentialMLPLagrangian
-
-from helpers import oscillator_data, series
 
 FILES_V1 = Path(__file__).parent / "data" / "models-v1"
 

@@ -15,8 +15,9 @@ from __future__ import annotations
 
 from ._api import learn
 from ._data import check_model_lattice
-from ._data import check_model_lattice as _check_model_lattice  # the name the server imports
 from ._gauge import GAUGES
 from ._report import LearnReport, diagnose
+
+_check_model_lattice = check_model_lattice  # the name the server imports
 
 __all__ = ["learn", "LearnReport", "diagnose", "GAUGES", "check_model_lattice"]

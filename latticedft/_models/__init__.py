@@ -9,7 +9,12 @@ from __future__ import annotations
 from ._analytic import AnalyticLagrangian
 from ._base import AbstractLagrangian
 from ._linear import LinearLagrangian
-from ._mlp import PRESETS, FreeMLPLagrangian, KineticPotentialMLPLagrangian, MLPLagrangian
+from ._mlp import (
+    PRESETS,
+    FreeMLPLagrangian,
+    KineticPotentialMLPLagrangian,
+    MLPLagrangian,
+)
 from ._polynomial import PolynomialLagrangian
 
 #: ``[model] kind = ...`` in case.toml and model files name these classes (the key is the class's ``kind``).

@@ -53,6 +53,10 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     #: True for models without learned parameters (a formula in the spacings): serving binds them to the
     #: lattice it is given instead of checking that lattice against the one they were learned on.
     rebinds_to_any_lattice: ClassVar[bool] = False
+    #: The ``LearnReport`` of the last :func:`latticedft.learn` (``None`` before).
+    report_: Any = None
+    #: The gauge a model file says the model was learned with (set by ``load_model``).
+    gauge_: str | None = None
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -78,7 +82,8 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
         if self.stencil is None:
             self.stencil = Stencil.first_order(n)
         if self.stencil.ndim != n:
-            raise InputError(f"stencil: has offsets in {self.stencil.ndim} dimensions but the data have {n} lattice dims")
+            raise InputError(f"stencil: has offsets in {self.stencil.ndim} dimensions but the data have {n} "
+                             "lattice dims")
         if self.bound and (self.n, self.m) != (n, m):
             raise InputError(f"model: bound to n={self.n}, m={self.m}; data have n={n}, m={m}")
         first = not self.bound
@@ -163,9 +168,8 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
             lines.append(f"  stencil: {self.stencil.to_list()}")
         else:
             lines.append("  not bound to a lattice yet")
-        report = getattr(self, "report_", None)
-        if report is not None:
-            lines.append("  " + report.summary_line())
+        if self.report_ is not None:
+            lines.append("  " + self.report_.summary_line())
         return "\n".join(lines)
 
     def __str__(self) -> str:  # print(model) shows the learned theory

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import abc
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 
@@ -81,13 +81,18 @@ class LinearLagrangian(AbstractLagrangian):
         for a, b in pairs:
             rows = []
             for i in range(m):
-                def along_ai(y: torch.Tensor, t: torch.Tensor = _unit(cells, a, i)) -> torch.Tensor:
-                    return torch.func.jvp(self.features, (y,), (t,))[1]
-
-                rows.append(torch.stack([torch.func.jvp(along_ai, (cells,), (_unit(cells, b, j),))[1]
+                along = self._directional(_unit(cells, a, i))
+                rows.append(torch.stack([torch.func.jvp(along, (cells,), (_unit(cells, b, j),))[1]
                                          for j in range(m)], -2))
             blocks[(a, b)] = torch.stack(rows, -3)
         return d, blocks
+
+    def _directional(self, t: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
+        """``y -> d features(y) / d y . t``, to be differentiated once more."""
+        def along(y: torch.Tensor) -> torch.Tensor:
+            return torch.func.jvp(self.features, (y,), (t,))[1]
+
+        return along
 
 
 _LINEAR_BASE.append(LinearLagrangian)

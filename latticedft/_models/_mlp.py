@@ -9,7 +9,7 @@ potential). Both share the options, the network and its input and output scaling
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar, NamedTuple, Self
 
 import torch
 
@@ -129,13 +129,14 @@ class MLPLagrangian(AbstractLagrangian):
     #: ``features`` when neither the arguments nor a preset give it.
     default_features: ClassVar[str]
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> MLPLagrangian:
+    def __new__(cls, *args: Any, **kwargs: Any) -> Self:
+        target = cls
         if cls is MLPLagrangian:  # the factory: the class of the form asked for (directly or by a preset)
             form = kwargs.get("form")
             if form is None and kwargs.get("preset") is not None:
                 form = _settings(None, None, None, None, None, kwargs["preset"])["form"]
-            cls = _FORM_CLASSES.get(form or "free", FreeMLPLagrangian)  # an unknown form: __init__ says so
-        return super().__new__(cls)
+            target = _FORM_CLASSES.get(form or "free", FreeMLPLagrangian)  # an unknown form: __init__ says so
+        return super().__new__(target)
 
     def __init__(self, hidden: Sequence[int] | None = None, activation: str | None = None, *,
                  form: str | None = None, features: str | None = None, scale: bool | None = None,
@@ -230,7 +231,7 @@ class FreeMLPLagrangian(MLPLagrangian):
     """``L_d = net(inputs)`` (``form="free"``), the paper's: the gauge is held by a penalty in training."""
 
     form = "free"
-    inputs = {
+    inputs: ClassVar[dict[str, _Inputs]] = {
         "values": _Inputs(lambda n, m, k: k * m, lambda model, c: c.reshape(*c.shape[:-2], -1)),
         "differences": _Inputs(lambda n, m, k: (n + 1) * m, _flat_mean_and_differences),
         "invariant": _Inputs(lambda n, m, k: k * (k + 1) // 2, _gram, vector=True),
@@ -249,7 +250,7 @@ class KineticPotentialMLPLagrangian(MLPLagrangian):
     (``form="kinetic-potential"``), with learned stiffnesses ``w_k`` and a network potential ``V``."""
 
     form = "kinetic-potential"
-    inputs = {
+    inputs: ClassVar[dict[str, _Inputs]] = {
         "values": _Inputs(lambda n, m, k: m, lambda model, c: c),
         "invariant": _Inputs(lambda n, m, k: 1, lambda model, c: torch.sqrt((c * c).sum(-1, keepdim=True)),
                              vector=True),

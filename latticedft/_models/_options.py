@@ -43,7 +43,8 @@ class OptionTypeError(Exception):
 class _Check:
     """A check with its description in the singular and the plural (``an integer`` / ``integers``)."""
 
-    def __init__(self, ok: Callable[[Any], bool], expected: str, plural: str, convert: Callable[[Any], Any] | None = None):
+    def __init__(self, ok: Callable[[Any], bool], expected: str, plural: str,
+                 convert: Callable[[Any], Any] | None = None):
         self.ok, self.expected, self.plural = ok, expected, plural
         self.convert = convert or (lambda v: v)
 
@@ -119,9 +120,10 @@ def option_checks_of(init: Callable[..., Any]) -> dict[str, Callable[[Any], Any]
 
     A check returns the value (integers, numbers and lists normalised) or raises :class:`OptionTypeError`.
     """
+    # an annotation that does not resolve checks nothing rather than refusing the class
     try:
         hints = typing.get_type_hints(init)
-    except Exception:  # an annotation that does not resolve: check nothing rather than refuse the class
+    except (NameError, TypeError, AttributeError, SyntaxError):
         hints = {}
     out: dict[str, Callable[[Any], Any]] = {}
     for name, p in inspect.signature(init).parameters.items():
