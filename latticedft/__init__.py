@@ -35,6 +35,7 @@ from ._models import MODELS as MODELS
 from ._models import PRESETS as PRESETS
 from ._models import AbstractLagrangian as AbstractLagrangian
 from ._models import AnalyticLagrangian as AnalyticLagrangian
+from ._models import LinearLagrangian as LinearLagrangian
 from ._models import MLPLagrangian as MLPLagrangian
 from ._models import PolynomialLagrangian as PolynomialLagrangian
 from ._serve import ServeResult as ServeResult

@@ -1,4 +1,4 @@
-"""The discrete action, the DEL residual and the mixed time Hessian (DESIGN.md §1).
+"""The discrete action, the DEL residual and the mixed time Hessian.
 
 ``A_d = prod(h) * sum_cells L_d(psi[x+s_0], ..., psi[x+s_{K-1}])`` and
 ``EL_y = dA_d / dpsi_y``, evaluated on a whole field by one reverse-mode pass
@@ -12,10 +12,10 @@ import math
 import torch
 
 from ._lattice import LatticeField, gather_cells, interior_slices
+from ._models import AbstractLagrangian
 from ._stencil import Stencil
 
 __all__ = ["action", "del_residual", "mixed_hessian", "cell_derivatives", "CellDerivatives", "second_time_difference"]
-
 
 
 def action(model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: tuple[bool, ...],
@@ -38,18 +38,20 @@ def del_residual(model, f: LatticeField, *, create_graph: bool = False) -> torch
     return g[(slice(None),) * f.batch + interior_slices(f.shape, model.stencil, f.periodic)]
 
 
-def cell_derivatives(model, cells: torch.Tensor, pairs: list[tuple[int, int]], *,
+def cell_derivatives(model: AbstractLagrangian, cells: torch.Tensor, pairs: list[tuple[int, int]], *,
                      create_graph: bool = False) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]]:
     """Per-cell gradient ``dL/dx_a`` (``(*cells, K, m)``) and Hessian blocks.
 
     ``pairs`` lists the ``(a, b)`` stencil positions whose ``m x m`` blocks
     ``d^2 L / dx_a dx_b`` (shape ``(*cells, m, m)``, row = component of
     ``x_a``) are wanted. Costs one backward pass per distinct ``b`` and
-    component.
+    component, unless the model has closed forms (:meth:`AbstractLagrangian.fast_derivatives`) and no graph
+    is asked for.
     """
-    fast = getattr(model, "fast_derivatives", None)
-    if fast is not None and not create_graph:
-        return fast(cells.detach(), pairs)
+    if not create_graph:
+        closed = model.fast_derivatives(cells.detach(), pairs)
+        if closed is not None:
+            return closed
     x = cells.detach().requires_grad_(True) if not cells.requires_grad else cells
     m = x.shape[-1]
     with torch.enable_grad():
@@ -83,12 +85,13 @@ class CellDerivatives:
     no fresh Jacobian).
     """
 
-    def __init__(self, model, cells: torch.Tensor):
+    def __init__(self, model: AbstractLagrangian, cells: torch.Tensor):
         self.model = model
-        self._fast = getattr(model, "fast_derivatives", None)
         self.cells = cells.detach()
-        if self._fast is not None:
-            self.grad, _ = self._fast(self.cells, [])
+        closed = model.fast_derivatives(self.cells, [])
+        self._closed = closed is not None  # the model's closed forms serve the blocks too
+        if closed is not None:
+            self.grad = closed[0]
             return
         x = self.cells.requires_grad_(True)
         with torch.enable_grad():
@@ -96,8 +99,8 @@ class CellDerivatives:
         self.grad = g.detach()
 
     def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
-        if self._fast is not None:
-            return self._fast(self.cells, pairs)[1]
+        if self._closed:
+            return self.model.fast_derivatives(self.cells, pairs)[1]
         return cell_derivatives(self.model, self.cells.detach(), pairs)[1]
 
 

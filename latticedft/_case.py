@@ -35,6 +35,7 @@ from typing import Any
 
 from ._errors import ConfigError, LatticeDFTError
 from ._models import MODELS, AbstractLagrangian
+from ._models._options import OptionTypeError
 from ._stencil import Stencil
 
 __all__ = ["Case", "FieldConfig", "ModelConfig", "TrainConfig", "ServeTask", "RunConfig", "ExportConfig",
@@ -67,12 +68,6 @@ def t_bool(v: Any) -> bool:
     if not isinstance(v, bool):
         raise _Bad("true or false")
     return v
-
-
-def t_int(v: Any) -> int:
-    if not _is_int(v):
-        raise _Bad("an integer")
-    return int(v)
 
 
 def t_pos_int(v: Any) -> int:
@@ -120,18 +115,6 @@ def t_str_list(v: Any) -> list[str]:
     if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
         raise _Bad("a string or a list of strings")
     return list(v)
-
-
-def t_int_list(v: Any) -> list[int]:
-    if not isinstance(v, list) or not all(_is_int(i) for i in v):
-        raise _Bad("a list of integers")
-    return [int(i) for i in v]
-
-
-def t_orders(v: Any) -> list[int]:
-    if not isinstance(v, list) or len(v) != 2 or not all(_is_int(i) and i >= 0 for i in v):
-        raise _Bad("two non-negative integers [P, Q]")
-    return [int(i) for i in v]
 
 
 def t_choice(*choices: str) -> Callable[[Any], str]:
@@ -227,19 +210,25 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
 }
 _TABLES = ("field", "model", "train", "serve", "run", "export")
 
-#: Types of the model options a case may set (any other constructor argument accepts any TOML value).
-MODEL_OPTION_TYPES: dict[str, Callable[[Any], Any]] = {
-    "orders": t_orders, "time_symmetric": t_bool, "scale": t_bool, "basis": t_str, "hidden": t_int_list,
-    "activation": t_str, "form": t_str, "features": t_str, "seed": t_int, "preset": t_str,
-}
-
-
 def model_options(kind: str) -> dict[str, Any]:
     """The constructor options of ``MODELS[kind]`` with their defaults (``stencil`` excluded)."""
     sig = inspect.signature(MODELS[kind].__init__)
     return {name: (None if p.default is inspect.Parameter.empty else p.default)
             for name, p in sig.parameters.items()
             if name not in ("self", "stencil") and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}
+
+
+def model_option_check(kind: str, option: str) -> Callable[[Any], Any]:
+    """The type check of a ``[model]`` option, from the annotation of the model class's constructor."""
+    check = MODELS[kind].option_checks().get(option, t_any)
+
+    def run(value: Any) -> Any:
+        try:
+            return check(value)
+        except OptionTypeError as bad:
+            raise _Bad(bad.expected) from None
+
+    return run
 
 
 # -- dataclasses -------------------------------------------------------------------------------------------
@@ -532,7 +521,7 @@ def _validate(raw: dict[str, Any], root: Path, file: Path, overrides: tuple[str,
             hint = f" (it is an option of kind {others[0]!r})" if others else ""
             raise ctx.error(f"model.{key}", f"unknown option of model kind {kind!r}{_closest(key, names)}"
                                             f"{hint} (valid keys: {', '.join(names)})")
-        options[key] = ctx.check(f"model.{key}", MODEL_OPTION_TYPES.get(key, t_any), value)
+        options[key] = ctx.check(f"model.{key}", model_option_check(kind, key), value)
     stencil = ctx.check("model.stencil", t_stencil, mraw["stencil"]) if "stencil" in mraw else None
     model_cfg = ModelConfig(kind=kind, options=options, stencil=stencil)
     try:  # the class's own checks of its options (e.g. an unknown activation), before any data are read

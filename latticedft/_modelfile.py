@@ -39,7 +39,7 @@ def model_record(model: AbstractLagrangian, gauge: str = "unit-mass") -> dict[st
 
 def save_model(model: AbstractLagrangian, path: str | os.PathLike, *, gauge: str | None = None) -> Path:
     """Write ``model`` to ``path`` (atomically: a temporary file, then a rename)."""
-    report = getattr(model, "report_", None)
+    report = model.report_
     record = model_record(model, gauge or (report.gauge if report else "unit-mass"))
     record["state_dict"] = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
     path = Path(path)

@@ -1,8 +1,8 @@
 """The polynomial model's closed-form derivatives equal automatic differentiation.
 
 The exact solve builds its residual and gauge matrices from
-``PolynomialLagrangian.feature_derivatives`` when the model offers it, and
-from forward-mode AD of ``features`` otherwise; serving uses
+``feature_derivatives``: the polynomial's closed form, or the linear-model
+default (forward-mode AD of ``features``); serving uses
 ``fast_derivatives``. Both closed forms are checked here against the AD
 routes they replace, on the model variants whose chain rule differs.
 """
@@ -14,7 +14,10 @@ import pytest
 import torch
 
 import latticedft as ldft
-from latticedft import _learn, systems
+from latticedft import systems
+from latticedft._learn._data import as_fields
+from latticedft._learn._exact import gauge_matrix, residual_matrix
+from latticedft._learn._gauge import gauge_named
 from latticedft._action import cell_derivatives
 from latticedft._lattice import gather_cells
 from latticedft._models import _polynomial
@@ -23,9 +26,9 @@ from helpers import membrane_field, oscillator_data, wave_field
 
 
 class _JvpOnly(ldft.PolynomialLagrangian):
-    """The same model without the closed form: the exact solve falls back to forward-mode AD."""
+    """The same model without the closed form: the linear-model default, forward-mode AD of ``features``."""
 
-    feature_derivatives = None
+    feature_derivatives = ldft.LinearLagrangian.feature_derivatives
 
 
 def _kepler():
@@ -47,7 +50,7 @@ CASES = {
 def _bound_pair(case: str):
     """The model and its AD-only twin, bound and scaled on the case's data (coefficients irrelevant)."""
     make, opts = CASES[case]
-    fields = _learn._as_fields(make(), None)
+    fields = as_fields(make(), None)
     models = []
     for cls in (ldft.PolynomialLagrangian, _JvpOnly):
         m = cls(**opts)
@@ -66,13 +69,13 @@ def _rel(a, b) -> float:
 @pytest.mark.parametrize("case", list(CASES))
 def test_closed_form_residual_and_gauge_matrices_equal_jvp(case):
     (fast, slow), fields = _bound_pair(case)
-    assert getattr(slow, "feature_derivatives", None) is None
+    assert type(fast).feature_derivatives is not type(slow).feature_derivatives
     for f in fields:
-        r_fast, r_slow = _learn._residual_matrix(fast, f), _learn._residual_matrix(slow, f)
+        r_fast, r_slow = residual_matrix(fast, f), residual_matrix(slow, f)
         assert r_fast.shape == r_slow.shape and np.abs(r_slow).max() > 0
         assert _rel(r_fast, r_slow) < 1e-12
     for gauge in ("unit-mass", "trace"):
-        (g_fast, v_fast), (g_slow, v_slow) = (_learn._gauge_matrix(m, fields, gauge) for m in (fast, slow))
+        (g_fast, v_fast), (g_slow, v_slow) = (gauge_matrix(m, fields, gauge_named(gauge)) for m in (fast, slow))
         assert g_fast.shape == g_slow.shape and np.abs(g_slow).max() > 0
         assert _rel(g_fast, g_slow) < 1e-12
         np.testing.assert_array_equal(v_fast, v_slow)
@@ -180,7 +183,7 @@ def test_state_and_model_file_unchanged(tmp_path):
     model = ldft.PolynomialLagrangian(orders=(4, 8))
     data = systems.oscillator_sin(1.2, n=51, dt=1.0)
     ldft.learn(model, data, progress=False)
-    x = gather_cells(_learn._as_fields(data, None)[0].values, model.stencil, (False,))
+    x = gather_cells(as_fields(data, None)[0].values, model.stencil, (False,))
     before = model.fast_derivatives(x, [(0, 1)])  # fills the caches
     assert set(model.state_dict()) == {"coef", "exponents", "center", "halfwidth"}
     loaded = ldft.load_model(ldft.save_model(model, tmp_path / "m.pt"))

@@ -1,16 +1,27 @@
-"""Models of the discrete Lagrangian density, behind one abstract interface."""
+"""Models of the discrete Lagrangian density, behind one abstract interface.
+
+A new model is one class (a subclass of :class:`AbstractLagrangian`, or of :class:`LinearLagrangian` when
+``L_d`` is linear in its parameters) plus one line in :data:`MODELS`.
+"""
 
 from __future__ import annotations
 
 from ._analytic import AnalyticLagrangian
 from ._base import AbstractLagrangian
-from ._mlp import PRESETS, MLPLagrangian
+from ._linear import LinearLagrangian
+from ._mlp import (
+    PRESETS,
+    FreeMLPLagrangian,
+    KineticPotentialMLPLagrangian,
+    MLPLagrangian,
+)
 from ._polynomial import PolynomialLagrangian
 
-#: ``[model] kind = ...`` in case.toml and model files name these classes.
+#: ``[model] kind = ...`` in case.toml and model files name these classes (the key is the class's ``kind``).
 MODELS: dict[str, type[AbstractLagrangian]] = {
     "polynomial": PolynomialLagrangian,
     "mlp": MLPLagrangian,
 }
 
-__all__ = ["AbstractLagrangian", "AnalyticLagrangian", "MLPLagrangian", "PolynomialLagrangian", "MODELS", "PRESETS"]
+__all__ = ["AbstractLagrangian", "AnalyticLagrangian", "FreeMLPLagrangian", "KineticPotentialMLPLagrangian",
+           "LinearLagrangian", "MLPLagrangian", "PolynomialLagrangian", "MODELS", "PRESETS"]

@@ -32,6 +32,7 @@ class AnalyticLagrangian(AbstractLagrangian):
 
     kind = "analytic"
     saveable = False
+    rebinds_to_any_lattice = True  # a formula in h, valid on any lattice
 
     def __init__(self, fn: Callable[[torch.Tensor, tuple[float, ...]], torch.Tensor], *,
                  stencil: Stencil | None = None, name: str | None = None):

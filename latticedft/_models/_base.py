@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import abc
 import math
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -11,8 +12,12 @@ import torch
 
 from .._errors import InputError
 from .._stencil import Stencil
+from ._options import option_checks_of
 
 __all__ = ["AbstractLagrangian"]
+
+#: ``LinearLagrangian`` once its module has defined it (it checks that ``linear = True`` comes with its contract).
+_LINEAR_BASE: list[type] = []
 
 
 class AbstractLagrangian(torch.nn.Module, abc.ABC):
@@ -23,8 +28,16 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     components ``m``, spacings ``h``) when it is first learned; a discrete
     theory belongs to its lattice spacing, so serving checks the spacing.
 
-    Subclasses set ``kind`` (the name used in ``case.toml`` and model files)
-    and list their constructor keywords in :meth:`options`.
+    What a subclass implements (the contract; :class:`LinearLagrangian` adds the linear one):
+
+    - ``kind``: the name used in ``case.toml`` and model files (and the key of its
+      :data:`latticedft.MODELS` entry);
+    - ``__init__(..., *, stencil=None)``: keyword options with type annotations (``case.toml``
+      checks ``[model]`` values against them, see :meth:`option_checks`), returned by :meth:`options`;
+    - :meth:`_build`: parameters and buffers, once the lattice is known;
+    - :meth:`forward`: ``L_d`` on a batch of cells, smooth (serving differentiates twice);
+    - optionally :meth:`prepare` (input scaling from the training data), :meth:`fast_derivatives`
+      (closed-form derivatives for serving), :meth:`describe`, and the class flags below.
     """
 
     kind: ClassVar[str] = "abstract"
@@ -37,6 +50,19 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     constant_mixed_hessian: ClassVar[bool] = False
     #: False for models that cannot be written to a model file.
     saveable: ClassVar[bool] = True
+    #: True for models without learned parameters (a formula in the spacings): serving binds them to the
+    #: lattice it is given instead of checking that lattice against the one they were learned on.
+    rebinds_to_any_lattice: ClassVar[bool] = False
+    #: The ``LearnReport`` of the last :func:`latticedft.learn` (``None`` before).
+    report_: Any = None
+    #: The gauge a model file says the model was learned with (set by ``load_model``).
+    gauge_: str | None = None
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if cls.linear and _LINEAR_BASE and not issubclass(cls, _LINEAR_BASE[0]):
+            raise TypeError(f"{cls.__name__}: a model linear in its parameters subclasses "
+                            "latticedft.LinearLagrangian (setting linear = True is not enough)")
 
     def __init__(self, stencil: Stencil | None = None):
         super().__init__()
@@ -56,7 +82,8 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
         if self.stencil is None:
             self.stencil = Stencil.first_order(n)
         if self.stencil.ndim != n:
-            raise InputError(f"stencil: has offsets in {self.stencil.ndim} dimensions but the data have {n} lattice dims")
+            raise InputError(f"stencil: has offsets in {self.stencil.ndim} dimensions but the data have {n} "
+                             "lattice dims")
         if self.bound and (self.n, self.m) != (n, m):
             raise InputError(f"model: bound to n={self.n}, m={self.m}; data have n={n}, m={m}")
         first = not self.bound
@@ -83,6 +110,17 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
         """``L_d`` on cells ``(..., K, m)``, returning ``(...)``."""
 
+    def fast_derivatives(self, cells: torch.Tensor, pairs: list[tuple[int, int]]
+                         ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]] | None:
+        """Closed-form per-cell derivatives, or ``None`` (the default) where the model has none.
+
+        A model that overrides this returns ``(grad, blocks)`` without autograd: ``grad`` is ``dL/dx_a``
+        with shape ``(*cells, K, m)``, and ``blocks[(a, b)]`` is ``d^2 L / dx_a dx_b`` with shape
+        ``(*cells, m, m)`` (row: component of ``x_a``) for each ``(a, b)`` in ``pairs``. With ``None``
+        the action module differentiates :meth:`forward` by autograd.
+        """
+        return None
+
     # -- features shared by models ------------------------------------------------------------------------
     def _projection(self) -> torch.Tensor:
         """Matrix ``(n + 1, K)`` mapping stencil values to (mean, per-axis differences).
@@ -105,6 +143,19 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
         """Constructor keywords that rebuild this model (JSON-compatible)."""
         return {}
 
+    @classmethod
+    def option_checks(cls) -> dict[str, Callable[[Any], Any]]:
+        """Option name -> type check of a ``case.toml`` value, read from the constructor's annotations.
+
+        Each check returns the (normalised) value or raises ``OptionTypeError`` saying what was expected;
+        the constructor then checks the values themselves. ``stencil`` is not an option.
+
+        >>> from latticedft import PolynomialLagrangian
+        >>> sorted(PolynomialLagrangian.option_checks())
+        ['basis', 'orders', 'scale', 'time_symmetric']
+        """
+        return option_checks_of(cls.__init__)
+
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
@@ -117,9 +168,8 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
             lines.append(f"  stencil: {self.stencil.to_list()}")
         else:
             lines.append("  not bound to a lattice yet")
-        report = getattr(self, "report_", None)
-        if report is not None:
-            lines.append("  " + report.summary_line())
+        if self.report_ is not None:
+            lines.append("  " + self.report_.summary_line())
         return "\n".join(lines)
 
     def __str__(self) -> str:  # print(model) shows the learned theory

@@ -1,8 +1,15 @@
-"""Neural discrete Lagrangians: the paper's free MLP and a structured kinetic-plus-potential form."""
+"""Neural discrete Lagrangians: the paper's free MLP and a structured kinetic-plus-potential form.
+
+``MLPLagrangian(...)`` (``kind = "mlp"`` in case.toml and model files) builds one of two classes, chosen
+by its ``form`` option: :class:`FreeMLPLagrangian` (``form="free"``, ``L_d`` is the network) and
+:class:`KineticPotentialMLPLagrangian` (``form="kinetic-potential"``, a kinetic term minus a network
+potential). Both share the options, the network and its input and output scaling.
+"""
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, ClassVar, NamedTuple, Self
 
 import torch
 
@@ -10,7 +17,7 @@ from .._errors import InputError
 from .._stencil import Stencil
 from ._base import AbstractLagrangian
 
-__all__ = ["MLPLagrangian", "PRESETS"]
+__all__ = ["MLPLagrangian", "FreeMLPLagrangian", "KineticPotentialMLPLagrangian", "PRESETS"]
 
 _ACTIVATIONS = {
     "sigmoid": torch.nn.Sigmoid,
@@ -19,13 +26,11 @@ _ACTIVATIONS = {
     "silu": torch.nn.SiLU,
     "gelu": torch.nn.GELU,
 }
-_FORMS = ("free", "kinetic-potential")
-_FEATURES = ("values", "differences", "invariant", "inverse-radius")
 
 #: Named settings. ``paper``: Qin (2020) Sec. 4, a 2x40 sigmoid network on the
 #: raw stencil values. ``kinetic-potential``: unit-mass kinetic term minus a
 #: learned on-site potential of the values. ``radial``: the same with the
-#: potential a function of ``1 / |psi|`` (central forces; cases/kepler).
+#: potential a function of ``1 / |psi|`` (central forces, e.g. Kepler orbits).
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": {"hidden": [40, 40], "activation": "sigmoid", "form": "free", "features": "values", "scale": False},
     "kinetic-potential": {"hidden": [32, 32], "activation": "tanh", "form": "kinetic-potential",
@@ -34,10 +39,49 @@ PRESETS: dict[str, dict[str, Any]] = {
     "radial": {"hidden": [32, 32], "activation": "tanh", "form": "kinetic-potential",
                "features": "inverse-radius", "scale": True},
 }
+_DEFAULTS: dict[str, Any] = {"hidden": [40, 40], "activation": "sigmoid", "features": None, "scale": True}
+
+
+class _Inputs(NamedTuple):
+    """One choice of network inputs (``features``): their number and how they come from the cells."""
+
+    width: Callable[[int, int, int], int]  # (n, m, K) -> number of inputs
+    of: Callable[[AbstractLagrangian, torch.Tensor], torch.Tensor]  # (model, cells (..., K, m)) -> inputs
+    vector: bool = False  # needs a vector field (m >= 2)
+
+
+def _flat_mean_and_differences(model: AbstractLagrangian, cells: torch.Tensor) -> torch.Tensor:
+    z = model.mean_and_differences(cells)
+    return z.reshape(*z.shape[:-2], -1)
+
+
+def _gram(model: AbstractLagrangian, cells: torch.Tensor) -> torch.Tensor:
+    gram = cells @ cells.transpose(-1, -2)
+    iu = torch.triu_indices(cells.shape[-2], cells.shape[-2])
+    return gram[..., iu[0], iu[1]]
+
+
+def _settings(hidden: Any, activation: Any, form: Any, features: Any, scale: Any, preset: Any,
+              default_form: str = "free") -> dict[str, Any]:
+    """The defaults, then the preset's settings, then the arguments given (``None``: not given)."""
+    out = dict(_DEFAULTS, form=default_form)
+    if preset is not None:
+        if preset not in PRESETS:
+            raise InputError(f"preset: unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
+        out.update(PRESETS[preset])
+    given = {"hidden": hidden, "activation": activation, "form": form, "features": features, "scale": scale}
+    out.update({k: v for k, v in given.items() if v is not None})
+    if out["form"] not in _FORM_CLASSES:
+        raise InputError(f"form: expected one of {list(_FORM_CLASSES)}, got {out['form']!r}")
+    return out
 
 
 class MLPLagrangian(AbstractLagrangian):
     """``L_d`` given by a multilayer perceptron.
+
+    Calling ``MLPLagrangian(...)`` builds the class of the chosen ``form``: a
+    :class:`FreeMLPLagrangian` or a :class:`KineticPotentialMLPLagrangian`
+    (both are ``MLPLagrangian`` instances).
 
     Parameters
     ----------
@@ -52,15 +96,17 @@ class MLPLagrangian(AbstractLagrangian):
         ``L_d = |g_0|^2 / (2 h_0^2) - sum_k w_k |g_k|^2 / (2 h_k^2) - mean_a V(psi[x+s_a])``
         with learned ``w_k`` and potential ``V = net(site features)``; its
         mixed time Hessian is ``-I / h_0^2`` by construction.
-    features : "values", "differences" or "invariant"
-        Network inputs. ``values``: the stencil values (free form) or the site
-        value (potential). ``differences``: stencil mean and per-axis
-        differences (free form only). ``invariant``: rotation invariants — the
-        Gram matrix of the stencil vectors (free form) or ``|psi|`` (potential).
-        ``inverse-radius`` (kinetic-potential form, vector fields): ``1 / |psi|``,
-        so that ``V`` extrapolates gently to large ``|psi|`` (``1/|psi| -> 0``
-        there, a small step outside the training range) where ``|psi|`` would
-        leave the range of the scaled inputs by far.
+    features : str
+        Network inputs. Free form: ``values`` (the stencil values),
+        ``differences`` (default: stencil mean and per-axis differences) or
+        ``invariant`` (rotation invariants: the Gram matrix of the stencil
+        vectors). Kinetic-potential form: ``values`` (default: the site value),
+        ``invariant`` (``|psi|``) or ``inverse-radius`` (``1 / |psi|``, so that
+        ``V`` extrapolates gently to large ``|psi|``: ``1/|psi| -> 0`` there, a
+        small step outside the training range, where ``|psi|`` would leave the
+        range of the scaled inputs by far). ``invariant`` and
+        ``inverse-radius`` need vector fields. An input the form does not take
+        is refused.
     scale : bool
         Scale inputs to the training data's range and the output to the
         kinetic energy's scale.
@@ -71,66 +117,56 @@ class MLPLagrangian(AbstractLagrangian):
 
     >>> MLPLagrangian(preset="paper").options()["hidden"]
     [40, 40]
+    >>> type(MLPLagrangian(form="kinetic-potential")).__name__
+    'KineticPotentialMLPLagrangian'
     """
 
     kind = "mlp"
+    #: The ``form`` option this class implements (set by the two forms).
+    form: ClassVar[str]
+    #: ``features`` -> the network inputs it stands for, for this form.
+    inputs: ClassVar[dict[str, _Inputs]]
+    #: ``features`` when neither the arguments nor a preset give it.
+    default_features: ClassVar[str]
 
-    def __init__(self, hidden: list[int] | tuple[int, ...] | None = None, activation: str | None = None, *,
+    def __new__(cls, *args: Any, **kwargs: Any) -> Self:
+        target = cls
+        if cls is MLPLagrangian:  # the factory: the class of the form asked for (directly or by a preset)
+            form = kwargs.get("form")
+            if form is None and kwargs.get("preset") is not None:
+                form = _settings(None, None, None, None, None, kwargs["preset"])["form"]
+            target = _FORM_CLASSES.get(form or "free", FreeMLPLagrangian)  # an unknown form: __init__ says so
+        return super().__new__(target)
+
+    def __init__(self, hidden: Sequence[int] | None = None, activation: str | None = None, *,
                  form: str | None = None, features: str | None = None, scale: bool | None = None,
                  seed: int = 0, preset: str | None = None, stencil: Stencil | None = None):
         super().__init__(stencil)
-        base: dict[str, Any] = {"hidden": [40, 40], "activation": "sigmoid", "form": "free",
-                                "features": "differences", "scale": True}
-        if preset is not None:
-            if preset not in PRESETS:
-                raise InputError(f"preset: unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
-            base.update(PRESETS[preset])
-        given = {"hidden": hidden, "activation": activation, "form": form, "features": features, "scale": scale}
-        base.update({k: v for k, v in given.items() if v is not None})
-        hid = base["hidden"]
+        opts = _settings(hidden, activation, form, features, scale, preset, default_form=self.form)
+        hid = opts["hidden"]
         if (not isinstance(hid, (list, tuple)) or not hid
                 or not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in hid)):
             raise InputError(f"hidden: expected a non-empty list of positive layer sizes, got {hid!r}")
-        if base["activation"] not in _ACTIVATIONS:
+        if opts["activation"] not in _ACTIVATIONS:
             raise InputError(f"activation: expected one of {sorted(_ACTIVATIONS)} (smooth; serving needs second "
-                             f"derivatives), got {base['activation']!r}")
-        if base["form"] not in _FORMS:
-            raise InputError(f"form: expected one of {list(_FORMS)}, got {base['form']!r}")
-        if base["features"] not in _FEATURES:
-            raise InputError(f"features: expected one of {list(_FEATURES)}, got {base['features']!r}")
-        if base["form"] == "kinetic-potential" and base["features"] == "differences":
-            base["features"] = "values"
-        if base["features"] == "inverse-radius" and base["form"] != "kinetic-potential":
-            raise InputError("features: 'inverse-radius' is a feature of the potential; use it with "
-                             "form='kinetic-potential'")
+                             f"derivatives), got {opts['activation']!r}")
+        if opts["form"] != self.form:
+            raise InputError(f"form: {type(self).__name__} has form {self.form!r}, got {opts['form']!r} "
+                             "(MLPLagrangian(form=...) picks the class)")
+        feats = opts["features"] or self.default_features
+        every = list(dict.fromkeys(name for cls in _FORM_CLASSES.values() for name in cls.inputs))
+        if feats not in every:
+            raise InputError(f"features: expected one of {every}, got {feats!r}")
+        if feats not in self.inputs:
+            raise InputError(f"features: {feats!r} does not go with form={self.form!r} (that form takes "
+                             f"{', '.join(repr(k) for k in self.inputs)})")
         if not isinstance(seed, int) or isinstance(seed, bool):
             raise InputError(f"seed: expected an integer, got {seed!r}")
         self.hidden = [int(h) for h in hid]
-        self.activation = base["activation"]
-        self.form = base["form"]
-        self.features = base["features"]
-        self.scale = bool(base["scale"])
+        self.activation = opts["activation"]
+        self.features = feats
+        self.scale = bool(opts["scale"])
         self.seed = seed
-
-    @property
-    def unit_mass_by_construction(self) -> bool:  # type: ignore[override]
-        """The kinetic-potential form has ``M = -I / h_0^2`` exactly when every spatial edge ``e_k`` is in the
-        stencil (its differences then never couple ``psi_x`` with ``psi_{x+e_0}``); otherwise the gauge
-        penalty applies."""
-        if self.form != "kinetic-potential":
-            return False
-        return self.stencil is None or all(self._edge(k) is not None for k in range(1, self.stencil.ndim))
-
-    @property
-    def constant_mixed_hessian(self) -> bool:
-        """Kinetic-potential form: the potential is a sum of one-site terms, so every block coupling two
-        stencil sites comes from the quadratic kinetic and gradient terms and is constant."""
-        return self.form == "kinetic-potential"
-
-    def _edge(self, k: int) -> int | None:
-        e = [0] * self.stencil.ndim
-        e[k] = 1
-        return self.stencil.offsets.index(tuple(e)) if tuple(e) in self.stencil.offsets else None
 
     def options(self) -> dict[str, Any]:
         return {"hidden": list(self.hidden), "activation": self.activation, "form": self.form,
@@ -138,17 +174,10 @@ class MLPLagrangian(AbstractLagrangian):
 
     # -- structure ---------------------------------------------------------------------------------------
     def _n_inputs(self) -> int:
-        n, m, k = self.n, self.m, self.stencil.size
-        if self.form == "free":
-            if self.features == "values":
-                return k * m
-            if self.features == "differences":
-                return (n + 1) * m
-            return k * (k + 1) // 2
-        return 1 if self.features in ("invariant", "inverse-radius") else m
+        return self.inputs[self.features].width(self.n, self.m, self.stencil.size)
 
     def _build(self) -> None:
-        if self.features in ("invariant", "inverse-radius") and self.m < 2:
+        if self.inputs[self.features].vector and self.m < 2:
             raise InputError(f"features: {self.features!r} needs a vector field (m >= 2); use 'values' for scalars")
         gen_state = torch.random.get_rng_state()
         torch.manual_seed(self.seed)
@@ -166,25 +195,10 @@ class MLPLagrangian(AbstractLagrangian):
         self.register_buffer("in_center", torch.zeros(nin, dtype=torch.float64))
         self.register_buffer("in_scale", torch.ones(nin, dtype=torch.float64))
         self.register_buffer("out_scale", torch.ones((), dtype=torch.float64))
-        if self.form == "kinetic-potential":
-            self.stiffness = torch.nn.Parameter(torch.ones(self.n - 1, dtype=torch.float64))
 
     def _inputs(self, cells: torch.Tensor) -> torch.Tensor:
-        """Raw (unscaled) network inputs: per cell (free) or per stencil site (potential)."""
-        if self.form == "free":
-            if self.features == "values":
-                return cells.reshape(*cells.shape[:-2], -1)
-            if self.features == "differences":
-                z = self.mean_and_differences(cells)
-                return z.reshape(*z.shape[:-2], -1)
-            gram = cells @ cells.transpose(-1, -2)
-            iu = torch.triu_indices(cells.shape[-2], cells.shape[-2])
-            return gram[..., iu[0], iu[1]]
-        if self.features == "invariant":
-            return torch.sqrt((cells * cells).sum(-1, keepdim=True))
-        if self.features == "inverse-radius":
-            return torch.rsqrt((cells * cells).sum(-1, keepdim=True))
-        return cells
+        """Raw (unscaled) network inputs: per cell (free form) or per stencil site (potential)."""
+        return self.inputs[self.features].of(self, cells)
 
     def prepare(self, cells: list[torch.Tensor]) -> None:
         if not self.scale:
@@ -201,9 +215,69 @@ class MLPLagrangian(AbstractLagrangian):
     def _net(self, x: torch.Tensor) -> torch.Tensor:
         return self.out_scale * self.net((x - self.in_center) / self.in_scale).squeeze(-1)
 
+    def _formula(self) -> list[str]:
+        """Lines of :meth:`describe` that write ``L_d`` out."""
+        return []
+
+    def describe(self) -> str:
+        head = super().describe()
+        arch = " -> ".join(str(w) for w in [self._n_inputs() if self.bound else "?", *self.hidden, 1])
+        lines = [head, f"  network: {arch}, {self.activation}, inputs: {self.features}"
+                 + (", scaled to the data" if self.scale else "")]
+        return "\n".join(lines + self._formula())
+
+
+class FreeMLPLagrangian(MLPLagrangian):
+    """``L_d = net(inputs)`` (``form="free"``), the paper's: the gauge is held by a penalty in training."""
+
+    form = "free"
+    inputs: ClassVar[dict[str, _Inputs]] = {
+        "values": _Inputs(lambda n, m, k: k * m, lambda model, c: c.reshape(*c.shape[:-2], -1)),
+        "differences": _Inputs(lambda n, m, k: (n + 1) * m, _flat_mean_and_differences),
+        "invariant": _Inputs(lambda n, m, k: k * (k + 1) // 2, _gram, vector=True),
+    }
+    default_features = "differences"
+
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
-        if self.form == "free":
-            return self._net(self._inputs(cells))
+        return self._net(self._inputs(cells))
+
+    def _formula(self) -> list[str]:
+        return ["  L_d = net(inputs) (free form; gauge fixed by the mixed-Hessian penalty)"]
+
+
+class KineticPotentialMLPLagrangian(MLPLagrangian):
+    """``L_d = |g_0|^2 / (2 h_0^2) - sum_k w_k |g_k|^2 / (2 h_k^2) - mean_a V(psi[x+s_a])``
+    (``form="kinetic-potential"``), with learned stiffnesses ``w_k`` and a network potential ``V``."""
+
+    form = "kinetic-potential"
+    inputs: ClassVar[dict[str, _Inputs]] = {
+        "values": _Inputs(lambda n, m, k: m, lambda model, c: c),
+        "invariant": _Inputs(lambda n, m, k: 1, lambda model, c: torch.sqrt((c * c).sum(-1, keepdim=True)),
+                             vector=True),
+        "inverse-radius": _Inputs(lambda n, m, k: 1, lambda model, c: torch.rsqrt((c * c).sum(-1, keepdim=True)),
+                                  vector=True),
+    }
+    default_features = "values"
+    #: The potential is a sum of one-site terms, so every block coupling two stencil sites comes from the
+    #: quadratic kinetic and gradient terms and is constant.
+    constant_mixed_hessian = True
+
+    @property
+    def unit_mass_by_construction(self) -> bool:  # type: ignore[override]
+        """``M = -I / h_0^2`` exactly when every spatial edge ``e_k`` is in the stencil (its differences then
+        never couple ``psi_x`` with ``psi_{x+e_0}``); otherwise the gauge penalty applies."""
+        return self.stencil is None or all(self._edge(k) is not None for k in range(1, self.stencil.ndim))
+
+    def _edge(self, k: int) -> int | None:
+        e = [0] * self.stencil.ndim
+        e[k] = 1
+        return self.stencil.offsets.index(tuple(e)) if tuple(e) in self.stencil.offsets else None
+
+    def _build(self) -> None:
+        super()._build()
+        self.stiffness = torch.nn.Parameter(torch.ones(self.n - 1, dtype=torch.float64))
+
+    def forward(self, cells: torch.Tensor) -> torch.Tensor:
         # kinetic term from the time edge psi[x+e0] - psi[x]: its mixed Hessian is -I/h0^2 on every stencil;
         # spatial terms from the edges psi[x+e_k] - psi[x] when present, else the stencil's least-squares slope
         z = self.mean_and_differences(cells)  # (..., n+1, m)
@@ -218,15 +292,13 @@ class MLPLagrangian(AbstractLagrangian):
         potential = self._net(self._inputs(cells)).mean(-1)  # mean over the K stencil sites
         return lag - potential
 
-    def describe(self) -> str:
-        head = super().describe()
-        arch = " -> ".join(str(w) for w in [self._n_inputs() if self.bound else "?", *self.hidden, 1])
-        lines = [head, f"  network: {arch}, {self.activation}, inputs: {self.features}"
-                 + (", scaled to the data" if self.scale else "")]
-        if self.form == "kinetic-potential":
-            lines.append("  L_d = |D_t psi|^2 / (2 h_t^2) - sum_k w_k |D_k psi|^2 / (2 h_k^2) - mean over stencil of V(psi)")
-            if self.bound and self.n > 1:
-                lines.append("  learned w_k = " + ", ".join(f"{float(w):.6g}" for w in self.stiffness))
-        else:
-            lines.append("  L_d = net(inputs) (free form; gauge fixed by the mixed-Hessian penalty)")
-        return "\n".join(lines)
+    def _formula(self) -> list[str]:
+        lines = ["  L_d = |D_t psi|^2 / (2 h_t^2) - sum_k w_k |D_k psi|^2 / (2 h_k^2) - mean over stencil of V(psi)"]
+        if self.bound and self.n > 1:
+            lines.append("  learned w_k = " + ", ".join(f"{float(w):.6g}" for w in self.stiffness))
+        return lines
+
+
+#: ``form`` -> the class that implements it.
+_FORM_CLASSES: dict[str, type[MLPLagrangian]] = {cls.form: cls for cls in (FreeMLPLagrangian,
+                                                                             KineticPotentialMLPLagrangian)}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+from collections.abc import Sequence
 from fractions import Fraction
 from typing import Any
 
@@ -12,7 +13,7 @@ import torch
 
 from .._errors import InputError
 from .._stencil import Stencil
-from ._base import AbstractLagrangian
+from ._linear import LinearLagrangian
 
 __all__ = ["PolynomialLagrangian"]
 
@@ -77,7 +78,7 @@ def _pairs(nvar: int) -> tuple[tuple[int, int], ...]:
     return tuple((v, w) for v in range(nvar) for w in range(v, nvar))
 
 
-class PolynomialLagrangian(AbstractLagrangian):
+class PolynomialLagrangian(LinearLagrangian):
     """Polynomial ``L_d`` in the stencil mean and the per-axis differences (Qin 2020, Eq. 12).
 
     Variables per cell: the mean ``psibar`` of the ``K`` stencil values (the
@@ -111,9 +112,8 @@ class PolynomialLagrangian(AbstractLagrangian):
     """
 
     kind = "polynomial"
-    linear = True
 
-    def __init__(self, orders: tuple[int, int] | list[int] = (4, 8), *, time_symmetric: bool = False,
+    def __init__(self, orders: Sequence[int] = (4, 8), *, time_symmetric: bool = False,
                  scale: bool = True, basis: str = "legendre", stencil: Stencil | None = None):
         super().__init__(stencil)
         if (not isinstance(orders, (tuple, list)) or len(orders) != 2
@@ -143,7 +143,7 @@ class PolynomialLagrangian(AbstractLagrangian):
         nvar = (n + 1) * m
         self.register_buffer("center", torch.zeros(nvar, dtype=torch.float64))
         self.register_buffer("halfwidth", torch.ones(nvar, dtype=torch.float64))
-        self.coef = torch.nn.Parameter(torch.zeros(len(exps), dtype=torch.float64))
+        super()._build()  # coef, one per term
 
     @property
     def n_terms(self) -> int:
@@ -321,14 +321,11 @@ class PolynomialLagrangian(AbstractLagrangian):
         parts = [fn(zf[s: s + size]) for s in range(0, zf.shape[0], size)]
         return [torch.cat(p).reshape(*z.shape[:-1], *p[0].shape[1:]) for p in zip(*parts)]
 
-    def feature_derivatives(self, cells: torch.Tensor, pairs: list[tuple[int, int]] = (), *, first: bool = True):
-        """Closed-form derivatives of every basis function with respect to the stencil values.
+    def feature_derivatives(self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *,
+                            first: bool = True):
+        """Closed-form derivatives of every basis function (see :meth:`LinearLagrangian.feature_derivatives`).
 
-        Returns ``(d, blocks)``: ``d[..., a, i, c] = d phi_c / d x_{a,i}`` with shape ``(*cells, K, m, C)``
-        (``None`` when ``first`` is false), and for each ``(a, b)`` in ``pairs`` the mixed second
-        derivatives ``blocks[(a, b)][..., i, j, c] = d^2 phi_c / d x_{a,i} d x_{b,j}`` with shape
-        ``(*cells, m, m, C)``. The chain rule of :meth:`fast_derivatives`, term by term instead of summed
-        with ``coef``: what the exact solve needs (the DEL residual and the gauge are linear in these).
+        The chain rule of :meth:`fast_derivatives`, term by term instead of summed with ``coef``.
         """
         self._require_bound()
         k, m = cells.shape[-2], cells.shape[-1]
@@ -368,9 +365,6 @@ class PolynomialLagrangian(AbstractLagrangian):
             blocks = {(a, b): (s[..., nvar:] @ self._pair_matrix(aff, a, b)).unflatten(-1, (m, m))
                       for a, b in pairs}
         return grad, blocks
-
-    def forward(self, cells: torch.Tensor) -> torch.Tensor:
-        return self.features(cells) @ self.coef
 
     # -- description -------------------------------------------------------------------------------------
     def _variable_names(self) -> list[str]:
