@@ -8,12 +8,15 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 
 from ._lattice import LatticeField, gather_cells, interior_slices
-from ._models import AbstractLagrangian
 from ._stencil import Stencil
+
+if TYPE_CHECKING:  # the action evaluates any model; models sit a layer above
+    from ._models import AbstractLagrangian
 
 __all__ = ["action", "del_residual", "mixed_hessian", "cell_derivatives", "CellDerivatives", "second_time_difference"]
 

@@ -48,8 +48,16 @@ def _imports(path: Path) -> list[tuple[int, str]]:
     """(line, module) of every import of a latticedft module in ``path``."""
     me = _module_name(path)
     package = me if path.name == "__init__.py" else me.rpartition(".")[0]
+    tree = ast.parse(path.read_text(), str(path))
+    typing_only = {  # imports under `if TYPE_CHECKING:` never run: annotations may name any layer
+        id(sub) for node in ast.walk(tree)
+        if isinstance(node, ast.If) and isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING"
+        for stmt in node.body for sub in ast.walk(stmt)
+    }
     out = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
         if isinstance(node, ast.Import):
             out += [(node.lineno, a.name) for a in node.names if a.name.split(".")[0] == "latticedft"]
         elif isinstance(node, ast.ImportFrom):

@@ -23,8 +23,8 @@ import xarray as xr
 
 from .._errors import InputError, ServeError
 from .._lattice import BoundaryKinds, LatticeField, as_lattice_field
-from .._learn import _check_model_lattice
-from .._models import AbstractLagrangian, AnalyticLagrangian
+from .._learn import check_model_lattice as _check_model_lattice
+from .._models import AbstractLagrangian
 from ._batch import _serve_batch
 from ._field import _serve_field
 from ._result import ServeResult, compare
@@ -38,7 +38,7 @@ def _prepare_model(model: AbstractLagrangian, f: LatticeField) -> None:
     """Check that ``model`` can serve on ``f``'s lattice (binding an analytic model to it)."""
     if not isinstance(model, AbstractLagrangian):
         raise InputError(f"model: expected a latticedft model, got {type(model).__name__}")
-    if isinstance(model, AnalyticLagrangian):
+    if model.rebinds_to_any_lattice:
         model.bind(f.ndim, f.ncomp, f.spacing, f.components)  # a formula in h: valid on any lattice
     if not model.bound:
         raise InputError(f"model: {type(model).__name__} has not been learned yet (latticedft.learn)")

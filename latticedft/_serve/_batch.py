@@ -56,7 +56,7 @@ class _Batch:
         # Jacobian d r / d u at every state: it is assembled once, and Newton needs only gradients after that
         # (an exact Newton step, not a chord). Other models get fresh Hessian blocks every iteration: a chord
         # step with a stale Jacobian was seen to land near a spurious root at a stiff turning point.
-        self.const_model = bool(getattr(model, "constant_mixed_hessian", False))
+        self.const_model = bool(model.constant_mixed_hessian)
         self.jac_const: torch.Tensor | None = None
 
     def retire(self, k: int, slices: int, why: str, bad: bool, res: float = math.nan) -> None:
