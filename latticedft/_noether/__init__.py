@@ -13,5 +13,15 @@ from ._discovery import DiscoveryReport, discover_symmetries
 from ._group import Symmetry
 from ._invariance import SymmetryReport, builtin_symmetries, symmetries
 
-__all__ = ["Symmetry", "SymmetryReport", "DiscoveryReport", "builtin_symmetries", "symmetries",
-           "discover_symmetries", "noether_charge", "noether_charges", "discrete_energy", "relative_drift"]
+__all__ = [
+           "DiscoveryReport",
+           "Symmetry",
+           "SymmetryReport",
+           "builtin_symmetries",
+           "discover_symmetries",
+           "discrete_energy",
+           "noether_charge",
+           "noether_charges",
+           "relative_drift",
+           "symmetries",
+]

@@ -25,7 +25,7 @@ from .._lattice import gather_cells
 from ._core import FieldEval, prepare
 from ._group import Symmetry, resolve_symmetries
 
-__all__ = ["noether_charge", "discrete_energy", "noether_charges", "relative_drift"]
+__all__ = ["discrete_energy", "noether_charge", "noether_charges", "relative_drift"]
 
 
 def _one_field(model: Any, field: Any, boundary: Any) -> FieldEval:

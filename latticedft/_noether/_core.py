@@ -23,7 +23,7 @@ from .._errors import InputError
 from .._lattice import LatticeField, as_lattice_field, gather_cells
 from ._group import Symmetry
 
-__all__ = ["prepare", "FieldEval", "interior"]
+__all__ = ["FieldEval", "interior", "prepare"]
 
 
 def _listify(data: Any) -> list[Any]:

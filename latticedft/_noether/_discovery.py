@@ -20,7 +20,7 @@ from ._core import FieldEval, prepare
 from ._group import Symmetry
 from ._invariance import DEFAULT_TOL, SymmetryReport, _check_tol, measure
 
-__all__ = ["discover_symmetries", "DiscoveryReport"]
+__all__ = ["DiscoveryReport", "discover_symmetries"]
 
 
 @dataclass

@@ -23,7 +23,7 @@ import torch
 
 from .._errors import InputError
 
-__all__ = ["Symmetry", "standard_symmetries", "resolve_symmetries"]
+__all__ = ["Symmetry", "resolve_symmetries", "standard_symmetries"]
 
 _CONTINUOUS = ("affine", "momentum")
 _DISCRETE = ("linear-map", "translation", "time-reversal")
@@ -99,7 +99,8 @@ class Symmetry:
         mat = np.zeros((m, m))
         mat[j, i], mat[i, j] = 1.0, -1.0
         sym = cls.affine(mat, None, name=name or f"rotation-{i}{j}")
-        return _renamed(sym, sym.name, f"rotation of components {i}, {j}: xi(psi) = M psi, M[{j},{i}] = 1 = -M[{i},{j}]")
+        return _renamed(sym, sym.name,
+                        f"rotation of components {i}, {j}: xi(psi) = M psi, M[{j},{i}] = 1 = -M[{i},{j}]")
 
     @classmethod
     def momentum(cls, axis: int = 1, *, name: str | None = None) -> Symmetry:

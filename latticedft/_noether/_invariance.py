@@ -10,7 +10,7 @@ from .._errors import InputError
 from ._core import FieldEval, prepare, ratio
 from ._group import Symmetry, resolve_symmetries, standard_symmetries
 
-__all__ = ["SymmetryReport", "symmetries", "builtin_symmetries", "DEFAULT_TOL"]
+__all__ = ["DEFAULT_TOL", "SymmetryReport", "builtin_symmetries", "symmetries"]
 
 #: Residual at or below which a symmetry counts as exact (round-off is ~1e-15; see docs/symmetries.md).
 DEFAULT_TOL = 1e-9
@@ -62,8 +62,8 @@ class SymmetryReport:
         return "on the data only" if self.residual <= self.tol else "broken"
 
     def summary_line(self) -> str:
-        return (f"{self.name:<16} {self.kind:<10} residual {self.residual:8.1e}   equations {self.residual_equations:8.1e}"
-                f"   {self.verdict}")
+        return (f"{self.name:<16} {self.kind:<10} residual {self.residual:8.1e}   "
+                f"equations {self.residual_equations:8.1e}   {self.verdict}")
 
     def __str__(self) -> str:
         return self.summary_line()
