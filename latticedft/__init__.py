@@ -30,6 +30,16 @@ from ._learn import LearnReport as LearnReport
 from ._learn import diagnose as diagnose
 from ._learn import learn as learn
 from ._modelfile import load_model as load_model
+from ._noether import DiscoveryReport as DiscoveryReport
+from ._noether import Symmetry as Symmetry
+from ._noether import SymmetryReport as SymmetryReport
+from ._noether import builtin_symmetries as builtin_symmetries
+from ._noether import discover_symmetries as discover_symmetries
+from ._noether import discrete_energy as discrete_energy
+from ._noether import noether_charge as noether_charge
+from ._noether import noether_charges as noether_charges
+from ._noether import relative_drift as relative_drift
+from ._noether import symmetries as symmetries
 from ._modelfile import save_model as save_model
 from ._models import MODELS as MODELS
 from ._models import PRESETS as PRESETS
