@@ -7,9 +7,6 @@ fields, and the ones that are not symmetries must visibly drift.
 
 from __future__ import annotations
 
-import contextlib
-import io
-import re
 from pathlib import Path
 
 import numpy as np
@@ -228,17 +225,4 @@ def test_charge_errors():
     ds = ldft.noether_charges(lagrangians.kepler(), orbit, ["rotation-xy", "energy"])
     assert set(ds.data_vars) == {"J_rotation-xy", "energy"} and ds["energy"].attrs["scale"] > 0
 
-
-# -- the documentation ------------------------------------------------------------------------------------------------
-def test_symmetries_page_runs(tmp_path, monkeypatch):
-    text = (DOCS / "symmetries.md").read_text()
-    blocks = [(text.count("\n", 0, m.start(1)) + 1, m.group(1))
-              for m in re.finditer(r"^```python\n(.*?)^```", text, flags=re.DOTALL | re.MULTILINE)]
-    assert blocks
-    monkeypatch.chdir(tmp_path)
-    namespace: dict = {"__name__": "docs_symmetries"}
-    out = io.StringIO()
-    for line, code in blocks:
-        with contextlib.redirect_stdout(out):
-            exec(compile("\n" * (line - 1) + code, str(DOCS / "symmetries.md"), "exec"), namespace)
-    assert out.getvalue()
+# docs/symmetries.md's examples run in tests/test_docs.py, with every other page.
