@@ -33,6 +33,8 @@ __all__ = ["learn", "LearnReport", "diagnose", "GAUGES"]
 #: Gauge fixes: ``unit-mass`` (mean mixed Hessian = -I/h0^2, every entry),
 #: ``trace`` (only its trace, for unequal masses), ``none`` (no fix: collapses).
 GAUGES = ("unit-mass", "trace", "none")
+#: Optimizers: ``exact`` (linear models), ``lbfgs`` and ``adam`` (neural models).
+OPTIMIZERS = ("exact", "lbfgs", "adam")
 _RIDGE_GRID = (0.0, 1e-14, 1e-12, 1e-10, 1e-8, 1e-6, 1e-4)
 
 
@@ -285,7 +287,7 @@ def _learn_linear(model, fields, gauge, ridge, nsites):
         else:
             split = _time_split(fields[0])
             if split is None:
-                raise InputError("ridge: 'auto' needs two or more fields, or one field of at least 9 time slices")
+                raise InputError.at("ridge", "'auto' needs two or more fields, or one field of at least 9 time slices")
             folds.append(([_residual_matrix(model, split[0])], [_residual_matrix(model, split[1])], [split[1]]))
         best, best_score = 0.0, math.inf
         for lam in _RIDGE_GRID:
@@ -466,7 +468,7 @@ def learn(model: AbstractLagrangian, data: xr.DataArray | Sequence[xr.DataArray]
     True
     """
     if gauge not in GAUGES:
-        raise InputError(f"gauge: expected one of {list(GAUGES)}, got {gauge!r}")
+        raise InputError.at("gauge", f"expected one of {list(GAUGES)}, got {gauge!r}")
     if not isinstance(model, AbstractLagrangian):
         raise InputError(f"model: expected a latticedft model, got {type(model).__name__}")
     fields = _as_fields(data, boundary)
@@ -474,14 +476,14 @@ def learn(model: AbstractLagrangian, data: xr.DataArray | Sequence[xr.DataArray]
     for i, f in enumerate(fields):
         _check_model_lattice(model, f, f"data[{i}]")
     optimizer = optimizer or ("exact" if model.linear else "lbfgs")
-    if optimizer not in ("exact", "lbfgs", "adam"):
-        raise InputError(f"optimizer: expected 'exact', 'lbfgs' or 'adam', got {optimizer!r}")
+    if optimizer not in OPTIMIZERS:
+        raise InputError.at("optimizer", f"expected 'exact', 'lbfgs' or 'adam', got {optimizer!r}")
     if optimizer == "exact" and not model.linear:
-        raise InputError(f"optimizer: 'exact' needs a model linear in its parameters; {model.kind!r} is not")
+        raise InputError.at("optimizer", f"'exact' needs a model linear in its parameters; {model.kind!r} is not")
     if not (ridge == "auto" or (isinstance(ridge, (int, float)) and not isinstance(ridge, bool) and ridge >= 0)):
-        raise InputError(f"ridge: expected a number >= 0 or 'auto', got {ridge!r}")
+        raise InputError.at("ridge", f"expected a number >= 0 or 'auto', got {ridge!r}")
     if not isinstance(max_iter, int) or max_iter < 1:
-        raise InputError(f"max_iter: expected a positive integer, got {max_iter!r}")
+        raise InputError.at("max_iter", f"expected a positive integer, got {max_iter!r}")
     model.bind(f0.ndim, f0.ncomp, f0.spacing, f0.components)
     model.prepare([gather_cells(f.values, model.stencil, f.periodic) for f in fields])
     nsites = sum(_n_sites(f, model) for f in fields)
