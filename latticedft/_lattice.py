@@ -17,7 +17,13 @@ import xarray as xr
 
 from ._boundary import BoundaryKind, BoundaryKinds, axis_kinds, lattice_boundary
 from ._errors import InputError
-from ._layout import COMPONENT_DIM, component_labels, coordinate_spacing, field_periodic, validate_field
+from ._layout import (
+    COMPONENT_DIM,
+    component_labels,
+    coordinate_spacing,
+    field_periodic,
+    validate_field,
+)
 from ._stencil import Stencil
 
 __all__ = ["LatticeField", "as_lattice_field", "gather_cells", "interior_slices", "BoundaryKinds"]

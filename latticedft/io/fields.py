@@ -43,7 +43,13 @@ import numpy as np
 import xarray as xr
 
 from latticedft._errors import InputError
-from latticedft._layout import COMPONENT_DIM, field_periodic, field_spacing, lattice_dims, validate_field
+from latticedft._layout import (
+    COMPONENT_DIM,
+    field_periodic,
+    field_spacing,
+    lattice_dims,
+    validate_field,
+)
 
 __all__ = [
     "COMPONENT_DIM",
