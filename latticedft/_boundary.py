@@ -121,7 +121,7 @@ class _Edged(BoundaryKind):
         return slice(width, n - width)
 
     def take(self, v: Any, dim: int, start: int, n: int, width: int) -> Any:
-        return v.narrow(dim, int(start), int(n - width))
+        return v[(slice(None),) * dim + (slice(int(start), int(start + n - width)),)]
 
     def shifted(self, u: np.ndarray, axis: int, shift: int, width: int) -> np.ndarray:
         n = u.shape[axis]

@@ -15,7 +15,7 @@ without reading the text.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Self
 
 __all__ = ["LatticeDFTError", "InputError", "ConfigError", "ServeError", "ModelFileError"]
 
@@ -34,7 +34,7 @@ class LatticeDFTError(Exception):
         self.problem = message if problem is None else problem
 
     @classmethod
-    def at(cls, key: str, problem: str) -> LatticeDFTError:
+    def at(cls, key: str, problem: str) -> Self:
         """The error ``"<key>: <problem>"`` about ``key``."""
         return cls(f"{key}: {problem}", key=key, problem=problem)
 
