@@ -36,9 +36,9 @@ def del_residual(model, f: LatticeField, *, create_graph: bool = False) -> torch
     """
     psi = f.values.detach().clone().requires_grad_(True)
     with torch.enable_grad():
-        a = action(model, psi, f.spacing, f.periodic, f.batch)
+        a = action(model, psi, f.spacing, f.boundary, f.batch)
         (g,) = torch.autograd.grad(a, psi, create_graph=create_graph)
-    return g[(slice(None),) * f.batch + interior_slices(f.shape, model.stencil, f.periodic)]
+    return g[(slice(None),) * f.batch + interior_slices(f.shape, model.stencil, f.boundary)]
 
 
 def cell_derivatives(model: AbstractLagrangian, cells: torch.Tensor, pairs: list[tuple[int, int]], *,
@@ -110,7 +110,7 @@ class CellDerivatives:
 def mixed_hessian(model, f: LatticeField, *, create_graph: bool = False) -> torch.Tensor:
     """The mixed time Hessian ``M = d^2 L_d / dpsi_x dpsi_{x+e_0}`` on every cell of ``f``: ``(ncells, m, m)``."""
     st = model.stencil
-    cells = gather_cells(f.values, st, f.periodic, f.batch)
+    cells = gather_cells(f.values, st, f.boundary, f.batch)
     pair = (st.anchor, st.forward)
     _, blocks = cell_derivatives(model, cells, [pair], create_graph=create_graph)
     m = f.ncomp
@@ -121,6 +121,6 @@ def second_time_difference(f: LatticeField, stencil: Stencil) -> torch.Tensor:
     """``psi_{y+e0} - 2 psi_y + psi_{y-e0}`` on the interior sites of ``f``."""
     v = f.values
     d2 = v[2:] - 2 * v[1:-1] + v[:-2]
-    inner = interior_slices(f.shape, stencil, f.periodic)
+    inner = interior_slices(f.shape, stencil, f.boundary)
     pad = torch.nn.functional.pad(d2, [0, 0] * (v.ndim - 1) + [1, 1])  # back to full time length
     return pad[inner]

@@ -1,4 +1,4 @@
-"""Case directories: ``case.toml`` read into validated objects (DESIGN.md §2).
+"""Case directories: ``case.toml`` read into validated objects.
 
 A case is a folder holding ``case.toml`` (the one file a user edits), its
 observed fields in ``data/`` and, after a run, ``results/``. :func:`load_case`
@@ -33,16 +33,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ._boundary import BOUNDARY_KINDS, kinds_text
 from ._errors import ConfigError, LatticeDFTError
+from ._learn import GAUGES, OPTIMIZERS
 from ._models import MODELS, AbstractLagrangian
 from ._models._options import OptionTypeError
+from ._serve import MODES
 from ._stencil import Stencil
 
 __all__ = ["Case", "FieldConfig", "ModelConfig", "TrainConfig", "ServeTask", "RunConfig", "ExportConfig",
            "load_case", "parse_override", "CASE_FILE", "SCHEMA"]
 
 CASE_FILE = "case.toml"
-BOUNDARY_KINDS = ("dirichlet", "periodic")
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
@@ -127,16 +129,18 @@ def t_choice(*choices: str) -> Callable[[Any], str]:
 
 
 def t_boundary(v: Any) -> str | dict[str, str]:
+    """A boundary kind of :data:`latticedft._boundary.BOUNDARY_KINDS`, or a table axis -> kind (the axes are
+    checked against the data when they are read)."""
     if isinstance(v, str):
         if v not in BOUNDARY_KINDS:
-            raise _Bad(f"{' or '.join(repr(k) for k in BOUNDARY_KINDS)}, or a table axis -> kind")
+            raise _Bad(f"{kinds_text()}, or a table axis -> kind")
         return v
     if isinstance(v, dict):
         for axis, kind in v.items():
             if kind not in BOUNDARY_KINDS:
                 raise _Bad(f"a table axis -> kind with kinds {list(BOUNDARY_KINDS)} (axis {axis!r} has {kind!r})")
         return {str(k): str(kind) for k, kind in v.items()}
-    raise _Bad(f"{' or '.join(repr(k) for k in BOUNDARY_KINDS)}, or a table axis -> kind")
+    raise _Bad(f"{kinds_text()}, or a table axis -> kind")
 
 
 def t_stencil(v: Any) -> str | list[list[int]]:
@@ -175,9 +179,9 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
     "train": {
         "data": (t_str_list, _REQUIRED),
         "boundary": (t_boundary, None),
-        "gauge": (t_choice("unit-mass", "trace", "none"), "unit-mass"),
+        "gauge": (t_choice(*GAUGES), "unit-mass"),
         "ridge": (t_ridge, 0.0),
-        "optimizer": (t_choice("exact", "lbfgs", "adam"), None),
+        "optimizer": (t_choice(*OPTIMIZERS), None),
         "max_iter": (t_pos_int, 500),
         "max_time": (t_pos_float, None),
         "tol": (t_nonneg_float, 0.0),
@@ -190,7 +194,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "from": (t_str, _REQUIRED),
         "steps": (t_pos_int, None),
         "boundary": (t_boundary, None),
-        "mode": (t_choice("newton", "sweep"), "newton"),
+        "mode": (t_choice(*MODES), "newton"),
         "box": (t_pos_float, None),
         "rtol": (t_unit_float, 1e-10),
         "max_newton": (t_pos_int, 30),
@@ -373,7 +377,7 @@ class _Ctx:
 
     def error(self, key: str, problem: str) -> ConfigError:
         where = "--set" if key in self.overridden else self.file
-        return ConfigError(f"{where}: {key}: {problem}")
+        return ConfigError(f"{where}: {key}: {problem}", key=key, problem=problem)
 
     def check(self, key: str, check: Callable[[Any], Any], value: Any) -> Any:
         try:
@@ -527,7 +531,7 @@ def _validate(raw: dict[str, Any], root: Path, file: Path, overrides: tuple[str,
     try:  # the class's own checks of its options (e.g. an unknown activation), before any data are read
         MODELS[kind](**options)
     except LatticeDFTError as exc:
-        raise ctx.error("model." + str(exc).split(":", 1)[0], str(exc).split(":", 1)[-1].strip()) from None
+        raise ctx.error(f"model.{exc.key}" if exc.key else "model", exc.problem) from None
     except TypeError as exc:
         raise ctx.error("model", f"bad options for kind {kind!r} ({exc})") from None
     # [train]

@@ -1,18 +1,42 @@
 """Exceptions raised by latticedft.
 
 Every error a user can cause carries a one-line message that names the file,
-key or argument at fault and says what was expected.
+key or argument at fault and says what was expected. An error about one key
+or argument also carries it as data: ``key`` (e.g. ``"boundary"``,
+``"optimizer"``, ``"train.boundary"``) and ``problem``, the message without
+the leading ``"<key>: "``, so that a caller can re-address it (the case run
+turns ``InputError(key="boundary")`` into ``case.toml: train.boundary: ...``)
+without reading the text.
+
+>>> err = InputError.at("boundary", "unknown axis 'y'")
+>>> str(err), err.key, err.problem
+("boundary: unknown axis 'y'", 'boundary', "unknown axis 'y'")
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Self
 
 __all__ = ["LatticeDFTError", "InputError", "ConfigError", "ServeError", "ModelFileError"]
 
 
 class LatticeDFTError(Exception):
-    """Base class of every error latticedft raises on purpose."""
+    """Base class of every error latticedft raises on purpose.
+
+    ``key`` names the key or argument the error concerns (None when it
+    concerns no single one); ``problem`` is what is wrong with it (the
+    message itself unless given).
+    """
+
+    def __init__(self, message: str = "", *, key: str | None = None, problem: str | None = None):
+        super().__init__(message)
+        self.key = key
+        self.problem = message if problem is None else problem
+
+    @classmethod
+    def at(cls, key: str, problem: str) -> Self:
+        """The error ``"<key>: <problem>"`` about ``key``."""
+        return cls(f"{key}: {problem}", key=key, problem=problem)
 
 
 class InputError(LatticeDFTError, ValueError):

@@ -18,10 +18,12 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
+from ._boundary import missing_edges
 from ._case import Case, ServeTask, load_invariant
 from ._errors import ConfigError, InputError, LatticeDFTError, ServeError
 from ._lattice import as_lattice_field
-from .io.fields import field_spacing, lattice_dims, read_field
+from ._layout import component_labels, field_spacing, lattice_dims
+from .io.fields import read_field
 
 __all__ = ["CaseData", "TaskData", "TaskOutcome", "check_case", "train_model", "serve_task"]
 
@@ -79,21 +81,13 @@ def _same_spacing(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
     return len(a) == len(b) and all(math.isclose(x, y, rel_tol=1e-6) for x, y in zip(a, b))
 
 
-def _components(da: xr.DataArray) -> tuple[str, ...] | None:
-    if "component" not in da.dims:
-        return None
-    return tuple(str(c) for c in da.coords["component"].values.tolist())
-
-
 def _read(path: Path, case: Case, components: tuple[str, ...] | None) -> xr.DataArray:
     return read_field(path, case.field.variable, components=list(components) if components else None)
 
 
-def _boundary_error(exc: LatticeDFTError, key: str) -> ConfigError:
-    text = str(exc)
-    if text.startswith("boundary:"):
-        text = text[len("boundary:"):].strip()
-    return ConfigError(f"case.toml: {key}: {text}")
+def _as_case_error(exc: LatticeDFTError, key: str) -> ConfigError:
+    """An error about a keyword argument (``exc.key``) as an error about the case key ``key`` that set it."""
+    return ConfigError(f"case.toml: {key}: {exc.problem}", key=key, problem=exc.problem)
 
 
 def check_case(case: Case) -> CaseData:
@@ -105,7 +99,7 @@ def check_case(case: Case) -> CaseData:
     for path in case.train.data:
         da = _read(path, case, comps)
         if comps is None:
-            comps = _components(da)
+            comps = component_labels(da)
             if comps is None and train:
                 pass
         if not train:
@@ -118,14 +112,12 @@ def check_case(case: Case) -> CaseData:
                 raise InputError(f"{path}: spacing {field_spacing(da, str(path))} differs from {spacing} of {first}")
         try:
             as_lattice_field(da, source=str(path), boundary=case.train.boundary)
-        except ConfigError:
-            raise
         except InputError as exc:
-            if str(exc).startswith("boundary:"):
-                raise _boundary_error(exc, "train.boundary") from None
+            if exc.key == "boundary":
+                raise _as_case_error(exc, "train.boundary") from None
             raise
         train.append(da)
-    if comps is None and any(_components(d) is not None for d in train):  # pragma: no cover - caught above
+    if comps is None and any(component_labels(d) is not None for d in train):  # pragma: no cover - caught above
         raise InputError("train.data: some files have components and some do not")
     tasks = [_check_task(case, t, dims, spacing, comps) for t in case.serve]
     return CaseData(train=train, tasks=tasks, dims=dims, spacing=spacing, components=comps)
@@ -147,14 +139,15 @@ def _check_task(case: Case, t: ServeTask, dims: tuple[str, ...], spacing: tuple[
     try:
         f = as_lattice_field(init, source=str(t.source), boundary=t.boundary, min_slices=2)
     except InputError as exc:
-        if str(exc).startswith("boundary:"):
-            raise _boundary_error(exc, f"{t.label}.boundary") from None
+        if exc.key == "boundary":
+            raise _as_case_error(exc, f"{t.label}.boundary") from None
         raise
-    dirichlet = [f.dims[k] for k in range(1, f.ndim) if not f.periodic[k]]
-    if dirichlet and steps > nt:
-        raise ConfigError(f"case.toml: {t.label}.steps: {steps} slices need the Dirichlet strips along "
-                          f"{dirichlet[0]!r} on every slice, but {t.source.name} holds {nt}; give the whole field "
-                          "or fewer steps")
+    missing = missing_edges(f.boundary, f.dims, nt, steps)
+    if missing:
+        axis, kind = missing
+        raise ConfigError(f"case.toml: {t.label}.steps: {steps} slices need the {kind.title} strips along "
+                          f"{axis!r} on every slice, but {t.source.name} holds {nt}; give the whole field "
+                          "or fewer steps", key=f"{t.label}.steps")
     if t.box is not None and len(dims) != 1:
         raise ConfigError(f"case.toml: {t.label}.box: stopping at a box is for 1D trajectories only")
     if t.reference is not None:
@@ -189,12 +182,9 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
     log.info("training %s model on %d field(s) ...", case.model.kind, len(data.train))
     try:
         report = learn(model, data.train, boundary=case.train.boundary, progress=None, **case.train.learn)
-    except ConfigError:
-        raise
     except InputError as exc:
-        key = str(exc).split(":", 1)[0]
-        if key in case.train.learn:
-            raise ConfigError(f"case.toml: train.{exc}") from None
+        if exc.key is not None and exc.key in case.train.learn:
+            raise _as_case_error(exc, f"train.{exc.key}") from None
         raise
     log.info("%s", report.summary_line())
     log.debug("training report: %s", {k: v for k, v in report.to_dict().items() if k != "history"})

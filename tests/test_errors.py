@@ -113,3 +113,67 @@ def test_non_uniform_coordinate():
     t[3] += 1e-3
     with pytest.raises(ldft.InputError, match="uniform"):
         ldft.learn(ldft.PolynomialLagrangian((2, 2)), field.assign_coords(t=t))
+
+
+# -- errors carry the key they concern -------------------------------------------------------------------------
+def test_errors_carry_their_key():
+    err = ldft.InputError.at("optimizer", "expected 'exact', 'lbfgs' or 'adam', got 'sgd'")
+    assert str(err) == "optimizer: expected 'exact', 'lbfgs' or 'adam', got 'sgd'"
+    assert err.key == "optimizer" and err.problem == "expected 'exact', 'lbfgs' or 'adam', got 'sgd'"
+    plain = ldft.InputError("data: no training fields given")
+    assert plain.key is None and plain.problem == str(plain)
+    with pytest.raises(ldft.InputError) as info:
+        ldft.learn(ldft.PolynomialLagrangian((2, 2)), oscillator_data(steps=20)[1], gauge="wrong")
+    assert info.value.key == "gauge" and str(info.value).startswith("gauge: expected one of")
+    with pytest.raises(ldft.InputError) as info:
+        ldft.learn(ldft.MLPLagrangian(hidden=[4]), oscillator_data(steps=20)[1], optimizer="exact")
+    assert info.value.key == "optimizer" and "needs a model linear" in info.value.problem
+
+
+@pytest.mark.parametrize("edit,key,text", [
+    (("[train]\n", '[train]\nboundary = {y = "periodic"}\n'), "train.boundary",
+     "case.toml: train.boundary: unknown axis 'y'; the spatial axes of "),
+    (('name = "test"\n', 'name = "test"\nboundary = {z = "periodic"}\n'), "serve[0].boundary",
+     "case.toml: serve[0].boundary: unknown axis 'z'; the spatial axes of "),
+])
+def test_case_errors_readdress_the_boundary_key(tmp_path, edit, key, text):
+    from case_helpers import tiny_wave
+
+    from latticedft._case import load_case
+    from latticedft._pipeline import check_case
+
+    case = tiny_wave(tmp_path)
+    toml = (case / "case.toml").read_text()
+    (case / "case.toml").write_text(toml.replace(*edit))
+    with pytest.raises(ldft.ConfigError) as info:
+        check_case(load_case(case))
+    assert str(info.value).startswith(text) and _one_line(info).endswith("are ['x']")
+    assert info.value.key == key
+
+
+@pytest.mark.parametrize("option,key,text", [
+    ("optimizer = \"exact\"", "train.optimizer",
+     "case.toml: train.optimizer: 'exact' needs a model linear in its parameters; 'mlp' is not"),
+    ("ridge = \"auto\"", "train.ridge",
+     "case.toml: train.ridge: 'auto' needs two or more fields, or one field of at least 9 time slices"),
+])
+def test_case_errors_readdress_learn_keys(tmp_path, option, key, text):
+    from case_helpers import tiny_wave
+
+    from latticedft._case import load_case
+    from latticedft._pipeline import check_case, train_model
+
+    case = tiny_wave(tmp_path)
+    toml = (case / "case.toml").read_text()
+    if key == "train.optimizer":
+        toml = toml.replace('kind = "polynomial"\norders = [2, 0]', 'kind = "mlp"\nhidden = [4]')
+    else:  # one field of 4 slices
+        from latticedft import systems
+        from latticedft.io import write_field
+
+        write_field(case / "data" / "train.nc", {"psi": systems.wave_string([(1, 1.0)], nx=13, nt=4)})
+    (case / "case.toml").write_text(toml.replace("[train]\n", f"[train]\n{option}\n"))
+    c = load_case(case)
+    with pytest.raises(ldft.ConfigError) as info:
+        train_model(c, check_case(c))
+    assert _one_line(info) == text and info.value.key == key

@@ -13,11 +13,11 @@ normalisation as a penalty, or by construction (:mod:`._neural`).
 
 from __future__ import annotations
 
-from ._api import learn
+from ._api import OPTIMIZERS, learn
 from ._data import check_model_lattice
 from ._gauge import GAUGES
 from ._report import LearnReport, diagnose
 
 _check_model_lattice = check_model_lattice  # the name the server imports
 
-__all__ = ["learn", "LearnReport", "diagnose", "GAUGES", "check_model_lattice"]
+__all__ = ["learn", "LearnReport", "diagnose", "GAUGES", "OPTIMIZERS", "check_model_lattice"]

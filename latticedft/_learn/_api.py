@@ -18,7 +18,8 @@ from ._report import LearnReport, diagnose
 
 __all__ = ["learn"]
 
-_OPTIMIZERS = ("exact", "lbfgs", "adam")
+#: Optimizers: ``exact`` (linear models), ``lbfgs`` and ``adam`` (neural models).
+OPTIMIZERS = ("exact", "lbfgs", "adam")
 
 
 def _checked(model: AbstractLagrangian, gauge: str, ridge: float | str, optimizer: str | None,
@@ -28,14 +29,14 @@ def _checked(model: AbstractLagrangian, gauge: str, ridge: float | str, optimize
     if not isinstance(model, AbstractLagrangian):
         raise InputError(f"model: expected a latticedft model, got {type(model).__name__}")
     optimizer = optimizer or ("exact" if isinstance(model, LinearLagrangian) else "lbfgs")
-    if optimizer not in _OPTIMIZERS:
-        raise InputError(f"optimizer: expected 'exact', 'lbfgs' or 'adam', got {optimizer!r}")
+    if optimizer not in OPTIMIZERS:
+        raise InputError.at("optimizer", f"expected 'exact', 'lbfgs' or 'adam', got {optimizer!r}")
     if optimizer == "exact" and not isinstance(model, LinearLagrangian):
-        raise InputError(f"optimizer: 'exact' needs a model linear in its parameters; {model.kind!r} is not")
+        raise InputError.at("optimizer", f"'exact' needs a model linear in its parameters; {model.kind!r} is not")
     if not (ridge == "auto" or (isinstance(ridge, (int, float)) and not isinstance(ridge, bool) and ridge >= 0)):
-        raise InputError(f"ridge: expected a number >= 0 or 'auto', got {ridge!r}")
+        raise InputError.at("ridge", f"expected a number >= 0 or 'auto', got {ridge!r}")
     if not isinstance(max_iter, int) or max_iter < 1:
-        raise InputError(f"max_iter: expected a positive integer, got {max_iter!r}")
+        raise InputError.at("max_iter", f"expected a positive integer, got {max_iter!r}")
     return fix, optimizer
 
 
@@ -45,7 +46,7 @@ def _bound_to(model: AbstractLagrangian, fields: list[LatticeField]) -> int:
         check_model_lattice(model, f, f"data[{i}]")
     f0 = fields[0]
     model.bind(f0.ndim, f0.ncomp, f0.spacing, f0.components)
-    model.prepare([gather_cells(f.values, model.stencil, f.periodic) for f in fields])
+    model.prepare([gather_cells(f.values, model.stencil, f.boundary) for f in fields])
     nsites = sum(n_sites(f, model) for f in fields)
     if nsites == 0:
         raise InputError("data: no interior site carries a DEL equation (lattices too small for the stencil)")

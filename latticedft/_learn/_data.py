@@ -64,7 +64,7 @@ def check_model_lattice(model: AbstractLagrangian, f: LatticeField, what: str) -
 
 def n_sites(f: LatticeField, model: AbstractLagrangian) -> int:
     """Interior sites of ``f``: those carrying a DEL equation."""
-    inner = interior_slices(f.shape, model.stencil, f.periodic)
+    inner = interior_slices(f.shape, model.stencil, f.boundary)
     return int(np.prod([len(range(*s.indices(n))) for s, n in zip(inner, f.shape)]))
 
 
@@ -86,7 +86,7 @@ def stacked(fields: list[LatticeField]) -> list[LatticeField]:
     """Fields of one shape and periodicity stacked along a batch axis: one pass instead of one per field."""
     groups: dict[tuple, list[LatticeField]] = {}
     for f in fields:
-        groups.setdefault((f.shape, f.periodic), []).append(f)
+        groups.setdefault((f.shape, f.boundary), []).append(f)
     return [g[0] if len(g) == 1 else replace(g[0], values=torch.stack([f.values for f in g]), batch=1)
             for g in groups.values()]
 

@@ -31,14 +31,14 @@ def residual_matrix(model: LinearLagrangian, f: LatticeField) -> np.ndarray:
     adjoint of the cell gather puts them on the sites.
     """
     st = model.stencil
-    x = gather_cells(f.values, st, f.periodic)
+    x = gather_cells(f.values, st, f.boundary)
     d, _ = model.feature_derivatives(x)  # (*cells, K, m, C)
     c = d.shape[-1]
     z = torch.zeros(*f.values.shape, c, dtype=torch.float64, requires_grad=True)
     with torch.enable_grad():
-        (sites,) = torch.autograd.grad((gather_cells(z, st, f.periodic) * d).sum(), z)
+        (sites,) = torch.autograd.grad((gather_cells(z, st, f.boundary) * d).sum(), z)
     sites = math.prod(model.spacing) * sites  # (*N, m, C)
-    inner = interior_slices(f.shape, st, f.periodic)
+    inner = interior_slices(f.shape, st, f.boundary)
     return sites[inner].reshape(-1, c).numpy()
 
 
@@ -54,7 +54,7 @@ def gauge_matrix(model: LinearLagrangian, fields: list[LatticeField], gauge: Gau
     total = torch.zeros(c, m, m, dtype=torch.float64)
     ncells = 0
     for f in fields:
-        x = gather_cells(f.values, st, f.periodic)
+        x = gather_cells(f.values, st, f.boundary)
         ncells += x[..., 0, 0].numel()
         _, blocks = model.feature_derivatives(x, [pair], first=False)
         total += blocks[pair].reshape(-1, m, m, c).sum(0).permute(2, 0, 1)
@@ -99,7 +99,7 @@ def _ridge_folds(model: LinearLagrangian, fields: list[LatticeField], rs: list[n
         return [([r for j, r in enumerate(rs) if j != i], [rs[i]], [fields[i]]) for i in range(min(len(fields), 6))]
     split = time_split(fields[0])
     if split is None:
-        raise InputError("ridge: 'auto' needs two or more fields, or one field of at least 9 time slices")
+        raise InputError.at("ridge", "'auto' needs two or more fields, or one field of at least 9 time slices")
     return [([residual_matrix(model, split[0])], [residual_matrix(model, split[1])], [split[1]])]
 
 

@@ -110,5 +110,5 @@ GAUGES = tuple(_BY_NAME)
 def gauge_named(name: str) -> Gauge:
     """The gauge called ``name`` (one of :data:`GAUGES`)."""
     if name not in _BY_NAME:
-        raise InputError(f"gauge: expected one of {list(GAUGES)}, got {name!r}")
+        raise InputError.at("gauge", f"expected one of {list(GAUGES)}, got {name!r}")
     return _BY_NAME[name]

@@ -38,7 +38,7 @@ class AnalyticLagrangian(AbstractLagrangian):
                  stencil: Stencil | None = None, name: str | None = None):
         super().__init__(stencil)
         if not callable(fn):
-            raise InputError(f"fn: expected a callable fn(cells, h), got {type(fn).__name__}")
+            raise InputError.at("fn", f"expected a callable fn(cells, h), got {type(fn).__name__}")
         self.fn = fn
         self.name = name or getattr(fn, "__name__", "analytic")
         self._given_stencil = stencil

@@ -82,7 +82,7 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
         if self.stencil is None:
             self.stencil = Stencil.first_order(n)
         if self.stencil.ndim != n:
-            raise InputError(f"stencil: has offsets in {self.stencil.ndim} dimensions but the data have {n} "
+            raise InputError.at("stencil", f"has offsets in {self.stencil.ndim} dimensions but the data have {n} "
                              "lattice dims")
         if self.bound and (self.n, self.m) != (n, m):
             raise InputError(f"model: bound to n={self.n}, m={self.m}; data have n={n}, m={m}")

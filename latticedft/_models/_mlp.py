@@ -67,12 +67,12 @@ def _settings(hidden: Any, activation: Any, form: Any, features: Any, scale: Any
     out = dict(_DEFAULTS, form=default_form)
     if preset is not None:
         if preset not in PRESETS:
-            raise InputError(f"preset: unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
+            raise InputError.at("preset", f"unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
         out.update(PRESETS[preset])
     given = {"hidden": hidden, "activation": activation, "form": form, "features": features, "scale": scale}
     out.update({k: v for k, v in given.items() if v is not None})
     if out["form"] not in _FORM_CLASSES:
-        raise InputError(f"form: expected one of {list(_FORM_CLASSES)}, got {out['form']!r}")
+        raise InputError.at("form", f"expected one of {list(_FORM_CLASSES)}, got {out['form']!r}")
     return out
 
 
@@ -146,22 +146,22 @@ class MLPLagrangian(AbstractLagrangian):
         hid = opts["hidden"]
         if (not isinstance(hid, (list, tuple)) or not hid
                 or not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in hid)):
-            raise InputError(f"hidden: expected a non-empty list of positive layer sizes, got {hid!r}")
+            raise InputError.at("hidden", f"expected a non-empty list of positive layer sizes, got {hid!r}")
         if opts["activation"] not in _ACTIVATIONS:
-            raise InputError(f"activation: expected one of {sorted(_ACTIVATIONS)} (smooth; serving needs second "
+            raise InputError.at("activation", f"expected one of {sorted(_ACTIVATIONS)} (smooth; serving needs second "
                              f"derivatives), got {opts['activation']!r}")
         if opts["form"] != self.form:
-            raise InputError(f"form: {type(self).__name__} has form {self.form!r}, got {opts['form']!r} "
+            raise InputError.at("form", f"{type(self).__name__} has form {self.form!r}, got {opts['form']!r} "
                              "(MLPLagrangian(form=...) picks the class)")
         feats = opts["features"] or self.default_features
         every = list(dict.fromkeys(name for cls in _FORM_CLASSES.values() for name in cls.inputs))
         if feats not in every:
-            raise InputError(f"features: expected one of {every}, got {feats!r}")
+            raise InputError.at("features", f"expected one of {every}, got {feats!r}")
         if feats not in self.inputs:
-            raise InputError(f"features: {feats!r} does not go with form={self.form!r} (that form takes "
+            raise InputError.at("features", f"{feats!r} does not go with form={self.form!r} (that form takes "
                              f"{', '.join(repr(k) for k in self.inputs)})")
         if not isinstance(seed, int) or isinstance(seed, bool):
-            raise InputError(f"seed: expected an integer, got {seed!r}")
+            raise InputError.at("seed", f"expected an integer, got {seed!r}")
         self.hidden = [int(h) for h in hid]
         self.activation = opts["activation"]
         self.features = feats
@@ -178,7 +178,7 @@ class MLPLagrangian(AbstractLagrangian):
 
     def _build(self) -> None:
         if self.inputs[self.features].vector and self.m < 2:
-            raise InputError(f"features: {self.features!r} needs a vector field (m >= 2); use 'values' for scalars")
+            raise InputError.at("features", f"{self.features!r} needs a vector field (m >= 2); use 'values' for scalars")
         gen_state = torch.random.get_rng_state()
         torch.manual_seed(self.seed)
         try:

@@ -118,9 +118,9 @@ class PolynomialLagrangian(LinearLagrangian):
         super().__init__(stencil)
         if (not isinstance(orders, (tuple, list)) or len(orders) != 2
                 or not all(isinstance(o, int) and not isinstance(o, bool) and o >= 0 for o in orders)):
-            raise InputError(f"orders: expected two non-negative integers [P, Q], got {orders!r}")
+            raise InputError.at("orders", f"expected two non-negative integers [P, Q], got {orders!r}")
         if basis not in ("legendre", "monomial"):
-            raise InputError(f"basis: expected 'legendre' or 'monomial', got {basis!r}")
+            raise InputError.at("basis", f"expected 'legendre' or 'monomial', got {basis!r}")
         self.orders = (int(orders[0]), int(orders[1]))
         self.time_symmetric = bool(time_symmetric)
         self.scale = bool(scale)

@@ -22,7 +22,8 @@ from collections.abc import Sequence
 import xarray as xr
 
 from .._errors import InputError, ServeError
-from .._lattice import BoundaryKinds, LatticeField, as_lattice_field
+from .._boundary import BoundaryKinds
+from .._lattice import LatticeField, as_lattice_field
 from .._learn import check_model_lattice as _check_model_lattice
 from .._models import AbstractLagrangian
 from ._batch import _serve_batch

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from .._action import CellDerivatives
+from .._boundary import missing_edges
 from .._errors import InputError, ServeError
 from .._lattice import LatticeField, gather_cells
 from .._models import AbstractLagrangian
@@ -25,10 +26,11 @@ def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int) -> torch.Ten
     """``(steps, *spatial, m)`` values: the first two slices and the boundary (known) sites, NaN elsewhere."""
     nt_given = f.shape[0]
     m = f.ncomp
-    dirichlet_axes = [f.dims[k] for k in range(1, f.ndim) if not f.periodic[k]]
-    if dirichlet_axes and nt_given < steps:
-        raise InputError(f"init: holds {nt_given} time slices but the Dirichlet boundary along "
-                         f"{dirichlet_axes[0]!r} needs its strips on all {steps} slices; give the whole field, "
+    missing = missing_edges(f.boundary, f.dims, nt_given, steps)
+    if missing:
+        axis, kind = missing
+        raise InputError(f"init: holds {nt_given} time slices but the {kind.title} boundary along "
+                         f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
                          "fewer steps, or a periodic boundary")
     psi = torch.full((steps, *f.shape[1:], m), math.nan, dtype=torch.float64)
     psi[:2] = f.values[:2]
@@ -60,7 +62,7 @@ class _FieldRun:
 
     def cells_at(self, i: int) -> torch.Tensor:
         """The cells anchored on slice ``i``."""
-        return gather_cells(self.psi[i:i + 2], self.model.stencil, self.f.periodic)
+        return gather_cells(self.psi[i:i + 2], self.model.stencil, self.f.boundary)
 
     def serve_affine(self, rtol: float) -> None:
         """Fill the leading slices that the affine recurrence serves to within ``rtol``; Newton starts after."""

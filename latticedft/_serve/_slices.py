@@ -9,6 +9,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
+from .._boundary import axis_kinds
 from .._lattice import LatticeField, interior_slices
 from .._models import AbstractLagrangian
 
@@ -22,9 +23,10 @@ class _SliceSystem:
         self.m = f.ncomp
         spatial = f.shape[1:]
         self.spatial = spatial
-        self.periodic = f.periodic
+        self.kinds = axis_kinds(f.boundary)[1:]  # the boundary kind of each spatial axis
+        wraps = any(k.wraps for k in self.kinds)
         self.nsite = int(np.prod(spatial))
-        inner = interior_slices(f.shape, st, f.periodic)[1:]
+        inner = interior_slices(f.shape, st, f.boundary)[1:]
         mask = np.zeros(spatial, dtype=bool)
         mask[inner] = True
         self.interior = mask.reshape(-1)
@@ -33,16 +35,14 @@ class _SliceSystem:
         self.n = int(self.interior.sum())
         # cells anchored on one slice: shape of the cell grid along the spatial axes
         lo, width = st.lo, st.width
-        cshape = [nk if f.periodic[k + 1] else nk - int(width[k + 1]) for k, nk in enumerate(spatial)]
+        cshape = [kind.cells(nk, int(width[k + 1])) for k, (nk, kind) in enumerate(zip(spatial, self.kinds))]
         self.cshape = tuple(cshape)
         grids = np.meshgrid(*[np.arange(c) for c in cshape], indexing="ij")
         self.site_of: list[np.ndarray] = []  # per stencil point: flat site index of that point for every cell
         for off in st.offsets:
             idx = []
             for k, gk in enumerate(grids):
-                v = gk + off[k + 1] - lo[k + 1]
-                if f.periodic[k + 1]:
-                    v = v % spatial[k]
+                v = self.kinds[k].sites(gk + off[k + 1] - lo[k + 1], spatial[k])
                 idx.append(v.reshape(-1))
             self.site_of.append(np.ravel_multi_index(idx, spatial) if idx else np.zeros(1, dtype=np.int64))
         self.now = [a for a, o in enumerate(st.offsets) if o[0] == 0]
@@ -60,8 +60,8 @@ class _SliceSystem:
         cols = np.concatenate([c for _, _, c in self.jac.values()]) if self.jac else np.zeros(0, np.int64)
         self.lower = int(max(0, (rows - cols).max() if rows.size else 0)) * m + m - 1
         self.upper = int(max(0, (cols - rows).max() if rows.size else 0)) * m + m - 1
-        self.banded = len(spatial) == 1 and not any(f.periodic[1:])
-        self.triangular = bool(rows.size == 0 or (cols <= rows).all()) and not any(f.periodic[1:])
+        self.banded = len(spatial) == 1 and not wraps
+        self.triangular = bool(rows.size == 0 or (cols <= rows).all()) and not wraps
         self.diag_pairs = [(a, b) for (a, b), (_, r, c) in self.jac.items() if np.any(r == c)]
 
     # EL on slice i (equation rows) from the per-cell gradients of the cells anchored at i-1 and i

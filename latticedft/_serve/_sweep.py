@@ -30,8 +30,7 @@ def _sweep_slice(model, sys: _SliceSystem, psi, flat, i, vol, rtol, max_newton, 
             # the K cells y - s_a, each with its K points y - s_a + s_b
             pts = y[None, None, :] - offs[:, None, :] + offs[None, :, :]
             for k in range(nsp):
-                if f.periodic[k + 1]:
-                    pts[..., k + 1] %= sys.spatial[k]
+                pts[..., k + 1] = sys.kinds[k].sites(pts[..., k + 1], sys.spatial[k])
             unknown = np.all(pts == (y + e0), axis=-1)  # (K, K)
             idx = tuple(torch.from_numpy(pts[..., d]) for d in range(nsp + 1))
             base = psi[idx].clone()  # (K, K, m)

@@ -1,4 +1,4 @@
-"""Field files: read, validate and write lattice fields as netCDF (docs/design.md, "Field files").
+"""Field files: read, validate and write lattice fields as netCDF.
 
 A field is a :class:`xarray.DataArray` (default name ``psi``) whose dims are the
 lattice dims in CF order -- time first, then the spatial dims with x last:
@@ -8,6 +8,11 @@ lattice dims in CF order -- time first, then the spatial dims with x last:
 numeric, uniformly spaced, strictly increasing coordinate from which the
 spacings are read. A lattice coordinate may carry the attribute
 ``periodic = "true"`` or ``"false"``.
+
+The layout itself (its dims, spacing, periodic attribute and checks) belongs
+to :mod:`latticedft._layout`; :data:`COMPONENT_DIM`, :func:`lattice_dims`,
+:func:`field_spacing`, :func:`field_periodic` and :func:`validate_field` are
+re-exported from there.
 
 Every problem with user data raises :class:`latticedft._errors.InputError`
 with a one-line message that names the file (or ``source``) and what was
@@ -38,6 +43,13 @@ import numpy as np
 import xarray as xr
 
 from latticedft._errors import InputError
+from latticedft._layout import (
+    COMPONENT_DIM,
+    field_periodic,
+    field_spacing,
+    lattice_dims,
+    validate_field,
+)
 
 __all__ = [
     "COMPONENT_DIM",
@@ -49,230 +61,11 @@ __all__ = [
     "lattice_dims",
 ]
 
-#: Name of the optional trailing dim holding the components of a vector field.
-COMPONENT_DIM = "component"
-
-# Relative tolerance on the deviation of a coordinate's steps from uniform.
-_UNIFORM_RTOL = 1e-6
-
 
 def _one_line(text: object, limit: int = 200) -> str:
     """Collapse an arbitrary message (e.g. a library exception) to one short line."""
     s = " ".join(str(text).split())
     return s if len(s) <= limit else s[: limit - 3] + "..."
-
-
-def lattice_dims(da: xr.DataArray) -> tuple[str, ...]:
-    """Return the lattice dims of ``da`` (all dims except ``component``), time first.
-
-    >>> import xarray as xr, numpy as np
-    >>> lattice_dims(xr.DataArray(np.zeros((3, 2)), dims=["t", "component"]))
-    ('t',)
-    """
-    return tuple(str(d) for d in da.dims if d != COMPONENT_DIM)
-
-
-def _coord_values(da: xr.DataArray, dim: str, source: str) -> np.ndarray:
-    if dim not in da.coords:
-        raise InputError(
-            f"{source}: lattice dim '{dim}' has no coordinate variable; "
-            f"expected a numeric, uniformly spaced coordinate '{dim}'"
-        )
-    values = np.asarray(da.coords[dim].values)
-    if values.dtype == bool or not (
-        np.issubdtype(values.dtype, np.integer) or np.issubdtype(values.dtype, np.floating)
-    ):
-        raise InputError(
-            f"{source}: coordinate '{dim}' has dtype {values.dtype}; expected numeric "
-            f"values (decoded times or strings are not lattice coordinates)"
-        )
-    return values
-
-
-def field_spacing(da: xr.DataArray, source: str = "<array>") -> tuple[float, ...]:
-    """Lattice spacing along each lattice dim, time first.
-
-    The spacing is ``(c[-1] - c[0]) / (n - 1)`` of the dim's coordinate ``c``
-    (the most accurate estimate for a uniform coordinate).
-
-    >>> import xarray as xr, numpy as np
-    >>> da = xr.DataArray(np.zeros((3, 5)), dims=["t", "x"],
-    ...                   coords={"t": [0.0, 0.1, 0.2], "x": np.linspace(0, 1, 5)})
-    >>> field_spacing(da)
-    (0.1, 0.25)
-    """
-    out = []
-    for dim in lattice_dims(da):
-        c = _coord_values(da, dim, source).astype(np.float64)
-        if c.size < 2:
-            raise InputError(f"{source}: dim '{dim}' has {c.size} site(s); expected at least 2")
-        out.append(float((c[-1] - c[0]) / (c.size - 1)))
-    return tuple(out)
-
-
-def field_periodic(da: xr.DataArray, source: str = "<array>") -> tuple[bool | None, ...]:
-    """The ``periodic`` attribute of each lattice coordinate, time first.
-
-    ``None`` where the attribute is absent. Accepts ``"true"``/``"false"``
-    (any case), booleans and 0/1.
-
-    >>> import xarray as xr, numpy as np
-    >>> da = xr.DataArray(np.zeros((2, 3)), dims=["t", "x"],
-    ...                   coords={"t": [0.0, 1.0], "x": [0.0, 1.0, 2.0]})
-    >>> da.x.attrs["periodic"] = "true"
-    >>> field_periodic(da)
-    (None, True)
-    """
-    out: list[bool | None] = []
-    for dim in lattice_dims(da):
-        if dim not in da.coords or "periodic" not in da.coords[dim].attrs:
-            out.append(None)
-            continue
-        value = da.coords[dim].attrs["periodic"]
-        if isinstance(value, np.ndarray) and value.size == 1:
-            value = value.item()
-        if isinstance(value, (bool, np.bool_)):
-            out.append(bool(value))
-        elif isinstance(value, (int, np.integer)) and int(value) in (0, 1):
-            out.append(bool(value))
-        elif isinstance(value, str) and value.strip().lower() in ("true", "false"):
-            out.append(value.strip().lower() == "true")
-        else:
-            raise InputError(
-                f"{source}: attribute 'periodic' of coordinate '{dim}' is {value!r}; "
-                f"expected \"true\" or \"false\""
-            )
-    return tuple(out)
-
-
-def _check_coordinate(da: xr.DataArray, dim: str, source: str) -> None:
-    c = _coord_values(da, dim, source)
-    if c.size < 2:
-        raise InputError(f"{source}: dim '{dim}' has {c.size} site(s); expected at least 2")
-    c = c.astype(np.float64)
-    if not np.all(np.isfinite(c)):
-        raise InputError(f"{source}: coordinate '{dim}' holds NaN or inf; expected finite values")
-    steps = np.diff(c)
-    lo, hi = float(steps.min()), float(steps.max())
-    if lo <= 0.0:
-        raise InputError(
-            f"{source}: coordinate '{dim}' is not strictly increasing "
-            f"(spacing ranges from {lo:.6g} to {hi:.6g}); expected uniform increasing values"
-        )
-    h = (c[-1] - c[0]) / (c.size - 1)
-    # Tolerate round-off of the stored dtype (e.g. float32 coordinates).
-    dtype = da.coords[dim].dtype
-    eps = np.finfo(dtype if np.issubdtype(dtype, np.floating) else np.float64).eps
-    tol = max(_UNIFORM_RTOL * h, 8 * eps * float(np.abs(c).max()))
-    if hi - lo > tol:
-        raise InputError(
-            f"{source}: coordinate '{dim}' is not uniformly spaced "
-            f"(spacing ranges from {lo:.6g} to {hi:.6g}); expected a uniform lattice"
-        )
-
-
-def _check_components(da: xr.DataArray, source: str, components: Sequence[str] | None) -> None:
-    dims = [str(d) for d in da.dims]
-    if COMPONENT_DIM not in dims:
-        if components is not None:
-            raise InputError(
-                f"{source}: {'field' if da.name is None else f'field {da.name!r}'} has no "
-                f"'{COMPONENT_DIM}' dim; "
-                f"expected components {list(components)!r}"
-            )
-        return
-    if dims[-1] != COMPONENT_DIM:
-        raise InputError(
-            f"{source}: dim '{COMPONENT_DIM}' is at position {dims.index(COMPONENT_DIM)} of "
-            f"{tuple(dims)}; expected it last"
-        )
-    if COMPONENT_DIM not in da.coords:
-        raise InputError(
-            f"{source}: dim '{COMPONENT_DIM}' has no coordinate; expected string labels "
-            f"such as ['x', 'y']"
-        )
-    labels = np.asarray(da.coords[COMPONENT_DIM].values)
-    if not all(isinstance(v, (str, np.str_)) for v in labels.tolist()):
-        raise InputError(
-            f"{source}: coordinate '{COMPONENT_DIM}' has dtype {labels.dtype}; expected "
-            f"string labels such as ['x', 'y']"
-        )
-    found = [str(v) for v in labels.tolist()]
-    if components is not None and found != [str(c) for c in components]:
-        raise InputError(
-            f"{source}: component labels do not match: expected "
-            f"{[str(c) for c in components]!r}, found {found!r}"
-        )
-
-
-def validate_field(
-    da: xr.DataArray,
-    source: str = "<array>",
-    *,
-    components: Sequence[str] | None = None,
-    allow_nan: bool = False,
-) -> xr.DataArray:
-    """Check that ``da`` follows the field-file layout (docs/design.md).
-
-    Parameters
-    ----------
-    da
-        The field.
-    source
-        What to call it in error messages (a file name, a config key ...).
-    components
-        Expected labels of the ``component`` dim, or None for no check
-        (a scalar field then passes too).
-    allow_nan
-        Accept NaN/inf values (e.g. a prediction that stopped early).
-
-    Returns
-    -------
-    xarray.DataArray
-        ``da`` with float64 values (the same object when already float64).
-
-    Raises
-    ------
-    InputError
-        With a one-line message naming ``source`` and what was expected.
-
-    Examples
-    --------
-    >>> import numpy as np, xarray as xr
-    >>> da = xr.DataArray([0.0, np.nan, 1.0], dims=["t"], coords={"t": [0.0, 1.0, 2.0]})
-    >>> validate_field(da, "a.nc")
-    Traceback (most recent call last):
-    ...
-    latticedft._errors.InputError: a.nc: field holds 1 NaN/inf value(s), first at (t=1); expected finite values
-    """
-    if not isinstance(da, xr.DataArray):
-        raise InputError(f"{source}: expected an xarray.DataArray, got {type(da).__name__}")
-    _check_components(da, source, components)
-    what = "field" if da.name is None else f"field {da.name!r}"
-    dims = lattice_dims(da)
-    if not dims:
-        raise InputError(
-            f"{source}: {what} has no lattice dims; expected e.g. psi(t), psi(t, x)"
-        )
-    for dim in dims:
-        _check_coordinate(da, dim, source)
-    if not (np.issubdtype(da.dtype, np.floating) or np.issubdtype(da.dtype, np.integer)) \
-            or da.dtype == bool:
-        raise InputError(f"{source}: {what} has dtype {da.dtype}; expected real numbers")
-    if da.dtype != np.float64:
-        da = da.astype(np.float64)
-    if not allow_nan:
-        bad = ~np.isfinite(da.values)
-        n_bad = int(bad.sum())
-        if n_bad:
-            first = np.unravel_index(int(np.argmax(bad.reshape(-1))), bad.shape)
-            where = ", ".join(f"{d}={int(i)}" for d, i in zip(da.dims, first))
-            raise InputError(
-                f"{source}: {what} holds {n_bad} NaN/inf value(s), "
-                f"first at ({where}); expected finite values"
-            )
-    field_periodic(da, source)
-    return da
 
 
 def read_field(

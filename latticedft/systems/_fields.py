@@ -31,6 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.integrate import solve_ivp
 
 from latticedft._errors import InputError
+from latticedft._layout import COMPONENT_DIM
 
 __all__ = ["ODE_ATOL", "ODE_RTOL", "make_field"]
 
@@ -148,8 +149,8 @@ def make_field(
     out_coords = _lattice_coords(arr.shape, dims, spacing, origin, coords, coord_attrs)
     all_dims = dims
     if components is not None:
-        all_dims = dims + ("component",)
-        out_coords["component"] = xr.Variable(("component",), np.array(list(components), dtype=str),
+        all_dims = dims + (COMPONENT_DIM,)
+        out_coords[COMPONENT_DIM] = xr.Variable((COMPONENT_DIM,), np.array(list(components), dtype=str),
                                               attrs={"long_name": "vector component"})
     da_attrs = {"long_name": name}
     da_attrs.update(attrs or {})
@@ -160,8 +161,8 @@ def _field_values(values: ArrayLike, dims: tuple[str, ...], components: Sequence
     """Check `dims` and `components` against `values`; the values as a float64, C-contiguous array."""
     if len(dims) == 0 or len(set(dims)) != len(dims) or not all(isinstance(d, str) for d in dims):
         raise InputError(f"dims: expected distinct dim names, got {dims!r}")
-    if "component" in dims:
-        raise InputError("dims: do not list 'component'; pass components=[...] instead")
+    if COMPONENT_DIM in dims:
+        raise InputError(f"dims: do not list {COMPONENT_DIM!r}; pass components=[...] instead")
     arr = np.asarray(values)
     if not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr) or arr.dtype == np.bool_:
         raise InputError(f"values: expected real numbers, got dtype {arr.dtype}")

@@ -16,6 +16,7 @@ import numpy as np
 import xarray as xr
 
 from latticedft._errors import InputError
+from latticedft._layout import axis_periodic
 from latticedft.systems._fields import _as_real_array, _check_finite, _uniform_spacing
 
 __all__ = ["field_energy", "klein_gordon_energy", "wave_energy"]
@@ -69,7 +70,7 @@ def field_energy(psi: xr.DataArray, c: float = 1.0, mass: float = 0.0) -> xr.Dat
     axes = tuple(range(1, u.ndim))
     e = ((b - a) ** 2 / (2.0 * h[0] ** 2) + 0.5 * mass * mass * a * b).sum(axis=axes)
     for k in axes:
-        if str(psi[psi.dims[k]].attrs.get("periodic", "")).lower() == "true":
+        if axis_periodic(psi, str(psi.dims[k]), "psi"):
             da, db = np.roll(a, -1, axis=k) - a, np.roll(b, -1, axis=k) - b
         else:
             da, db = np.diff(a, axis=k), np.diff(b, axis=k)

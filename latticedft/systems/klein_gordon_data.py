@@ -16,6 +16,7 @@ import xarray as xr
 from numpy.typing import ArrayLike
 
 from latticedft._errors import InputError
+from latticedft._layout import PERIODIC_ATTR, periodic_attr
 from latticedft.systems._fields import (
     _as_real_array,
     _check_count,
@@ -86,7 +87,7 @@ def klein_gordon(
     assert isinstance(u, np.ndarray)
     nx = a0.size
     return make_field(u, ("t", "x"), spacing=(dt, dx),
-                      coord_attrs={"x": {"periodic": "true", "period": nx * dx}},
+                      coord_attrs={"x": {PERIODIC_ATTR: periodic_attr(True), "period": nx * dx}},
                       attrs={"long_name": "Klein-Gordon field u", "units": "1",
                              "source": f"latticedft.systems.klein_gordon: explicit scheme of u_tt = u_xx - u, "
                                        f"periodic, nx={nx}, dx={dx!r}, dt={dt!r}"})

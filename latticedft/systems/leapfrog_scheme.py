@@ -9,9 +9,11 @@ the generator of the periodic Klein–Gordon data
 :func:`latticedft.systems.field_energy`.
 
 The function is split into its argument checks (:func:`_leapfrog_args`), the
-stepping loop (:func:`_leapfrog_steps`) with one step per boundary rule
-(:func:`_step_periodic`, :func:`_step_fixed_frame`), and the DataArray output
-(:func:`_leapfrog_field`).
+stepping loop (:func:`_leapfrog_steps`, one :func:`_step` per slice), and the
+DataArray output (:func:`_leapfrog_field`). What depends on the boundary kind
+(which sites are stepped, the neighbours of a site) is the kind's own rule
+from :mod:`latticedft._boundary`: a Dirichlet axis keeps its outer layer of
+sites (the frame), a periodic axis wraps around.
 """
 
 from __future__ import annotations
@@ -23,7 +25,9 @@ import numpy as np
 import xarray as xr
 from numpy.typing import ArrayLike, NDArray
 
+from latticedft._boundary import BOUNDARY_KINDS, KINDS, BoundaryKind, spatial_kind
 from latticedft._errors import InputError
+from latticedft._layout import PERIODIC_ATTR, periodic_attr
 from latticedft.systems._fields import (
     _as_real_array,
     _check_count,
@@ -113,7 +117,7 @@ def leapfrog(
     ((11, 11), True)
     """
     u0, u1, steps, dt, c, h, bvals = _leapfrog_args(psi0, psi1, steps, dt, spacing, c, boundary, boundary_values)
-    out = _leapfrog_steps(u0, u1, steps, dt, h, c, force, boundary == "periodic", bvals)
+    out = _leapfrog_steps(u0, u1, steps, dt, h, c, force, spatial_kind(boundary), bvals)
     if not isinstance(psi0, xr.DataArray):
         return out
     return _leapfrog_field(out, psi0, dt, h, c, force, boundary)
@@ -146,13 +150,13 @@ def _leapfrog_args(
     steps = _check_count(steps, "steps", 1)
     dt = _check_positive(dt, "dt")
     c = _check_finite(c, "c")
-    if boundary not in ("dirichlet", "periodic"):
-        raise InputError(f"boundary: expected 'dirichlet' or 'periodic', got {boundary!r}")
+    kind = spatial_kind(boundary)
     h = _leapfrog_spacing(psi0, spacing, u0.ndim)
     bvals = None
     if boundary_values is not None:
-        if boundary != "dirichlet":
-            raise InputError("boundary_values: only used with boundary='dirichlet'")
+        if not kind.given_edges:
+            framed = " or ".join(f"boundary={k!r}" for k in BOUNDARY_KINDS if KINDS[k].given_edges)
+            raise InputError.at("boundary_values", f"only used with {framed}")
         bvals = _as_real_array(boundary_values, "boundary_values")
         if bvals.shape != (steps + 1, *u0.shape):
             raise InputError(f"boundary_values: expected shape {(steps + 1, *u0.shape)}, got {bvals.shape}")
@@ -181,28 +185,29 @@ def _leapfrog_spacing(psi0: ArrayLike | xr.DataArray, spacing: float | Sequence[
 
 
 def _leapfrog_steps(u0: _FloatArray, u1: _FloatArray, steps: int, dt: float, h: Sequence[float], c: float,
-                    force: _Force | None, periodic: bool, bvals: _FloatArray | None) -> _FloatArray:
-    """Slices ``0 .. steps`` of the scheme from the first two, `u0` and `u1`.
+                    force: _Force | None, kind: BoundaryKind, bvals: _FloatArray | None) -> _FloatArray:
+    """Slices ``0 .. steps`` of the scheme from the first two, `u0` and `u1`, every spatial axis of `kind`.
 
-    Periodic axes wrap around; otherwise the outer layer of sites of slice
-    ``i + 1`` is copied from ``bvals[i + 1]`` when given, else from `u1`.
+    The interior sites (all of them on periodic axes) are stepped; the other
+    sites (the outer layer of a Dirichlet frame) of slice ``i + 1`` are copied
+    from ``bvals[i + 1]`` when given, else from `u1`.
     """
     out = np.empty((steps + 1, *u0.shape), dtype=np.float64)
     out[0] = u0
     out[1] = u1
     c2 = c * c
     dt2 = dt * dt
-    inner = (slice(1, -1),) * u0.ndim
+    kinds = (kind,) * u0.ndim
+    inner = tuple(k.interior(n, 1) for k, n in zip(kinds, u0.shape))
     edge = np.ones(u0.shape, dtype=bool)
     edge[inner] = False
+    if not edge.any():
+        edge = None
     for i in range(1, steps):
         u, up, new = out[i], out[i - 1], out[i + 1]
         f = _force_values(force, u)
-        if periodic:
-            _step_periodic(new, u, up, f, c2, dt2, h)
-        else:
-            frame = bvals[i + 1] if bvals is not None else u1
-            _step_fixed_frame(new, u, up, f, c2, dt2, h, inner, edge, frame)
+        frame = bvals[i + 1] if bvals is not None else u1
+        _step(new, u, up, f, c2, dt2, h, kinds, inner, edge, frame)
     return out
 
 
@@ -216,24 +221,16 @@ def _force_values(force: _Force | None, u: _FloatArray) -> _FloatArray | None:
     return f
 
 
-def _step_periodic(new: _FloatArray, u: _FloatArray, up: _FloatArray, f: _FloatArray | None,
-                   c2: float, dt2: float, h: Sequence[float]) -> None:
-    """One step with every axis wrapping around: all of `new` from `u` and `up`."""
-    acc = c2 * _laplacian_periodic(u, h)
-    if f is not None:
-        acc += f
-    new[...] = 2.0 * u - up + dt2 * acc
-
-
-def _step_fixed_frame(new: _FloatArray, u: _FloatArray, up: _FloatArray, f: _FloatArray | None,
-                      c2: float, dt2: float, h: Sequence[float], inner: tuple[slice, ...],
-                      edge: NDArray[np.bool_], frame: _FloatArray) -> None:
-    """One Dirichlet step: the interior of `new` from `u` and `up`, its outer layer from `frame`."""
-    acc = c2 * _laplacian_interior(u, h)
+def _step(new: _FloatArray, u: _FloatArray, up: _FloatArray, f: _FloatArray | None, c2: float, dt2: float,
+          h: Sequence[float], kinds: Sequence[BoundaryKind], inner: tuple[slice, ...],
+          edge: NDArray[np.bool_] | None, frame: _FloatArray) -> None:
+    """One step: the interior of `new` from `u` and `up`, its other sites (if any) from `frame`."""
+    acc = c2 * _laplacian(u, h, kinds, inner)
     if f is not None:
         acc += f[inner]
     new[inner] = 2.0 * u[inner] - up[inner] + dt2 * acc
-    new[edge] = frame[edge]
+    if edge is not None:
+        new[edge] = frame[edge]
 
 
 # ----------------------------------------------------------------------------
@@ -241,24 +238,18 @@ def _step_fixed_frame(new: _FloatArray, u: _FloatArray, up: _FloatArray, f: _Flo
 # ----------------------------------------------------------------------------
 
 
-def _laplacian_periodic(u: _FloatArray, h: Sequence[float]) -> _FloatArray:
-    """Three-point Laplacian of `u` at every site, each axis wrapping around."""
-    out = np.zeros_like(u)
+def _laplacian(u: _FloatArray, h: Sequence[float], kinds: Sequence[BoundaryKind],
+               inner: tuple[slice, ...]) -> _FloatArray:
+    """Three-point Laplacian of `u` at the interior sites ``u[inner]``, each axis's neighbours by its kind."""
+    centre = u[inner]
+    out = np.zeros(centre.shape)
     for ax, hk in enumerate(h):
-        out += (np.roll(u, -1, axis=ax) - 2.0 * u + np.roll(u, 1, axis=ax)) / (hk * hk)
-    return out
-
-
-def _laplacian_interior(u: _FloatArray, h: Sequence[float]) -> _FloatArray:
-    """Three-point Laplacian of `u` at the interior sites (shape ``u.shape`` minus 2 per axis)."""
-    inner = (slice(1, -1),) * u.ndim
-    out = np.zeros(tuple(s - 2 for s in u.shape))
-    for ax, hk in enumerate(h):
-        plus = list(inner)
-        plus[ax] = slice(2, None)
-        minus = list(inner)
-        minus[ax] = slice(None, -2)
-        out += (u[tuple(plus)] - 2.0 * u[inner] + u[tuple(minus)]) / (hk * hk)
+        line = list(inner)
+        line[ax] = slice(None)
+        v = u[tuple(line)]  # interior along the other axes, whole along this one
+        plus = kinds[ax].shifted(v, ax, 1, 1)
+        minus = kinds[ax].shifted(v, ax, -1, 1)
+        out += (plus - 2.0 * centre + minus) / (hk * hk)
     return out
 
 
@@ -270,7 +261,7 @@ def _laplacian_interior(u: _FloatArray, h: Sequence[float]) -> _FloatArray:
 def _leapfrog_field(out: _FloatArray, psi0: xr.DataArray, dt: float, h: Sequence[float], c: float,
                     force: _Force | None, boundary: str) -> xr.DataArray:
     """`out` as a DataArray with dims ``("t", *psi0.dims)``, psi0's coordinates and attributes."""
-    periodic = boundary == "periodic"
+    periodic = spatial_kind(boundary).wraps
     t0 = 0.0
     t_attrs = _time_attrs()
     if "t" in psi0.coords and psi0["t"].ndim == 0:
@@ -284,7 +275,7 @@ def _leapfrog_field(out: _FloatArray, psi0: xr.DataArray, dt: float, h: Sequence
             coord_attrs[str(d)] = dict(psi0[d].attrs)
         if periodic:
             coord_attrs.setdefault(str(d), {}).update(
-                {"periodic": "true", "period": float(psi0.sizes[d] * h[list(psi0.dims).index(d)])})
+                {PERIODIC_ATTR: periodic_attr(True), "period": float(psi0.sizes[d] * h[list(psi0.dims).index(d)])})
     attrs = dict(psi0.attrs)
     attrs["source"] = (f"latticedft.systems.leapfrog: explicit leapfrog of psi_tt = c^2 Laplacian psi"
                        f"{' + force(psi)' if force is not None else ''}, c={c!r}, dt={dt!r}, spacing={h}, "

@@ -17,6 +17,7 @@ import xarray as xr
 from scipy.integrate import trapezoid
 
 from latticedft._errors import InputError
+from latticedft._layout import axis_periodic
 from latticedft.systems._fields import (
     _as_real_array,
     _check_count,
@@ -181,7 +182,7 @@ def sine_gordon_energy(psi: xr.DataArray) -> xr.DataArray:
     dx = _uniform_spacing(psi["x"].values, "x")
     u = _as_real_array(psi, "psi")
     ut = np.gradient(u, dt, axis=0)
-    if str(psi["x"].attrs.get("periodic", "")).lower() == "true":
+    if axis_periodic(psi, "x", "psi"):
         ux = (np.roll(u, -1, axis=1) - np.roll(u, 1, axis=1)) / (2.0 * dx)
         dens = 0.5 * ut**2 + 0.5 * ux**2 + 1.0 - np.cos(u)
         e = dens.sum(axis=1) * dx

@@ -1,0 +1,327 @@
+"""The field layout: how a lattice field is laid out as an :class:`xarray.DataArray`.
+
+This module is the one owner of the layout; the engine (``_lattice``), the
+field files (:mod:`latticedft.io.fields`) and the canonical systems use it.
+
+A field is a DataArray (default name ``psi``) whose dims are the lattice dims
+in CF order -- time first, then the spatial dims with x last: ``psi(t)``,
+``psi(t, x)``, ``psi(t, y, x)`` -- plus an optional trailing dim
+:data:`COMPONENT_DIM` (``"component"``) with string labels for vector fields
+(Kepler: ``psi(t, component)``, ``component = ["x", "y"]``).
+
+* Every lattice dim has a numeric, uniformly spaced, strictly increasing
+  coordinate; the lattice spacing along it is :func:`coordinate_spacing`
+  (the first step, ``c[1] - c[0]``), checked uniform by
+  :func:`check_coordinate`.
+* A lattice coordinate may carry the attribute :data:`PERIODIC_ATTR`
+  (``periodic``), ``"true"`` or ``"false"``: read by :func:`parse_periodic`,
+  written by :func:`periodic_attr`.
+
+Every problem with user data raises :class:`latticedft._errors.InputError`
+with a one-line message that names the ``source`` and what was expected.
+
+>>> import numpy as np, xarray as xr
+>>> da = xr.DataArray(np.zeros((3, 2)), dims=["t", "component"],
+...                   coords={"t": [0.0, 0.5, 1.0], "component": ["x", "y"]})
+>>> lattice_dims(da), field_spacing(da), component_labels(da)
+(('t',), (0.5,), ('x', 'y'))
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from ._errors import InputError
+
+__all__ = [
+    "COMPONENT_DIM",
+    "PERIODIC_ATTR",
+    "lattice_dims",
+    "component_labels",
+    "coordinate_spacing",
+    "field_spacing",
+    "check_coordinate",
+    "parse_periodic",
+    "axis_periodic",
+    "field_periodic",
+    "periodic_attr",
+    "validate_field",
+]
+
+#: Name of the optional trailing dim holding the components of a vector field.
+COMPONENT_DIM = "component"
+#: Name of the coordinate attribute that marks a periodic lattice axis.
+PERIODIC_ATTR = "periodic"
+
+# Relative tolerance on the deviation of a coordinate's steps from uniform.
+_UNIFORM_RTOL = 1e-6
+_PERIODIC_TEXT = {"true": True, "false": False}
+
+
+# -- dims and components -------------------------------------------------------------------------------------
+def lattice_dims(da: xr.DataArray) -> tuple[str, ...]:
+    """The lattice dims of ``da`` (all dims except ``component``), time first.
+
+    >>> lattice_dims(xr.DataArray(np.zeros((3, 2)), dims=["t", "component"]))
+    ('t',)
+    """
+    return tuple(str(d) for d in da.dims if d != COMPONENT_DIM)
+
+
+def component_labels(da: xr.DataArray) -> tuple[str, ...] | None:
+    """The labels of the ``component`` dim (None for a scalar field)."""
+    if COMPONENT_DIM not in da.dims:
+        return None
+    return tuple(str(c) for c in np.asarray(da.coords[COMPONENT_DIM].values).tolist())
+
+
+# -- coordinates and spacing ---------------------------------------------------------------------------------
+def _coord_values(da: xr.DataArray, dim: str, source: str) -> np.ndarray:
+    if dim not in da.coords:
+        raise InputError(
+            f"{source}: lattice dim '{dim}' has no coordinate variable; "
+            f"expected a numeric, uniformly spaced coordinate '{dim}'"
+        )
+    values = np.asarray(da.coords[dim].values)
+    if values.dtype == bool or not (
+        np.issubdtype(values.dtype, np.integer) or np.issubdtype(values.dtype, np.floating)
+    ):
+        raise InputError(
+            f"{source}: coordinate '{dim}' has dtype {values.dtype}; expected numeric "
+            f"values (decoded times or strings are not lattice coordinates)"
+        )
+    return values
+
+
+def coordinate_spacing(coord: Any) -> float:
+    """The lattice spacing of a uniform coordinate: its first step ``c[1] - c[0]``.
+
+    The one formula of the package (the engine's lattice, the field files and
+    every served figure use it); the coordinate's uniformity is checked by
+    :func:`check_coordinate`.
+
+    >>> coordinate_spacing([0.0, 0.25, 0.5])
+    0.25
+    """
+    c = np.asarray(coord)
+    return float(c[1] - c[0])
+
+
+def field_spacing(da: xr.DataArray, source: str = "<array>") -> tuple[float, ...]:
+    """Lattice spacing along each lattice dim of ``da``, time first (see :func:`coordinate_spacing`).
+
+    >>> da = xr.DataArray(np.zeros((3, 5)), dims=["t", "x"],
+    ...                   coords={"t": [0.0, 0.1, 0.2], "x": np.linspace(0, 1, 5)})
+    >>> field_spacing(da)
+    (0.1, 0.25)
+    """
+    out = []
+    for dim in lattice_dims(da):
+        c = _coord_values(da, dim, source)
+        if c.size < 2:
+            raise InputError(f"{source}: dim '{dim}' has {c.size} site(s); expected at least 2")
+        out.append(coordinate_spacing(c))
+    return tuple(out)
+
+
+def check_coordinate(da: xr.DataArray, dim: str, source: str) -> None:
+    """Check that the coordinate of lattice dim ``dim`` is numeric, finite, uniform and increasing.
+
+    Uniform means that its steps agree to a relative ``1e-6`` of the spacing
+    (or to the round-off of the stored dtype, e.g. float32 coordinates).
+    """
+    c = _coord_values(da, dim, source)
+    if c.size < 2:
+        raise InputError(f"{source}: dim '{dim}' has {c.size} site(s); expected at least 2")
+    c = c.astype(np.float64)
+    if not np.all(np.isfinite(c)):
+        raise InputError(f"{source}: coordinate '{dim}' holds NaN or inf; expected finite values")
+    steps = np.diff(c)
+    lo, hi = float(steps.min()), float(steps.max())
+    if lo <= 0.0:
+        raise InputError(
+            f"{source}: coordinate '{dim}' is not strictly increasing "
+            f"(spacing ranges from {lo:.6g} to {hi:.6g}); expected uniform increasing values"
+        )
+    h = (c[-1] - c[0]) / (c.size - 1)
+    # Tolerate round-off of the stored dtype (e.g. float32 coordinates).
+    dtype = da.coords[dim].dtype
+    eps = np.finfo(dtype if np.issubdtype(dtype, np.floating) else np.float64).eps
+    tol = max(_UNIFORM_RTOL * h, 8 * eps * float(np.abs(c).max()))
+    if hi - lo > tol:
+        raise InputError(
+            f"{source}: coordinate '{dim}' is not uniformly spaced "
+            f"(spacing ranges from {lo:.6g} to {hi:.6g}); expected a uniform lattice"
+        )
+
+
+# -- the periodic attribute ----------------------------------------------------------------------------------
+def parse_periodic(value: Any, dim: str = "?", source: str = "<array>") -> bool:
+    """The value of a ``periodic`` attribute as a bool.
+
+    Accepts ``"true"``/``"false"`` (any case, surrounding blanks ignored),
+    booleans and the integers 0/1 (also as one-element arrays, as netCDF
+    may return them); anything else raises a one-line :class:`InputError`.
+
+    >>> parse_periodic(" True "), parse_periodic(0)
+    (True, False)
+    """
+    if isinstance(value, np.ndarray) and value.size == 1:
+        value = value.item()
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)) and int(value) in (0, 1):
+        return bool(value)
+    if isinstance(value, str) and value.strip().lower() in _PERIODIC_TEXT:
+        return _PERIODIC_TEXT[value.strip().lower()]
+    raise InputError(
+        f"{source}: attribute '{PERIODIC_ATTR}' of coordinate '{dim}' is {value!r}; "
+        f"expected \"true\" or \"false\""
+    )
+
+
+def periodic_attr(periodic: bool) -> str:
+    """The ``periodic`` attribute value that marks a lattice axis as periodic (or not).
+
+    >>> periodic_attr(True), parse_periodic(periodic_attr(True))
+    ('true', True)
+    """
+    return "true" if periodic else "false"
+
+
+def axis_periodic(da: xr.DataArray, dim: str, source: str = "<array>") -> bool:
+    """Whether the coordinate of ``dim`` is marked periodic (False where the attribute is absent).
+
+    >>> da = xr.DataArray(np.zeros(3), dims=["x"], coords={"x": [0.0, 1.0, 2.0]})
+    >>> axis_periodic(da, "x"), axis_periodic(da.assign_coords(x=da.x.assign_attrs(periodic="True")), "x")
+    (False, True)
+    """
+    if dim not in da.coords or PERIODIC_ATTR not in da.coords[dim].attrs:
+        return False
+    return parse_periodic(da.coords[dim].attrs[PERIODIC_ATTR], dim, source)
+
+
+def field_periodic(da: xr.DataArray, source: str = "<array>") -> tuple[bool | None, ...]:
+    """The ``periodic`` attribute of each lattice coordinate of ``da``, time first; ``None`` where absent.
+
+    >>> da = xr.DataArray(np.zeros((2, 3)), dims=["t", "x"],
+    ...                   coords={"t": [0.0, 1.0], "x": [0.0, 1.0, 2.0]})
+    >>> da.x.attrs["periodic"] = "true"
+    >>> field_periodic(da)
+    (None, True)
+    """
+    out: list[bool | None] = []
+    for dim in lattice_dims(da):
+        if dim not in da.coords or PERIODIC_ATTR not in da.coords[dim].attrs:
+            out.append(None)
+        else:
+            out.append(parse_periodic(da.coords[dim].attrs[PERIODIC_ATTR], dim, source))
+    return tuple(out)
+
+
+# -- the whole layout ----------------------------------------------------------------------------------------
+def _check_components(da: xr.DataArray, source: str, components: Sequence[str] | None) -> None:
+    dims = [str(d) for d in da.dims]
+    if COMPONENT_DIM not in dims:
+        if components is not None:
+            raise InputError(
+                f"{source}: {'field' if da.name is None else f'field {da.name!r}'} has no "
+                f"'{COMPONENT_DIM}' dim; "
+                f"expected components {list(components)!r}"
+            )
+        return
+    if dims[-1] != COMPONENT_DIM:
+        raise InputError(
+            f"{source}: dim '{COMPONENT_DIM}' is at position {dims.index(COMPONENT_DIM)} of "
+            f"{tuple(dims)}; expected it last"
+        )
+    if COMPONENT_DIM not in da.coords:
+        raise InputError(
+            f"{source}: dim '{COMPONENT_DIM}' has no coordinate; expected string labels "
+            f"such as ['x', 'y']"
+        )
+    labels = np.asarray(da.coords[COMPONENT_DIM].values)
+    if not all(isinstance(v, (str, np.str_)) for v in labels.tolist()):
+        raise InputError(
+            f"{source}: coordinate '{COMPONENT_DIM}' has dtype {labels.dtype}; expected "
+            f"string labels such as ['x', 'y']"
+        )
+    found = [str(v) for v in labels.tolist()]
+    if components is not None and found != [str(c) for c in components]:
+        raise InputError(
+            f"{source}: component labels do not match: expected "
+            f"{[str(c) for c in components]!r}, found {found!r}"
+        )
+
+
+def validate_field(
+    da: xr.DataArray,
+    source: str = "<array>",
+    *,
+    components: Sequence[str] | None = None,
+    allow_nan: bool = False,
+) -> xr.DataArray:
+    """Check that ``da`` follows the field layout (see the module docstring).
+
+    Parameters
+    ----------
+    da
+        The field.
+    source
+        What to call it in error messages (a file name, a config key ...).
+    components
+        Expected labels of the ``component`` dim, or None for no check
+        (a scalar field then passes too).
+    allow_nan
+        Accept NaN/inf values (e.g. a prediction that stopped early).
+
+    Returns
+    -------
+    xarray.DataArray
+        ``da`` with float64 values (the same object when already float64).
+
+    Raises
+    ------
+    InputError
+        With a one-line message naming ``source`` and what was expected.
+
+    Examples
+    --------
+    >>> da = xr.DataArray([0.0, np.nan, 1.0], dims=["t"], coords={"t": [0.0, 1.0, 2.0]})
+    >>> validate_field(da, "a.nc")
+    Traceback (most recent call last):
+    ...
+    latticedft._errors.InputError: a.nc: field holds 1 NaN/inf value(s), first at (t=1); expected finite values
+    """
+    if not isinstance(da, xr.DataArray):
+        raise InputError(f"{source}: expected an xarray.DataArray, got {type(da).__name__}")
+    _check_components(da, source, components)
+    what = "field" if da.name is None else f"field {da.name!r}"
+    dims = lattice_dims(da)
+    if not dims:
+        raise InputError(
+            f"{source}: {what} has no lattice dims; expected e.g. psi(t), psi(t, x)"
+        )
+    for dim in dims:
+        check_coordinate(da, dim, source)
+    if not (np.issubdtype(da.dtype, np.floating) or np.issubdtype(da.dtype, np.integer)) \
+            or da.dtype == bool:
+        raise InputError(f"{source}: {what} has dtype {da.dtype}; expected real numbers")
+    if da.dtype != np.float64:
+        da = da.astype(np.float64)
+    if not allow_nan:
+        bad = ~np.isfinite(da.values)
+        n_bad = int(bad.sum())
+        if n_bad:
+            first = np.unravel_index(int(np.argmax(bad.reshape(-1))), bad.shape)
+            where = ", ".join(f"{d}={int(i)}" for d, i in zip(da.dims, first))
+            raise InputError(
+                f"{source}: {what} holds {n_bad} NaN/inf value(s), "
+                f"first at ({where}); expected finite values"
+            )
+    field_periodic(da, source)
+    return da
