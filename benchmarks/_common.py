@@ -49,8 +49,15 @@ class Table:
     seconds: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "title": self.title, "columns": self.columns, "rows": self.rows,
-                "notes": self.notes, "checks": [c.__dict__ for c in self.checks], "seconds": self.seconds}
+        return {
+            "name": self.name,
+            "title": self.title,
+            "columns": self.columns,
+            "rows": self.rows,
+            "notes": self.notes,
+            "checks": [c.__dict__ for c in self.checks],
+            "seconds": self.seconds,
+        }
 
 
 def fmt(v: Any) -> str:
@@ -58,7 +65,7 @@ def fmt(v: Any) -> str:
     if isinstance(v, bool) or v is None:
         return "-" if v is None else str(v)
     if isinstance(v, (int, np.integer)):
-        return f"{int(v):,}" if abs(int(v)) < 10 ** 7 else f"{float(v):.3g}"
+        return f"{int(v):,}" if abs(int(v)) < 10**7 else f"{float(v):.3g}"
     if isinstance(v, (float, np.floating)):
         v = float(v)
         if v != v:
@@ -73,11 +80,16 @@ def fmt(v: Any) -> str:
 
 def markdown(table: Table) -> str:
     """A table as GitHub markdown, notes as a list below it."""
+
     def cell(v: Any) -> str:
         return fmt(v).replace("|", "\\|")
 
-    lines = [f"### {table.title}", "", "| " + " | ".join(cell(c) for c in table.columns) + " |",
-             "|" + "|".join("---" for _ in table.columns) + "|"]
+    lines = [
+        f"### {table.title}",
+        "",
+        "| " + " | ".join(cell(c) for c in table.columns) + " |",
+        "|" + "|".join("---" for _ in table.columns) + "|",
+    ]
     lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in table.rows]
     if table.notes:
         lines.append("")
@@ -125,10 +137,18 @@ def machine(threads: int) -> dict[str, Any]:
 
     import latticedft
 
-    return {"cpu": cpu_model(), "cores": os.cpu_count(), "torch_threads": threads,
-            "load_average": [round(x, 2) for x in os.getloadavg()], "python": platform.python_version(),
-            "torch": torch.__version__, "numpy": np.__version__, "scipy": scipy.__version__,
-            "latticedft": latticedft.__version__, "platform": platform.platform(terse=True)}
+    return {
+        "cpu": cpu_model(),
+        "cores": os.cpu_count(),
+        "torch_threads": threads,
+        "load_average": [round(x, 2) for x in os.getloadavg()],
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "latticedft": latticedft.__version__,
+        "platform": platform.platform(terse=True),
+    }
 
 
 def maxrss_mib() -> float:
@@ -178,10 +198,13 @@ def in_subprocess(probe: str, threads: int, inline: bool = False, **kwargs: Any)
         return json.loads(json.dumps(_probes.run(probe, threads, kwargs)))
     root = Path(__file__).resolve().parent.parent
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
-    code = ("import json, sys; from benchmarks import _probes; "
-            f"print('@@' + json.dumps(_probes.run({probe!r}, {threads}, json.loads(sys.argv[1]))))")
-    proc = subprocess.run([sys.executable, "-c", code, json.dumps(kwargs)], cwd=root, env=env,
-                          capture_output=True, text=True, check=False)
+    code = (
+        "import json, sys; from benchmarks import _probes; "
+        f"print('@@' + json.dumps(_probes.run({probe!r}, {threads}, json.loads(sys.argv[1]))))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, json.dumps(kwargs)], cwd=root, env=env, capture_output=True, text=True, check=False
+    )
     for line in proc.stdout.splitlines():
         if line.startswith("@@"):
             return json.loads(line[2:])

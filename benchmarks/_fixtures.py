@@ -69,10 +69,12 @@ def kepler_mlp(quick: bool) -> ldft.MLPLagrangian:
     """The Kepler-sized MLP of the serving benchmark: kinetic-potential form, V = net(1/|q|), 1 -> 40 -> 40 -> 1,
     bound to dt = 0.05, m = 2 and learned for a few seconds with L-BFGS (the serving cost does not depend on
     how well it is learned, only on the network's size and the Newton iterations)."""
-    model = ldft.MLPLagrangian(hidden=[40, 40], activation="tanh", form="kinetic-potential",
-                               features="inverse-radius", seed=0)
-    ldft.learn(model, kepler_training(quick), max_iter=2 if quick else 60, max_time=2.0 if quick else 15.0,
-               progress=False)
+    model = ldft.MLPLagrangian(
+        hidden=[40, 40], activation="tanh", form="kinetic-potential", features="inverse-radius", seed=0
+    )
+    ldft.learn(
+        model, kepler_training(quick), max_iter=2 if quick else 60, max_time=2.0 if quick else 15.0, progress=False
+    )
     return model
 
 

@@ -39,16 +39,29 @@ def serve_membrane(n: int, nt: int) -> dict[str, Any]:
     t0 = time.perf_counter()
     res = ldft.serve(ldft.lagrangians.wave(), da, progress=False)
     t_newton = time.perf_counter() - t0
-    out = {"sites": (nt - 2) * (n - 2) ** 2, "t_newton": t_newton, "t_leapfrog": t_lf, "solver": res.solver,
-           "iterations": res.newton_iterations, "error": float(np.abs(res.field.values - lf).max()),
-           "rss_before": mem.before, "rss_peak": mem.peak(), "reset": mem.reset, "field_mib": ref.nbytes / 2 ** 20}
+    out = {
+        "sites": (nt - 2) * (n - 2) ** 2,
+        "t_newton": t_newton,
+        "t_leapfrog": t_lf,
+        "solver": res.solver,
+        "iterations": res.newton_iterations,
+        "error": float(np.abs(res.field.values - lf).max()),
+        "rss_before": mem.before,
+        "rss_peak": mem.peak(),
+        "reset": mem.reset,
+        "field_mib": ref.nbytes / 2**20,
+    }
     del res
     mem = PeakRSS()
     t0 = time.perf_counter()
     forced = ldft.serve(ldft.lagrangians.wave(), da, progress=False, affine=False)
-    out.update(t_forced=time.perf_counter() - t0, forced_iterations=forced.newton_iterations,
-               forced_error=float(np.abs(forced.field.values - lf).max()), forced_rss_before=mem.before,
-               forced_rss_peak=mem.peak())
+    out.update(
+        t_forced=time.perf_counter() - t0,
+        forced_iterations=forced.newton_iterations,
+        forced_error=float(np.abs(forced.field.values - lf).max()),
+        forced_rss_before=mem.before,
+        forced_rss_peak=mem.peak(),
+    )
     return out
 
 
@@ -58,19 +71,35 @@ def serve_string(nx: int, nt: int, boundary: str) -> dict[str, Any]:
     mem = PeakRSS()
     t0 = time.perf_counter()
     ldft.serve(ldft.lagrangians.wave(), da, boundary=boundary, progress=False)
-    return {"seconds": time.perf_counter() - t0, "rss_before": mem.before, "rss_peak": mem.peak(), "reset": mem.reset,
-            "field_mib": ref.nbytes / 2 ** 20}
+    return {
+        "seconds": time.perf_counter() - t0,
+        "rss_before": mem.before,
+        "rss_peak": mem.peak(),
+        "reset": mem.reset,
+        "field_mib": ref.nbytes / 2**20,
+    }
 
 
 def train_kg_mlp(n: int, iterations: int) -> dict[str, Any]:
     data = systems.klein_gordon_training_set(n=n, steps=20, seed=0)
     model = ldft.MLPLagrangian(hidden=[10, 10], activation="tanh", form="kinetic-potential", seed=0)
-    ldft.learn(ldft.MLPLagrangian(hidden=[10, 10], activation="tanh", form="kinetic-potential"), data[:1],
-               optimizer="lbfgs", max_iter=1, progress=False)  # warm-up
+    ldft.learn(
+        ldft.MLPLagrangian(hidden=[10, 10], activation="tanh", form="kinetic-potential"),
+        data[:1],
+        optimizer="lbfgs",
+        max_iter=1,
+        progress=False,
+    )  # warm-up
     mem = PeakRSS()
     rep = ldft.learn(model, data, optimizer="lbfgs", max_iter=iterations, progress=False)
-    return {"seconds": rep.wall_time, "iterations": rep.iterations, "sites": rep.n_sites, "rss_before": mem.before,
-            "rss_peak": mem.peak(), "reset": mem.reset}
+    return {
+        "seconds": rep.wall_time,
+        "iterations": rep.iterations,
+        "sites": rep.n_sites,
+        "rss_before": mem.before,
+        "rss_peak": mem.peak(),
+        "reset": mem.reset,
+    }
 
 
 def train_kepler_paper(iterations: int, planets: list[str]) -> dict[str, Any]:
@@ -79,8 +108,14 @@ def train_kepler_paper(iterations: int, planets: list[str]) -> dict[str, Any]:
     ldft.learn(ldft.MLPLagrangian(preset="paper"), data[:1], optimizer="lbfgs", max_iter=1, progress=False)
     mem = PeakRSS()
     rep = ldft.learn(model, data, optimizer="lbfgs", max_iter=iterations, progress=False)
-    return {"seconds": rep.wall_time, "iterations": rep.iterations, "sites": rep.n_sites, "rss_before": mem.before,
-            "rss_peak": mem.peak(), "reset": mem.reset}
+    return {
+        "seconds": rep.wall_time,
+        "iterations": rep.iterations,
+        "sites": rep.n_sites,
+        "rss_before": mem.before,
+        "rss_peak": mem.peak(),
+        "reset": mem.reset,
+    }
 
 
 PROBES = {f.__name__: f for f in (serve_membrane, serve_string, train_kg_mlp, train_kepler_paper)}

@@ -69,14 +69,35 @@ def run(cfg: Config) -> Table:
     t_rk = dt * np.arange(len(qr))
     qe = systems.oscillator_wells(PSI0, n=400, dt=dt).values
     floor = float(np.abs(systems.oscillator_wells_energy(qe[2:-2], velocity(qe, dt)) - e0).max())
-    table = Table(NAME, TITLE, ["integrator", "steps", "wall time (s)", "steps/s", "max |E - E0|, first 10 %",
-                                "max |E - E0|, last 10 %", "last / first"])
+    table = Table(
+        NAME,
+        TITLE,
+        [
+            "integrator",
+            "steps",
+            "wall time (s)",
+            "steps/s",
+            "max |E - E0|, first 10 %",
+            "max |E - E0|, last 10 %",
+            "last / first",
+        ],
+    )
     vi_first, vi_last = _window_max(e_vi)
     rk_first, rk_last = _window_max(e_rk)
-    table.rows.append(["learned L_d (polynomial (4, 8)), ldft.serve", steps, t_serve, steps / t_serve, vi_first,
-                       vi_last, vi_last / vi_first])
-    table.rows.append(["RK4 on the true ODE (Python floats)", steps, t_rk4, steps / t_rk4, rk_first, rk_last,
-                       rk_last / rk_first])
+    table.rows.append(
+        [
+            "learned L_d (polynomial (4, 8)), ldft.serve",
+            steps,
+            t_serve,
+            steps / t_serve,
+            vi_first,
+            vi_last,
+            vi_last / vi_first,
+        ]
+    )
+    table.rows.append(
+        ["RK4 on the true ODE (Python floats)", steps, t_rk4, steps / t_rk4, rk_first, rk_last, rk_last / rk_first]
+    )
     table.notes += [
         f"System: `latticedft.systems.oscillator_wells` (paper Example 2), psi0 = {PSI0}, at rest, E0 = {e0:.6g}; "
         f"dt = {dt:g} for both. Learned from {len(TRAIN)} exact trajectories (psi0 = "
@@ -90,10 +111,20 @@ def run(cfg: Config) -> Table:
         path = cfg.out / "fidelity_energy.png"
         _figure(path, t_vi, e_vi, t_rk, e_rk, e0)
         table.notes.append(f"Figure: `{path.name}` in the output folder.")
-    table.checks.append(Check("learned VI: energy error bounded (last 10 % <= 2x first 10 %)",
-                              f"{vi_last / vi_first:.3g}x", vi_last <= 2 * vi_first))
-    table.checks.append(Check("RK4 drifts (its last/first ratio above the VI's)", f"{rk_last / rk_first:.3g}x",
-                              rk_last / rk_first > vi_last / vi_first))
+    table.checks.append(
+        Check(
+            "learned VI: energy error bounded (last 10 % <= 2x first 10 %)",
+            f"{vi_last / vi_first:.3g}x",
+            vi_last <= 2 * vi_first,
+        )
+    )
+    table.checks.append(
+        Check(
+            "RK4 drifts (its last/first ratio above the VI's)",
+            f"{rk_last / rk_first:.3g}x",
+            rk_last / rk_first > vi_last / vi_first,
+        )
+    )
     return table
 
 

@@ -32,8 +32,10 @@ ROTATION = np.array([[0.0, -1.0], [1.0, 0.0]])
 
 # cases/kepler: dt, launches (r0, speeds), box and escape horizon (cases/kepler/make_data.py)
 KEPLER_DT, KEPLER_BOX, KEPLER_T_ESCAPE = 0.05, 10.0, 30.0
-KEPLER_LAUNCHES = {"earth": (1.0167, [0.98, 1.13, 1.26, 1.40, 1.50]),
-                   "mercury": (0.4667, [1.30, 1.56, 1.80, 2.07, 2.20])}
+KEPLER_LAUNCHES = {
+    "earth": (1.0167, [0.98, 1.13, 1.26, 1.40, 1.50]),
+    "mercury": (0.4667, [1.30, 1.56, 1.80, 2.07, 2.20]),
+}
 
 
 def _kepler_launch(r0: float, v0: float):
@@ -50,9 +52,11 @@ def _rotated(orbit, angle: float):
 
 def _sine_gordon() -> ldft.AnalyticLagrangian:
     """The explicit scheme of psi_tt = psi_xx - sin psi: forward differences, the potential at the anchor."""
+
     def fn(c, h):
         u = c[..., 0, 0]
         return 0.5 * ((c[..., 1, 0] - u) / h[0]) ** 2 - 0.5 * ((c[..., 2, 0] - u) / h[1]) ** 2 - (1.0 - torch.cos(u))
+
     return ldft.AnalyticLagrangian(fn, name="sine-Gordon, explicit scheme")
 
 
@@ -87,11 +91,19 @@ def kepler(cfg: Config, table: Table, discovery: Table) -> None:
                 out.append((err.result.field, True))
         return out
 
-    models = [("analytic Verlet", lagrangians.kepler(), None),
-              ("radial MLP (case)", ldft.MLPLagrangian(preset="radial"),
-               {"max_iter": 60 if cfg.quick else 500, "max_time": 150}),
-              ("free MLP", ldft.MLPLagrangian(hidden=[32, 32], activation="tanh", form="free", features="differences"),
-               {"max_iter": 60 if cfg.quick else 300})]
+    models = [
+        ("analytic Verlet", lagrangians.kepler(), None),
+        (
+            "radial MLP (case)",
+            ldft.MLPLagrangian(preset="radial"),
+            {"max_iter": 60 if cfg.quick else 500, "max_time": 150},
+        ),
+        (
+            "free MLP",
+            ldft.MLPLagrangian(hidden=[32, 32], activation="tanh", form="free", features="differences"),
+            {"max_iter": 60 if cfg.quick else 300},
+        ),
+    ]
     for label, model, kw in models:
         if kw is not None:
             rep = ldft.learn(model, train, **kw)
@@ -103,21 +115,47 @@ def kepler(cfg: Config, table: Table, discovery: Table) -> None:
             failed = sum(bad for _, bad in part)
             if failed:
                 task += f" ({failed} stopped by a Newton failure)"
-            table.rows.append(["Kepler (6 planets)", label, "rotation-xy", sym.residual, sym.residual_equations,
-                               sym.verdict, task, jd, ed])
+            table.rows.append(
+                [
+                    "Kepler (6 planets)",
+                    label,
+                    "rotation-xy",
+                    sym.residual,
+                    sym.residual_equations,
+                    sym.verdict,
+                    task,
+                    jd,
+                    ed,
+                ]
+            )
         merr, werr, res = _discovery_error(model, train)
         discovery.rows.append(["Kepler (6 planets)", label, merr, werr, res])
     # a potential of the position (not invariant by construction) learned from orbits in several orientations
-    rotated = [_rotated(systems.planet_orbit(p), 2 * math.pi * k / 3 + i)
-               for i, p in enumerate(("Venus", "Earth", "Mars")) for k in range(3)]
+    rotated = [
+        _rotated(systems.planet_orbit(p), 2 * math.pi * k / 3 + i)
+        for i, p in enumerate(("Venus", "Earth", "Mars"))
+        for k in range(3)
+    ]
     kp = ldft.MLPLagrangian(hidden=[32, 32], activation="tanh", form="kinetic-potential", features="values")
     rep = ldft.learn(kp, rotated, max_iter=60 if cfg.quick else 300)
     label = f"kinetic-potential MLP of q, rel_res {rep.rel_res:.1e}"
     sym = _rep(ldft.symmetries(kp, rotated, ["rotation-xy"]), "rotation-xy")
-    jd, ed = _drifts(kp, [ldft.serve(kp, launches[0].isel(t=slice(0, 2)), steps=launches[0].sizes["t"]).field],
-                     "rotation-xy")
-    table.rows.append(["Kepler (3 planets x 3 orientations)", label, "rotation-xy", sym.residual,
-                       sym.residual_equations, sym.verdict, "earth_0.98", jd, ed])
+    jd, ed = _drifts(
+        kp, [ldft.serve(kp, launches[0].isel(t=slice(0, 2)), steps=launches[0].sizes["t"]).field], "rotation-xy"
+    )
+    table.rows.append(
+        [
+            "Kepler (3 planets x 3 orientations)",
+            label,
+            "rotation-xy",
+            sym.residual,
+            sym.residual_equations,
+            sym.verdict,
+            "earth_0.98",
+            jd,
+            ed,
+        ]
+    )
     discovery.rows.append(["Kepler (3 planets x 3 orientations)", label, *_discovery_error(kp, rotated)])
 
 
@@ -136,8 +174,19 @@ def quartic(cfg: Config, table: Table, discovery: Table) -> None:
     launch = systems.make_field([[1.0, 0.0], [1.0, 0.12]], ["t"], spacing=0.1, components=["x", "y"])
     served = ldft.serve(model, launch, steps=2000).field
     jd, ed = _drifts(model, [served], "rotation-xy")
-    table.rows.append(["isotropic quartic oscillator", label, "rotation-xy", sym.residual, sym.residual_equations,
-                       sym.verdict, "2000 steps", jd, ed])
+    table.rows.append(
+        [
+            "isotropic quartic oscillator",
+            label,
+            "rotation-xy",
+            sym.residual,
+            sym.residual_equations,
+            sym.verdict,
+            "2000 steps",
+            jd,
+            ed,
+        ]
+    )
     discovery.rows.append(["isotropic quartic oscillator", label, *_discovery_error(model, orbits)])
 
 
@@ -151,9 +200,11 @@ def klein_gordon(cfg: Config, table: Table) -> None:
 
     travelling = systems.klein_gordon(wave(0.0), wave(0.03), steps=1)
     mlp = ldft.MLPLagrangian(hidden=[10, 10], activation="tanh", form="kinetic-potential", seed=0)
-    models = [("analytic", lagrangians.klein_gordon(), None),
-              ("polynomial (2, 2) (case)", ldft.PolynomialLagrangian(orders=(2, 2)), {}),
-              ("kinetic-potential MLP (case mlp/)", mlp, {"optimizer": "lbfgs", "max_iter": 30 if cfg.quick else 150})]
+    models = [
+        ("analytic", lagrangians.klein_gordon(), None),
+        ("polynomial (2, 2) (case)", ldft.PolynomialLagrangian(orders=(2, 2)), {}),
+        ("kinetic-potential MLP (case mlp/)", mlp, {"optimizer": "lbfgs", "max_iter": 30 if cfg.quick else 150}),
+    ]
     for label, model, kw in models:
         if kw is not None:
             rep = ldft.learn(model, train, boundary="periodic", **kw)
@@ -162,8 +213,19 @@ def klein_gordon(cfg: Config, table: Table) -> None:
         for task, init in (("test400 (standing)", test), ("travelling, k = 1 + 3", travelling)):
             served = ldft.serve(model, init.isel(t=slice(0, 2)), steps=401, boundary="periodic").field
             jd, ed = _drifts(model, [served], "momentum-x")
-            table.rows.append(["Klein-Gordon, periodic", label, "momentum-x", sym.residual, sym.residual_equations,
-                               sym.verdict, task, jd, ed])
+            table.rows.append(
+                [
+                    "Klein-Gordon, periodic",
+                    label,
+                    "momentum-x",
+                    sym.residual,
+                    sym.residual_equations,
+                    sym.verdict,
+                    task,
+                    jd,
+                    ed,
+                ]
+            )
 
 
 def sine_gordon(cfg: Config, table: Table) -> None:
@@ -173,8 +235,13 @@ def sine_gordon(cfg: Config, table: Table) -> None:
     moving["x"].attrs["periodic"] = "true"  # 400 sites, period 40: the breather's tails are ~1e-6 at the ends
     models: list[tuple[str, Any, Any]] = [("analytic (explicit scheme)", _sine_gordon(), None)]
     if not cfg.quick:
-        models.append(("polynomial (2, 12), time-symmetric (case)",
-                       ldft.PolynomialLagrangian(orders=(2, 12), time_symmetric=True), {"ridge": "auto"}))
+        models.append(
+            (
+                "polynomial (2, 12), time-symmetric (case)",
+                ldft.PolynomialLagrangian(orders=(2, 12), time_symmetric=True),
+                {"ridge": "auto"},
+            )
+        )
     for label, model, kw in models:
         if kw is not None:
             rep = ldft.learn(model, train, **kw)
@@ -182,26 +249,57 @@ def sine_gordon(cfg: Config, table: Table) -> None:
         per = ldft.serve(model, moving, steps=401, boundary="periodic").field
         sym = _rep(ldft.symmetries(model, per.isel(t=slice(0, 60)), ["momentum-x"]), "momentum-x")
         jd, ed = _drifts(model, [per], "momentum-x")
-        table.rows.append(["sine-Gordon, periodic x in [-20, 20)", label, "momentum-x", sym.residual,
-                           sym.residual_equations, sym.verdict, "moving breather, 400 steps", jd, ed])
+        table.rows.append(
+            [
+                "sine-Gordon, periodic x in [-20, 20)",
+                label,
+                "momentum-x",
+                sym.residual,
+                sym.residual_equations,
+                sym.verdict,
+                "moving breather, 400 steps",
+                jd,
+                ed,
+            ]
+        )
 
 
 def run_all(cfg: Config) -> list[Table]:
     torch.set_num_threads(cfg.threads)
     t0 = time.perf_counter()
-    table = Table(NAME, TITLE, ["system", "model", "symmetry", "residual", "equations residual", "verdict",
-                                "served", "charge drift", "energy oscillation"])
-    discovery = Table(NAME + "-discovery", "Discovered affine generator M psi + w on the training data",
-                      ["system", "model", "max |M - [[0,-1],[1,0]]|", "max |w|", "residual"])
+    table = Table(
+        NAME,
+        TITLE,
+        [
+            "system",
+            "model",
+            "symmetry",
+            "residual",
+            "equations residual",
+            "verdict",
+            "served",
+            "charge drift",
+            "energy oscillation",
+        ],
+    )
+    discovery = Table(
+        NAME + "-discovery",
+        "Discovered affine generator M psi + w on the training data",
+        ["system", "model", "max |M - [[0,-1],[1,0]]|", "max |w|", "residual"],
+    )
     kepler(cfg, table, discovery)
     quartic(cfg, table, discovery)
     klein_gordon(cfg, table)
     sine_gordon(cfg, table)
     table.notes += [
-        ("residual, equations residual: `ldft.symmetries` on the training data (for sine-Gordon: on the first 60 "
-         "served slices); verdict at tol = 1e-9"),
-        ("charge drift, energy oscillation: (max - min) / scale of `ldft.noether_charge` and `ldft.discrete_energy` "
-         "along the served fields (the largest over the launches for Kepler)"),
+        (
+            "residual, equations residual: `ldft.symmetries` on the training data (for sine-Gordon: on the first 60 "
+            "served slices); verdict at tol = 1e-9"
+        ),
+        (
+            "charge drift, energy oscillation: (max - min) / scale of `ldft.noether_charge` and `ldft.discrete_energy` "
+            "along the served fields (the largest over the launches for Kepler)"
+        ),
     ]
     table.seconds = discovery.seconds = time.perf_counter() - t0
     return [table, discovery]

@@ -59,8 +59,14 @@ def _exact():
     return lambda: ldft.learn(ldft.PolynomialLagrangian(orders=(4, 8)), data, progress=False)
 
 
-TARGETS = {"wave-1+1d": _wave, "mlp-1+1d": _mlp, "membrane-2+1d": _membrane, "kepler-1d": _kepler, "poly-1d": _poly,
-           "exact-learn": _exact}
+TARGETS = {
+    "wave-1+1d": _wave,
+    "mlp-1+1d": _mlp,
+    "membrane-2+1d": _membrane,
+    "kepler-1d": _kepler,
+    "poly-1d": _poly,
+    "exact-learn": _exact,
+}
 
 
 def main(argv: list[str] | None = None) -> int:

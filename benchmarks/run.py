@@ -51,14 +51,26 @@ def main(argv: list[str] | None = None) -> int:
     mods = _load()
     p = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="tiny sizes: checks that everything runs (seconds)")
-    p.add_argument("--only", action="append", default=[], metavar="NAME",
-                   help=f"run only these benchmarks (repeat or comma-separate): {', '.join(mods)}")
+    p.add_argument(
+        "--only",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help=f"run only these benchmarks (repeat or comma-separate): {', '.join(mods)}",
+    )
     p.add_argument("--out", type=Path, help="folder for results.json, results.md and figures")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1; the machine is shared)")
-    p.add_argument("--profile", action="store_true",
-                   help="run each benchmark under cProfile and print (and write) its top functions by own time")
-    p.add_argument("--fidelity-steps", type=int, metavar="N",
-                   help="steps of the long-run fidelity benchmark (default 100000; 300 with --quick)")
+    p.add_argument(
+        "--profile",
+        action="store_true",
+        help="run each benchmark under cProfile and print (and write) its top functions by own time",
+    )
+    p.add_argument(
+        "--fidelity-steps",
+        type=int,
+        metavar="N",
+        help="steps of the long-run fidelity benchmark (default 100000; 300 with --quick)",
+    )
     args = p.parse_args(argv)
     only = [n for item in args.only for n in item.split(",") if n]
     unknown = [n for n in only if n not in mods]
@@ -73,8 +85,11 @@ def main(argv: list[str] | None = None) -> int:
     cfg = Config(quick=args.quick, out=args.out, threads=args.threads, fidelity_steps=args.fidelity_steps)
     command = "python -m benchmarks " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     info = machine(args.threads)
-    print(f"# {command}\n# {info['cpu']}, {info['cores']} cores, torch threads {args.threads}, "
-          f"load average {info['load_average']}", flush=True)
+    print(
+        f"# {command}\n# {info['cpu']}, {info['cores']} cores, torch threads {args.threads}, "
+        f"load average {info['load_average']}",
+        flush=True,
+    )
     tables: list[Table] = []
     failed: list[str] = []
     t_all = time.perf_counter()
@@ -108,14 +123,24 @@ def main(argv: list[str] | None = None) -> int:
     total = time.perf_counter() - t_all
     print(f"# total {total:.1f} s, load average after {info['load_average_after']}", flush=True)
     if args.out is not None:
-        payload = {"command": command, "machine": info, "quick": args.quick, "seconds": total,
-                   "benchmarks": [t.to_dict() for t in tables], "failed": failed}
+        payload = {
+            "command": command,
+            "machine": info,
+            "quick": args.quick,
+            "seconds": total,
+            "benchmarks": [t.to_dict() for t in tables],
+            "failed": failed,
+        }
         (args.out / "results.json").write_text(json.dumps(payload, indent=2, default=float) + "\n")
-        md = [f"Command: `{command}`", "",
-              f"Machine: {info['cpu']}, {info['cores']} cores, torch {info['torch']} with "
-              f"{args.threads} thread(s), Python {info['python']}, numpy {info['numpy']}, scipy {info['scipy']}; "
-              f"load average {info['load_average']} before, {info['load_average_after']} after; "
-              f"total {total:.0f} s.", ""]
+        md = [
+            f"Command: `{command}`",
+            "",
+            f"Machine: {info['cpu']}, {info['cores']} cores, torch {info['torch']} with "
+            f"{args.threads} thread(s), Python {info['python']}, numpy {info['numpy']}, scipy {info['scipy']}; "
+            f"load average {info['load_average']} before, {info['load_average_after']} after; "
+            f"total {total:.0f} s.",
+            "",
+        ]
         md += [markdown(t) + "\n" for t in tables] + [markdown(targets).replace("### ", "### ") + "\n"]
         (args.out / "results.md").write_text("\n".join(md))
         print(f"# wrote {args.out / 'results.json'} and {args.out / 'results.md'}")

@@ -39,8 +39,18 @@ def root_per_step(model: ldft.AbstractLagrangian, q0: np.ndarray, q1: np.ndarray
 def run(cfg: Config) -> Table:
     model = kepler_mlp(cfg.quick)
     n, n_base, batch = (20, 3, 16) if cfg.quick else (2000, 40, 16)
-    table = Table(NAME, TITLE, ["serving", "trajectories x steps", "wall time (s)", "trajectory-steps/s",
-                                "x root-per-step baseline", "max |q - q_baseline|"])
+    table = Table(
+        NAME,
+        TITLE,
+        [
+            "serving",
+            "trajectories x steps",
+            "wall time (s)",
+            "trajectory-steps/s",
+            "x root-per-step baseline",
+            "max |q - q_baseline|",
+        ],
+    )
     init = kepler_inits(1)[0]
     q = init.values
     t0 = time.perf_counter()
@@ -61,8 +71,16 @@ def run(cfg: Config) -> Table:
         t_many = time.perf_counter() - t0
         done = sum(r.slices - 2 for r in many)
         diff_b = float(np.abs(many[0].field.values[: n_base + 2] - base).max())
-        table.rows.append([f"ldft.serve, batch of {size} (a list)", f"{size} x {n}", t_many, done / t_many,
-                           done / t_many / sps_base, diff_b])
+        table.rows.append(
+            [
+                f"ldft.serve, batch of {size} (a list)",
+                f"{size} x {n}",
+                t_many,
+                done / t_many,
+                done / t_many / sps_base,
+                diff_b,
+            ]
+        )
         if size == batch:
             ratio = done / t_many / sps_base
     table.notes += [
@@ -76,6 +94,7 @@ def run(cfg: Config) -> Table:
         "Orbits: radii 0.6 .. 2.5 au, near-circular speeds, all bound. The target is checked on the batch of "
         f"{batch}; the larger batch shows how the rate scales with the batch size.",
     ]
-    table.checks.append(Check(">= 1e4x the root-per-step baseline per trajectory-step, batched",
-                              f"{ratio:.3g}x", ratio >= 1e4))
+    table.checks.append(
+        Check(">= 1e4x the root-per-step baseline per trajectory-step, batched", f"{ratio:.3g}x", ratio >= 1e4)
+    )
     return table

@@ -22,10 +22,24 @@ def _sizes(quick: bool) -> list[tuple[int, int, int]]:
 
 
 def run(cfg: Config) -> Table:
-    table = Table(NAME, TITLE, ["lattice (x * t)", "boundary", "L_d", "solver", "serve sites/s",
-                                "Newton sites/s (affine=False)", "sweep sites/s", "leapfrog sites/s",
-                                "serve / sweep speed", "serve / leapfrog time", "iters/slice",
-                                "max |served - leapfrog|"])
+    table = Table(
+        NAME,
+        TITLE,
+        [
+            "lattice (x * t)",
+            "boundary",
+            "L_d",
+            "solver",
+            "serve sites/s",
+            "Newton sites/s (affine=False)",
+            "sweep sites/s",
+            "leapfrog sites/s",
+            "serve / sweep speed",
+            "serve / leapfrog time",
+            "iters/slice",
+            "max |served - leapfrog|",
+        ],
+    )
     wave = ldft.lagrangians.wave()
     mlp = kg_mlp(cfg.quick)
     worst = {"wave_sps": np.inf, "wave_vs_leapfrog": 0.0, "vs_sweep": np.inf}
@@ -36,9 +50,11 @@ def run(cfg: Config) -> Table:
                 inner = nx - 2 if boundary == "dirichlet" else nx
                 sites = (nt - 2) * inner
                 bvals = ref if boundary == "dirichlet" else None
-                t_lf, lf = best_time(lambda ref=ref, nt=nt, force=force, boundary=boundary, bvals=bvals:
-                                     systems.leapfrog(ref[0], ref[1], nt - 1, DT, DX, force=force, boundary=boundary,
-                                                      boundary_values=bvals))
+                t_lf, lf = best_time(
+                    lambda ref=ref, nt=nt, force=force, boundary=boundary, bvals=bvals: systems.leapfrog(
+                        ref[0], ref[1], nt - 1, DT, DX, force=force, boundary=boundary, boundary_values=bvals
+                    )
+                )
                 t0 = time.perf_counter()
                 res = ldft.serve(model, da, boundary=boundary, progress=False)
                 t_newton = time.perf_counter() - t0
@@ -55,9 +71,22 @@ def run(cfg: Config) -> Table:
                 sps_newton = sites / t_newton
                 sps_sweep = nsweep * inner / t_sweep
                 err = float(np.abs(res.field.values - lf).max())
-                table.rows.append([f"{nx} x {nt}", boundary, label, res.solver, sps_newton, sites / t_forced,
-                                   sps_sweep, sites / t_lf, sps_newton / sps_sweep, t_newton / t_lf,
-                                   res.newton_iterations / (nt - 2), err])
+                table.rows.append(
+                    [
+                        f"{nx} x {nt}",
+                        boundary,
+                        label,
+                        res.solver,
+                        sps_newton,
+                        sites / t_forced,
+                        sps_sweep,
+                        sites / t_lf,
+                        sps_newton / sps_sweep,
+                        t_newton / t_lf,
+                        res.newton_iterations / (nt - 2),
+                        err,
+                    ]
+                )
                 worst["vs_sweep"] = min(worst["vs_sweep"], sps_newton / sps_sweep)
                 if label == "wave":
                     worst["wave_sps"] = min(worst["wave_sps"], sps_newton)
@@ -81,11 +110,16 @@ def run(cfg: Config) -> Table:
         "L-BFGS on 8 periodic Klein-Gordon fields (20 x 20 sites); dt = 0.025, dx = 0.05 on every lattice.",
     ]
     table.checks += [
-        Check("wave L_d: >= 1e6 sites/s (slowest row)", f"{worst['wave_sps']:.3g} sites/s",
-              worst["wave_sps"] >= 1e6),
-        Check("wave L_d: <= 10x the leapfrog's time (worst row)", f"{worst['wave_vs_leapfrog']:.3g}x",
-              worst["wave_vs_leapfrog"] <= 10),
-        Check(">= 100x faster than the site-by-site sweep (worst row)", f"{worst['vs_sweep']:.3g}x",
-              worst["vs_sweep"] >= 100),
+        Check("wave L_d: >= 1e6 sites/s (slowest row)", f"{worst['wave_sps']:.3g} sites/s", worst["wave_sps"] >= 1e6),
+        Check(
+            "wave L_d: <= 10x the leapfrog's time (worst row)",
+            f"{worst['wave_vs_leapfrog']:.3g}x",
+            worst["wave_vs_leapfrog"] <= 10,
+        ),
+        Check(
+            ">= 100x faster than the site-by-site sweep (worst row)",
+            f"{worst['vs_sweep']:.3g}x",
+            worst["vs_sweep"] >= 100,
+        ),
     ]
     return table

@@ -21,28 +21,52 @@ def _time_to(history: list[tuple[int, float, float]], level: float) -> float:
 
 
 def _kepler_model() -> ldft.MLPLagrangian:
-    return ldft.MLPLagrangian(hidden=[40, 40], activation="tanh", form="kinetic-potential",
-                              features="inverse-radius", seed=0)
+    return ldft.MLPLagrangian(
+        hidden=[40, 40], activation="tanh", form="kinetic-potential", features="inverse-radius", seed=0
+    )
 
 
 def run(cfg: Config) -> Table:
-    table = Table(NAME, TITLE, ["task", "data", "optimizer", "wall time (s)", "iterations", "objective reduction",
-                                "rel_res", "stop reason"])
+    table = Table(
+        NAME,
+        TITLE,
+        ["task", "data", "optimizer", "wall time (s)", "iterations", "objective reduction", "rel_res", "stop reason"],
+    )
     data = systems.oscillator_sin(1.2, n=51, dt=1.0)
     model = ldft.PolynomialLagrangian(orders=(4, 8))
     t_exact, rep = best_time(lambda: ldft.learn(model, data, progress=False), repeat=2 if cfg.quick else 5)
-    table.rows.append(["polynomial (4, 8), paper Example 1", "1 sequence, 51 samples", "exact", t_exact,
-                       rep.iterations, None, rep.rel_res, rep.stop_reason])
+    table.rows.append(
+        [
+            "polynomial (4, 8), paper Example 1",
+            "1 sequence, 51 samples",
+            "exact",
+            t_exact,
+            rep.iterations,
+            None,
+            rep.rel_res,
+            rep.stop_reason,
+        ]
+    )
     cap = 1.0 if cfg.quick else 60.0
     orbits = kepler_training(cfg.quick)
     reports = {}
     for opt in ("lbfgs", "adam"):
-        rep = ldft.learn(_kepler_model(), orbits, optimizer=opt, rel_tol=1e-5, max_iter=10 ** 7, max_time=cap,
-                         lr=1e-3, progress=False)
+        rep = ldft.learn(
+            _kepler_model(), orbits, optimizer=opt, rel_tol=1e-5, max_iter=10**7, max_time=cap, lr=1e-3, progress=False
+        )
         reports[opt] = rep
-        table.rows.append(["Kepler MLP 1-40-40-1 (kinetic-potential)", f"{len(orbits)} orbits, {rep.n_sites} sites",
-                           "L-BFGS" if opt == "lbfgs" else "Adam (lr 1e-3)", rep.wall_time, rep.iterations,
-                           rep.initial_loss / rep.history[-1][1], rep.rel_res, rep.stop_reason])
+        table.rows.append(
+            [
+                "Kepler MLP 1-40-40-1 (kinetic-potential)",
+                f"{len(orbits)} orbits, {rep.n_sites} sites",
+                "L-BFGS" if opt == "lbfgs" else "Adam (lr 1e-3)",
+                rep.wall_time,
+                rep.iterations,
+                rep.initial_loss / rep.history[-1][1],
+                rep.rel_res,
+                rep.stop_reason,
+            ]
+        )
     lb, ad = reports["lbfgs"], reports["adam"]
     lb_hit = lb.stop_reason.startswith("objective reduced")
     ad_hit = ad.stop_reason.startswith("objective reduced")
@@ -67,19 +91,24 @@ def run(cfg: Config) -> Table:
         f"{ad.wall_time:.3g} s: {ad.wall_time / t_same:.3g}x at equal objective. L-BFGS was within 1 % of its "
         f"final objective ({lb.history[-1][1]:.3g}) after {_time_to(lb.history, 1.01 * lb.history[-1][1]):.3g} s.",
     ]
-    table.checks.append(Check("polynomial exact solve <= 50 ms (Example 1 size)", f"{1e3 * t_exact:.3g} ms",
-                              t_exact <= 0.05))
+    table.checks.append(
+        Check("polynomial exact solve <= 50 ms (Example 1 size)", f"{1e3 * t_exact:.3g} ms", t_exact <= 0.05)
+    )
     equal = ad.wall_time / t_same
     if lb_hit:
         measured = f"{how} {ratio:.3g}x to objective / 1e5" + ("" if ad_hit else f" (Adam capped at {cap:g} s)")
         met = ratio >= 10
     else:  # the rule was not reached within the cap: compare at the objective Adam ended with
-        measured = (f"rule not reached in {cap:g} s (L-BFGS {lb.initial_loss / lb.history[-1][1]:.3g}x, Adam "
-                    f"{ad.initial_loss / ad.history[-1][1]:.3g}x); at Adam's final objective {equal:.3g}x")
+        measured = (
+            f"rule not reached in {cap:g} s (L-BFGS {lb.initial_loss / lb.history[-1][1]:.3g}x, Adam "
+            f"{ad.initial_loss / ad.history[-1][1]:.3g}x); at Adam's final objective {equal:.3g}x"
+        )
         met = equal >= 10
-    table.checks.append(Check("Kepler MLP: L-BFGS >= 10x faster than Adam (to objective / 1e5; else to "
-                              "Adam's final objective)", measured, bool(met)))
+    table.checks.append(
+        Check(
+            "Kepler MLP: L-BFGS >= 10x faster than Adam (to objective / 1e5; else to Adam's final objective)",
+            measured,
+            bool(met),
+        )
+    )
     return table
-
-
-

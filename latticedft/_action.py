@@ -21,8 +21,9 @@ if TYPE_CHECKING:  # the action evaluates any model; models sit a layer above
 __all__ = ["action", "del_residual", "mixed_hessian", "cell_derivatives", "CellDerivatives", "second_time_difference"]
 
 
-def action(model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: tuple[bool, ...],
-           batch: int = 0) -> torch.Tensor:
+def action(
+    model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: tuple[bool, ...], batch: int = 0
+) -> torch.Tensor:
     """Total discrete action of one field ``psi`` with shape ``(*N, m)`` (summed over ``batch`` leading axes)."""
     cells = gather_cells(psi, model.stencil, periodic, batch)
     return math.prod(spacing) * model(cells).sum()
@@ -41,8 +42,9 @@ def del_residual(model, f: LatticeField, *, create_graph: bool = False) -> torch
     return g[(slice(None),) * f.batch + interior_slices(f.shape, model.stencil, f.boundary)]
 
 
-def cell_derivatives(model: AbstractLagrangian, cells: torch.Tensor, pairs: list[tuple[int, int]], *,
-                     create_graph: bool = False) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]]:
+def cell_derivatives(
+    model: AbstractLagrangian, cells: torch.Tensor, pairs: list[tuple[int, int]], *, create_graph: bool = False
+) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]]:
     """Per-cell gradient ``dL/dx_a`` (``(*cells, K, m)``) and Hessian blocks.
 
     ``pairs`` lists the ``(a, b)`` stencil positions whose ``m x m`` blocks
@@ -66,8 +68,9 @@ def cell_derivatives(model: AbstractLagrangian, cells: torch.Tensor, pairs: list
         for b in bs:
             cols[b] = []
             for j in range(m):
-                (hj,) = torch.autograd.grad(g[..., b, j].sum(), x, retain_graph=True, create_graph=create_graph,
-                                            allow_unused=True)
+                (hj,) = torch.autograd.grad(
+                    g[..., b, j].sum(), x, retain_graph=True, create_graph=create_graph, allow_unused=True
+                )
                 if hj is None:
                     hj = torch.zeros_like(x)
                 cols[b].append(hj)  # d/dx_b,j of dL/dx  -> (*cells, K, m)

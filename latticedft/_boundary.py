@@ -43,8 +43,21 @@ import numpy as np
 
 from ._errors import InputError
 
-__all__ = ["BoundaryKind", "KINDS", "BOUNDARY_KINDS", "DEFAULT_KIND", "TIME_KIND", "BoundaryKinds",
-           "kind", "spatial_kind", "axis_kinds", "kinds_text", "parse_boundary", "lattice_boundary", "missing_edges"]
+__all__ = [
+    "BoundaryKind",
+    "KINDS",
+    "BOUNDARY_KINDS",
+    "DEFAULT_KIND",
+    "TIME_KIND",
+    "BoundaryKinds",
+    "kind",
+    "spatial_kind",
+    "axis_kinds",
+    "kinds_text",
+    "parse_boundary",
+    "lattice_boundary",
+    "missing_edges",
+]
 
 #: The ``boundary`` argument: one kind for every spatial axis, or a dict axis -> kind (others Dirichlet).
 BoundaryKinds = str | dict[str, str]
@@ -209,8 +222,9 @@ def parse_boundary(boundary: BoundaryKinds, dims: Sequence[str], source: str) ->
     elif isinstance(boundary, dict):
         unknown = [k for k in boundary if k not in spatial]
         if unknown:
-            raise InputError.at("boundary", f"unknown axis {unknown[0]!r}; the spatial axes of {source} are "
-                                            f"{list(spatial)}")
+            raise InputError.at(
+                "boundary", f"unknown axis {unknown[0]!r}; the spatial axes of {source} are {list(spatial)}"
+            )
         names = {d: boundary.get(d, DEFAULT_KIND) for d in spatial}
     else:
         raise InputError.at("boundary", f"expected {kinds_text(', ')} or a table axis -> kind, got {boundary!r}")
@@ -220,8 +234,9 @@ def parse_boundary(boundary: BoundaryKinds, dims: Sequence[str], source: str) ->
     return (TIME_KIND, *(names[d] for d in spatial))
 
 
-def lattice_boundary(periodic_attrs: Sequence[bool | None], boundary: BoundaryKinds | None, dims: Sequence[str],
-                     source: str) -> tuple[str, ...]:
+def lattice_boundary(
+    periodic_attrs: Sequence[bool | None], boundary: BoundaryKinds | None, dims: Sequence[str], source: str
+) -> tuple[str, ...]:
     """Kind names of every lattice axis of a field: from ``boundary`` when given, else from the coordinates'
     ``periodic`` attributes (``periodic_attrs``, None where absent; periodic or :data:`DEFAULT_KIND`)."""
     if boundary is not None:
@@ -232,8 +247,9 @@ def lattice_boundary(periodic_attrs: Sequence[bool | None], boundary: BoundaryKi
 
 
 # -- serving -------------------------------------------------------------------------------------------------
-def missing_edges(boundary: Sequence[str | bool | BoundaryKind], dims: Sequence[str], given: int,
-                  steps: int) -> tuple[str, BoundaryKind] | None:
+def missing_edges(
+    boundary: Sequence[str | bool | BoundaryKind], dims: Sequence[str], given: int, steps: int
+) -> tuple[str, BoundaryKind] | None:
     """The first spatial axis (and its kind) whose edge values are data that a field of ``given`` slices lacks
     for ``steps`` served slices (the Dirichlet strips), or None when nothing is missing."""
     if given >= steps:

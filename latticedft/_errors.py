@@ -60,8 +60,15 @@ class ServeError(LatticeDFTError, RuntimeError):
     value.
     """
 
-    def __init__(self, message: str, *, result: Any = None, slice: int | None = None,
-                 site: tuple[int, ...] | None = None, residual: float | None = None):
+    def __init__(
+        self,
+        message: str,
+        *,
+        result: Any = None,
+        slice: int | None = None,
+        site: tuple[int, ...] | None = None,
+        residual: float | None = None,
+    ):
         super().__init__(message)
         self.result = result
         self.slice = slice

@@ -70,7 +70,7 @@ class LatticeField:
     @property
     def shape(self) -> tuple[int, ...]:
         """Lattice shape (without leading batch dims and the component axis)."""
-        return tuple(self.values.shape[self.batch:-1])
+        return tuple(self.values.shape[self.batch : -1])
 
     def with_values(self, values: torch.Tensor, t0: float | None = None) -> LatticeField:
         """The same lattice description around new values (time length may differ)."""
@@ -98,16 +98,22 @@ class LatticeField:
         else:
             dims.append(COMPONENT_DIM)
             coords[COMPONENT_DIM] = list(self.components)
-        return xr.DataArray(np.ascontiguousarray(v), dims=dims, coords=coords, name=name or self.name,
-                            attrs=dict(self.attrs))
+        return xr.DataArray(
+            np.ascontiguousarray(v), dims=dims, coords=coords, name=name or self.name, attrs=dict(self.attrs)
+        )
 
     coord_attrs: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: Leading batch dims of ``values``: fields of one shape stacked for training (never coupled).
     batch: int = 0
 
 
-def as_lattice_field(data: xr.DataArray | LatticeField, *, source: str | None = None,
-                     boundary: BoundaryKinds | None = None, min_slices: int = 3) -> LatticeField:
+def as_lattice_field(
+    data: xr.DataArray | LatticeField,
+    *,
+    source: str | None = None,
+    boundary: BoundaryKinds | None = None,
+    min_slices: int = 3,
+) -> LatticeField:
     """Validate a DataArray in the field layout and convert it to a :class:`LatticeField`.
 
     ``boundary`` (a kind for every spatial axis or a dict axis -> kind)
@@ -155,7 +161,7 @@ def gather_cells(psi: torch.Tensor, stencil: Stencil, boundary: AxisBoundaries, 
     """
     n = stencil.ndim
     kinds = axis_kinds(boundary)
-    shape = psi.shape[batch:batch + n]
+    shape = psi.shape[batch : batch + n]
     lo, width = stencil.lo, stencil.width
     parts = []
     for off in stencil.offsets:
@@ -168,5 +174,6 @@ def gather_cells(psi: torch.Tensor, stencil: Stencil, boundary: AxisBoundaries, 
 
 def interior_slices(shape: tuple[int, ...], stencil: Stencil, boundary: AxisBoundaries) -> tuple[slice, ...]:
     """Sites ``y`` where every cell ``y - s_a`` exists (the sites that carry a DEL equation)."""
-    return tuple(k.interior(int(nk), int(stencil.width[i]))
-                 for i, (nk, k) in enumerate(zip(shape, axis_kinds(boundary))))
+    return tuple(
+        k.interior(int(nk), int(stencil.width[i])) for i, (nk, k) in enumerate(zip(shape, axis_kinds(boundary)))
+    )

@@ -179,8 +179,7 @@ def parse_periodic(value: Any, dim: str = "?", source: str = "<array>") -> bool:
     if isinstance(value, str) and value.strip().lower() in _PERIODIC_TEXT:
         return _PERIODIC_TEXT[value.strip().lower()]
     raise InputError(
-        f"{source}: attribute '{PERIODIC_ATTR}' of coordinate '{dim}' is {value!r}; "
-        f"expected \"true\" or \"false\""
+        f"{source}: attribute '{PERIODIC_ATTR}' of coordinate '{dim}' is {value!r}; expected \"true\" or \"false\""
     )
 
 
@@ -241,8 +240,7 @@ def _check_components(da: xr.DataArray, source: str, components: Sequence[str] |
         )
     if COMPONENT_DIM not in da.coords:
         raise InputError(
-            f"{source}: dim '{COMPONENT_DIM}' has no coordinate; expected string labels "
-            f"such as ['x', 'y']"
+            f"{source}: dim '{COMPONENT_DIM}' has no coordinate; expected string labels such as ['x', 'y']"
         )
     labels = np.asarray(da.coords[COMPONENT_DIM].values)
     if not all(isinstance(v, (str, np.str_)) for v in labels.tolist()):
@@ -253,8 +251,7 @@ def _check_components(da: xr.DataArray, source: str, components: Sequence[str] |
     found = [str(v) for v in labels.tolist()]
     if components is not None and found != [str(c) for c in components]:
         raise InputError(
-            f"{source}: component labels do not match: expected "
-            f"{[str(c) for c in components]!r}, found {found!r}"
+            f"{source}: component labels do not match: expected {[str(c) for c in components]!r}, found {found!r}"
         )
 
 
@@ -303,13 +300,10 @@ def validate_field(
     what = "field" if da.name is None else f"field {da.name!r}"
     dims = lattice_dims(da)
     if not dims:
-        raise InputError(
-            f"{source}: {what} has no lattice dims; expected e.g. psi(t), psi(t, x)"
-        )
+        raise InputError(f"{source}: {what} has no lattice dims; expected e.g. psi(t), psi(t, x)")
     for dim in dims:
         check_coordinate(da, dim, source)
-    if not (np.issubdtype(da.dtype, np.floating) or np.issubdtype(da.dtype, np.integer)) \
-            or da.dtype == bool:
+    if not (np.issubdtype(da.dtype, np.floating) or np.issubdtype(da.dtype, np.integer)) or da.dtype == bool:
         raise InputError(f"{source}: {what} has dtype {da.dtype}; expected real numbers")
     if da.dtype != np.float64:
         da = da.astype(np.float64)
@@ -320,8 +314,7 @@ def validate_field(
             first = np.unravel_index(int(np.argmax(bad.reshape(-1))), bad.shape)
             where = ", ".join(f"{d}={int(i)}" for d, i in zip(da.dims, first))
             raise InputError(
-                f"{source}: {what} holds {n_bad} NaN/inf value(s), "
-                f"first at ({where}); expected finite values"
+                f"{source}: {what} holds {n_bad} NaN/inf value(s), first at ({where}); expected finite values"
             )
     field_periodic(da, source)
     return da

@@ -70,14 +70,17 @@ def load_model(path: str | os.PathLike) -> AbstractLagrangian:
     except Exception as exc:  # corrupt zip, truncated file, or a pickled object refused by weights_only
         text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         if "weights_only" in str(exc) or "Unsupported global" in str(exc) or "GLOBAL" in str(exc):
-            raise ModelFileError(f"{path}: refused to load: it holds pickled Python objects, not a plain "
-                                 "latticedft model dict (loaded with weights_only=True)") from None
+            raise ModelFileError(
+                f"{path}: refused to load: it holds pickled Python objects, not a plain "
+                "latticedft model dict (loaded with weights_only=True)"
+            ) from None
         raise ModelFileError(f"{path}: not a readable model file ({type(exc).__name__}: {text[:120]})") from None
     if not isinstance(rec, dict) or rec.get("format") != "latticedft-model":
         raise ModelFileError(f"{path}: not a latticedft model file (expected a dict with format 'latticedft-model')")
     if rec.get("format_version") != FORMAT_VERSION:
-        raise ModelFileError(f"{path}: format version {rec.get('format_version')!r}; this latticedft reads "
-                             f"version {FORMAT_VERSION}")
+        raise ModelFileError(
+            f"{path}: format version {rec.get('format_version')!r}; this latticedft reads version {FORMAT_VERSION}"
+        )
     kind = rec.get("kind")
     if kind not in MODELS:
         raise ModelFileError(f"{path}: unknown model kind {kind!r}; expected one of {sorted(MODELS)}")
@@ -89,7 +92,9 @@ def load_model(path: str | os.PathLike) -> AbstractLagrangian:
     except ModelFileError:
         raise
     except Exception as exc:
-        raise ModelFileError(f"{path}: inconsistent model file ({type(exc).__name__}: "
-                             f"{str(exc).strip().splitlines()[0][:160] if str(exc).strip() else ''})") from None
+        raise ModelFileError(
+            f"{path}: inconsistent model file ({type(exc).__name__}: "
+            f"{str(exc).strip().splitlines()[0][:160] if str(exc).strip() else ''})"
+        ) from None
     model.gauge_ = rec.get("gauge", "unit-mass")
     return model

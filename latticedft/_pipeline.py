@@ -53,20 +53,25 @@ class CaseData:
     components: tuple[str, ...] | None
 
     def summary_lines(self, case: Case) -> list[str]:
-        lines = [f"case {case.name}: lattice dims {self.dims}, spacing "
-                 f"{tuple(float(f'{h:.6g}') for h in self.spacing)}"
-                 + (f", components {list(self.components)}" if self.components else "")]
+        lines = [
+            f"case {case.name}: lattice dims {self.dims}, spacing "
+            f"{tuple(float(f'{h:.6g}') for h in self.spacing)}"
+            + (f", components {list(self.components)}" if self.components else "")
+        ]
         opts = ", ".join(f"{k}={v!r}" for k, v in case.model.options.items())
-        lines.append(f"model: {case.model.kind}({opts})" + (f", stencil {case.model.stencil}" if case.model.stencil
-                                                             else ""))
+        lines.append(
+            f"model: {case.model.kind}({opts})" + (f", stencil {case.model.stencil}" if case.model.stencil else "")
+        )
         for path, da in zip(case.train.data, self.train):
             lines.append(f"train: {_rel(path, case.root)} {dict(da.sizes)}")
         for td in self.tasks:
             t = td.task
-            lines.append(f"serve {t.name}: from {_rel(t.source, case.root)} {dict(td.init.sizes)}, "
-                         f"{td.steps} slices, boundary {t.boundary or 'from file/dirichlet'}, mode {t.mode}"
-                         + (", reference" if td.reference is not None else ", no reference")
-                         + (", baseline" if td.baseline is not None else ""))
+            lines.append(
+                f"serve {t.name}: from {_rel(t.source, case.root)} {dict(td.init.sizes)}, "
+                f"{td.steps} slices, boundary {t.boundary or 'from file/dirichlet'}, mode {t.mode}"
+                + (", reference" if td.reference is not None else ", no reference")
+                + (", baseline" if td.baseline is not None else "")
+            )
         return lines
 
 
@@ -123,15 +128,19 @@ def check_case(case: Case) -> CaseData:
     return CaseData(train=train, tasks=tasks, dims=dims, spacing=spacing, components=comps)
 
 
-def _check_task(case: Case, t: ServeTask, dims: tuple[str, ...], spacing: tuple[float, ...],
-                comps: tuple[str, ...] | None) -> TaskData:
+def _check_task(
+    case: Case, t: ServeTask, dims: tuple[str, ...], spacing: tuple[float, ...], comps: tuple[str, ...] | None
+) -> TaskData:
     init = _read(t.source, case, comps)
     if lattice_dims(init) != dims:
-        raise InputError(f"{t.source}: lattice dims {lattice_dims(init)} differ from the training data's {dims} "
-                         f"({t.label}.from)")
+        raise InputError(
+            f"{t.source}: lattice dims {lattice_dims(init)} differ from the training data's {dims} ({t.label}.from)"
+        )
     if not _same_spacing(field_spacing(init, str(t.source)), spacing):
-        raise InputError(f"{t.source}: spacing {field_spacing(init, str(t.source))} differs from the training "
-                         f"data's {spacing}; a learned L_d serves on the lattice it was learned on")
+        raise InputError(
+            f"{t.source}: spacing {field_spacing(init, str(t.source))} differs from the training "
+            f"data's {spacing}; a learned L_d serves on the lattice it was learned on"
+        )
     nt = init.sizes[dims[0]]
     if nt < 2:
         raise InputError(f"{t.source}: holds {nt} time slice(s); expected at least the first two")
@@ -145,24 +154,31 @@ def _check_task(case: Case, t: ServeTask, dims: tuple[str, ...], spacing: tuple[
     missing = missing_edges(f.boundary, f.dims, nt, steps)
     if missing:
         axis, kind = missing
-        raise ConfigError(f"case.toml: {t.label}.steps: {steps} slices need the {kind.title} strips along "
-                          f"{axis!r} on every slice, but {t.source.name} holds {nt}; give the whole field "
-                          "or fewer steps", key=f"{t.label}.steps")
+        raise ConfigError(
+            f"case.toml: {t.label}.steps: {steps} slices need the {kind.title} strips along "
+            f"{axis!r} on every slice, but {t.source.name} holds {nt}; give the whole field "
+            "or fewer steps",
+            key=f"{t.label}.steps",
+        )
     if t.box is not None and len(dims) != 1:
         raise ConfigError(f"case.toml: {t.label}.box: stopping at a box is for 1D trajectories only")
     if t.reference is not None:
         ref = _read(t.reference, case, comps)
         if ref.shape[1:] != init.shape[1:] or lattice_dims(ref) != dims:
-            raise InputError(f"{t.reference}: shape {dict(ref.sizes)} does not match {t.source.name} "
-                             f"{dict(init.sizes)} beyond time ({t.label}.reference)")
+            raise InputError(
+                f"{t.reference}: shape {dict(ref.sizes)} does not match {t.source.name} "
+                f"{dict(init.sizes)} beyond time ({t.label}.reference)"
+            )
     else:
         ref = init if nt > 2 else None
     base = None
     if t.baseline is not None:
         base = _read(t.baseline, case, comps)
         if base.shape[1:] != init.shape[1:] or lattice_dims(base) != dims:
-            raise InputError(f"{t.baseline}: shape {dict(base.sizes)} does not match {t.source.name} "
-                             f"{dict(init.sizes)} beyond time ({t.label}.baseline)")
+            raise InputError(
+                f"{t.baseline}: shape {dict(base.sizes)} does not match {t.source.name} "
+                f"{dict(init.sizes)} beyond time ({t.label}.baseline)"
+            )
         if ref is None:
             raise ConfigError(f"case.toml: {t.label}.baseline: a baseline needs a reference to be scored against")
     inv = None
@@ -189,8 +205,10 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
     log.info("%s", report.summary_line())
     log.debug("training report: %s", {k: v for k, v in report.to_dict().items() if k != "history"})
     if report.hessian_min_sv < 1e-8:
-        log.warning("the mixed time Hessian M is nearly singular over the data (min sv %.2e): serving may fail",
-                    report.hessian_min_sv)
+        log.warning(
+            "the mixed time Hessian M is nearly singular over the data (min sv %.2e): serving may fail",
+            report.hessian_min_sv,
+        )
     return model, report
 
 
@@ -237,10 +255,14 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         if td.baseline is not None:
             b = compare(td.baseline, td.reference)
             b_same = compare(td.baseline.isel({pred.dims[0]: slice(0, cmp["slices"])}), td.reference)
-            rec["baseline"] = {"file": t.baseline.name if t.baseline else None, "max_error": b["max_error"],
-                               "rms_error": b["rms_error"], "slices": b["slices"],
-                               "max_error_same_slices": b_same["max_error"],
-                               "rms_error_same_slices": b_same["rms_error"]}
+            rec["baseline"] = {
+                "file": t.baseline.name if t.baseline else None,
+                "max_error": b["max_error"],
+                "rms_error": b["rms_error"],
+                "slices": b["slices"],
+                "max_error_same_slices": b_same["max_error"],
+                "rms_error_same_slices": b_same["rms_error"],
+            }
     inv = None
     if td.invariant is not None:
         try:
@@ -249,17 +271,24 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
             if not isinstance(inv, xr.DataArray) or inv.dims != (pred.dims[0],):
                 raise TypeError(f"expected a DataArray over {pred.dims[0]!r}, got {type(inv).__name__}")
         except Exception as exc:
-            raise InputError(f"{t.label}.invariant {t.invariant!r}: failed on the served field "
-                             f"({type(exc).__name__}: {' '.join(str(exc).split())[:120]})") from None
+            raise InputError(
+                f"{t.label}.invariant {t.invariant!r}: failed on the served field "
+                f"({type(exc).__name__}: {' '.join(str(exc).split())[:120]})"
+            ) from None
         finite = values[np.isfinite(values)]
         if finite.size and finite[0] != 0:
             rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0])) / abs(finite[0]))
         else:
             rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0]))) if finite.size else None
         rec["invariant"] = t.invariant
-    how = (f"{result.newton_iterations} Newton iterations" if result.solver != "affine" else
-           f"affine recurrence (quadratic L_d, {result.newton_iterations} linear solves)")
-    msg = f"task {t.name}: {'complete' if result.complete else 'INCOMPLETE'}, {result.slices} slices, {how}, {wall:.2f} s"
+    how = (
+        f"{result.newton_iterations} Newton iterations"
+        if result.solver != "affine"
+        else f"affine recurrence (quadratic L_d, {result.newton_iterations} linear solves)"
+    )
+    msg = (
+        f"task {t.name}: {'complete' if result.complete else 'INCOMPLETE'}, {result.slices} slices, {how}, {wall:.2f} s"
+    )
     if "max_error" in rec:
         msg += f", max error {rec['max_error']:.3e}, rms {rec['rms_error']:.3e}"
     if "baseline" in rec:

@@ -27,8 +27,19 @@ import xarray as xr
 
 from ._errors import InputError
 
-__all__ = ["Staging", "staged_results", "write_model", "write_task", "export_task", "read_task", "write_summary",
-           "read_summary", "versions", "json_safe", "RUN_LOG"]
+__all__ = [
+    "Staging",
+    "staged_results",
+    "write_model",
+    "write_task",
+    "export_task",
+    "read_task",
+    "write_summary",
+    "read_summary",
+    "versions",
+    "json_safe",
+    "RUN_LOG",
+]
 
 log = logging.getLogger("latticedft")
 RUN_LOG = "run.log"
@@ -74,8 +85,9 @@ class Staging:
 
 
 @contextmanager
-def staged_results(dest: str | os.PathLike[str], *, copy_existing: bool = False,
-                   run_log: bool = True) -> Iterator[Path]:
+def staged_results(
+    dest: str | os.PathLike[str], *, copy_existing: bool = False, run_log: bool = True
+) -> Iterator[Path]:
     """Write a stage's results into a temporary folder; publish it as ``dest`` when the block succeeds.
 
     ``with staged_results(dest) as folder:`` yields the temporary folder beside
@@ -114,8 +126,13 @@ def versions() -> dict[str, str]:
 
     from . import __version__
 
-    return {"latticedft": __version__, "torch": torch.__version__, "numpy": np.__version__,
-            "xarray": xr.__version__, "python": platform.python_version()}
+    return {
+        "latticedft": __version__,
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "xarray": xr.__version__,
+        "python": platform.python_version(),
+    }
 
 
 def json_safe(obj: Any) -> Any:
@@ -184,8 +201,17 @@ def align_reference(pred: xr.DataArray, ref: xr.DataArray | None) -> xr.DataArra
     return pred.copy(data=np.asarray(ref.values[:n], dtype=np.float64))
 
 
-def write_task(folder: Path, name: str, variable: str, pred: xr.DataArray, ref: xr.DataArray | None,
-               invariant: xr.DataArray | None, *, attrs: Mapping[str, Any], history: str) -> Path:
+def write_task(
+    folder: Path,
+    name: str,
+    variable: str,
+    pred: xr.DataArray,
+    ref: xr.DataArray | None,
+    invariant: xr.DataArray | None,
+    *,
+    attrs: Mapping[str, Any],
+    history: str,
+) -> Path:
     """``<name>.nc``: the served field, ``<var>_ref`` and ``<var>_err`` when a reference covers it."""
     pred = pred.rename(variable)
     pred.attrs = {**pred.attrs, "long_name": f"{variable} served by the learned theory"}
@@ -220,9 +246,19 @@ def read_task(path: Path, variable: str) -> tuple[xr.DataArray, xr.DataArray | N
     return pred, ref, err
 
 
-def export_task(folder: Path, name: str, variable: str, pred: xr.DataArray, ref: xr.DataArray | None,
-                err: xr.DataArray | None, *, formats: Sequence[str], max_frames: int | None,
-                train: Sequence[xr.DataArray] | None = None, title: str | None = None) -> list[Path]:
+def export_task(
+    folder: Path,
+    name: str,
+    variable: str,
+    pred: xr.DataArray,
+    ref: xr.DataArray | None,
+    err: xr.DataArray | None,
+    *,
+    formats: Sequence[str],
+    max_frames: int | None,
+    train: Sequence[xr.DataArray] | None = None,
+    title: str | None = None,
+) -> list[Path]:
     """Write task ``name`` in each export format of ``formats``; the files written.
 
     Formats are the names of :data:`latticedft.io.exporters.EXPORTERS`
@@ -230,9 +266,16 @@ def export_task(folder: Path, name: str, variable: str, pred: xr.DataArray, ref:
     """
     from .io.exporters import ExportTask, export_formats
 
-    task = ExportTask(folder=Path(folder), name=name, field=pred.rename(variable), reference=ref, error=err,
-                      max_frames=max_frames, train=tuple(train) if train is not None else None,
-                      title=title or name)
+    task = ExportTask(
+        folder=Path(folder),
+        name=name,
+        field=pred.rename(variable),
+        reference=ref,
+        error=err,
+        max_frames=max_frames,
+        train=tuple(train) if train is not None else None,
+        title=title or name,
+    )
     return export_formats(task, formats)
 
 
@@ -257,5 +300,9 @@ def config_attrs(config: Mapping[str, Any], overrides: tuple[str, ...], command:
     """Global attributes of a task file."""
     from . import __version__
 
-    return {"source": f"latticedft {__version__}", "latticedft_config": _config_attr(config),
-            "latticedft_overrides": json.dumps(list(overrides)), "latticedft_command": command}
+    return {
+        "source": f"latticedft {__version__}",
+        "latticedft_config": _config_attr(config),
+        "latticedft_overrides": json.dumps(list(overrides)),
+        "latticedft_command": command,
+    }

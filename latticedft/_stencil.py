@@ -31,7 +31,9 @@ class Stencil:
     def __init__(self, offsets: Sequence[Sequence[int]]):
         arr = np.asarray(offsets)
         if arr.ndim != 2 or arr.shape[0] < 2 or arr.shape[1] < 1:
-            raise InputError(f"stencil: expected a list of at least two offsets of equal length n >= 1, got {offsets!r}")
+            raise InputError(
+                f"stencil: expected a list of at least two offsets of equal length n >= 1, got {offsets!r}"
+            )
         if not np.issubdtype(arr.dtype, np.integer):
             raise InputError(f"stencil: offsets must be integers, got {offsets!r}")
         tuples = [tuple(int(v) for v in row) for row in arr]

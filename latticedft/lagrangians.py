@@ -26,7 +26,7 @@ def wave(c: float = 1.0) -> AnalyticLagrangian:
         x0 = cells[..., 0, :]
         out = (((cells[..., 1, :] - x0) / h[0]) ** 2).sum(-1)
         for k in range(1, len(h)):
-            out = out - c ** 2 * (((cells[..., k + 1, :] - x0) / h[k]) ** 2).sum(-1)
+            out = out - c**2 * (((cells[..., k + 1, :] - x0) / h[k]) ** 2).sum(-1)
         return out
 
     return AnalyticLagrangian(fn, name=f"wave, c = {c:g}")
@@ -60,7 +60,7 @@ def klein_gordon(mass: float = 1.0) -> AnalyticLagrangian:
 
     def fn(cells: torch.Tensor, h: tuple[float, ...]) -> torch.Tensor:
         u = cells[..., 0, 0]
-        out = 0.5 * ((cells[..., 1, 0] - u) / h[0]) ** 2 - 0.5 * mass ** 2 * u ** 2
+        out = 0.5 * ((cells[..., 1, 0] - u) / h[0]) ** 2 - 0.5 * mass**2 * u**2
         for k in range(1, len(h)):
             out = out - 0.5 * ((cells[..., k + 1, 0] - u) / h[k]) ** 2
         return out

@@ -8,8 +8,9 @@ import xarray as xr
 __all__ = ["assert_fields_close"]
 
 
-def assert_fields_close(actual: xr.DataArray, desired: xr.DataArray, *, atol: float = 1e-12, rtol: float = 0.0,
-                        check_coords: bool = True) -> None:
+def assert_fields_close(
+    actual: xr.DataArray, desired: xr.DataArray, *, atol: float = 1e-12, rtol: float = 0.0, check_coords: bool = True
+) -> None:
     """Assert two fields agree on dims, coordinates and values within ``atol + rtol |desired|``.
 
     The message names the worst site by its coordinates.
@@ -41,7 +42,11 @@ def assert_fields_close(actual: xr.DataArray, desired: xr.DataArray, *, atol: fl
     if bad.any():
         score = np.where(np.isnan(diff), np.inf, diff - tol)
         idx = np.unravel_index(int(np.argmax(score)), diff.shape)
-        where = ", ".join(f"{d}={actual[d].values[i]:g}" if d in actual.coords and actual[d].dtype.kind == "f"
-                          else f"{d}={i}" for d, i in zip(actual.dims, idx))
-        raise AssertionError(f"fields differ: max |actual - desired| = {diff[idx]:.3g} at {where} "
-                             f"(tolerance {float(tol[idx]):.3g}); {int(bad.sum())} of {bad.size} values outside")
+        where = ", ".join(
+            f"{d}={actual[d].values[i]:g}" if d in actual.coords and actual[d].dtype.kind == "f" else f"{d}={i}"
+            for d, i in zip(actual.dims, idx)
+        )
+        raise AssertionError(
+            f"fields differ: max |actual - desired| = {diff[idx]:.3g} at {where} "
+            f"(tolerance {float(tol[idx]):.3g}); {int(bad.sum())} of {bad.size} values outside"
+        )

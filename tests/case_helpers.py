@@ -37,7 +37,9 @@ def tiny_wave(tmp: Path, name: str = "tiny") -> Path:
     (case / "data").mkdir(parents=True)
     write_field(case / "data" / "train.nc", {"psi": systems.wave_string([(1, 1.0), (2, 0.4)], nx=13, nt=20)})
     write_field(case / "data" / "test.nc", {"psi": systems.wave_string([(1, 0.5, 0.3), (3, 0.2)], nx=13, nt=30)})
-    write_toml(case, """
+    write_toml(
+        case,
+        """
         [model]
         kind = "polynomial"
         orders = [2, 0]
@@ -50,7 +52,8 @@ def tiny_wave(tmp: Path, name: str = "tiny") -> Path:
         threads = 1
         [export]
         max_frames = 4
-        """)
+        """,
+    )
     return case
 
 
@@ -62,7 +65,9 @@ def oscillator_case(tmp: Path) -> Path:
         write_field(case / "data" / f"train{i}.nc", {"psi": systems.oscillator_sin(a, n=51)})
     write_field(case / "data" / "inside.nc", {"psi": systems.oscillator_sin(-0.6, n=51)})
     write_field(case / "data" / "outside.nc", {"psi": systems.make_field([3.0, 3.0], ("t",), spacing=1.0)})
-    write_toml(case, """
+    write_toml(
+        case,
+        """
         [model]
         kind = "polynomial"
         orders = [4, 8]
@@ -77,7 +82,8 @@ def oscillator_case(tmp: Path) -> Path:
         from = "data/inside.nc"
         [run]
         threads = 1
-        """)
+        """,
+    )
     return case
 
 
@@ -91,8 +97,11 @@ def snapshot(folder: Path) -> dict[str, str]:
     """sha256 of every file under ``folder`` (to show that nothing was touched)."""
     if not folder.exists():
         return {}
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 def leftovers(case: Path) -> list[str]:

@@ -20,7 +20,7 @@ def series(values, dt: float, name: str = "psi", components=None) -> xr.DataArra
 
 def quartic(q: torch.Tensor) -> torch.Tensor:
     """An anharmonic potential ``V = q^2/2 + q^4/4``."""
-    return 0.5 * q ** 2 + 0.25 * q ** 4
+    return 0.5 * q**2 + 0.25 * q**4
 
 
 def oscillator_data(amplitudes=(0.4, 0.8, 1.2), dt: float = 0.1, steps: int = 120):
@@ -28,7 +28,7 @@ def oscillator_data(amplitudes=(0.4, 0.8, 1.2), dt: float = 0.1, steps: int = 12
     truth = lagrangians.verlet(quartic)
     out = []
     for a in amplitudes:
-        q1 = a - 0.5 * dt ** 2 * (a + a ** 3)  # a Taylor step; any second slice defines a discrete solution
+        q1 = a - 0.5 * dt**2 * (a + a**3)  # a Taylor step; any second slice defines a discrete solution
         out.append(ldft.serve(truth, series([a, q1], dt), steps=steps).field)
     return truth, out
 

@@ -19,12 +19,26 @@ ROOT = Path(__file__).resolve().parent.parent
 @pytest.mark.slow
 def test_quick_run_prints_every_table_and_writes_results(tmp_path):
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    proc = subprocess.run([sys.executable, "-m", "benchmarks", "--quick", "--out", str(tmp_path)], cwd=ROOT,
-                          env=env, capture_output=True, text=True, timeout=600, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks", "--quick", "--out", str(tmp_path)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = proc.stdout
-    for title in ("1+1D serving", "2+1D serving", "1D serving", "Training", "Long-run fidelity",
-                  "Peak resident memory", "Targets"):
+    for title in (
+        "1+1D serving",
+        "2+1D serving",
+        "1D serving",
+        "Training",
+        "Long-run fidelity",
+        "Peak resident memory",
+        "Targets",
+    ):
         assert f"== {title}" in out, f"table {title!r} missing from:\n{out}"
     results = json.loads((tmp_path / "results.json").read_text())
     names = [b["name"] for b in results["benchmarks"]]
@@ -38,7 +52,13 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
 
 
 def test_unknown_benchmark_is_refused():
-    proc = subprocess.run([sys.executable, "-m", "benchmarks", "--only", "nope"], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks", "--only", "nope"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert proc.returncode == 2
     assert "unknown benchmark 'nope'" in proc.stderr

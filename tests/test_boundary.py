@@ -7,7 +7,6 @@ import itertools
 import numpy as np
 import pytest
 import torch
-from helpers import wave_field
 
 import latticedft as ldft
 from latticedft import _boundary, _case, systems
@@ -22,6 +21,8 @@ from latticedft._boundary import (
 )
 from latticedft._errors import InputError
 from latticedft._lattice import gather_cells, interior_slices
+
+from helpers import wave_field
 
 
 def test_vocabulary() -> None:
@@ -40,12 +41,15 @@ def test_parse() -> None:
     assert parse_boundary({}, dims, "f") == ("open", "dirichlet", "dirichlet")
 
 
-@pytest.mark.parametrize("arg,problem", [
-    ({"z": "periodic"}, "unknown axis 'z'; the spatial axes of init are ['y', 'x']"),
-    ("wrap", "axis 'y' has kind 'wrap'; expected one of ['dirichlet', 'periodic']"),
-    ({"x": "open"}, "axis 'x' has kind 'open'; expected one of ['dirichlet', 'periodic']"),
-    (3, "expected 'dirichlet', 'periodic' or a table axis -> kind, got 3"),
-])
+@pytest.mark.parametrize(
+    "arg,problem",
+    [
+        ({"z": "periodic"}, "unknown axis 'z'; the spatial axes of init are ['y', 'x']"),
+        ("wrap", "axis 'y' has kind 'wrap'; expected one of ['dirichlet', 'periodic']"),
+        ({"x": "open"}, "axis 'x' has kind 'open'; expected one of ['dirichlet', 'periodic']"),
+        (3, "expected 'dirichlet', 'periodic' or a table axis -> kind, got 3"),
+    ],
+)
 def test_parse_errors_are_one_line_and_keyed(arg, problem: str) -> None:
     with pytest.raises(InputError) as err:
         parse_boundary(arg, ("t", "y", "x"), "init")
@@ -99,8 +103,9 @@ def _naive_cells(psi: np.ndarray, stencil: ldft.Stencil, periodic: tuple[bool, .
     return out
 
 
-@pytest.mark.parametrize("periodic", [(False, False, False), (False, True, False), (False, False, True),
-                                      (False, True, True)])
+@pytest.mark.parametrize(
+    "periodic", [(False, False, False), (False, True, False), (False, False, True), (False, True, True)]
+)
 def test_gather_cells_and_interior(periodic: tuple[bool, ...]) -> None:
     rng = np.random.default_rng(0)
     psi = rng.standard_normal((4, 5, 6, 2))
@@ -185,20 +190,22 @@ def test_a_new_kind_is_one_registry_entry(monkeypatch: pytest.MonkeyPatch) -> No
     u0 = np.cos(np.pi * x)
     out = systems.leapfrog(u0, u0, 6, 0.05, 1 / 8, boundary="reflecting")
     ghost = np.pad(u0, 1, mode="reflect")  # Neumann by mirror ghosts, by hand
-    step = 2.0 * u0 - u0 + 0.05 ** 2 * (ghost[2:] - 2.0 * u0 + ghost[:-2]) / (1 / 8) ** 2
+    step = 2.0 * u0 - u0 + 0.05**2 * (ghost[2:] - 2.0 * u0 + ghost[:-2]) / (1 / 8) ** 2
     assert np.array_equal(out[2], step)
 
 
 def test_strips_checked_by_the_case_run(tmp_path) -> None:
-    from case_helpers import tiny_wave
-
     from latticedft._case import load_case
     from latticedft._pipeline import check_case
+
+    from case_helpers import tiny_wave
 
     case = tiny_wave(tmp_path)
     with pytest.raises(ldft.ConfigError) as err:
         check_case(load_case(case, ["serve.test.steps=50"]))
-    assert str(err.value) == ("case.toml: serve[0].steps: 50 slices need the Dirichlet strips along 'x' on every "
-                              "slice, but test.nc holds 30; give the whole field or fewer steps")
+    assert str(err.value) == (
+        "case.toml: serve[0].steps: 50 slices need the Dirichlet strips along 'x' on every "
+        "slice, but test.nc holds 30; give the whole field or fewer steps"
+    )
     assert err.value.key == "serve[0].steps"
     check_case(load_case(case, ["serve.test.steps=50", "serve.test.boundary=periodic"]))

@@ -6,10 +6,11 @@ import os
 from pathlib import Path
 
 import pytest
-from case_helpers import tiny_wave, write_toml
 
 from latticedft import ConfigError
 from latticedft._case import SCHEMA, load_case, model_options, parse_override
+
+from case_helpers import tiny_wave, write_toml
 
 
 @pytest.fixture()
@@ -53,14 +54,17 @@ def test_minimal_case_runs_with_defaults(tmp_path: Path) -> None:
     assert c.model.kind == "polynomial" and c.serve == () and c.train.learn["gauge"] == "unit-mass"
 
 
-@pytest.mark.parametrize("old,new,needles", [
-    ("[export]", "[exprt]", ("exprt", "did you mean 'export'")),
-    ("max_frames = 4", "maxframes = 4", ("export.maxframes", "did you mean 'max_frames'")),
-    ('orders = [2, 0]', 'oders = [2, 0]', ("model.oders", "did you mean 'orders'")),
-    ('orders = [2, 0]', 'hidden = [4]', ("model.hidden", "option of kind 'mlp'")),
-    ('kind = "polynomial"', 'kind = "mpl"', ("model.kind", "did you mean 'mlp'")),
-    ('from = "data/test.nc"', 'form = "data/test.nc"', ("serve[0].form", "did you mean 'from'")),
-])
+@pytest.mark.parametrize(
+    "old,new,needles",
+    [
+        ("[export]", "[exprt]", ("exprt", "did you mean 'export'")),
+        ("max_frames = 4", "maxframes = 4", ("export.maxframes", "did you mean 'max_frames'")),
+        ("orders = [2, 0]", "oders = [2, 0]", ("model.oders", "did you mean 'orders'")),
+        ("orders = [2, 0]", "hidden = [4]", ("model.hidden", "option of kind 'mlp'")),
+        ('kind = "polynomial"', 'kind = "mpl"', ("model.kind", "did you mean 'mlp'")),
+        ('from = "data/test.nc"', 'form = "data/test.nc"', ("serve[0].form", "did you mean 'from'")),
+    ],
+)
 def test_unknown_keys_suggest(case: Path, old: str, new: str, needles: tuple[str, ...]) -> None:
     _edit(case, old, new)
     msg = _error(case)
@@ -69,18 +73,21 @@ def test_unknown_keys_suggest(case: Path, old: str, new: str, needles: tuple[str
         assert n in msg
 
 
-@pytest.mark.parametrize("old,new,needles", [
-    ('name = "test"', 'name = "test"\nsteps = "ten"', ("serve[0].steps: expected a positive integer, got 'ten'",)),
-    ("max_frames = 4", "max_frames = 0", ("export.max_frames: expected a positive integer, got 0",)),
-    ("threads = 1", "threads = true", ("run.threads", "got true")),
-    ('orders = [2, 0]', 'orders = [2]', ("model.orders: expected two non-negative integers",)),
-    ('orders = [2, 0]', 'basis = "fourier"', ("model.basis", "'legendre' or 'monomial'")),
-    ('name = "test"', 'name = "test"\nboundary = "open"', ("serve[0].boundary", "'dirichlet' or 'periodic'")),
-    ('name = "test"', 'name = "test"\nboundary = {x = "wrap"}', ("serve[0].boundary", "'wrap'")),
-    ('name = "test"', 'name = "a/b"', ("serve[0].name", "file-name stem")),
-    ('[model]', '[model]\nstencil = "second"', ("model.stencil", "first-order")),
-    ('data = ["data/train.nc"]', 'data = ["data/train.nc"]\nridge = "big"', ("train.ridge", '"auto"')),
-])
+@pytest.mark.parametrize(
+    "old,new,needles",
+    [
+        ('name = "test"', 'name = "test"\nsteps = "ten"', ("serve[0].steps: expected a positive integer, got 'ten'",)),
+        ("max_frames = 4", "max_frames = 0", ("export.max_frames: expected a positive integer, got 0",)),
+        ("threads = 1", "threads = true", ("run.threads", "got true")),
+        ("orders = [2, 0]", "orders = [2]", ("model.orders: expected two non-negative integers",)),
+        ("orders = [2, 0]", 'basis = "fourier"', ("model.basis", "'legendre' or 'monomial'")),
+        ('name = "test"', 'name = "test"\nboundary = "open"', ("serve[0].boundary", "'dirichlet' or 'periodic'")),
+        ('name = "test"', 'name = "test"\nboundary = {x = "wrap"}', ("serve[0].boundary", "'wrap'")),
+        ('name = "test"', 'name = "a/b"', ("serve[0].name", "file-name stem")),
+        ("[model]", '[model]\nstencil = "second"', ("model.stencil", "first-order")),
+        ('data = ["data/train.nc"]', 'data = ["data/train.nc"]\nridge = "big"', ("train.ridge", '"auto"')),
+    ],
+)
 def test_wrong_types_named(case: Path, old: str, new: str, needles: tuple[str, ...]) -> None:
     _edit(case, old, new)
     msg = _error(case)
@@ -128,16 +135,14 @@ def test_model_options_follow_the_class(case: Path) -> None:
 
 
 def test_overrides(case: Path) -> None:
-    c = load_case(case, ["model.orders=[3, 1]", "train.max_time=10", "serve.test.mode=sweep",
-                         "export.figures=false"])
+    c = load_case(case, ["model.orders=[3, 1]", "train.max_time=10", "serve.test.mode=sweep", "export.figures=false"])
     assert c.model.options["orders"] == [3, 1] and c.train.learn["max_time"] == 10.0
     assert c.serve[0].mode == "sweep" and not c.export.figures
-    assert c.overrides == ("model.orders=[3, 1]", "train.max_time=10", "serve.test.mode=sweep",
-                           "export.figures=false")
-    assert _error(case, ["serve.tset.steps=3"]).startswith("--set serve.tset.steps: no serving task named 'tset'; "
-                                                           "did you mean 'test'?")
-    assert _error(case, ["serve.test.steps=ten"]) == ("--set: serve[0].steps: expected a positive integer, "
-                                                      "got 'ten'")
+    assert c.overrides == ("model.orders=[3, 1]", "train.max_time=10", "serve.test.mode=sweep", "export.figures=false")
+    assert _error(case, ["serve.tset.steps=3"]).startswith(
+        "--set serve.tset.steps: no serving task named 'tset'; did you mean 'test'?"
+    )
+    assert _error(case, ["serve.test.steps=ten"]) == ("--set: serve[0].steps: expected a positive integer, got 'ten'")
     assert "expected key=value" in _error(case, ["model.orders"])
     assert "did you mean 'train'" in _error(case, ["trian.gauge=none"])
     assert parse_override("train.ridge=auto") == (["train", "ridge"], "auto")
@@ -154,19 +159,22 @@ def test_schema_is_documented() -> None:
 
 
 # -- [export] formats and its aliases --------------------------------------------------------------------------
-@pytest.mark.parametrize("lines,overrides,formats", [
-    ("", [], ("paraview", "figures")),
-    ('formats = ["xdmf"]', [], ("xdmf",)),
-    ('formats = "xdmf"', [], ("xdmf",)),
-    ("formats = []", [], ()),
-    ("paraview = false", [], ("figures",)),
-    ("figures = false\nparaview = false", [], ()),
-    ('formats = ["xdmf", "paraview"]\nparaview = true', [], ("xdmf", "paraview")),  # agrees: fine
-    ('formats = ["figures", "xdmf"]', ["export.figures=false"], ("xdmf",)),  # --set wins over the file
-    ('formats = ["xdmf"]', ["export.paraview=true"], ("xdmf", "paraview")),
-    ("figures = false", ['export.formats=["figures"]'], ("figures",)),
-    ("", ['export.formats=["xdmf", "figures"]', "export.max_frames=9"], ("xdmf", "figures")),
-])
+@pytest.mark.parametrize(
+    "lines,overrides,formats",
+    [
+        ("", [], ("paraview", "figures")),
+        ('formats = ["xdmf"]', [], ("xdmf",)),
+        ('formats = "xdmf"', [], ("xdmf",)),
+        ("formats = []", [], ()),
+        ("paraview = false", [], ("figures",)),
+        ("figures = false\nparaview = false", [], ()),
+        ('formats = ["xdmf", "paraview"]\nparaview = true', [], ("xdmf", "paraview")),  # agrees: fine
+        ('formats = ["figures", "xdmf"]', ["export.figures=false"], ("xdmf",)),  # --set wins over the file
+        ('formats = ["xdmf"]', ["export.paraview=true"], ("xdmf", "paraview")),
+        ("figures = false", ['export.formats=["figures"]'], ("figures",)),
+        ("", ['export.formats=["xdmf", "figures"]', "export.max_frames=9"], ("xdmf", "figures")),
+    ],
+)
 def test_export_formats_and_aliases(case: Path, lines: str, overrides: list[str], formats: tuple[str, ...]) -> None:
     _edit(case, "[export]\n", f"[export]\n{lines}\n")
     c = load_case(case, overrides)
@@ -174,20 +182,38 @@ def test_export_formats_and_aliases(case: Path, lines: str, overrides: list[str]
     assert c.export.paraview == ("paraview" in formats) and c.export.figures == ("figures" in formats)
 
 
-@pytest.mark.parametrize("lines,overrides,message", [
-    ('formats = ["paraveiw"]', [], ("case.toml: export.formats: unknown format 'paraveiw'; did you mean 'paraview'? "
-                                    "(formats: paraview, figures, xdmf)")),
-    ('formats = ["figures", "figures"]', [], "case.toml: export.formats: format 'figures' listed twice"),
-    ("formats = [1]", [], "case.toml: export.formats: expected a string or a list of strings, got [1]"),
-    ('formats = ["paraview"]\nparaview = false', [],
-     "case.toml: export.paraview: false contradicts export.formats = ['paraview']; set one of them"),
-    ('formats = ["xdmf"]\nfigures = true', [],
-     "case.toml: export.figures: true contradicts export.formats = ['xdmf']; set one of them"),
-    ("", ['export.formats=["figures"]', "export.figures=false"],
-     "--set: export.figures: false contradicts export.formats = ['figures']; set one of them"),
-    ("", ['export.formats=["xdmf5"]'], "--set: export.formats: unknown format 'xdmf5'; did you mean 'xdmf'?"),
-    ("paraview = 1", [], "case.toml: export.paraview: expected true or false, got 1"),
-])
+@pytest.mark.parametrize(
+    "lines,overrides,message",
+    [
+        (
+            'formats = ["paraveiw"]',
+            [],
+            (
+                "case.toml: export.formats: unknown format 'paraveiw'; did you mean 'paraview'? "
+                "(formats: paraview, figures, xdmf)"
+            ),
+        ),
+        ('formats = ["figures", "figures"]', [], "case.toml: export.formats: format 'figures' listed twice"),
+        ("formats = [1]", [], "case.toml: export.formats: expected a string or a list of strings, got [1]"),
+        (
+            'formats = ["paraview"]\nparaview = false',
+            [],
+            "case.toml: export.paraview: false contradicts export.formats = ['paraview']; set one of them",
+        ),
+        (
+            'formats = ["xdmf"]\nfigures = true',
+            [],
+            "case.toml: export.figures: true contradicts export.formats = ['xdmf']; set one of them",
+        ),
+        (
+            "",
+            ['export.formats=["figures"]', "export.figures=false"],
+            "--set: export.figures: false contradicts export.formats = ['figures']; set one of them",
+        ),
+        ("", ['export.formats=["xdmf5"]'], "--set: export.formats: unknown format 'xdmf5'; did you mean 'xdmf'?"),
+        ("paraview = 1", [], "case.toml: export.paraview: expected true or false, got 1"),
+    ],
+)
 def test_export_formats_errors(case: Path, lines: str, overrides: list[str], message: str) -> None:
     _edit(case, "[export]\n", f"[export]\n{lines}\n")
     assert _error(case, overrides).startswith(message)

@@ -63,8 +63,11 @@ def klein_gordon_polynomial(tmp_path: Path) -> dict[str, Any]:
     report = ldft.learn(model, data)
     res = ldft.serve(model, test.isel(t=slice(0, 2)), steps=101, boundary="periodic")
     energy = systems.klein_gordon_energy(res.field).values
-    return {"rel_res": report.rel_res, "max_error": ldft.compare(res.field, test)["max_error"],
-            "energy_range_over_initial": float(np.ptp(energy) / energy[0])}
+    return {
+        "rel_res": report.rel_res,
+        "max_error": ldft.compare(res.field, test)["max_error"],
+        "energy_range_over_initial": float(np.ptp(energy) / energy[0]),
+    }
 
 
 def klein_gordon_mlp(tmp_path: Path) -> dict[str, Any]:
@@ -83,8 +86,11 @@ def sine_gordon(tmp_path: Path) -> dict[str, Any]:
     model = ldft.PolynomialLagrangian(orders=(2, 12), time_symmetric=True)
     report = ldft.learn(model, train, ridge="auto")
     res = ldft.serve(model, kk, boundary="dirichlet")
-    return {"rel_res": report.rel_res, "max_error": ldft.compare(res.field, kk)["max_error"],
-            "baseline_max_error": ldft.compare(_module("sine-gordon")._leapfrog(kk), kk)["max_error"]}
+    return {
+        "rel_res": report.rel_res,
+        "max_error": ldft.compare(res.field, kk)["max_error"],
+        "baseline_max_error": ldft.compare(_module("sine-gordon")._leapfrog(kk), kk)["max_error"],
+    }
 
 
 def wave_2d(tmp_path: Path) -> dict[str, Any]:
@@ -92,22 +98,43 @@ def wave_2d(tmp_path: Path) -> dict[str, Any]:
     case.mkdir()
     shutil.copy(CASES / "wave-2d" / "case.toml", case / "case.toml")
     _module("wave-2d").main(["--size", "33", "--steps", "60", "--out", str(case / "data")])
-    rc = main(["run", str(case), "-q", "--set", "export.max_frames=4", "--set", "export.figures=false",
-               "--set", "run.threads=1"])
+    rc = main(
+        [
+            "run",
+            str(case),
+            "-q",
+            "--set",
+            "export.max_frames=4",
+            "--set",
+            "export.figures=false",
+            "--set",
+            "run.threads=1",
+        ]
+    )
     task = json.loads((case / "results" / "summary.json").read_text())["tasks"]["test"]
-    return {"exit_status": rc, "complete": task["complete"], "slices": task["slices"],
-            "max_error": task["max_error"], "baseline_max_error": task["baseline"]["max_error"],
-            "invariant_drift": task["invariant_drift"], "pvd_written": (case / "results" / "test.pvd").is_file()}
+    return {
+        "exit_status": rc,
+        "complete": task["complete"],
+        "slices": task["slices"],
+        "max_error": task["max_error"],
+        "baseline_max_error": task["baseline"]["max_error"],
+        "invariant_drift": task["invariant_drift"],
+        "pvd_written": (case / "results" / "test.pvd").is_file(),
+    }
 
 
 def _oscillator(case: str) -> Callable[[Path], dict[str, Any]]:
     def run(tmp_path: Path) -> dict[str, Any]:
         code, summary = _run(case, tmp_path / "results")
         tasks = summary["tasks"]
-        return {"exit_status": code, "rel_res": summary["train"]["rel_res"], "tasks": len(tasks),
-                "task_complete": {n: t["complete"] for n, t in tasks.items()},
-                "task_slices": {n: t["slices"] for n, t in tasks.items()},
-                "task_max_error": {n: t["max_error"] for n, t in tasks.items()}}
+        return {
+            "exit_status": code,
+            "rel_res": summary["train"]["rel_res"],
+            "tasks": len(tasks),
+            "task_complete": {n: t["complete"] for n, t in tasks.items()},
+            "task_slices": {n: t["slices"] for n, t in tasks.items()},
+            "task_max_error": {n: t["max_error"] for n, t in tasks.items()},
+        }
 
     return run
 
@@ -116,11 +143,15 @@ def oscillator_sin_single_sequence(tmp_path: Path) -> dict[str, Any]:
     code, summary = _run("oscillator-sin", tmp_path / "results", "--set", 'train.data=["data/train_1.20.nc"]')
     tasks = summary["tasks"]
     tests = {n: t for n, t in tasks.items() if n != "train"}
-    return {"rel_res": summary["train"]["rel_res"], "train_complete": tasks["train"]["complete"],
-            "train_max_error": tasks["train"]["max_error"], "test_tasks": sorted(tests),
-            "test_max_error": {n: t["max_error"] if t["complete"] else math.inf for n, t in tests.items()},
-            "exit_status": code,
-            "exit_status_from_tasks": 3 if any(not t["complete"] for t in tasks.values()) else 0}
+    return {
+        "rel_res": summary["train"]["rel_res"],
+        "train_complete": tasks["train"]["complete"],
+        "train_max_error": tasks["train"]["max_error"],
+        "test_tasks": sorted(tests),
+        "test_max_error": {n: t["max_error"] if t["complete"] else math.inf for n, t in tests.items()},
+        "exit_status": code,
+        "exit_status_from_tasks": 3 if any(not t["complete"] for t in tasks.values()) else 0,
+    }
 
 
 def kepler(tmp_path: Path) -> dict[str, Any]:
@@ -131,10 +162,16 @@ def kepler(tmp_path: Path) -> dict[str, Any]:
     report = ldft.learn(model, train, max_iter=200)
     refs = [read_field(p) for _, p, _ in tasks]
     served = ldft.serve(model, refs, box=10.0)  # one batch; raises ServeError on a Newton failure
-    out: dict[str, Any] = {"train_files": len(train), "rel_res": report.rel_res,
-                           "boxes": sorted({b for _, _, b in tasks}), "served": len(served),
-                           "task_complete": {}, "escapes_like_truth": {}, "crossing_offset": {},
-                           "earth_max_error_100": {}}
+    out: dict[str, Any] = {
+        "train_files": len(train),
+        "rel_res": report.rel_res,
+        "boxes": sorted({b for _, _, b in tasks}),
+        "served": len(served),
+        "task_complete": {},
+        "escapes_like_truth": {},
+        "crossing_offset": {},
+        "earth_max_error_100": {},
+    }
     for (name, _, _), ref, res in zip(tasks, refs, served):
         pred = res.field.values
         escaped = bool((np.hypot(*pred.T) > 10).any())
@@ -165,7 +202,10 @@ RUNNERS: dict[str, Callable[[Path], dict[str, Any]]] = {
 
 EXPECT = tomllib.loads(EXPECTATIONS.read_text())
 _OPS: dict[str, Callable[[Any, Any], bool]] = {
-    "lt": lambda a, b: a < b, "le": lambda a, b: a <= b, "gt": lambda a, b: a > b, "ge": lambda a, b: a >= b,
+    "lt": lambda a, b: a < b,
+    "le": lambda a, b: a <= b,
+    "gt": lambda a, b: a > b,
+    "ge": lambda a, b: a >= b,
     "eq": lambda a, b: a == b,
 }
 
@@ -177,8 +217,7 @@ def _bounds(op: str, spec: Any) -> list[Any]:
 
 def _references(expect: dict[str, dict[str, Any]]) -> set[str]:
     """Figures named as bounds of other figures."""
-    return {b for ops in expect.values() for op, spec in ops.items() for b in _bounds(op, spec)
-            if isinstance(b, str)}
+    return {b for ops in expect.values() for op, spec in ops.items() for b in _bounds(op, spec) if isinstance(b, str)}
 
 
 def test_every_variant_has_expectations_and_a_runner() -> None:
@@ -207,6 +246,8 @@ def test_case_meets_its_expected_figures(name: str, tmp_path: Path) -> None:
                 for item, v in per_item:
                     if not _OPS[op](v, target):
                         where = figure if item is None else f"{figure}[{item}]"
-                        failures.append(f"{where} = {v!r}, expected {op} {bound!r}"
-                                        + (f" (= {target!r})" if isinstance(bound, str) else ""))
+                        failures.append(
+                            f"{where} = {v!r}, expected {op} {bound!r}"
+                            + (f" (= {target!r})" if isinstance(bound, str) else "")
+                        )
     assert not failures, f"{name} ({EXPECT[name]['case']}): " + "; ".join(failures)

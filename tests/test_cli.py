@@ -13,12 +13,22 @@ import numpy as np
 import pytest
 import torch
 import xarray as xr
-from case_helpers import (FAST, copy_wave, leftovers, nan_field, oscillator_case, run_cli, snapshot,
-                          tiny_wave, write_toml)
 
 import latticedft
 from latticedft import systems
 from latticedft.io import read_field, write_field
+
+from case_helpers import (
+    FAST,
+    copy_wave,
+    leftovers,
+    nan_field,
+    oscillator_case,
+    run_cli,
+    snapshot,
+    tiny_wave,
+    write_toml,
+)
 
 
 @pytest.fixture(scope="module")
@@ -43,8 +53,16 @@ def _one_line_error(err: str, *needles: str) -> str:
 def test_run_writes_every_result(wave_run: Path) -> None:
     res = wave_run / "results"
     names = {p.name for p in res.iterdir()}
-    assert {"model.pt", "model.json", "test.nc", "test.pvd", "test_spacetime.vtr", "test.png",
-            "summary.json", "run.log"} <= names
+    assert {
+        "model.pt",
+        "model.json",
+        "test.nc",
+        "test.pvd",
+        "test_spacetime.vtr",
+        "test.png",
+        "summary.json",
+        "run.log",
+    } <= names
     assert len([n for n in names if n.startswith("test_0")]) == 6  # export.max_frames=6
     assert leftovers(wave_run) == []
     summary = json.loads((res / "summary.json").read_text())
@@ -65,6 +83,7 @@ def test_run_writes_every_result(wave_run: Path) -> None:
     model = json.loads((res / "model.json").read_text())
     assert model["kind"] == "polynomial" and model["options"]["orders"] == [2, 2]
     import hashlib
+
     assert model["sha256"] == hashlib.sha256((res / "model.pt").read_bytes()).hexdigest()
     assert model["overrides"] == summary["overrides"] and "loss" in model["training"]
     with xr.open_dataset(res / "test.nc") as ds:
@@ -144,8 +163,13 @@ def test_threads_from_case(tmp_path: Path, capsys) -> None:
 def test_subprocess_python_m(tmp_path: Path) -> None:
     case = tiny_wave(tmp_path)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "-m", "latticedft", "run", str(case), "--set", "export.figures=false"],
-                          capture_output=True, text=True, env=env, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "latticedft", "run", str(case), "--set", "export.figures=false"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "task test: complete" in proc.stderr and proc.stdout == ""
     assert (case / "results" / "test.nc").is_file()
@@ -205,8 +229,13 @@ def test_unknown_override_key(earlier: Path, capsys) -> None:
 
 
 def test_wrong_type(earlier: Path, capsys) -> None:
-    _refused(capsys, earlier, "--set", "serve.test.steps='ten'",
-             needles=("serve[0].steps", "expected a positive integer, got 'ten'"))
+    _refused(
+        capsys,
+        earlier,
+        "--set",
+        "serve.test.steps='ten'",
+        needles=("serve[0].steps", "expected a positive integer, got 'ten'"),
+    )
     text = (earlier / "case.toml").read_text().replace('name = "test"', 'name = "test"\nsteps = "ten"')
     (earlier / "case.toml").write_text(text)
     _refused(capsys, earlier, needles=("case.toml: serve[0].steps", "got 'ten'"))
@@ -236,12 +265,16 @@ def test_mismatched_component_labels(tmp_path: Path, capsys) -> None:
     t = np.arange(30) * 0.1
     for name, labels in (("a", ["x", "y"]), ("b", ["x", "z"])):
         values = np.stack([np.cos(t), np.sin(t)], axis=-1)
-        write_field(case / "data" / f"{name}.nc",
-                    {"psi": systems.make_field(values, ("t",), spacing=0.1, components=labels)})
-    write_toml(case, """
+        write_field(
+            case / "data" / f"{name}.nc", {"psi": systems.make_field(values, ("t",), spacing=0.1, components=labels)}
+        )
+    write_toml(
+        case,
+        """
         [train]
         data = ["data/a.nc", "data/b.nc"]
-        """)
+        """,
+    )
     (case / "results").mkdir()
     (case / "results" / "keep.txt").write_text("earlier")
     _refused(capsys, case, needles=("b.nc", "component labels do not match"))

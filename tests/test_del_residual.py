@@ -33,9 +33,9 @@ def test_wave_1p1d_dirichlet_residual_by_hand():
     hand = np.zeros((nt - 2, nx - 2))
     for i in range(1, nt - 1):
         for j in range(1, nx - 1):
-            d2t = (psi[i + 1, j] - 2 * psi[i, j] + psi[i - 1, j]) / dt ** 2
-            d2x = (psi[i, j + 1] - 2 * psi[i, j] + psi[i, j - 1]) / dx ** 2
-            hand[i - 1, j - 1] = dt * dx * (-2 * d2t + 2 * c ** 2 * d2x)
+            d2t = (psi[i + 1, j] - 2 * psi[i, j] + psi[i - 1, j]) / dt**2
+            d2x = (psi[i, j + 1] - 2 * psi[i, j] + psi[i, j - 1]) / dx**2
+            hand[i - 1, j - 1] = dt * dx * (-2 * d2t + 2 * c**2 * d2x)
     np.testing.assert_allclose(el[..., 0], hand, rtol=1e-12, atol=1e-12 * np.abs(hand).max())
 
 
@@ -53,8 +53,8 @@ def test_wave_1p1d_periodic_residual_by_hand():
     hand = np.zeros((nt - 2, nx))
     for i in range(1, nt - 1):
         for j in range(nx):
-            d2t = (psi[i + 1, j] - 2 * psi[i, j] + psi[i - 1, j]) / dt ** 2
-            d2x = (psi[i, (j + 1) % nx] - 2 * psi[i, j] + psi[i, (j - 1) % nx]) / dx ** 2
+            d2t = (psi[i + 1, j] - 2 * psi[i, j] + psi[i - 1, j]) / dt**2
+            d2x = (psi[i, (j + 1) % nx] - 2 * psi[i, j] + psi[i, (j - 1) % nx]) / dx**2
             hand[i - 1, j] = dt * dx * (-2 * d2t + 2 * d2x)
     np.testing.assert_allclose(el[..., 0], hand, rtol=1e-12, atol=1e-12 * np.abs(hand).max())
 
@@ -71,6 +71,6 @@ def test_kepler_vector_residual_by_hand(mass):
     assert el.shape == (n - 2, 2)
     hand = np.zeros((n - 2, 2))
     for i in range(1, n - 1):
-        accel = (q[i + 1] - 2 * q[i] + q[i - 1]) / h ** 2
+        accel = (q[i + 1] - 2 * q[i] + q[i - 1]) / h**2
         hand[i - 1] = -h * (mass * accel + q[i] / np.linalg.norm(q[i]) ** 3)
     np.testing.assert_allclose(el, hand, rtol=1e-12, atol=1e-12 * np.abs(hand).max())

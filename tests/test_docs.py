@@ -44,8 +44,11 @@ CHECKS = {"README.md": _check_readme}
 #: Pages that must hold python blocks (so the runner cannot silently find none).
 REQUIRED = ["README.md", "docs/api.md", "docs/mathematics.md"]
 
-PAGES = sorted(str(p.relative_to(REPO)) for p in [README, *DOCS.glob("*.md"), *REPO.glob("cases/*/README.md")]
-               if _blocks(p, "python"))
+PAGES = sorted(
+    str(p.relative_to(REPO))
+    for p in [README, *DOCS.glob("*.md"), *REPO.glob("cases/*/README.md")]
+    if _blocks(p, "python")
+)
 
 
 def test_required_pages_hold_python_blocks() -> None:

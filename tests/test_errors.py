@@ -45,8 +45,10 @@ def test_component_mismatch():
 def test_component_mismatch_at_serve():
     dt = 0.05
     model = ldft.PolynomialLagrangian((2, 1))
-    data = [ldft.serve(lagrangians.kepler(), series([[1.0, 0.0], [1.0, v * dt]], dt, components=["x", "y"]),
-                       steps=60).field for v in (0.9, 1.0, 1.1)]
+    data = [
+        ldft.serve(lagrangians.kepler(), series([[1.0, 0.0], [1.0, v * dt]], dt, components=["x", "y"]), steps=60).field
+        for v in (0.9, 1.0, 1.1)
+    ]
     ldft.learn(model, data)
     other = series([[1.0, 0.0], [1.0, 0.05]], dt, components=["q", "p"])
     with pytest.raises(ldft.InputError) as err:
@@ -130,17 +132,26 @@ def test_errors_carry_their_key():
     assert info.value.key == "optimizer" and "needs a model linear" in info.value.problem
 
 
-@pytest.mark.parametrize("edit,key,text", [
-    (("[train]\n", '[train]\nboundary = {y = "periodic"}\n'), "train.boundary",
-     "case.toml: train.boundary: unknown axis 'y'; the spatial axes of "),
-    (('name = "test"\n', 'name = "test"\nboundary = {z = "periodic"}\n'), "serve[0].boundary",
-     "case.toml: serve[0].boundary: unknown axis 'z'; the spatial axes of "),
-])
+@pytest.mark.parametrize(
+    "edit,key,text",
+    [
+        (
+            ("[train]\n", '[train]\nboundary = {y = "periodic"}\n'),
+            "train.boundary",
+            "case.toml: train.boundary: unknown axis 'y'; the spatial axes of ",
+        ),
+        (
+            ('name = "test"\n', 'name = "test"\nboundary = {z = "periodic"}\n'),
+            "serve[0].boundary",
+            "case.toml: serve[0].boundary: unknown axis 'z'; the spatial axes of ",
+        ),
+    ],
+)
 def test_case_errors_readdress_the_boundary_key(tmp_path, edit, key, text):
-    from case_helpers import tiny_wave
-
     from latticedft._case import load_case
     from latticedft._pipeline import check_case
+
+    from case_helpers import tiny_wave
 
     case = tiny_wave(tmp_path)
     toml = (case / "case.toml").read_text()
@@ -151,17 +162,26 @@ def test_case_errors_readdress_the_boundary_key(tmp_path, edit, key, text):
     assert info.value.key == key
 
 
-@pytest.mark.parametrize("option,key,text", [
-    ("optimizer = \"exact\"", "train.optimizer",
-     "case.toml: train.optimizer: 'exact' needs a model linear in its parameters; 'mlp' is not"),
-    ("ridge = \"auto\"", "train.ridge",
-     "case.toml: train.ridge: 'auto' needs two or more fields, or one field of at least 9 time slices"),
-])
+@pytest.mark.parametrize(
+    "option,key,text",
+    [
+        (
+            'optimizer = "exact"',
+            "train.optimizer",
+            "case.toml: train.optimizer: 'exact' needs a model linear in its parameters; 'mlp' is not",
+        ),
+        (
+            'ridge = "auto"',
+            "train.ridge",
+            "case.toml: train.ridge: 'auto' needs two or more fields, or one field of at least 9 time slices",
+        ),
+    ],
+)
 def test_case_errors_readdress_learn_keys(tmp_path, option, key, text):
-    from case_helpers import tiny_wave
-
     from latticedft._case import load_case
     from latticedft._pipeline import check_case, train_model
+
+    from case_helpers import tiny_wave
 
     case = tiny_wave(tmp_path)
     toml = (case / "case.toml").read_text()

@@ -6,11 +6,12 @@ import json
 from pathlib import Path
 
 import pytest
-from case_helpers import leftovers, run_cli, tiny_wave, write_toml
 
 from latticedft import systems
 from latticedft.io import write_field
 from latticedft.io.exporters import DEFAULT_FORMATS, EXPORTERS, Exporter, get_exporter, remove_exports
+
+from case_helpers import leftovers, run_cli, tiny_wave, write_toml
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 KEEP = {"model.pt", "model.json", "summary.json", "run.log"}
@@ -20,8 +21,9 @@ def _two_tasks(tmp: Path) -> Path:
     """The tiny wave with a second task named like a file of the first (`test` writes `test_spacetime.vtr`)."""
     case = tiny_wave(tmp)
     text = (case / "case.toml").read_text()
-    (case / "case.toml").write_text(text.replace('[run]', '[[serve]]\nname = "test_spacetime"\n'
-                                                          'from = "data/test.nc"\nsteps = 12\n[run]'))
+    (case / "case.toml").write_text(
+        text.replace("[run]", '[[serve]]\nname = "test_spacetime"\nfrom = "data/test.nc"\nsteps = 12\n[run]')
+    )
     return case
 
 
@@ -44,8 +46,7 @@ def test_registry_loads_every_format() -> None:
         exporter = get_exporter(name)
         assert isinstance(exporter, Exporter) and exporter.name == name and exporter.summary
         for page in ("outputs.md", "case-toml.md"):
-            assert f"`{name}`" in (DOCS / page).read_text() or f'`"{name}"`' in (DOCS / page).read_text(), \
-                (name, page)
+            assert f"`{name}`" in (DOCS / page).read_text() or f'`"{name}"`' in (DOCS / page).read_text(), (name, page)
 
 
 def test_a_task_never_deletes_another_tasks_files(tmp_path: Path, capsys) -> None:
@@ -72,8 +73,10 @@ def test_export_in_other_formats_removes_exactly_the_old_files(tmp_path: Path, c
     assert code == 0 and "exported test: test.xdmf, test.h5, test.png" in err
     (res / "notes.txt").unlink()
     exports = _check_listed(res, ("test", "test_spacetime"))
-    assert exports == {"test": ["test.xdmf", "test.h5", "test.png"],
-                       "test_spacetime": ["test_spacetime.xdmf", "test_spacetime.h5", "test_spacetime.png"]}
+    assert exports == {
+        "test": ["test.xdmf", "test.h5", "test.png"],
+        "test_spacetime": ["test_spacetime.xdmf", "test_spacetime.h5", "test_spacetime.png"],
+    }
     summary = json.loads((res / "summary.json").read_text())
     assert summary["exports"][-1]["overrides"] == ['export.formats=["xdmf", "figures"]']
     assert run_cli(capsys, "export", case, "-q", "--set", "export.formats=[]")[0] == 0
@@ -100,7 +103,9 @@ def test_two_tasks_writing_one_file_is_refused(tmp_path: Path, capsys) -> None:
     (case / "data").mkdir(parents=True)
     write_field(case / "data" / "train.nc", {"psi": systems.oscillator_sin(1.2, n=41)})
     write_field(case / "data" / "start.nc", {"psi": systems.oscillator_sin(0.6, n=41)})
-    write_toml(case, """
+    write_toml(
+        case,
+        """
         [model]
         orders = [2, 4]
         [train]
@@ -117,7 +122,8 @@ def test_two_tasks_writing_one_file_is_refused(tmp_path: Path, capsys) -> None:
         threads = 1
         [export]
         formats = ["paraview"]
-        """)
+        """,
+    )
     code, _, err = run_cli(capsys, "run", case, "-q")
     assert code == 1, err
     assert "export file a_0000.vtp of task 'a_0000' is also a file of task 'a'" in err
@@ -129,8 +135,10 @@ def test_remove_exports_deletes_only_plain_export_files(tmp_path: Path) -> None:
         (tmp_path / name).write_text("x")
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "b.png").write_text("x")
-    removed = remove_exports(tmp_path, ["a.png", "a.nc", "model.pt", "summary.json", "run.log", "sub/b.png",
-                                        "../x.png", "sub", "", "gone.vtr"])
+    removed = remove_exports(
+        tmp_path,
+        ["a.png", "a.nc", "model.pt", "summary.json", "run.log", "sub/b.png", "../x.png", "sub", "", "gone.vtr"],
+    )
     assert removed == ["a.png"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.nc", "model.pt", "run.log", "sub", "summary.json"]
 
@@ -139,8 +147,10 @@ def test_unknown_format_from_the_command_line(tmp_path: Path, capsys) -> None:
     case = tiny_wave(tmp_path)
     code, _, err = run_cli(capsys, "check", case, "--set", 'export.formats=["paraveiw"]')
     assert code == 1
-    assert err.strip() == ("latticedft: error: --set: export.formats: unknown format 'paraveiw'; did you mean "
-                           "'paraview'? (formats: paraview, figures, xdmf)")
+    assert err.strip() == (
+        "latticedft: error: --set: export.formats: unknown format 'paraveiw'; did you mean "
+        "'paraview'? (formats: paraview, figures, xdmf)"
+    )
 
 
 @pytest.mark.parametrize("fmt", sorted(EXPORTERS))

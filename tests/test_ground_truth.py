@@ -41,9 +41,9 @@ def test_wave_with_other_speed_and_mixed_boundaries():
     p[:, 0], p[:, -1] = v[:, 0], v[:, -1]
     for i in range(1, v.shape[0] - 1):
         u = p[i]
-        lap = (np.roll(u, -1, 1) - 2 * u + np.roll(u, 1, 1)) / dx ** 2
-        lap[1:-1] += (u[2:] - 2 * u[1:-1] + u[:-2]) / dy ** 2
-        p[i + 1, 1:-1] = (2 * u - p[i - 1] + c ** 2 * dt ** 2 * lap)[1:-1]
+        lap = (np.roll(u, -1, 1) - 2 * u + np.roll(u, 1, 1)) / dx**2
+        lap[1:-1] += (u[2:] - 2 * u[1:-1] + u[:-2]) / dy**2
+        p[i + 1, 1:-1] = (2 * u - p[i - 1] + c**2 * dt**2 * lap)[1:-1]
     assert_fields_close(out.field, field.copy(data=p), atol=1e-13)
 
 
@@ -54,19 +54,19 @@ def test_verlet_serves_stormer_verlet():
     q = np.zeros(300)
     q[:2] = 1.0, 0.99
     for i in range(1, 299):
-        q[i + 1] = 2 * q[i] - q[i - 1] - dt ** 2 * (q[i] + q[i] ** 3)
+        q[i + 1] = 2 * q[i] - q[i - 1] - dt**2 * (q[i] + q[i] ** 3)
     assert_fields_close(out.field, series(q, dt), atol=1e-12)
 
 
 def test_kepler_verlet_vector_field():
     dt = 0.05
-    init = series([[1.0, 0.0], [1.0 - 0.5 * dt ** 2, dt]], dt, components=["x", "y"])
+    init = series([[1.0, 0.0], [1.0 - 0.5 * dt**2, dt]], dt, components=["x", "y"])
     out = ldft.serve(lagrangians.kepler(), init, steps=400)
     q = np.zeros((400, 2))
     q[:2] = init.values
     for i in range(1, 399):
         r = np.linalg.norm(q[i])
-        q[i + 1] = 2 * q[i] - q[i - 1] - dt ** 2 * q[i] / r ** 3
+        q[i + 1] = 2 * q[i] - q[i - 1] - dt**2 * q[i] / r**3
     assert out.field.dims == ("t", "component")
     assert list(out.field.component.values) == ["x", "y"]
     assert_fields_close(out.field, series(q, dt, components=["x", "y"]), atol=1e-11)

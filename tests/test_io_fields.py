@@ -25,16 +25,22 @@ from latticedft.testing import assert_fields_close
 def wave(nt: int = 6, nx: int = 8) -> xr.DataArray:
     t = np.arange(nt) * 0.1
     x = np.arange(nx) * 0.25
-    da = xr.DataArray(np.sin(np.add.outer(t, x)), dims=["t", "x"], coords={"t": t, "x": x},
-                      name="psi", attrs={"long_name": "field", "units": "1"})
+    da = xr.DataArray(
+        np.sin(np.add.outer(t, x)),
+        dims=["t", "x"],
+        coords={"t": t, "x": x},
+        name="psi",
+        attrs={"long_name": "field", "units": "1"},
+    )
     da.x.attrs["periodic"] = "true"
     return da
 
 
 def orbit(nt: int = 10) -> xr.DataArray:
     t = np.linspace(0.0, 1.0, nt)
-    return xr.DataArray(np.c_[np.cos(t), np.sin(t)], dims=["t", "component"],
-                        coords={"t": t, "component": ["x", "y"]}, name="psi")
+    return xr.DataArray(
+        np.c_[np.cos(t), np.sin(t)], dims=["t", "component"], coords={"t": t, "component": ["x", "y"]}, name="psi"
+    )
 
 
 def message(exc: pytest.ExceptionInfo[InputError]) -> str:
@@ -57,8 +63,7 @@ def test_round_trip(tmp_path: Path, make) -> None:
     da = make()
     p = write_field(tmp_path / "f.nc", {"psi": da, "psi_ref": da * 2}, history="unit test")
     back = read_field(p)
-    xr.testing.assert_identical(back.reset_coords(drop=True).drop_attrs(),
-                                da.reset_coords(drop=True).drop_attrs())
+    xr.testing.assert_identical(back.reset_coords(drop=True).drop_attrs(), da.reset_coords(drop=True).drop_attrs())
     assert back.dtype == np.float64
     assert_fields_close(read_field(p, "psi_ref"), 2 * da, atol=0.0)
     assert field_spacing(back) == pytest.approx(field_spacing(da))
@@ -75,9 +80,11 @@ def test_read_returns_float64_from_float32_and_int(tmp_path: Path) -> None:
 def test_cf_attributes_and_encoding(tmp_path: Path) -> None:
     da = wave()
     da.attrs.update(flag=True, nothing=None, shape=[2, 3])
-    p = write_field(tmp_path / "f.nc", {"psi": da},
-                    attrs={"config": {"model": {"kind": "polynomial"}}, "history": "old line",
-                           "dry_run": False})
+    p = write_field(
+        tmp_path / "f.nc",
+        {"psi": da},
+        attrs={"config": {"model": {"kind": "polynomial"}}, "history": "old line", "dry_run": False},
+    )
     with netCDF4.Dataset(p) as nc:
         g = {k: nc.getncattr(k) for k in nc.ncattrs()}
         assert g["Conventions"] == "CF-1.8"

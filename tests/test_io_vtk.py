@@ -14,8 +14,7 @@ from latticedft.io import read_pvd, write_paraview
 from latticedft.io.figures import plot_prediction
 
 
-def lattice(shape: tuple[int, ...], dims: tuple[str, ...], comps: list[str] | None = None
-            ) -> xr.DataArray:
+def lattice(shape: tuple[int, ...], dims: tuple[str, ...], comps: list[str] | None = None) -> xr.DataArray:
     rng = np.random.default_rng(0)
     coords = {d: np.arange(n) * (0.1 * (k + 1)) + k for k, (d, n) in enumerate(zip(dims, shape))}
     full = shape + ((len(comps),) if comps else ())
@@ -35,9 +34,9 @@ def read_time_series(pvd: Path) -> tuple[list[float], list[pv.DataSet]]:
     return list(reader.time_values), meshes
 
 
-@pytest.mark.parametrize("dims,shape", [(("t", "x"), (5, 7)),
-                                        (("t", "y", "x"), (4, 3, 6)),
-                                        (("t", "z", "y", "x"), (3, 2, 3, 4))])
+@pytest.mark.parametrize(
+    "dims,shape", [(("t", "x"), (5, 7)), (("t", "y", "x"), (4, 3, 6)), (("t", "z", "y", "x"), (3, 2, 3, 4))]
+)
 def test_grid_frames_match_field(tmp_path: Path, dims, shape) -> None:
     psi = lattice(shape, dims)
     ref = psi * 2.0
@@ -101,8 +100,12 @@ def test_max_frames(tmp_path: Path) -> None:
 
 def test_orbit_polylines(tmp_path: Path) -> None:
     th = np.linspace(0, 2 * np.pi, 40)
-    psi = xr.DataArray(np.c_[np.cos(th), 0.5 * np.sin(th)], dims=["t", "component"],
-                       coords={"t": th, "component": ["x", "y"]}, name="psi")
+    psi = xr.DataArray(
+        np.c_[np.cos(th), 0.5 * np.sin(th)],
+        dims=["t", "component"],
+        coords={"t": th, "component": ["x", "y"]},
+        name="psi",
+    )
     psi[30:] = np.nan  # the trajectory stopped early
     files = write_paraview(tmp_path, "orbit", psi, {"psi_ref": psi.fillna(0.0)})
     names = [f.name for f in files]
@@ -139,8 +142,7 @@ def test_bad_exports(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="4 components"):
         write_paraview(tmp_path, "b", lattice((5,), ("t",), list("abcd")))
     with pytest.raises(InputError, match="psi_ref"):
-        write_paraview(tmp_path, "b", lattice((5, 4), ("t", "x")),
-                       {"psi_ref": lattice((5, 3), ("t", "x"))})
+        write_paraview(tmp_path, "b", lattice((5, 4), ("t", "x")), {"psi_ref": lattice((5, 3), ("t", "x"))})
     with pytest.raises(InputError, match="stem"):
         write_paraview(tmp_path, "a/b", lattice((5, 4), ("t", "x")))
     with pytest.raises(InputError, match="not uniformly spaced"):
@@ -179,8 +181,7 @@ def test_figures(tmp_path: Path, case: str) -> None:
         ref, train = lattice((8, 32, 32), ("t", "y", "x")), None
     pred = ref + 0.01
     pred[-3:] = np.nan  # stopped early
-    out = plot_prediction(tmp_path / "fig.png", pred, None if case == "noref" else ref,
-                          title=case, train=train)
+    out = plot_prediction(tmp_path / "fig.png", pred, None if case == "noref" else ref, title=case, train=train)
     assert_png(out)
 
 

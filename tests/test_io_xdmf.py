@@ -16,14 +16,19 @@ from latticedft.io.exporters import ExportTask, get_exporter
 from latticedft.io.xdmf import read_xdmf, write_xdmf
 
 
-def _lattice(shape: tuple[int, ...], dims: tuple[str, ...], comps: list[str] | None = None,
-             name: str = "psi") -> xr.DataArray:
+def _lattice(
+    shape: tuple[int, ...], dims: tuple[str, ...], comps: list[str] | None = None, name: str = "psi"
+) -> xr.DataArray:
     rng = np.random.default_rng(3)
     coords: dict[str, object] = {d: np.arange(n) * 0.25 + 0.1 * i for i, (d, n) in enumerate(zip(dims, shape))}
     if comps:
         coords["component"] = comps
-    return xr.DataArray(rng.standard_normal(shape + ((len(comps),) if comps else ())), coords=coords, name=name,
-                        dims=dims + (("component",) if comps else ()))
+    return xr.DataArray(
+        rng.standard_normal(shape + ((len(comps),) if comps else ())),
+        coords=coords,
+        name=name,
+        dims=dims + (("component",) if comps else ()),
+    )
 
 
 def _meshio_series(path: Path) -> tuple[np.ndarray, np.ndarray, list, list[dict[str, np.ndarray]]]:
@@ -33,12 +38,15 @@ def _meshio_series(path: Path) -> tuple[np.ndarray, np.ndarray, list, list[dict[
     return np.array([t for t, _, _ in steps]), points, cells, [pd for _, pd, _ in steps]
 
 
-@pytest.mark.parametrize("shape,dims,cell", [
-    ((7, 9), ("t", "x"), "line"),
-    ((5, 4, 6), ("t", "y", "x"), "quad"),
-    ((3, 2, 3, 4), ("t", "z", "y", "x"), "hexahedron"),
-    ((11,), ("t",), "vertex"),
-])
+@pytest.mark.parametrize(
+    "shape,dims,cell",
+    [
+        ((7, 9), ("t", "x"), "line"),
+        ((5, 4, 6), ("t", "y", "x"), "quad"),
+        ((3, 2, 3, 4), ("t", "z", "y", "x"), "hexahedron"),
+        ((11,), ("t",), "vertex"),
+    ],
+)
 def test_meshio_reads_back_values_and_times(tmp_path: Path, shape, dims, cell) -> None:
     psi = _lattice(shape, dims)
     ref = psi * 2 + 1
@@ -71,7 +79,7 @@ def test_max_frames_nan_and_vector_components(tmp_path: Path) -> None:
     keep = [0, 6, 12, 18, 24]
     np.testing.assert_array_equal(times, psi.t.values[keep])
     assert set(arrays) == {"psi_u", "psi_v"}
-    for k, label in enumerate(("u", "v")):
+    for label in ("u", "v"):
         want = psi.isel(t=keep).sel(component=label).values.reshape(5, -1)
         np.testing.assert_array_equal(arrays[f"psi_{label}"], want)  # NaN where it stopped (equal_nan)
     assert np.isnan(arrays["psi_u"][-1]).all() and np.isfinite(arrays["psi_u"][:-1]).all()

@@ -50,9 +50,11 @@ def _imports(path: Path) -> list[tuple[int, str]]:
     package = me if path.name == "__init__.py" else me.rpartition(".")[0]
     tree = ast.parse(path.read_text(), str(path))
     typing_only = {  # imports under `if TYPE_CHECKING:` never run: annotations may name any layer
-        id(sub) for node in ast.walk(tree)
+        id(sub)
+        for node in ast.walk(tree)
         if isinstance(node, ast.If) and isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING"
-        for stmt in node.body for sub in ast.walk(stmt)
+        for stmt in node.body
+        for sub in ast.walk(stmt)
     }
     out = []
     for node in ast.walk(tree):
@@ -104,5 +106,7 @@ def test_module_imports_only_its_layer_and_below(path: Path) -> None:
             continue
         theirs = _layer_of(target, layers)
         assert theirs is not None, f"{me} imports {target}, which docs/design.md does not place in a layer"
-        assert theirs <= mine, (f"{path.relative_to(REPO)}:{line}: {me} (layer {mine}) imports {target} "
-                                f"(layer {theirs}): an import runs back up the layers of docs/design.md")
+        assert theirs <= mine, (
+            f"{path.relative_to(REPO)}:{line}: {me} (layer {mine}) imports {target} "
+            f"(layer {theirs}): an import runs back up the layers of docs/design.md"
+        )

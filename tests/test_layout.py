@@ -95,11 +95,23 @@ def test_uniformity_check() -> None:
 
 
 # -- the periodic attribute: one parser, one writer -------------------------------------------------------------
-@pytest.mark.parametrize("value,flag", [
-    ("true", True), ("false", False), (" TRUE ", True), ("False", False), (True, True), (False, False),
-    (np.bool_(True), True), (1, True), (0, False), (np.int32(1), True), (np.array([1]), True),
-    (np.array(["true"]), True),
-])
+@pytest.mark.parametrize(
+    "value,flag",
+    [
+        ("true", True),
+        ("false", False),
+        (" TRUE ", True),
+        ("False", False),
+        (True, True),
+        (False, False),
+        (np.bool_(True), True),
+        (1, True),
+        (0, False),
+        (np.int32(1), True),
+        (np.array([1]), True),
+        (np.array(["true"]), True),
+    ],
+)
 def test_parse_periodic(value, flag) -> None:
     assert parse_periodic(value) is flag
 
@@ -136,5 +148,6 @@ def test_time_axis_cannot_be_periodic() -> None:
     da.t.attrs[PERIODIC_ATTR] = "true"
     with pytest.raises(InputError, match="the time axis 't' cannot be periodic"):
         ldft.as_lattice_field(da, source="f.nc")
+
 
 # The layering (the engine never imports latticedft.io) is checked by tests/test_layers.py.

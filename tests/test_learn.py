@@ -36,7 +36,7 @@ def test_polynomial_learns_wave_back_1p1d(stencil):
         def full(c, h):  # a wave Lagrangian on the four corners of the cell
             gt = (c[..., 2, 0] + c[..., 3, 0] - c[..., 0, 0] - c[..., 1, 0]) / (2 * h[0])
             gx = (c[..., 1, 0] + c[..., 3, 0] - c[..., 0, 0] - c[..., 2, 0]) / (2 * h[1])
-            return 0.5 * gt ** 2 - 0.5 * gx ** 2
+            return 0.5 * gt**2 - 0.5 * gx**2
 
         truth = ldft.AnalyticLagrangian(full, stencil=st, name="full-cell wave")
     obs = wave_field(nt=30)
@@ -64,7 +64,7 @@ def test_mlp_kinetic_potential_learns_oscillator_to_stated_error():
     rep = ldft.learn(model, data, max_iter=300)
     assert rep.gauge_residual < 1e-12  # unit mass by construction
     assert rep.rel_res < 2e-3
-    new = ldft.serve(truth, series([0.7, 0.7 - 0.5 * 0.01 * (0.7 + 0.7 ** 3)], 0.1), steps=80).field
+    new = ldft.serve(truth, series([0.7, 0.7 - 0.5 * 0.01 * (0.7 + 0.7**3)], 0.1), steps=80).field
     err = ldft.compare(ldft.serve(model, new).field, new)["max_error"]
     assert err < 2e-2  # stated error of a 2x16 network after 300 L-BFGS iterations
 

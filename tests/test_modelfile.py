@@ -13,9 +13,13 @@ import latticedft as ldft
 from helpers import oscillator_data
 
 
-@pytest.mark.parametrize("make", [lambda: ldft.PolynomialLagrangian((2, 4), time_symmetric=True),
-                                  lambda: ldft.MLPLagrangian(hidden=[6], activation="tanh",
-                                                             form="kinetic-potential")])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: ldft.PolynomialLagrangian((2, 4), time_symmetric=True),
+        lambda: ldft.MLPLagrangian(hidden=[6], activation="tanh", form="kinetic-potential"),
+    ],
+)
 def test_round_trip(tmp_path, make):
     _, data = oscillator_data(steps=40)
     model = make()

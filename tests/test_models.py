@@ -9,14 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from case_helpers import write_toml
-from helpers import oscillator_data, series
 
 import latticedft as ldft
 from latticedft import ConfigError
 from latticedft._case import ModelConfig, load_case
 from latticedft._learn._gauge import GAUGES, gauge_named
 from latticedft._models import FreeMLPLagrangian, KineticPotentialMLPLagrangian
+
+from case_helpers import write_toml
+from helpers import oscillator_data, series
 
 FILES_V1 = Path(__file__).parent / "data" / "models-v1"
 
@@ -83,14 +84,17 @@ def test_a_new_model_builds_from_case_toml_and_its_option_types_come_from_its_co
     assert "model.degre" in _one_line_config_error(case) and "did you mean 'degree'" in _one_line_config_error(case)
 
 
-@pytest.mark.parametrize("kind,line,needle", [
-    ("mlp", 'seed = "x"', "model.seed: expected an integer, got 'x'"),
-    ("mlp", "hidden = [4, true]", "model.hidden: expected a list of integers, got [4, True]"),
-    ("mlp", "scale = 1", "model.scale: expected true or false, got 1"),
-    ("mlp", "form = 2", "model.form: expected a string, got 2"),
-    ("polynomial", "time_symmetric = \"yes\"", "model.time_symmetric: expected true or false, got 'yes'"),
-    ("polynomial", 'orders = "4"', "model.orders: expected a list of integers, got '4'"),
-])
+@pytest.mark.parametrize(
+    "kind,line,needle",
+    [
+        ("mlp", 'seed = "x"', "model.seed: expected an integer, got 'x'"),
+        ("mlp", "hidden = [4, true]", "model.hidden: expected a list of integers, got [4, True]"),
+        ("mlp", "scale = 1", "model.scale: expected true or false, got 1"),
+        ("mlp", "form = 2", "model.form: expected a string, got 2"),
+        ("polynomial", 'time_symmetric = "yes"', "model.time_symmetric: expected true or false, got 'yes'"),
+        ("polynomial", 'orders = "4"', "model.orders: expected a list of integers, got '4'"),
+    ],
+)
 def test_bad_option_types_in_case_toml_name_the_option(tmp_path, kind, line, needle):
     case = write_toml(tmp_path / "c", f'[model]\nkind = "{kind}"\n{line}\n[train]\ndata = "d.nc"\n')
     (case / "d.nc").write_text("")
@@ -98,19 +102,32 @@ def test_bad_option_types_in_case_toml_name_the_option(tmp_path, kind, line, nee
 
 
 def test_option_checks_follow_the_constructor_signature():
-    assert set(ldft.MLPLagrangian.option_checks()) == {"hidden", "activation", "form", "features", "scale", "seed",
-                                                       "preset"}
+    assert set(ldft.MLPLagrangian.option_checks()) == {
+        "hidden",
+        "activation",
+        "form",
+        "features",
+        "scale",
+        "seed",
+        "preset",
+    }
     assert set(QuarticWell.option_checks()) == {"degree"}
     assert ldft.PolynomialLagrangian.option_checks()["orders"]([4, 8]) == [4, 8]
 
 
-@pytest.mark.parametrize("kwargs,needles", [
-    ({"form": "kinetic-potential", "features": "differences"}, ("features", "'differences'", "kinetic-potential")),
-    ({"features": "inverse-radius"}, ("features", "'inverse-radius'", "form='free'")),
-    ({"preset": "radial", "form": "free"}, ("features", "'inverse-radius'", "form='free'")),
-    ({"preset": "kinetic-potential", "features": "differences"}, ("features", "'differences'", "kinetic-potential")),
-    ({"form": "potential"}, ("form", "'potential'")),
-])
+@pytest.mark.parametrize(
+    "kwargs,needles",
+    [
+        ({"form": "kinetic-potential", "features": "differences"}, ("features", "'differences'", "kinetic-potential")),
+        ({"features": "inverse-radius"}, ("features", "'inverse-radius'", "form='free'")),
+        ({"preset": "radial", "form": "free"}, ("features", "'inverse-radius'", "form='free'")),
+        (
+            {"preset": "kinetic-potential", "features": "differences"},
+            ("features", "'differences'", "kinetic-potential"),
+        ),
+        ({"form": "potential"}, ("form", "'potential'")),
+    ],
+)
 def test_invalid_mlp_option_combinations_are_refused(kwargs, needles):
     with pytest.raises(ldft.InputError) as info:
         ldft.MLPLagrangian(**kwargs)
@@ -136,8 +153,10 @@ def test_mlp_builds_the_class_of_its_form():
     assert type(model) is KineticPotentialMLPLagrangian
 
 
-@pytest.mark.parametrize("name,cls", [("poly", ldft.PolynomialLagrangian), ("kp", KineticPotentialMLPLagrangian),
-                                      ("free", FreeMLPLagrangian)])
+@pytest.mark.parametrize(
+    "name,cls",
+    [("poly", ldft.PolynomialLagrangian), ("kp", KineticPotentialMLPLagrangian), ("free", FreeMLPLagrangian)],
+)
 def test_model_files_of_format_version_1_load(name, cls):
     """Files written before the model classes were reorganised load to the same ``L_d``."""
     path = FILES_V1 / f"{name}.pt"
@@ -158,8 +177,11 @@ def test_the_contract_is_declared():
     with pytest.raises(TypeError, match="abstract"):
         Incomplete()
     with pytest.raises(TypeError, match="LinearLagrangian"):
-        type("Undeclared", (ldft.AbstractLagrangian,), {"kind": "undeclared", "linear": True,
-                                                          "forward": lambda self, c: c.sum((-1, -2))})
+        type(
+            "Undeclared",
+            (ldft.AbstractLagrangian,),
+            {"kind": "undeclared", "linear": True, "forward": lambda self, c: c.sum((-1, -2))},
+        )
     assert ldft.AnalyticLagrangian.rebinds_to_any_lattice
     assert not ldft.PolynomialLagrangian.rebinds_to_any_lattice and not ldft.MLPLagrangian.rebinds_to_any_lattice
     assert ldft.AbstractLagrangian.fast_derivatives(ldft.MLPLagrangian(), torch.zeros(1, 2, 1), []) is None

@@ -56,15 +56,15 @@ PV_SCRIPT = textwrap.dedent(
 )
 
 
-def _lattice(shape: tuple[int, ...], dims: tuple[str, ...], comps: list[str] | None = None
-             ) -> xr.DataArray:
+def _lattice(shape: tuple[int, ...], dims: tuple[str, ...], comps: list[str] | None = None) -> xr.DataArray:
     rng = np.random.default_rng(1)
     coords: dict[str, object] = {d: np.arange(n) * 0.5 for d, n in zip(dims, shape)}
     full = shape + ((len(comps),) if comps else ())
     if comps:
         coords["component"] = comps
-    return xr.DataArray(rng.standard_normal(full), coords=coords, name="psi",
-                        dims=dims + (("component",) if comps else ()))
+    return xr.DataArray(
+        rng.standard_normal(full), coords=coords, name="psi", dims=dims + (("component",) if comps else ())
+    )
 
 
 def _run_pvpython(tmp_path: Path, files: list[Path]) -> dict[str, dict]:
@@ -72,13 +72,15 @@ def _run_pvpython(tmp_path: Path, files: list[Path]) -> dict[str, dict]:
     script.write_text(PV_SCRIPT)
     listing = tmp_path / "files.json"
     listing.write_text(json.dumps([str(f) for f in files]))
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
     env.setdefault("QT_QPA_PLATFORM", "offscreen")
     proc = subprocess.run(
-        [shutil.which("pvpython") or "pvpython", "--force-offscreen-rendering", str(script),
-         str(listing)],
-        capture_output=True, text=True, env=env, timeout=300, cwd=tmp_path,
+        [shutil.which("pvpython") or "pvpython", "--force-offscreen-rendering", str(script), str(listing)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+        cwd=tmp_path,
     )
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("REPORT")]
     assert proc.returncode == 0 and lines, (
@@ -86,7 +88,7 @@ def _run_pvpython(tmp_path: Path, files: list[Path]) -> dict[str, dict]:
     )
     # ParaView prints reader errors/warnings (e.g. unsupported file versions) to stderr.
     assert "ERROR" not in proc.stderr, proc.stderr[-3000:]
-    return json.loads(lines[-1][len("REPORT"):])
+    return json.loads(lines[-1][len("REPORT") :])
 
 
 def test_paraview_opens_every_export(tmp_path: Path) -> None:

@@ -15,11 +15,11 @@ import torch
 
 import latticedft as ldft
 from latticedft import systems
+from latticedft._action import cell_derivatives
+from latticedft._lattice import gather_cells
 from latticedft._learn._data import as_fields
 from latticedft._learn._exact import gauge_matrix, residual_matrix
 from latticedft._learn._gauge import gauge_named
-from latticedft._action import cell_derivatives
-from latticedft._lattice import gather_cells
 from latticedft._models import _polynomial
 
 from helpers import membrane_field, oscillator_data, wave_field

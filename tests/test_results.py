@@ -10,12 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import pyvista as pv
-from case_helpers import leftovers, tiny_wave
 
 import latticedft as ldft
 from latticedft._results import RUN_LOG, Staging, json_safe, staged_results
 from latticedft.cli import main
 from latticedft.io import read_field, read_pvd
+
+from case_helpers import leftovers, tiny_wave
 
 
 @pytest.fixture(scope="module")
@@ -86,14 +87,13 @@ def test_staged_results_discards_on_failure(tmp_path: Path, exc: BaseException) 
     dest.mkdir()
     (dest / "old.txt").write_text("old")
     before = _handlers()
-    with pytest.raises(type(exc)):
-        with staged_results(dest, copy_existing=True) as folder:
-            assert folder.parent == tmp_path and folder.name.startswith("results.tmp-")
-            assert (folder / "old.txt").read_text() == "old"  # a copy of dest
-            (folder / "old.txt").write_text("changed")
-            (folder / "new.txt").write_text("new")
-            logging.getLogger("latticedft").debug("half-way")
-            raise exc
+    with pytest.raises(type(exc)), staged_results(dest, copy_existing=True) as folder:
+        assert folder.parent == tmp_path and folder.name.startswith("results.tmp-")
+        assert (folder / "old.txt").read_text() == "old"  # a copy of dest
+        (folder / "old.txt").write_text("changed")
+        (folder / "new.txt").write_text("new")
+        logging.getLogger("latticedft").debug("half-way")
+        raise exc
     assert [p.name for p in tmp_path.iterdir()] == ["results"]  # no staging folder left
     assert sorted(p.name for p in dest.iterdir()) == ["old.txt"] and (dest / "old.txt").read_text() == "old"
     assert _handlers() == before  # run.log detached

@@ -15,8 +15,8 @@ from helpers import membrane_field, oscillator_data, quartic, series, wave_field
 def _sine_gordon():
     def fn(c, h):
         u = c[..., 0, 0]
-        return (0.5 * ((c[..., 1, 0] - u) / h[0]) ** 2 - 0.5 * ((c[..., 2, 0] - u) / h[1]) ** 2
-                - (1 - torch.cos(u)))
+        return 0.5 * ((c[..., 1, 0] - u) / h[0]) ** 2 - 0.5 * ((c[..., 2, 0] - u) / h[1]) ** 2 - (1 - torch.cos(u))
+
     return ldft.AnalyticLagrangian(fn, name="sine-Gordon")
 
 
@@ -43,7 +43,7 @@ def test_non_triangular_stencil_serves_in_both_modes():
     def full(c, h):
         gt = (c[..., 2, 0] + c[..., 3, 0] - c[..., 0, 0] - c[..., 1, 0]) / (2 * h[0])
         gx = (c[..., 1, 0] + c[..., 3, 0] - c[..., 0, 0] - c[..., 2, 0]) / (2 * h[1])
-        return 0.5 * gt ** 2 - 0.5 * gx ** 2 - 0.5 * c[..., 0, 0] ** 2
+        return 0.5 * gt**2 - 0.5 * gx**2 - 0.5 * c[..., 0, 0] ** 2
 
     model = ldft.AnalyticLagrangian(full, stencil=st)
     field = wave_field(nx=15, nt=10)
@@ -64,7 +64,6 @@ def test_batch_equals_one_by_one_and_sweep():
         sweep = ldft.serve(model, f, steps=50, mode="sweep")
         np.testing.assert_allclose(r.field.values, one.field.values, atol=1e-14)
         np.testing.assert_allclose(r.field.values, sweep.field.values, atol=1e-12)
-
 
 
 def test_box_stops_an_escaping_trajectory_as_complete():
@@ -135,12 +134,14 @@ def test_quadratic_ld_is_served_by_its_affine_recurrence():
     def full(c, h):
         gt = (c[..., 2, 0] + c[..., 3, 0] - c[..., 0, 0] - c[..., 1, 0]) / (2 * h[0])
         gx = (c[..., 1, 0] + c[..., 3, 0] - c[..., 0, 0] - c[..., 2, 0]) / (2 * h[1])
-        return 0.5 * gt ** 2 - 0.5 * gx ** 2 - 0.5 * c[..., 0, 0] ** 2 + 0.1 * c[..., 0, 0]
+        return 0.5 * gt**2 - 0.5 * gx**2 - 0.5 * c[..., 0, 0] ** 2 + 0.1 * c[..., 0, 0]
 
-    cases = [(lagrangians.wave(1.0), wave_field(nx=33, nt=60), "dirichlet"),
-             (lagrangians.wave(1.0), wave_field(nx=32, nt=60), "periodic"),
-             (ldft.AnalyticLagrangian(full, stencil=ldft.Stencil.full_cell(2)), wave_field(nx=15, nt=30), "dirichlet"),
-             (lagrangians.wave(1.0), membrane_field(n=10, nt=20), "dirichlet")]
+    cases = [
+        (lagrangians.wave(1.0), wave_field(nx=33, nt=60), "dirichlet"),
+        (lagrangians.wave(1.0), wave_field(nx=32, nt=60), "periodic"),
+        (ldft.AnalyticLagrangian(full, stencil=ldft.Stencil.full_cell(2)), wave_field(nx=15, nt=30), "dirichlet"),
+        (lagrangians.wave(1.0), membrane_field(n=10, nt=20), "dirichlet"),
+    ]
     for model, field, boundary in cases:
         fast = ldft.serve(model, field, boundary=boundary)
         slow = ldft.serve(model, field, boundary=boundary, affine=False)
@@ -160,8 +161,12 @@ def test_affine_recurrence_hands_over_to_newton_where_the_del_stops_being_affine
     # the affine recurrence is wrong from the first slice where psi exceeds 0.6, which the check finds
     def kg_kink(c, h):
         u = c[..., 0, 0]
-        return (0.5 * ((c[..., 1, 0] - u) / h[0]) ** 2 - 0.5 * ((c[..., 2, 0] - u) / h[1]) ** 2
-                - 0.5 * u ** 2 + 3.0 * torch.relu(u - 0.6) ** 3)
+        return (
+            0.5 * ((c[..., 1, 0] - u) / h[0]) ** 2
+            - 0.5 * ((c[..., 2, 0] - u) / h[1]) ** 2
+            - 0.5 * u**2
+            + 3.0 * torch.relu(u - 0.6) ** 3
+        )
 
     model = ldft.AnalyticLagrangian(kg_kink)
     field = wave_field(nx=33, nt=80, modes=((1, 0.45),))
@@ -178,8 +183,9 @@ def test_constant_mixed_hessian_assembles_the_1d_jacobian_once(monkeypatch):
     from latticedft._serve import _batch
 
     orbits = [systems.kepler_orbit(r, 1.0 / np.sqrt(r), dt=0.05, n=40) for r in (0.8, 1.0, 1.3)]
-    model = ldft.MLPLagrangian(hidden=[8, 8], activation="tanh", form="kinetic-potential",
-                               features="inverse-radius", seed=0)
+    model = ldft.MLPLagrangian(
+        hidden=[8, 8], activation="tanh", form="kinetic-potential", features="inverse-radius", seed=0
+    )
     ldft.learn(model, orbits, max_iter=5)
     assert model.constant_mixed_hessian
     inits = [o.isel(t=slice(0, 2)) for o in orbits]

@@ -72,12 +72,16 @@ def test_a_non_variational_map_fails_the_check():
     h = 0.1
 
     def euler(q, p):
-        return q + h * p, p - h * (q + q ** 3)
+        return q + h * p, p - h * (q + q**3)
 
     eps = 1e-6
     q, p = 0.9, 0.1
-    jac = np.array([[(euler(q + eps, p)[i] - euler(q - eps, p)[i]) / (2 * eps) for i in range(2)],
-                    [(euler(q, p + eps)[i] - euler(q, p - eps)[i]) / (2 * eps) for i in range(2)]]).T
+    jac = np.array(
+        [
+            [(euler(q + eps, p)[i] - euler(q - eps, p)[i]) / (2 * eps) for i in range(2)],
+            [(euler(q, p + eps)[i] - euler(q, p - eps)[i]) / (2 * eps) for i in range(2)],
+        ]
+    ).T
     assert abs(np.linalg.det(jac) - 1) > 1e-3
 
 
@@ -88,5 +92,5 @@ def test_energy_error_stays_bounded_over_long_runs():
     q = ldft.serve(model, data[1].isel(t=slice(0, 2)), steps=3000).field.values
     h = 0.1
     p = (q[2:] - q[:-2]) / (2 * h)
-    e = 0.5 * p ** 2 + quartic(torch.tensor(q[1:-1])).numpy()
+    e = 0.5 * p**2 + quartic(torch.tensor(q[1:-1])).numpy()
     assert np.ptp(e[-600:]) < 2 * np.ptp(e[:600]) + 1e-12  # oscillates, does not drift

@@ -29,8 +29,7 @@ from latticedft.io import write_field
 
 HERE = Path(__file__).resolve().parent
 DT = 0.05
-LAUNCHES = {"earth": (1.0167, [0.98, 1.13, 1.26, 1.40, 1.50]),
-            "mercury": (0.4667, [1.30, 1.56, 1.80, 2.07, 2.20])}
+LAUNCHES = {"earth": (1.0167, [0.98, 1.13, 1.26, 1.40, 1.50]), "mercury": (0.4667, [1.30, 1.56, 1.80, 2.07, 2.20])}
 BOX = 10.0
 T_ESCAPE = 30.0
 

@@ -27,8 +27,10 @@ def main() -> None:
     res = Path(sys.argv[1]) if len(sys.argv) > 1 else HERE / "results"
     summary = json.loads((res / "summary.json").read_text())
     t = summary["train"]
-    print(f"train: rel_res = {t['rel_res']:.2e}, F = {t['loss']:.2e}, {t['iterations']} iterations, "
-          f"{t['wall_time']:.1f} s")
+    print(
+        f"train: rel_res = {t['rel_res']:.2e}, F = {t['loss']:.2e}, {t['iterations']} iterations, "
+        f"{t['wall_time']:.1f} s"
+    )
     print("| launch | escaped (model) | escaped (Newton) | slices | max error, 100 steps | max error | status |")
     print("|---|---|---|---|---|---|---|")
     for name, task in summary["tasks"].items():
@@ -39,8 +41,10 @@ def main() -> None:
         e100 = float(np.abs(p[:n] - r[:n]).max())
         esc = "yes" if (np.hypot(*p.T) > 10).any() else "no"
         truth = "yes" if (np.hypot(*full.T) > 10).any() else "no"
-        print(f"| {name} | {esc} | {truth} | {task['slices']} | {e100:.1e} | {task['max_error']:.1e} | "
-              f"{'complete' if task['complete'] else 'incomplete: ' + task['reason']} |")
+        print(
+            f"| {name} | {esc} | {truth} | {task['slices']} | {e100:.1e} | {task['max_error']:.1e} | "
+            f"{'complete' if task['complete'] else 'incomplete: ' + task['reason']} |"
+        )
     fig, ax = plt.subplots(figsize=(6, 6))
     for f in sorted((HERE / "data").glob("train_*.nc")):
         o = xr.open_dataarray(f).values

@@ -34,8 +34,11 @@ def main() -> None:
     data.mkdir(exist_ok=True)
     files = {f"train_{a:.2f}": a for a in TRAIN} | TEST
     for stem, psi0 in files.items():
-        path = write_field(data / f"{stem}.nc", {"psi": systems.oscillator_wells(psi0, 0.0, n=51, dt=1.0)},
-                           history="cases/oscillator-wells/make_data.py")
+        path = write_field(
+            data / f"{stem}.nc",
+            {"psi": systems.oscillator_wells(psi0, 0.0, n=51, dt=1.0)},
+            history="cases/oscillator-wells/make_data.py",
+        )
         print(f"wrote data/{path.name} ({path.stat().st_size // 1024} kB)")
 
 

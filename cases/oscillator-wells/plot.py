@@ -1,6 +1,6 @@
 """The potential V with the training and test ranges, like Qin (2020) Fig. 6.
 
-    python plot.py [RESULTS]        (default: results/; writes RESULTS/potential.png)
+python plot.py [RESULTS]        (default: results/; writes RESULTS/potential.png)
 """
 
 from __future__ import annotations

@@ -28,8 +28,15 @@ LATTICE = {"xlim": (-20.0, 20.0), "nx": 401, "dt": 0.05}
 
 def _leapfrog(ref):
     dt = float(ref.t[1] - ref.t[0])
-    lf = systems.leapfrog(ref.isel(t=0, drop=True), ref.isel(t=1, drop=True), steps=ref.sizes["t"] - 1, dt=dt,
-                          force=lambda u: -np.sin(u), boundary="dirichlet", boundary_values=ref.values)
+    lf = systems.leapfrog(
+        ref.isel(t=0, drop=True),
+        ref.isel(t=1, drop=True),
+        steps=ref.sizes["t"] - 1,
+        dt=dt,
+        force=lambda u: -np.sin(u),
+        boundary="dirichlet",
+        boundary_values=ref.values,
+    )
     lf = lf.assign_coords(t=ref.t.values).rename("psi")
     lf.attrs["long_name"] = "leapfrog of psi_tt = psi_xx - sin psi (baseline)"
     return lf

@@ -38,8 +38,15 @@ def main(argv: list[str] | None = None) -> None:
     train = systems.wave_membrane(TRAIN_MODES, nx=n, ny=n, nt=41)
     test = systems.wave_membrane(TEST_MODES, nx=n, ny=n, nt=args.steps + 1)
     dt = float(test.t[1] - test.t[0])
-    leap = systems.leapfrog(test.isel(t=0, drop=True), test.isel(t=1, drop=True), steps=args.steps, dt=dt,
-                            c=1.0, boundary="dirichlet", boundary_values=test.values)
+    leap = systems.leapfrog(
+        test.isel(t=0, drop=True),
+        test.isel(t=1, drop=True),
+        steps=args.steps,
+        dt=dt,
+        c=1.0,
+        boundary="dirichlet",
+        boundary_values=test.values,
+    )
     leap = leap.assign_coords(t=test.t.values).rename("psi")
     leap.attrs["long_name"] = "leapfrog of psi_tt = psi_xx + psi_yy (baseline)"
     history = "cases/wave-2d/make_data.py"

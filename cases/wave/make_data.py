@@ -21,7 +21,7 @@ from latticedft import systems
 from latticedft.io import write_field
 
 HERE = Path(__file__).resolve().parent
-NX = 41                      # dx = 1/40; dt = dx/2 (Courant number 1/2, the wave_string default)
+NX = 41  # dx = 1/40; dt = dx/2 (Courant number 1/2, the wave_string default)
 TRAIN_MODES = [(1, 1.0), (2, 0.5, 0.3), (3, 0.25, 1.0)]
 TEST_MODES = [(1, 0.6, 0.5), (2, -0.4), (4, 0.15, 0.7)]
 
@@ -32,8 +32,14 @@ def main() -> None:
     train = systems.wave_string(TRAIN_MODES, nx=NX, nt=81)
     test = systems.wave_string(TEST_MODES, nx=NX, nt=401)
     dt = float(test.t[1] - test.t[0])
-    leap = systems.leapfrog(test.isel(t=0, drop=True), test.isel(t=1, drop=True), steps=test.sizes["t"] - 1,
-                            dt=dt, c=1.0, boundary="dirichlet")
+    leap = systems.leapfrog(
+        test.isel(t=0, drop=True),
+        test.isel(t=1, drop=True),
+        steps=test.sizes["t"] - 1,
+        dt=dt,
+        c=1.0,
+        boundary="dirichlet",
+    )
     leap = leap.assign_coords(t=test.t.values).rename("psi")
     leap.attrs["long_name"] = "leapfrog of psi_tt = psi_xx (baseline)"
     history = "cases/wave/make_data.py"

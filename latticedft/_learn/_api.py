@@ -22,8 +22,9 @@ __all__ = ["learn"]
 OPTIMIZERS = ("exact", "lbfgs", "adam")
 
 
-def _checked(model: AbstractLagrangian, gauge: str, ridge: float | str, optimizer: str | None,
-             max_iter: int) -> tuple[Gauge, str]:
+def _checked(
+    model: AbstractLagrangian, gauge: str, ridge: float | str, optimizer: str | None, max_iter: int
+) -> tuple[Gauge, str]:
     """The gauge and the optimizer (its default filled in), or an InputError naming the bad argument."""
     fix = gauge_named(gauge)
     if not isinstance(model, AbstractLagrangian):
@@ -53,11 +54,22 @@ def _bound_to(model: AbstractLagrangian, fields: list[LatticeField]) -> int:
     return nsites
 
 
-def learn(model: AbstractLagrangian, data: xr.DataArray | Sequence[xr.DataArray], *, gauge: str = "unit-mass",
-          ridge: float | str = 0.0, optimizer: str | None = None, max_iter: int = 500,
-          max_time: float | None = None, tol: float = 0.0, rel_tol: float | None = None, lr: float = 1e-3,
-          penalty: float = 1.0, boundary: BoundaryKinds | None = None,
-          progress: bool | None = None) -> LearnReport:
+def learn(
+    model: AbstractLagrangian,
+    data: xr.DataArray | Sequence[xr.DataArray],
+    *,
+    gauge: str = "unit-mass",
+    ridge: float | str = 0.0,
+    optimizer: str | None = None,
+    max_iter: int = 500,
+    max_time: float | None = None,
+    tol: float = 0.0,
+    rel_tol: float | None = None,
+    lr: float = 1e-3,
+    penalty: float = 1.0,
+    boundary: BoundaryKinds | None = None,
+    progress: bool | None = None,
+) -> LearnReport:
     """Learn ``L_d`` from one or more observed fields; the model is fitted in place.
 
     Parameters
@@ -116,16 +128,37 @@ def learn(model: AbstractLagrangian, data: xr.DataArray | Sequence[xr.DataArray]
         used_ridge, validation = learn_exact(model, fields, fix, ridge, nsites)
         iterations, reason = 1, "exact solve"
     else:
-        settings = Training(optimizer=optimizer, max_iter=max_iter, max_time=max_time, tol=tol, rel_tol=rel_tol,
-                            lr=lr, penalty=penalty, progress=progress)
+        settings = Training(
+            optimizer=optimizer,
+            max_iter=max_iter,
+            max_time=max_time,
+            tol=tol,
+            rel_tol=rel_tol,
+            lr=lr,
+            penalty=penalty,
+            progress=progress,
+        )
         iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
     wall = time.perf_counter() - t0
     diag = diagnose(model, fields, gauge=gauge)
-    report = LearnReport(method=optimizer, loss=diag["loss"], rel_res=diag["rel_res"], iterations=iterations,
-                         wall_time=wall, gauge=gauge, gauge_residual=diag["gauge_residual"],
-                         hessian_min_sv=diag["hessian_min_sv"], hessian_cond=diag["hessian_cond"],
-                         ridge=used_ridge, initial_loss=initial, n_fields=len(fields), n_sites=nsites,
-                         n_parameters=model.n_parameters(), stop_reason=reason, history=history,
-                         validation=validation)
+    report = LearnReport(
+        method=optimizer,
+        loss=diag["loss"],
+        rel_res=diag["rel_res"],
+        iterations=iterations,
+        wall_time=wall,
+        gauge=gauge,
+        gauge_residual=diag["gauge_residual"],
+        hessian_min_sv=diag["hessian_min_sv"],
+        hessian_cond=diag["hessian_cond"],
+        ridge=used_ridge,
+        initial_loss=initial,
+        n_fields=len(fields),
+        n_sites=nsites,
+        n_parameters=model.n_parameters(),
+        stop_reason=reason,
+        history=history,
+        validation=validation,
+    )
     model.report_ = report
     return report

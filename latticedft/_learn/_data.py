@@ -35,14 +35,18 @@ def as_fields(data: Any, boundary: BoundaryKinds | None) -> list[LatticeField]:
         if f.ndim != ref.ndim:
             raise InputError(f"{name}: has {f.ndim} lattice dims {f.dims}; data[0] has {ref.ndim} {ref.dims}")
         if f.components != ref.components:
-            raise InputError(f"{name}: component labels {list(f.components or [])} differ from data[0]'s "
-                             f"{list(ref.components or [])}")
+            raise InputError(
+                f"{name}: component labels {list(f.components or [])} differ from data[0]'s "
+                f"{list(ref.components or [])}"
+            )
         if f.ncomp != ref.ncomp:
             raise InputError(f"{name}: has {f.ncomp} components; data[0] has {ref.ncomp}")
         for k, (a, b) in enumerate(zip(f.spacing, ref.spacing)):
             if not math.isclose(a, b, rel_tol=1e-6):
-                raise InputError(f"{name}: spacing along {f.dims[k]!r} is {a:.6g}; data[0] has {b:.6g} "
-                                 "(a discrete theory belongs to one lattice spacing)")
+                raise InputError(
+                    f"{name}: spacing along {f.dims[k]!r} is {a:.6g}; data[0] has {b:.6g} "
+                    "(a discrete theory belongs to one lattice spacing)"
+                )
     return fields
 
 
@@ -54,12 +58,15 @@ def check_model_lattice(model: AbstractLagrangian, f: LatticeField, what: str) -
         if model.m != f.ncomp:
             raise InputError(f"{what}: has {f.ncomp} component(s) but the model was learned with {model.m}")
         if model.components and f.components and tuple(model.components) != tuple(f.components):
-            raise InputError(f"{what}: component labels {list(f.components)} differ from the model's "
-                             f"{list(model.components)}")
+            raise InputError(
+                f"{what}: component labels {list(f.components)} differ from the model's {list(model.components)}"
+            )
         for k, (a, b) in enumerate(zip(f.spacing, model.spacing)):
             if not math.isclose(a, b, rel_tol=1e-6):
-                raise InputError(f"{what}: spacing along {f.dims[k]!r} is {a:.6g} but the model was learned at "
-                                 f"{b:.6g} (a discrete theory belongs to its lattice)")
+                raise InputError(
+                    f"{what}: spacing along {f.dims[k]!r} is {a:.6g} but the model was learned at "
+                    f"{b:.6g} (a discrete theory belongs to its lattice)"
+                )
 
 
 def n_sites(f: LatticeField, model: AbstractLagrangian) -> int:
@@ -77,7 +84,7 @@ def kinetic_scale(fields: list[LatticeField], model: AbstractLagrangian, mbar: t
         d2 = second_time_difference(f, model.stencil)
         mat = -torch.eye(f.ncomp, dtype=d2.dtype) / h[0] ** 2 if mbar is None else mbar
         v = math.prod(h) * torch.einsum("ij,...j->...i", mat, d2)
-        total += float((v ** 2).sum())
+        total += float((v**2).sum())
         count += d2[..., 0].numel()
     return math.sqrt(total / max(count, 1))
 
@@ -87,8 +94,10 @@ def stacked(fields: list[LatticeField]) -> list[LatticeField]:
     groups: dict[tuple, list[LatticeField]] = {}
     for f in fields:
         groups.setdefault((f.shape, f.boundary), []).append(f)
-    return [g[0] if len(g) == 1 else replace(g[0], values=torch.stack([f.values for f in g]), batch=1)
-            for g in groups.values()]
+    return [
+        g[0] if len(g) == 1 else replace(g[0], values=torch.stack([f.values for f in g]), batch=1)
+        for g in groups.values()
+    ]
 
 
 def time_split(f: LatticeField) -> tuple[LatticeField, LatticeField] | None:

@@ -42,8 +42,9 @@ def residual_matrix(model: LinearLagrangian, f: LatticeField) -> np.ndarray:
     return sites[inner].reshape(-1, c).numpy()
 
 
-def gauge_matrix(model: LinearLagrangian, fields: list[LatticeField], gauge: Gauge
-                 ) -> tuple[np.ndarray, np.ndarray] | None:
+def gauge_matrix(
+    model: LinearLagrangian, fields: list[LatticeField], gauge: Gauge
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Constraint rows ``G coef = g`` of the gauge on the mean mixed Hessian over all training cells
     (``None`` for no gauge)."""
     if not gauge.fixes:
@@ -61,10 +62,9 @@ def gauge_matrix(model: LinearLagrangian, fields: list[LatticeField], gauge: Gau
     return gauge.constraint((total / ncells).numpy(), model.spacing[0])  # mean: (C, m, m)
 
 
-def _constrained_lstsq(r: np.ndarray, g_mat: np.ndarray | None, g_vec: np.ndarray | None,
-                       ridge: float) -> np.ndarray:
+def _constrained_lstsq(r: np.ndarray, g_mat: np.ndarray | None, g_vec: np.ndarray | None, ridge: float) -> np.ndarray:
     c = r.shape[1]
-    colsq = float((r ** 2).sum(0).mean()) or 1.0
+    colsq = float((r**2).sum(0).mean()) or 1.0
     lam = ridge * colsq
     if g_mat is None:  # no gauge: the unit-norm minimiser (what an unconstrained trainer drifts to)
         a = np.vstack([r, math.sqrt(lam) * np.eye(c)]) if lam > 0 else r
@@ -72,8 +72,10 @@ def _constrained_lstsq(r: np.ndarray, g_mat: np.ndarray | None, g_vec: np.ndarra
         return vt[-1]
     u, s, vt = np.linalg.svd(g_mat, full_matrices=True)
     if s.size == 0 or s[0] == 0:
-        raise InputError("model: no basis function gives a mixed time Hessian, so no L_d of this class can "
-                         "describe dynamics (raise the orders)")
+        raise InputError(
+            "model: no basis function gives a mixed time Hessian, so no L_d of this class can "
+            "describe dynamics (raise the orders)"
+        )
     rank = int((s > 1e-12 * s[0]).sum())
     theta_p = vt[:rank].T @ ((u[:, :rank].T @ g_vec) / s[:rank])
     null = vt[rank:].T
@@ -91,8 +93,9 @@ def _constrained_lstsq(r: np.ndarray, g_mat: np.ndarray | None, g_vec: np.ndarra
     return theta_p + null @ z
 
 
-def _ridge_folds(model: LinearLagrangian, fields: list[LatticeField], rs: list[np.ndarray]
-                 ) -> list[tuple[list[np.ndarray], list[np.ndarray], list[LatticeField]]]:
+def _ridge_folds(
+    model: LinearLagrangian, fields: list[LatticeField], rs: list[np.ndarray]
+) -> list[tuple[list[np.ndarray], list[np.ndarray], list[LatticeField]]]:
     """(training residual matrices, held-out ones, held-out fields): leave one field out (up to 6 folds),
     or for a single field its first 70 % against the rest."""
     if len(fields) >= 2:
@@ -103,8 +106,13 @@ def _ridge_folds(model: LinearLagrangian, fields: list[LatticeField], rs: list[n
     return [([residual_matrix(model, split[0])], [residual_matrix(model, split[1])], [split[1]])]
 
 
-def _pick_ridge(model: LinearLagrangian, fields: list[LatticeField], rs: list[np.ndarray],
-                g_mat: np.ndarray | None, g_vec: np.ndarray | None) -> tuple[float, dict[str, float]]:
+def _pick_ridge(
+    model: LinearLagrangian,
+    fields: list[LatticeField],
+    rs: list[np.ndarray],
+    g_mat: np.ndarray | None,
+    g_vec: np.ndarray | None,
+) -> tuple[float, dict[str, float]]:
     """The ridge weight of the grid with the smallest held-out relative residual, and every score."""
     folds = _ridge_folds(model, fields, rs)
     validation: dict[str, float] = {}
@@ -124,8 +132,9 @@ def _pick_ridge(model: LinearLagrangian, fields: list[LatticeField], rs: list[np
     return best, validation
 
 
-def learn_exact(model: LinearLagrangian, fields: list[LatticeField], gauge: Gauge, ridge: float | str,
-                nsites: int) -> tuple[float, dict[str, float]]:
+def learn_exact(
+    model: LinearLagrangian, fields: list[LatticeField], gauge: Gauge, ridge: float | str, nsites: int
+) -> tuple[float, dict[str, float]]:
     """Solve for ``model.coef`` in place; returns the ridge weight used and the validation scores of
     ``ridge="auto"`` (empty otherwise)."""
     rs = [residual_matrix(model, f) for f in fields]

@@ -50,7 +50,7 @@ class UnitMass(Gauge):
     name = "unit-mass"
 
     def _defect(self, mbar: torch.Tensor, h0: float) -> torch.Tensor:
-        return h0 ** 2 * mbar + torch.eye(mbar.shape[0], dtype=mbar.dtype)
+        return h0**2 * mbar + torch.eye(mbar.shape[0], dtype=mbar.dtype)
 
     def residual(self, mbar: torch.Tensor, h0: float) -> float:
         """``||h_0^2 mbar + I||_F / sqrt(m)``."""
@@ -61,7 +61,7 @@ class UnitMass(Gauge):
 
     def constraint(self, mean: np.ndarray, h0: float) -> tuple[np.ndarray, np.ndarray]:
         c, m = mean.shape[0], mean.shape[1]
-        return mean.reshape(c, m * m).T * h0 ** 2, -np.eye(m).reshape(-1)
+        return mean.reshape(c, m * m).T * h0**2, -np.eye(m).reshape(-1)
 
 
 class Trace(Gauge):
@@ -70,7 +70,7 @@ class Trace(Gauge):
     name = "trace"
 
     def _defect(self, mbar: torch.Tensor, h0: float) -> torch.Tensor:
-        return h0 ** 2 * torch.trace(mbar) / mbar.shape[0] + 1
+        return h0**2 * torch.trace(mbar) / mbar.shape[0] + 1
 
     def residual(self, mbar: torch.Tensor, h0: float) -> float:
         """``|h_0^2 tr(mbar) / m + 1|``."""
@@ -80,7 +80,7 @@ class Trace(Gauge):
         return self._defect(mbar, h0) ** 2
 
     def constraint(self, mean: np.ndarray, h0: float) -> tuple[np.ndarray, np.ndarray]:
-        return np.trace(mean, axis1=1, axis2=2)[None, :] * h0 ** 2, np.array([-float(mean.shape[1])])
+        return np.trace(mean, axis1=1, axis2=2)[None, :] * h0**2, np.array([-float(mean.shape[1])])
 
 
 class NoGauge(Gauge):

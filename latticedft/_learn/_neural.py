@@ -35,15 +35,16 @@ class Training:
     progress: bool | None
 
 
-def _objective(model: AbstractLagrangian, fields: list[LatticeField], gauge: Gauge, penalty: float, nsites: int,
-               norm2: float) -> tuple[torch.Tensor, torch.Tensor]:
+def _objective(
+    model: AbstractLagrangian, fields: list[LatticeField], gauge: Gauge, penalty: float, nsites: int, norm2: float
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(objective, loss): the mean squared DEL residual over ``norm2``, plus the weighted gauge penalty
     unless the model has a unit mass by construction."""
     sq = 0
     ms = []
     for f in fields:
         el = del_residual(model, f, create_graph=True)
-        sq = sq + (el ** 2).sum()
+        sq = sq + (el**2).sum()
         if gauge.fixes and not model.unit_mass_by_construction:
             ms.append(mixed_hessian(model, f, create_graph=True))
     loss = sq / nsites
@@ -55,16 +56,24 @@ def _objective(model: AbstractLagrangian, fields: list[LatticeField], gauge: Gau
 
 def _optimizer(settings: Training, params: list[torch.nn.Parameter]) -> torch.optim.Optimizer:
     if settings.optimizer == "lbfgs":
-        return torch.optim.LBFGS(params, lr=1.0, max_iter=_LBFGS_CHUNK, history_size=50,
-                                 line_search_fn="strong_wolfe", tolerance_grad=1e-14, tolerance_change=1e-16)
+        return torch.optim.LBFGS(
+            params,
+            lr=1.0,
+            max_iter=_LBFGS_CHUNK,
+            history_size=50,
+            line_search_fn="strong_wolfe",
+            tolerance_grad=1e-14,
+            tolerance_change=1e-16,
+        )
     return torch.optim.Adam(params, lr=settings.lr)
 
 
 class _Run:
     """One training run: the optimizer, the objective it minimises, and the best state seen."""
 
-    def __init__(self, model: AbstractLagrangian, fields: list[LatticeField], gauge: Gauge, nsites: int,
-                 settings: Training):
+    def __init__(
+        self, model: AbstractLagrangian, fields: list[LatticeField], gauge: Gauge, nsites: int, settings: Training
+    ):
         norm2 = kinetic_scale(fields, model, None) ** 2 or 1.0
         fields = stacked(fields)
         self.model, self.settings = model, settings
@@ -97,8 +106,9 @@ class _Run:
         return {k: v.detach().clone() for k, v in self.model.state_dict().items()}
 
 
-def _stop_reason(settings: Training, obj: float, initial: float, elapsed: float, history: list, step_its: int,
-                 left: int, chunk: int) -> str | None:
+def _stop_reason(
+    settings: Training, obj: float, initial: float, elapsed: float, history: list, step_its: int, left: int, chunk: int
+) -> str | None:
     """Why training stops after a step with objective ``obj`` (``left``: iterations left before it)."""
     if not math.isfinite(obj):
         return "non-finite objective"
@@ -108,14 +118,19 @@ def _stop_reason(settings: Training, obj: float, initial: float, elapsed: float,
         return f"objective reduced by {1 / settings.rel_tol:g}x"
     if settings.max_time is not None and elapsed >= settings.max_time:
         return f"max_time ({settings.max_time:g} s)"
-    if settings.optimizer == "lbfgs" and step_its < min(chunk, left) and \
-            len(history) > 1 and history[-2][1] - obj <= 1e-14 * abs(obj):
+    if (
+        settings.optimizer == "lbfgs"
+        and step_its < min(chunk, left)
+        and len(history) > 1
+        and history[-2][1] - obj <= 1e-14 * abs(obj)
+    ):
         return "converged (no further decrease)"
     return None
 
 
-def learn_neural(model: AbstractLagrangian, fields: list[LatticeField], gauge: Gauge, nsites: int,
-                 settings: Training) -> tuple[int, list[tuple[int, float, float]], float, str]:
+def learn_neural(
+    model: AbstractLagrangian, fields: list[LatticeField], gauge: Gauge, nsites: int, settings: Training
+) -> tuple[int, list[tuple[int, float, float]], float, str]:
     """Train ``model`` in place and leave it at the best objective seen.
 
     Returns (iterations, history of (iterations, objective, seconds), initial objective, stop reason).
@@ -127,8 +142,12 @@ def learn_neural(model: AbstractLagrangian, fields: list[LatticeField], gauge: G
     best = (initial, run.snapshot())
     reason = "max_iter"
     done = 0
-    bar = tqdm(total=settings.max_iter, desc=f"train ({settings.optimizer})", leave=False,
-               disable=None if settings.progress is None else not settings.progress)
+    bar = tqdm(
+        total=settings.max_iter,
+        desc=f"train ({settings.optimizer})",
+        leave=False,
+        disable=None if settings.progress is None else not settings.progress,
+    )
     try:
         while done < settings.max_iter:
             left = settings.max_iter - done
@@ -139,8 +158,7 @@ def learn_neural(model: AbstractLagrangian, fields: list[LatticeField], gauge: G
             bar.set_postfix(objective=f"{obj:.3e}")
             if math.isfinite(obj) and obj < best[0]:
                 best = (obj, run.snapshot())
-            stop = _stop_reason(settings, obj, initial, time.perf_counter() - t0, history, step_its, left,
-                                run.chunk)
+            stop = _stop_reason(settings, obj, initial, time.perf_counter() - t0, history, step_its, left, run.chunk)
             if stop is not None:
                 reason = stop
                 break

@@ -40,9 +40,11 @@ class LearnReport:
     validation: dict[str, float] = field(default_factory=dict)
 
     def summary_line(self) -> str:
-        return (f"learned by {self.method}: F = {self.loss:.3e}, rel_res = {self.rel_res:.3e}, "
-                f"gauge residual = {self.gauge_residual:.1e}, min sv(h0^2 M) = {self.hessian_min_sv:.3g}, "
-                f"cond(M) = {self.hessian_cond:.3g}, {self.iterations} iterations, {self.wall_time:.2f} s")
+        return (
+            f"learned by {self.method}: F = {self.loss:.3e}, rel_res = {self.rel_res:.3e}, "
+            f"gauge residual = {self.gauge_residual:.1e}, min sv(h0^2 M) = {self.hessian_min_sv:.3g}, "
+            f"cond(M) = {self.hessian_cond:.3g}, {self.iterations} iterations, {self.wall_time:.2f} s"
+        )
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -50,8 +52,9 @@ class LearnReport:
         return d
 
 
-def diagnose(model: AbstractLagrangian, data: Any, *, gauge: str = "unit-mass",
-             boundary: BoundaryKinds | None = None) -> dict[str, float]:
+def diagnose(
+    model: AbstractLagrangian, data: Any, *, gauge: str = "unit-mass", boundary: BoundaryKinds | None = None
+) -> dict[str, float]:
     """Residual and gauge diagnostics of ``model`` on fields ``data``.
 
     Returns ``loss`` (mean squared DEL residual), ``rel_res`` (rms residual
@@ -62,21 +65,22 @@ def diagnose(model: AbstractLagrangian, data: Any, *, gauge: str = "unit-mass",
     (largest condition number of ``M`` over the cells).
     """
     fix = gauge_named(gauge)
-    fields = data if isinstance(data, list) and all(isinstance(f, LatticeField) for f in data) \
-        else as_fields(data, boundary)
+    fields = (
+        data if isinstance(data, list) and all(isinstance(f, LatticeField) for f in data) else as_fields(data, boundary)
+    )
     model._require_bound()
     h0 = model.spacing[0]
     sq, nsites = 0.0, 0
     ms = []
     for f in fields:
         el = del_residual(model, f)
-        sq += float((el ** 2).sum())
+        sq += float((el**2).sum())
         nsites += el[..., 0].numel()
         ms.append(mixed_hessian(model, f))
     mcat = torch.cat(ms)
     mbar = mcat.mean(0)
     gres = fix.residual(mbar, h0)
-    sv = torch.linalg.svdvals(h0 ** 2 * mcat)
+    sv = torch.linalg.svdvals(h0**2 * mcat)
     smin = float(sv[:, -1].min())
     cond = float((sv[:, 0] / sv[:, -1]).max()) if smin > 0 else math.inf
     loss = sq / max(nsites, 1)

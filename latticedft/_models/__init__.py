@@ -23,5 +23,14 @@ MODELS: dict[str, type[AbstractLagrangian]] = {
     "mlp": MLPLagrangian,
 }
 
-__all__ = ["AbstractLagrangian", "AnalyticLagrangian", "FreeMLPLagrangian", "KineticPotentialMLPLagrangian",
-           "LinearLagrangian", "MLPLagrangian", "PolynomialLagrangian", "MODELS", "PRESETS"]
+__all__ = [
+    "AbstractLagrangian",
+    "AnalyticLagrangian",
+    "FreeMLPLagrangian",
+    "KineticPotentialMLPLagrangian",
+    "LinearLagrangian",
+    "MLPLagrangian",
+    "PolynomialLagrangian",
+    "MODELS",
+    "PRESETS",
+]

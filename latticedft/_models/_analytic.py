@@ -34,8 +34,13 @@ class AnalyticLagrangian(AbstractLagrangian):
     saveable = False
     rebinds_to_any_lattice = True  # a formula in h, valid on any lattice
 
-    def __init__(self, fn: Callable[[torch.Tensor, tuple[float, ...]], torch.Tensor], *,
-                 stencil: Stencil | None = None, name: str | None = None):
+    def __init__(
+        self,
+        fn: Callable[[torch.Tensor, tuple[float, ...]], torch.Tensor],
+        *,
+        stencil: Stencil | None = None,
+        name: str | None = None,
+    ):
         super().__init__(stencil)
         if not callable(fn):
             raise InputError.at("fn", f"expected a callable fn(cells, h), got {type(fn).__name__}")

@@ -61,8 +61,10 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         if cls.linear and _LINEAR_BASE and not issubclass(cls, _LINEAR_BASE[0]):
-            raise TypeError(f"{cls.__name__}: a model linear in its parameters subclasses "
-                            "latticedft.LinearLagrangian (setting linear = True is not enough)")
+            raise TypeError(
+                f"{cls.__name__}: a model linear in its parameters subclasses "
+                "latticedft.LinearLagrangian (setting linear = True is not enough)"
+            )
 
     def __init__(self, stencil: Stencil | None = None):
         super().__init__()
@@ -82,8 +84,9 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
         if self.stencil is None:
             self.stencil = Stencil.first_order(n)
         if self.stencil.ndim != n:
-            raise InputError.at("stencil", f"has offsets in {self.stencil.ndim} dimensions but the data have {n} "
-                             "lattice dims")
+            raise InputError.at(
+                "stencil", f"has offsets in {self.stencil.ndim} dimensions but the data have {n} lattice dims"
+            )
         if self.bound and (self.n, self.m) != (n, m):
             raise InputError(f"model: bound to n={self.n}, m={self.m}; data have n={n}, m={m}")
         first = not self.bound
@@ -110,8 +113,9 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
         """``L_d`` on cells ``(..., K, m)``, returning ``(...)``."""
 
-    def fast_derivatives(self, cells: torch.Tensor, pairs: list[tuple[int, int]]
-                         ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]] | None:
+    def fast_derivatives(
+        self, cells: torch.Tensor, pairs: list[tuple[int, int]]
+    ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]] | None:
         """Closed-form per-cell derivatives, or ``None`` (the default) where the model has none.
 
         A model that overrides this returns ``(grad, blocks)`` without autograd: ``grad`` is ``dL/dx_a``
@@ -163,8 +167,10 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
         """The learned ``L_d`` in words; subclasses add their terms."""
         lines = [f"{type(self).__name__} (kind {self.kind!r}), {self.n_parameters()} parameters"]
         if self.bound:
-            lines.append(f"  lattice: n = {self.n} (time first), m = {self.m} component(s), "
-                         f"spacing = {tuple(float(f'{h:.6g}') for h in self.spacing)}")
+            lines.append(
+                f"  lattice: n = {self.n} (time first), m = {self.m} component(s), "
+                f"spacing = {tuple(float(f'{h:.6g}') for h in self.spacing)}"
+            )
             lines.append(f"  stencil: {self.stencil.to_list()}")
         else:
             lines.append("  not bound to a lattice yet")

@@ -59,9 +59,9 @@ class LinearLagrangian(AbstractLagrangian):
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
         return self.features(cells) @ self.coef
 
-    def feature_derivatives(self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *,
-                            first: bool = True
-                            ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]:
+    def feature_derivatives(
+        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool = True
+    ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]:
         """Derivatives of every basis function with respect to the stencil values.
 
         Returns ``(d, blocks)``: ``d[..., a, i, c] = d phi_c / d x_{a,i}`` with shape ``(*cells, K, m, C)``
@@ -75,20 +75,29 @@ class LinearLagrangian(AbstractLagrangian):
         k, m = cells.shape[-2], cells.shape[-1]
         d = None
         if first:
-            d = torch.stack([torch.stack([torch.func.jvp(self.features, (cells,), (_unit(cells, a, i),))[1]
-                                          for i in range(m)], -2) for a in range(k)], -3)
+            d = torch.stack(
+                [
+                    torch.stack(
+                        [torch.func.jvp(self.features, (cells,), (_unit(cells, a, i),))[1] for i in range(m)], -2
+                    )
+                    for a in range(k)
+                ],
+                -3,
+            )
         blocks = {}
         for a, b in pairs:
             rows = []
             for i in range(m):
                 along = self._directional(_unit(cells, a, i))
-                rows.append(torch.stack([torch.func.jvp(along, (cells,), (_unit(cells, b, j),))[1]
-                                         for j in range(m)], -2))
+                rows.append(
+                    torch.stack([torch.func.jvp(along, (cells,), (_unit(cells, b, j),))[1] for j in range(m)], -2)
+                )
             blocks[(a, b)] = torch.stack(rows, -3)
         return d, blocks
 
     def _directional(self, t: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
         """``y -> d features(y) / d y . t``, to be differentiated once more."""
+
         def along(y: torch.Tensor) -> torch.Tensor:
             return torch.func.jvp(self.features, (y,), (t,))[1]
 

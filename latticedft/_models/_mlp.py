@@ -33,11 +33,21 @@ _ACTIVATIONS = {
 #: potential a function of ``1 / |psi|`` (central forces, e.g. Kepler orbits).
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": {"hidden": [40, 40], "activation": "sigmoid", "form": "free", "features": "values", "scale": False},
-    "kinetic-potential": {"hidden": [32, 32], "activation": "tanh", "form": "kinetic-potential",
-                          "features": "values", "scale": True},
+    "kinetic-potential": {
+        "hidden": [32, 32],
+        "activation": "tanh",
+        "form": "kinetic-potential",
+        "features": "values",
+        "scale": True,
+    },
     # central forces (Kepler): unit-mass kinetic term plus a learned potential of 1/|psi|
-    "radial": {"hidden": [32, 32], "activation": "tanh", "form": "kinetic-potential",
-               "features": "inverse-radius", "scale": True},
+    "radial": {
+        "hidden": [32, 32],
+        "activation": "tanh",
+        "form": "kinetic-potential",
+        "features": "inverse-radius",
+        "scale": True,
+    },
 }
 _DEFAULTS: dict[str, Any] = {"hidden": [40, 40], "activation": "sigmoid", "features": None, "scale": True}
 
@@ -61,8 +71,9 @@ def _gram(model: AbstractLagrangian, cells: torch.Tensor) -> torch.Tensor:
     return gram[..., iu[0], iu[1]]
 
 
-def _settings(hidden: Any, activation: Any, form: Any, features: Any, scale: Any, preset: Any,
-              default_form: str = "free") -> dict[str, Any]:
+def _settings(
+    hidden: Any, activation: Any, form: Any, features: Any, scale: Any, preset: Any, default_form: str = "free"
+) -> dict[str, Any]:
     """The defaults, then the preset's settings, then the arguments given (``None``: not given)."""
     out = dict(_DEFAULTS, form=default_form)
     if preset is not None:
@@ -138,28 +149,49 @@ class MLPLagrangian(AbstractLagrangian):
             target = _FORM_CLASSES.get(form or "free", FreeMLPLagrangian)  # an unknown form: __init__ says so
         return super().__new__(target)
 
-    def __init__(self, hidden: Sequence[int] | None = None, activation: str | None = None, *,
-                 form: str | None = None, features: str | None = None, scale: bool | None = None,
-                 seed: int = 0, preset: str | None = None, stencil: Stencil | None = None):
+    def __init__(
+        self,
+        hidden: Sequence[int] | None = None,
+        activation: str | None = None,
+        *,
+        form: str | None = None,
+        features: str | None = None,
+        scale: bool | None = None,
+        seed: int = 0,
+        preset: str | None = None,
+        stencil: Stencil | None = None,
+    ):
         super().__init__(stencil)
         opts = _settings(hidden, activation, form, features, scale, preset, default_form=self.form)
         hid = opts["hidden"]
-        if (not isinstance(hid, (list, tuple)) or not hid
-                or not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in hid)):
+        if (
+            not isinstance(hid, (list, tuple))
+            or not hid
+            or not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in hid)
+        ):
             raise InputError.at("hidden", f"expected a non-empty list of positive layer sizes, got {hid!r}")
         if opts["activation"] not in _ACTIVATIONS:
-            raise InputError.at("activation", f"expected one of {sorted(_ACTIVATIONS)} (smooth; serving needs second "
-                             f"derivatives), got {opts['activation']!r}")
+            raise InputError.at(
+                "activation",
+                f"expected one of {sorted(_ACTIVATIONS)} (smooth; serving needs second "
+                f"derivatives), got {opts['activation']!r}",
+            )
         if opts["form"] != self.form:
-            raise InputError.at("form", f"{type(self).__name__} has form {self.form!r}, got {opts['form']!r} "
-                             "(MLPLagrangian(form=...) picks the class)")
+            raise InputError.at(
+                "form",
+                f"{type(self).__name__} has form {self.form!r}, got {opts['form']!r} "
+                "(MLPLagrangian(form=...) picks the class)",
+            )
         feats = opts["features"] or self.default_features
         every = list(dict.fromkeys(name for cls in _FORM_CLASSES.values() for name in cls.inputs))
         if feats not in every:
             raise InputError.at("features", f"expected one of {every}, got {feats!r}")
         if feats not in self.inputs:
-            raise InputError.at("features", f"{feats!r} does not go with form={self.form!r} (that form takes "
-                             f"{', '.join(repr(k) for k in self.inputs)})")
+            raise InputError.at(
+                "features",
+                f"{feats!r} does not go with form={self.form!r} (that form takes "
+                f"{', '.join(repr(k) for k in self.inputs)})",
+            )
         if not isinstance(seed, int) or isinstance(seed, bool):
             raise InputError.at("seed", f"expected an integer, got {seed!r}")
         self.hidden = [int(h) for h in hid]
@@ -169,8 +201,14 @@ class MLPLagrangian(AbstractLagrangian):
         self.seed = seed
 
     def options(self) -> dict[str, Any]:
-        return {"hidden": list(self.hidden), "activation": self.activation, "form": self.form,
-                "features": self.features, "scale": self.scale, "seed": self.seed}
+        return {
+            "hidden": list(self.hidden),
+            "activation": self.activation,
+            "form": self.form,
+            "features": self.features,
+            "scale": self.scale,
+            "seed": self.seed,
+        }
 
     # -- structure ---------------------------------------------------------------------------------------
     def _n_inputs(self) -> int:
@@ -178,7 +216,9 @@ class MLPLagrangian(AbstractLagrangian):
 
     def _build(self) -> None:
         if self.inputs[self.features].vector and self.m < 2:
-            raise InputError.at("features", f"{self.features!r} needs a vector field (m >= 2); use 'values' for scalars")
+            raise InputError.at(
+                "features", f"{self.features!r} needs a vector field (m >= 2); use 'values' for scalars"
+            )
         gen_state = torch.random.get_rng_state()
         torch.manual_seed(self.seed)
         try:
@@ -222,8 +262,11 @@ class MLPLagrangian(AbstractLagrangian):
     def describe(self) -> str:
         head = super().describe()
         arch = " -> ".join(str(w) for w in [self._n_inputs() if self.bound else "?", *self.hidden, 1])
-        lines = [head, f"  network: {arch}, {self.activation}, inputs: {self.features}"
-                 + (", scaled to the data" if self.scale else "")]
+        lines = [
+            head,
+            f"  network: {arch}, {self.activation}, inputs: {self.features}"
+            + (", scaled to the data" if self.scale else ""),
+        ]
         return "\n".join(lines + self._formula())
 
 
@@ -252,10 +295,12 @@ class KineticPotentialMLPLagrangian(MLPLagrangian):
     form = "kinetic-potential"
     inputs: ClassVar[dict[str, _Inputs]] = {
         "values": _Inputs(lambda n, m, k: m, lambda model, c: c),
-        "invariant": _Inputs(lambda n, m, k: 1, lambda model, c: torch.sqrt((c * c).sum(-1, keepdim=True)),
-                             vector=True),
-        "inverse-radius": _Inputs(lambda n, m, k: 1, lambda model, c: torch.rsqrt((c * c).sum(-1, keepdim=True)),
-                                  vector=True),
+        "invariant": _Inputs(
+            lambda n, m, k: 1, lambda model, c: torch.sqrt((c * c).sum(-1, keepdim=True)), vector=True
+        ),
+        "inverse-radius": _Inputs(
+            lambda n, m, k: 1, lambda model, c: torch.rsqrt((c * c).sum(-1, keepdim=True)), vector=True
+        ),
     }
     default_features = "values"
     #: The potential is a sum of one-site terms, so every block coupling two stencil sites comes from the
@@ -288,7 +333,7 @@ class KineticPotentialMLPLagrangian(MLPLagrangian):
         for k in range(1, self.n):
             edge = self._edge(k)
             dk = cells[..., edge, :] - x0 if edge is not None else z[..., k + 1, :]
-            lag = lag - 0.5 * self.stiffness[k - 1] * (dk ** 2).sum(-1) / h[k] ** 2
+            lag = lag - 0.5 * self.stiffness[k - 1] * (dk**2).sum(-1) / h[k] ** 2
         potential = self._net(self._inputs(cells)).mean(-1)  # mean over the K stencil sites
         return lag - potential
 
@@ -300,5 +345,6 @@ class KineticPotentialMLPLagrangian(MLPLagrangian):
 
 
 #: ``form`` -> the class that implements it.
-_FORM_CLASSES: dict[str, type[MLPLagrangian]] = {cls.form: cls for cls in (FreeMLPLagrangian,
-                                                                             KineticPotentialMLPLagrangian)}
+_FORM_CLASSES: dict[str, type[MLPLagrangian]] = {
+    cls.form: cls for cls in (FreeMLPLagrangian, KineticPotentialMLPLagrangian)
+}

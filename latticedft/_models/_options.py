@@ -43,8 +43,9 @@ class OptionTypeError(Exception):
 class _Check:
     """A check with its description in the singular and the plural (``an integer`` / ``integers``)."""
 
-    def __init__(self, ok: Callable[[Any], bool], expected: str, plural: str,
-                 convert: Callable[[Any], Any] | None = None):
+    def __init__(
+        self, ok: Callable[[Any], bool], expected: str, plural: str, convert: Callable[[Any], Any] | None = None
+    ):
         self.ok, self.expected, self.plural = ok, expected, plural
         self.convert = convert or (lambda v: v)
 
@@ -73,9 +74,13 @@ _SEQUENCES = (list, tuple, collections.abc.Sequence)
 
 def _sequence(item: _Check | None, length: int | None) -> _Check:
     """A TOML array (a list or tuple in Python) of ``length`` items (any number when ``None``)."""
+
     def ok(v: Any) -> bool:
-        return (isinstance(v, (list, tuple)) and (length is None or len(v) == length)
-                and (item is None or all(item.ok(i) for i in v)))
+        return (
+            isinstance(v, (list, tuple))
+            and (length is None or len(v) == length)
+            and (item is None or all(item.ok(i) for i in v))
+        )
 
     what = "a list" + (f" of {length}" if length is not None else "")
     expected = f"{what} of {item.plural}" if item is not None else what
@@ -135,4 +140,3 @@ def option_checks_of(init: Callable[..., Any]) -> dict[str, Callable[[Any], Any]
 
 def _any(value: Any) -> Any:
     return value
-

@@ -40,8 +40,7 @@ def _coefficient_rows(basis: str, deg: int) -> tuple[tuple[Fraction, ...], ...]:
             continue
         j = k - 1  # (j+1) P_{j+1} = (2j+1) z P_j - j P_{j-1}
         for e in range(deg + 1):
-            rows[k][e] = (Fraction(2 * j + 1, j + 1) * (rows[j][e - 1] if e else 0)
-                          - Fraction(j, j + 1) * rows[j - 1][e])
+            rows[k][e] = Fraction(2 * j + 1, j + 1) * (rows[j][e - 1] if e else 0) - Fraction(j, j + 1) * rows[j - 1][e]
     return tuple(tuple(r) for r in rows)
 
 
@@ -113,11 +112,21 @@ class PolynomialLagrangian(LinearLagrangian):
 
     kind = "polynomial"
 
-    def __init__(self, orders: Sequence[int] = (4, 8), *, time_symmetric: bool = False,
-                 scale: bool = True, basis: str = "legendre", stencil: Stencil | None = None):
+    def __init__(
+        self,
+        orders: Sequence[int] = (4, 8),
+        *,
+        time_symmetric: bool = False,
+        scale: bool = True,
+        basis: str = "legendre",
+        stencil: Stencil | None = None,
+    ):
         super().__init__(stencil)
-        if (not isinstance(orders, (tuple, list)) or len(orders) != 2
-                or not all(isinstance(o, int) and not isinstance(o, bool) and o >= 0 for o in orders)):
+        if (
+            not isinstance(orders, (tuple, list))
+            or len(orders) != 2
+            or not all(isinstance(o, int) and not isinstance(o, bool) and o >= 0 for o in orders)
+        ):
             raise InputError.at("orders", f"expected two non-negative integers [P, Q], got {orders!r}")
         if basis not in ("legendre", "monomial"):
             raise InputError.at("basis", f"expected 'legendre' or 'monomial', got {basis!r}")
@@ -127,8 +136,12 @@ class PolynomialLagrangian(LinearLagrangian):
         self.basis = basis
 
     def options(self) -> dict[str, Any]:
-        return {"orders": list(self.orders), "time_symmetric": self.time_symmetric, "scale": self.scale,
-                "basis": self.basis}
+        return {
+            "orders": list(self.orders),
+            "time_symmetric": self.time_symmetric,
+            "scale": self.scale,
+            "basis": self.basis,
+        }
 
     # -- structure ---------------------------------------------------------------------------------------
     def _build(self) -> None:
@@ -183,8 +196,10 @@ class PolynomialLagrangian(LinearLagrangian):
         pw = [torch.ones_like(z), z]
         for _ in range(2, width):
             pw.append(pw[-1] * z)
-        table = torch.stack(pw[:width], dim=-1) @ _coefficient_matrix(self.basis, deg, z.dtype, z.device)[
-            :, : (order + 1) * width]
+        table = (
+            torch.stack(pw[:width], dim=-1)
+            @ _coefficient_matrix(self.basis, deg, z.dtype, z.device)[:, : (order + 1) * width]
+        )
         return list(table.split(width, dim=-1))
 
     def _tables_recurrence(self, z: torch.Tensor, order: int) -> list[torch.Tensor]:
@@ -249,8 +264,9 @@ class PolynomialLagrangian(LinearLagrangian):
         if mat is None:
             rows = aff["W"].unflatten(0, (-1, self.m))  # (K, m, V): dz/dx_a
             full = torch.einsum("iv,jw->vwij", rows[a], rows[b])  # block[i, j] = sum_vw full[v, w, i, j] H[v, w]
-            mat = torch.stack([full[v, w] + full[w, v] if v != w else full[v, v]
-                               for v, w in _pairs(rows.shape[-1])]).reshape(-1, self.m ** 2)
+            mat = torch.stack(
+                [full[v, w] + full[w, v] if v != w else full[v, v] for v, w in _pairs(rows.shape[-1])]
+            ).reshape(-1, self.m**2)
             aff["pairs"][(a, b)] = mat
         return mat
 
@@ -269,10 +285,14 @@ class PolynomialLagrangian(LinearLagrangian):
             self.__dict__["_factor_cache"] = cache
         if r not in cache[1]:  # where each term's factors sit in the flattened tables, the powers, the matrix
             exps = self.exponents.T.to(z.device)  # (V, C)
-            offs = (torch.arange(exps.shape[0], device=z.device) * (r * width))[None, :, None] \
-                + (torch.arange(r, device=z.device) * width)[:, None, None]
-            cache[1][r] = ((offs + exps[None]).reshape(-1), torch.arange(width, dtype=z.dtype, device=z.device),
-                           _coefficient_matrix(self.basis, deg, z.dtype, z.device)[:, : r * width].contiguous())
+            offs = (torch.arange(exps.shape[0], device=z.device) * (r * width))[None, :, None] + (
+                torch.arange(r, device=z.device) * width
+            )[:, None, None]
+            cache[1][r] = (
+                (offs + exps[None]).reshape(-1),
+                torch.arange(width, dtype=z.dtype, device=z.device),
+                _coefficient_matrix(self.basis, deg, z.dtype, z.device)[:, : r * width].contiguous(),
+            )
         index, powers, mat = cache[1][r]
         if deg > _VANDERMONDE_MAX_DEGREE:
             table = torch.cat(self._tables_recurrence(z, order), dim=-1)
@@ -318,11 +338,10 @@ class PolynomialLagrangian(LinearLagrangian):
         if z.numel() <= size * z.shape[-1]:
             return list(fn(z))
         zf = z.reshape(-1, z.shape[-1])
-        parts = [fn(zf[s: s + size]) for s in range(0, zf.shape[0], size)]
+        parts = [fn(zf[s : s + size]) for s in range(0, zf.shape[0], size)]
         return [torch.cat(p).reshape(*z.shape[:-1], *p[0].shape[1:]) for p in zip(*parts)]
 
-    def feature_derivatives(self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *,
-                            first: bool = True):
+    def feature_derivatives(self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool = True):
         """Closed-form derivatives of every basis function (see :meth:`LinearLagrangian.feature_derivatives`).
 
         The chain rule of :meth:`fast_derivatives`, term by term instead of summed with ``coef``.
@@ -358,12 +377,12 @@ class PolynomialLagrangian(LinearLagrangian):
             z = self._scaled(cells, aff)
             nvar = z.shape[-1]
             npairs = nvar * (nvar + 1) // 2 if pairs else 0
-            (s,) = self._by_chunks(z, self.n_terms * (4 * nvar + 2 * npairs),
-                                   lambda zc: (self._term_derivatives(zc, bool(pairs)) @ coef,))
+            (s,) = self._by_chunks(
+                z, self.n_terms * (4 * nvar + 2 * npairs), lambda zc: (self._term_derivatives(zc, bool(pairs)) @ coef,)
+            )
             # s: dL/dz_v, then d^2L/dz_v dz_w (v <= w)
             grad = (s[..., :nvar] @ aff["W"].T).unflatten(-1, (k, m))
-            blocks = {(a, b): (s[..., nvar:] @ self._pair_matrix(aff, a, b)).unflatten(-1, (m, m))
-                      for a, b in pairs}
+            blocks = {(a, b): (s[..., nvar:] @ self._pair_matrix(aff, a, b)).unflatten(-1, (m, m)) for a, b in pairs}
         return grad, blocks
 
     # -- description -------------------------------------------------------------------------------------
@@ -401,8 +420,9 @@ class PolynomialLagrangian(LinearLagrangian):
         for a, e in zip(coef, self.exponents.cpu().numpy()):
             if a == 0.0:
                 continue
-            choices = [[(k, per_var[v][e[v], k]) for k in range(e[v] + 1) if per_var[v][e[v], k] != 0.0]
-                       for v in range(nvar)]
+            choices = [
+                [(k, per_var[v][e[v], k]) for k in range(e[v] + 1) if per_var[v][e[v], k] != 0.0] for v in range(nvar)
+            ]
             for combo in itertools.product(*choices):
                 key = tuple(k for k, _ in combo)
                 out[key] = out.get(key, 0.0) + a * float(np.prod([w for _, w in combo]))
@@ -413,13 +433,15 @@ class PolynomialLagrangian(LinearLagrangian):
         if not self.bound:
             return head
         p, q = self.orders
-        lines = [head, f"  basis: {self.basis} polynomials, degree <= {p} in the differences, <= {q} in the mean"
-                 + (", even in the time difference" if self.time_symmetric else "")
-                 + f" ({self.n_terms} terms)"]
+        lines = [
+            head,
+            f"  basis: {self.basis} polynomials, degree <= {p} in the differences, <= {q} in the mean"
+            + (", even in the time difference" if self.time_symmetric else "")
+            + f" ({self.n_terms} terms)",
+        ]
         terms = self.monomials()
         big = max((abs(v) for v in terms.values()), default=0.0)
-        keep = sorted(((k, v) for k, v in terms.items() if abs(v) > 1e-9 * big and any(k)),
-                      key=lambda kv: -abs(kv[1]))
+        keep = sorted(((k, v) for k, v in terms.items() if abs(v) > 1e-9 * big and any(k)), key=lambda kv: -abs(kv[1]))
         names = self._variable_names()
         lines.append("  L_d = (constant)" if not keep else "  L_d =")
         for k, v in keep[:max_terms]:
@@ -427,6 +449,7 @@ class PolynomialLagrangian(LinearLagrangian):
             lines.append(f"      {v:+.6g} {mono}")
         if len(keep) > max_terms:
             lines.append(f"      ... and {len(keep) - max_terms} smaller terms")
-        lines.append("  where mean = average of the stencil values, D<axis> = difference along <axis> "
-                     "(psi[x + e] - psi[x])")
+        lines.append(
+            "  where mean = average of the stencil values, D<axis> = difference along <axis> (psi[x + e] - psi[x])"
+        )
         return "\n".join(lines)

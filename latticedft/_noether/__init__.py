@@ -14,14 +14,14 @@ from ._group import Symmetry
 from ._invariance import SymmetryReport, builtin_symmetries, symmetries
 
 __all__ = [
-           "DiscoveryReport",
-           "Symmetry",
-           "SymmetryReport",
-           "builtin_symmetries",
-           "discover_symmetries",
-           "discrete_energy",
-           "noether_charge",
-           "noether_charges",
-           "relative_drift",
-           "symmetries",
+    "DiscoveryReport",
+    "Symmetry",
+    "SymmetryReport",
+    "builtin_symmetries",
+    "discover_symmetries",
+    "discrete_energy",
+    "noether_charge",
+    "noether_charges",
+    "relative_drift",
+    "symmetries",
 ]

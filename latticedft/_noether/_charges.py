@@ -35,29 +35,43 @@ def _one_field(model: Any, field: Any, boundary: Any) -> FieldEval:
     return FieldEval(model, fields[0])
 
 
-def _series(ev: FieldEval, values: torch.Tensor, scale: float, name: str, long_name: str,
-            attrs: dict[str, Any]) -> xr.DataArray:
+def _series(
+    ev: FieldEval, values: torch.Tensor, scale: float, name: str, long_name: str, attrs: dict[str, Any]
+) -> xr.DataArray:
     tdim = ev.f.dims[0]
     t = ev.times[1:]
     v = values.detach().cpu().numpy().astype(np.float64)
     drift = float(v.max() - v.min()) / scale if scale > 0 else (0.0 if np.ptp(v) == 0 else np.inf)
     coord_attrs = dict(ev.f.coord_attrs.get(tdim, {}))
-    return xr.DataArray(v, dims=[tdim], coords={tdim: (tdim, t, coord_attrs)}, name=name,
-                        attrs={"long_name": long_name, "scale": float(scale), "relative_drift": drift, **attrs})
+    return xr.DataArray(
+        v,
+        dims=[tdim],
+        coords={tdim: (tdim, t, coord_attrs)},
+        name=name,
+        attrs={"long_name": long_name, "scale": float(scale), "relative_drift": drift, **attrs},
+    )
 
 
 def _charge(ev: FieldEval, sym: Symmetry) -> xr.DataArray:
     if not sym.continuous:
-        raise InputError(f"symmetry {sym.name!r}: a discrete symmetry has no Noether charge; pass a continuous one "
-                         "(a shift, a rotation, an affine generator or a momentum)")
+        raise InputError(
+            f"symmetry {sym.name!r}: a discrete symmetry has no Noether charge; pass a continuous one "
+            "(a shift, a rotation, an affine generator or a momentum)"
+        )
     sym.check(ev.f.ndim, ev.f.ncomp, ev.f.periodic)
     xi = ev.generator_cells(sym)
     later = ev.later.to(xi.device)
     terms = (ev.grad * xi).sum(-1)[..., later]  # (slabs, *cells, K_later)
     charge = ev.H * ev.slab_sum(terms)
     scale = float((ev.H * ev.slab_sum(terms.abs())).mean())
-    return _series(ev, charge, scale, f"J_{sym.name}", f"Noether charge of {sym.name}",
-                   {"symmetry": sym.name, "generator": sym.description})
+    return _series(
+        ev,
+        charge,
+        scale,
+        f"J_{sym.name}",
+        f"Noether charge of {sym.name}",
+        {"symmetry": sym.name, "generator": sym.description},
+    )
 
 
 def noether_charge(model: Any, field: Any, symmetry: Symmetry | str, *, boundary: Any = None) -> xr.DataArray:
@@ -93,8 +107,14 @@ def _energy(ev: FieldEval) -> xr.DataArray:
     volume = ev.H / h0
     energy = volume * ev.slab_sum(pq - ev.lval)
     scale = float((volume * ev.slab_sum(pq.abs())).mean())
-    return _series(ev, energy, scale, "energy", "discrete energy (P^- + P^+)/2 . (Q1 - Q0)/h0 - L_s",
-                   {"scale_of": "the p . qdot term"})
+    return _series(
+        ev,
+        energy,
+        scale,
+        "energy",
+        "discrete energy (P^- + P^+)/2 . (Q1 - Q0)/h0 - L_s",
+        {"scale_of": "the p . qdot term"},
+    )
 
 
 def discrete_energy(model: Any, field: Any, *, boundary: Any = None) -> xr.DataArray:

@@ -34,8 +34,9 @@ def _listify(data: Any) -> list[Any]:
     try:
         items = list(data)
     except TypeError:
-        raise InputError(f"data: expected a DataArray, a LatticeField or a list of them, got {type(data).__name__}"
-                         ) from None
+        raise InputError(
+            f"data: expected a DataArray, a LatticeField or a list of them, got {type(data).__name__}"
+        ) from None
     if not items:
         raise InputError("data: no field given")
     return [d.field if hasattr(d, "field") and isinstance(d.field, xr.DataArray) else d for d in items]
@@ -49,8 +50,10 @@ def prepare(model: Any, data: Any, boundary: Any = None, min_slices: int = 2) ->
         if f.batch:
             raise InputError("data: batched LatticeFields are not supported here; pass the fields one by one")
         if (f.ndim, f.ncomp) != (f0.ndim, f0.ncomp) or not np.allclose(f.spacing, f0.spacing, rtol=1e-9, atol=0):
-            raise InputError(f"data: fields differ in lattice dims, components or spacing ({f.dims}, m = {f.ncomp}, "
-                             f"h = {f.spacing} vs {f0.dims}, m = {f0.ncomp}, h = {f0.spacing})")
+            raise InputError(
+                f"data: fields differ in lattice dims, components or spacing ({f.dims}, m = {f.ncomp}, "
+                f"h = {f.spacing} vs {f0.dims}, m = {f0.ncomp}, h = {f0.spacing})"
+            )
     import latticedft  # the public class; the models package may move
 
     if isinstance(model, latticedft.AnalyticLagrangian):
@@ -198,7 +201,7 @@ class FieldEval:
         if sym.continuous:
             xi_v = sym.xi(self.values, self.f.spacing)
             spread = ((self.values - self.values.reshape(-1, self.values.shape[-1]).mean(0)) ** 2).sum(-1).mean()
-            ratio = float((xi_v ** 2).sum(-1).mean() / spread) if float(spread) > 0 else 0.0
+            ratio = float((xi_v**2).sum(-1).mean() / spread) if float(spread) > 0 else 0.0
             scale *= ratio
         return _rms_sum(el), scale
 

@@ -46,15 +46,22 @@ class DiscoveryReport:
         return self.symmetries[0]
 
     def to_dict(self) -> dict[str, Any]:
-        return {"symmetries": [s.to_dict() for s in self.symmetries], "singular_values": self.singular_values,
-                "gap": self.gap, "n_cells": self.n_cells, "unknowns": self.unknowns}
+        return {
+            "symmetries": [s.to_dict() for s in self.symmetries],
+            "singular_values": self.singular_values,
+            "gap": self.gap,
+            "n_cells": self.n_cells,
+            "unknowns": self.unknowns,
+        }
 
     def summary_line(self) -> str:
         b = self.best
         gen = b.generator
         mat, off = (np.round(gen[k], 6) + 0.0 for k in ("matrix", "offset"))  # + 0.0: no negative zeros
-        return (f"{len(self.symmetries)} generator(s); best M = {mat.tolist()}, w = {off.tolist()}, "
-                f"residual {b.residual:.1e}, gap {self.gap:.1e}")
+        return (
+            f"{len(self.symmetries)} generator(s); best M = {mat.tolist()}, w = {off.tolist()}, "
+            f"residual {b.residual:.1e}, gap {self.gap:.1e}"
+        )
 
 
 def _canonical(theta: np.ndarray) -> np.ndarray:
@@ -65,8 +72,9 @@ def _canonical(theta: np.ndarray) -> np.ndarray:
     return theta if theta[last] > 0 else -theta
 
 
-def discover_symmetries(model: Any, data: Any, *, tol: float = DEFAULT_TOL, boundary: Any = None,
-                        max_generators: int | None = None) -> DiscoveryReport:
+def discover_symmetries(
+    model: Any, data: Any, *, tol: float = DEFAULT_TOL, boundary: Any = None, max_generators: int | None = None
+) -> DiscoveryReport:
     """Fit the generators ``xi(psi) = M psi + w`` of the affine internal symmetries of ``L_d`` over data.
 
     Works for any lattice (mechanics with ``n = 1`` and fields): the symmetry acts on the component
@@ -97,7 +105,7 @@ def discover_symmetries(model: Any, data: Any, *, tol: float = DEFAULT_TOL, boun
     found: list[SymmetryReport] = []
     for rank, k in enumerate(order[:limit]):
         theta = _canonical(vt[k] / norms)
-        sym = Symmetry.affine(theta[: m * m].reshape(m, m), theta[m * m:], name=f"discovered-{rank + 1}")
+        sym = Symmetry.affine(theta[: m * m].reshape(m, m), theta[m * m :], name=f"discovered-{rank + 1}")
         rep = measure(model, evals, sym, tol)
         if rank > 0 and not rep.invariant:
             break
@@ -106,5 +114,6 @@ def discover_symmetries(model: Any, data: Any, *, tol: float = DEFAULT_TOL, boun
             break
     kept = len(found)
     gap = float(s_rel[kept - 1] / s_rel[kept]) if kept < len(s_rel) and s_rel[kept] > 0 else math.nan
-    return DiscoveryReport(symmetries=found, singular_values=[float(v) for v in s_rel], gap=gap,
-                           n_cells=int(a.shape[0]), unknowns=labels)
+    return DiscoveryReport(
+        symmetries=found, singular_values=[float(v) for v in s_rel], gap=gap, n_cells=int(a.shape[0]), unknowns=labels
+    )

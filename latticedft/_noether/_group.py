@@ -79,8 +79,13 @@ class Symmetry:
         off = np.zeros(m) if offset is None else _matrix(np.atleast_1d(offset), (m,), "offset")
         if not (np.any(mat) or np.any(off)):
             raise InputError("matrix, offset: the generator M = 0, w = 0 moves nothing")
-        return cls(name=name, action="affine", matrix=mat, offset=off,
-                   description=f"xi(psi) = M psi + w, M = {mat.tolist()}, w = {off.tolist()}")
+        return cls(
+            name=name,
+            action="affine",
+            matrix=mat,
+            offset=off,
+            description=f"xi(psi) = M psi + w, M = {mat.tolist()}, w = {off.tolist()}",
+        )
 
     @classmethod
     def shift(cls, m: int = 1, component: int | None = None, *, name: str | None = None) -> Symmetry:
@@ -99,8 +104,9 @@ class Symmetry:
         mat = np.zeros((m, m))
         mat[j, i], mat[i, j] = 1.0, -1.0
         sym = cls.affine(mat, None, name=name or f"rotation-{i}{j}")
-        return _renamed(sym, sym.name,
-                        f"rotation of components {i}, {j}: xi(psi) = M psi, M[{j},{i}] = 1 = -M[{i},{j}]")
+        return _renamed(
+            sym, sym.name, f"rotation of components {i}, {j}: xi(psi) = M psi, M[{j},{i}] = 1 = -M[{i},{j}]"
+        )
 
     @classmethod
     def momentum(cls, axis: int = 1, *, name: str | None = None) -> Symmetry:
@@ -110,8 +116,12 @@ class Symmetry:
         """
         if not isinstance(axis, int) or isinstance(axis, bool) or axis < 1:
             raise InputError(f"axis: expected a spatial lattice axis >= 1, got {axis!r}")
-        return cls(name=name or f"momentum-{axis}", action="momentum", axis=axis,
-                   description=f"xi(Q)_y = -(psi[y + e_{axis}] - psi[y - e_{axis}]) / (2 h_{axis}) (periodic axis)")
+        return cls(
+            name=name or f"momentum-{axis}",
+            action="momentum",
+            axis=axis,
+            description=f"xi(Q)_y = -(psi[y + e_{axis}] - psi[y - e_{axis}]) / (2 h_{axis}) (periodic axis)",
+        )
 
     @classmethod
     def linear_map(cls, matrix: Any, offset: Any = None, *, name: str = "linear-map") -> Symmetry:
@@ -120,8 +130,13 @@ class Symmetry:
         m = mat.shape[0] if mat.ndim == 2 else 0
         mat = _matrix(mat, (m, m), "matrix")
         off = np.zeros(m) if offset is None else _matrix(np.atleast_1d(offset), (m,), "offset")
-        return cls(name=name, action="linear-map", matrix=mat, offset=off,
-                   description=f"psi -> A psi + b, A = {mat.tolist()}, b = {off.tolist()}")
+        return cls(
+            name=name,
+            action="linear-map",
+            matrix=mat,
+            offset=off,
+            description=f"psi -> A psi + b, A = {mat.tolist()}, b = {off.tolist()}",
+        )
 
     @classmethod
     def reflection(cls, m: int = 1, *, name: str = "reflection") -> Symmetry:
@@ -134,14 +149,22 @@ class Symmetry:
         """Lattice translation by one site along periodic axis ``axis`` (a discrete symmetry)."""
         if not isinstance(axis, int) or isinstance(axis, bool) or axis < 1:
             raise InputError(f"axis: expected a spatial lattice axis >= 1, got {axis!r}")
-        return cls(name=name or f"translation-{axis}", action="translation", axis=axis,
-                   description=f"psi[y] -> psi[y + e_{axis}] (periodic axis)")
+        return cls(
+            name=name or f"translation-{axis}",
+            action="translation",
+            axis=axis,
+            description=f"psi[y] -> psi[y + e_{axis}] (periodic axis)",
+        )
 
     @classmethod
     def time_reversal(cls, *, name: str = "time-reversal") -> Symmetry:
         """Time reversal ``psi_i -> psi_{N-1-i}``: each cell's two time slices swap (a discrete symmetry)."""
-        return cls(name=name, action="time-reversal", description="psi[i] -> psi[N - 1 - i] (the two time slices "
-                   "of every slab swap: L_s(Q_{i+1}, Q_i) against L_s(Q_i, Q_{i+1}))")
+        return cls(
+            name=name,
+            action="time-reversal",
+            description="psi[i] -> psi[N - 1 - i] (the two time slices "
+            "of every slab swap: L_s(Q_{i+1}, Q_i) against L_s(Q_i, Q_{i+1}))",
+        )
 
     # -- properties -----------------------------------------------------------------------------------------
     @property
@@ -167,8 +190,10 @@ class Symmetry:
             if self.axis >= n:
                 raise InputError(f"symmetry {self.name!r}: axis {self.axis} is not a spatial axis of an {n}-D lattice")
             if not periodic[self.axis]:
-                raise InputError(f"symmetry {self.name!r}: axis {self.axis} is not periodic; lattice translations "
-                                 "and momenta need a periodic axis")
+                raise InputError(
+                    f"symmetry {self.name!r}: axis {self.axis} is not periodic; lattice translations "
+                    "and momenta need a periodic axis"
+                )
 
     # -- action on values -------------------------------------------------------------------------------------
     def xi(self, psi: torch.Tensor, spacing: tuple[float, ...]) -> torch.Tensor:
@@ -203,12 +228,18 @@ def _component(c: Any, m: int) -> int:
 
 
 def _renamed(sym: Symmetry, name: str, description: str) -> Symmetry:
-    return Symmetry(name=name, action=sym.action, matrix=sym.matrix, offset=sym.offset, axis=sym.axis,
-                    description=description)
+    return Symmetry(
+        name=name, action=sym.action, matrix=sym.matrix, offset=sym.offset, axis=sym.axis, description=description
+    )
 
 
-def standard_symmetries(n: int, m: int, periodic: tuple[bool, ...], dims: tuple[str, ...] | None = None,
-                        components: tuple[str, ...] | None = None) -> list[Symmetry]:
+def standard_symmetries(
+    n: int,
+    m: int,
+    periodic: tuple[bool, ...],
+    dims: tuple[str, ...] | None = None,
+    components: tuple[str, ...] | None = None,
+) -> list[Symmetry]:
     """The standard candidates for a lattice: shifts, reflection, rotations, time reversal, translations, momenta.
 
     Names use the field's labels: ``shift`` (scalar) or ``shift-<component>``, ``reflection``,
@@ -221,29 +252,43 @@ def standard_symmetries(n: int, m: int, periodic: tuple[bool, ...], dims: tuple[
     if m == 1:
         out.append(Symmetry.shift(1))
     else:
-        out += [_renamed(Symmetry.shift(m, c), f"shift-{labels[c]}",
-                         f"field shift psi_{labels[c]} -> psi_{labels[c]} + eps") for c in range(m)]
+        out += [
+            _renamed(
+                Symmetry.shift(m, c), f"shift-{labels[c]}", f"field shift psi_{labels[c]} -> psi_{labels[c]} + eps"
+            )
+            for c in range(m)
+        ]
     out.append(Symmetry.reflection(m))
     for i in range(m):
         for j in range(i + 1, m):
             r = Symmetry.rotation(i, j, m)
-            out.append(_renamed(r, f"rotation-{labels[i]}{labels[j]}",
-                                f"rotation in the ({labels[i]}, {labels[j]}) plane: xi = M psi, "
-                                f"M[{j},{i}] = 1 = -M[{i},{j}]"))
+            out.append(
+                _renamed(
+                    r,
+                    f"rotation-{labels[i]}{labels[j]}",
+                    f"rotation in the ({labels[i]}, {labels[j]}) plane: xi = M psi, M[{j},{i}] = 1 = -M[{i},{j}]",
+                )
+            )
     out.append(Symmetry.time_reversal())
     for k in range(1, n):
         if periodic[k]:
             t = Symmetry.translation(k)
             out.append(_renamed(t, f"translation-{dims[k]}", f"psi[y] -> psi[y + e_{dims[k]}] (one site, periodic)"))
             p = Symmetry.momentum(k)
-            out.append(_renamed(p, f"momentum-{dims[k]}",
-                                f"pseudo-momentum generator xi_y = -(psi[y + e_{dims[k]}] - psi[y - e_{dims[k]}]) "
-                                f"/ (2 h_{dims[k]})"))
+            out.append(
+                _renamed(
+                    p,
+                    f"momentum-{dims[k]}",
+                    f"pseudo-momentum generator xi_y = -(psi[y + e_{dims[k]}] - psi[y - e_{dims[k]}]) "
+                    f"/ (2 h_{dims[k]})",
+                )
+            )
     return out
 
 
-def resolve_symmetries(items: Any, n: int, m: int, periodic: tuple[bool, ...], dims: tuple[str, ...],
-                       components: tuple[str, ...] | None) -> list[Symmetry]:
+def resolve_symmetries(
+    items: Any, n: int, m: int, periodic: tuple[bool, ...], dims: tuple[str, ...], components: tuple[str, ...] | None
+) -> list[Symmetry]:
     """Symmetries from names of :func:`standard_symmetries` or :class:`Symmetry` objects (one or a list)."""
     if items is None:
         return standard_symmetries(n, m, periodic, dims, components)

@@ -48,9 +48,16 @@ class SymmetryReport:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible (``symmetry`` is left out; ``generator`` describes it)."""
-        return {"name": self.name, "kind": self.kind, "generator": self.generator, "residual": _num(self.residual),
-                "invariant": self.invariant, "residual_equations": _num(self.residual_equations),
-                "equations_invariant": self.equations_invariant, "tol": self.tol}
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "generator": self.generator,
+            "residual": _num(self.residual),
+            "invariant": self.invariant,
+            "residual_equations": _num(self.residual_equations),
+            "equations_invariant": self.equations_invariant,
+            "tol": self.tol,
+        }
 
     @property
     def verdict(self) -> str:
@@ -62,8 +69,10 @@ class SymmetryReport:
         return "on the data only" if self.residual <= self.tol else "broken"
 
     def summary_line(self) -> str:
-        return (f"{self.name:<16} {self.kind:<10} residual {self.residual:8.1e}   "
-                f"equations {self.residual_equations:8.1e}   {self.verdict}")
+        return (
+            f"{self.name:<16} {self.kind:<10} residual {self.residual:8.1e}   "
+            f"equations {self.residual_equations:8.1e}   {self.verdict}"
+        )
 
     def __str__(self) -> str:
         return self.summary_line()
@@ -84,8 +93,8 @@ def measure(model: Any, evals: list[FieldEval], sym: Symmetry, tol: float) -> Sy
     num = den = 0.0
     for ev in evals:
         a, b = ev.variation(sym) if sym.continuous else ev.discrete_change(sym)
-        num += float((a ** 2).sum())
-        den += float((b ** 2).sum())
+        num += float((a**2).sum())
+        den += float((b**2).sum())
     res = ratio(num, den)
     eq_num = eq_den = 0.0
     for ev in evals:
@@ -93,9 +102,17 @@ def measure(model: Any, evals: list[FieldEval], sym: Symmetry, tol: float) -> Sy
         eq_num += a2
         eq_den += b2
     res_eq = ratio(eq_num, eq_den)
-    return SymmetryReport(name=sym.name, kind=sym.kind, generator=sym.generator(), residual=res,
-                          invariant=bool(res <= tol and res_eq <= tol), residual_equations=res_eq,
-                          equations_invariant=bool(res_eq <= tol), tol=tol, symmetry=sym)
+    return SymmetryReport(
+        name=sym.name,
+        kind=sym.kind,
+        generator=sym.generator(),
+        residual=res,
+        invariant=bool(res <= tol and res_eq <= tol),
+        residual_equations=res_eq,
+        equations_invariant=bool(res_eq <= tol),
+        tol=tol,
+        symmetry=sym,
+    )
 
 
 def builtin_symmetries(data: Any, *, boundary: Any = None) -> list[Symmetry]:
@@ -117,8 +134,9 @@ def builtin_symmetries(data: Any, *, boundary: Any = None) -> list[Symmetry]:
     return standard_symmetries(f.ndim, f.ncomp, f.periodic, f.dims, f.components)
 
 
-def symmetries(model: Any, data: Any, candidates: Any = None, *, tol: float = DEFAULT_TOL,
-               boundary: Any = None) -> list[SymmetryReport]:
+def symmetries(
+    model: Any, data: Any, candidates: Any = None, *, tol: float = DEFAULT_TOL, boundary: Any = None
+) -> list[SymmetryReport]:
     """Test a (learned) ``L_d`` for symmetries over data — usually the training fields.
 
     Parameters

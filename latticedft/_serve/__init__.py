@@ -21,8 +21,8 @@ from collections.abc import Sequence
 
 import xarray as xr
 
-from .._errors import InputError, ServeError
 from .._boundary import BoundaryKinds
+from .._errors import InputError, ServeError
 from .._lattice import LatticeField, as_lattice_field
 from .._learn import check_model_lattice as _check_model_lattice
 from .._models import AbstractLagrangian
@@ -56,10 +56,19 @@ def _steps(steps: int | None, f: LatticeField) -> int:
 
 
 # long only by its numpydoc docstring (the body is ~30 lines)
-def serve(model: AbstractLagrangian, init: xr.DataArray | Sequence[xr.DataArray], *, steps: int | None = None,
-          boundary: BoundaryKinds | None = None, mode: str = "newton", rtol: float = 1e-10, max_newton: int = 30,
-          box: float | None = None, affine: bool = True,
-          progress: bool | None = None) -> ServeResult | list[ServeResult]:
+def serve(
+    model: AbstractLagrangian,
+    init: xr.DataArray | Sequence[xr.DataArray],
+    *,
+    steps: int | None = None,
+    boundary: BoundaryKinds | None = None,
+    mode: str = "newton",
+    rtol: float = 1e-10,
+    max_newton: int = 30,
+    box: float | None = None,
+    affine: bool = True,
+    progress: bool | None = None,
+) -> ServeResult | list[ServeResult]:
     """Predict a field from its first two time slices (and boundary strips) with the learned ``L_d``.
 
     Parameters
@@ -127,8 +136,10 @@ def serve(model: AbstractLagrangian, init: xr.DataArray | Sequence[xr.DataArray]
     items = list(init) if batch else [init]
     if not items:
         raise InputError("init: no initial fields given")
-    fs = [as_lattice_field(d, source="init" if not batch else f"init[{k}]", boundary=boundary, min_slices=2)
-          for k, d in enumerate(items)]
+    fs = [
+        as_lattice_field(d, source="init" if not batch else f"init[{k}]", boundary=boundary, min_slices=2)
+        for k, d in enumerate(items)
+    ]
     _prepare_model(model, fs[0])
     for k, f in enumerate(fs):
         _check_model_lattice(model, f, "init" if not batch else f"init[{k}]")

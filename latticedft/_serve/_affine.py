@@ -40,8 +40,9 @@ class _AffineSlices:
                 vals.append(np.broadcast_to(hess[a, b], (ra.size, m, m)).reshape(-1))
             if not rows:
                 return scipy.sparse.csr_matrix((size, size))
-            mat = scipy.sparse.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                                          shape=(size, size)).tocsr()
+            mat = scipy.sparse.coo_matrix(
+                (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size)
+            ).tocsr()
             mat.sum_duplicates()
             mat.eliminate_zeros()  # e.g. the wave L_d has no coupling between a cell's spatial and time neighbours
             return mat
@@ -66,8 +67,11 @@ class _AffineSlices:
         nu = n_mat[:, rows_in].tocsc()
         cvec = np.zeros(size)
         for a in nxt + now:
-            np.add.at(cvec, (sys.site_of[a][:, None] * m + np.arange(m)).reshape(-1),
-                      np.broadcast_to(grad0[a], (sys.site_of[a].size, m)).reshape(-1))
+            np.add.at(
+                cvec,
+                (sys.site_of[a][:, None] * m + np.arange(m)).reshape(-1),
+                np.broadcast_to(grad0[a], (sys.site_of[a].size, m)).reshape(-1),
+            )
         self.c = cvec[rows_in]
         self.dmax = max((float(np.abs(hess[a, b]).max()) for a, b in sys.diag_pairs), default=1.0)
         diag = nu.diagonal()
@@ -112,7 +116,7 @@ class _AffineSlices:
         pc, nk, c, solve, ucols, kcols = self.pc, self.nk, self.c, self.solve, self.usel, self.kcols
         with np.errstate(all="ignore"):
             for i in range(start, stop):
-                two = v[i - 1:i + 1]
+                two = v[i - 1 : i + 1]
                 rhs = pc @ two.reshape(-1)
                 rhs += c
                 pred = 2 * two[1] - two[0]
@@ -125,8 +129,9 @@ class _AffineSlices:
                     v[i + 1, ucols] = pred[ucols] - solve(rhs)
 
 
-def _slice_residuals(model: AbstractLagrangian, f: LatticeField, psi: torch.Tensor, start: int,
-                     stop: int) -> np.ndarray:
+def _slice_residuals(
+    model: AbstractLagrangian, f: LatticeField, psi: torch.Tensor, start: int, stop: int
+) -> np.ndarray:
     """Max |DEL residual| on slices ``start .. stop - 1`` of ``psi`` (one vectorised pass per chunk of slices)."""
     nsite = max(int(np.prod(psi.shape[1:-1])), 1)
     width = max(3, min(stop - start + 2, 250_000 // nsite + 2))  # ~250k sites a pass: bounded memory
@@ -136,13 +141,20 @@ def _slice_residuals(model: AbstractLagrangian, f: LatticeField, psi: torch.Tens
         hi = min(j + width, stop + 1)
         chunk = f.with_values(psi[j:hi])
         el = del_residual(model, chunk)
-        out[j + 1 - start: hi - 1 - start] = el.abs().reshape(el.shape[0], -1).amax(1).numpy()
+        out[j + 1 - start : hi - 1 - start] = el.abs().reshape(el.shape[0], -1).amax(1).numpy()
         j = hi - 2
     return out
 
 
-def _affine_prefix(model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem, psi: torch.Tensor,
-                   flat: torch.Tensor, rtol: float, vol: float) -> tuple[int, float, float] | None:
+def _affine_prefix(
+    model: AbstractLagrangian,
+    f: LatticeField,
+    sys: _SliceSystem,
+    psi: torch.Tensor,
+    flat: torch.Tensor,
+    rtol: float,
+    vol: float,
+) -> tuple[int, float, float] | None:
     """Serve every slice of ``psi`` by the affine recurrence, if the model's DEL is affine, and check them.
 
     Returns ``(slices, worst, dmax)``: how many leading slices pass the residual test (Newton serves the rest),

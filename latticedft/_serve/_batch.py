@@ -135,8 +135,11 @@ class _Batch:
                 k = act_list[j]
                 f = self.fs[k]
                 tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
-                why = "singular mixed Hessian" if bool(s.sing[j]) else \
-                    f"Newton did not converge in {max_newton} iterations"
+                why = (
+                    "singular mixed Hessian"
+                    if bool(s.sing[j])
+                    else f"Newton did not converge in {max_newton} iterations"
+                )
                 res = float(s.rabs[j])
                 self.retire(k, i + 1, f"slice {i + 1} (t = {tval:.6g}): {why}, residual {res:.3e}", True, res)
                 self.worst[k] = max(float(self.worst[k]), res)
@@ -152,17 +155,35 @@ class _Batch:
         for k, f in enumerate(self.fs):
             n = self.length[k]
             lf = LatticeField.with_values(f, self.psi[k, :n].clone())
-            out.append(ServeResult(field=lf.to_dataarray(), complete=not self.failed[k], reason=self.reason[k],
-                                   slices=n, newton_iterations=int(self.iters[k]),
-                                   max_newton_iterations=int(self.max_iters[k]), wall_time=wall,
-                                   sites_per_second=solved / wall if wall > 0 else math.inf,
-                                   max_residual=float(self.worst[k]), mode=mode, solver=mode))
+            out.append(
+                ServeResult(
+                    field=lf.to_dataarray(),
+                    complete=not self.failed[k],
+                    reason=self.reason[k],
+                    slices=n,
+                    newton_iterations=int(self.iters[k]),
+                    max_newton_iterations=int(self.max_iters[k]),
+                    wall_time=wall,
+                    sites_per_second=solved / wall if wall > 0 else math.inf,
+                    max_residual=float(self.worst[k]),
+                    mode=mode,
+                    solver=mode,
+                )
+            )
             out[-1].fail_at = self.fail_at.get(k)  # type: ignore[attr-defined]
         return out
 
 
-def _serve_batch(model: AbstractLagrangian, fs: list[LatticeField], steps: list[int], mode: str, rtol: float,
-                 max_newton: int, box: float | None, progress: bool | None) -> list[ServeResult]:
+def _serve_batch(
+    model: AbstractLagrangian,
+    fs: list[LatticeField],
+    steps: list[int],
+    mode: str,
+    rtol: float,
+    max_newton: int,
+    box: float | None,
+    progress: bool | None,
+) -> list[ServeResult]:
     """Step a batch of 1D trajectories together; a member that fails or leaves the box retires alone.
 
     ``mode="newton"`` solves all running members' slices in one batched Newton; ``"sweep"`` one member at a

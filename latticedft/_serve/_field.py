@@ -29,9 +29,11 @@ def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int) -> torch.Ten
     missing = missing_edges(f.boundary, f.dims, nt_given, steps)
     if missing:
         axis, kind = missing
-        raise InputError(f"init: holds {nt_given} time slices but the {kind.title} boundary along "
-                         f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
-                         "fewer steps, or a periodic boundary")
+        raise InputError(
+            f"init: holds {nt_given} time slices but the {kind.title} boundary along "
+            f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
+            "fewer steps, or a periodic boundary"
+        )
     psi = torch.full((steps, *f.shape[1:], m), math.nan, dtype=torch.float64)
     psi[:2] = f.values[:2]
     known = np.ones(sys.nsite, dtype=bool)
@@ -62,7 +64,7 @@ class _FieldRun:
 
     def cells_at(self, i: int) -> torch.Tensor:
         """The cells anchored on slice ``i``."""
-        return gather_cells(self.psi[i:i + 2], self.model.stencil, self.f.boundary)
+        return gather_cells(self.psi[i : i + 2], self.model.stencil, self.f.boundary)
 
     def serve_affine(self, rtol: float) -> None:
         """Fill the leading slices that the affine recurrence serves to within ``rtol``; Newton starts after."""
@@ -91,11 +93,11 @@ class _FieldRun:
         # predictor 2 psi_i - psi_{i-1} on the unknown sites
         flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
         if self.mode == "newton":
-            it, res, g_prev, err = _newton_slice(self.model, sys, self.psi, flat, unk, i, g_prev, self.vol, rtol,
-                                                 max_newton, self.cells_at, self.cache)
+            it, res, g_prev, err = _newton_slice(
+                self.model, sys, self.psi, flat, unk, i, g_prev, self.vol, rtol, max_newton, self.cells_at, self.cache
+            )
         else:
-            it, res, g_prev, err = _sweep_slice(self.model, sys, self.psi, flat, i, self.vol, rtol, max_newton,
-                                                self.f)
+            it, res, g_prev, err = _sweep_slice(self.model, sys, self.psi, flat, i, self.vol, rtol, max_newton, self.f)
         self.total_it += it
         self.max_it = max(self.max_it, it)
         self.worst = max(self.worst, res)
@@ -105,11 +107,22 @@ class _FieldRun:
         self.bar.update(1)
         return g_prev
 
-    def _result(self, field: LatticeField, complete: bool, reason: str, slices: int, wall: float,
-                rate: float, residual: float) -> ServeResult:
-        return ServeResult(field=field.to_dataarray(), complete=complete, reason=reason, slices=slices,
-                           newton_iterations=self.total_it, max_newton_iterations=self.max_it, wall_time=wall,
-                           sites_per_second=rate, max_residual=residual, mode=self.mode, solver=self.solver())
+    def _result(
+        self, field: LatticeField, complete: bool, reason: str, slices: int, wall: float, rate: float, residual: float
+    ) -> ServeResult:
+        return ServeResult(
+            field=field.to_dataarray(),
+            complete=complete,
+            reason=reason,
+            slices=slices,
+            newton_iterations=self.total_it,
+            max_newton_iterations=self.max_it,
+            wall_time=wall,
+            sites_per_second=rate,
+            max_residual=residual,
+            mode=self.mode,
+            solver=self.solver(),
+        )
 
     def fail(self, i: int, msg: str, row: int | None, res: float) -> ServeError:
         """The error for slice ``i``'s equations failing (at equation ``row``), holding the slices solved."""
@@ -121,8 +134,11 @@ class _FieldRun:
         result = self._result(part, False, msg, i + 1, wall, solved / wall if wall > 0 else 0.0, res)
         site = _site_label(f, sys, i, row) if row is not None else None
         tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
-        text = f"slice {i + 1} (t = {tval:.6g}): {msg}" + (f" at site {site}" if site else "") + \
-            (f", residual {res:.3e}" if math.isfinite(res) else "")
+        text = (
+            f"slice {i + 1} (t = {tval:.6g}): {msg}"
+            + (f" at site {site}" if site else "")
+            + (f", residual {res:.3e}" if math.isfinite(res) else "")
+        )
         return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
 
     def finish(self) -> ServeResult:
@@ -131,12 +147,21 @@ class _FieldRun:
         wall = time.perf_counter() - self.t0
         out = LatticeField.with_values(self.f, self.psi)
         solved = (self.steps - 2) * self.sys.n
-        return self._result(out, True, "complete", self.steps, wall, solved / wall if wall > 0 else math.inf,
-                             self.worst)
+        return self._result(
+            out, True, "complete", self.steps, wall, solved / wall if wall > 0 else math.inf, self.worst
+        )
 
 
-def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, mode: str, rtol: float, max_newton: int,
-                 progress: bool | None, affine: bool = True) -> ServeResult:
+def _serve_field(
+    model: AbstractLagrangian,
+    f: LatticeField,
+    steps: int,
+    mode: str,
+    rtol: float,
+    max_newton: int,
+    progress: bool | None,
+    affine: bool = True,
+) -> ServeResult:
     """Serve one n-D field: the affine recurrence first where allowed, then Newton (or the sweep) slice by slice."""
     run = _FieldRun(model, f, steps, mode, progress)
     if mode == "newton" and affine and steps > 2:

@@ -55,8 +55,12 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
             cache.pop("solve", None)
             if stale:
                 continue
-            return it, res, ev.grad, ("Newton step is not finite (singular mixed Hessian?)",
-                                      int(np.argmax(np.abs(r))), res)
+            return (
+                it,
+                res,
+                ev.grad,
+                ("Newton step is not finite (singular mixed Hessian?)", int(np.argmax(np.abs(r))), res),
+            )
         flat[i + 1, unk] += torch.from_numpy(delta.reshape(-1, m))
         small = not stale and float(np.abs(delta).max()) <= rtol * _scale(flat, i, unk)
     row = int(np.argmax(np.abs(r))) if r.size else None

@@ -32,9 +32,21 @@ class ServeResult:
     solver: str = "newton"
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in ("complete", "reason", "slices", "newton_iterations",
-                                              "max_newton_iterations", "wall_time", "sites_per_second",
-                                              "max_residual", "mode", "solver")}
+        return {
+            k: getattr(self, k)
+            for k in (
+                "complete",
+                "reason",
+                "slices",
+                "newton_iterations",
+                "max_newton_iterations",
+                "wall_time",
+                "sites_per_second",
+                "max_residual",
+                "mode",
+                "solver",
+            )
+        }
 
 
 def compare(pred: xr.DataArray, ref: xr.DataArray) -> dict[str, float]:
@@ -50,7 +62,7 @@ def compare(pred: xr.DataArray, ref: xr.DataArray) -> dict[str, float]:
     if pred.shape[1:] != ref.shape[1:]:
         raise InputError(f"compare: shapes {pred.shape} and {ref.shape} differ beyond the time axis")
     d = pred.values[:n] - ref.values[:n]
-    return {"max_error": float(np.abs(d).max()), "rms_error": float(np.sqrt(np.mean(d ** 2))), "slices": int(n)}
+    return {"max_error": float(np.abs(d).max()), "rms_error": float(np.sqrt(np.mean(d**2))), "slices": int(n)}
 
 
 def _bar(total: int, desc: str, progress: bool | None):

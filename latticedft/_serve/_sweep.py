@@ -23,7 +23,7 @@ def _sweep_slice(model, sys: _SliceSystem, psi, flat, i, vol, rtol, max_newton, 
     total_it = 0
     worst = 0.0
     sweeps = 1 if sys.triangular else 100
-    for sweep in range(sweeps):
+    for _sweep in range(sweeps):
         change = 0.0
         for row, site in enumerate(sites):
             y = np.array([i, *np.unravel_index(site, sys.spatial)])
@@ -36,7 +36,7 @@ def _sweep_slice(model, sys: _SliceSystem, psi, flat, i, vol, rtol, max_newton, 
             base = psi[idx].clone()  # (K, K, m)
             u = psi[tuple(int(v) for v in y + e0)].clone()
             mask = torch.from_numpy(unknown)
-            for it in range(1, max_newton + 1):
+            for _ in range(max_newton):
                 total_it += 1
                 uu = u.clone().requires_grad_(True)
                 with torch.enable_grad():

@@ -31,10 +31,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="latticedft",
         description="Learn a discrete field theory from lattice data and serve it (H. Qin, Sci. Rep. 10, "
-                    "19329, 2020). Runs case folders: CASE/case.toml, CASE/data/ -> CASE/results/.")
+        "19329, 2020). Runs case folders: CASE/case.toml, CASE/data/ -> CASE/results/.",
+    )
     parser.add_argument("--version", action="version", version=f"latticedft {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name, mod in SUBCOMMANDS.items():
+    for mod in SUBCOMMANDS.values():
         mod.add_parser(sub)
     return parser
 

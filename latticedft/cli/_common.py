@@ -28,9 +28,15 @@ def add_case_arguments(p: argparse.ArgumentParser, *, overwrite: bool = False, o
     p.add_argument("case", help="case folder (holding case.toml)")
     if out:
         p.add_argument("--out", metavar="DIR", help="results folder (default: CASE/results)")
-    p.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
-                   help="override a case.toml key for this run (TOML value), e.g. model.orders=[2,2], "
-                        "train.max_time=10, serve.test.steps=30; repeatable")
+    p.add_argument(
+        "--set",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        dest="overrides",
+        help="override a case.toml key for this run (TOML value), e.g. model.orders=[2,2], "
+        "train.max_time=10, serve.test.steps=30; repeatable",
+    )
     if overwrite:
         p.add_argument("--overwrite", action="store_true", help="replace an existing results folder")
     g = p.add_mutually_exclusive_group()
@@ -51,8 +57,11 @@ def setup_logging(args: argparse.Namespace) -> logging.Handler:
     log.setLevel(logging.DEBUG)
     log.propagate = False
     handler = logging.StreamHandler(sys.stderr)
-    level = logging.WARNING if getattr(args, "quiet", False) else (
-        logging.DEBUG if getattr(args, "verbose", False) else logging.INFO)
+    level = (
+        logging.WARNING
+        if getattr(args, "quiet", False)
+        else (logging.DEBUG if getattr(args, "verbose", False) else logging.INFO)
+    )
     handler.setLevel(level)
     handler.setFormatter(_Formatter())
     log.addHandler(handler)
@@ -105,6 +114,13 @@ def set_threads(case: Case) -> None:
 
 
 def summary_head(case: Case, argv: list[str], stage: str) -> dict[str, Any]:
-    return {"case": case.name, "case_path": str(case.root), "stage": stage, "command": command_line(argv),
-            "versions": versions(), "overrides": list(case.overrides), "config": case.raw,
-            "finished": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
+    return {
+        "case": case.name,
+        "case_path": str(case.root),
+        "stage": stage,
+        "command": command_line(argv),
+        "versions": versions(),
+        "overrides": list(case.overrides),
+        "config": case.raw,
+        "finished": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+    }

@@ -17,8 +17,7 @@ from tqdm.auto import tqdm
 from .._case import Case
 from .._errors import InputError
 from .._pipeline import CaseData, TaskOutcome, serve_task, train_model
-from .._results import (config_attrs, export_task, read_summary, read_task, write_model, write_summary,
-                        write_task)
+from .._results import config_attrs, export_task, read_summary, read_task, write_model, write_summary, write_task
 from ..io.exporters import remove_exports
 from ._common import INCOMPLETE, OK, command_line
 
@@ -28,9 +27,14 @@ log = logging.getLogger("latticedft")
 def train_into(folder: Path, case: Case, data: CaseData, argv: list[str]) -> tuple[Any, dict[str, Any]]:
     """Learn the model and write ``model.pt`` + ``model.json``; returns (model, summary's train section)."""
     model, report = train_model(case, data)
-    meta = {"command": command_line(argv), "overrides": list(case.overrides), "config": case.raw,
-            "train_data": [str(p.relative_to(case.root)) if p.is_relative_to(case.root) else str(p)
-                           for p in case.train.data]}
+    meta = {
+        "command": command_line(argv),
+        "overrides": list(case.overrides),
+        "config": case.raw,
+        "train_data": [
+            str(p.relative_to(case.root)) if p.is_relative_to(case.root) else str(p) for p in case.train.data
+        ],
+    }
     record = write_model(folder, model, report, meta)
     train = {k: v for k, v in report.to_dict().items() if k != "history"}
     train["model_kind"] = model.kind
@@ -44,8 +48,11 @@ def recorded_exports(folder: Path) -> dict[str, list[str]]:
     tasks = (read_summary(folder) or {}).get("tasks") or {}
     if not isinstance(tasks, dict):
         return {}
-    return {str(name): [str(f) for f in (t.get("exports") or [])] for name, t in tasks.items()
-            if isinstance(t, dict) and isinstance(t.get("exports"), list)}
+    return {
+        str(name): [str(f) for f in (t.get("exports") or [])]
+        for name, t in tasks.items()
+        if isinstance(t, dict) and isinstance(t.get("exports"), list)
+    }
 
 
 def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[str]) -> dict[str, Any]:
@@ -57,10 +64,16 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
         out: TaskOutcome = serve_task(model, td)
-        path = write_task(folder, out.name, case.field.variable, out.field, out.reference, out.invariant,
-                          attrs={**attrs, "latticedft_task": out.name,
-                                 "latticedft_complete": "true" if out.complete else "false"},
-                          history=history)
+        path = write_task(
+            folder,
+            out.name,
+            case.field.variable,
+            out.field,
+            out.reference,
+            out.invariant,
+            attrs={**attrs, "latticedft_task": out.name, "latticedft_complete": "true" if out.complete else "false"},
+            history=history,
+        )
         out.record["file"] = path.name
         log.debug("wrote %s", path.name)
         out.record["exports"] = export_one(folder, case, out.name, data, previous.get(out.name, ()), owners)
@@ -68,8 +81,14 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
     return tasks
 
 
-def export_one(folder: Path, case: Case, name: str, data: CaseData | None, previous: Iterable[str] = (),
-               owners: dict[str, str] | None = None) -> list[str]:
+def export_one(
+    folder: Path,
+    case: Case,
+    name: str,
+    data: CaseData | None,
+    previous: Iterable[str] = (),
+    owners: dict[str, str] | None = None,
+) -> list[str]:
     """Re-export one task from its ``<task>.nc`` in the case's formats; the names of the files written.
 
     ``previous`` are the files the task's last export wrote: they are deleted
@@ -80,14 +99,26 @@ def export_one(folder: Path, case: Case, name: str, data: CaseData | None, previ
     owners = {} if owners is None else owners
     remove_exports(folder, [f for f in previous if f not in owners])
     pred, ref, err = read_task(folder / f"{name}.nc", case.field.variable)
-    files = [p.name for p in export_task(folder, name, case.field.variable, pred, ref, err,
-                                         formats=case.export.formats, max_frames=case.export.max_frames,
-                                         train=data.train if data is not None else None,
-                                         title=f"{case.name}: {name}")]
+    files = [
+        p.name
+        for p in export_task(
+            folder,
+            name,
+            case.field.variable,
+            pred,
+            ref,
+            err,
+            formats=case.export.formats,
+            max_frames=case.export.max_frames,
+            train=data.train if data is not None else None,
+            title=f"{case.name}: {name}",
+        )
+    ]
     for f in files:
         if owners.get(f, name) != name:
-            raise InputError(f"export file {f} of task {name!r} is also a file of task {owners[f]!r}; "
-                             f"rename one of the tasks")
+            raise InputError(
+                f"export file {f} of task {name!r} is also a file of task {owners[f]!r}; rename one of the tasks"
+            )
         owners[f] = name
     return files
 
@@ -99,6 +130,5 @@ def finish(folder: Path, summary: dict[str, Any]) -> int:
     summary["exit_status"] = status
     write_summary(folder, summary)
     if incomplete:
-        log.warning("incomplete task(s): %s (partial fields written); exit status %d",
-                    ", ".join(incomplete), status)
+        log.warning("incomplete task(s): %s (partial fields written); exit status %d", ", ".join(incomplete), status)
     return status

@@ -12,8 +12,9 @@ log = logging.getLogger("latticedft")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("check", help="validate case.toml and the data; print a summary (writes nothing)",
-                       description=__doc__)
+    p = sub.add_parser(
+        "check", help="validate case.toml and the data; print a summary (writes nothing)", description=__doc__
+    )
     add_case_arguments(p)
 
 

@@ -14,8 +14,11 @@ log = logging.getLogger("latticedft")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", description=__doc__,
-                       help="re-export the [export] formats (ParaView files, figures ...) from results/<task>.nc")
+    p = sub.add_parser(
+        "export",
+        description=__doc__,
+        help="re-export the [export] formats (ParaView files, figures ...) from results/<task>.nc",
+    )
     add_case_arguments(p)
 
 
@@ -35,8 +38,9 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
             if task.name in summary.get("tasks", {}):
                 summary["tasks"][task.name]["exports"] = files
         if summary:
-            summary.setdefault("exports", []).append({"command": " ".join(["latticedft", *argv]),
-                                                      "overrides": list(case.overrides)})
+            summary.setdefault("exports", []).append(
+                {"command": " ".join(["latticedft", *argv]), "overrides": list(case.overrides)}
+            )
             write_summary(folder, summary)
     log.info("exported into %s (%.1f s)", dest, time.perf_counter() - t0)
     return OK

@@ -46,13 +46,21 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
         print("training: " + ", ".join(f"{k} {_fmt(train[k])}" for k in keys if k in train))
         for name, t in (summary.get("tasks") or {}).items():
             parts = [("complete" if t.get("complete") else "INCOMPLETE"), f"{t.get('slices')} slices"]
-            for k in ("max_error", "rms_error", "newton_iterations", "wall_time", "sites_per_second",
-                      "invariant_drift"):
+            for k in (
+                "max_error",
+                "rms_error",
+                "newton_iterations",
+                "wall_time",
+                "sites_per_second",
+                "invariant_drift",
+            ):
                 if t.get(k) is not None:
                     parts.append(f"{k} {_fmt(t[k])}")
             if t.get("baseline"):
                 parts.append(f"baseline max_error {_fmt(t['baseline'].get('max_error_same_slices'))}")
             print(f"task {name}: " + ", ".join(parts))
-        print(f"exit status of the last run: {summary.get('exit_status')}; versions "
-              f"{json.dumps(summary.get('versions', {}))}")
+        print(
+            f"exit status of the last run: {summary.get('exit_status')}; versions "
+            f"{json.dumps(summary.get('versions', {}))}"
+        )
     return OK

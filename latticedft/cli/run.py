@@ -15,8 +15,7 @@ log = logging.getLogger("latticedft")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("run", help="check, train, serve every task and export (the whole case)",
-                       description=__doc__)
+    p = sub.add_parser("run", help="check, train, serve every task and export (the whole case)", description=__doc__)
     add_case_arguments(p, overwrite=True)
 
 

@@ -16,8 +16,7 @@ log = logging.getLogger("latticedft")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("serve", help="serve every task with an existing results/model.pt",
-                       description=__doc__)
+    p = sub.add_parser("serve", help="serve every task with an existing results/model.pt", description=__doc__)
     add_case_arguments(p)
 
 

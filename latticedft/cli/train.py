@@ -15,8 +15,9 @@ log = logging.getLogger("latticedft")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="learn the model only (results/ with model.pt, model.json, summary.json)",
-                       description=__doc__)
+    p = sub.add_parser(
+        "train", help="learn the model only (results/ with model.pt, model.json, summary.json)", description=__doc__
+    )
     add_case_arguments(p, overwrite=True)
 
 

@@ -39,8 +39,7 @@ import xarray as xr
 
 from latticedft._errors import InputError
 
-__all__ = ["EXPORTERS", "DEFAULT_FORMATS", "Exporter", "ExportTask", "get_exporter", "export_formats",
-           "remove_exports"]
+__all__ = ["EXPORTERS", "DEFAULT_FORMATS", "Exporter", "ExportTask", "get_exporter", "export_formats", "remove_exports"]
 
 log = logging.getLogger("latticedft")
 
@@ -135,8 +134,14 @@ def remove_exports(folder: Path, names: Iterable[str]) -> list[str]:
     """
     removed = []
     for name in names:
-        if (not isinstance(name, str) or not name or Path(name).name != name or name in (".", "..")
-                or name in _NOT_EXPORTS or name.endswith(".nc")):
+        if (
+            not isinstance(name, str)
+            or not name
+            or Path(name).name != name
+            or name in (".", "..")
+            or name in _NOT_EXPORTS
+            or name.endswith(".nc")
+        ):
             log.debug("not removing %r: not an export file", name)
             continue
         path = Path(folder) / name

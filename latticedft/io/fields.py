@@ -31,6 +31,7 @@ Examples
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import json
 import os
@@ -106,21 +107,16 @@ def read_field(
     try:
         ds = xr.open_dataset(p, engine="netcdf4", decode_times=False, decode_timedelta=False)
     except Exception as exc:  # the library raises OSError, ValueError, ... for bad files
-        raise InputError(
-            f"{p}: not a readable netCDF file ({type(exc).__name__}: {_one_line(exc, 120)})"
-        ) from None
+        raise InputError(f"{p}: not a readable netCDF file ({type(exc).__name__}: {_one_line(exc, 120)})") from None
     with ds:
         if variable not in ds.data_vars:
             present = sorted(str(v) for v in ds.data_vars)
-            raise InputError(
-                f"{p}: no variable {variable!r}; variables present: {present!r}"
-            )
+            raise InputError(f"{p}: no variable {variable!r}; variables present: {present!r}")
         try:
             da = ds[variable].load()
         except Exception as exc:
             raise InputError(
-                f"{p}: cannot read variable {variable!r} "
-                f"({type(exc).__name__}: {_one_line(exc, 120)})"
+                f"{p}: cannot read variable {variable!r} ({type(exc).__name__}: {_one_line(exc, 120)})"
             ) from None
     da = validate_field(da, str(p), components=components, allow_nan=allow_nan)
     return da.copy(deep=False)
@@ -137,8 +133,11 @@ def _safe_attr(value: Any) -> Any:
         return "none"
     if isinstance(value, (str, int, float, np.integer, np.floating)):
         return value
-    if isinstance(value, np.ndarray) and value.ndim <= 1 and value.dtype != bool and (
-        np.issubdtype(value.dtype, np.integer) or np.issubdtype(value.dtype, np.floating)
+    if (
+        isinstance(value, np.ndarray)
+        and value.ndim <= 1
+        and value.dtype != bool
+        and (np.issubdtype(value.dtype, np.integer) or np.issubdtype(value.dtype, np.floating))
     ):
         return value
     if isinstance(value, (list, tuple, dict, np.ndarray)):
@@ -253,7 +252,7 @@ def write_field(
     ds.attrs["Conventions"] = "CF-1.8"
     ds.attrs.setdefault("source", f"latticedft {_package_version()}")
     if history:
-        stamp = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+        stamp = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
         line = f"{stamp}: {_one_line(history, 10_000)}"
         old = ds.attrs.get("history")
         ds.attrs["history"] = f"{old}\n{line}" if old not in (None, "") else line
@@ -276,9 +275,7 @@ def write_field(
         ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4", encoding=encoding)
         os.replace(tmp, target)
     except BaseException:
-        try:
+        with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
-        except FileNotFoundError:
-            pass
         raise
     return target

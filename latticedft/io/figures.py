@@ -51,8 +51,7 @@ def _coord(da: xr.DataArray, dim: str) -> np.ndarray:
 
 def _common(pred: xr.DataArray, ref: xr.DataArray) -> tuple[xr.DataArray, xr.DataArray]:
     """Cut both arrays to their common extent, position by position (pred's coords win)."""
-    if set(lattice_dims(ref)) != set(lattice_dims(pred)) or \
-            (COMPONENT_DIM in pred.dims) != (COMPONENT_DIM in ref.dims):
+    if set(lattice_dims(ref)) != set(lattice_dims(pred)) or (COMPONENT_DIM in pred.dims) != (COMPONENT_DIM in ref.dims):
         raise InputError(f"reference dims {ref.dims} do not match prediction dims {pred.dims}")
     ref = ref.transpose(*pred.dims)
     cut = {d: min(pred.sizes[d], ref.sizes[d]) for d in pred.dims}
@@ -74,47 +73,60 @@ def _markevery(n: int) -> int:
     return max(1, n // _MAX_MARKERS)
 
 
-def _plot_series(fig: Figure, pred: xr.DataArray, ref: xr.DataArray | None,
-                 train: Sequence[xr.DataArray]) -> None:
+def _plot_series(fig: Figure, pred: xr.DataArray, ref: xr.DataArray | None, train: Sequence[xr.DataArray]) -> None:
     tdim = lattice_dims(pred)[0]
     if COMPONENT_DIM in pred.dims:
         comps = [pred.isel({COMPONENT_DIM: k}) for k in range(pred.sizes[COMPONENT_DIM])]
-        labels = [str(v) for v in pred.coords[COMPONENT_DIM].values] \
-            if COMPONENT_DIM in pred.coords else [str(k) for k in range(len(comps))]
+        labels = (
+            [str(v) for v in pred.coords[COMPONENT_DIM].values]
+            if COMPONENT_DIM in pred.coords
+            else [str(k) for k in range(len(comps))]
+        )
     else:
         comps, labels = [pred], [str(pred.name or "psi")]
     axes = fig.subplots(len(comps), 1, sharex=True, squeeze=False)[:, 0]
     for k, ax in enumerate(axes):
         for j, tr in enumerate(train):
             trk = tr.isel({COMPONENT_DIM: k}) if COMPONENT_DIM in tr.dims else tr
-            ax.plot(_coord(tr, lattice_dims(tr)[0]), trk.values, "-", color="0.7", lw=1,
-                    label="training data" if j == 0 else None)
+            ax.plot(
+                _coord(tr, lattice_dims(tr)[0]),
+                trk.values,
+                "-",
+                color="0.7",
+                lw=1,
+                label="training data" if j == 0 else None,
+            )
         t = _coord(pred, tdim)
         if ref is not None:
             refk = ref.isel({COMPONENT_DIM: k}) if COMPONENT_DIM in ref.dims else ref
-            ax.plot(_coord(ref, tdim), refk.values, "s", mfc="none", mec="tab:blue", ms=6,
-                    markevery=_markevery(t.size), label="reference")
-        ax.plot(t, comps[k].values, "o", color="tab:red", ms=3.5,
-                markevery=_markevery(t.size), label="prediction")
+            ax.plot(
+                _coord(ref, tdim),
+                refk.values,
+                "s",
+                mfc="none",
+                mec="tab:blue",
+                ms=6,
+                markevery=_markevery(t.size),
+                label="reference",
+            )
+        ax.plot(t, comps[k].values, "o", color="tab:red", ms=3.5, markevery=_markevery(t.size), label="prediction")
         ax.set_ylabel(labels[k])
         ax.legend(loc="best", fontsize="small")
     axes[-1].set_xlabel(_label(pred, tdim))
 
 
-def _plot_orbit(ax: Axes, pred: xr.DataArray, ref: xr.DataArray | None,
-                train: Sequence[xr.DataArray]) -> None:
-    labels = [str(v) for v in pred.coords[COMPONENT_DIM].values[:2]] \
-        if COMPONENT_DIM in pred.coords else ["x", "y"]
+def _plot_orbit(ax: Axes, pred: xr.DataArray, ref: xr.DataArray | None, train: Sequence[xr.DataArray]) -> None:
+    labels = [str(v) for v in pred.coords[COMPONENT_DIM].values[:2]] if COMPONENT_DIM in pred.coords else ["x", "y"]
     for j, tr in enumerate(train):
         v = np.asarray(tr.values)
         ax.plot(v[:, 0], v[:, 1], "-", color="0.7", lw=1, label="training data" if j == 0 else None)
     if ref is not None:
         v = np.asarray(ref.values)
-        ax.plot(v[:, 0], v[:, 1], "s", mfc="none", mec="tab:blue", ms=5,
-                markevery=_markevery(len(v)), label="reference")
+        ax.plot(
+            v[:, 0], v[:, 1], "s", mfc="none", mec="tab:blue", ms=5, markevery=_markevery(len(v)), label="reference"
+        )
     v = np.asarray(pred.values)
-    ax.plot(v[:, 0], v[:, 1], "o", color="tab:red", ms=3, markevery=_markevery(len(v)),
-            label="prediction")
+    ax.plot(v[:, 0], v[:, 1], "o", color="tab:red", ms=3, markevery=_markevery(len(v)), label="prediction")
     ax.set_xlabel(labels[0])
     ax.set_ylabel(labels[1])
     ax.set_aspect("equal", adjustable="datalim")
@@ -147,16 +159,23 @@ def _plot_spacetime(fig: Figure, pred: xr.DataArray, ref: xr.DataArray | None) -
     for ax, (name, img) in zip(axes, panels):
         is_err = name == "error"
         lo, hi = _err_limits(img) if is_err else vlim
-        im = ax.imshow(img, origin="lower", aspect="auto", extent=extent, vmin=lo, vmax=hi,
-                       cmap="RdBu_r" if is_err else "viridis", interpolation="nearest")
+        im = ax.imshow(
+            img,
+            origin="lower",
+            aspect="auto",
+            extent=extent,
+            vmin=lo,
+            vmax=hi,
+            cmap="RdBu_r" if is_err else "viridis",
+            interpolation="nearest",
+        )
         fig.colorbar(im, ax=ax)
         ax.set_title(name)
         ax.set_xlabel(_label(pred, xdim))
     axes[0].set_ylabel(_label(pred, tdim))
 
 
-def _plot_snapshots(fig: Figure, pred: xr.DataArray, ref: xr.DataArray | None,
-                    n_times: int = 3) -> None:
+def _plot_snapshots(fig: Figure, pred: xr.DataArray, ref: xr.DataArray | None, n_times: int = 3) -> None:
     dims = lattice_dims(pred)
     tdim, ydim, xdim = dims[0], dims[-2], dims[-1]
     middle = {d: pred.sizes[d] // 2 for d in dims[1:-2]}  # 3+1D: middle slice of extra dims
@@ -178,8 +197,15 @@ def _plot_snapshots(fig: Figure, pred: xr.DataArray, ref: xr.DataArray | None,
         lo, hi = _err_limits(imgs) if is_err else vlim
         for c, i in enumerate(idx):
             ax = axes[r, c]
-            im = ax.imshow(imgs[c], origin="lower", extent=extent, vmin=lo, vmax=hi,
-                           cmap="RdBu_r" if is_err else "viridis", interpolation="nearest")
+            im = ax.imshow(
+                imgs[c],
+                origin="lower",
+                extent=extent,
+                vmin=lo,
+                vmax=hi,
+                cmap="RdBu_r" if is_err else "viridis",
+                interpolation="nearest",
+            )
             if r == 0:
                 ax.set_title(f"{tdim} = {t[i]:.4g}")
             if c == 0:
@@ -261,8 +287,14 @@ def plot_prediction(
             nrows = 3 if ref is not None else 1
             # a fixed layout: constrained layout costs ~1 s for this many panels
             fig = Figure(figsize=(10.0, 3.0 * nrows + 0.6))
-            fig.subplots_adjust(left=0.1, right=0.86, bottom=0.5 / (3.0 * nrows + 0.6) + 0.03,
-                                top=1 - 0.6 / (3.0 * nrows + 0.6), wspace=0.08, hspace=0.12)
+            fig.subplots_adjust(
+                left=0.1,
+                right=0.86,
+                bottom=0.5 / (3.0 * nrows + 0.6) + 0.03,
+                top=1 - 0.6 / (3.0 * nrows + 0.6),
+                wspace=0.08,
+                hspace=0.12,
+            )
             _plot_snapshots(fig, pred, ref)
     if title:
         fig.suptitle(title)
@@ -284,5 +316,12 @@ class FigureExporter(Exporter):
 
     def write(self, task: ExportTask) -> list[Path]:
         one_d = len(lattice_dims(task.field)) == 1
-        return [plot_prediction(task.folder / f"{task.name}.png", task.field, task.reference,
-                                title=task.title or task.name, train=task.train if one_d else None)]
+        return [
+            plot_prediction(
+                task.folder / f"{task.name}.png",
+                task.field,
+                task.reference,
+                title=task.title or task.name,
+                train=task.train if one_d else None,
+            )
+        ]

@@ -46,8 +46,7 @@ DEFAULT_MAX_POLYLINE_FRAMES = 500
 # ----------------------------------------------------------------------------- .pvd
 
 
-def write_pvd(path: str | os.PathLike[str], entries: Sequence[tuple[float, str | os.PathLike[str]]]
-              ) -> Path:
+def write_pvd(path: str | os.PathLike[str], entries: Sequence[tuple[float, str | os.PathLike[str]]]) -> Path:
     """Write a ParaView collection file listing ``(time, file)`` entries.
 
     File names are stored relative to the ``.pvd``'s folder when they lie
@@ -71,9 +70,7 @@ def write_pvd(path: str | os.PathLike[str], entries: Sequence[tuple[float, str |
             rel = f.resolve().relative_to(target.parent.resolve()).as_posix()
         except ValueError:
             rel = f.as_posix()
-        lines.append(
-            f'    <DataSet timestep="{float(t)!r}" group="" part="0" file={quoteattr(rel)}/>'
-        )
+        lines.append(f'    <DataSet timestep="{float(t)!r}" group="" part="0" file={quoteattr(rel)}/>')
     lines += ["  </Collection>", "</VTKFile>", ""]
     _atomic_write_text(target, "\n".join(lines))
     return target
@@ -104,9 +101,7 @@ def read_pvd(path: str | os.PathLike[str]) -> list[tuple[float, Path]]:
             t = float(ds.attrib.get("timestep", "0"))
             f = ds.attrib["file"]
         except (KeyError, ValueError):
-            raise InputError(
-                f"{p}: DataSet entry {i} lacks a numeric 'timestep' or a 'file' attribute"
-            ) from None
+            raise InputError(f"{p}: DataSet entry {i} lacks a numeric 'timestep' or a 'file' attribute") from None
         out.append((t, (p.parent / f).resolve()))
     return out
 
@@ -152,22 +147,15 @@ def _point_values(da: xr.DataArray, order: tuple[str, ...]) -> np.ndarray:
     return np.asarray(da.transpose(*dims).values, dtype=np.float64)
 
 
-def _check_extra(name: str, arr: xr.DataArray, field: xr.DataArray, ldims: tuple[str, ...]
-                 ) -> np.ndarray:
+def _check_extra(name: str, arr: xr.DataArray, field: xr.DataArray, ldims: tuple[str, ...]) -> np.ndarray:
     if not isinstance(arr, xr.DataArray):
-        raise InputError(f"extra array {name!r}: expected an xarray.DataArray, got "
-                         f"{type(arr).__name__}")
+        raise InputError(f"extra array {name!r}: expected an xarray.DataArray, got {type(arr).__name__}")
     if set(lattice_dims(arr)) != set(ldims):
-        raise InputError(
-            f"extra array {name!r}: lattice dims {lattice_dims(arr)} differ from the field's "
-            f"{ldims}"
-        )
+        raise InputError(f"extra array {name!r}: lattice dims {lattice_dims(arr)} differ from the field's {ldims}")
     shape = tuple(arr.sizes[d] for d in ldims)
     want = tuple(field.sizes[d] for d in ldims)
     if shape != want:
-        raise InputError(
-            f"extra array {name!r}: shape {shape} along {ldims} differs from the field's {want}"
-        )
+        raise InputError(f"extra array {name!r}: shape {shape} along {ldims} differs from the field's {want}")
     return _point_values(arr, ldims)
 
 
@@ -183,8 +171,10 @@ def _flat(values: np.ndarray, n_lattice: int) -> np.ndarray:
 
 class ParaViewExporter(Exporter):
     name = "paraview"
-    summary = ("<task>.pvd + one .vtr (lattice) or .vtp (1D) frame per written slice, at most max_frames; "
-               "1+1D also <task>_spacetime.vtr, 1D also <task>.vtp")
+    summary = (
+        "<task>.pvd + one .vtr (lattice) or .vtp (1D) frame per written slice, at most max_frames; "
+        "1+1D also <task>_spacetime.vtr, 1D also <task>.vtp"
+    )
 
     def write(self, task: ExportTask) -> list[Path]:
         return write_paraview(task.folder, task.name, task.field, task.extra, max_frames=task.max_frames)
@@ -259,15 +249,20 @@ def write_paraview(
         return _write_polylines(out, stem, name, arrays, times, max_frames)
     if len(ldims) > 4:
         raise InputError(
-            f"field {name!r}: {len(ldims) - 1} spatial dims {ldims[1:]}; ParaView export "
-            f"supports at most 3"
+            f"field {name!r}: {len(ldims) - 1} spatial dims {ldims[1:]}; ParaView export supports at most 3"
         )
     coords = [np.asarray(field.coords[d].values, dtype=np.float64) for d in ldims[1:]]
     return _write_grids(out, stem, arrays, times, coords, max_frames)
 
 
-def _write_grids(out: Path, stem: str, arrays: dict[str, np.ndarray], times: np.ndarray,
-                 coords: list[np.ndarray], max_frames: int | None) -> list[Path]:
+def _write_grids(
+    out: Path,
+    stem: str,
+    arrays: dict[str, np.ndarray],
+    times: np.ndarray,
+    coords: list[np.ndarray],
+    max_frames: int | None,
+) -> list[Path]:
     n_spatial = len(coords)
     # VTK x is the last (fastest) lattice dim: psi(t, z, y, x) flattens to VTK point order.
     axes = list(reversed(coords)) + [np.zeros(1)] * (3 - n_spatial)
@@ -298,9 +293,9 @@ def _polyline(points: np.ndarray) -> pv.PolyData:
     return pv.PolyData()
 
 
-def _write_polylines(out: Path, stem: str, name: str, arrays: dict[str, np.ndarray],
-                     times: np.ndarray, max_frames: int | None
-                     ) -> list[Path]:
+def _write_polylines(
+    out: Path, stem: str, name: str, arrays: dict[str, np.ndarray], times: np.ndarray, max_frames: int | None
+) -> list[Path]:
     vals = arrays[name]
     if vals.ndim == 2 and vals.shape[1] == 1:
         vals = vals[:, 0]

@@ -148,8 +148,15 @@ def write_xdmf(
         if key in arrays:
             raise InputError(f"extra array {key!r}: name clashes with another array")
         arrays[key] = _check_extra(key, arr, field, ldims)
-    labels = ([str(c) for c in field.coords[COMPONENT_DIM].values] if COMPONENT_DIM in field.coords
-              else [str(i) for i in range(field.sizes[COMPONENT_DIM])]) if COMPONENT_DIM in field.dims else None
+    labels = (
+        (
+            [str(c) for c in field.coords[COMPONENT_DIM].values]
+            if COMPONENT_DIM in field.coords
+            else [str(i) for i in range(field.sizes[COMPONENT_DIM])]
+        )
+        if COMPONENT_DIM in field.dims
+        else None
+    )
     columns: dict[str, np.ndarray] = {}  # array name -> values (nt, n_points)
     nt = field.sizes[ldims[0]]
     for key, vals in arrays.items():

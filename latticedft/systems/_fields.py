@@ -150,8 +150,9 @@ def make_field(
     all_dims = dims
     if components is not None:
         all_dims = dims + (COMPONENT_DIM,)
-        out_coords[COMPONENT_DIM] = xr.Variable((COMPONENT_DIM,), np.array(list(components), dtype=str),
-                                              attrs={"long_name": "vector component"})
+        out_coords[COMPONENT_DIM] = xr.Variable(
+            (COMPONENT_DIM,), np.array(list(components), dtype=str), attrs={"long_name": "vector component"}
+        )
     da_attrs = {"long_name": name}
     da_attrs.update(attrs or {})
     return xr.DataArray(arr, dims=all_dims, coords=out_coords, name=name, attrs=da_attrs)
@@ -170,10 +171,13 @@ def _field_values(values: ArrayLike, dims: tuple[str, ...], components: Sequence
     ncomp = 0 if components is None else len(components)
     expected_ndim = len(dims) + (1 if components is not None else 0)
     if arr.ndim != expected_ndim:
-        raise InputError(f"values: expected {expected_ndim} dims for dims={dims!r}"
-                         f"{' plus component' if components is not None else ''}, got shape {arr.shape}")
-    if components is not None and (ncomp == 0 or arr.shape[-1] != ncomp
-                                   or not all(isinstance(s, str) for s in components)):
+        raise InputError(
+            f"values: expected {expected_ndim} dims for dims={dims!r}"
+            f"{' plus component' if components is not None else ''}, got shape {arr.shape}"
+        )
+    if components is not None and (
+        ncomp == 0 or arr.shape[-1] != ncomp or not all(isinstance(s, str) for s in components)
+    ):
         raise InputError(f"components: expected {arr.shape[-1]} string labels, got {list(components)!r}")
     if not np.all(np.isfinite(arr)):
         raise InputError("values: contains NaN or infinity")
@@ -247,10 +251,19 @@ def _check_finite(value: float, arg: str) -> float:
     return v
 
 
-def _solve(rhs: Callable[[float, _FloatArray], Any], y0: Sequence[float], t: _FloatArray,
-           events: Any = None, what: str = "ODE") -> Any:
-    sol = solve_ivp(rhs, (float(t[0]), float(t[-1])), np.asarray(y0, dtype=np.float64), method="DOP853",
-                    t_eval=t, rtol=ODE_RTOL, atol=ODE_ATOL, events=events)
+def _solve(
+    rhs: Callable[[float, _FloatArray], Any], y0: Sequence[float], t: _FloatArray, events: Any = None, what: str = "ODE"
+) -> Any:
+    sol = solve_ivp(
+        rhs,
+        (float(t[0]), float(t[-1])),
+        np.asarray(y0, dtype=np.float64),
+        method="DOP853",
+        t_eval=t,
+        rtol=ODE_RTOL,
+        atol=ODE_ATOL,
+        events=events,
+    )
     if sol.status == -1:
         raise InputError(f"initial data: the {what} solve failed ({sol.message})")
     return sol

@@ -55,8 +55,10 @@ def field_energy(psi: xr.DataArray, c: float = 1.0, mass: float = 0.0) -> xr.Dat
     True
     """
     if not isinstance(psi, xr.DataArray) or psi.ndim not in (2, 3) or psi.dims[0] != "t":
-        raise InputError(f"psi: expected a DataArray psi(t, x) or psi(t, y, x), got "
-                         f"{psi.dims if isinstance(psi, xr.DataArray) else type(psi).__name__}")
+        raise InputError(
+            f"psi: expected a DataArray psi(t, x) or psi(t, y, x), got "
+            f"{psi.dims if isinstance(psi, xr.DataArray) else type(psi).__name__}"
+        )
     c = _check_finite(c, "c")
     mass = _check_finite(mass, "mass")
     for d in psi.dims:
@@ -77,8 +79,13 @@ def field_energy(psi: xr.DataArray, c: float = 1.0, mass: float = 0.0) -> xr.Dat
         e = e + (c * c / (2.0 * h[k] ** 2)) * (da * db).sum(axis=axes)
     e = e * math.prod(h[1:])
     out = np.concatenate([e[:1], 0.5 * (e[:-1] + e[1:]), e[-1:]])
-    return xr.DataArray(out, dims=("t",), coords={"t": psi["t"]}, name="energy",
-                        attrs={"long_name": "discrete field energy", "units": "1"})
+    return xr.DataArray(
+        out,
+        dims=("t",),
+        coords={"t": psi["t"]},
+        name="energy",
+        attrs={"long_name": "discrete field energy", "units": "1"},
+    )
 
 
 def wave_energy(psi: xr.DataArray) -> xr.DataArray:

@@ -157,8 +157,9 @@ def _orbit_length(r0: float, v0: float, dt: float, n: int | None, t_end: float |
     energy = 0.5 * v0 * v0 - 1.0 / r0
     if n is None and t_end is None:
         if energy >= 0:
-            raise InputError(f"n: required (or t_end) for an unbound orbit (v0={v0!r} >= escape speed "
-                             f"{math.sqrt(2.0 / r0):.6g})")
+            raise InputError(
+                f"n: required (or t_end) for an unbound orbit (v0={v0!r} >= escape speed {math.sqrt(2.0 / r0):.6g})"
+            )
         n = int(round(float(kepler_period(-0.5 / energy)) / dt)) + 1
     elif t_end is not None:
         t_end = _check_finite(t_end, "t_end")
@@ -247,16 +248,22 @@ def kepler_orbit(
     sol = _solve(_kepler_rhs, [r0, 0.0, 0.0, v0], t, events=events, what="kepler_orbit")
     if sol.y.shape[1] < 2:
         raise InputError(f"r_max: the orbit leaves r <= {r_max!r} within the first step")
-    src = (f"latticedft.systems.kepler_orbit: r''=-r/|r|^3 (GM=1, units 1 au, {KEPLER_TIME_UNIT_DAYS} d), "
-           f"r0={r0!r}, v0={v0!r}, r_max={r_max!r}; solve_ivp DOP853 rtol={ODE_RTOL:g} atol={ODE_ATOL:g}")
+    src = (
+        f"latticedft.systems.kepler_orbit: r''=-r/|r|^3 (GM=1, units 1 au, {KEPLER_TIME_UNIT_DAYS} d), "
+        f"r0={r0!r}, v0={v0!r}, r_max={r_max!r}; solve_ivp DOP853 rtol={ODE_RTOL:g} atol={ODE_ATOL:g}"
+    )
     common = dict(spacing=dt, components=["x", "y"], coord_attrs={"t": _time_attrs(f"{KEPLER_TIME_UNIT_DAYS} days")})
     attrs = {"units": "au", "source": src, "r0": r0, "v0": v0, "GM": 1.0}
     psi = make_field(sol.y[:2].T, ("t",), attrs={"long_name": "position", **attrs}, **common)  # type: ignore[arg-type]
     if not return_velocity:
         return psi
-    vel = make_field(sol.y[2:].T, ("t",), name="velocity",  # type: ignore[arg-type]
-                     attrs={"long_name": "velocity", **attrs, "units": f"au / ({KEPLER_TIME_UNIT_DAYS} days)"},
-                     **common)
+    vel = make_field(
+        sol.y[2:].T,
+        ("t",),
+        name="velocity",  # type: ignore[arg-type]
+        attrs={"long_name": "velocity", **attrs, "units": f"au / ({KEPLER_TIME_UNIT_DAYS} days)"},
+        **common,
+    )
     return psi, vel
 
 
@@ -308,6 +315,7 @@ def planet_orbit(name: str, dt: float = 0.05, periods: float = 1.0) -> xr.DataAr
     psi = kepler_orbit(r0, v0, dt=dt, n=max(n, 2))
     assert isinstance(psi, xr.DataArray)
     psi.attrs.update({"long_name": f"position of {key}", "planet": key, "a": p.a, "e": p.e})
-    psi.attrs["source"] = (f"latticedft.systems.planet_orbit({key!r}, periods={periods!r}) from aphelion; "
-                           + psi.attrs["source"])
+    psi.attrs["source"] = (
+        f"latticedft.systems.planet_orbit({key!r}, periods={periods!r}) from aphelion; " + psi.attrs["source"]
+    )
     return psi

@@ -86,11 +86,18 @@ def klein_gordon(
     u = leapfrog(a0, a1, steps, dt, dx, force=_kg_force, boundary="periodic")
     assert isinstance(u, np.ndarray)
     nx = a0.size
-    return make_field(u, ("t", "x"), spacing=(dt, dx),
-                      coord_attrs={"x": {PERIODIC_ATTR: periodic_attr(True), "period": nx * dx}},
-                      attrs={"long_name": "Klein-Gordon field u", "units": "1",
-                             "source": f"latticedft.systems.klein_gordon: explicit scheme of u_tt = u_xx - u, "
-                                       f"periodic, nx={nx}, dx={dx!r}, dt={dt!r}"})
+    return make_field(
+        u,
+        ("t", "x"),
+        spacing=(dt, dx),
+        coord_attrs={"x": {PERIODIC_ATTR: periodic_attr(True), "period": nx * dx}},
+        attrs={
+            "long_name": "Klein-Gordon field u",
+            "units": "1",
+            "source": f"latticedft.systems.klein_gordon: explicit scheme of u_tt = u_xx - u, "
+            f"periodic, nx={nx}, dx={dx!r}, dt={dt!r}",
+        },
+    )
 
 
 def _smooth_periodic(rng: np.random.Generator, nx: int, decay: float) -> _FloatArray:
@@ -158,8 +165,10 @@ def klein_gordon_training_set(
         dxx = (np.roll(u0, -1) - 2.0 * u0 + np.roll(u0, 1)) / (dx * dx)
         u1 = u0 + dt * v0 + 0.5 * dt * dt * (dxx - u0)
         f = klein_gordon(u0, u1, steps, dt=dt, dx=dx)
-        f.attrs["source"] += (f"; klein_gordon_training_set seed={int(seed)} member {m} of {n}, "
-                              f"Fourier amplitudes N(0,1) exp(-{decay:g} k^4), u1 = Taylor step from v0")
+        f.attrs["source"] += (
+            f"; klein_gordon_training_set seed={int(seed)} member {m} of {n}, "
+            f"Fourier amplitudes N(0,1) exp(-{decay:g} k^4), u1 = Taylor step from v0"
+        )
         fields.append(f)
     return fields
 

@@ -163,8 +163,9 @@ def _leapfrog_args(
     return u0, u1, steps, dt, c, h, bvals
 
 
-def _leapfrog_spacing(psi0: ArrayLike | xr.DataArray, spacing: float | Sequence[float] | None,
-                      ndim: int) -> list[float]:
+def _leapfrog_spacing(
+    psi0: ArrayLike | xr.DataArray, spacing: float | Sequence[float] | None, ndim: int
+) -> list[float]:
     """The grid spacing per spatial axis: given, or read from the coordinates of a DataArray `psi0`."""
     if spacing is None:
         if not isinstance(psi0, xr.DataArray):
@@ -184,8 +185,17 @@ def _leapfrog_spacing(psi0: ArrayLike | xr.DataArray, spacing: float | Sequence[
 # ----------------------------------------------------------------------------
 
 
-def _leapfrog_steps(u0: _FloatArray, u1: _FloatArray, steps: int, dt: float, h: Sequence[float], c: float,
-                    force: _Force | None, kind: BoundaryKind, bvals: _FloatArray | None) -> _FloatArray:
+def _leapfrog_steps(
+    u0: _FloatArray,
+    u1: _FloatArray,
+    steps: int,
+    dt: float,
+    h: Sequence[float],
+    c: float,
+    force: _Force | None,
+    kind: BoundaryKind,
+    bvals: _FloatArray | None,
+) -> _FloatArray:
     """Slices ``0 .. steps`` of the scheme from the first two, `u0` and `u1`, every spatial axis of `kind`.
 
     The interior sites (all of them on periodic axes) are stepped; the other
@@ -221,9 +231,19 @@ def _force_values(force: _Force | None, u: _FloatArray) -> _FloatArray | None:
     return f
 
 
-def _step(new: _FloatArray, u: _FloatArray, up: _FloatArray, f: _FloatArray | None, c2: float, dt2: float,
-          h: Sequence[float], kinds: Sequence[BoundaryKind], inner: tuple[slice, ...],
-          edge: NDArray[np.bool_] | None, frame: _FloatArray) -> None:
+def _step(
+    new: _FloatArray,
+    u: _FloatArray,
+    up: _FloatArray,
+    f: _FloatArray | None,
+    c2: float,
+    dt2: float,
+    h: Sequence[float],
+    kinds: Sequence[BoundaryKind],
+    inner: tuple[slice, ...],
+    edge: NDArray[np.bool_] | None,
+    frame: _FloatArray,
+) -> None:
     """One step: the interior of `new` from `u` and `up`, its other sites (if any) from `frame`."""
     acc = c2 * _laplacian(u, h, kinds, inner)
     if f is not None:
@@ -238,8 +258,9 @@ def _step(new: _FloatArray, u: _FloatArray, up: _FloatArray, f: _FloatArray | No
 # ----------------------------------------------------------------------------
 
 
-def _laplacian(u: _FloatArray, h: Sequence[float], kinds: Sequence[BoundaryKind],
-               inner: tuple[slice, ...]) -> _FloatArray:
+def _laplacian(
+    u: _FloatArray, h: Sequence[float], kinds: Sequence[BoundaryKind], inner: tuple[slice, ...]
+) -> _FloatArray:
     """Three-point Laplacian of `u` at the interior sites ``u[inner]``, each axis's neighbours by its kind."""
     centre = u[inner]
     out = np.zeros(centre.shape)
@@ -258,8 +279,9 @@ def _laplacian(u: _FloatArray, h: Sequence[float], kinds: Sequence[BoundaryKind]
 # ----------------------------------------------------------------------------
 
 
-def _leapfrog_field(out: _FloatArray, psi0: xr.DataArray, dt: float, h: Sequence[float], c: float,
-                    force: _Force | None, boundary: str) -> xr.DataArray:
+def _leapfrog_field(
+    out: _FloatArray, psi0: xr.DataArray, dt: float, h: Sequence[float], c: float, force: _Force | None, boundary: str
+) -> xr.DataArray:
     """`out` as a DataArray with dims ``("t", *psi0.dims)``, psi0's coordinates and attributes."""
     periodic = spatial_kind(boundary).wraps
     t0 = 0.0
@@ -275,11 +297,21 @@ def _leapfrog_field(out: _FloatArray, psi0: xr.DataArray, dt: float, h: Sequence
             coord_attrs[str(d)] = dict(psi0[d].attrs)
         if periodic:
             coord_attrs.setdefault(str(d), {}).update(
-                {PERIODIC_ATTR: periodic_attr(True), "period": float(psi0.sizes[d] * h[list(psi0.dims).index(d)])})
+                {PERIODIC_ATTR: periodic_attr(True), "period": float(psi0.sizes[d] * h[list(psi0.dims).index(d)])}
+            )
     attrs = dict(psi0.attrs)
-    attrs["source"] = (f"latticedft.systems.leapfrog: explicit leapfrog of psi_tt = c^2 Laplacian psi"
-                       f"{' + force(psi)' if force is not None else ''}, c={c!r}, dt={dt!r}, spacing={h}, "
-                       f"boundary={boundary}")
-    return make_field(out, ("t", *(str(d) for d in psi0.dims)), spacing=(dt, *h), origin=(t0, *[0.0] * psi0.ndim),
-                      coords=coords, name=str(psi0.name) if psi0.name is not None else "psi",
-                      attrs=attrs, coord_attrs=coord_attrs)
+    attrs["source"] = (
+        f"latticedft.systems.leapfrog: explicit leapfrog of psi_tt = c^2 Laplacian psi"
+        f"{' + force(psi)' if force is not None else ''}, c={c!r}, dt={dt!r}, spacing={h}, "
+        f"boundary={boundary}"
+    )
+    return make_field(
+        out,
+        ("t", *(str(d) for d in psi0.dims)),
+        spacing=(dt, *h),
+        origin=(t0, *[0.0] * psi0.ndim),
+        coords=coords,
+        name=str(psi0.name) if psi0.name is not None else "psi",
+        attrs=attrs,
+        coord_attrs=coord_attrs,
+    )

@@ -120,19 +120,33 @@ def oscillator_sin(
     _check_lattice_1d(n, dt)
     energy = float(oscillator_sin_energy(psi0, dpsi0))
     if not (-0.5 * math.pi < psi0 < 0.5 * math.pi) or energy >= _SIN_K * (0.5 * math.pi) ** 2:
-        raise InputError(f"psi0, dpsi0: energy {energy:.4g} reaches the singular point psi = -pi/2 "
-                         f"(need |psi| < pi/2 throughout, i.e. E < {_SIN_K * (0.5 * math.pi) ** 2:.4g})")
+        raise InputError(
+            f"psi0, dpsi0: energy {energy:.4g} reaches the singular point psi = -pi/2 "
+            f"(need |psi| < pi/2 throughout, i.e. E < {_SIN_K * (0.5 * math.pi) ** 2:.4g})"
+        )
     t = t0 + dt * np.arange(n, dtype=np.float64)
     sol = _solve(_sin_rhs, [psi0, dpsi0], t, what="oscillator_sin")
-    src = (f"latticedft.systems.oscillator_sin: 2(sin psi+1)psi''+psi'^2 cos psi+pi^2/200 psi=0, "
-           f"psi0={psi0!r}, dpsi0={dpsi0!r}; solve_ivp DOP853 rtol={ODE_RTOL:g} atol={ODE_ATOL:g}")
-    psi = make_field(sol.y[0], ("t",), spacing=dt, origin=t0,
-                     attrs={"long_name": "oscillator displacement (Qin 2020 Example 1)", "units": "1",
-                            "source": src})
+    src = (
+        f"latticedft.systems.oscillator_sin: 2(sin psi+1)psi''+psi'^2 cos psi+pi^2/200 psi=0, "
+        f"psi0={psi0!r}, dpsi0={dpsi0!r}; solve_ivp DOP853 rtol={ODE_RTOL:g} atol={ODE_ATOL:g}"
+    )
+    psi = make_field(
+        sol.y[0],
+        ("t",),
+        spacing=dt,
+        origin=t0,
+        attrs={"long_name": "oscillator displacement (Qin 2020 Example 1)", "units": "1", "source": src},
+    )
     if not return_velocity:
         return psi
-    vel = make_field(sol.y[1], ("t",), spacing=dt, origin=t0, name="dpsi",
-                     attrs={"long_name": "d psi / d t", "units": "1", "source": src})
+    vel = make_field(
+        sol.y[1],
+        ("t",),
+        spacing=dt,
+        origin=t0,
+        name="dpsi",
+        attrs={"long_name": "d psi / d t", "units": "1", "source": src},
+    )
     return psi, vel
 
 
@@ -211,13 +225,25 @@ def oscillator_wells(
     _check_lattice_1d(n, dt)
     t = t0 + dt * np.arange(n, dtype=np.float64)
     sol = _solve(_wells_rhs, [psi0, dpsi0], t, what="oscillator_wells")
-    src = (f"latticedft.systems.oscillator_wells: psi''-0.03[sin(1-psi^2)psi+0.1]=0, "
-           f"psi0={psi0!r}, dpsi0={dpsi0!r}; solve_ivp DOP853 rtol={ODE_RTOL:g} atol={ODE_ATOL:g}")
-    psi = make_field(sol.y[0], ("t",), spacing=dt, origin=t0,
-                     attrs={"long_name": "oscillator displacement (Qin 2020 Example 2)", "units": "1",
-                            "source": src})
+    src = (
+        f"latticedft.systems.oscillator_wells: psi''-0.03[sin(1-psi^2)psi+0.1]=0, "
+        f"psi0={psi0!r}, dpsi0={dpsi0!r}; solve_ivp DOP853 rtol={ODE_RTOL:g} atol={ODE_ATOL:g}"
+    )
+    psi = make_field(
+        sol.y[0],
+        ("t",),
+        spacing=dt,
+        origin=t0,
+        attrs={"long_name": "oscillator displacement (Qin 2020 Example 2)", "units": "1", "source": src},
+    )
     if not return_velocity:
         return psi
-    vel = make_field(sol.y[1], ("t",), spacing=dt, origin=t0, name="dpsi",
-                     attrs={"long_name": "d psi / d t", "units": "1", "source": src})
+    vel = make_field(
+        sol.y[1],
+        ("t",),
+        spacing=dt,
+        origin=t0,
+        name="dpsi",
+        attrs={"long_name": "d psi / d t", "units": "1", "source": src},
+    )
     return psi, vel

@@ -31,8 +31,9 @@ from latticedft.systems._fields import (
 __all__ = ["kink_antikink", "sine_gordon_breather", "sine_gordon_energy"]
 
 
-def _sg_lattice(xlim: tuple[float, float], nx: int, nt: int, dt: float, t0: float
-                ) -> tuple[_FloatArray, _FloatArray, float, float]:
+def _sg_lattice(
+    xlim: tuple[float, float], nx: int, nt: int, dt: float, t0: float
+) -> tuple[_FloatArray, _FloatArray, float, float]:
     try:
         xa, xb = (float(v) for v in xlim)
     except (TypeError, ValueError):
@@ -100,10 +101,18 @@ def sine_gordon_breather(
     xi = gamma * (X - v * T)
     kappa = math.sqrt(1.0 - omega * omega)
     psi = 4.0 * np.arctan(kappa / omega * np.cos(omega * tau + phase) / np.cosh(kappa * xi))
-    return make_field(psi, ("t", "x"), spacing=(dt, dx), origin=(t[0], x[0]),
-                      attrs={"long_name": "sine-Gordon field", "units": "1",
-                             "source": f"latticedft.systems.sine_gordon_breather: exact breather, "
-                                       f"omega={omega!r}, velocity={v!r}, x0={x0!r}, phase={phase!r}"})
+    return make_field(
+        psi,
+        ("t", "x"),
+        spacing=(dt, dx),
+        origin=(t[0], x[0]),
+        attrs={
+            "long_name": "sine-Gordon field",
+            "units": "1",
+            "source": f"latticedft.systems.sine_gordon_breather: exact breather, "
+            f"omega={omega!r}, velocity={v!r}, x0={x0!r}, phase={phase!r}",
+        },
+    )
 
 
 def kink_antikink(
@@ -138,10 +147,17 @@ def kink_antikink(
     t, x, dt, dx = _sg_lattice(xlim, nx, nt, dt, t0)
     gamma = 1.0 / math.sqrt(1.0 - v * v)
     psi = 4.0 * np.arctan(np.outer(np.sinh(gamma * v * t), 1.0 / (v * np.cosh(gamma * x))))
-    return make_field(psi, ("t", "x"), spacing=(dt, dx), origin=(t[0], x[0]),
-                      attrs={"long_name": "sine-Gordon field", "units": "1",
-                             "source": f"latticedft.systems.kink_antikink: exact collision solution, "
-                                       f"velocity={v!r}"})
+    return make_field(
+        psi,
+        ("t", "x"),
+        spacing=(dt, dx),
+        origin=(t[0], x[0]),
+        attrs={
+            "long_name": "sine-Gordon field",
+            "units": "1",
+            "source": f"latticedft.systems.kink_antikink: exact collision solution, velocity={v!r}",
+        },
+    )
 
 
 def sine_gordon_energy(psi: xr.DataArray) -> xr.DataArray:
@@ -173,8 +189,10 @@ def sine_gordon_energy(psi: xr.DataArray) -> xr.DataArray:
     True
     """
     if not isinstance(psi, xr.DataArray) or psi.dims != ("t", "x"):
-        raise InputError(f"psi: expected a DataArray with dims ('t', 'x'), got "
-                         f"{psi.dims if isinstance(psi, xr.DataArray) else type(psi).__name__}")
+        raise InputError(
+            f"psi: expected a DataArray with dims ('t', 'x'), got "
+            f"{psi.dims if isinstance(psi, xr.DataArray) else type(psi).__name__}"
+        )
     for d in ("t", "x"):
         if d not in psi.coords:
             raise InputError(f"psi: needs a {d!r} coordinate to read the spacing")
@@ -190,5 +208,10 @@ def sine_gordon_energy(psi: xr.DataArray) -> xr.DataArray:
         ux = np.gradient(u, dx, axis=1)
         dens = 0.5 * ut**2 + 0.5 * ux**2 + 1.0 - np.cos(u)
         e = trapezoid(dens, dx=dx, axis=1)
-    return xr.DataArray(np.ascontiguousarray(e), dims=("t",), coords={"t": psi["t"]}, name="energy",
-                        attrs={"long_name": "sine-Gordon energy", "units": "1"})
+    return xr.DataArray(
+        np.ascontiguousarray(e),
+        dims=("t",),
+        coords={"t": psi["t"]},
+        name="energy",
+        attrs={"long_name": "sine-Gordon energy", "units": "1"},
+    )

@@ -27,8 +27,9 @@ from latticedft.systems._fields import (
 __all__ = ["wave_membrane", "wave_string"]
 
 
-def _parse_modes(modes: Iterable[Sequence[float]], nidx: int,
-                 arg: str = "modes") -> list[tuple[tuple[int, ...], float, float]]:
+def _parse_modes(
+    modes: Iterable[Sequence[float]], nidx: int, arg: str = "modes"
+) -> list[tuple[tuple[int, ...], float, float]]:
     """Check ``(k[, l], amplitude[, phase])`` tuples: ``(mode numbers, amplitude, phase)`` per mode."""
     out = []
     shape = "(k, amplitude[, phase])" if nidx == 1 else "(k, l, amplitude[, phase])"
@@ -49,8 +50,6 @@ def _parse_modes(modes: Iterable[Sequence[float]], nidx: int,
         phase = _check_finite(m[nidx + 1], arg) if len(m) == nidx + 2 else 0.0
         out.append((tuple(int(k) for k in idx), amp, phase))
     return out
-
-
 
 
 def wave_string(
@@ -105,10 +104,18 @@ def wave_string(
         psi += amp * np.outer(np.cos(c * k * np.pi / length * t + phase), np.sin(k * np.pi * x / length))
     psi[:, 0] = 0.0
     psi[:, -1] = 0.0
-    return make_field(psi, ("t", "x"), spacing=(dt, dx), origin=(t0, 0.0),
-                      attrs={"long_name": "string displacement", "units": "1",
-                             "source": f"latticedft.systems.wave_string: exact standing modes "
-                                       f"{[(k[0], a, p) for k, a, p in parsed]}, c={c!r}, length={length!r}"})
+    return make_field(
+        psi,
+        ("t", "x"),
+        spacing=(dt, dx),
+        origin=(t0, 0.0),
+        attrs={
+            "long_name": "string displacement",
+            "units": "1",
+            "source": f"latticedft.systems.wave_string: exact standing modes "
+            f"{[(k[0], a, p) for k, a, p in parsed]}, c={c!r}, length={length!r}",
+        },
+    )
 
 
 def wave_membrane(
@@ -161,14 +168,22 @@ def wave_membrane(
     y = dy * np.arange(ny, dtype=np.float64)
     t = t0 + dt * np.arange(nt, dtype=np.float64)
     psi = np.zeros((nt, ny, nx))
-    for (k, l), amp, phase in parsed:
-        omega = c * np.pi * math.hypot(k / length_x, l / length_y)
-        shape = np.outer(np.sin(l * np.pi * y / length_y), np.sin(k * np.pi * x / length_x))
+    for (k, ky), amp, phase in parsed:
+        omega = c * np.pi * math.hypot(k / length_x, ky / length_y)
+        shape = np.outer(np.sin(ky * np.pi * y / length_y), np.sin(k * np.pi * x / length_x))
         psi += amp * np.cos(omega * t + phase)[:, None, None] * shape[None]
     psi[:, 0, :] = psi[:, -1, :] = 0.0
     psi[:, :, 0] = psi[:, :, -1] = 0.0
-    return make_field(psi, ("t", "y", "x"), spacing=(dt, dy, dx), origin=(t0, 0.0, 0.0),
-                      attrs={"long_name": "membrane displacement", "units": "1",
-                             "source": f"latticedft.systems.wave_membrane: exact modes "
-                                       f"{[(*k, a, p) for k, a, p in parsed]}, c={c!r}, "
-                                       f"length_x={length_x!r}, length_y={length_y!r}"})
+    return make_field(
+        psi,
+        ("t", "y", "x"),
+        spacing=(dt, dy, dx),
+        origin=(t0, 0.0, 0.0),
+        attrs={
+            "long_name": "membrane displacement",
+            "units": "1",
+            "source": f"latticedft.systems.wave_membrane: exact modes "
+            f"{[(*k, a, p) for k, a, p in parsed]}, c={c!r}, "
+            f"length_x={length_x!r}, length_y={length_y!r}",
+        },
+    )
