@@ -56,7 +56,7 @@ def run(cfg: Config) -> Table:
     rep = ldft.learn(model, train, progress=False)
     init = systems.oscillator_wells(PSI0, n=2, dt=dt)
     t0 = time.perf_counter()
-    served = ldft.serve(model, init, steps=steps + 1, progress=False)
+    served = ldft.serve(model, init, slices=steps + 1, progress=False)
     t_serve = time.perf_counter() - t0
     q = served.field.values
     e0 = float(systems.oscillator_wells_energy(PSI0, 0.0))

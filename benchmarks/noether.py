@@ -86,7 +86,7 @@ def kepler(cfg: Config, table: Table, discovery: Table) -> None:
         out = []
         for f in launches:
             try:
-                out.append((ldft.serve(model, f.isel(t=slice(0, 2)), steps=f.sizes["t"], box=KEPLER_BOX).field, False))
+                out.append((ldft.serve(model, f.isel(t=slice(0, 2)), slices=f.sizes["t"], box=KEPLER_BOX).field, False))
             except ldft.ServeError as err:
                 out.append((err.result.field, True))
         return out
@@ -141,7 +141,7 @@ def kepler(cfg: Config, table: Table, discovery: Table) -> None:
     label = f"kinetic-potential MLP of q, rel_res {rep.rel_res:.1e}"
     sym = _rep(ldft.symmetries(kp, rotated, ["rotation-xy"]), "rotation-xy")
     jd, ed = _drifts(
-        kp, [ldft.serve(kp, launches[0].isel(t=slice(0, 2)), steps=launches[0].sizes["t"]).field], "rotation-xy"
+        kp, [ldft.serve(kp, launches[0].isel(t=slice(0, 2)), slices=launches[0].sizes["t"]).field], "rotation-xy"
     )
     table.rows.append(
         [
@@ -166,13 +166,13 @@ def quartic(cfg: Config, table: Table, discovery: Table) -> None:
     for _ in range(6):
         q0, v = rng.normal(size=2), rng.normal(size=2)
         starts.append(systems.make_field([q0, q0 + 0.1 * v], ["t"], spacing=0.1, components=["x", "y"]))
-    orbits = [r.field for r in ldft.serve(truth, starts, steps=60)]
+    orbits = [r.field for r in ldft.serve(truth, starts, slices=60)]
     model = ldft.PolynomialLagrangian(orders=(4, 4))
     rep = ldft.learn(model, orbits)
     label = f"polynomial (4, 4), rel_res {rep.rel_res:.1e}"
     sym = _rep(ldft.symmetries(model, orbits, ["rotation-xy"]), "rotation-xy")
     launch = systems.make_field([[1.0, 0.0], [1.0, 0.12]], ["t"], spacing=0.1, components=["x", "y"])
-    served = ldft.serve(model, launch, steps=2000).field
+    served = ldft.serve(model, launch, slices=2000).field
     jd, ed = _drifts(model, [served], "rotation-xy")
     table.rows.append(
         [
@@ -211,7 +211,7 @@ def klein_gordon(cfg: Config, table: Table) -> None:
             label += f", rel_res {rep.rel_res:.1e}"
         sym = _rep(ldft.symmetries(model, train, ["momentum-x"]), "momentum-x")
         for task, init in (("test400 (standing)", test), ("travelling, k = 1 + 3", travelling)):
-            served = ldft.serve(model, init.isel(t=slice(0, 2)), steps=401, boundary="periodic").field
+            served = ldft.serve(model, init.isel(t=slice(0, 2)), slices=401, boundary="periodic").field
             jd, ed = _drifts(model, [served], "momentum-x")
             table.rows.append(
                 [
@@ -246,7 +246,7 @@ def sine_gordon(cfg: Config, table: Table) -> None:
         if kw is not None:
             rep = ldft.learn(model, train, **kw)
             label += f", rel_res {rep.rel_res:.1e}"
-        per = ldft.serve(model, moving, steps=401, boundary="periodic").field
+        per = ldft.serve(model, moving, slices=401, boundary="periodic").field
         sym = _rep(ldft.symmetries(model, per.isel(t=slice(0, 60)), ["momentum-x"]), "momentum-x")
         jd, ed = _drifts(model, [per], "momentum-x")
         table.rows.append(

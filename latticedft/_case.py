@@ -194,7 +194,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
     "train": {
         "data": (t_str_list, _REQUIRED),
         "boundary": (t_boundary, None),
-        "gauge": (t_choice(*GAUGES), "unit-mass"),
+        "gauge": (t_choice(*GAUGES), "auto"),
         "ridge": (t_ridge, 0.0),
         "optimizer": (t_choice(*OPTIMIZERS), None),
         "max_iter": (t_pos_int, 500),
@@ -207,7 +207,8 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
     "serve": {
         "name": (t_name, _REQUIRED),
         "from": (t_str, _REQUIRED),
-        "steps": (t_pos_int, None),
+        "slices": (t_pos_int, None),
+        "steps": (t_pos_int, None),  # deprecated alias of slices (the same count)
         "boundary": (t_boundary, None),
         "mode": (t_choice(*MODES), "newton"),
         "box": (t_pos_float, None),
@@ -228,6 +229,8 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
     },
 }
 _TABLES = ("field", "model", "train", "serve", "run", "export")
+#: ``[[serve]] slices`` and its deprecated alias ``steps``.
+_SLICES_ALIASES = ("slices", "steps")
 
 
 def model_options(kind: str) -> dict[str, Any]:
@@ -308,7 +311,7 @@ class ServeTask:
 
     name: str
     source: Path
-    steps: int | None = None
+    slices: int | None = None
     boundary: str | dict[str, str] | None = None
     mode: str = "newton"
     box: float | None = None
@@ -318,10 +321,12 @@ class ServeTask:
     baseline: Path | None = None
     invariant: str | None = None
     label: str = "serve[0]"
+    #: True when the file (or ``--set``) gave the deprecated key ``steps`` instead of ``slices``.
+    deprecated_steps: bool = False
 
     def serve_kwargs(self) -> dict[str, Any]:
         return {
-            "steps": self.steps,
+            "slices": self.slices,
             "boundary": self.boundary,
             "mode": self.mode,
             "box": self.box,
@@ -491,6 +496,9 @@ def _apply_override(raw: dict[str, Any], text: str, overridden: set[str]) -> Non
                 f"{_closest(parts[1], [str(n) for n in names])} (tasks: {names})"
             )
         i = names.index(parts[1])
+        if parts[2] in _SLICES_ALIASES:  # an override of either name replaces the file's count
+            for alias in _SLICES_ALIASES:
+                tasks[i].pop(alias, None)
         tasks[i][parts[2]] = value
         overridden.add(f"serve[{i}].{parts[2]}")
         return
@@ -610,11 +618,20 @@ def _validate(raw: dict[str, Any], root: Path, file: Path, overrides: tuple[str,
         if s["name"] in names:
             raise ctx.error(f"{label}.name", f"duplicate task name {s['name']!r}")
         names.add(s["name"])
+        if s["steps"] is not None and s["slices"] is not None:
+            raise ctx.error(f"{label}.steps", "give slices only (steps is its deprecated alias, the same count)")
+        slices_key = "steps" if s["steps"] is not None else "slices"
+        slices = s[slices_key]
+        if slices is not None and slices < 3:
+            raise ctx.error(
+                f"{label}.{slices_key}",
+                f"expected at least 3 (time slices: the two initial ones and one served), got {slices}",
+            )
         tasks.append(
             ServeTask(
                 name=s["name"],
                 source=_resolve(ctx, root, f"{label}.from", s["from"]),
-                steps=s["steps"],
+                slices=slices,
                 boundary=s["boundary"],
                 mode=s["mode"],
                 box=s["box"],
@@ -624,12 +641,9 @@ def _validate(raw: dict[str, Any], root: Path, file: Path, overrides: tuple[str,
                 baseline=_resolve(ctx, root, f"{label}.baseline", s["baseline"]) if s["baseline"] else None,
                 invariant=s["invariant"],
                 label=label,
+                deprecated_steps=slices_key == "steps",
             )
         )
-        if s["steps"] is not None and s["steps"] < 3:
-            raise ctx.error(
-                f"{label}.steps", f"expected at least 3 (the two initial slices and one served), got {s['steps']}"
-            )
     # [run], [export]
     rn = _table(ctx, raw, "run", SCHEMA["run"])
     run_cfg = RunConfig(threads=rn["threads"] or max(1, min(2, os.cpu_count() or 1)))

@@ -38,7 +38,7 @@ class TaskData:
     init: xr.DataArray
     reference: xr.DataArray | None
     baseline: xr.DataArray | None
-    steps: int
+    slices: int
     invariant: Callable[[xr.DataArray], Any] | None = None
 
 
@@ -68,9 +68,10 @@ class CaseData:
             t = td.task
             lines.append(
                 f"serve {t.name}: from {_rel(t.source, case.root)} {dict(td.init.sizes)}, "
-                f"{td.steps} slices, boundary {t.boundary or 'from file/dirichlet'}, mode {t.mode}"
+                f"{td.slices} slices, boundary {t.boundary or 'from file/dirichlet'}, mode {t.mode}"
                 + (", reference" if td.reference is not None else ", no reference")
                 + (", baseline" if td.baseline is not None else "")
+                + (f" (warning: {t.label}.steps is deprecated: write {t.label}.slices)" if t.deprecated_steps else "")
             )
         return lines
 
@@ -144,21 +145,22 @@ def _check_task(
     nt = init.sizes[dims[0]]
     if nt < 2:
         raise InputError(f"{t.source}: holds {nt} time slice(s); expected at least the first two")
-    steps = t.steps if t.steps is not None else nt
+    slices = t.slices if t.slices is not None else nt
+    key = f"{t.label}.{'steps' if t.deprecated_steps else 'slices'}"
     try:
         f = as_lattice_field(init, source=str(t.source), boundary=t.boundary, min_slices=2)
     except InputError as exc:
         if exc.key == "boundary":
             raise _as_case_error(exc, f"{t.label}.boundary") from None
         raise
-    missing = missing_edges(f.boundary, f.dims, nt, steps)
+    missing = missing_edges(f.boundary, f.dims, nt, slices)
     if missing:
         axis, kind = missing
         raise ConfigError(
-            f"case.toml: {t.label}.steps: {steps} slices need the {kind.title} strips along "
+            f"case.toml: {key}: {slices} slices need the {kind.title} strips along "
             f"{axis!r} on every slice, but {t.source.name} holds {nt}; give the whole field "
-            "or fewer steps",
-            key=f"{t.label}.steps",
+            "or fewer slices",
+            key=key,
         )
     if t.box is not None and len(dims) != 1:
         raise ConfigError(f"case.toml: {t.label}.box: stopping at a box is for 1D trajectories only")
@@ -187,7 +189,7 @@ def _check_task(
             inv = load_invariant(t.invariant, case.root)
         except ConfigError as exc:
             raise ConfigError(f"case.toml: {t.label}.{exc}") from None
-    return TaskData(task=t, init=init, reference=ref, baseline=base, steps=steps, invariant=inv)
+    return TaskData(task=t, init=init, reference=ref, baseline=base, slices=slices, invariant=inv)
 
 
 def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
@@ -232,7 +234,14 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     from ._serve import compare, serve
 
     t = td.task
-    log.info("serving %s: %d slices from %s (%s)", t.name, td.steps, t.source.name, t.mode)
+    if t.deprecated_steps:
+        log.warning(
+            "case.toml: %s.steps is deprecated: write %s.slices (the same count: time slices served, the two initial "
+            "ones included)",
+            t.label,
+            t.label,
+        )
+    log.info("serving %s: %d slices from %s (%s)", t.name, td.slices, t.source.name, t.mode)
     t0 = time.perf_counter()
     try:
         result = serve(model, td.init, progress=None, **t.serve_kwargs())
@@ -240,12 +249,12 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         result = err.result
         if isinstance(result, list):  # pragma: no cover - a single init gives one result
             result = result[0]
-        log.warning("task %s stopped at %s; %d of %d slices written", t.name, err, result.slices, td.steps)
+        log.warning("task %s stopped at %s; %d of %d slices written", t.name, err, result.slices, td.slices)
     wall = time.perf_counter() - t0
     pred = result.field
     rec: dict[str, Any] = result.to_dict()
     rec["wall_time"] = wall
-    rec["steps"] = td.steps
+    rec["requested_slices"] = td.slices
     rec["from"] = t.source.name
     rec["reference"] = None
     if td.reference is not None:

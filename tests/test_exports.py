@@ -22,7 +22,7 @@ def _two_tasks(tmp: Path) -> Path:
     case = tiny_wave(tmp)
     text = (case / "case.toml").read_text()
     (case / "case.toml").write_text(
-        text.replace("[run]", '[[serve]]\nname = "test_spacetime"\nfrom = "data/test.nc"\nsteps = 12\n[run]')
+        text.replace("[run]", '[[serve]]\nname = "test_spacetime"\nfrom = "data/test.nc"\nslices = 12\n[run]')
     )
     return case
 
@@ -113,11 +113,11 @@ def test_two_tasks_writing_one_file_is_refused(tmp_path: Path, capsys) -> None:
         [[serve]]
         name = "a"
         from = "data/start.nc"
-        steps = 10
+        slices = 10
         [[serve]]
         name = "a_0000"
         from = "data/start.nc"
-        steps = 10
+        slices = 10
         [run]
         threads = 1
         [export]

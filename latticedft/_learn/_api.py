@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 
 import xarray as xr
 
@@ -12,7 +13,7 @@ from .._lattice import BoundaryKinds, LatticeField, gather_cells
 from .._models import AbstractLagrangian, LinearLagrangian
 from ._data import as_fields, check_model_lattice, n_sites
 from ._exact import learn_exact
-from ._gauge import Gauge, gauge_named
+from ._gauge import AUTO, Gauge, gauge_named
 from ._neural import Training, learn_neural
 from ._report import LearnReport, diagnose
 
@@ -22,11 +23,28 @@ __all__ = ["learn"]
 OPTIMIZERS = ("exact", "lbfgs", "adam")
 
 
+#: ``gauge="auto"``: unit-mass is kept when its training ``rel_res`` is at most this (exact to round-off).
+AUTO_EXACT = 1e-8
+#: ... otherwise trace is chosen when its ``rel_res`` is below this factor times unit-mass's ...
+AUTO_FACTOR = 0.1
+#: ... and the smallest singular value of ``h_0^2 M`` over its training cells is at least this.
+AUTO_MIN_SV = 1e-8
+
+#: The rule of ``gauge="auto"`` in words (docs/api.md repeats it).
+AUTO_RULE = (
+    "fit unit-mass; keep it when the field has one component (the two gauges are then the same condition), "
+    "when the model has a unit mass by construction, or when its rel_res <= 1e-8; otherwise fit trace from "
+    "the same start and choose it when its rel_res is below a tenth of unit-mass's and its mixed Hessian stays "
+    "invertible (min sv of h0^2 M >= 1e-8); else keep unit-mass"
+)
+
+
 def _checked(
     model: AbstractLagrangian, gauge: str, ridge: float | str, optimizer: str | None, max_iter: int
-) -> tuple[Gauge, str]:
-    """The gauge and the optimizer (its default filled in), or an InputError naming the bad argument."""
-    fix = gauge_named(gauge)
+) -> tuple[Gauge | None, str]:
+    """The gauge (``None`` for ``auto``) and the optimizer (its default filled in), or an InputError naming
+    the bad argument."""
+    fix = None if gauge == AUTO else gauge_named(gauge)
     if not isinstance(model, AbstractLagrangian):
         raise InputError(f"model: expected a latticedft model, got {type(model).__name__}")
     optimizer = optimizer or ("exact" if isinstance(model, LinearLagrangian) else "lbfgs")
@@ -58,7 +76,7 @@ def learn(
     model: AbstractLagrangian,
     data: xr.DataArray | Sequence[xr.DataArray],
     *,
-    gauge: str = "unit-mass",
+    gauge: str = "auto",
     ridge: float | str = 0.0,
     optimizer: str | None = None,
     max_iter: int = 500,
@@ -79,9 +97,14 @@ def learn(
     data : DataArray or list of DataArray
         Observed fields (time first, then the spatial axes, then an optional
         ``component`` axis), each on its own lattice of the same spacing.
-    gauge : "unit-mass", "trace" or "none"
-        How the gauge is fixed (see :data:`GAUGES`). ``none`` shows the
-        collapse the loss alone leads to.
+    gauge : "unit-mass", "trace", "none" or "auto"
+        How the gauge is fixed (see :data:`GAUGES`). ``trace`` fixes only the
+        trace of the mean mixed Hessian (components of unequal mass, terms
+        linear in the velocity such as a magnetic field); ``none`` shows the
+        collapse the loss alone leads to; ``auto`` fits unit-mass and, for a
+        vector field whose unit-mass fit is not exact, trace too, and keeps
+        the better by the training residual (:data:`AUTO_RULE`; the choice is
+        in ``report.gauge`` and ``report.gauge_choice``).
     ridge : float or "auto"
         Linear models: Tikhonov weight (relative to the mean squared column
         norm); ``"auto"`` picks it from a grid by the held-out relative
@@ -119,35 +142,53 @@ def learn(
     fix, optimizer = _checked(model, gauge, ridge, optimizer, max_iter)
     fields = as_fields(data, boundary)
     nsites = _bound_to(model, fields)
+    settings = Training(
+        optimizer=optimizer,
+        max_iter=max_iter,
+        max_time=max_time,
+        tol=tol,
+        rel_tol=rel_tol,
+        lr=lr,
+        penalty=penalty,
+        progress=progress,
+    )
+    if fix is None:  # "auto"
+        report = _learn_auto(model, fields, ridge, nsites, settings)
+    else:
+        report = _fit(model, fields, fix, ridge, nsites, settings)
+    model.report_ = report
+    return report
+
+
+def _fit(
+    model: AbstractLagrangian,
+    fields: list[LatticeField],
+    fix: Gauge,
+    ridge: float | str,
+    nsites: int,
+    settings: Training,
+) -> LearnReport:
+    """One fit of the bound ``model`` with the gauge ``fix``, measured."""
     t0 = time.perf_counter()
     history: list[tuple[int, float, float]] = []
     initial = None
     validation: dict[str, float] = {}
     used_ridge = 0.0
-    if optimizer == "exact":
+    if settings.optimizer == "exact":
+        assert isinstance(model, LinearLagrangian)
         used_ridge, validation = learn_exact(model, fields, fix, ridge, nsites)
         iterations, reason = 1, "exact solve"
     else:
-        settings = Training(
-            optimizer=optimizer,
-            max_iter=max_iter,
-            max_time=max_time,
-            tol=tol,
-            rel_tol=rel_tol,
-            lr=lr,
-            penalty=penalty,
-            progress=progress,
-        )
         iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
     wall = time.perf_counter() - t0
-    diag = diagnose(model, fields, gauge=gauge)
-    report = LearnReport(
-        method=optimizer,
+    diag = diagnose(model, fields, gauge=fix.name)
+    return LearnReport(
+        method=settings.optimizer,
         loss=diag["loss"],
         rel_res=diag["rel_res"],
         iterations=iterations,
         wall_time=wall,
-        gauge=gauge,
+        gauge=fix.name,
         gauge_residual=diag["gauge_residual"],
         hessian_min_sv=diag["hessian_min_sv"],
         hessian_cond=diag["hessian_cond"],
@@ -160,5 +201,35 @@ def learn(
         history=history,
         validation=validation,
     )
-    model.report_ = report
-    return report
+
+
+def _learn_auto(
+    model: AbstractLagrangian, fields: list[LatticeField], ridge: float | str, nsites: int, settings: Training
+) -> LearnReport:
+    """``gauge="auto"``: the rule of :data:`AUTO_RULE`, every candidate fitted from the same start."""
+    start = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    first = _fit(model, fields, gauge_named("unit-mass"), ridge, nsites, settings)
+    scores = {"unit-mass": first.rel_res}
+    if model.m == 1:
+        why = "one component: unit-mass and trace are the same condition"
+    elif model.unit_mass_by_construction:
+        why = "the model has a unit mass by construction"
+    elif first.rel_res <= AUTO_EXACT:
+        why = f"unit-mass fits to round-off (rel_res {first.rel_res:.1e} <= {AUTO_EXACT:g})"
+    else:
+        kept = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        model.load_state_dict(start)
+        second = _fit(model, fields, gauge_named("trace"), ridge, nsites, settings)
+        scores["trace"] = second.rel_res
+        better = second.rel_res < AUTO_FACTOR * first.rel_res and second.hessian_min_sv >= AUTO_MIN_SV
+        wall = first.wall_time + second.wall_time
+        if better:
+            why = f"trace: rel_res {second.rel_res:.2e} against unit-mass {first.rel_res:.2e}"
+            return replace(second, wall_time=wall, gauge_requested="auto", gauge_scores=scores, gauge_choice=why)
+        model.load_state_dict(kept)
+        why = (
+            f"unit-mass: trace is not better by the factor {1 / AUTO_FACTOR:g} with an invertible M "
+            f"(rel_res {second.rel_res:.2e} against {first.rel_res:.2e}, min sv {second.hessian_min_sv:.2e})"
+        )
+        return replace(first, wall_time=wall, gauge_requested="auto", gauge_scores=scores, gauge_choice=why)
+    return replace(first, gauge_requested="auto", gauge_scores=scores, gauge_choice=why)

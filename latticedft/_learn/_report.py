@@ -38,12 +38,19 @@ class LearnReport:
     stop_reason: str = ""
     history: list[tuple[int, float, float]] = field(default_factory=list)
     validation: dict[str, float] = field(default_factory=dict)
+    #: ``"auto"`` when the gauge was chosen by ``gauge="auto"`` (``gauge`` is then the one chosen), else None.
+    gauge_requested: str | None = None
+    #: ``gauge="auto"``: the training ``rel_res`` of every candidate fitted.
+    gauge_scores: dict[str, float] = field(default_factory=dict)
+    #: ``gauge="auto"``: why ``gauge`` was chosen, in words.
+    gauge_choice: str = ""
 
     def summary_line(self) -> str:
+        auto = f", gauge {self.gauge} (auto: {self.gauge_choice})" if self.gauge_requested == "auto" else ""
         return (
             f"learned by {self.method}: F = {self.loss:.3e}, rel_res = {self.rel_res:.3e}, "
             f"gauge residual = {self.gauge_residual:.1e}, min sv(h0^2 M) = {self.hessian_min_sv:.3g}, "
-            f"cond(M) = {self.hessian_cond:.3g}, {self.iterations} iterations, {self.wall_time:.2f} s"
+            f"cond(M) = {self.hessian_cond:.3g}, {self.iterations} iterations, {self.wall_time:.2f} s{auto}"
         )
 
     def to_dict(self) -> dict[str, Any]:

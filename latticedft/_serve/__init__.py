@@ -17,6 +17,7 @@ n-D driver).
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import xarray as xr
@@ -46,13 +47,27 @@ def _prepare_model(model: AbstractLagrangian, f: LatticeField) -> None:
     _check_model_lattice(model, f, "init")
 
 
-def _steps(steps: int | None, f: LatticeField) -> int:
-    """The number of time slices to serve: ``steps``, or by default as many as ``f`` holds."""
-    if steps is None:
+def _slices(slices: int | None, f: LatticeField, key: str = "slices") -> int:
+    """The number of time slices to serve: ``slices``, or by default as many as ``f`` holds."""
+    if slices is None:
         return f.shape[0]
-    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 3:
-        raise InputError(f"steps: expected an integer >= 3 (time slices of the served field), got {steps!r}")
-    return steps
+    if not isinstance(slices, int) or isinstance(slices, bool) or slices < 3:
+        raise InputError.at(
+            key,
+            f"expected an integer >= 3 (time slices of the served field, the two initial ones included), "
+            f"got {slices!r}",
+        )
+    return slices
+
+
+def _served_attrs(results: list[ServeResult], model: AbstractLagrangian) -> None:
+    """A served field is not the data it started from: the input's ``source`` attribute (how the initial
+    data were made) moves to ``latticedft_initial_from`` and ``source`` says what made the field."""
+    for r in results:
+        attrs = r.field.attrs
+        if "source" in attrs:
+            attrs["latticedft_initial_from"] = attrs.pop("source")
+        attrs["source"] = f"latticedft.serve: predicted from the first two slices by a {model.kind} L_d"
 
 
 # long only by its numpydoc docstring (the body is ~30 lines)
@@ -60,7 +75,7 @@ def serve(
     model: AbstractLagrangian,
     init: xr.DataArray | Sequence[xr.DataArray],
     *,
-    steps: int | None = None,
+    slices: int | None = None,
     boundary: BoundaryKinds | None = None,
     mode: str = "newton",
     rtol: float = 1e-10,
@@ -68,6 +83,7 @@ def serve(
     box: float | None = None,
     affine: bool = True,
     progress: bool | None = None,
+    steps: int | None = None,
 ) -> ServeResult | list[ServeResult]:
     """Predict a field from its first two time slices (and boundary strips) with the learned ``L_d``.
 
@@ -79,9 +95,10 @@ def serve(
         The first two time slices, and for Dirichlet axes the boundary strips
         on every slice to serve (so usually the whole reference field). A
         list of 1D fields is served as one batch.
-    steps : int, optional
+    slices : int, optional
         Number of time slices of the served field, the two initial ones
-        included (default: the length of ``init`` along time).
+        included (default: the length of ``init`` along time): ``N`` time
+        steps from ``t_0`` are ``slices = N + 1``.
     boundary : "dirichlet", "periodic" or dict axis -> kind, optional
         Per spatial axis; default from the coordinates' ``periodic`` attribute,
         else Dirichlet.
@@ -103,6 +120,8 @@ def serve(
         fails it, Newton takes over. ``False``: always Newton.
     progress : bool, optional
         Progress bar; ``None`` shows it only on a terminal.
+    steps : int, optional
+        Deprecated alias of ``slices`` (the same count; a ``FutureWarning``).
 
     Returns
     -------
@@ -122,10 +141,20 @@ def serve(
     >>> osc = ldft.lagrangians.verlet(lambda q: 0.5 * q ** 2)
     >>> t = np.arange(2) * 0.1
     >>> init = xr.DataArray([1.0, np.cos(0.1)], dims="t", coords={"t": t}, name="psi")
-    >>> out = ldft.serve(osc, init, steps=64)
+    >>> out = ldft.serve(osc, init, slices=64)
     >>> out.complete, out.field.sizes["t"]
     (True, 64)
     """
+    if steps is not None:
+        if slices is not None:
+            raise InputError.at("steps", "give slices only (steps is its deprecated alias)")
+        warnings.warn(
+            "serve(slices=...) is deprecated: use slices=... (the same count: time slices served, "
+            "the two initial ones included)",
+            FutureWarning,
+            stacklevel=2,
+        )
+        slices = steps
     if mode not in MODES:
         raise InputError(f"mode: expected one of {list(MODES)}, got {mode!r}")
     if not (isinstance(rtol, float) and 0 < rtol < 1):
@@ -145,7 +174,8 @@ def serve(
         _check_model_lattice(model, f, "init" if not batch else f"init[{k}]")
     n = fs[0].ndim
     if n == 1:
-        results = _serve_batch(model, fs, [_steps(steps, f) for f in fs], mode, rtol, max_newton, box, progress)
+        results = _serve_batch(model, fs, [_slices(slices, f) for f in fs], mode, rtol, max_newton, box, progress)
+        _served_attrs(results, model)
         failed = [r for r in results if not r.complete]
         if failed:
             first = failed[0]
@@ -154,5 +184,13 @@ def serve(
         return results if batch else results[0]
     if box is not None:
         raise InputError("box: stopping when leaving a box is for 1D trajectories only")
-    out = [_serve_field(model, f, _steps(steps, f), mode, rtol, max_newton, progress, bool(affine)) for f in fs]
+    out: list[ServeResult] = []
+    for f in fs:
+        try:
+            out.append(_serve_field(model, f, _slices(slices, f), mode, rtol, max_newton, progress, bool(affine)))
+        except ServeError as err:
+            if isinstance(err.result, ServeResult):
+                _served_attrs([err.result], model)
+            raise
+    _served_attrs(out, model)
     return out if batch else out[0]

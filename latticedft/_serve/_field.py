@@ -136,7 +136,7 @@ class _FieldRun:
         tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
         text = (
             f"slice {i + 1} (t = {tval:.6g}): {msg}"
-            + (f" at site {site}" if site else "")
+            + (f" in the DEL equation of site {_site_text(f, site)}" if site else "")
             + (f", residual {res:.3e}" if math.isfinite(res) else "")
         )
         return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
@@ -150,6 +150,13 @@ class _FieldRun:
         return self._result(
             out, True, "complete", self.steps, wall, solved / wall if wall > 0 else math.inf, self.worst
         )
+
+
+def _site_text(f: LatticeField, site: tuple[int, ...]) -> str:
+    """``index t=12, x=5 (x = 0.3125)``: a lattice index, and apart the spatial coordinates it stands for."""
+    idx = ", ".join(f"{d}={i}" for d, i in zip(f.dims, site))
+    coords = ", ".join(f"{d} = {float(f.coords[d][i]):.6g}" for d, i in zip(f.dims[1:], site[1:]) if d in f.coords)
+    return f"index {idx}" + (f" ({coords})" if coords else "")
 
 
 def _serve_field(

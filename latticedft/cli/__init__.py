@@ -2,8 +2,9 @@
 
 ``main(argv)`` returns the exit status: 0 when every stage and task
 completed, 1 for bad input (a one-line message on stderr, nothing written),
-3 when a serving task stopped part-way (its partial field is still written
-and the results are published).
+2 for a usage error (argparse: an unknown command or option), 3 when a
+serving task stopped part-way (its partial field is still written and the
+results are published), 130 when interrupted.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from .._errors import LatticeDFTError
 from . import check as _check
 from . import export as _export
 from . import info as _info
+from . import new as _new
 from . import run as _run
 from . import serve as _serve
 from . import train as _train
@@ -22,7 +24,28 @@ from ._common import BAD_INPUT, detach, setup_logging
 
 __all__ = ["main", "build_parser"]
 
-SUBCOMMANDS = {"run": _run, "check": _check, "train": _train, "serve": _serve, "export": _export, "info": _info}
+SUBCOMMANDS = {
+    "run": _run,
+    "check": _check,
+    "train": _train,
+    "serve": _serve,
+    "export": _export,
+    "info": _info,
+    "new": _new,
+}
+
+#: The exit statuses, for ``--help``.
+EXIT_STATUSES = (
+    "exit status: 0 every stage and task completed; 1 bad input (one line names the key or file; nothing "
+    "written); 2 a usage error (an unknown command or option); 3 a serving task stopped part-way (its "
+    "partial field is written); 130 interrupted (Ctrl-C, SIGINT) and 143 terminated (SIGTERM): nothing "
+    "published."
+)
+
+
+def _plain(text: str | None) -> str | None:
+    """Help text without reStructuredText markup: ``code`` -> code."""
+    return None if text is None else text.replace("``", "")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -31,12 +54,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="latticedft",
         description="Learn a discrete field theory from lattice data and serve it (H. Qin, Sci. Rep. 10, "
-        "19329, 2020). Runs case folders: CASE/case.toml, CASE/data/ -> CASE/results/.",
+        "19329, 2020). Runs case folders: CASE/case.toml, CASE/data/ -> CASE/results/. "
+        "Start with: latticedft new NAME; latticedft run NAME.",
+        epilog=EXIT_STATUSES,
     )
     parser.add_argument("--version", action="version", version=f"latticedft {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for mod in SUBCOMMANDS.values():
         mod.add_parser(sub)
+    for p in sub.choices.values():  # module docstrings as descriptions: no markup in --help
+        p.description = _plain(p.description)
+        p.epilog = p.epilog or EXIT_STATUSES
+        for action in p._actions:
+            action.help = _plain(action.help)
+    for choice in sub._choices_actions:
+        choice.help = _plain(choice.help)
     return parser
 
 

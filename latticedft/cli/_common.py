@@ -35,7 +35,7 @@ def add_case_arguments(p: argparse.ArgumentParser, *, overwrite: bool = False, o
         default=[],
         dest="overrides",
         help="override a case.toml key for this run (TOML value), e.g. model.orders=[2,2], "
-        "train.max_time=10, serve.test.steps=30; repeatable",
+        "train.max_time=10, serve.test.slices=31; repeatable",
     )
     if overwrite:
         p.add_argument("--overwrite", action="store_true", help="replace an existing results folder")
