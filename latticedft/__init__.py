@@ -50,6 +50,8 @@ from ._noether import relative_drift as relative_drift
 from ._noether import symmetries as symmetries
 from ._serve import ServeResult as ServeResult
 from ._serve import compare as compare
+from ._serve import error_vs_time as error_vs_time
+from ._serve import invariant_vs_time as invariant_vs_time
 from ._serve import serve as serve
 from ._stencil import Stencil as Stencil
 

@@ -61,5 +61,5 @@ class AnalyticLagrangian(AbstractLagrangian):
     def options(self) -> dict[str, object]:
         return {"name": self.name}
 
-    def describe(self) -> str:
-        return super().describe() + f"\n  L_d = {self.name} (analytic)"
+    def describe(self, max_terms: int | None = 12) -> str:
+        return super().describe(max_terms) + f"\n  L_d = {self.name} (analytic)"

@@ -163,8 +163,9 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
-    def describe(self) -> str:
-        """The learned ``L_d`` in words; subclasses add their terms."""
+    def describe(self, max_terms: int | None = 12) -> str:
+        """The learned ``L_d`` in words; subclasses add their terms (at most ``max_terms`` of them, the
+        largest first; ``None``: all)."""
         lines = [f"{type(self).__name__} (kind {self.kind!r}), {self.n_parameters()} parameters"]
         if self.bound:
             lines.append(

@@ -259,8 +259,8 @@ class MLPLagrangian(AbstractLagrangian):
         """Lines of :meth:`describe` that write ``L_d`` out."""
         return []
 
-    def describe(self) -> str:
-        head = super().describe()
+    def describe(self, max_terms: int | None = 12) -> str:
+        head = super().describe(max_terms)
         arch = " -> ".join(str(w) for w in [self._n_inputs() if self.bound else "?", *self.hidden, 1])
         lines = [
             head,

@@ -428,8 +428,10 @@ class PolynomialLagrangian(LinearLagrangian):
                 out[key] = out.get(key, 0.0) + a * float(np.prod([w for _, w in combo]))
         return out
 
-    def describe(self, max_terms: int = 12) -> str:
-        head = super().describe()
+    def describe(self, max_terms: int | None = 12) -> str:
+        """The learned ``L_d``: its largest ``max_terms`` monomials by magnitude (``None``: every one), in the
+        unscaled variables."""
+        head = super().describe(max_terms)
         if not self.bound:
             return head
         p, q = self.orders
@@ -444,11 +446,14 @@ class PolynomialLagrangian(LinearLagrangian):
         keep = sorted(((k, v) for k, v in terms.items() if abs(v) > 1e-9 * big and any(k)), key=lambda kv: -abs(kv[1]))
         names = self._variable_names()
         lines.append("  L_d = (constant)" if not keep else "  L_d =")
-        for k, v in keep[:max_terms]:
+        shown = keep if max_terms is None else keep[:max_terms]
+        for k, v in shown:
             mono = " ".join(n if e == 1 else f"{n}^{e}" for n, e in zip(names, k) if e)
             lines.append(f"      {v:+.6g} {mono}")
-        if len(keep) > max_terms:
-            lines.append(f"      ... and {len(keep) - max_terms} smaller terms")
+        if len(keep) > len(shown):
+            lines.append(
+                f"      ... {len(keep) - len(shown)} more terms, smaller (use --all, or model.describe(max_terms=None))"
+            )
         lines.append(
             "  where mean = average of the stencil values, D<axis> = difference along <axis> (psi[x + e] - psi[x])"
         )

@@ -29,9 +29,9 @@ from .._learn import check_model_lattice as _check_model_lattice
 from .._models import AbstractLagrangian
 from ._batch import _serve_batch
 from ._field import _serve_field
-from ._result import ServeResult, compare
+from ._result import ServeResult, compare, error_vs_time, invariant_vs_time
 
-__all__ = ["MODES", "ServeResult", "compare", "serve"]
+__all__ = ["MODES", "ServeResult", "compare", "error_vs_time", "invariant_vs_time", "serve"]
 
 MODES = ("newton", "sweep")
 

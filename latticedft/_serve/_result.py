@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import xarray as xr
-from tqdm.auto import tqdm
 
 from .._errors import InputError
+from .._progress import progress_bar
 
 
 @dataclass
@@ -65,6 +66,66 @@ def compare(pred: xr.DataArray, ref: xr.DataArray) -> dict[str, float]:
     return {"max_error": float(np.abs(d).max()), "rms_error": float(np.sqrt(np.mean(d**2))), "slices": int(n)}
 
 
-def _bar(total: int, desc: str, progress: bool | None):
+def error_vs_time(pred: xr.DataArray, ref: xr.DataArray) -> xr.DataArray:
+    """The error of ``pred`` against ``ref`` slice by slice: ``error(t, metric)`` with ``metric = ["max", "rms"]``,
+    the max and RMS of ``|pred - ref|`` over each time slice (sites and components), on the slices both hold.
+
+    ``compare(pred, ref)`` is its maximum over ``t`` (``max``) and the RMS over the whole field. Plot it with
+    ``err.sel(metric="max").plot()``.
+
+    >>> import numpy as np, xarray as xr
+    >>> t = np.arange(3.0)
+    >>> a = xr.DataArray(np.zeros((3, 2)), dims=("t", "x"), coords={"t": t, "x": [0.0, 1.0]})
+    >>> b = a + xr.DataArray([[0.0, 0.0], [3.0, 4.0], [0.0, 1.0]], dims=("t", "x"))
+    >>> err = error_vs_time(a, b)
+    >>> err.sel(metric="max").values.tolist(), err.sel(metric="rms").values.round(4).tolist()
+    ([0.0, 4.0, 1.0], [0.0, 3.5355, 0.7071])
+    """
+    tdim = pred.dims[0]
+    n = min(pred.sizes[tdim], ref.sizes[tdim])
+    if pred.shape[1:] != ref.shape[1:]:
+        raise InputError(f"error_vs_time: shapes {pred.shape} and {ref.shape} differ beyond the time axis")
+    d = np.abs(np.asarray(pred.values[:n], dtype=np.float64) - np.asarray(ref.values[:n], dtype=np.float64))
+    d = d.reshape(n, -1)
+    values = np.stack([d.max(axis=1), np.sqrt(np.mean(d**2, axis=1))], axis=-1)
+    return xr.DataArray(
+        values,
+        dims=(tdim, "metric"),
+        coords={tdim: pred[tdim].values[:n], "metric": ["max", "rms"]},
+        name="error",
+        attrs={"long_name": "error against the reference, per time slice", "units": pred.attrs.get("units", "1")},
+    )
+
+
+def invariant_vs_time(field: xr.DataArray, invariant: Callable[[xr.DataArray], Any]) -> xr.DataArray:
+    """``invariant(field)`` (e.g. ``latticedft.systems.wave_energy``) as a DataArray over ``t``, with its
+    relative drift ``max |I - I_0| / |I_0|`` (absolute when ``I_0 = 0``) in ``attrs["relative_drift"]`` —
+    the figure a case reports as ``invariant_drift``.
+
+    >>> import numpy as np, xarray as xr
+    >>> f = xr.DataArray(np.ones((3, 2)), dims=("t", "x"), coords={"t": np.arange(3.0)})
+    >>> e = invariant_vs_time(f, lambda psi: (psi**2).sum("x") * xr.DataArray([1.0, 1.01, 0.99], dims="t"))
+    >>> round(e.attrs["relative_drift"], 6)
+    0.01
+    """
+    tdim = field.dims[0]
+    out = invariant(field)
+    if not isinstance(out, xr.DataArray) or out.dims != (tdim,):
+        raise InputError(
+            f"invariant: expected a function returning a DataArray over {tdim!r}, got "
+            f"{type(out).__name__}{' with dims ' + str(out.dims) if isinstance(out, xr.DataArray) else ''}"
+        )
+    values = np.asarray(out.values, dtype=np.float64)
+    finite = values[np.isfinite(values)]
+    drift = float("nan")
+    if finite.size:
+        dev = float(np.max(np.abs(finite - finite[0])))
+        drift = dev / abs(float(finite[0])) if finite[0] != 0 else dev
+    out = out.copy()
+    out.attrs["relative_drift"] = drift
+    return out
+
+
+def _bar(total: int, desc: str, progress: bool | None) -> Any:
     """A progress bar over ``total`` slices; ``progress=None`` shows it only on a terminal."""
-    return tqdm(total=total, desc=desc, disable=None if progress is None else not progress, leave=False)
+    return progress_bar(total, desc, progress)

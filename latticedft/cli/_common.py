@@ -17,6 +17,7 @@ from typing import Any
 from .._case import Case, load_case
 from .._errors import InputError
 from .._results import versions
+from ._terminal import TqdmHandler
 
 log = logging.getLogger("latticedft")
 
@@ -56,7 +57,7 @@ def setup_logging(args: argparse.Namespace) -> logging.Handler:
     """INFO (or WARNING with -q, DEBUG with -v) to the current stderr."""
     log.setLevel(logging.DEBUG)
     log.propagate = False
-    handler = logging.StreamHandler(sys.stderr)
+    handler = TqdmHandler(sys.stderr)  # lines through tqdm.write: a progress bar stays whole
     level = (
         logging.WARNING
         if getattr(args, "quiet", False)

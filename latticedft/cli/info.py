@@ -16,6 +16,7 @@ log = logging.getLogger("latticedft")
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="print the case and the learned model (if any)", description=__doc__)
     add_case_arguments(p)
+    p.add_argument("--all", action="store_true", help="every term of the learned L_d (default: the 12 largest)")
 
 
 def _fmt(v: object) -> str:
@@ -38,7 +39,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
         return OK
     model = load_model(dest / "model.pt")
     print(f"learned model ({dest / 'model.pt'}):")
-    print(model)
+    print(model.describe(max_terms=None if args.all else 12))
     summary = read_summary(dest)
     if summary:
         train = summary.get("train") or {}
