@@ -7,7 +7,7 @@ import logging
 __all__ = ["TqdmHandler"]
 
 
-class TqdmHandler(logging.StreamHandler):  # type: ignore[type-arg]
+class TqdmHandler(logging.StreamHandler):
     """A stream handler whose lines go through ``tqdm.write``: an active bar on the same stream is cleared,
     the line written, and the bar drawn again below it (without a bar it is a plain stream handler)."""
 
