@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ._lattice import LatticeField, gather_cells, interior_slices
+from ._lattice import AxisBoundaries, LatticeField, gather_cells, interior_slices
 from ._stencil import Stencil
 
 if TYPE_CHECKING:  # the action evaluates any model; models sit a layer above
@@ -22,7 +22,7 @@ __all__ = ["action", "del_residual", "mixed_hessian", "cell_derivatives", "CellD
 
 
 def action(
-    model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: tuple[bool, ...], batch: int = 0
+    model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: AxisBoundaries, batch: int = 0
 ) -> torch.Tensor:
     """Total discrete action of one field ``psi`` with shape ``(*N, m)`` (summed over ``batch`` leading axes)."""
     cells = gather_cells(psi, model.stencil, periodic, batch)
@@ -105,8 +105,8 @@ class CellDerivatives:
         self.grad = g.detach()
 
     def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
-        if self._closed:
-            return self.model.fast_derivatives(self.cells, pairs)[1]
+        if self._closed and (closed := self.model.fast_derivatives(self.cells, pairs)) is not None:
+            return closed[1]
         return cell_derivatives(self.model, self.cells.detach(), pairs)[1]
 
 

@@ -7,11 +7,12 @@ Each stage logs INFO lines (to stderr via the CLI) and DEBUG details (to
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -164,6 +165,7 @@ def _check_task(
         )
     if t.box is not None and len(dims) != 1:
         raise ConfigError(f"case.toml: {t.label}.box: stopping at a box is for 1D trajectories only")
+    ref: xr.DataArray | None
     if t.reference is not None:
         ref = _read(t.reference, case, comps)
         if ref.shape[1:] != init.shape[1:] or lattice_dims(ref) != dims:
@@ -222,7 +224,7 @@ class TaskOutcome:
     field: xr.DataArray
     reference: xr.DataArray | None
     invariant: xr.DataArray | None
-    record: dict[str, Any] = field(default_factory=dict)
+    record: dict[str, Any] = dataclasses.field(default_factory=dict)  # not the `field` attribute above
 
     @property
     def complete(self) -> bool:

@@ -174,8 +174,7 @@ def _fit(
     initial = None
     validation: dict[str, float] = {}
     used_ridge = 0.0
-    if settings.optimizer == "exact":
-        assert isinstance(model, LinearLagrangian)
+    if settings.optimizer == "exact" and isinstance(model, LinearLagrangian):  # _checked refuses 'exact' for others
         used_ridge, validation = learn_exact(model, fields, fix, ridge, nsites)
         iterations, reason = 1, "exact solve"
     else:

@@ -18,7 +18,7 @@ n-D driver).
 from __future__ import annotations
 
 import warnings
-from collections.abc import Sequence
+from typing import overload
 
 import xarray as xr
 
@@ -70,10 +70,44 @@ def _served_attrs(results: list[ServeResult], model: AbstractLagrangian) -> None
         attrs["source"] = f"latticedft.serve: predicted from the first two slices by a {model.kind} L_d"
 
 
+@overload
+def serve(
+    model: AbstractLagrangian,
+    init: xr.DataArray,
+    *,
+    slices: int | None = None,
+    boundary: BoundaryKinds | None = None,
+    mode: str = "newton",
+    rtol: float = 1e-10,
+    max_newton: int = 30,
+    box: float | None = None,
+    affine: bool = True,
+    progress: bool | None = None,
+    steps: int | None = None,
+) -> ServeResult: ...
+
+
+@overload
+def serve(
+    model: AbstractLagrangian,
+    init: list[xr.DataArray] | tuple[xr.DataArray, ...],
+    *,
+    slices: int | None = None,
+    boundary: BoundaryKinds | None = None,
+    mode: str = "newton",
+    rtol: float = 1e-10,
+    max_newton: int = 30,
+    box: float | None = None,
+    affine: bool = True,
+    progress: bool | None = None,
+    steps: int | None = None,
+) -> list[ServeResult]: ...
+
+
 # long only by its numpydoc docstring (the body is ~30 lines)
 def serve(
     model: AbstractLagrangian,
-    init: xr.DataArray | Sequence[xr.DataArray],
+    init: xr.DataArray | list[xr.DataArray] | tuple[xr.DataArray, ...],
     *,
     slices: int | None = None,
     boundary: BoundaryKinds | None = None,
@@ -162,7 +196,7 @@ def serve(
     if box is not None and not (isinstance(box, (int, float)) and box > 0):
         raise InputError(f"box: expected a positive number, got {box!r}")
     batch = isinstance(init, (list, tuple))
-    items = list(init) if batch else [init]
+    items = list(init) if isinstance(init, (list, tuple)) else [init]
     if not items:
         raise InputError("init: no initial fields given")
     fs = [
@@ -176,10 +210,9 @@ def serve(
     if n == 1:
         results = _serve_batch(model, fs, [_slices(slices, f) for f in fs], mode, rtol, max_newton, box, progress)
         _served_attrs(results, model)
-        failed = [r for r in results if not r.complete]
+        failed = [(r, r.fail_at) for r in results if r.fail_at is not None]  # the members not complete
         if failed:
-            first = failed[0]
-            at_slice, res = first.fail_at
+            first, (at_slice, res) = failed[0]
             raise ServeError(first.reason, result=results if batch else first, slice=at_slice, residual=res)
         return results if batch else results[0]
     if box is not None:

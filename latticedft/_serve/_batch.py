@@ -168,9 +168,9 @@ class _Batch:
                     max_residual=float(self.worst[k]),
                     mode=mode,
                     solver=mode,
+                    fail_at=self.fail_at.get(k),
                 )
             )
-            out[-1].fail_at = self.fail_at.get(k)  # type: ignore[attr-defined]
         return out
 
 

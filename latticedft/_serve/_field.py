@@ -32,7 +32,7 @@ def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int) -> torch.Ten
         raise InputError(
             f"init: holds {nt_given} time slices but the {kind.title} boundary along "
             f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
-            "fewer steps, or a periodic boundary"
+            "fewer slices, or a periodic boundary"
         )
     psi = torch.full((steps, *f.shape[1:], m), math.nan, dtype=torch.float64)
     psi[:2] = f.values[:2]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -31,6 +32,8 @@ class ServeResult:
     #: one factorised solve per slice, checked afterwards) or "affine+newton" (Newton from the first slice
     #: that failed that check)
     solver: str = "newton"
+    #: a failed member of a 1D batch: ``(slice, residual)`` where it failed (``None`` otherwise)
+    fail_at: tuple[int, float] | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
         return {
