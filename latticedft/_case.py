@@ -229,6 +229,10 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
     },
 }
 _TABLES = ("field", "model", "train", "serve", "run", "export")
+#: ``[run] threads`` when the case does not set it: one torch thread. Measured (``python -m benchmarks.threads``,
+#: docs/performance.md): a second thread beside another busy process made cases/wave 17x slower, and on an
+#: idle machine only slice-Newton gained (1.9x).
+DEFAULT_THREADS = 1
 #: ``[[serve]] slices`` and its deprecated alias ``steps``.
 _SLICES_ALIASES = ("slices", "steps")
 
@@ -339,7 +343,8 @@ class ServeTask:
 
 @dataclass(frozen=True)
 class RunConfig:
-    """``[run]``: torch threads (default ``min(2, os.cpu_count())``)."""
+    """``[run]``: torch threads (default 1: measured fastest for the cases and far safer on a shared machine;
+    ``python -m benchmarks.threads``, docs/performance.md)."""
 
     threads: int
 
@@ -648,7 +653,7 @@ def _validate(raw: dict[str, Any], root: Path, file: Path, overrides: tuple[str,
         )
     # [run], [export]
     rn = _table(ctx, raw, "run", SCHEMA["run"])
-    run_cfg = RunConfig(threads=rn["threads"] or max(1, min(2, os.cpu_count() or 1)))
+    run_cfg = RunConfig(threads=rn["threads"] or DEFAULT_THREADS)
     export_cfg = _export_config(ctx, _table(ctx, raw, "export", SCHEMA["export"]))
     return Case(
         root=root,

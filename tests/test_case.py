@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
@@ -44,7 +43,7 @@ def test_defaults_and_paths(case: Path) -> None:
 
 def test_default_threads(case: Path) -> None:
     _edit(case, "threads = 1\n", "")
-    assert load_case(case).run.threads == max(1, min(2, os.cpu_count() or 1))
+    assert load_case(case).run.threads == 1  # the default: one thread (docs/performance.md)
 
 
 def test_minimal_case_runs_with_defaults(tmp_path: Path) -> None:

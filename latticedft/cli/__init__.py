@@ -16,7 +16,6 @@ import signal
 import sys
 import threading
 
-from .. import _results
 from .._errors import LatticeDFTError
 from . import check as _check
 from . import export as _export
@@ -26,6 +25,7 @@ from . import run as _run
 from . import serve as _serve
 from . import train as _train
 from ._common import BAD_INPUT, INTERRUPTED, TERMINATED, Terminated, _show, detach, setup_logging
+from ._terminal import loading_note
 
 __all__ = ["main", "build_parser"]
 
@@ -86,6 +86,13 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version, usage errors
         return int(exc.code or 0) if not isinstance(exc.code, str) else 2
     handler = setup_logging(args)
+    # the engine is imported only now (--help and usage errors answer without it); on a terminal a first
+    # line shows at once while it loads
+    with loading_note(sys.stderr, show=args.command != "new" and not getattr(args, "quiet", False)):
+        from .. import _results
+
+        if args.command != "new":
+            from .. import _case  # noqa: F401  (torch)
     n_published = len(_results.published)
     previous = _on_sigterm()
     try:

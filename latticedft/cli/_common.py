@@ -14,13 +14,16 @@ import os
 import shlex
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from .._case import Case, load_case, parse_override
 from .._errors import ConfigError, InputError
-from .._guards import case_inputs, check_before_writing
-from .._results import check_destination, versions
 from ._terminal import TqdmHandler
+
+if TYPE_CHECKING:
+    from .._case import Case
+
+# The engine (torch, xarray) is imported inside the functions that need it: `latticedft --help` and usage
+# errors answer without it.
 
 log = logging.getLogger("latticedft")
 
@@ -87,6 +90,8 @@ def command_line(argv: list[str]) -> str:
 
 
 def open_case(args: argparse.Namespace) -> Case:
+    from .._case import load_case
+
     case = load_case(args.case, args.overrides)
     log.debug("case %s, overrides %s", case.root, list(case.overrides))
     return case
@@ -96,6 +101,9 @@ def results_dir(args: argparse.Namespace, case: Case) -> Path:
     """The results folder (``--out`` or ``CASE/results``), checked: not a file, not the case folder or a folder
     holding it, not one of the case's inputs, nor holding or inside one. A symlinked results folder is
     followed: the real path is returned."""
+    from .._guards import case_inputs
+    from .._results import check_destination
+
     out = getattr(args, "out", None)
     dest = Path(out) if out else case.results
     return check_destination(dest, inputs=case_inputs(case), root=case.root, what="--out" if out else "results folder")
@@ -104,6 +112,7 @@ def results_dir(args: argparse.Namespace, case: Case) -> Path:
 def checked_data(case: Case, dest: Path, *, train: bool = True, serve: bool = True) -> Any:
     """Read and check every field of the case, then the limits (file names, model size, memory) of the stages
     the command runs (``train``, ``serve``); nothing is written."""
+    from .._guards import check_before_writing
     from .._pipeline import check_case
 
     data = check_case(case)
@@ -114,6 +123,8 @@ def checked_data(case: Case, dest: Path, *, train: bool = True, serve: bool = Tr
 def refuse_learning_overrides(case: Case, command: str) -> None:
     """``serve`` and ``export`` use the learned model: a ``--set model.*`` or ``train.*`` would be recorded
     without taking effect, so it is refused."""
+    from .._case import parse_override
+
     for text in case.overrides:
         table = parse_override(text)[0][0]
         if table in ("model", "train"):
@@ -149,6 +160,8 @@ def set_threads(case: Case) -> None:
 
 
 def summary_head(case: Case, argv: list[str], stage: str) -> dict[str, Any]:
+    from .._results import versions
+
     return {
         "case": case.name,
         "case_path": str(case.root),

@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import logging
 
-from .._results import leftovers
 from ._common import OK, add_case_arguments, checked_data, open_case, results_dir
 
 log = logging.getLogger("latticedft")
@@ -20,6 +19,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    from .._results import leftovers
+
     case = open_case(args)
     dest = results_dir(args, case)
     data = checked_data(case, dest)

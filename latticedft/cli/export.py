@@ -7,10 +7,7 @@ import logging
 import time
 
 from .._errors import ConfigError
-from .._results import hold_results, load_verified_model, read_summary, staged_results, write_summary
-from ..io.exporters import EXPORTERS
 from ._common import OK, add_case_arguments, open_case, refuse_learning_overrides, require_results, results_dir
-from ._work import export_one, recorded_exports
 
 log = logging.getLogger("latticedft")
 
@@ -25,6 +22,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    from .._results import hold_results, load_verified_model, read_summary, staged_results, write_summary
+    from ..io.exporters import EXPORTERS
+    from ._work import export_one, recorded_exports
+
     t0 = time.perf_counter()
     case = open_case(args)
     refuse_learning_overrides(case, "export")

@@ -6,7 +6,6 @@ import argparse
 import json
 import logging
 
-from .._results import load_verified_model, read_summary
 from ._common import OK, add_case_arguments, open_case, results_dir
 
 log = logging.getLogger("latticedft")
@@ -23,6 +22,8 @@ def _fmt(v: object) -> str:
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    from .._results import load_verified_model, read_summary
+
     case = open_case(args)
     print(f"case {case.name} ({case.root})")
     opts = ", ".join(f"{k}={v!r}" for k, v in case.model.options.items())

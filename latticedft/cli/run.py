@@ -6,7 +6,6 @@ import argparse
 import logging
 import time
 
-from .._results import hold_results, staged_results
 from ._common import (
     add_case_arguments,
     checked_data,
@@ -16,7 +15,6 @@ from ._common import (
     set_threads,
     summary_head,
 )
-from ._work import finish, serve_into, train_into
 
 log = logging.getLogger("latticedft")
 
@@ -27,6 +25,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    from .._results import hold_results, staged_results
+    from ._work import finish, serve_into, train_into
+
     t0 = time.perf_counter()
     case = open_case(args)
     dest = results_dir(args, case)

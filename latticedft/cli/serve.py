@@ -6,7 +6,6 @@ import argparse
 import logging
 import time
 
-from .._results import hold_results, load_verified_model, read_summary, staged_results
 from ._common import (
     add_case_arguments,
     checked_data,
@@ -17,7 +16,6 @@ from ._common import (
     set_threads,
     summary_head,
 )
-from ._work import finish, serve_into
 
 log = logging.getLogger("latticedft")
 
@@ -28,6 +26,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    from .._results import hold_results, load_verified_model, read_summary, staged_results
+    from ._work import finish, serve_into
+
     t0 = time.perf_counter()
     case = open_case(args)
     refuse_learning_overrides(case, "serve")
