@@ -12,7 +12,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from tqdm.auto import tqdm
+from tqdm.std import tqdm  # not tqdm.auto: no ipywidgets warning in Jupyter (latticedft._progress)
 
 from .._case import Case
 from .._errors import InputError

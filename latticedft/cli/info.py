@@ -43,7 +43,16 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
     summary = read_summary(dest)
     if summary:
         train = summary.get("train") or {}
-        keys = ("loss", "rel_res", "iterations", "wall_time", "gauge_residual", "hessian_min_sv", "hessian_cond")
+        keys = (
+            "loss",
+            "rel_res",
+            "iterations",
+            "wall_time",
+            "gauge",
+            "gauge_residual",
+            "hessian_min_sv",
+            "hessian_cond",
+        )
         print("training: " + ", ".join(f"{k} {_fmt(train[k])}" for k in keys if k in train))
         for name, t in (summary.get("tasks") or {}).items():
             parts = [("complete" if t.get("complete") else "INCOMPLETE"), f"{t.get('slices')} slices"]
