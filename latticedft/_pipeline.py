@@ -7,6 +7,7 @@ Each stage logs INFO lines (to stderr via the CLI) and DEBUG details (to
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import time
@@ -204,11 +205,8 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
         raise
     log.info("%s", report.summary_line())
     log.debug("training report: %s", {k: v for k, v in report.to_dict().items() if k != "history"})
-    if report.hessian_min_sv < 1e-8:
-        log.warning(
-            "the mixed time Hessian M is nearly singular over the data (min sv %.2e): serving may fail",
-            report.hessian_min_sv,
-        )
+    for warning in report.warnings:  # a degenerate M, a poor fit (thresholds in docs/outputs.md)
+        log.warning("%s", warning)
     return model, report
 
 
@@ -221,10 +219,30 @@ class TaskOutcome:
     reference: xr.DataArray | None
     invariant: xr.DataArray | None
     record: dict[str, Any] = field(default_factory=dict)
+    #: ``extrapolation(t, feature)`` of the served field against the model's training range (None without one)
+    extrapolation: xr.DataArray | None = None
 
     @property
     def complete(self) -> bool:
         return bool(self.record.get("complete"))
+
+    def file_attrs(self, model_warnings: list[str]) -> dict[str, Any]:
+        """Global attributes of ``<task>.nc`` saying whether the field is complete and what to distrust.
+
+        ``latticedft_complete`` ("true"/"false"), ``latticedft_steps`` (slices asked for),
+        ``latticedft_warnings`` (a JSON list of one-line warnings: the model's, then the task's) and, for an
+        incomplete task, ``latticedft_stopped_at_slice`` (slices written) and ``latticedft_stop_reason``.
+        """
+        rec = self.record
+        attrs: dict[str, Any] = {
+            "latticedft_complete": "true" if self.complete else "false",
+            "latticedft_steps": int(rec.get("steps", 0)),
+            "latticedft_warnings": json.dumps([*model_warnings, *rec.get("warnings", [])]),
+        }
+        if not self.complete:
+            attrs["latticedft_stopped_at_slice"] = int(rec.get("slices", 0))
+            attrs["latticedft_stop_reason"] = str(rec.get("stop_reason") or rec.get("reason") or "")
+        return attrs
 
 
 def serve_task(model: Any, td: TaskData) -> TaskOutcome:
@@ -234,6 +252,7 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     t = td.task
     log.info("serving %s: %d slices from %s (%s)", t.name, td.steps, t.source.name, t.mode)
     t0 = time.perf_counter()
+    stopped = ""
     try:
         result = serve(model, td.init, progress=None, **t.serve_kwargs())
     except ServeError as err:
@@ -241,9 +260,13 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         if isinstance(result, list):  # pragma: no cover - a single init gives one result
             result = result[0]
         log.warning("task %s stopped at %s; %d of %d slices written", t.name, err, result.slices, td.steps)
+        stopped = str(err)  # the reason with its slice, site and residual
     wall = time.perf_counter() - t0
     pred = result.field
     rec: dict[str, Any] = result.to_dict()
+    rec["stop_reason"] = None if result.complete else stopped
+    for warning in result.warnings:  # the served field leaves the training range
+        log.warning("task %s: %s", t.name, warning)
     rec["wall_time"] = wall
     rec["steps"] = td.steps
     rec["from"] = t.source.name
@@ -296,4 +319,6 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     if "invariant_drift" in rec and rec["invariant_drift"] is not None:
         msg += f", invariant drift {rec['invariant_drift']:.2e}"
     log.info("%s", msg)
-    return TaskOutcome(name=t.name, field=pred, reference=td.reference, invariant=inv, record=rec)
+    return TaskOutcome(
+        name=t.name, field=pred, reference=td.reference, invariant=inv, record=rec, extrapolation=result.extrapolation
+    )

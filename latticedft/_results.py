@@ -211,8 +211,10 @@ def write_task(
     *,
     attrs: Mapping[str, Any],
     history: str,
+    extra: Mapping[str, xr.DataArray] | None = None,
 ) -> Path:
-    """``<name>.nc``: the served field, ``<var>_ref`` and ``<var>_err`` when a reference covers it."""
+    """``<name>.nc``: the served field, ``<var>_ref`` and ``<var>_err`` when a reference covers it (and the
+    variables of ``extra``, e.g. ``extrapolation(t, feature)``)."""
     pred = pred.rename(variable)
     pred.attrs = {**pred.attrs, "long_name": f"{variable} served by the learned theory"}
     fields: dict[str, xr.DataArray] = {variable: pred}
@@ -223,6 +225,7 @@ def write_task(
         fields[f"{variable}_err"] = err
     if invariant is not None:
         fields["invariant"] = invariant.rename("invariant")
+    fields.update({k: v.rename(k) for k, v in (extra or {}).items()})
     return write_field(folder / f"{name}.nc", fields, attrs=attrs, history=history)
 
 

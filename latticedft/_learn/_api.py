@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 
@@ -14,7 +15,7 @@ from ._data import as_fields, check_model_lattice, n_sites
 from ._exact import learn_exact
 from ._gauge import Gauge, gauge_named
 from ._neural import Training, learn_neural
-from ._report import LearnReport, diagnose
+from ._report import LearnReport, diagnose, fit_warnings
 
 __all__ = ["learn"]
 
@@ -36,9 +37,30 @@ def _checked(
         raise InputError.at("optimizer", f"'exact' needs a model linear in its parameters; {model.kind!r} is not")
     if not (ridge == "auto" or (isinstance(ridge, (int, float)) and not isinstance(ridge, bool) and ridge >= 0)):
         raise InputError.at("ridge", f"expected a number >= 0 or 'auto', got {ridge!r}")
-    if not isinstance(max_iter, int) or max_iter < 1:
+    if not isinstance(max_iter, int) or isinstance(max_iter, bool) or max_iter < 1:
         raise InputError.at("max_iter", f"expected a positive integer, got {max_iter!r}")
     return fix, optimizer
+
+
+def _check_number(name: str, value: object, *, strict: bool, optional: bool = False) -> None:
+    """Refuse ``value`` unless it is a finite real number ``> 0`` (``strict``) or ``>= 0`` (or None if ``optional``)."""
+    if optional and value is None:
+        return
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value < 0 or (strict and value == 0):  # type: ignore[operator]
+        what = "a number > 0" if strict else "a number >= 0"
+        raise InputError.at(name, f"expected {what}{' or None' if optional else ''}, got {value!r}")
+
+
+def _check_training(training: Training) -> None:
+    """Refuse bad iterative-training settings with an InputError naming the argument."""
+    _check_number("max_time", training.max_time, strict=True, optional=True)
+    _check_number("tol", training.tol, strict=False)
+    _check_number("rel_tol", training.rel_tol, strict=True, optional=True)
+    _check_number("lr", training.lr, strict=True)
+    _check_number("penalty", training.penalty, strict=False)
+    if training.progress is not None and not isinstance(training.progress, bool):
+        raise InputError.at("progress", f"expected True, False or None, got {training.progress!r}")
 
 
 def _bound_to(model: AbstractLagrangian, fields: list[LatticeField]) -> int:
@@ -47,7 +69,9 @@ def _bound_to(model: AbstractLagrangian, fields: list[LatticeField]) -> int:
         check_model_lattice(model, f, f"data[{i}]")
     f0 = fields[0]
     model.bind(f0.ndim, f0.ncomp, f0.spacing, f0.components)
-    model.prepare([gather_cells(f.values, model.stencil, f.boundary) for f in fields])
+    cells = [gather_cells(f.values, model.stencil, f.boundary) for f in fields]
+    model.prepare(cells)
+    model.record_feature_range(cells)
     nsites = sum(n_sites(f, model) for f in fields)
     if nsites == 0:
         raise InputError("data: no interior site carries a DEL equation (lattices too small for the stencil)")
@@ -117,6 +141,17 @@ def learn(
     True
     """
     fix, optimizer = _checked(model, gauge, ridge, optimizer, max_iter)
+    settings = Training(
+        optimizer=optimizer,
+        max_iter=max_iter,
+        max_time=max_time,
+        tol=tol,
+        rel_tol=rel_tol,
+        lr=lr,
+        penalty=penalty,
+        progress=progress,
+    )
+    _check_training(settings)
     fields = as_fields(data, boundary)
     nsites = _bound_to(model, fields)
     t0 = time.perf_counter()
@@ -128,19 +163,10 @@ def learn(
         used_ridge, validation = learn_exact(model, fields, fix, ridge, nsites)
         iterations, reason = 1, "exact solve"
     else:
-        settings = Training(
-            optimizer=optimizer,
-            max_iter=max_iter,
-            max_time=max_time,
-            tol=tol,
-            rel_tol=rel_tol,
-            lr=lr,
-            penalty=penalty,
-            progress=progress,
-        )
         iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
     wall = time.perf_counter() - t0
     diag = diagnose(model, fields, gauge=gauge)
+    degenerate, warnings = fit_warnings(diag)
     report = LearnReport(
         method=optimizer,
         loss=diag["loss"],
@@ -159,6 +185,9 @@ def learn(
         stop_reason=reason,
         history=history,
         validation=validation,
+        hessian_max_sv=diag["hessian_max_sv"],
+        degenerate=degenerate,
+        warnings=warnings,
     )
     model.report_ = report
     return report

@@ -9,12 +9,23 @@ from typing import Any
 import torch
 
 from .._action import del_residual, mixed_hessian
+from .._errors import InputError
 from .._lattice import BoundaryKinds, LatticeField
 from .._models import AbstractLagrangian
 from ._data import as_fields, kinetic_scale
 from ._gauge import gauge_named
 
-__all__ = ["LearnReport", "diagnose"]
+__all__ = ["LearnReport", "diagnose", "POOR_FIT_REL_RES", "DEGENERATE_RTOL", "fit_warnings"]
+
+#: A fit whose relative DEL residual ``rel_res`` exceeds this is reported as poor (a warning): its DEL
+#: equations do not hold on the training data to 1 %, and a field served with it is unreliable. The repo's
+#: cases sit at 1e-10 to 3.5e-3.
+POOR_FIT_REL_RES = 1e-2
+
+#: The mixed time Hessian ``h_0^2 M`` over the training cells is degenerate (a theory that cannot step) when
+#: its largest singular value is below this (``L_d`` collapsed to a constant or a null Lagrangian: no
+#: kinetic term), or its smallest is below this times its largest.
+DEGENERATE_RTOL = 1e-8
 
 
 @dataclass
@@ -38,6 +49,12 @@ class LearnReport:
     stop_reason: str = ""
     history: list[tuple[int, float, float]] = field(default_factory=list)
     validation: dict[str, float] = field(default_factory=dict)
+    #: largest singular value of ``h_0^2 M`` over the training cells (the scale ``hessian_min_sv`` is judged by)
+    hessian_max_sv: float = math.nan
+    #: True when ``M`` is degenerate over the data (see :data:`DEGENERATE_RTOL`): serving it will refuse
+    degenerate: bool = False
+    #: One-line warnings: a degenerate ``M``, a poor fit (``rel_res`` above :data:`POOR_FIT_REL_RES`)
+    warnings: list[str] = field(default_factory=list)
 
     def summary_line(self) -> str:
         return (
@@ -61,10 +78,13 @@ def diagnose(
     over rms of the M-weighted second time difference), ``gauge_residual``
     (``||h_0^2 mean M + I||_F / sqrt(m)``, or the trace version; ``none`` is
     measured as ``unit-mass``), ``hessian_min_sv`` (smallest singular value of
-    ``h_0^2 M`` over the cells; 1 for a unit mass) and ``hessian_cond``
-    (largest condition number of ``M`` over the cells).
+    ``h_0^2 M`` over the cells; 1 for a unit mass), ``hessian_max_sv`` (the
+    largest) and ``hessian_cond`` (largest condition number of ``M`` over the
+    cells).
     """
     fix = gauge_named(gauge)
+    if not isinstance(model, AbstractLagrangian):
+        raise InputError.at("model", f"expected a latticedft model, got {type(model).__name__}")
     fields = (
         data if isinstance(data, list) and all(isinstance(f, LatticeField) for f in data) else as_fields(data, boundary)
     )
@@ -86,4 +106,36 @@ def diagnose(
     loss = sq / max(nsites, 1)
     scale = kinetic_scale(fields, model, mbar)
     rel = math.sqrt(loss) / scale if scale > 0 else math.inf
-    return {"loss": loss, "rel_res": rel, "gauge_residual": gres, "hessian_min_sv": smin, "hessian_cond": cond}
+    return {
+        "loss": loss,
+        "rel_res": rel,
+        "gauge_residual": gres,
+        "hessian_min_sv": smin,
+        "hessian_cond": cond,
+        "hessian_max_sv": float(sv[:, 0].max()),
+    }
+
+
+def fit_warnings(diag: dict[str, float]) -> tuple[bool, list[str]]:
+    """``(degenerate, warnings)`` of a fit from its :func:`diagnose` figures, by the documented thresholds."""
+    warnings = []
+    smin, smax = diag["hessian_min_sv"], diag.get("hessian_max_sv", math.nan)
+    degenerate = not smax >= DEGENERATE_RTOL or not smin >= DEGENERATE_RTOL * smax
+    if degenerate:
+        warnings.append(
+            "degenerate fit: the mixed time Hessian M is singular over the data "
+            f"(singular values of h0^2 M from {smin:.2e} to {smax:.2e}"
+            + (
+                "; L_d collapsed to a constant or a null Lagrangian, as gauge 'none' does"
+                if smax < DEGENERATE_RTOL
+                else ""
+            )
+            + "): it cannot be served"
+        )
+    rel = diag["rel_res"]
+    if not rel <= POOR_FIT_REL_RES:
+        warnings.append(
+            f"poor fit: rel_res = {rel:.3g} is above {POOR_FIT_REL_RES:g}: the learned L_d does not satisfy its "
+            "DEL equations on the training data; served fields are unreliable"
+        )
+    return degenerate, warnings

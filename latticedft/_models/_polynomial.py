@@ -128,6 +128,9 @@ class PolynomialLagrangian(LinearLagrangian):
             or not all(isinstance(o, int) and not isinstance(o, bool) and o >= 0 for o in orders)
         ):
             raise InputError.at("orders", f"expected two non-negative integers [P, Q], got {orders!r}")
+        for name, flag in (("time_symmetric", time_symmetric), ("scale", scale)):
+            if not isinstance(flag, (bool, np.bool_)):
+                raise InputError.at(name, f"expected True or False, got {flag!r}")
         if basis not in ("legendre", "monomial"):
             raise InputError.at("basis", f"expected 'legendre' or 'monomial', got {basis!r}")
         self.orders = (int(orders[0]), int(orders[1]))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -10,6 +10,7 @@ import xarray as xr
 from tqdm.auto import tqdm
 
 from .._errors import InputError
+from ._range import extrapolation_summary
 
 
 @dataclass
@@ -30,9 +31,20 @@ class ServeResult:
     #: one factorised solve per slice, checked afterwards) or "affine+newton" (Newton from the first slice
     #: that failed that check)
     solver: str = "newton"
+    #: ``extrapolation(t, feature)``: per slice, how far the served cells lie outside the model's training
+    #: range, per input feature, relative to the feature's training span (0 inside; None when the model
+    #: keeps no range). See ``extrapolation_summary()``.
+    extrapolation: xr.DataArray | None = None
+    #: One-line warnings about the served field (it leaves the training range ...); empty when none.
+    warnings: list[str] = field(default_factory=list)
+
+    def extrapolation_summary(self) -> dict[str, Any] | None:
+        """The largest excess per feature and the first slice beyond the tolerance (None without a range)."""
+        return extrapolation_summary(self.extrapolation)
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        """The numbers of the result (not the field): what ``summary.json`` records of a task."""
+        out = {
             k: getattr(self, k)
             for k in (
                 "complete",
@@ -47,6 +59,9 @@ class ServeResult:
                 "solver",
             )
         }
+        out["extrapolation"] = self.extrapolation_summary()
+        out["warnings"] = list(self.warnings)
+        return out
 
 
 def compare(pred: xr.DataArray, ref: xr.DataArray) -> dict[str, float]:
@@ -57,7 +72,14 @@ def compare(pred: xr.DataArray, ref: xr.DataArray) -> dict[str, float]:
     >>> compare(a, a + 0.5)
     {'max_error': 0.5, 'rms_error': 0.5, 'slices': 4}
     """
+    for name, arr in (("pred", pred), ("ref", ref)):
+        if not isinstance(arr, xr.DataArray):
+            raise InputError.at(name, f"expected an xarray.DataArray (time first), got {type(arr).__name__}")
+        if not arr.dims:
+            raise InputError.at(name, "expected a field with a time dim, got a scalar DataArray")
     tdim = pred.dims[0]
+    if ref.dims[0] != tdim:
+        raise InputError.at("ref", f"its first dim {ref.dims[0]!r} is not pred's time dim {tdim!r}")
     n = min(pred.sizes[tdim], ref.sizes[tdim])
     if pred.shape[1:] != ref.shape[1:]:
         raise InputError(f"compare: shapes {pred.shape} and {ref.shape} differ beyond the time axis")
