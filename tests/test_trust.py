@@ -4,7 +4,6 @@ partial results say so in their files, and bad API arguments raise the library's
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -238,14 +237,6 @@ def test_cli_serve_stage_keeps_the_model_warnings(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["stage"] == "serve" and any(w.startswith("poor fit") for w in summary["warnings"])
     assert any(w.startswith("poor fit") for w in json.loads(_attrs(out / "inside.nc")["latticedft_warnings"]))
-
-
-def test_a_fine_case_has_no_warnings(tmp_path, capsys):
-    case = tmp_path / "osc"
-    shutil.copytree(REPO / "cases" / "oscillator-sin", case, ignore=shutil.ignore_patterns("results*"))
-    code, _, err = run_cli(capsys, "run", case, "--out", tmp_path / "out", *NO_EXPORT)
-    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert code == 0 and summary["warnings"] == [] and "warning" not in err
 
 
 # -- 5. the Python API raises the library's own exceptions -------------------------------------------------------
