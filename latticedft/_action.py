@@ -14,7 +14,7 @@ import torch
 import xarray as xr
 
 from ._errors import InputError
-from ._lattice import LatticeField, as_lattice_field, gather_cells, interior_slices
+from ._lattice import AxisBoundaries, LatticeField, as_lattice_field, gather_cells, interior_slices
 from ._stencil import Stencil
 
 if TYPE_CHECKING:  # the action evaluates any model; models sit a layer above
@@ -46,7 +46,7 @@ def _check_action_args(model: Any, psi: object, spacing: object, periodic: objec
 
 
 def action(
-    model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: tuple[bool, ...], batch: int = 0
+    model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: AxisBoundaries, batch: int = 0
 ) -> torch.Tensor:
     """Total discrete action of one field ``psi`` with shape ``(*N, m)`` (summed over ``batch`` leading axes).
 
@@ -56,7 +56,7 @@ def action(
     return _action(model, psi, spacing, periodic, batch)
 
 
-def _action(model, psi: torch.Tensor, spacing, periodic, batch: int) -> torch.Tensor:
+def _action(model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: AxisBoundaries, batch: int) -> torch.Tensor:
     """:func:`action` without the argument checks (the engine's own calls)."""
     cells = gather_cells(psi, model.stencil, periodic, batch)
     return math.prod(spacing) * model(cells).sum()
@@ -64,9 +64,9 @@ def _action(model, psi: torch.Tensor, spacing, periodic, batch: int) -> torch.Te
 
 def _check_model(model: object) -> None:
     """Refuse anything but a model bound to a lattice (an InputError naming ``model``)."""
-    if not isinstance(model, torch.nn.Module) or not hasattr(model, "stencil"):
+    if not isinstance(model, torch.nn.Module) or not hasattr(type(model), "bound"):  # not an AbstractLagrangian
         raise InputError.at("model", f"expected a latticedft model, got {type(model).__name__}")
-    if getattr(model, "spacing", None) is None or model.stencil is None:
+    if not model.bound:
         raise InputError.at(
             "model", f"{type(model).__name__} is not bound to a lattice; learn it first (or model.bind(n, m, h))"
         )
@@ -152,8 +152,8 @@ class CellDerivatives:
         self.grad = g.detach()
 
     def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
-        if self._closed:
-            return self.model.fast_derivatives(self.cells, pairs)[1]
+        if self._closed and (closed := self.model.fast_derivatives(self.cells, pairs)) is not None:
+            return closed[1]
         return cell_derivatives(self.model, self.cells.detach(), pairs)[1]
 
 

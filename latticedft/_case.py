@@ -276,6 +276,8 @@ class ModelConfig:
             st = Stencil.first_order(n)
         elif self.stencil == "full-cell":
             st = Stencil.full_cell(n)
+        elif isinstance(self.stencil, str):  # t_stencil lets no other name through
+            raise ConfigError(f"case.toml: model.stencil: unknown stencil {self.stencil!r}")
         else:
             if any(len(o) != n for o in self.stencil):
                 raise ConfigError(
@@ -558,12 +560,12 @@ def _validate(raw: dict[str, Any], root: Path, file: Path, overrides: tuple[str,
         if key in ("kind", "stencil"):
             continue
         if key not in valid:
-            names = ["kind", "stencil", *valid]
+            keys = ["kind", "stencil", *valid]
             others = [k for k in MODELS if k != kind and key in model_options(k)]
             hint = f" (it is an option of kind {others[0]!r})" if others else ""
             raise ctx.error(
                 f"model.{key}",
-                f"unknown option of model kind {kind!r}{_closest(key, names)}{hint} (valid keys: {', '.join(names)})",
+                f"unknown option of model kind {kind!r}{_closest(key, keys)}{hint} (valid keys: {', '.join(keys)})",
             )
         options[key] = ctx.check(f"model.{key}", model_option_check(kind, key), value)
     stencil = ctx.check("model.stencil", t_stencil, mraw["stencil"]) if "stencil" in mraw else None

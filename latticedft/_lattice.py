@@ -123,7 +123,7 @@ def as_lattice_field(
         return data
     if not isinstance(data, xr.DataArray):
         raise InputError(f"{source or 'data'}: expected an xarray.DataArray, got {type(data).__name__}")
-    src = source or (data.name and f"field {data.name!r}") or "field"
+    src = source or (f"field {data.name!r}" if data.name else "field")
     validate_field(data, source=src)
     has_comp = data.dims[-1] == COMPONENT_DIM
     dims = tuple(str(d) for d in (data.dims[:-1] if has_comp else data.dims))

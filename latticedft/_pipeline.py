@@ -7,12 +7,13 @@ Each stage logs INFO lines (to stderr via the CLI) and DEBUG details (to
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -163,6 +164,7 @@ def _check_task(
         )
     if t.box is not None and len(dims) != 1:
         raise ConfigError(f"case.toml: {t.label}.box: stopping at a box is for 1D trajectories only")
+    ref: xr.DataArray | None
     if t.reference is not None:
         ref = _read(t.reference, case, comps)
         if ref.shape[1:] != init.shape[1:] or lattice_dims(ref) != dims:
@@ -218,7 +220,7 @@ class TaskOutcome:
     field: xr.DataArray
     reference: xr.DataArray | None
     invariant: xr.DataArray | None
-    record: dict[str, Any] = field(default_factory=dict)
+    record: dict[str, Any] = dataclasses.field(default_factory=dict)  # not the `field` attribute above
     #: ``extrapolation(t, feature)`` of the served field against the model's training range (None without one)
     extrapolation: xr.DataArray | None = None
 

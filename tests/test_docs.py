@@ -86,3 +86,22 @@ def test_index_links_every_page() -> None:
     for page in os.listdir(DOCS):
         if page.endswith(".md") and page != "index.md" and (DOCS / page).is_file():
             assert page in linked, f"docs/index.md does not link {page}"
+
+
+def test_the_product_refers_to_nothing_outside_itself() -> None:
+    """No text names a design note or an issue number that a reader of the repository does not have."""
+    import subprocess
+
+    pattern = re.compile("DESIGN" + r"(\.md| §)|\b[Ii]ssue" + r" #?\d+")
+    files = subprocess.run(["git", "ls-files"], cwd=REPO, capture_output=True, text=True, check=False).stdout.split()
+    if not files:  # not a git checkout (e.g. an sdist): scan the tree
+        files = [str(p.relative_to(REPO)) for p in REPO.rglob("*") if p.is_file() and ".git" not in p.parts]
+    found = []
+    for name in files:
+        path = REPO / name
+        if path.suffix not in {".py", ".md", ".toml", ".txt", ".cfg", ""} or not path.is_file():
+            continue
+        for k, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            if pattern.search(line):
+                found.append(f"{name}:{k}: {line.strip()[:80]}")
+    assert not found, "\n".join(found)

@@ -17,7 +17,7 @@ AXES = {"t": "T", "x": "X", "y": "Y"}
 def assert_layout(
     da: xr.DataArray, dims: tuple[str, ...], components: list[str] | None = None, name: str = "psi"
 ) -> None:
-    """The DESIGN.md §2 field layout."""
+    """The field-file layout of docs/design.md."""
     assert isinstance(da, xr.DataArray)
     assert da.name == name
     full = dims + (("component",) if components is not None else ())

@@ -159,7 +159,7 @@ def learn(
     initial = None
     validation: dict[str, float] = {}
     used_ridge = 0.0
-    if optimizer == "exact":
+    if optimizer == "exact" and isinstance(model, LinearLagrangian):  # _checked refuses 'exact' for others
         used_ridge, validation = learn_exact(model, fields, fix, ridge, nsites)
         iterations, reason = 1, "exact solve"
     else:

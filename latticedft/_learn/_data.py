@@ -52,7 +52,7 @@ def as_fields(data: Any, boundary: BoundaryKinds | None) -> list[LatticeField]:
 
 def check_model_lattice(model: AbstractLagrangian, f: LatticeField, what: str) -> None:
     """Refuse a field whose lattice (dims, components, spacing) is not the one the model is bound to."""
-    if model.stencil is not None and model.stencil.ndim != f.ndim:
+    if model.has_stencil and model.stencil.ndim != f.ndim:
         raise InputError(f"{what}: has {f.ndim} lattice dims but the model's stencil has {model.stencil.ndim}")
     if model.bound:
         if model.m != f.ncomp:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -40,7 +41,7 @@ def _objective(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(objective, loss): the mean squared DEL residual over ``norm2``, plus the weighted gauge penalty
     unless the model has a unit mass by construction."""
-    sq = 0
+    sq = torch.zeros((), dtype=torch.float64)
     ms = []
     for f in fields:
         el = del_residual(model, f, create_graph=True)
@@ -49,8 +50,8 @@ def _objective(
             ms.append(mixed_hessian(model, f, create_graph=True))
     loss = sq / nsites
     obj = loss / norm2
-    if ms:
-        obj = obj + penalty * gauge.penalty(torch.cat(ms).mean(0), model.spacing[0])
+    if ms and (pen := gauge.penalty(torch.cat(ms).mean(0), model.spacing[0])) is not None:  # None: no gauge
+        obj = obj + penalty * pen
     return obj, loss
 
 
@@ -66,6 +67,12 @@ def _optimizer(settings: Training, params: list[torch.nn.Parameter]) -> torch.op
             tolerance_change=1e-16,
         )
     return torch.optim.Adam(params, lr=settings.lr)
+
+
+def _step(opt: torch.optim.Optimizer, closure: Callable[[], torch.Tensor]) -> torch.Tensor:
+    """``opt.step(closure)``, which returns the loss tensor the closure returned."""
+    # torch annotates the closure and the result as float; LBFGS and Adam take and return the loss tensor
+    return opt.step(closure)  # type: ignore[arg-type, return-value]
 
 
 class _Run:
@@ -98,9 +105,9 @@ class _Run:
             self.opt.param_groups[0]["max_iter"] = min(self.chunk, left)
             state = self.opt.state[self.params[0]]
             before = state.get("n_iter", 0)
-            self.opt.step(self.closure)
+            _step(self.opt, self.closure)
             return self.objective(), max(self.opt.state[self.params[0]].get("n_iter", 0) - before, 1)
-        return float(self.opt.step(self.closure).detach()), 1  # Adam: the objective before this update
+        return float(_step(self.opt, self.closure).detach()), 1  # Adam: the objective before this update
 
     def snapshot(self) -> dict[str, torch.Tensor]:
         return {k: v.detach().clone() for k, v in self.model.state_dict().items()}

@@ -20,7 +20,7 @@ from ._polynomial import PolynomialLagrangian
 #: ``[model] kind = ...`` in case.toml and model files name these classes (the key is the class's ``kind``).
 MODELS: dict[str, type[AbstractLagrangian]] = {
     "polynomial": PolynomialLagrangian,
-    "mlp": MLPLagrangian,
+    "mlp": MLPLagrangian,  # type: ignore[type-abstract]  # abstract, but its __new__ builds the concrete form class
 }
 
 __all__ = [

@@ -52,8 +52,8 @@ class AnalyticLagrangian(AbstractLagrangian):
 
     def bind(self, n: int, m: int, spacing: tuple[float, ...], components: tuple[str, ...] | None = None) -> None:
         """Analytic models have no parameters: they rebind to any lattice they are served on."""
-        self.stencil = self._given_stencil
-        self.n = self.m = self.spacing = None
+        self._stencil = self._given_stencil
+        self._n = self._m = self._spacing = None
         super().bind(n, m, spacing, components)
 
     def forward(self, cells: torch.Tensor) -> torch.Tensor:

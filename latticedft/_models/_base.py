@@ -66,34 +66,65 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
                 "latticedft.LinearLagrangian (setting linear = True is not enough)"
             )
 
+    #: Projection ``(n + 1, K)`` of the stencil values onto (mean, per-axis differences); a buffer set by
+    #: :meth:`bind`.
+    proj: torch.Tensor
+
     def __init__(self, stencil: Stencil | None = None):
         if stencil is not None and not isinstance(stencil, Stencil):
             raise InputError.at("stencil", f"expected a latticedft.Stencil or None, got {type(stencil).__name__}")
         super().__init__()
-        self.stencil: Stencil | None = stencil
-        self.n: int | None = None
-        self.m: int | None = None
-        self.spacing: tuple[float, ...] | None = None
+        self._stencil: Stencil | None = stencil
+        self._n: int | None = None
+        self._m: int | None = None
+        self._spacing: tuple[float, ...] | None = None
         self.components: tuple[str, ...] | None = None
 
     # -- binding to a lattice -----------------------------------------------------------------------------
     @property
     def bound(self) -> bool:
-        return self.spacing is not None
+        return self._spacing is not None
+
+    @property
+    def has_stencil(self) -> bool:
+        """True once the stencil is known: given to the constructor, else chosen by :meth:`bind`."""
+        return self._stencil is not None
+
+    @property
+    def stencil(self) -> Stencil:
+        """The stencil (given, or the first-order one chosen by :meth:`bind`); ``InputError`` before either."""
+        if self._stencil is None:  # bind() always sets one
+            raise self._unbound_error()
+        return self._stencil
+
+    @property
+    def n(self) -> int:
+        """Lattice dimensions (time first); ``InputError`` until the model is bound."""
+        return self._lattice()[0]
+
+    @property
+    def m(self) -> int:
+        """Field components; ``InputError`` until the model is bound."""
+        return self._lattice()[1]
+
+    @property
+    def spacing(self) -> tuple[float, ...]:
+        """Lattice spacings ``h`` (time first); ``InputError`` until the model is bound."""
+        return self._lattice()[2]
 
     def bind(self, n: int, m: int, spacing: tuple[float, ...], components: tuple[str, ...] | None = None) -> None:
         """Fix the lattice dimension, number of components and spacings; build parameters."""
-        if self.stencil is None:
-            self.stencil = Stencil.first_order(n)
-        if self.stencil.ndim != n:
+        if self._stencil is None:
+            self._stencil = Stencil.first_order(n)
+        if self._stencil.ndim != n:
             raise InputError.at(
-                "stencil", f"has offsets in {self.stencil.ndim} dimensions but the data have {n} lattice dims"
+                "stencil", f"has offsets in {self._stencil.ndim} dimensions but the data have {n} lattice dims"
             )
         if self.bound and (self.n, self.m) != (n, m):
             raise InputError(f"model: bound to n={self.n}, m={self.m}; data have n={n}, m={m}")
         first = not self.bound
-        self.n, self.m = n, m
-        self.spacing = tuple(float(h) for h in spacing)
+        self._n, self._m = n, m
+        self._spacing = tuple(float(h) for h in spacing)
         self.components = components
         if first:
             self.register_buffer("proj", self._projection(), persistent=False)
@@ -108,7 +139,16 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
 
     def _require_bound(self) -> None:
         if not self.bound:
-            raise InputError(f"{type(self).__name__}: not bound to a lattice yet; learn it first (latticedft.learn)")
+            raise self._unbound_error()
+
+    def _unbound_error(self) -> InputError:
+        return InputError(f"{type(self).__name__}: not bound to a lattice yet; learn it first (latticedft.learn)")
+
+    def _lattice(self) -> tuple[int, int, tuple[float, ...]]:
+        """``(n, m, spacing)`` of the bound lattice; ``InputError`` before :meth:`bind`."""
+        if self._n is None or self._m is None or self._spacing is None:
+            raise self._unbound_error()
+        return self._n, self._m, self._spacing
 
     # -- evaluation ---------------------------------------------------------------------------------------
     @abc.abstractmethod

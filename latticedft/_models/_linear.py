@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable, Sequence
+from typing import Literal, overload
 
 import torch
 
@@ -58,6 +59,16 @@ class LinearLagrangian(AbstractLagrangian):
 
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
         return self.features(cells) @ self.coef
+
+    @overload
+    def feature_derivatives(
+        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: Literal[True] = True
+    ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]]: ...
+
+    @overload
+    def feature_derivatives(
+        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool
+    ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]: ...
 
     def feature_derivatives(
         self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool = True

@@ -9,7 +9,7 @@ potential). Both share the options, the network and its input and output scaling
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, ClassVar, NamedTuple, Self
+from typing import Any, ClassVar, NamedTuple, Self, cast
 
 import torch
 
@@ -141,15 +141,19 @@ class MLPLagrangian(AbstractLagrangian):
     inputs: ClassVar[dict[str, _Inputs]]
     #: ``features`` when neither the arguments nor a preset give it.
     default_features: ClassVar[str]
+    #: Buffers set by :meth:`_build`: the inputs' centre and scale, the output's scale.
+    in_center: torch.Tensor
+    in_scale: torch.Tensor
+    out_scale: torch.Tensor
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
-        target = cls
+        target: type[MLPLagrangian] = cls
         if cls is MLPLagrangian:  # the factory: the class of the form asked for (directly or by a preset)
             form = kwargs.get("form")
             if form is None and kwargs.get("preset") is not None:
                 form = _settings(None, None, None, None, None, kwargs["preset"])["form"]
             target = _FORM_CLASSES.get(form or "free", FreeMLPLagrangian)  # an unknown form: __init__ says so
-        return super().__new__(target)
+        return cast(Self, super().__new__(target))  # target is cls, or a form class when cls is MLPLagrangian
 
     def __init__(
         self,
@@ -313,7 +317,7 @@ class KineticPotentialMLPLagrangian(MLPLagrangian):
     def unit_mass_by_construction(self) -> bool:  # type: ignore[override]
         """``M = -I / h_0^2`` exactly when every spatial edge ``e_k`` is in the stencil (its differences then
         never couple ``psi_x`` with ``psi_{x+e_0}``); otherwise the gauge penalty applies."""
-        return self.stencil is None or all(self._edge(k) is not None for k in range(1, self.stencil.ndim))
+        return not self.has_stencil or all(self._edge(k) is not None for k in range(1, self.stencil.ndim))
 
     def _edge(self, k: int) -> int | None:
         e = [0] * self.stencil.ndim

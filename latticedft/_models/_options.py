@@ -112,8 +112,9 @@ def _check_of(annotation: Any) -> _Check | None:
             return _sequence(items.pop() if len(items) == 1 else None, len(args))
         return _sequence(_check_of(args[0]) if args else None, None)
     if origin in (typing.Union, types.UnionType):
-        checks = [_check_of(a) for a in args if a is not type(None)]
-        if any(c is None for c in checks):
+        maybe = [_check_of(a) for a in args if a is not type(None)]
+        checks = [c for c in maybe if c is not None]
+        if len(checks) < len(maybe):
             return None
         return _union(checks, type(None) in args)
     return None

@@ -111,6 +111,11 @@ class PolynomialLagrangian(LinearLagrangian):
     """
 
     kind = "polynomial"
+    #: Buffers set by :meth:`_build`: per term, the exponent of each variable ``(C, V)``; the scaling of the
+    #: variables, ``z = (variable - center) / halfwidth``.
+    exponents: torch.Tensor
+    center: torch.Tensor
+    halfwidth: torch.Tensor
 
     def __init__(
         self,
@@ -284,7 +289,8 @@ class PolynomialLagrangian(LinearLagrangian):
         key = (self.exponents.data_ptr(), self.exponents._version, z.dtype, z.device)
         cache = self.__dict__.get("_factor_cache")
         if cache is None or cache[0] != key:
-            cache = (key, {})
+            tables: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+            cache = (key, tables)
             self.__dict__["_factor_cache"] = cache
         if r not in cache[1]:  # where each term's factors sit in the flattened tables, the powers, the matrix
             exps = self.exponents.T.to(z.device)  # (V, C)
@@ -321,11 +327,11 @@ class PolynomialLagrangian(LinearLagrangian):
         for v in range(nvar - 2, -1, -1):
             suf[v] = _times(suf[v + 1], val[v + 1])
         excl = [_times(pre[v], suf[v]) for v in range(nvar)]
-        out = [d1[v] if excl[v] is None else d1[v] * excl[v] for v in range(nvar)]
+        out = [d1[v] if (e := excl[v]) is None else d1[v] * e for v in range(nvar)]
         if second:
             d2 = tabs[2].unbind(-2)
             for v in range(nvar):
-                out.append(d2[v] if excl[v] is None else d2[v] * excl[v])
+                out.append(d2[v] if (e := excl[v]) is None else d2[v] * e)
                 between = pre[v]  # times the factors strictly between v and w
                 for w in range(v + 1, nvar):
                     if w > v + 1:

@@ -17,7 +17,7 @@ n-D driver).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from typing import overload
 
 import xarray as xr
 
@@ -55,10 +55,42 @@ def _steps(steps: int | None, f: LatticeField) -> int:
     return steps
 
 
+@overload
+def serve(
+    model: AbstractLagrangian,
+    init: xr.DataArray,
+    *,
+    steps: int | None = None,
+    boundary: BoundaryKinds | None = None,
+    mode: str = "newton",
+    rtol: float = 1e-10,
+    max_newton: int = 30,
+    box: float | None = None,
+    affine: bool = True,
+    progress: bool | None = None,
+) -> ServeResult: ...
+
+
+@overload
+def serve(
+    model: AbstractLagrangian,
+    init: list[xr.DataArray] | tuple[xr.DataArray, ...],
+    *,
+    steps: int | None = None,
+    boundary: BoundaryKinds | None = None,
+    mode: str = "newton",
+    rtol: float = 1e-10,
+    max_newton: int = 30,
+    box: float | None = None,
+    affine: bool = True,
+    progress: bool | None = None,
+) -> list[ServeResult]: ...
+
+
 # long only by its numpydoc docstring (the body is ~30 lines)
 def serve(
     model: AbstractLagrangian,
-    init: xr.DataArray | Sequence[xr.DataArray],
+    init: xr.DataArray | list[xr.DataArray] | tuple[xr.DataArray, ...],
     *,
     steps: int | None = None,
     boundary: BoundaryKinds | None = None,
@@ -141,7 +173,7 @@ def serve(
     if progress is not None and not isinstance(progress, bool):
         raise InputError.at("progress", f"expected True, False or None, got {progress!r}")
     batch = isinstance(init, (list, tuple))
-    items = list(init) if batch else [init]
+    items = list(init) if isinstance(init, (list, tuple)) else [init]
     if not items:
         raise InputError("init: no initial fields given")
     fs = [
@@ -154,10 +186,9 @@ def serve(
     n = fs[0].ndim
     if n == 1:
         results = _serve_batch(model, fs, [_steps(steps, f) for f in fs], mode, rtol, max_newton, box, progress)
-        failed = [r for r in results if not r.complete]
+        failed = [(r, r.fail_at) for r in results if r.fail_at is not None]  # the members not complete
         if failed:
-            first = failed[0]
-            at_slice, res = first.fail_at
+            first, (at_slice, res) = failed[0]
             raise ServeError(first.reason, result=results if batch else first, slice=at_slice, residual=res)
         return results if batch else results[0]
     if box is not None:

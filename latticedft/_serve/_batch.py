@@ -190,9 +190,9 @@ class _Batch:
                     solver=mode,
                     extrapolation=ext,
                     warnings=warnings,
+                    fail_at=self.fail_at.get(k),
                 )
             )
-            out[-1].fail_at = self.fail_at.get(k)  # type: ignore[attr-defined]
         return out
 
 

@@ -75,5 +75,5 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
             )
         flat[i + 1, unk] += torch.from_numpy(delta.reshape(-1, m))
         small = not stale and float(np.abs(delta).max()) <= rtol * _scale(flat, i, unk)
-    row = int(np.argmax(np.abs(r))) if r.size else None
-    return max_newton, res, ev.grad, (f"Newton did not converge in {max_newton} iterations", row, res)
+    worst: int | None = int(np.argmax(np.abs(r))) if r.size else None
+    return max_newton, res, ev.grad, (f"Newton did not converge in {max_newton} iterations", worst, res)

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import dataclasses
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,12 +32,14 @@ class ServeResult:
     #: one factorised solve per slice, checked afterwards) or "affine+newton" (Newton from the first slice
     #: that failed that check)
     solver: str = "newton"
+    #: a failed member of a 1D batch: ``(slice, residual)`` where it failed (``None`` otherwise)
+    fail_at: tuple[int, float] | None = dataclasses.field(default=None, repr=False, compare=False)
     #: ``extrapolation(t, feature)``: per slice, how far the served cells lie outside the model's training
     #: range, per input feature, relative to the feature's training span (0 inside; None when the model
     #: keeps no range). See ``extrapolation_summary()``.
     extrapolation: xr.DataArray | None = None
     #: One-line warnings about the served field (it leaves the training range ...); empty when none.
-    warnings: list[str] = field(default_factory=list)
+    warnings: list[str] = dataclasses.field(default_factory=list)
 
     def extrapolation_summary(self) -> dict[str, Any] | None:
         """The largest excess per feature and the first slice beyond the tolerance (None without a range)."""

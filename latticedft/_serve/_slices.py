@@ -157,4 +157,4 @@ def _site_label(f: LatticeField, sys: _SliceSystem, tslice: int, row: int) -> tu
 
 def _scale(flat: torch.Tensor, i: int, unk: torch.Tensor) -> float:
     """Size of the values on slices ``i - 1``, ``i`` and the unknowns of ``i + 1``: the scale of a Newton step."""
-    return float(max(flat[i - 1].abs().max(), flat[i].abs().max(), flat[i + 1, unk].abs().max(), 1e-300))
+    return max(float(flat[i - 1].abs().max()), float(flat[i].abs().max()), float(flat[i + 1, unk].abs().max()), 1e-300)

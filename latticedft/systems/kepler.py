@@ -244,7 +244,7 @@ def kepler_orbit(
         if r_max <= r0:
             raise InputError(f"r_max: expected more than r0={r0!r}, got {r_max!r}")
         events = _leave_disc(r_max)
-    t = dt * np.arange(n, dtype=np.float64)  # type: ignore[arg-type]
+    t = dt * np.arange(n, dtype=np.float64)
     sol = _solve(_kepler_rhs, [r0, 0.0, 0.0, v0], t, events=events, what="kepler_orbit")
     if sol.y.shape[1] < 2:
         raise InputError(f"r_max: the orbit leaves r <= {r_max!r} within the first step")
@@ -252,15 +252,17 @@ def kepler_orbit(
         f"latticedft.systems.kepler_orbit: r''=-r/|r|^3 (GM=1, units 1 au, {KEPLER_TIME_UNIT_DAYS} d), "
         f"r0={r0!r}, v0={v0!r}, r_max={r_max!r}; solve_ivp DOP853 rtol={ODE_RTOL:g} atol={ODE_ATOL:g}"
     )
-    common = dict(spacing=dt, components=["x", "y"], coord_attrs={"t": _time_attrs(f"{KEPLER_TIME_UNIT_DAYS} days")})
+    common: dict[str, Any] = dict(
+        spacing=dt, components=["x", "y"], coord_attrs={"t": _time_attrs(f"{KEPLER_TIME_UNIT_DAYS} days")}
+    )
     attrs = {"units": "au", "source": src, "r0": r0, "v0": v0, "GM": 1.0}
-    psi = make_field(sol.y[:2].T, ("t",), attrs={"long_name": "position", **attrs}, **common)  # type: ignore[arg-type]
+    psi = make_field(sol.y[:2].T, ("t",), attrs={"long_name": "position", **attrs}, **common)
     if not return_velocity:
         return psi
     vel = make_field(
         sol.y[2:].T,
         ("t",),
-        name="velocity",  # type: ignore[arg-type]
+        name="velocity",
         attrs={"long_name": "velocity", **attrs, "units": f"au / ({KEPLER_TIME_UNIT_DAYS} days)"},
         **common,
     )

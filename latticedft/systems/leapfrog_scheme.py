@@ -209,10 +209,9 @@ def _leapfrog_steps(
     dt2 = dt * dt
     kinds = (kind,) * u0.ndim
     inner = tuple(k.interior(n, 1) for k, n in zip(kinds, u0.shape))
-    edge = np.ones(u0.shape, dtype=bool)
-    edge[inner] = False
-    if not edge.any():
-        edge = None
+    mask = np.ones(u0.shape, dtype=bool)
+    mask[inner] = False
+    edge = mask if mask.any() else None  # sites outside the interior, if any
     for i in range(1, steps):
         u, up, new = out[i], out[i - 1], out[i + 1]
         f = _force_values(force, u)
