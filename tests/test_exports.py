@@ -79,8 +79,10 @@ def test_export_in_other_formats_removes_exactly_the_old_files(tmp_path: Path, c
     }
     summary = json.loads((res / "summary.json").read_text())
     assert summary["exports"][-1]["overrides"] == ['export.formats=["xdmf", "figures"]']
-    assert run_cli(capsys, "export", case, "-q", "--set", "export.formats=[]")[0] == 0
-    assert {p.name for p in res.iterdir()} == KEEP | {"test.nc", "test_spacetime.nc"}
+    before = {p.name for p in res.iterdir()}
+    code, _, err = run_cli(capsys, "export", case, "-q", "--set", "export.formats=[]")
+    assert code == 1 and "nothing to export" in err  # every format off: refused, nothing changed
+    assert {p.name for p in res.iterdir()} == before
 
 
 def test_export_without_a_record_deletes_nothing(tmp_path: Path, capsys) -> None:

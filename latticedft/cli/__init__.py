@@ -1,16 +1,21 @@
 """The ``latticedft`` command line (stdlib argparse; one module per subcommand).
 
 ``main(argv)`` returns the exit status: 0 when every stage and task
-completed, 1 for bad input (a one-line message on stderr, nothing written),
-3 when a serving task stopped part-way (its partial field is still written
-and the results are published).
+completed, 1 for bad input or results that cannot be written (a one-line
+message on stderr, nothing published), 3 when a serving task stopped part-way
+(its partial field is still written and the results are published), 130 on
+SIGINT (Ctrl-C) and 143 on SIGTERM (one line; nothing published unless the
+signal came after the publishing step).
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 
+from .. import _results
 from .._errors import LatticeDFTError
 from . import check as _check
 from . import export as _export
@@ -18,7 +23,7 @@ from . import info as _info
 from . import run as _run
 from . import serve as _serve
 from . import train as _train
-from ._common import BAD_INPUT, detach, setup_logging
+from ._common import BAD_INPUT, INTERRUPTED, TERMINATED, Terminated, _show, detach, setup_logging
 
 __all__ = ["main", "build_parser"]
 
@@ -49,10 +54,16 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version, usage errors
         return int(exc.code or 0) if not isinstance(exc.code, str) else 2
     handler = setup_logging(args)
+    n_published = len(_results.published)
+    previous = _on_sigterm()
     try:
         return int(SUBCOMMANDS[args.command].main(args, argv))
     except LatticeDFTError as exc:
         print(f"latticedft: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return BAD_INPUT
+    except OSError as exc:  # reading or writing outside a staged stage: the path and the reason
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"latticedft: error: {where}{exc.strerror or ' '.join(str(exc).split())}", file=sys.stderr)
         return BAD_INPUT
     except BrokenPipeError:  # e.g. `latticedft info CASE | head`: stop quietly
         import os
@@ -60,11 +71,33 @@ def main(argv: list[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 0
-    except KeyboardInterrupt:
-        print("latticedft: interrupted; nothing was published", file=sys.stderr)
-        return 130
+    except (KeyboardInterrupt, Terminated) as exc:
+        what = "interrupted" if isinstance(exc, KeyboardInterrupt) else "terminated (SIGTERM)"
+        done = _results.published[n_published:]
+        print(
+            f"latticedft: {what}; "
+            + (f"after publishing {', '.join(_show(p) for p in done)}" if done else "nothing was published"),
+            file=sys.stderr,
+        )
+        return INTERRUPTED if isinstance(exc, KeyboardInterrupt) else TERMINATED
     finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
         detach(handler)
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
+def _on_sigterm() -> signal._HANDLER:
+    """SIGTERM raises :class:`Terminated` in the main thread, so a stage is cleaned up as on Ctrl-C; returns
+    the previous handler (None when not in the main thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = signal.getsignal(signal.SIGTERM)
+    signal.signal(signal.SIGTERM, _raise_terminated)
+    return previous if previous is not None else signal.SIG_DFL
 
 
 if __name__ == "__main__":  # pragma: no cover

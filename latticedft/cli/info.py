@@ -6,8 +6,7 @@ import argparse
 import json
 import logging
 
-from .._modelfile import load_model
-from .._results import read_summary
+from .._results import load_verified_model, read_summary
 from ._common import OK, add_case_arguments, open_case, results_dir
 
 log = logging.getLogger("latticedft")
@@ -36,7 +35,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
     if not (dest / "model.pt").is_file():
         print(f"no learned model in {dest}")
         return OK
-    model = load_model(dest / "model.pt")
+    model = load_verified_model(dest)
     print(f"learned model ({dest / 'model.pt'}):")
     print(model)
     summary = read_summary(dest)

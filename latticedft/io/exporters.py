@@ -18,7 +18,9 @@ A new format is a module with its exporter, e.g. ``latticedft/io/xdmf.py``::
         def write(self, task: ExportTask) -> list[Path]:
             return write_xdmf(task.folder, task.name, task.field, task.extra, max_frames=task.max_frames)
 
-plus its line in :data:`EXPORTERS`.
+plus its line in :data:`EXPORTERS` and the names of its files in :data:`EXPORT_FILES`
+(``latticedft check`` checks with them that every file of a task fits the file system's limit on
+file names, whichever format a later ``export`` picks).
 
 >>> sorted(EXPORTERS)
 ['figures', 'paraview', 'xdmf']
@@ -39,7 +41,18 @@ import xarray as xr
 
 from latticedft._errors import InputError
 
-__all__ = ["EXPORTERS", "DEFAULT_FORMATS", "Exporter", "ExportTask", "get_exporter", "export_formats", "remove_exports"]
+__all__ = [
+    "EXPORTERS",
+    "EXPORT_FILES",
+    "DEFAULT_FORMATS",
+    "Exporter",
+    "ExportTask",
+    "get_exporter",
+    "export_formats",
+    "remove_exports",
+    "export_file_names",
+    "TEMPORARY_NAME_EXTRA",
+]
 
 log = logging.getLogger("latticedft")
 
@@ -49,6 +62,19 @@ EXPORTERS: dict[str, str] = {
     "figures": "latticedft.io.figures:FigureExporter",
     "xdmf": "latticedft.io.xdmf:XdmfExporter",
 }
+
+#: The files each format may write for a task ``{name}``; ``{frame}`` is a slice number zero-padded to
+#: ``max(4, digits of the last slice)`` (:func:`export_file_names`). Every format of :data:`EXPORTERS` has
+#: its line; the test suite checks the exporters against it.
+EXPORT_FILES: dict[str, tuple[str, ...]] = {
+    "paraview": ("{name}.pvd", "{name}_{frame}.vtr", "{name}_{frame}.vtp", "{name}_spacetime.vtr", "{name}.vtp"),
+    "figures": ("{name}.png",),
+    "xdmf": ("{name}.xdmf", "{name}.h5"),
+}
+
+#: The most characters a writer adds to a file's name for its temporary file (``.<file>.<12 hex>.tmp``),
+#: which is renamed to the file once written.
+TEMPORARY_NAME_EXTRA = 18
 
 #: The formats written when case.toml names none.
 DEFAULT_FORMATS: tuple[str, ...] = ("paraview", "figures")
@@ -123,6 +149,23 @@ def export_formats(task: ExportTask, formats: Sequence[str]) -> list[Path]:
             log.debug("wrote %s (%s)", p.name, fmt)
         written += [p for p in files if p not in written]
     return written
+
+
+def export_file_names(name: str, slices: int, formats: Iterable[str] | None = None) -> list[str]:
+    """The names of every file the formats (default: every registered one) may write for task ``name`` of
+    ``slices`` time slices.
+
+    >>> export_file_names("test", 401, ["paraview"])[:2]
+    ['test.pvd', 'test_0400.vtr']
+    """
+    last = max(int(slices), 1) - 1
+    frame = f"{last:0{max(4, len(str(last)))}d}"  # the longest frame name: the last slice's
+    names: list[str] = []
+    for fmt in EXPORTERS if formats is None else formats:
+        names += [
+            p.format(name=name, frame=frame) for p in EXPORT_FILES[fmt] if p.format(name=name, frame=frame) not in names
+        ]
+    return names
 
 
 def remove_exports(folder: Path, names: Iterable[str]) -> list[str]:
