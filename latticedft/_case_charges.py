@@ -103,7 +103,8 @@ def _units(pred: xr.DataArray, sym: Symmetry | None, gauge: str | None) -> str |
     exps: dict[str, int] = {}
 
     def add(unit: str, e: int) -> None:
-        exps[unit] = exps.get(unit, 0) + e
+        if unit != "1":  # dimensionless
+            exps[unit] = exps.get(unit, 0) + e
 
     add(psi, 2)
     add(coords[0], -2 if sym is None else -1)
