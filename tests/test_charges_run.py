@@ -19,7 +19,7 @@ import latticedft as ldft
 from latticedft import systems
 from latticedft.io import write_field
 
-from case_helpers import run_cli, snapshot, tiny_wave, write_toml
+from case_helpers import oscillator_case, run_cli, snapshot, tiny_wave, write_toml
 from helpers import oscillator_data
 
 
@@ -174,6 +174,19 @@ def test_pseudo_momentum_of_the_periodic_klein_gordon_theory(tmp_path: Path, cap
         assert p.attrs["long_name"].startswith("lattice pseudo-momentum along x")
         assert p.attrs["units"] == "1"  # the lattice is in dimensionless units
         assert np.ptp(p.values[1:]) <= 1e-10 * p.attrs["scale"]
+
+
+def test_charges_of_an_incomplete_task_cover_its_solved_slices(tmp_path: Path) -> None:
+    case = oscillator_case(tmp_path)
+    charges = 'serve.outside.charges=["energy", "auto"]'
+    assert ldft.cli.main(["run", str(case), "-q", "--set", charges, "--set", "export.formats=[]"]) == 3
+    task = json.loads((case / "results" / "summary.json").read_text())["tasks"]["outside"]
+    assert not task["complete"] and task["slices"] < task["steps"]
+    assert list(task["charges"]) == ["energy"]  # "auto": the shift is broken, nothing else to test in 1D
+    assert [r["verdict"] for r in task["charges_auto"]] == ["broken"]
+    with xr.open_dataset(case / "results" / "outside.nc") as ds:
+        e = ds["energy"].values
+        assert e.shape == (task["slices"],) and np.isnan(e[0]) and np.isfinite(e[1:]).all()
 
 
 def _refused(capsys, case: Path, charges: str, *needles: str) -> None:
