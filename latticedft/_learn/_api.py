@@ -69,6 +69,7 @@ def learn(
     penalty: float = 1.0,
     boundary: BoundaryKinds | None = None,
     progress: bool | None = None,
+    symmetries: bool = False,
 ) -> LearnReport:
     """Learn ``L_d`` from one or more observed fields; the model is fitted in place.
 
@@ -100,6 +101,9 @@ def learn(
         attribute.
     progress : bool, optional
         Progress bar; ``None`` shows it only on a terminal.
+    symmetries : bool
+        Also test the learned ``L_d`` for every built-in symmetry of the data's lattice over the training
+        data (:func:`latticedft.symmetries`); the results are ``report.symmetries`` (docs/symmetries.md).
 
     Returns
     -------
@@ -117,6 +121,8 @@ def learn(
     True
     """
     fix, optimizer = _checked(model, gauge, ridge, optimizer, max_iter)
+    if not isinstance(symmetries, bool):
+        raise InputError.at("symmetries", f"expected true or false, got {symmetries!r}")
     fields = as_fields(data, boundary)
     nsites = _bound_to(model, fields)
     t0 = time.perf_counter()
@@ -140,7 +146,7 @@ def learn(
         )
         iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
     wall = time.perf_counter() - t0
-    diag = diagnose(model, fields, gauge=gauge)
+    diag = diagnose(model, fields, gauge=gauge, symmetries=symmetries)
     report = LearnReport(
         method=optimizer,
         loss=diag["loss"],
@@ -159,6 +165,7 @@ def learn(
         stop_reason=reason,
         history=history,
         validation=validation,
+        symmetries=diag.get("symmetries"),
     )
     model.report_ = report
     return report
