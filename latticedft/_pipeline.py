@@ -22,6 +22,7 @@ import xarray as xr
 
 from ._boundary import missing_edges
 from ._case import Case, ServeTask, load_invariant
+from ._case_charges import check_charges, drift_text, task_charges
 from ._errors import ConfigError, InputError, LatticeDFTError, ServeError
 from ._lattice import as_lattice_field
 from ._layout import component_labels, field_spacing, lattice_dims
@@ -73,6 +74,7 @@ class CaseData:
                 f"{td.steps} slices, boundary {t.boundary or 'from file/dirichlet'}, mode {t.mode}"
                 + (", reference" if td.reference is not None else ", no reference")
                 + (", baseline" if td.baseline is not None else "")
+                + (f", charges {list(t.charges)}" if t.charges else "")
             )
         return lines
 
@@ -153,6 +155,7 @@ def _check_task(
         if exc.key == "boundary":
             raise _as_case_error(exc, f"{t.label}.boundary") from None
         raise
+    check_charges(t.charges, f, f"{t.label}.charges")
     missing = missing_edges(f.boundary, f.dims, nt, steps)
     if missing:
         axis, kind = missing
@@ -206,6 +209,10 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
             raise _as_case_error(exc, f"train.{exc.key}") from None
         raise
     log.info("%s", report.summary_line())
+    if report.symmetries is not None:
+        log.info("symmetries of the learned L_d over the training data (verdicts at tol 1e-9):")
+        for line in report.symmetry_lines():
+            log.info("  %s", line)
     log.debug("training report: %s", {k: v for k, v in report.to_dict().items() if k != "history"})
     for warning in report.warnings:  # a degenerate M, a poor fit (thresholds in docs/outputs.md)
         log.warning("%s", warning)
@@ -221,6 +228,8 @@ class TaskOutcome:
     reference: xr.DataArray | None
     invariant: xr.DataArray | None
     record: dict[str, Any] = dataclasses.field(default_factory=dict)  # not the `field` attribute above
+    #: ``charge_<name>(t)`` and ``energy(t)`` of the task's ``charges`` (None when it lists none)
+    charges: xr.Dataset | None = None
     #: ``extrapolation(t, feature)`` of the served field against the model's training range (None without one)
     extrapolation: xr.DataArray | None = None
 
@@ -306,6 +315,7 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         else:
             rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0]))) if finite.size else None
         rec["invariant"] = t.invariant
+    charges = task_charges(model, td, pred, rec)
     how = (
         f"{result.newton_iterations} Newton iterations"
         if result.solver != "affine"
@@ -320,7 +330,13 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         msg += f" (baseline max {rec['baseline']['max_error_same_slices']:.3e})"
     if "invariant_drift" in rec and rec["invariant_drift"] is not None:
         msg += f", invariant drift {rec['invariant_drift']:.2e}"
-    log.info("%s", msg)
+    log.info("%s", msg + drift_text(rec))
     return TaskOutcome(
-        name=t.name, field=pred, reference=td.reference, invariant=inv, record=rec, extrapolation=result.extrapolation
+        name=t.name,
+        field=pred,
+        reference=td.reference,
+        invariant=inv,
+        record=rec,
+        charges=charges,
+        extrapolation=result.extrapolation,
     )

@@ -715,10 +715,12 @@ def write_task(
     *,
     attrs: Mapping[str, Any],
     history: str,
+    charges: xr.Dataset | None = None,
     extra: Mapping[str, xr.DataArray] | None = None,
 ) -> Path:
-    """``<name>.nc``: the served field, ``<var>_ref`` and ``<var>_err`` when a reference covers it (and the
-    variables of ``extra``, e.g. ``extrapolation(t, feature)``)."""
+    """``<name>.nc``: the served field, ``<var>_ref`` and ``<var>_err`` when a reference covers it, the
+    ``invariant`` and the task's ``charges`` (``charge_<name>(t)``, ``energy(t)``) when given, and the
+    variables of ``extra`` (e.g. ``extrapolation(t, feature)``)."""
     pred = pred.rename(variable)
     pred.attrs = {**pred.attrs, "long_name": f"{variable} served by the learned theory"}
     fields: dict[str, xr.DataArray] = {variable: pred}
@@ -729,6 +731,8 @@ def write_task(
         fields[f"{variable}_err"] = err
     if invariant is not None:
         fields["invariant"] = invariant.rename("invariant")
+    if charges is not None:
+        fields.update({str(k): v.rename(str(k)) for k, v in charges.data_vars.items()})
     fields.update({k: v.rename(k) for k, v in (extra or {}).items()})
     with _writing(folder / f"{name}.nc"):
         return write_field(folder / f"{name}.nc", fields, attrs=attrs, history=history)

@@ -93,6 +93,7 @@ def learn(
     penalty: float = 1.0,
     boundary: BoundaryKinds | None = None,
     progress: bool | None = None,
+    symmetries: bool = False,
 ) -> LearnReport:
     """Learn ``L_d`` from one or more observed fields; the model is fitted in place.
 
@@ -124,6 +125,9 @@ def learn(
         attribute.
     progress : bool, optional
         Progress bar; ``None`` shows it only on a terminal.
+    symmetries : bool
+        Also test the learned ``L_d`` for every built-in symmetry of the data's lattice over the training
+        data (:func:`latticedft.symmetries`); the results are ``report.symmetries`` (docs/symmetries.md).
 
     Returns
     -------
@@ -152,6 +156,8 @@ def learn(
         progress=progress,
     )
     _check_training(settings)
+    if not isinstance(symmetries, bool):
+        raise InputError.at("symmetries", f"expected true or false, got {symmetries!r}")
     fields = as_fields(data, boundary)
     nsites = _bound_to(model, fields)
     t0 = time.perf_counter()
@@ -165,7 +171,7 @@ def learn(
     else:
         iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
     wall = time.perf_counter() - t0
-    diag = diagnose(model, fields, gauge=gauge)
+    diag = diagnose(model, fields, gauge=gauge, symmetries=symmetries)
     degenerate, warnings = fit_warnings(diag)
     report = LearnReport(
         method=optimizer,
@@ -185,6 +191,7 @@ def learn(
         stop_reason=reason,
         history=history,
         validation=validation,
+        symmetries=diag.get("symmetries"),
         hessian_max_sv=diag["hessian_max_sv"],
         degenerate=degenerate,
         warnings=warnings,

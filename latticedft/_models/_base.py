@@ -228,7 +228,7 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
 
         >>> from latticedft import PolynomialLagrangian
         >>> sorted(PolynomialLagrangian.option_checks())
-        ['basis', 'orders', 'scale', 'time_symmetric']
+        ['basis', 'orders', 'parity', 'scale', 'time_symmetric']
         """
         return option_checks_of(cls.__init__)
 

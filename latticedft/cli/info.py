@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 
+from .._learn._report import symmetry_lines
 from .._results import load_verified_model, read_summary
 from ._common import OK, add_case_arguments, open_case, results_dir
 
@@ -43,6 +44,10 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
         train = summary.get("train") or {}
         keys = ("loss", "rel_res", "iterations", "wall_time", "gauge_residual", "hessian_min_sv", "hessian_cond")
         print("training: " + ", ".join(f"{k} {_fmt(train[k])}" for k in keys if k in train))
+        if isinstance(train.get("symmetries"), list):
+            print("symmetries of the learned L_d over the training data:")
+            for line in symmetry_lines(train["symmetries"]):
+                print(f"  {line}")
         for name, t in (summary.get("tasks") or {}).items():
             parts = [("complete" if t.get("complete") else "INCOMPLETE"), f"{t.get('slices')} slices"]
             for k in (
@@ -57,6 +62,8 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
                     parts.append(f"{k} {_fmt(t[k])}")
             if t.get("baseline"):
                 parts.append(f"baseline max_error {_fmt(t['baseline'].get('max_error_same_slices'))}")
+            for charge, c in (t.get("charges") or {}).items():
+                parts.append(f"{charge} drift {_fmt(c.get('relative_drift'))}")
             print(f"task {name}: " + ", ".join(parts))
         print(
             f"exit status of the last run: {summary.get('exit_status')}; versions "
