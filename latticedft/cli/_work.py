@@ -73,6 +73,8 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
             out.invariant,
             attrs={**attrs, "latticedft_task": out.name, "latticedft_complete": "true" if out.complete else "false"},
             history=history,
+            baseline=td.baseline,
+            steps=td.steps,
         )
         out.record["file"] = path.name
         log.debug("wrote %s", path.name)
