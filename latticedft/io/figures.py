@@ -85,9 +85,10 @@ def _label(da: xr.DataArray, dim: str) -> str:
     return _named(attrs.get("long_name"), dim) + _units_text(attrs.get("units"))
 
 
-def _quantity(da: xr.DataArray, variable: str, suffix: str = "") -> str:
-    """Label of a field's values: ``"string displacement psi (dimensionless)"``."""
-    return _named(da.attrs.get("long_name"), variable + suffix) + _units_text(da.attrs.get("units"))
+def _quantity(da: xr.DataArray, variable: str, suffix: str = "", width: int = 42) -> str:
+    """Label of a field's values: ``"string displacement psi (dimensionless)"``, wrapped at ``width`` characters."""
+    text = _named(da.attrs.get("long_name"), variable + suffix) + _units_text(da.attrs.get("units"))
+    return "\n".join(textwrap.wrap(text, width)) or text
 
 
 def _error_label(variable: str, units: Any, what: str = "") -> str:
@@ -153,6 +154,18 @@ def _per_slice(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     worst[empty] = np.nan
     rms[empty] = np.nan
     return worst, rms
+
+
+def _decade(ax: Axes) -> None:
+    """Let a log axis span at least a decade around its curves (a near-constant curve otherwise fills it)."""
+    values = [np.asarray(line.get_ydata(), dtype=np.float64) for line in ax.get_lines()]
+    finite = np.concatenate([v[np.isfinite(v) & (v > 0)] for v in values] + [np.zeros(0)])
+    if finite.size == 0:
+        return
+    lo, hi = float(finite.min()), float(finite.max())
+    if hi / lo < 10:
+        mid = np.sqrt(lo * hi)
+        ax.set_ylim(mid / 10**0.5 / 1.5, mid * 10**0.5 * 1.5)
 
 
 def _positive(values: np.ndarray) -> np.ndarray:
@@ -432,6 +445,7 @@ def _plot_errors(
     ax.set_xlabel(_label(pred, tdim))
     ax.set_ylabel(f"error {_error_label(var, units)}")
     ax.set_title("error against the reference, per slice")
+    _decade(ax)
     _mark_unserved(ax, span, vertical=False)
     ax.grid(True, which="major", alpha=0.3)
     ax.legend(loc="best", fontsize="small")
@@ -454,7 +468,8 @@ def _plot_drift(
             continue
         q0 = finite[0]
         scale = abs(q0)
-        label = _named(q.attrs.get("long_name"), name)
+        long_name = q.attrs.get("long_name")
+        label = f"{long_name} ({name})" if long_name not in (None, "", name) else name
         if scale == 0 or np.max(np.abs(finite)) < 1e-300:
             scale, label = 1.0, f"{label} (absolute: Q(0) = 0)"
             absolute.append(name)
@@ -466,6 +481,7 @@ def _plot_drift(
         "relative drift |Q(t) - Q(0)| / |Q(0)|" if not absolute or len(absolute) < len(series) else "|Q(t) - Q(0)|"
     )
     ax.set_title("conserved quantities: drift from the first slice")
+    _decade(ax)
     _mark_unserved(ax, span, vertical=False)
     ax.grid(True, which="major", alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
@@ -511,25 +527,26 @@ def _build(
 
     n_space = len(dims) - 1
     ncomp = pred.sizes.get(COMPONENT_DIM, 1)
-    suffix = ""
+    orbit = n_space == 0 and ncomp >= 2
+    comp = _first_component(pred)[1] if n_space else ""
+    suffix = f"_{comp}" if comp else ""
     if n_space == 0:
-        width = 10.0
-        top = 5.2 if ncomp >= 2 else 1.2 + 2.3 * ncomp
+        width, top = (11.0, 5.6) if orbit else (10.0, 1.2 + 2.3 * ncomp)
+    elif n_space == 1:
+        width, top = (12.6 if ref is not None else 6.0), 3.9
     else:
-        comp = _first_component(pred)[1]
-        suffix = f"_{comp}" if comp else ""
-        if n_space == 1:
-            width, top = (12.6 if ref is not None else 6.0), 3.9
-        else:
-            width, top = 11.0, 3.0 * (3 if ref is not None else 1) + 0.7
-    panels_below = int(err is not None) + int(bool(drift))
-    heights = ([0.3 + 0.2 * len(lines)] if lines else []) + [top] + ([3.1] if panels_below else [])
-    fig = Figure(figsize=(max(width, 9.0 if panels_below == 2 else 6.0), sum(heights) + 0.4), layout="constrained")
+        width, top = 11.0, 3.0 * (3 if ref is not None else 1) + 0.7
+    n_time = int(err is not None) + int(bool(drift))  # panels over time
+    # rows: the status box, the field, the panels over time (side by side; an orbit has them on its right)
+    heights = [0.3 + 0.2 * len(lines)] if lines else []
+    heights += [max(top, 2.6 * n_time) if orbit else top]
+    heights += [3.1] if n_time and not orbit else []
+    width = max(width, 9.0 if n_time == 2 else 6.0)
+    fig = Figure(figsize=(width, sum(heights) + 0.4), layout="constrained")
     FigureCanvasAgg(fig)
     subs = list(fig.subfigures(len(heights), 1, height_ratios=heights, squeeze=False)[:, 0])
     if lines:
-        box = subs.pop(0)
-        box.text(
+        subs.pop(0).text(
             0.5,
             0.5,
             "\n".join(lines),
@@ -542,27 +559,29 @@ def _build(
         )
     field_fig = subs.pop(0)
     train = list(train or [])
-    if n_space == 0:
-        if ncomp >= 2:
-            _plot_orbit(field_fig.add_subplot(), pred, ref, train)
+    time_axes: list[Axes] = []
+    if orbit:
+        if n_time:
+            left, right = field_fig.subfigures(1, 2, width_ratios=[1.0, 1.0])
+            _plot_orbit(left.add_subplot(), pred, ref, train)
+            time_axes = list(right.subplots(n_time, 1, squeeze=False)[:, 0])
         else:
-            _plot_series(field_fig, pred, ref, train, span)
+            _plot_orbit(field_fig.add_subplot(), pred, ref, train)
+    elif n_space == 0:
+        _plot_series(field_fig, pred, ref, train, span)
     else:
-        pred1, _ = _first_component(pred)
+        pred1 = _first_component(pred)[0]
         ref1 = _first_component(ref)[0] if ref is not None else None
         if n_space == 1:
             _plot_spacetime(field_fig, pred1, ref1, span, suffix)
         else:
             _plot_snapshots(field_fig, pred1, ref1, suffix)
-    if panels_below:
-        below = subs.pop(0)
-        axes = below.subplots(1, panels_below, squeeze=False)[0]
-        k = 0
-        if err is not None:
-            _plot_errors(axes[k], pred, err, series, span)
-            k += 1
-        if drift:
-            _plot_drift(axes[k], pred, drift, span)
+    if n_time and not time_axes:
+        time_axes = list(subs.pop(0).subplots(1, n_time, squeeze=False)[0])
+    if err is not None:
+        _plot_errors(time_axes.pop(0), pred, err, series, span)
+    if drift:
+        _plot_drift(time_axes.pop(0), pred, drift, span)
     if title:
         fig.suptitle(title + (f" ({pred.name or 'psi'}{suffix} shown)" if suffix else ""), fontsize="large")
     return fig
