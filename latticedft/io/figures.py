@@ -47,6 +47,9 @@ import numpy as np
 import xarray as xr
 
 from latticedft._errors import InputError
+from latticedft.io._labels import coord_label as _label
+from latticedft.io._labels import quantity_label
+from latticedft.io._labels import units_text as _units_text
 from latticedft.io.exporters import Exporter, ExportTask
 from latticedft.io.fields import COMPONENT_DIM, lattice_dims
 
@@ -66,29 +69,8 @@ _RED = "#b00000"
 # ----------------------------------------------------------------------------- labels
 
 
-def _units_text(units: Any) -> str:
-    if units is None or str(units).strip() == "":
-        return ""
-    return " (dimensionless)" if str(units).strip() == "1" else f" [{units}]"
-
-
-def _named(long_name: Any, symbol: str) -> str:
-    """``"time t"`` from (``"time"``, ``"t"``); just the symbol when the long name adds nothing."""
-    if long_name is None or str(long_name).strip() in ("", symbol):
-        return symbol
-    return f"{long_name} {symbol}"
-
-
-def _label(da: xr.DataArray, dim: str) -> str:
-    """Axis label of a coordinate: its long name, symbol and units."""
-    attrs = da.coords[dim].attrs if dim in da.coords else {}
-    return _named(attrs.get("long_name"), dim) + _units_text(attrs.get("units"))
-
-
-def _quantity(da: xr.DataArray, variable: str, suffix: str = "", width: int = 42) -> str:
-    """Label of a field's values: ``"string displacement psi (dimensionless)"``, wrapped at ``width`` characters."""
-    text = _named(da.attrs.get("long_name"), variable + suffix) + _units_text(da.attrs.get("units"))
-    return "\n".join(textwrap.wrap(text, width)) or text
+def _quantity(da: xr.DataArray, variable: str, suffix: str = "") -> str:
+    return quantity_label(da, variable, suffix, width=42)
 
 
 def _error_label(variable: str, units: Any, what: str = "") -> str:
