@@ -347,6 +347,8 @@ def _plot_spacetime(
 def _plot_snapshots(
     sf: Figure | SubFigure, pred: xr.DataArray, ref: xr.DataArray | None, suffix: str, n_times: int = 3
 ) -> None:
+    from matplotlib.ticker import MaxNLocator
+
     dims = lattice_dims(pred)
     var = str(pred.name or "psi")
     tdim, ydim, xdim = dims[0], dims[-2], dims[-1]
@@ -356,11 +358,11 @@ def _plot_snapshots(
     ref = ref.isel(middle) if ref is not None else None
     nt = pred.sizes[tdim]
     idx = np.unique(np.round(np.linspace(0, nt - 1, min(n_times, nt))).astype(int))
-    value_label = _quantity(pred, var, suffix)
+    value_label = quantity_label(pred, var, suffix, width=28)
     rows = [("prediction", pred, value_label)]
     if ref is not None:
         err_label = f"{var}{suffix} - {var}{suffix}_ref" + _units_text(pred.attrs.get("units"))
-        rows += [("reference", ref, value_label), ("error", pred - ref, err_label)]
+        rows += [("reference", ref, value_label), ("error", pred - ref, "\n".join(textwrap.wrap(err_label, 28)))]
     x, y = _coord(pred, xdim), _coord(pred, ydim)
     extent = (x[0], x[-1], y[0], y[-1])
     t = _coord(pred, tdim)
@@ -387,6 +389,7 @@ def _plot_snapshots(
                 ax.set_ylabel(f"{name}\n{_label(pred, ydim)}")
             if r == len(rows) - 1:
                 ax.set_xlabel(_label(pred, xdim))
+                ax.xaxis.set_major_locator(MaxNLocator(nbins=4, prune="upper"))  # no clash between panels
         sf.colorbar(im, ax=list(axes[r]), shrink=0.9, pad=0.02, fraction=0.04, label=cb_label)
 
 
@@ -404,10 +407,17 @@ def _plot_errors(
     var = str(pred.name or "psi")
     units = pred.attrs.get("units", err.attrs.get("units"))
     t = _coord(pred, tdim)
-    worst, rms = _per_slice(np.asarray(err.transpose(tdim, ...).values))
-    ax.semilogy(t, _positive(worst), "-", color="tab:red", lw=1.5, label="learned L_d: max")
-    ax.semilogy(t, _positive(rms), "--", color="tab:red", lw=1.2, label="learned L_d: rms")
+    values = np.asarray(err.transpose(tdim, ...).values)
+    worst, rms = _per_slice(values)
+    one_site = values[0].size == 1  # psi(t): max and rms are the same number
+    if one_site:
+        ax.semilogy(t, _positive(worst), "-", color="tab:red", lw=1.5, label="learned L_d")
+    else:
+        ax.semilogy(t, _positive(worst), "-", color="tab:red", lw=1.5, label="learned L_d: max")
+        ax.semilogy(t, _positive(rms), "--", color="tab:red", lw=1.2, label="learned L_d: rms")
     base_max, base_rms = series.get("baseline_err_max"), series.get("baseline_err_rms")
+    if one_site and base_max is not None:
+        base_rms = None
     if base_max is not None or base_rms is not None:
         ref_series = base_max if base_max is not None else base_rms
         assert ref_series is not None
@@ -416,7 +426,12 @@ def _plot_errors(
         name = textwrap.shorten(name, 50, placeholder="...")
         if base_max is not None:
             ax.semilogy(
-                _coord(base_max, tdim), _positive(base_max.values), "-", color="0.35", lw=1.2, label=f"{name}: max"
+                _coord(base_max, tdim),
+                _positive(base_max.values),
+                "-",
+                color="0.35",
+                lw=1.2,
+                label=name if one_site else f"{name}: max",
             )
         if base_rms is not None:
             ax.semilogy(

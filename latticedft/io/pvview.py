@@ -336,6 +336,12 @@ def main(argv=None):
     parser.add_argument("--nc", action="store_true", help="read the task file {name}.nc (netCDF CF reader)")
     parser.add_argument("--size", type=int, nargs=2, default=[1600, 700], metavar=("W", "H"))
     args, _ = parser.parse_known_args(sys.argv[1:] if argv is None and hasattr(sys, "argv") else argv or [])
+    if args.screenshot and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+        print(
+            "no X display: if ParaView crashes (SIGSEGV in XSync), run it under a virtual one: "
+            "xvfb-run -a pvpython " + " ".join(sys.argv),
+            file=sys.stderr,
+        )
     if TASK["kind"] in ("series", "orbit"):
         if args.nc:
             sys.exit("--nc: 1D fields are shown from {{}}; drop --nc".format(TASK["vtp"]))
