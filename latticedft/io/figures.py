@@ -222,7 +222,7 @@ def _mark_unserved(ax: Axes, span: tuple[float, float] | None, vertical: bool) -
     if span is None:
         return
     lo, hi = span
-    kw = {"facecolor": "none", "edgecolor": _RED, "hatch": "//", "alpha": 0.35, "lw": 0}
+    kw: dict[str, Any] = {"facecolor": "none", "edgecolor": _RED, "hatch": "//", "alpha": 0.35, "lw": 0}
     if vertical:
         ax.axhspan(lo, hi, **kw)
         ax.set_ylim(top=hi)
