@@ -74,6 +74,8 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
             attrs={**attrs, "latticedft_task": out.name, "latticedft_complete": "true" if out.complete else "false"},
             history=history,
             charges=out.charges,
+            baseline=td.baseline,
+            steps=td.steps,
         )
         out.record["file"] = path.name
         log.debug("wrote %s", path.name)
