@@ -240,14 +240,13 @@ class TaskOutcome:
     def file_attrs(self, model_warnings: list[str]) -> dict[str, Any]:
         """Global attributes of ``<task>.nc`` saying whether the field is complete and what to distrust.
 
-        ``latticedft_complete`` ("true"/"false"), ``latticedft_steps`` (slices asked for),
-        ``latticedft_warnings`` (a JSON list of one-line warnings: the model's, then the task's) and, for an
-        incomplete task, ``latticedft_stopped_at_slice`` (slices written) and ``latticedft_stop_reason``.
+        ``latticedft_complete`` ("true"/"false"), ``latticedft_warnings`` (a JSON list of one-line warnings:
+        the model's, then the task's) and, for an incomplete task, ``latticedft_stopped_at_slice`` (slices
+        written) and ``latticedft_stop_reason``. (``latticedft_steps`` is written by ``write_task``.)
         """
         rec = self.record
         attrs: dict[str, Any] = {
             "latticedft_complete": "true" if self.complete else "false",
-            "latticedft_steps": int(rec.get("steps", 0)),
             "latticedft_warnings": json.dumps([*model_warnings, *rec.get("warnings", [])]),
         }
         if not self.complete:

@@ -86,6 +86,8 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
             attrs={**attrs, "latticedft_task": out.name, **out.file_attrs(model_warnings)},
             history=history,
             charges=out.charges,
+            baseline=td.baseline,
+            steps=td.steps,
             extra={"extrapolation": out.extrapolation} if out.extrapolation is not None else None,
         )
         out.record["file"] = path.name

@@ -30,16 +30,17 @@ __all__ = [
     "write_paraview",
     "write_pvd",
     "plot_prediction",
+    "task_figure",
     "write_xdmf",
     "read_xdmf",
 ]
 
 
 def __getattr__(name: str):  # matplotlib and meshio are imported only when figures or XDMF are wanted
-    if name == "plot_prediction":
-        from latticedft.io.figures import plot_prediction
+    if name in ("plot_prediction", "task_figure"):
+        from latticedft.io import figures
 
-        return plot_prediction
+        return getattr(figures, name)
     if name in ("write_xdmf", "read_xdmf"):
         from latticedft.io import xdmf
 
