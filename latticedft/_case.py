@@ -203,6 +203,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "rel_tol": (t_pos_float, None),
         "lr": (t_pos_float, 1e-3),
         "penalty": (t_nonneg_float, 1.0),
+        "symmetries": (t_bool, False),
     },
     "serve": {
         "name": (t_name, _REQUIRED),
@@ -217,6 +218,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "reference": (t_str, None),
         "baseline": (t_str, None),
         "invariant": (t_invariant, None),
+        "charges": (t_str_list, None),
     },
     "run": {
         "threads": (t_pos_int, None),
@@ -326,6 +328,8 @@ class ServeTask:
     reference: Path | None = None
     baseline: Path | None = None
     invariant: str | None = None
+    #: Noether charges (names of built-in continuous symmetries, "energy", "auto") measured along the served field.
+    charges: tuple[str, ...] = ()
     label: str = "serve[0]"
     #: True when the file (or ``--set``) gave the deprecated key ``steps`` instead of ``slices``.
     deprecated_steps: bool = False
@@ -647,6 +651,7 @@ def _validate(raw: dict[str, Any], root: Path, file: Path, overrides: tuple[str,
                 reference=_resolve(ctx, root, f"{label}.reference", s["reference"]) if s["reference"] else None,
                 baseline=_resolve(ctx, root, f"{label}.baseline", s["baseline"]) if s["baseline"] else None,
                 invariant=s["invariant"],
+                charges=tuple(s["charges"] or ()),
                 label=label,
                 deprecated_steps=slices_key == "steps",
             )

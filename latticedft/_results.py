@@ -62,6 +62,7 @@ from ._errors import InputError, LatticeDFTError, ModelFileError
 __all__ = [
     "FAULT_ENV",
     "FAULT_POINTS",
+    "read_task_series",
     "RUN_LOG",
     "ResultsError",
     "Staging",
@@ -715,20 +716,75 @@ def write_task(
     *,
     attrs: Mapping[str, Any],
     history: str,
+    baseline: xr.DataArray | None = None,
+    steps: int | None = None,
+    charges: xr.Dataset | None = None,
+    extra: Mapping[str, xr.DataArray] | None = None,
 ) -> Path:
-    """``<name>.nc``: the served field, ``<var>_ref`` and ``<var>_err`` when a reference covers it."""
+    """``<name>.nc``: the served field, ``<var>_ref`` and ``<var>_err`` when a reference covers it, the
+    ``invariant`` and the task's ``charges`` (``charge_<name>(t)``, ``energy(t)``) when given, and the
+    variables of ``extra`` (e.g. ``extrapolation(t, feature)``).
+
+    With a ``baseline`` (another scheme's field, scored against the same
+    reference) the file also holds ``baseline_err_max(t)`` and
+    ``baseline_err_rms(t)``: the baseline's max and RMS error per served slice
+    (NaN where the baseline holds no slice), so that the figures of a later
+    ``export`` need the file alone. ``steps`` (the slices the task asked for)
+    is written as the global attribute ``latticedft_steps``.
+    """
     pred = pred.rename(variable)
-    pred.attrs = {**pred.attrs, "long_name": f"{variable} served by the learned theory"}
+    quantity = str(pred.attrs.get("long_name") or variable)
+    units = pred.attrs.get("units")
+    unit_attrs = {"units": units} if units is not None else {}
+    pred.attrs = {**pred.attrs, "long_name": quantity, "comment": "served by the learned discrete Lagrangian"}
     fields: dict[str, xr.DataArray] = {variable: pred}
     ref_al = align_reference(pred, ref)
     if ref_al is not None:
-        fields[f"{variable}_ref"] = ref_al.assign_attrs(long_name=f"reference {variable}")
-        err = (pred - ref_al).assign_attrs(long_name=f"{variable} - {variable}_ref")
+        ref_al.attrs = {**ref_al.attrs, "comment": "reference"}
+        fields[f"{variable}_ref"] = ref_al
+        err = (pred - ref_al).assign_attrs(long_name=f"{variable} - {variable}_ref", **unit_attrs)
         fields[f"{variable}_err"] = err
+        if baseline is not None:
+            fields.update(_baseline_errors(pred, ref_al, baseline, unit_attrs))
     if invariant is not None:
         fields["invariant"] = invariant.rename("invariant")
+    if charges is not None:
+        fields.update({str(k): v.rename(str(k)) for k, v in charges.data_vars.items()})
+    fields.update({k: v.rename(k) for k, v in (extra or {}).items()})
+    all_attrs = dict(attrs)
+    if steps is not None:
+        all_attrs["latticedft_steps"] = int(steps)
     with _writing(folder / f"{name}.nc"):
-        return write_field(folder / f"{name}.nc", fields, attrs=attrs, history=history)
+        return write_field(folder / f"{name}.nc", fields, attrs=all_attrs, history=history)
+
+
+def _baseline_errors(
+    pred: xr.DataArray, ref: xr.DataArray, baseline: xr.DataArray, unit_attrs: Mapping[str, Any]
+) -> dict[str, xr.DataArray]:
+    """The baseline's max and RMS error against ``ref`` per slice of ``pred`` (position by position)."""
+    tdim = pred.dims[0]
+    nt = pred.sizes[tdim]
+    base = baseline.transpose(*pred.dims) if set(baseline.dims) == set(pred.dims) else baseline
+    if base.shape[1:] != pred.shape[1:]:
+        return {}
+    n = min(nt, base.sizes[tdim])
+    diff = np.full(pred.shape, np.nan)
+    diff[:n] = np.asarray(base.values[:n], dtype=np.float64) - np.asarray(ref.values[:n], dtype=np.float64)
+    flat = diff.reshape(nt, -1)
+    with np.errstate(invalid="ignore"):
+        worst = np.abs(flat).max(axis=1) if flat.shape[1] else np.full(nt, np.nan)
+        rms = np.sqrt(np.mean(flat**2, axis=1)) if flat.shape[1] else np.full(nt, np.nan)
+    label = str(baseline.attrs.get("long_name") or "baseline")
+    coords = {tdim: pred.coords[tdim]} if tdim in pred.coords else None
+    common = {"baseline": label, **unit_attrs}
+    return {
+        "baseline_err_max": xr.DataArray(
+            worst, dims=(tdim,), coords=coords, attrs={"long_name": "max |baseline - reference| per slice", **common}
+        ),
+        "baseline_err_rms": xr.DataArray(
+            rms, dims=(tdim,), coords=coords, attrs={"long_name": "rms of (baseline - reference) per slice", **common}
+        ),
+    }
 
 
 def write_field(path: Path, fields: Mapping[str, xr.DataArray], *, attrs: Mapping[str, Any], history: str) -> Path:
@@ -767,10 +823,14 @@ def export_task(
     """Write task ``name`` in each export format of ``formats``; the files written.
 
     Formats are the names of :data:`latticedft.io.exporters.EXPORTERS`
-    (``"paraview"``, ``"figures"``, ``"xdmf"``).
+    (``"paraview"``, ``"figures"``, ``"xdmf"``). When ``folder/<name>.nc``
+    exists, its global attributes and its series over time (``invariant``,
+    ``energy``, ``charge_*``, ``baseline_err_*`` ...) go to the exporters too
+    (:func:`read_task_series`).
     """
     from .io.exporters import ExportTask, export_formats
 
+    attrs, series = read_task_series(Path(folder) / f"{name}.nc", variable)
     task = ExportTask(
         folder=Path(folder),
         name=name,
@@ -780,9 +840,29 @@ def export_task(
         max_frames=max_frames,
         train=tuple(train) if train is not None else None,
         title=title or name,
+        attrs=attrs,
+        series=series,
     )
     with _writing(Path(folder) / f"{name}.*"):
         return export_formats(task, formats)
+
+
+def read_task_series(path: Path, variable: str) -> tuple[dict[str, Any], dict[str, xr.DataArray]]:
+    """Global attributes and the series over time of a task file (both empty when there is no file).
+
+    A series is a data variable whose only dim is the field's time dim, other
+    than the field itself, ``<var>_ref`` and ``<var>_err`` (1D fields).
+    """
+    if not Path(path).is_file():
+        return {}, {}
+    with xr.open_dataset(path, engine="netcdf4", decode_times=False) as ds:
+        attrs = dict(ds.attrs)
+        if variable not in ds.data_vars:
+            return attrs, {}
+        tdim = ds[variable].dims[0]
+        skip = {variable, f"{variable}_ref", f"{variable}_err"}
+        series = {str(k): v.load() for k, v in ds.data_vars.items() if v.dims == (tdim,) and str(k) not in skip}
+    return attrs, series
 
 
 def write_summary(folder: Path, summary: Mapping[str, Any]) -> Path:

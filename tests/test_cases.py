@@ -134,6 +134,7 @@ def _oscillator(case: str) -> Callable[[Path], dict[str, Any]]:
             "task_complete": {n: t["complete"] for n, t in tasks.items()},
             "task_slices": {n: t["slices"] for n, t in tasks.items()},
             "task_max_error": {n: t["max_error"] for n, t in tasks.items()},
+            "warnings": summary["warnings"],
         }
 
     return run

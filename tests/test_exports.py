@@ -160,5 +160,5 @@ def test_each_format_alone(tmp_path: Path, capsys, fmt: str) -> None:
     case = tiny_wave(tmp_path)
     assert run_cli(capsys, "run", case, "-q", "--set", f'export.formats=["{fmt}"]')[0] == 0
     files = _check_listed(case / "results", ("test",))["test"]
-    suffixes = {"paraview": {".pvd", ".vtr"}, "figures": {".png"}, "xdmf": {".xdmf", ".h5"}}[fmt]
+    suffixes = {"paraview": {".pvd", ".vtr", ".py"}, "figures": {".png"}, "xdmf": {".xdmf", ".h5"}}[fmt]
     assert {Path(f).suffix for f in files} == suffixes

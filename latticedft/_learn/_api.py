@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import replace
@@ -15,7 +16,7 @@ from ._data import as_fields, check_model_lattice, n_sites
 from ._exact import learn_exact
 from ._gauge import AUTO, Gauge, gauge_named
 from ._neural import Training, learn_neural
-from ._report import LearnReport, diagnose
+from ._report import LearnReport, diagnose, fit_warnings
 
 __all__ = ["learn"]
 
@@ -54,9 +55,30 @@ def _checked(
         raise InputError.at("optimizer", f"'exact' needs a model linear in its parameters; {model.kind!r} is not")
     if not (ridge == "auto" or (isinstance(ridge, (int, float)) and not isinstance(ridge, bool) and ridge >= 0)):
         raise InputError.at("ridge", f"expected a number >= 0 or 'auto', got {ridge!r}")
-    if not isinstance(max_iter, int) or max_iter < 1:
+    if not isinstance(max_iter, int) or isinstance(max_iter, bool) or max_iter < 1:
         raise InputError.at("max_iter", f"expected a positive integer, got {max_iter!r}")
     return fix, optimizer
+
+
+def _check_number(name: str, value: object, *, strict: bool, optional: bool = False) -> None:
+    """Refuse ``value`` unless it is a finite real number ``> 0`` (``strict``) or ``>= 0`` (or None if ``optional``)."""
+    if optional and value is None:
+        return
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value < 0 or (strict and value == 0):  # type: ignore[operator]
+        what = "a number > 0" if strict else "a number >= 0"
+        raise InputError.at(name, f"expected {what}{' or None' if optional else ''}, got {value!r}")
+
+
+def _check_training(training: Training) -> None:
+    """Refuse bad iterative-training settings with an InputError naming the argument."""
+    _check_number("max_time", training.max_time, strict=True, optional=True)
+    _check_number("tol", training.tol, strict=False)
+    _check_number("rel_tol", training.rel_tol, strict=True, optional=True)
+    _check_number("lr", training.lr, strict=True)
+    _check_number("penalty", training.penalty, strict=False)
+    if training.progress is not None and not isinstance(training.progress, bool):
+        raise InputError.at("progress", f"expected True, False or None, got {training.progress!r}")
 
 
 def _bound_to(model: AbstractLagrangian, fields: list[LatticeField]) -> int:
@@ -65,7 +87,9 @@ def _bound_to(model: AbstractLagrangian, fields: list[LatticeField]) -> int:
         check_model_lattice(model, f, f"data[{i}]")
     f0 = fields[0]
     model.bind(f0.ndim, f0.ncomp, f0.spacing, f0.components)
-    model.prepare([gather_cells(f.values, model.stencil, f.boundary) for f in fields])
+    cells = [gather_cells(f.values, model.stencil, f.boundary) for f in fields]
+    model.prepare(cells)
+    model.record_feature_range(cells)
     nsites = sum(n_sites(f, model) for f in fields)
     if nsites == 0:
         raise InputError("data: no interior site carries a DEL equation (lattices too small for the stencil)")
@@ -87,6 +111,7 @@ def learn(
     penalty: float = 1.0,
     boundary: BoundaryKinds | None = None,
     progress: bool | None = None,
+    symmetries: bool = False,
 ) -> LearnReport:
     """Learn ``L_d`` from one or more observed fields; the model is fitted in place.
 
@@ -123,6 +148,9 @@ def learn(
         attribute.
     progress : bool, optional
         Progress bar; ``None`` shows it only on a terminal.
+    symmetries : bool
+        Also test the learned ``L_d`` for every built-in symmetry of the data's lattice over the training
+        data (:func:`latticedft.symmetries`); the results are ``report.symmetries`` (docs/symmetries.md).
 
     Returns
     -------
@@ -140,8 +168,6 @@ def learn(
     True
     """
     fix, optimizer = _checked(model, gauge, ridge, optimizer, max_iter)
-    fields = as_fields(data, boundary)
-    nsites = _bound_to(model, fields)
     settings = Training(
         optimizer=optimizer,
         max_iter=max_iter,
@@ -152,10 +178,15 @@ def learn(
         penalty=penalty,
         progress=progress,
     )
+    _check_training(settings)
+    if not isinstance(symmetries, bool):
+        raise InputError.at("symmetries", f"expected true or false, got {symmetries!r}")
+    fields = as_fields(data, boundary)
+    nsites = _bound_to(model, fields)
     if fix is None:  # "auto"
-        report = _learn_auto(model, fields, ridge, nsites, settings)
+        report = _learn_auto(model, fields, ridge, nsites, settings, symmetries)
     else:
-        report = _fit(model, fields, fix, ridge, nsites, settings)
+        report = _fit(model, fields, fix, ridge, nsites, settings, symmetries)
     model.report_ = report
     return report
 
@@ -167,6 +198,7 @@ def _fit(
     ridge: float | str,
     nsites: int,
     settings: Training,
+    symmetries: bool = False,
 ) -> LearnReport:
     """One fit of the bound ``model`` with the gauge ``fix``, measured."""
     t0 = time.perf_counter()
@@ -180,7 +212,8 @@ def _fit(
     else:
         iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
     wall = time.perf_counter() - t0
-    diag = diagnose(model, fields, gauge=fix.name)
+    diag = diagnose(model, fields, gauge=fix.name, symmetries=symmetries)
+    degenerate, warnings = fit_warnings(diag)
     return LearnReport(
         method=settings.optimizer,
         loss=diag["loss"],
@@ -199,15 +232,24 @@ def _fit(
         stop_reason=reason,
         history=history,
         validation=validation,
+        symmetries=diag.get("symmetries"),
+        hessian_max_sv=diag["hessian_max_sv"],
+        degenerate=degenerate,
+        warnings=warnings,
     )
 
 
 def _learn_auto(
-    model: AbstractLagrangian, fields: list[LatticeField], ridge: float | str, nsites: int, settings: Training
+    model: AbstractLagrangian,
+    fields: list[LatticeField],
+    ridge: float | str,
+    nsites: int,
+    settings: Training,
+    symmetries: bool = False,
 ) -> LearnReport:
     """``gauge="auto"``: the rule of :data:`AUTO_RULE`, every candidate fitted from the same start."""
     start = {k: v.detach().clone() for k, v in model.state_dict().items()}
-    first = _fit(model, fields, gauge_named("unit-mass"), ridge, nsites, settings)
+    first = _fit(model, fields, gauge_named("unit-mass"), ridge, nsites, settings, symmetries)
     scores = {"unit-mass": first.rel_res}
     if model.m == 1:
         why = "one component: unit-mass and trace are the same condition"
@@ -218,7 +260,7 @@ def _learn_auto(
     else:
         kept = {k: v.detach().clone() for k, v in model.state_dict().items()}
         model.load_state_dict(start)
-        second = _fit(model, fields, gauge_named("trace"), ridge, nsites, settings)
+        second = _fit(model, fields, gauge_named("trace"), ridge, nsites, settings, symmetries)
         scores["trace"] = second.rel_res
         better = second.rel_res < AUTO_FACTOR * first.rel_res and second.hessian_min_sv >= AUTO_MIN_SV
         wall = first.wall_time + second.wall_time

@@ -80,6 +80,8 @@ def _settings(
         if preset not in PRESETS:
             raise InputError.at("preset", f"unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
         out.update(PRESETS[preset])
+    if scale is not None and not isinstance(scale, bool):
+        raise InputError.at("scale", f"expected True, False or None, got {scale!r}")
     given = {"hidden": hidden, "activation": activation, "form": form, "features": features, "scale": scale}
     out.update({k: v for k, v in given.items() if v is not None})
     if out["form"] not in _FORM_CLASSES:

@@ -94,6 +94,11 @@ class PolynomialLagrangian(LinearLagrangian):
     time_symmetric : bool
         Keep only terms of even degree in the time difference ``g_0``
         (``L_d`` invariant under time reversal ``q_i <-> q_{i+1}`` in 1D).
+    parity : "even", optional
+        ``"even"``: keep only terms of even total degree (in the mean and the
+        differences together), with the mean scaled about 0, so that
+        ``L_d(-psi) = L_d(psi)`` exactly: the point reflection
+        ``psi -> -psi`` is a symmetry by construction (docs/symmetries.md).
     scale : bool
         Map every variable to ``[-1, 1]`` over the training data before
         building the basis (same span, far better conditioning).
@@ -122,6 +127,7 @@ class PolynomialLagrangian(LinearLagrangian):
         orders: Sequence[int] = (4, 8),
         *,
         time_symmetric: bool = False,
+        parity: str | None = None,
         scale: bool = True,
         basis: str = "legendre",
         stencil: Stencil | None = None,
@@ -133,10 +139,16 @@ class PolynomialLagrangian(LinearLagrangian):
             or not all(isinstance(o, int) and not isinstance(o, bool) and o >= 0 for o in orders)
         ):
             raise InputError.at("orders", f"expected two non-negative integers [P, Q], got {orders!r}")
+        for name, flag in (("time_symmetric", time_symmetric), ("scale", scale)):
+            if not isinstance(flag, (bool, np.bool_)):
+                raise InputError.at(name, f"expected True or False, got {flag!r}")
         if basis not in ("legendre", "monomial"):
             raise InputError.at("basis", f"expected 'legendre' or 'monomial', got {basis!r}")
+        if parity not in (None, "even"):
+            raise InputError.at("parity", f"expected 'even' (L_d(-psi) = L_d(psi)) or none, got {parity!r}")
         self.orders = (int(orders[0]), int(orders[1]))
         self.time_symmetric = bool(time_symmetric)
+        self.parity = parity
         self.scale = bool(scale)
         self.basis = basis
 
@@ -144,6 +156,7 @@ class PolynomialLagrangian(LinearLagrangian):
         return {
             "orders": list(self.orders),
             "time_symmetric": self.time_symmetric,
+            "parity": self.parity,
             "scale": self.scale,
             "basis": self.basis,
         }
@@ -157,6 +170,8 @@ class PolynomialLagrangian(LinearLagrangian):
         if self.time_symmetric:
             d_idx = [e for e in d_idx if sum(e[:m]) % 2 == 0]  # g_0 components come first
         exps = [s + d for d in d_idx for s in s_idx]
+        if self.parity == "even":  # every variable is odd under psi -> -psi, and so is P_k for odd k
+            exps = [e for e in exps if sum(e) % 2 == 0]
         self.register_buffer("exponents", torch.tensor(exps, dtype=torch.long))
         nvar = (n + 1) * m
         self.register_buffer("center", torch.zeros(nvar, dtype=torch.float64))
@@ -182,6 +197,9 @@ class PolynomialLagrangian(LinearLagrangian):
         half = (hi - lo) / 2
         center[m:] = 0.0  # differences are only scaled, so the time-reversal parity is kept
         half[m:] = z[:, m:].abs().max(0).values
+        if self.parity == "even":  # the mean too, so that psi -> -psi maps every scaled variable to minus itself
+            center[:m] = 0.0
+            half[:m] = z[:, :m].abs().max(0).values
         half = torch.where(half > 0, half, torch.ones_like(half))
         self.center.copy_(center)
         self.halfwidth.copy_(half)
@@ -445,6 +463,7 @@ class PolynomialLagrangian(LinearLagrangian):
             head,
             f"  basis: {self.basis} polynomials, degree <= {p} in the differences, <= {q} in the mean"
             + (", even in the time difference" if self.time_symmetric else "")
+            + (", even in psi" if self.parity == "even" else "")
             + f" ({self.n_terms} terms)",
         ]
         terms = self.monomials()

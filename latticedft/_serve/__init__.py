@@ -193,8 +193,16 @@ def serve(
         raise InputError(f"mode: expected one of {list(MODES)}, got {mode!r}")
     if not (isinstance(rtol, float) and 0 < rtol < 1):
         raise InputError(f"rtol: expected a float in (0, 1), got {rtol!r}")
-    if box is not None and not (isinstance(box, (int, float)) and box > 0):
+    if box is not None and not (isinstance(box, (int, float)) and not isinstance(box, bool) and box > 0):
         raise InputError(f"box: expected a positive number, got {box!r}")
+    if not isinstance(max_newton, int) or isinstance(max_newton, bool) or max_newton < 1:
+        raise InputError.at(
+            "max_newton", f"expected a positive integer (Newton iterations per slice), got {max_newton!r}"
+        )
+    if not isinstance(affine, bool):
+        raise InputError.at("affine", f"expected True or False, got {affine!r}")
+    if progress is not None and not isinstance(progress, bool):
+        raise InputError.at("progress", f"expected True, False or None, got {progress!r}")
     batch = isinstance(init, (list, tuple))
     items = list(init) if isinstance(init, (list, tuple)) else [init]
     if not items:

@@ -17,6 +17,7 @@ from .._lattice import LatticeField, gather_cells
 from .._models import AbstractLagrangian
 from ._affine import _affine_prefix
 from ._newton import _newton_slice
+from ._range import assess
 from ._result import ServeResult, _bar
 from ._slices import _site_label, _SliceSystem
 from ._sweep import _sweep_slice
@@ -71,12 +72,13 @@ class _FieldRun:
         out = _affine_prefix(self.model, self.f, self.sys, self.psi, self.flat, rtol, self.vol)
         if out is None:
             return
-        self.affine_slices, worst, dmax = out
+        self.affine_slices, worst, dmax, mscale = out
         self.start = 1 + self.affine_slices
         if self.affine_slices:
             self.worst = worst
             self.total_it, self.max_it = self.affine_slices, 1
             self.cache["dmax"] = dmax
+            self.cache["mscale"] = mscale
         self.bar.update(self.affine_slices)
 
     def solver(self) -> str:
@@ -110,6 +112,7 @@ class _FieldRun:
     def _result(
         self, field: LatticeField, complete: bool, reason: str, slices: int, wall: float, rate: float, residual: float
     ) -> ServeResult:
+        ext, warnings = assess(self.model, field)
         return ServeResult(
             field=field.to_dataarray(),
             complete=complete,
@@ -122,6 +125,8 @@ class _FieldRun:
             max_residual=residual,
             mode=self.mode,
             solver=self.solver(),
+            extrapolation=ext,
+            warnings=warnings,
         )
 
     def fail(self, i: int, msg: str, row: int | None, res: float) -> ServeError:

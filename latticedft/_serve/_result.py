@@ -12,6 +12,7 @@ import xarray as xr
 
 from .._errors import InputError
 from .._progress import progress_bar
+from ._range import extrapolation_summary
 
 
 @dataclass
@@ -34,9 +35,20 @@ class ServeResult:
     solver: str = "newton"
     #: a failed member of a 1D batch: ``(slice, residual)`` where it failed (``None`` otherwise)
     fail_at: tuple[int, float] | None = dataclasses.field(default=None, repr=False, compare=False)
+    #: ``extrapolation(t, feature)``: per slice, how far the served cells lie outside the model's training
+    #: range, per input feature, relative to the feature's training span (0 inside; None when the model
+    #: keeps no range). See ``extrapolation_summary()``.
+    extrapolation: xr.DataArray | None = None
+    #: One-line warnings about the served field (it leaves the training range ...); empty when none.
+    warnings: list[str] = dataclasses.field(default_factory=list)
+
+    def extrapolation_summary(self) -> dict[str, Any] | None:
+        """The largest excess per feature and the first slice beyond the tolerance (None without a range)."""
+        return extrapolation_summary(self.extrapolation)
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        """The numbers of the result (not the field): what ``summary.json`` records of a task."""
+        out = {
             k: getattr(self, k)
             for k in (
                 "complete",
@@ -51,6 +63,9 @@ class ServeResult:
                 "solver",
             )
         }
+        out["extrapolation"] = self.extrapolation_summary()
+        out["warnings"] = list(self.warnings)
+        return out
 
 
 def compare(pred: xr.DataArray, ref: xr.DataArray) -> dict[str, float]:
@@ -61,7 +76,14 @@ def compare(pred: xr.DataArray, ref: xr.DataArray) -> dict[str, float]:
     >>> compare(a, a + 0.5)
     {'max_error': 0.5, 'rms_error': 0.5, 'slices': 4}
     """
+    for name, arr in (("pred", pred), ("ref", ref)):
+        if not isinstance(arr, xr.DataArray):
+            raise InputError.at(name, f"expected an xarray.DataArray (time first), got {type(arr).__name__}")
+        if not arr.dims:
+            raise InputError.at(name, "expected a field with a time dim, got a scalar DataArray")
     tdim = pred.dims[0]
+    if ref.dims[0] != tdim:
+        raise InputError.at("ref", f"its first dim {ref.dims[0]!r} is not pred's time dim {tdim!r}")
     n = min(pred.sizes[tdim], ref.sizes[tdim])
     if pred.shape[1:] != ref.shape[1:]:
         raise InputError(f"compare: shapes {pred.shape} and {ref.shape} differ beyond the time axis")

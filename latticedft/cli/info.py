@@ -22,6 +22,7 @@ def _fmt(v: object) -> str:
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    from .._learn._report import symmetry_lines
     from .._results import load_verified_model, read_summary
 
     case = open_case(args)
@@ -54,6 +55,10 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
             "hessian_cond",
         )
         print("training: " + ", ".join(f"{k} {_fmt(train[k])}" for k in keys if k in train))
+        if isinstance(train.get("symmetries"), list):
+            print("symmetries of the learned L_d over the training data:")
+            for line in symmetry_lines(train["symmetries"]):
+                print(f"  {line}")
         for name, t in (summary.get("tasks") or {}).items():
             parts = [("complete" if t.get("complete") else "INCOMPLETE"), f"{t.get('slices')} slices"]
             for k in (
@@ -68,6 +73,8 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
                     parts.append(f"{k} {_fmt(t[k])}")
             if t.get("baseline"):
                 parts.append(f"baseline max_error {_fmt(t['baseline'].get('max_error_same_slices'))}")
+            for charge, c in (t.get("charges") or {}).items():
+                parts.append(f"{charge} drift {_fmt(c.get('relative_drift'))}")
             print(f"task {name}: " + ", ".join(parts))
         print(
             f"exit status of the last run: {summary.get('exit_status')}; versions "

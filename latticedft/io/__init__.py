@@ -19,6 +19,7 @@ from latticedft.io.fields import write_field as write_field
 
 if TYPE_CHECKING:
     from latticedft.io.figures import plot_prediction as plot_prediction
+    from latticedft.io.figures import task_figure as task_figure
     from latticedft.io.vtk import read_pvd as read_pvd
     from latticedft.io.vtk import write_paraview as write_paraview
     from latticedft.io.vtk import write_pvd as write_pvd
@@ -37,6 +38,7 @@ __all__ = [
     "write_paraview",
     "write_pvd",
     "plot_prediction",
+    "task_figure",
     "write_xdmf",
     "read_xdmf",
 ]
@@ -47,10 +49,10 @@ def __getattr__(name: str):  # pyvista, matplotlib and meshio are imported only 
         from latticedft.io import vtk
 
         return getattr(vtk, name)
-    if name == "plot_prediction":
-        from latticedft.io.figures import plot_prediction
+    if name in ("plot_prediction", "task_figure"):
+        from latticedft.io import figures
 
-        return plot_prediction
+        return getattr(figures, name)
     if name in ("write_xdmf", "read_xdmf"):
         from latticedft.io import xdmf
 

@@ -32,10 +32,11 @@ from __future__ import annotations
 
 import importlib
 import logging
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from dataclasses import field as _field
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import xarray as xr
 
@@ -67,7 +68,14 @@ EXPORTERS: dict[str, str] = {
 #: ``max(4, digits of the last slice)`` (:func:`export_file_names`). Every format of :data:`EXPORTERS` has
 #: its line; the test suite checks the exporters against it.
 EXPORT_FILES: dict[str, tuple[str, ...]] = {
-    "paraview": ("{name}.pvd", "{name}_{frame}.vtr", "{name}_{frame}.vtp", "{name}_spacetime.vtr", "{name}.vtp"),
+    "paraview": (
+        "{name}.pvd",
+        "{name}_{frame}.vtr",
+        "{name}_{frame}.vtp",
+        "{name}_spacetime.vtr",
+        "{name}.vtp",
+        "{name}_view.py",
+    ),
     "figures": ("{name}.png",),
     "xdmf": ("{name}.xdmf", "{name}.h5"),
 }
@@ -89,8 +97,13 @@ class ExportTask:
 
     ``field`` is the served field, named after the case's variable (``psi``);
     ``reference`` and ``error`` (``field - reference``) lie on the same slices
-    when a reference covers them, else they are None. Every file an exporter
-    writes goes into ``folder`` and starts with ``name``.
+    when a reference covers them, else they are None. ``series`` are the task
+    file's other variables over time only (``invariant``, ``energy``,
+    ``charge_<name>``, ``baseline_err_max`` ...) and ``attrs`` its global
+    attributes (``latticedft_complete``, ``latticedft_steps``,
+    ``latticedft_stopped_at_slice``, ``latticedft_stop_reason``,
+    ``latticedft_warnings`` ...); both are empty when the task has no file.
+    Every file an exporter writes goes into ``folder`` and starts with ``name``.
     """
 
     folder: Path
@@ -101,6 +114,8 @@ class ExportTask:
     max_frames: int | None = None
     train: tuple[xr.DataArray, ...] | None = None
     title: str | None = None
+    attrs: Mapping[str, Any] = _field(default_factory=dict)
+    series: Mapping[str, xr.DataArray] = _field(default_factory=dict)
 
     @property
     def variable(self) -> str:

@@ -173,11 +173,14 @@ class ParaViewExporter(Exporter):
     name = "paraview"
     summary = (
         "<task>.pvd + one .vtr (lattice) or .vtp (1D) frame per written slice, at most max_frames; "
-        "1+1D also <task>_spacetime.vtr, 1D also <task>.vtp"
+        "1+1D also <task>_spacetime.vtr, 1D also <task>.vtp; <task>_view.py, a pvpython script that shows them"
     )
 
     def write(self, task: ExportTask) -> list[Path]:
-        return write_paraview(task.folder, task.name, task.field, task.extra, max_frames=task.max_frames)
+        from latticedft.io.pvview import write_view_script
+
+        files = write_paraview(task.folder, task.name, task.field, task.extra, max_frames=task.max_frames)
+        return files + [write_view_script(task.folder, task.name, task.field, has_reference=bool(task.extra))]
 
 
 def write_paraview(
