@@ -30,9 +30,10 @@ def test_new_then_run(tmp_path: Path, capsys, like: str) -> None:
     assert all("steps" not in task for task in config.get("serve", []))
     code, _, err = run_cli(capsys, "run", case, "-q")
     assert code == 0, err
+    assert err == ""  # a template runs clean: no warning (e.g. no extrapolation beyond the training range)
     res = case / "results"
     summary = json.loads((res / "summary.json").read_text())
-    assert summary["exit_status"] == 0 and summary["incomplete_tasks"] == []
+    assert summary["exit_status"] == 0 and summary["incomplete_tasks"] == [] and not summary.get("warnings")
     for task in config["serve"]:
         name = task["name"]
         assert summary["tasks"][name]["complete"]

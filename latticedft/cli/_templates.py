@@ -87,7 +87,7 @@ if __name__ == "__main__":
 
 WAVE = Template(
     what="the wave equation psi_tt = psi_xx on a string with fixed ends",
-    data="data/train.nc: one observed string, 21 sites, 41 slices\n"
+    data="data/train.nc: one observed string, 21 sites, 81 slices (one period of its lowest mode)\n"
     "data/test.nc: another solution (other amplitudes and phases), 161 slices, to predict",
     case_toml=_HEADER
     + """
@@ -121,8 +121,8 @@ max_frames = 40                 # most ParaView frames per task, evenly spread
 
 
 def fields() -> dict:
-    """File name -> field: one observed string, and another one to predict (other modes, twice as long)."""
-    train = systems.wave_string([(1, 1.0), (2, 0.5, 0.3), (3, 0.25, 1.0)], nx=NX, nt=41)
+    """File name -> field: one observed string, and another one to predict (other amplitudes, twice as long)."""
+    train = systems.wave_string([(1, 1.0), (2, 0.5, 0.3), (3, 0.25, 1.0)], nx=NX, nt=81)  # one period
     test = systems.wave_string([(1, 0.6, 0.5), (2, -0.4), (3, 0.15, 0.7)], nx=NX, nt=161)
     return {{"train.nc": train, "test.nc": test}}
 '''
@@ -258,7 +258,7 @@ max_frames = 30                 # most ParaView frames per task, evenly spread
 def fields() -> dict:
     """File name -> field: one observed membrane, and another one to predict (other modes, longer)."""
     train = systems.wave_membrane([(1, 1, 1.0), (2, 1, 0.5, 0.3), (1, 2, 0.3, 1.0)], nx=N, ny=N, nt=31)
-    test = systems.wave_membrane([(1, 1, 0.6, 0.5), (2, 2, 0.3), (1, 3, 0.2, 0.7)], nx=N, ny=N, nt=61)
+    test = systems.wave_membrane([(1, 1, 0.6, 0.5), (2, 2, 0.25), (1, 2, 0.2, 0.7)], nx=N, ny=N, nt=61)
     return {{"train.nc": train, "test.nc": test}}
 '''
     + _MAKE_DATA_FOOT,
