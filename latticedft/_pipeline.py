@@ -258,7 +258,11 @@ class TaskOutcome:
 
 
 def serve_task(model: Any, td: TaskData) -> TaskOutcome:
-    """Serve one task; a Newton failure gives an incomplete outcome (with a warning), not an exception."""
+    """Serve one task; a Newton failure gives an incomplete outcome (with a warning), not an exception.
+
+    Kept in one piece (~80 lines): it is the task's record, built field by field in the order of
+    summary.json; the checks and measurements it records are helpers of their own.
+    """
     from ._serve import compare, serve
 
     t = td.task
