@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
+from .._atomic import write_text_atomic
 from .._errors import InputError, ModelFileError
 from ._safety import _show, _writing, log
 
@@ -55,14 +56,8 @@ def json_safe(obj: Any) -> Any:
 
 def _write_json(path: Path, data: Any) -> None:
     text = json.dumps(json_safe(data), indent=2, allow_nan=False) + "\n"
-    tmp = path.with_name(f".{path.name}.tmp")
     with _writing(path):
-        try:
-            tmp.write_text(text, encoding="utf-8")
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        write_text_atomic(path, text)
 
 
 def sha256(path: Path) -> str:

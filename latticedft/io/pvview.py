@@ -18,12 +18,12 @@ from __future__ import annotations
 
 import os
 import pprint
-import uuid
 from pathlib import Path
 from typing import Any
 
 import xarray as xr
 
+from latticedft._atomic import write_text_atomic
 from latticedft.io._labels import coord_label, quantity_label
 from latticedft.io.fields import COMPONENT_DIM, lattice_dims
 
@@ -81,15 +81,7 @@ def write_view_script(
         kind=settings["kind"],
         task=pprint.pformat(settings, indent=4, width=100, sort_dicts=False),
     )
-    target = Path(folder) / f"{stem}_view.py"
-    tmp = target.parent / f".{target.name}.{uuid.uuid4().hex[:12]}.tmp"
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, target)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return target
+    return write_text_atomic(Path(folder) / f"{stem}_view.py", text)
 
 
 # The script; str.format fills {name}, {variable}, {kind} and {task}; literal braces are doubled.
