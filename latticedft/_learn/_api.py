@@ -2,19 +2,20 @@
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Sequence
 
 import xarray as xr
 
 from .._errors import InputError
-from .._lattice import BoundaryKinds, LatticeField, gather_cells
+from .._lattice import BoundaryKinds
 from .._models import AbstractLagrangian, LinearLagrangian
-from ._data import as_fields, check_model_lattice, n_sites
 from ._exact import learn_exact
 from ._gauge import Gauge, gauge_named
 from ._neural import Training, learn_neural
-from ._report import LearnReport, diagnose
+from ._report import LearnReport
+from ._stream import training_data
 
 __all__ = ["learn"]
 
@@ -41,22 +42,9 @@ def _checked(
     return fix, optimizer
 
 
-def _bound_to(model: AbstractLagrangian, fields: list[LatticeField]) -> int:
-    """Bind and prepare ``model`` on the training fields; returns the number of DEL equations (sites)."""
-    for i, f in enumerate(fields):
-        check_model_lattice(model, f, f"data[{i}]")
-    f0 = fields[0]
-    model.bind(f0.ndim, f0.ncomp, f0.spacing, f0.components)
-    model.prepare([gather_cells(f.values, model.stencil, f.boundary) for f in fields])
-    nsites = sum(n_sites(f, model) for f in fields)
-    if nsites == 0:
-        raise InputError("data: no interior site carries a DEL equation (lattices too small for the stencil)")
-    return nsites
-
-
 def learn(
     model: AbstractLagrangian,
-    data: xr.DataArray | Sequence[xr.DataArray],
+    data: xr.DataArray | str | os.PathLike[str] | Sequence[xr.DataArray | str | os.PathLike[str]],
     *,
     gauge: str = "unit-mass",
     ridge: float | str = 0.0,
@@ -69,6 +57,7 @@ def learn(
     penalty: float = 1.0,
     boundary: BoundaryKinds | None = None,
     progress: bool | None = None,
+    chunk_sites: int | None = None,
 ) -> LearnReport:
     """Learn ``L_d`` from one or more observed fields; the model is fitted in place.
 
@@ -76,9 +65,11 @@ def learn(
     ----------
     model : AbstractLagrangian
         The model to fit (e.g. ``PolynomialLagrangian((4, 8))``).
-    data : DataArray or list of DataArray
+    data : DataArray, path, or a list of them
         Observed fields (time first, then the spatial axes, then an optional
-        ``component`` axis), each on its own lattice of the same spacing.
+        ``component`` axis), each on its own lattice of the same spacing. Lazy
+        DataArrays (``xr.open_dataset(...)["psi"]`` unloaded, or dask-backed)
+        and paths of field files are read one chunk at a time.
     gauge : "unit-mass", "trace" or "none"
         How the gauge is fixed (see :data:`GAUGES`). ``none`` shows the
         collapse the loss alone leads to.
@@ -100,6 +91,12 @@ def learn(
         attribute.
     progress : bool, optional
         Progress bar; ``None`` shows it only on a terminal.
+    chunk_sites : int, optional
+        Training streams the data in chunks of about this many lattice sites,
+        so memory does not grow with the data (default: from the model's
+        size); ``0`` holds and processes all data at once (in memory). Under
+        an initialised ``torch.distributed`` process group every process
+        reads its share of the chunks and all end with the same model.
 
     Returns
     -------
@@ -117,8 +114,8 @@ def learn(
     True
     """
     fix, optimizer = _checked(model, gauge, ridge, optimizer, max_iter)
-    fields = as_fields(data, boundary)
-    nsites = _bound_to(model, fields)
+    fields = training_data(data, boundary, chunk_sites)
+    nsites = fields.bind(model)
     t0 = time.perf_counter()
     history: list[tuple[int, float, float]] = []
     initial = None
@@ -140,7 +137,7 @@ def learn(
         )
         iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
     wall = time.perf_counter() - t0
-    diag = diagnose(model, fields, gauge=gauge)
+    diag = fields.diagnose(model, gauge)
     report = LearnReport(
         method=optimizer,
         loss=diag["loss"],

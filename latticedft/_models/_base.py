@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import abc
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -132,8 +132,9 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     def _build(self) -> None:
         """Create parameters and buffers once ``n``, ``m`` and the stencil are known."""
 
-    def prepare(self, cells: list[torch.Tensor]) -> None:
-        """Data-dependent set-up before training (input scaling), from the training cells."""
+    def prepare(self, cells: Iterable[torch.Tensor]) -> None:
+        """Data-dependent set-up before training (input scaling), from the training cells: a sequence of
+        ``(*cells, K, m)`` tensors that streamed training reads one chunk at a time (reduce chunk by chunk)."""
 
     def _require_bound(self) -> None:
         if not self.bound:
