@@ -92,6 +92,12 @@ def t_pos_int(v: Any) -> int:
     return int(v)
 
 
+def t_nonneg_int(v: Any) -> int:
+    if not _is_int(v) or v < 0:
+        raise _Bad("an integer >= 0")
+    return int(v)
+
+
 def t_float(v: Any) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
         raise _Bad("a number")
@@ -203,6 +209,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "rel_tol": (t_pos_float, None),
         "lr": (t_pos_float, 1e-3),
         "penalty": (t_nonneg_float, 1.0),
+        "chunk_sites": (t_nonneg_int, None),
     },
     "serve": {
         "name": (t_name, _REQUIRED),

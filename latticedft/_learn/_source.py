@@ -90,49 +90,70 @@ def is_lazy(da: xr.DataArray) -> bool:
     return da.chunks is not None or not bool(getattr(da.variable, "_in_memory", True))
 
 
-def _open_file(path: str | os.PathLike[str]) -> xr.DataArray:
-    """The field of a netCDF field file, opened without loading: the variable ``psi``, or the file's only one."""
-    p = Path(path)
-    if not p.exists():
-        raise InputError(f"{p}: file not found; expected a netCDF field file")
-    if p.is_dir():
-        raise InputError(f"{p}: is a folder; expected a netCDF field file")
+def _open(path: Path) -> xr.Dataset:
+    if not path.exists():
+        raise InputError(f"{path}: file not found; expected a netCDF field file")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; expected a netCDF field file")
     try:
-        ds = xr.open_dataset(p, engine="netcdf4", decode_times=False, decode_timedelta=False)
+        return xr.open_dataset(path, engine="netcdf4", decode_times=False, decode_timedelta=False)
     except Exception as exc:  # the library raises OSError, ValueError, ... for bad files
-        raise InputError(f"{p}: not a readable netCDF file ({type(exc).__name__})") from None
+        raise InputError(f"{path}: not a readable netCDF file ({type(exc).__name__})") from None
+
+
+def _variable(ds: xr.Dataset, path: Path) -> str:
+    """The field of a field file: the variable ``psi``, or the file's only data variable."""
     names = [str(v) for v in ds.data_vars]
-    name = "psi" if "psi" in names else (names[0] if len(names) == 1 else None)
-    if name is None:
-        raise InputError(f"{p}: no variable 'psi' and not exactly one data variable; variables present: {names!r}")
-    da = ds[name]
-    da.attrs.setdefault("source_file", str(p))
-    return da
+    if "psi" in names:
+        return "psi"
+    if len(names) == 1:
+        return names[0]
+    raise InputError(f"{path}: no variable 'psi' and not exactly one data variable; variables present: {names!r}")
 
 
-def _lazy_reader(da: xr.DataArray, tdim: str, label: str) -> Reader:
-    has_comp = da.dims[-1] == COMPONENT_DIM
+def _checked_slab(v: Any, dims: tuple[Any, ...], a: int, label: str) -> torch.Tensor:
+    """Values of time slices ``a, a + 1, ...`` as float64 ``(slices, *spatial, m)``, refusing NaN and inf."""
+    v = np.asarray(v, dtype=np.float64)
+    bad = ~np.isfinite(v)
+    if bad.any():
+        first = list(np.unravel_index(int(np.argmax(bad.reshape(-1))), bad.shape))
+        first[0] += a
+        where = ", ".join(f"{d}={int(i)}" for d, i in zip(dims, first))
+        raise InputError(
+            f"{label}: field holds {int(bad.sum())} NaN/inf value(s) in time slices {a}..{a + v.shape[0] - 1}, "
+            f"first at ({where}); expected finite values"
+        )
+    if dims[-1] != COMPONENT_DIM:
+        v = v[..., None]
+    return torch.from_numpy(np.ascontiguousarray(v))
+
+
+def _array_reader(da: xr.DataArray, tdim: str, label: str) -> Reader:
+    """Slabs of a lazy DataArray the caller holds (its file stays open through the caller's object)."""
+    return lambda a, b: _checked_slab(da.isel({tdim: slice(a, b)}).values, da.dims, a, label)
+
+
+def _file_reader(path: Path, name: str, tdim: str, label: str) -> Reader:
+    """Slabs of a field file, opened for each read and closed again: nothing is held between reads, so a
+    training set of many files costs no memory per file beyond its description."""
 
     def read(a: int, b: int) -> torch.Tensor:
-        v = np.asarray(da.isel({tdim: slice(a, b)}).values, dtype=np.float64)
-        bad = ~np.isfinite(v)
-        if bad.any():
-            first = list(np.unravel_index(int(np.argmax(bad.reshape(-1))), bad.shape))
-            first[0] += a
-            where = ", ".join(f"{d}={int(i)}" for d, i in zip(da.dims, first))
-            raise InputError(
-                f"{label}: field holds {int(bad.sum())} NaN/inf value(s) in time slices {a}..{b - 1}, first at "
-                f"({where}); expected finite values"
-            )
-        if not has_comp:
-            v = v[..., None]
-        return torch.from_numpy(np.ascontiguousarray(v))
+        with _open(path) as ds:
+            da = ds[name]
+            return _checked_slab(da.isel({tdim: slice(a, b)}).values, da.dims, a, label)
 
     return read
 
 
-def _lazy_source(da: xr.DataArray, label: str, boundary: BoundaryKinds | None) -> FieldSource:
-    """A source that reads ``da`` slab by slab: its lattice checked on the coordinates and first slices."""
+#: One lattice description shared by the lazy sources that have the same one (many files of one shape).
+_Key = tuple[Any, ...]
+
+
+def _lazy_source(
+    da: xr.DataArray, label: str, boundary: BoundaryKinds | None, reader: Reader, shared: dict[_Key, LatticeField]
+) -> FieldSource:
+    """A source that reads slab by slab: its lattice checked on the coordinates and the first slices, and
+    kept without values (``shared`` holds one description per distinct lattice)."""
     dims = lattice_dims(da)
     if not dims:
         raise InputError(f"{label}: field has no lattice dims; expected e.g. psi(t), psi(t, x)")
@@ -140,7 +161,10 @@ def _lazy_source(da: xr.DataArray, label: str, boundary: BoundaryKinds | None) -
     nt = int(da.sizes[tdim])
     head = as_lattice_field(da.isel({tdim: slice(0, min(nt, 3))}).load(), source=label, boundary=boundary)
     check_coordinate(da, tdim, label)  # the whole time axis; the head checked the spatial ones
-    return FieldSource(head, nt, label, reader=_lazy_reader(da, tdim, label))
+    key = (head.values.shape[1:], head.spacing, head.boundary, head.dims, head.components, head.name)
+    if key not in shared:
+        shared[key] = replace(head, values=head.values[:0].clone(), coords={}, coord_attrs={}, attrs={})
+    return FieldSource(shared[key], nt, label, reader=reader)
 
 
 def as_sources(data: Any, boundary: BoundaryKinds | None) -> list[FieldSource]:
@@ -150,14 +174,23 @@ def as_sources(data: Any, boundary: BoundaryKinds | None) -> list[FieldSource]:
     if not items:
         raise InputError("data: no training fields given")
     out = []
+    shared: dict[_Key, LatticeField] = {}
     for i, d in enumerate(items):
         label = "data" if len(items) == 1 else f"data[{i}]"
         if isinstance(d, (str, os.PathLike)):
-            d = _open_file(d)
+            path = Path(d)
+            with _open(path) as ds:
+                name = _variable(ds, path)
+                tdim = str(ds[name].dims[0]) if ds[name].dims else ""
+                out.append(
+                    _lazy_source(ds[name], str(path), boundary, _file_reader(path, name, tdim, str(path)), shared)
+                )
+            continue
         if isinstance(d, xr.DataArray) and "source_file" in d.attrs:
             label = str(d.attrs["source_file"])
         if isinstance(d, xr.DataArray) and is_lazy(d):
-            out.append(_lazy_source(d, label, boundary))
+            tdim = str(d.dims[0]) if d.dims else ""
+            out.append(_lazy_source(d, label, boundary, _array_reader(d, tdim, label), shared))
         else:
             f = as_lattice_field(d, source=None if len(items) == 1 and label == "data" else label, boundary=boundary)
             out.append(FieldSource(f, f.shape[0], label))

@@ -249,9 +249,9 @@ class MLPLagrangian(AbstractLagrangian):
             return
         lo = hi = g0max = None
         for c in cells:  # chunk by chunk: the cells may be read from files one slab at a time
-            x = self._inputs(c).reshape(-1, self.in_center.numel())
-            if x.shape[0] == 0:
+            if c.numel() == 0:
                 continue
+            x = self._inputs(c).reshape(-1, self.in_center.numel())
             xlo, xhi = x.min(0).values, x.max(0).values
             g0 = self.mean_and_differences(c)[..., 1, :].abs().max()
             lo = xlo if lo is None else torch.minimum(lo, xlo)

@@ -178,9 +178,9 @@ class PolynomialLagrangian(LinearLagrangian):
         m = self.m
         lo = hi = amax = None
         for c in cells:  # chunk by chunk: the cells may be read from files one slab at a time
-            z = self.variables(c).reshape(-1, self.center.numel())
-            if z.shape[0] == 0:
+            if c.numel() == 0:
                 continue
+            z = self.variables(c).reshape(-1, self.center.numel())
             zlo, zhi, zabs = z.min(0).values, z.max(0).values, z[:, m:].abs().max(0).values
             lo = zlo if lo is None else torch.minimum(lo, zlo)
             hi = zhi if hi is None else torch.maximum(hi, zhi)

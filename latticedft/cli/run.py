@@ -8,6 +8,7 @@ import time
 
 from .._pipeline import check_case
 from .._results import staged_results
+from . import _workers
 from ._common import add_case_arguments, open_case, refuse_existing, results_dir, set_threads, summary_head
 from ._work import finish, serve_into, train_into
 
@@ -17,15 +18,21 @@ log = logging.getLogger("latticedft")
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="check, train, serve every task and export (the whole case)", description=__doc__)
     add_case_arguments(p, overwrite=True)
+    _workers.add_argument(p)
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    if (status := _workers.supervise(args, argv)) is not None:
+        return status
     t0 = time.perf_counter()
     case = open_case(args)
+    if _workers.is_helper():
+        return _workers.train_only(case)
     dest = results_dir(args, case)
     refuse_existing(dest, args)
     set_threads(case)
     data = check_case(case)
+    _workers.join()
     log.info("checked %s: %d training field(s), %d serving task(s)", case.name, len(data.train), len(data.tasks))
     with staged_results(dest) as folder:
         for line in data.summary_lines(case):

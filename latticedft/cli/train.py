@@ -8,6 +8,7 @@ import time
 
 from .._pipeline import check_case
 from .._results import staged_results
+from . import _workers
 from ._common import add_case_arguments, open_case, refuse_existing, results_dir, set_threads, summary_head
 from ._work import finish, train_into
 
@@ -19,15 +20,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "train", help="learn the model only (results/ with model.pt, model.json, summary.json)", description=__doc__
     )
     add_case_arguments(p, overwrite=True)
+    _workers.add_argument(p)
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    if (status := _workers.supervise(args, argv)) is not None:
+        return status
     t0 = time.perf_counter()
     case = open_case(args)
+    if _workers.is_helper():
+        return _workers.train_only(case)
     dest = results_dir(args, case)
     refuse_existing(dest, args)
     set_threads(case)
     data = check_case(case)
+    _workers.join()
     with staged_results(dest) as folder:
         _, train = train_into(folder, case, data, argv)
         summary = summary_head(case, argv, "train")
