@@ -324,13 +324,16 @@ def _pick_ridge_streamed(
     groups: list[_Group], folds: list[tuple[list[int], int]], g_mat: np.ndarray | None, g_vec: np.ndarray | None
 ) -> tuple[float, dict[str, float]]:
     """:func:`_pick_ridge` on the groups' factors: ``|R_v theta| = |T_v theta|`` on the held-out group."""
+    factors = [  # each fold's training system, once
+        _stacked_factor([t for t in (groups[i].t for i in train) if t is not None])
+        / math.sqrt(sum(groups[i].sites for i in train))
+        for train, _ in folds
+    ]
     validation: dict[str, float] = {}
     best, best_score = 0.0, math.inf
     for lam in _RIDGE_GRID:
         scores = []
-        for train, val in folds:
-            ts = [groups[i].t for i in train]
-            rt = _stacked_factor([t for t in ts if t is not None]) / math.sqrt(sum(groups[i].sites for i in train))
+        for rt, (_, val) in zip(factors, folds):
             theta = _constrained_lstsq(rt, g_mat, g_vec, lam)
             v = groups[val]
             assert v.t is not None

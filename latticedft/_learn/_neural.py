@@ -259,7 +259,10 @@ def learn_neural(
             bar.set_postfix(objective=f"{obj:.3e}")
             if math.isfinite(obj) and obj < best[0]:
                 best = (obj, run.snapshot())
-            stop = _stop_reason(settings, obj, initial, time.perf_counter() - t0, history, step_its, left, run.chunk)
+            elapsed = time.perf_counter() - t0
+            if _dist.is_parallel():  # one clock for all processes, so that all stop at the same iteration
+                elapsed = float(_dist.all_max(torch.tensor(elapsed, dtype=torch.float64)))
+            stop = _stop_reason(settings, obj, initial, elapsed, history, step_its, left, run.chunk)
             if stop is not None:
                 reason = stop
                 break

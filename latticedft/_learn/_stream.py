@@ -74,6 +74,7 @@ class TrainingData:
         self.chunks: list[list[Piece]] = []
         self.stencil: Stencil | None = None
         self.budget = 0
+        self._fields: list[LatticeField] | None = None
 
     # -- the two modes ------------------------------------------------------------------------------------
     @property
@@ -83,8 +84,10 @@ class TrainingData:
 
     @property
     def fields(self) -> list[LatticeField]:
-        """Every field in memory (the in-memory mode's data)."""
-        return [s.load() for s in self.sources]
+        """Every field in memory (the in-memory mode's data; lazy ones are read once and kept)."""
+        if self._fields is None:
+            self._fields = [s.load() for s in self.sources]
+        return self._fields
 
     def __len__(self) -> int:
         return len(self.sources)
