@@ -42,7 +42,7 @@ def _membrane():
 
 def _kepler():
     model, init = kepler_mlp(True), kepler_inits(1)[0]
-    return lambda: ldft.serve(model, init, steps=502, progress=False)
+    return lambda: ldft.serve(model, init, slices=502, progress=False)
 
 
 def _poly():
@@ -51,7 +51,7 @@ def _poly():
     model = ldft.PolynomialLagrangian(orders=(4, 8))
     ldft.learn(model, [systems.oscillator_wells(p, n=101) for p in TRAIN], progress=False)
     init = systems.oscillator_wells(1.55, n=2)
-    return lambda: ldft.serve(model, init, steps=1002, progress=False)
+    return lambda: ldft.serve(model, init, slices=1002, progress=False)
 
 
 def _exact():

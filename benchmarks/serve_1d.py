@@ -59,7 +59,7 @@ def run(cfg: Config) -> Table:
     sps_base = n_base / t_base
     table.rows.append(["scipy.optimize.root per step (baseline)", f"1 x {n_base}", t_base, sps_base, 1.0, 0.0])
     t0 = time.perf_counter()
-    one = ldft.serve(model, init, steps=n + 2, progress=False)
+    one = ldft.serve(model, init, slices=n + 2, progress=False)
     t_one = time.perf_counter() - t0
     diff = float(np.abs(one.field.values[: n_base + 2] - base).max())
     table.rows.append(["ldft.serve, one trajectory", f"1 x {n}", t_one, n / t_one, n / t_one / sps_base, diff])
@@ -67,7 +67,7 @@ def run(cfg: Config) -> Table:
     for size in (batch, 64 if cfg.quick else 256):
         inits = [init] + kepler_inits(size)[1:]
         t0 = time.perf_counter()
-        many = ldft.serve(model, inits, steps=n + 2, progress=False)
+        many = ldft.serve(model, inits, slices=n + 2, progress=False)
         t_many = time.perf_counter() - t0
         done = sum(r.slices - 2 for r in many)
         diff_b = float(np.abs(many[0].field.values[: n_base + 2] - base).max())

@@ -66,7 +66,7 @@ def run(cfg: Config) -> Table:
                     assert float(abs(forced.field.values - res.field.values).max()) < 1e-10
                 init = da.isel(t=slice(0, 2 + nsweep))
                 t0 = time.perf_counter()
-                ldft.serve(model, init, steps=2 + nsweep, boundary=boundary, mode="sweep", progress=False)
+                ldft.serve(model, init, slices=2 + nsweep, boundary=boundary, mode="sweep", progress=False)
                 t_sweep = time.perf_counter() - t0
                 sps_newton = sites / t_newton
                 sps_sweep = nsweep * inner / t_sweep

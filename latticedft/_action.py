@@ -8,11 +8,13 @@
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
+import xarray as xr
 
-from ._lattice import AxisBoundaries, LatticeField, gather_cells, interior_slices
+from ._errors import InputError
+from ._lattice import AxisBoundaries, LatticeField, as_lattice_field, gather_cells, interior_slices
 from ._stencil import Stencil
 
 if TYPE_CHECKING:  # the action evaluates any model; models sit a layer above
@@ -21,23 +23,68 @@ if TYPE_CHECKING:  # the action evaluates any model; models sit a layer above
 __all__ = ["action", "del_residual", "mixed_hessian", "cell_derivatives", "CellDerivatives", "second_time_difference"]
 
 
+def _check_action_args(model: Any, psi: object, spacing: object, periodic: object, batch: object) -> None:
+    """Refuse bad :func:`action` arguments with an InputError naming the argument."""
+    _check_model(model)
+    if not isinstance(psi, torch.Tensor):
+        raise InputError.at("psi", f"expected a torch tensor of shape (*N, m), got {type(psi).__name__}")
+    if not isinstance(batch, int) or isinstance(batch, bool) or batch < 0:
+        raise InputError.at("batch", f"expected a non-negative integer, got {batch!r}")
+    n = int(model.stencil.ndim)
+    if psi.ndim != batch + n + 1:
+        raise InputError.at(
+            "psi", f"expected {batch + n + 1} dims ({batch} batch, {n} lattice, 1 component), got {tuple(psi.shape)}"
+        )
+    if not isinstance(periodic, (tuple, list)) or len(periodic) != n:
+        raise InputError.at("periodic", f"expected one entry per lattice axis ({n}), got {periodic!r}")
+    if (
+        not isinstance(spacing, (tuple, list))
+        or len(spacing) != n
+        or not all(isinstance(h, (int, float)) and not isinstance(h, bool) and h > 0 for h in spacing)
+    ):
+        raise InputError.at("spacing", f"expected positive numbers, one per lattice axis ({n}), got {spacing!r}")
+
+
 def action(
     model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: AxisBoundaries, batch: int = 0
 ) -> torch.Tensor:
-    """Total discrete action of one field ``psi`` with shape ``(*N, m)`` (summed over ``batch`` leading axes)."""
+    """Total discrete action of one field ``psi`` with shape ``(*N, m)`` (summed over ``batch`` leading axes).
+
+    ``spacing`` and ``periodic`` have one entry per lattice axis of ``psi``.
+    """
+    _check_action_args(model, psi, spacing, periodic, batch)
+    return _action(model, psi, spacing, periodic, batch)
+
+
+def _action(model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: AxisBoundaries, batch: int) -> torch.Tensor:
+    """:func:`action` without the argument checks (the engine's own calls)."""
     cells = gather_cells(psi, model.stencil, periodic, batch)
     return math.prod(spacing) * model(cells).sum()
 
 
-def del_residual(model, f: LatticeField, *, create_graph: bool = False) -> torch.Tensor:
+def _check_model(model: object) -> None:
+    """Refuse anything but a model bound to a lattice (an InputError naming ``model``)."""
+    if not isinstance(model, torch.nn.Module) or not hasattr(type(model), "bound"):  # not an AbstractLagrangian
+        raise InputError.at("model", f"expected a latticedft model, got {type(model).__name__}")
+    if not model.bound:
+        raise InputError.at(
+            "model", f"{type(model).__name__} is not bound to a lattice; learn it first (or model.bind(n, m, h))"
+        )
+
+
+def del_residual(model, f: LatticeField | xr.DataArray, *, create_graph: bool = False) -> torch.Tensor:
     """DEL residual ``EL_y`` on the interior sites of ``f``: shape ``(*interior, m)``.
 
-    With ``create_graph=True`` the result is differentiable in the model's
-    parameters (for training).
+    ``f`` is a :class:`LatticeField` or a DataArray in the field layout
+    (converted by :func:`as_lattice_field`). With ``create_graph=True`` the
+    result is differentiable in the model's parameters (for training).
     """
+    if not isinstance(f, LatticeField):
+        f = as_lattice_field(f, source="field")
+    _check_model(model)
     psi = f.values.detach().clone().requires_grad_(True)
     with torch.enable_grad():
-        a = action(model, psi, f.spacing, f.boundary, f.batch)
+        a = _action(model, psi, f.spacing, f.boundary, f.batch)
         (g,) = torch.autograd.grad(a, psi, create_graph=create_graph)
     return g[(slice(None),) * f.batch + interior_slices(f.shape, model.stencil, f.boundary)]
 

@@ -255,6 +255,18 @@ def _check_components(da: xr.DataArray, source: str, components: Sequence[str] |
         )
 
 
+def _site_text(da: xr.DataArray, index: tuple[Any, ...]) -> str:
+    """A site as its array index and, apart, its coordinates: ``index t=2, x=3 (t = 0.1, x = 0.75)``
+    (a component by its label)."""
+    idx = ", ".join(f"{d}={int(i)}" for d, i in zip(da.dims, index))
+    coords = []
+    for d, i in zip(da.dims, index):
+        if d in da.coords and da[d].ndim == 1:
+            v = da[d].values[int(i)]
+            coords.append(f"{d} = {float(v):.6g}" if np.issubdtype(np.asarray(v).dtype, np.number) else f"{d} = {v}")
+    return f"index {idx}" + (f" ({', '.join(coords)})" if coords else "")
+
+
 def validate_field(
     da: xr.DataArray,
     source: str = "<array>",
@@ -289,10 +301,11 @@ def validate_field(
     Examples
     --------
     >>> da = xr.DataArray([0.0, np.nan, 1.0], dims=["t"], coords={"t": [0.0, 1.0, 2.0]})
-    >>> validate_field(da, "a.nc")
-    Traceback (most recent call last):
-    ...
-    latticedft._errors.InputError: a.nc: field holds 1 NaN/inf value(s), first at (t=1); expected finite values
+    >>> try:
+    ...     validate_field(da, "a.nc")
+    ... except InputError as err:
+    ...     print(err)
+    a.nc: field holds 1 NaN/inf value(s), the first at index t=1 (t = 1); expected finite values
     """
     if not isinstance(da, xr.DataArray):
         raise InputError(f"{source}: expected an xarray.DataArray, got {type(da).__name__}")
@@ -312,9 +325,9 @@ def validate_field(
         n_bad = int(bad.sum())
         if n_bad:
             first = np.unravel_index(int(np.argmax(bad.reshape(-1))), bad.shape)
-            where = ", ".join(f"{d}={int(i)}" for d, i in zip(da.dims, first))
             raise InputError(
-                f"{source}: {what} holds {n_bad} NaN/inf value(s), first at ({where}); expected finite values"
+                f"{source}: {what} holds {n_bad} NaN/inf value(s), the first at {_site_text(da, first)}; "
+                "expected finite values"
             )
     field_periodic(da, source)
     return da

@@ -9,7 +9,7 @@ from typing import Any
 
 import torch
 
-from ._errors import ModelFileError
+from ._errors import InputError, ModelFileError
 from ._models import MODELS, AbstractLagrangian
 from ._stencil import Stencil
 
@@ -20,6 +20,8 @@ FORMAT_VERSION = 1
 
 def model_record(model: AbstractLagrangian, gauge: str = "unit-mass") -> dict[str, Any]:
     """Everything of a model file except ``state_dict`` (JSON-compatible)."""
+    if not isinstance(model, AbstractLagrangian):
+        raise InputError.at("model", f"expected a latticedft model, got {type(model).__name__}")
     if not model.saveable:
         raise ModelFileError(f"model: a {type(model).__name__} cannot be written to a model file")
     model._require_bound()
@@ -38,11 +40,20 @@ def model_record(model: AbstractLagrangian, gauge: str = "unit-mass") -> dict[st
 
 
 def save_model(model: AbstractLagrangian, path: str | os.PathLike, *, gauge: str | None = None) -> Path:
-    """Write ``model`` to ``path`` (atomically: a temporary file, then a rename)."""
-    report = model.report_
+    """Write ``model`` to ``path`` (atomically: a temporary file, then a rename); the folder must exist."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError.at("path", f"expected a file path, got {type(path).__name__}")
+    if gauge is not None and not isinstance(gauge, str):
+        raise InputError.at("gauge", f"expected the name of the gauge the model was learned with, got {gauge!r}")
+    report = getattr(model, "report_", None)
     record = model_record(model, gauge or (report.gauge if report else "unit-mass"))
     record["state_dict"] = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
     path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise InputError(f"{path}: folder {folder} does not exist; expected an existing folder")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; expected a model file path")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
@@ -62,6 +73,8 @@ def load_model(path: str | os.PathLike) -> AbstractLagrangian:
     ...
     latticedft._errors.ModelFileError: no-such-file.pt: model file not found
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError.at("path", f"expected a file path, got {type(path).__name__}")
     path = Path(path)
     if not path.is_file():
         raise ModelFileError(f"{path}: model file not found")
@@ -88,7 +101,10 @@ def load_model(path: str | os.PathLike) -> AbstractLagrangian:
         model = MODELS[kind](**rec["options"], stencil=Stencil(rec["stencil"]))
         comps = tuple(rec["components"]) if rec.get("components") else None
         model.bind(int(rec["n"]), int(rec["m"]), tuple(rec["spacing"]), comps)
-        model.load_state_dict(rec["state_dict"])
+        state = rec["state_dict"]
+        if isinstance(state, dict) and isinstance(state.get("feature_range"), torch.Tensor):
+            model.set_feature_range(state["feature_range"])  # files written before ranges were kept have none
+        model.load_state_dict(state)
     except ModelFileError:
         raise
     except Exception as exc:

@@ -8,6 +8,7 @@ Each stage logs INFO lines (to stderr via the CLI) and DEBUG details (to
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 import time
@@ -21,6 +22,7 @@ import xarray as xr
 
 from ._boundary import missing_edges
 from ._case import Case, ServeTask, load_invariant
+from ._case_charges import check_charges, drift_text, task_charges
 from ._errors import ConfigError, InputError, LatticeDFTError, ServeError
 from ._lattice import as_lattice_field
 from ._layout import component_labels, field_spacing, lattice_dims
@@ -39,7 +41,7 @@ class TaskData:
     init: xr.DataArray
     reference: xr.DataArray | None
     baseline: xr.DataArray | None
-    steps: int
+    slices: int
     invariant: Callable[[xr.DataArray], Any] | None = None
 
 
@@ -69,9 +71,11 @@ class CaseData:
             t = td.task
             lines.append(
                 f"serve {t.name}: from {_rel(t.source, case.root)} {dict(td.init.sizes)}, "
-                f"{td.steps} slices, boundary {t.boundary or 'from file/dirichlet'}, mode {t.mode}"
+                f"{td.slices} slices, boundary {t.boundary or 'from file/dirichlet'}, mode {t.mode}"
                 + (", reference" if td.reference is not None else ", no reference")
                 + (", baseline" if td.baseline is not None else "")
+                + (f", charges {list(t.charges)}" if t.charges else "")
+                + (f" (warning: {t.label}.steps is deprecated: write {t.label}.slices)" if t.deprecated_steps else "")
             )
         return lines
 
@@ -145,21 +149,23 @@ def _check_task(
     nt = init.sizes[dims[0]]
     if nt < 2:
         raise InputError(f"{t.source}: holds {nt} time slice(s); expected at least the first two")
-    steps = t.steps if t.steps is not None else nt
+    slices = t.slices if t.slices is not None else nt
+    key = f"{t.label}.{'steps' if t.deprecated_steps else 'slices'}"
     try:
         f = as_lattice_field(init, source=str(t.source), boundary=t.boundary, min_slices=2)
     except InputError as exc:
         if exc.key == "boundary":
             raise _as_case_error(exc, f"{t.label}.boundary") from None
         raise
-    missing = missing_edges(f.boundary, f.dims, nt, steps)
+    check_charges(t.charges, f, f"{t.label}.charges")
+    missing = missing_edges(f.boundary, f.dims, nt, slices)
     if missing:
         axis, kind = missing
         raise ConfigError(
-            f"case.toml: {t.label}.steps: {steps} slices need the {kind.title} strips along "
+            f"case.toml: {key}: {slices} slices need the {kind.title} strips along "
             f"{axis!r} on every slice, but {t.source.name} holds {nt}; give the whole field "
-            "or fewer steps",
-            key=f"{t.label}.steps",
+            "or fewer slices",
+            key=key,
         )
     if t.box is not None and len(dims) != 1:
         raise ConfigError(f"case.toml: {t.label}.box: stopping at a box is for 1D trajectories only")
@@ -189,7 +195,7 @@ def _check_task(
             inv = load_invariant(t.invariant, case.root)
         except ConfigError as exc:
             raise ConfigError(f"case.toml: {t.label}.{exc}") from None
-    return TaskData(task=t, init=init, reference=ref, baseline=base, steps=steps, invariant=inv)
+    return TaskData(task=t, init=init, reference=ref, baseline=base, slices=slices, invariant=inv)
 
 
 def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
@@ -205,12 +211,13 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
             raise _as_case_error(exc, f"train.{exc.key}") from None
         raise
     log.info("%s", report.summary_line())
+    if report.symmetries is not None:
+        log.info("symmetries of the learned L_d over the training data (verdicts at tol 1e-9):")
+        for line in report.symmetry_lines():
+            log.info("  %s", line)
     log.debug("training report: %s", {k: v for k, v in report.to_dict().items() if k != "history"})
-    if report.hessian_min_sv < 1e-8:
-        log.warning(
-            "the mixed time Hessian M is nearly singular over the data (min sv %.2e): serving may fail",
-            report.hessian_min_sv,
-        )
+    for warning in report.warnings:  # a degenerate M, a poor fit (thresholds in docs/outputs.md)
+        log.warning("%s", warning)
     return model, report
 
 
@@ -223,31 +230,68 @@ class TaskOutcome:
     reference: xr.DataArray | None
     invariant: xr.DataArray | None
     record: dict[str, Any] = dataclasses.field(default_factory=dict)  # not the `field` attribute above
+    #: ``charge_<name>(t)`` and ``energy(t)`` of the task's ``charges`` (None when it lists none)
+    charges: xr.Dataset | None = None
+    #: ``extrapolation(t, feature)`` of the served field against the model's training range (None without one)
+    extrapolation: xr.DataArray | None = None
 
     @property
     def complete(self) -> bool:
         return bool(self.record.get("complete"))
 
+    def file_attrs(self, model_warnings: list[str]) -> dict[str, Any]:
+        """Global attributes of ``<task>.nc`` saying whether the field is complete and what to distrust.
+
+        ``latticedft_complete`` ("true"/"false"), ``latticedft_warnings`` (a JSON list of one-line warnings:
+        the model's, then the task's) and, for an incomplete task, ``latticedft_stopped_at_slice`` (slices
+        written) and ``latticedft_stop_reason``. (``latticedft_steps`` is written by ``write_task``.)
+        """
+        rec = self.record
+        attrs: dict[str, Any] = {
+            "latticedft_complete": "true" if self.complete else "false",
+            "latticedft_warnings": json.dumps([*model_warnings, *rec.get("warnings", [])]),
+        }
+        if not self.complete:
+            attrs["latticedft_stopped_at_slice"] = int(rec.get("slices", 0))
+            attrs["latticedft_stop_reason"] = str(rec.get("stop_reason") or rec.get("reason") or "")
+        return attrs
+
 
 def serve_task(model: Any, td: TaskData) -> TaskOutcome:
-    """Serve one task; a Newton failure gives an incomplete outcome (with a warning), not an exception."""
+    """Serve one task; a Newton failure gives an incomplete outcome (with a warning), not an exception.
+
+    Kept in one piece (~80 lines): it is the task's record, built field by field in the order of
+    summary.json; the checks and measurements it records are helpers of their own.
+    """
     from ._serve import compare, serve
 
     t = td.task
-    log.info("serving %s: %d slices from %s (%s)", t.name, td.steps, t.source.name, t.mode)
+    if t.deprecated_steps:
+        log.warning(
+            "case.toml: %s.steps is deprecated: write %s.slices (the same count: time slices served, the two initial "
+            "ones included)",
+            t.label,
+            t.label,
+        )
+    log.info("serving %s: %d slices from %s (%s)", t.name, td.slices, t.source.name, t.mode)
     t0 = time.perf_counter()
+    stopped = ""
     try:
         result = serve(model, td.init, progress=None, **t.serve_kwargs())
     except ServeError as err:
         result = err.result
         if isinstance(result, list):  # pragma: no cover - a single init gives one result
             result = result[0]
-        log.warning("task %s stopped at %s; %d of %d slices written", t.name, err, result.slices, td.steps)
+        log.warning("task %s stopped at %s; %d of %d slices written", t.name, err, result.slices, td.slices)
+        stopped = str(err)  # the reason with its slice, site and residual
     wall = time.perf_counter() - t0
     pred = result.field
     rec: dict[str, Any] = result.to_dict()
+    rec["stop_reason"] = None if result.complete else stopped
+    for warning in result.warnings:  # the served field leaves the training range
+        log.warning("task %s: %s", t.name, warning)
     rec["wall_time"] = wall
-    rec["steps"] = td.steps
+    rec["requested_slices"] = td.slices
     rec["from"] = t.source.name
     rec["reference"] = None
     if td.reference is not None:
@@ -283,6 +327,7 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         else:
             rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0]))) if finite.size else None
         rec["invariant"] = t.invariant
+    charges = task_charges(model, td, pred, rec)
     how = (
         f"{result.newton_iterations} Newton iterations"
         if result.solver != "affine"
@@ -297,5 +342,13 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         msg += f" (baseline max {rec['baseline']['max_error_same_slices']:.3e})"
     if "invariant_drift" in rec and rec["invariant_drift"] is not None:
         msg += f", invariant drift {rec['invariant_drift']:.2e}"
-    log.info("%s", msg)
-    return TaskOutcome(name=t.name, field=pred, reference=td.reference, invariant=inv, record=rec)
+    log.info("%s", msg + drift_text(rec))
+    return TaskOutcome(
+        name=t.name,
+        field=pred,
+        reference=td.reference,
+        invariant=inv,
+        record=rec,
+        charges=charges,
+        extrapolation=result.extrapolation,
+    )

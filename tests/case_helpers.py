@@ -16,7 +16,7 @@ from latticedft.io import write_field
 REPO = Path(__file__).resolve().parents[1]
 WAVE = REPO / "cases" / "wave"
 # Keep the wave case quick in tests: 60 served slices, 6 ParaView frames, one thread.
-FAST = ["--set", "serve.test.steps=60", "--set", "export.max_frames=6", "--set", "run.threads=1"]
+FAST = ["--set", "serve.test.slices=60", "--set", "export.max_frames=6", "--set", "run.threads=1"]
 
 
 def copy_wave(tmp: Path) -> Path:
@@ -76,7 +76,7 @@ def oscillator_case(tmp: Path) -> Path:
         [[serve]]
         name = "outside"
         from = "data/outside.nc"
-        steps = 100
+        slices = 100
         [[serve]]
         name = "inside"
         from = "data/inside.nc"

@@ -29,7 +29,7 @@ def oscillator_data(amplitudes=(0.4, 0.8, 1.2), dt: float = 0.1, steps: int = 12
     out = []
     for a in amplitudes:
         q1 = a - 0.5 * dt**2 * (a + a**3)  # a Taylor step; any second slice defines a discrete solution
-        out.append(ldft.serve(truth, series([a, q1], dt), steps=steps).field)
+        out.append(ldft.serve(truth, series([a, q1], dt), slices=steps).field)
     return truth, out
 
 

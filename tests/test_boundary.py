@@ -133,8 +133,8 @@ def test_missing_edges() -> None:
 def test_strips_checked_by_serve() -> None:
     field = wave_field(nt=8)
     with pytest.raises(InputError, match="the Dirichlet boundary along 'x' needs its strips on all 30 slices"):
-        ldft.serve(ldft.lagrangians.wave(), field.isel(t=slice(0, 2)), steps=30)
-    out = ldft.serve(ldft.lagrangians.wave(), field.isel(t=slice(0, 2)), steps=30, boundary="periodic")
+        ldft.serve(ldft.lagrangians.wave(), field.isel(t=slice(0, 2)), slices=30)
+    out = ldft.serve(ldft.lagrangians.wave(), field.isel(t=slice(0, 2)), slices=30, boundary="periodic")
     assert out.complete and out.field.sizes["t"] == 30
 
 
@@ -202,10 +202,10 @@ def test_strips_checked_by_the_case_run(tmp_path) -> None:
 
     case = tiny_wave(tmp_path)
     with pytest.raises(ldft.ConfigError) as err:
-        check_case(load_case(case, ["serve.test.steps=50"]))
+        check_case(load_case(case, ["serve.test.slices=50"]))
     assert str(err.value) == (
-        "case.toml: serve[0].steps: 50 slices need the Dirichlet strips along 'x' on every "
-        "slice, but test.nc holds 30; give the whole field or fewer steps"
+        "case.toml: serve[0].slices: 50 slices need the Dirichlet strips along 'x' on every "
+        "slice, but test.nc holds 30; give the whole field or fewer slices"
     )
-    assert err.value.key == "serve[0].steps"
-    check_case(load_case(case, ["serve.test.steps=50", "serve.test.boundary=periodic"]))
+    assert err.value.key == "serve[0].slices"
+    check_case(load_case(case, ["serve.test.slices=50", "serve.test.boundary=periodic"]))

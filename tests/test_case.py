@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
@@ -37,21 +36,21 @@ def test_defaults_and_paths(case: Path) -> None:
     assert c.field.variable == "psi" and c.model.kind == "polynomial" and c.model.options == {"orders": [2, 0]}
     assert c.train.data == (case / "data" / "train.nc",)
     assert c.serve[0].source == case / "data" / "test.nc" and c.serve[0].mode == "newton"
-    assert c.serve[0].rtol == 1e-10 and c.serve[0].steps is None
+    assert c.serve[0].rtol == 1e-10 and c.serve[0].slices is None
     assert c.export.paraview and c.export.figures and c.export.max_frames == 4
     assert c.run.threads == 1 and c.results == case / "results"
 
 
 def test_default_threads(case: Path) -> None:
     _edit(case, "threads = 1\n", "")
-    assert load_case(case).run.threads == max(1, min(2, os.cpu_count() or 1))
+    assert load_case(case).run.threads == 1  # the default: one thread (docs/performance.md)
 
 
 def test_minimal_case_runs_with_defaults(tmp_path: Path) -> None:
     case = write_toml(tmp_path / "m", '[train]\ndata = "d.nc"\n')
     (case / "d.nc").write_text("")
     c = load_case(case)
-    assert c.model.kind == "polynomial" and c.serve == () and c.train.learn["gauge"] == "unit-mass"
+    assert c.model.kind == "polynomial" and c.serve == () and c.train.learn["gauge"] == "auto"
 
 
 @pytest.mark.parametrize(
@@ -76,7 +75,11 @@ def test_unknown_keys_suggest(case: Path, old: str, new: str, needles: tuple[str
 @pytest.mark.parametrize(
     "old,new,needles",
     [
-        ('name = "test"', 'name = "test"\nsteps = "ten"', ("serve[0].steps: expected a positive integer, got 'ten'",)),
+        (
+            'name = "test"',
+            'name = "test"\nslices = "ten"',
+            ("serve[0].slices: expected a positive integer, got 'ten'",),
+        ),
         ("max_frames = 4", "max_frames = 0", ("export.max_frames: expected a positive integer, got 0",)),
         ("threads = 1", "threads = true", ("run.threads", "got true")),
         ("orders = [2, 0]", "orders = [2]", ("model.orders: expected two non-negative integers",)),
@@ -139,10 +142,10 @@ def test_overrides(case: Path) -> None:
     assert c.model.options["orders"] == [3, 1] and c.train.learn["max_time"] == 10.0
     assert c.serve[0].mode == "sweep" and not c.export.figures
     assert c.overrides == ("model.orders=[3, 1]", "train.max_time=10", "serve.test.mode=sweep", "export.figures=false")
-    assert _error(case, ["serve.tset.steps=3"]).startswith(
-        "--set serve.tset.steps: no serving task named 'tset'; did you mean 'test'?"
+    assert _error(case, ["serve.tset.slices=3"]).startswith(
+        "--set serve.tset.slices: no serving task named 'tset'; did you mean 'test'?"
     )
-    assert _error(case, ["serve.test.steps=ten"]) == ("--set: serve[0].steps: expected a positive integer, got 'ten'")
+    assert _error(case, ["serve.test.slices=ten"]) == ("--set: serve[0].slices: expected a positive integer, got 'ten'")
     assert "expected key=value" in _error(case, ["model.orders"])
     assert "did you mean 'train'" in _error(case, ["trian.gauge=none"])
     assert parse_override("train.ridge=auto") == (["train", "ridge"], "auto")

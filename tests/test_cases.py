@@ -61,7 +61,7 @@ def klein_gordon_polynomial(tmp_path: Path) -> dict[str, Any]:
     test = systems.klein_gordon_test_field(steps=100)
     model = ldft.PolynomialLagrangian(orders=(2, 2))
     report = ldft.learn(model, data)
-    res = ldft.serve(model, test.isel(t=slice(0, 2)), steps=101, boundary="periodic")
+    res = ldft.serve(model, test.isel(t=slice(0, 2)), slices=101, boundary="periodic")
     energy = systems.klein_gordon_energy(res.field).values
     return {
         "rel_res": report.rel_res,
@@ -75,7 +75,7 @@ def klein_gordon_mlp(tmp_path: Path) -> dict[str, Any]:
     test = systems.klein_gordon_test_field(steps=20)
     model = ldft.MLPLagrangian(hidden=[10, 10], activation="tanh", form="kinetic-potential", seed=0)
     report = ldft.learn(model, data, optimizer="lbfgs", max_iter=40)
-    res = ldft.serve(model, test.isel(t=slice(0, 2)), steps=21, boundary="periodic")
+    res = ldft.serve(model, test.isel(t=slice(0, 2)), slices=21, boundary="periodic")
     return {"rel_res": report.rel_res, "max_error": ldft.compare(res.field, test)["max_error"]}
 
 
@@ -134,6 +134,7 @@ def _oscillator(case: str) -> Callable[[Path], dict[str, Any]]:
             "task_complete": {n: t["complete"] for n, t in tasks.items()},
             "task_slices": {n: t["slices"] for n, t in tasks.items()},
             "task_max_error": {n: t["max_error"] for n, t in tasks.items()},
+            "warnings": summary["warnings"],
         }
 
     return run

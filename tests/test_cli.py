@@ -68,8 +68,8 @@ def test_run_writes_every_result(wave_run: Path) -> None:
     summary = json.loads((res / "summary.json").read_text())
     assert summary["exit_status"] == 0 and summary["stage"] == "run"
     assert set(summary["versions"]) >= {"latticedft", "torch", "numpy", "python"}
-    assert summary["overrides"] == ["serve.test.steps=60", "export.max_frames=6", "run.threads=1"]
-    assert "--set serve.test.steps=60" in summary["command"]
+    assert summary["overrides"] == ["serve.test.slices=60", "export.max_frames=6", "run.threads=1"]
+    assert "--set serve.test.slices=60" in summary["command"]
     train = summary["train"]
     for key in ("loss", "rel_res", "iterations", "wall_time", "gauge_residual", "hessian_min_sv", "hessian_cond"):
         assert isinstance(train[key], (int, float)), key
@@ -87,8 +87,8 @@ def test_run_writes_every_result(wave_run: Path) -> None:
     assert model["sha256"] == hashlib.sha256((res / "model.pt").read_bytes()).hexdigest()
     assert model["overrides"] == summary["overrides"] and "loss" in model["training"]
     with xr.open_dataset(res / "test.nc") as ds:
-        assert "--set serve.test.steps=60" in ds.attrs["history"]
-        assert "serve.test.steps=60" in ds.attrs["latticedft_overrides"]
+        assert "--set serve.test.slices=60" in ds.attrs["history"]
+        assert "serve.test.slices=60" in ds.attrs["latticedft_overrides"]
         assert ds.attrs["Conventions"].startswith("CF")
     log = (res / "run.log").read_text()
     assert "DEBUG" in log and "task test: complete" in log
@@ -233,12 +233,12 @@ def test_wrong_type(earlier: Path, capsys) -> None:
         capsys,
         earlier,
         "--set",
-        "serve.test.steps='ten'",
-        needles=("serve[0].steps", "expected a positive integer, got 'ten'"),
+        "serve.test.slices='ten'",
+        needles=("serve[0].slices", "expected a positive integer, got 'ten'"),
     )
-    text = (earlier / "case.toml").read_text().replace('name = "test"', 'name = "test"\nsteps = "ten"')
+    text = (earlier / "case.toml").read_text().replace('name = "test"', 'name = "test"\nslices = "ten"')
     (earlier / "case.toml").write_text(text)
-    _refused(capsys, earlier, needles=("case.toml: serve[0].steps", "got 'ten'"))
+    _refused(capsys, earlier, needles=("case.toml: serve[0].slices", "got 'ten'"))
 
 
 def test_missing_data_file(earlier: Path, capsys) -> None:

@@ -46,13 +46,15 @@ def test_component_mismatch_at_serve():
     dt = 0.05
     model = ldft.PolynomialLagrangian((2, 1))
     data = [
-        ldft.serve(lagrangians.kepler(), series([[1.0, 0.0], [1.0, v * dt]], dt, components=["x", "y"]), steps=60).field
+        ldft.serve(
+            lagrangians.kepler(), series([[1.0, 0.0], [1.0, v * dt]], dt, components=["x", "y"]), slices=60
+        ).field
         for v in (0.9, 1.0, 1.1)
     ]
     ldft.learn(model, data)
     other = series([[1.0, 0.0], [1.0, 0.05]], dt, components=["q", "p"])
     with pytest.raises(ldft.InputError) as err:
-        ldft.serve(model, other, steps=10)
+        ldft.serve(model, other, slices=10)
     assert "component labels" in _one_line(err)
 
 
@@ -67,13 +69,13 @@ def test_spacing_mismatch_at_serve():
     model = ldft.PolynomialLagrangian((2, 2))
     ldft.learn(model, data)
     with pytest.raises(ldft.InputError) as err:
-        ldft.serve(model, series([0.1, 0.2], 0.2), steps=5)
+        ldft.serve(model, series([0.1, 0.2], 0.2), slices=5)
     assert "spacing" in _one_line(err) and "0.1" in str(err.value)
 
 
 def test_unlearned_model_cannot_serve():
     with pytest.raises(ldft.InputError) as err:
-        ldft.serve(ldft.PolynomialLagrangian((2, 2)), series([0.1, 0.2], 0.1), steps=5)
+        ldft.serve(ldft.PolynomialLagrangian((2, 2)), series([0.1, 0.2], 0.1), slices=5)
     assert "not been learned" in _one_line(err)
 
 
@@ -86,8 +88,8 @@ def test_bad_options():
         ldft.learn(ldft.PolynomialLagrangian((2, 2)), oscillator_data(steps=20)[1], gauge="wrong")
     with pytest.raises(ldft.InputError, match="mode"):
         ldft.serve(lagrangians.wave(), wave_field(nt=5), mode="fast")
-    with pytest.raises(ldft.InputError, match="steps"):
-        ldft.serve(lagrangians.wave(), wave_field(nt=5), steps=2)
+    with pytest.raises(ldft.InputError, match="slices"):
+        ldft.serve(lagrangians.wave(), wave_field(nt=5), slices=2)
     with pytest.raises(ldft.InputError, match="boundary"):
         ldft.serve(lagrangians.wave(), wave_field(nt=5), boundary={"y": "periodic"})
 

@@ -22,7 +22,7 @@ def _two_tasks(tmp: Path) -> Path:
     case = tiny_wave(tmp)
     text = (case / "case.toml").read_text()
     (case / "case.toml").write_text(
-        text.replace("[run]", '[[serve]]\nname = "test_spacetime"\nfrom = "data/test.nc"\nsteps = 12\n[run]')
+        text.replace("[run]", '[[serve]]\nname = "test_spacetime"\nfrom = "data/test.nc"\nslices = 12\n[run]')
     )
     return case
 
@@ -79,8 +79,10 @@ def test_export_in_other_formats_removes_exactly_the_old_files(tmp_path: Path, c
     }
     summary = json.loads((res / "summary.json").read_text())
     assert summary["exports"][-1]["overrides"] == ['export.formats=["xdmf", "figures"]']
-    assert run_cli(capsys, "export", case, "-q", "--set", "export.formats=[]")[0] == 0
-    assert {p.name for p in res.iterdir()} == KEEP | {"test.nc", "test_spacetime.nc"}
+    before = {p.name for p in res.iterdir()}
+    code, _, err = run_cli(capsys, "export", case, "-q", "--set", "export.formats=[]")
+    assert code == 1 and "nothing to export" in err  # every format off: refused, nothing changed
+    assert {p.name for p in res.iterdir()} == before
 
 
 def test_export_without_a_record_deletes_nothing(tmp_path: Path, capsys) -> None:
@@ -113,11 +115,11 @@ def test_two_tasks_writing_one_file_is_refused(tmp_path: Path, capsys) -> None:
         [[serve]]
         name = "a"
         from = "data/start.nc"
-        steps = 10
+        slices = 10
         [[serve]]
         name = "a_0000"
         from = "data/start.nc"
-        steps = 10
+        slices = 10
         [run]
         threads = 1
         [export]
@@ -158,5 +160,5 @@ def test_each_format_alone(tmp_path: Path, capsys, fmt: str) -> None:
     case = tiny_wave(tmp_path)
     assert run_cli(capsys, "run", case, "-q", "--set", f'export.formats=["{fmt}"]')[0] == 0
     files = _check_listed(case / "results", ("test",))["test"]
-    suffixes = {"paraview": {".pvd", ".vtr"}, "figures": {".png"}, "xdmf": {".xdmf", ".h5"}}[fmt]
+    suffixes = {"paraview": {".pvd", ".vtr", ".py"}, "figures": {".png"}, "xdmf": {".xdmf", ".h5"}}[fmt]
     assert {Path(f).suffix for f in files} == suffixes

@@ -50,7 +50,7 @@ def test_wave_with_other_speed_and_mixed_boundaries():
 def test_verlet_serves_stormer_verlet():
     dt = 0.07
     osc = lagrangians.verlet(quartic)
-    out = ldft.serve(osc, series([1.0, 0.99], dt), steps=300)
+    out = ldft.serve(osc, series([1.0, 0.99], dt), slices=300)
     q = np.zeros(300)
     q[:2] = 1.0, 0.99
     for i in range(1, 299):
@@ -61,7 +61,7 @@ def test_verlet_serves_stormer_verlet():
 def test_kepler_verlet_vector_field():
     dt = 0.05
     init = series([[1.0, 0.0], [1.0 - 0.5 * dt**2, dt]], dt, components=["x", "y"])
-    out = ldft.serve(lagrangians.kepler(), init, steps=400)
+    out = ldft.serve(lagrangians.kepler(), init, slices=400)
     q = np.zeros((400, 2))
     q[:2] = init.values
     for i in range(1, 399):
@@ -74,6 +74,6 @@ def test_kepler_verlet_vector_field():
 
 def test_served_field_keeps_layout_and_coordinates():
     field = wave_field(nt=10)
-    out = ldft.serve(lagrangians.wave(1.0), field, steps=8)
+    out = ldft.serve(lagrangians.wave(1.0), field, slices=8)
     assert_fields_close(out.field, field.isel(t=slice(0, 8)), atol=1e-2)  # coords identical, values near the truth
     assert out.field.name == "psi"

@@ -22,7 +22,7 @@ def test_polynomial_learns_oscillator_back_to_roundoff():
     for f in data:  # the training fields
         out = ldft.serve(model, f)
         np.testing.assert_allclose(out.field.values, f.values, atol=1e-10)
-    new = ldft.serve(truth, series([0.6, 0.6], 0.1), steps=200).field  # a new field
+    new = ldft.serve(truth, series([0.6, 0.6], 0.1), slices=200).field  # a new field
     np.testing.assert_allclose(ldft.serve(model, new).field.values, new.values, atol=1e-10)
 
 
@@ -64,7 +64,7 @@ def test_mlp_kinetic_potential_learns_oscillator_to_stated_error():
     rep = ldft.learn(model, data, max_iter=300)
     assert rep.gauge_residual < 1e-12  # unit mass by construction
     assert rep.rel_res < 2e-3
-    new = ldft.serve(truth, series([0.7, 0.7 - 0.5 * 0.01 * (0.7 + 0.7**3)], 0.1), steps=80).field
+    new = ldft.serve(truth, series([0.7, 0.7 - 0.5 * 0.01 * (0.7 + 0.7**3)], 0.1), slices=80).field
     err = ldft.compare(ldft.serve(model, new).field, new)["max_error"]
     assert err < 2e-2  # stated error of a 2x16 network after 300 L-BFGS iterations
 

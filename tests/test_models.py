@@ -66,7 +66,7 @@ def test_a_new_linear_model_trains_serves_and_saves_through_the_contract(registe
     rep = ldft.learn(model, data)
     assert rep.method == "exact" and rep.gauge_residual < 1e-12 and rep.rel_res < 1e-10
     np.testing.assert_allclose(model.coef.detach().numpy(), [1.0, 0.5, 0.25], atol=1e-10)
-    new = ldft.serve(truth, series([0.6, 0.6], 0.1), steps=50).field
+    new = ldft.serve(truth, series([0.6, 0.6], 0.1), slices=50).field
     np.testing.assert_allclose(ldft.serve(model, new).field.values, new.values, atol=1e-10)
     back = ldft.load_model(ldft.save_model(model, tmp_path / "quartic.pt"))
     assert type(back) is registered and back.options() == {"degree": 2}
@@ -190,7 +190,7 @@ def test_the_contract_is_declared():
 def test_each_gauge_measures_what_it_penalises():
     mbar = torch.tensor([[-90.0, 3.0], [1.0, -110.0]], dtype=torch.float64)
     h0 = 0.1
-    assert GAUGES == ("unit-mass", "trace", "none")
+    assert GAUGES == ("unit-mass", "trace", "none", "auto")
     for name in ("unit-mass", "trace"):
         g = gauge_named(name)
         assert abs(g.residual(mbar, h0) ** 2 - float(g.penalty(mbar, h0))) < 1e-15

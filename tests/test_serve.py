@@ -58,10 +58,10 @@ def test_batch_equals_one_by_one_and_sweep():
     model = ldft.PolynomialLagrangian(orders=(4, 4))
     ldft.learn(model, data)
     inits = [f.isel(t=slice(0, 2)) for f in data]
-    batch = ldft.serve(model, inits, steps=50)
+    batch = ldft.serve(model, inits, slices=50)
     for r, f in zip(batch, inits):
-        one = ldft.serve(model, f, steps=50)
-        sweep = ldft.serve(model, f, steps=50, mode="sweep")
+        one = ldft.serve(model, f, slices=50)
+        sweep = ldft.serve(model, f, slices=50, mode="sweep")
         np.testing.assert_allclose(r.field.values, one.field.values, atol=1e-14)
         np.testing.assert_allclose(r.field.values, sweep.field.values, atol=1e-12)
 
@@ -71,7 +71,7 @@ def test_box_stops_an_escaping_trajectory_as_complete():
     kep = lagrangians.kepler()
     fast = series([[1.0, 0.0], [1.0, 1.6 * dt]], dt, components=["x", "y"])
     slow = series([[1.0, 0.0], [1.0, 1.0 * dt]], dt, components=["x", "y"])
-    out = ldft.serve(kep, [fast, slow], steps=400, box=3.0)
+    out = ldft.serve(kep, [fast, slow], slices=400, box=3.0)
     assert out[0].complete and "box" in out[0].reason and out[0].slices < 400
     assert np.linalg.norm(out[0].field.values[-1]) > 3.0 >= np.linalg.norm(out[0].field.values[-2])
     assert out[1].complete and out[1].slices == 400
@@ -83,7 +83,7 @@ def test_singular_mixed_hessian_is_reported_with_slice_and_partial_result():
 
     model = ldft.AnalyticLagrangian(no_kinetic)
     with pytest.raises(ldft.ServeError) as err:
-        ldft.serve(model, series([1.0, 0.9], 0.1), steps=10)
+        ldft.serve(model, series([1.0, 0.9], 0.1), slices=10)
     assert "slice 2" in str(err.value) and "\n" not in str(err.value)
     assert err.value.result.slices == 2 and not err.value.result.complete
 
@@ -104,7 +104,7 @@ def test_singular_slice_jacobian_1p1d_names_slice_and_site():
 def test_newton_failure_keeps_the_solved_part():
     osc = lagrangians.verlet(quartic)
     with pytest.raises(ldft.ServeError) as err:
-        ldft.serve(osc, series([1.0, 0.99], 0.1), steps=40, max_newton=1)
+        ldft.serve(osc, series([1.0, 0.99], 0.1), slices=40, max_newton=1)
     msg = str(err.value)
     assert "did not converge" in msg and "residual" in msg
     assert err.value.slice == 2
@@ -113,7 +113,7 @@ def test_newton_failure_keeps_the_solved_part():
 def test_periodic_serving_from_two_slices_only():
     field = wave_field(nx=16, nt=30)
     full = ldft.serve(lagrangians.wave(1.0), field, boundary="periodic")
-    short = ldft.serve(lagrangians.wave(1.0), field.isel(t=slice(0, 2)), boundary="periodic", steps=30)
+    short = ldft.serve(lagrangians.wave(1.0), field.isel(t=slice(0, 2)), boundary="periodic", slices=30)
     np.testing.assert_allclose(short.field.values, full.field.values, atol=1e-14)
     assert short.field.sizes["t"] == 30 and np.allclose(short.field.t.values, field.t.values)
 
@@ -121,7 +121,7 @@ def test_periodic_serving_from_two_slices_only():
 def test_dirichlet_needs_the_strips():
     field = wave_field(nx=16, nt=30)
     with pytest.raises(ldft.InputError, match="Dirichlet boundary along 'x'"):
-        ldft.serve(lagrangians.wave(1.0), field.isel(t=slice(0, 2)), steps=30)
+        ldft.serve(lagrangians.wave(1.0), field.isel(t=slice(0, 2)), slices=30)
 
 
 def test_serve_reports_throughput():
@@ -171,8 +171,8 @@ def test_affine_recurrence_hands_over_to_newton_where_the_del_stops_being_affine
     model = ldft.AnalyticLagrangian(kg_kink)
     field = wave_field(nx=33, nt=80, modes=((1, 0.45),))
     field[1] = field[0] * 1.02  # starts growing: psi exceeds 0.6 after some slices
-    mixed = ldft.serve(model, field, boundary="periodic", steps=80)
-    newton = ldft.serve(model, field, boundary="periodic", steps=80, affine=False)
+    mixed = ldft.serve(model, field, boundary="periodic", slices=80)
+    newton = ldft.serve(model, field, boundary="periodic", slices=80, affine=False)
     assert np.abs(newton.field.values).max() > 0.6
     assert mixed.solver == "affine+newton" and mixed.complete
     np.testing.assert_allclose(mixed.field.values, newton.field.values, rtol=0, atol=1e-11)
@@ -192,11 +192,11 @@ def test_constant_mixed_hessian_assembles_the_1d_jacobian_once(monkeypatch):
     calls = []
     real = _batch.cell_derivatives
     monkeypatch.setattr(_batch, "cell_derivatives", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
-    fast = ldft.serve(model, inits, steps=60)
+    fast = ldft.serve(model, inits, slices=60)
     hessians = sum(1 for pairs in calls if pairs)
     monkeypatch.setattr(type(model), "constant_mixed_hessian", False)
     calls.clear()
-    slow = ldft.serve(model, inits, steps=60)
+    slow = ldft.serve(model, inits, slices=60)
     assert hessians == 1 and sum(1 for pairs in calls if pairs) > 58
     for a, b in zip(fast, slow):
         np.testing.assert_allclose(a.field.values, b.field.values, rtol=0, atol=1e-12)

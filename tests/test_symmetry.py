@@ -42,7 +42,7 @@ def _quartic_oscillator_orbits():
     for _ in range(6):
         q0, v = rng.normal(size=2), rng.normal(size=2)
         starts.append(systems.make_field([q0, q0 + 0.1 * v], ["t"], spacing=0.1, components=["x", "y"]))
-    return [r.field for r in ldft.serve(truth, starts, steps=60)]
+    return [r.field for r in ldft.serve(truth, starts, slices=60)]
 
 
 def _periodic_breather(nt):
@@ -162,7 +162,7 @@ def test_discovery_on_a_polynomial_that_is_not_invariant_by_construction():
 def test_angular_momentum_of_a_learned_kepler_theory_is_conserved(radial_kepler):
     model, _ = radial_kepler
     launch = systems.kepler_orbit(1.0167, 1.13, n=2)
-    served = ldft.serve(model, launch, steps=300, box=10.0).field
+    served = ldft.serve(model, launch, slices=300, box=10.0).field
     charge = ldft.noether_charge(model, served, "rotation-xy")
     assert charge.sizes["t"] == served.sizes["t"] - 1
     assert np.allclose(charge["t"].values, served["t"].values[1:])
@@ -173,7 +173,7 @@ def test_angular_momentum_of_a_learned_kepler_theory_is_conserved(radial_kepler)
 
 
 def test_kepler_verlet_energy_oscillates_in_a_bounded_band():
-    served = ldft.serve(lagrangians.kepler(), systems.kepler_orbit(1.0, 1.0, n=2), steps=400).field  # 3 periods
+    served = ldft.serve(lagrangians.kepler(), systems.kepler_orbit(1.0, 1.0, n=2), slices=400).field  # 3 periods
     energy = ldft.discrete_energy(lagrangians.kepler(), served)
     assert abs(float(energy.mean()) + 0.5) < 1e-3  # the circular orbit's E = -1/2
     first, last = (float(energy[s].max() - energy[s].min()) for s in (slice(0, 130), slice(-130, None)))
@@ -190,7 +190,7 @@ def test_momentum_of_a_learned_klein_gordon_theory_is_conserved():
         np.sin(2 * np.pi * (x - 0.03)) + 0.3 * np.cos(6 * np.pi * (x - 0.03)),
         steps=1,
     )
-    served = ldft.serve(model, travelling, steps=300, boundary="periodic").field
+    served = ldft.serve(model, travelling, slices=300, boundary="periodic").field
     ds = ldft.noether_charges(model, served)
     assert set(ds.data_vars) == {"J_shift", "J_momentum-x", "energy"}
     assert float(ds["J_momentum-x"].mean()) > 1.0  # a travelling wave carries momentum
@@ -202,7 +202,7 @@ def test_momentum_of_a_learned_klein_gordon_theory_is_conserved():
 
 def test_sine_gordon_lattice_momentum_drifts():
     sg = _sine_gordon()
-    served = ldft.serve(sg, _periodic_breather(nt=2), steps=200, boundary="periodic").field
+    served = ldft.serve(sg, _periodic_breather(nt=2), slices=200, boundary="periodic").field
     momentum = ldft.noether_charge(sg, served, "momentum-x")
     assert float(momentum.mean()) > 1.0  # the breather moves to the right
     assert ldft.relative_drift(momentum) > 1e-6  # not a symmetry of the lattice

@@ -22,7 +22,7 @@ def _canonical_map(model, q_prev, q_now, n_steps):
 
     comps = None if q_now.size == 1 else ["x", "y"][: q_now.size]
     vals = np.stack([q_prev, q_now]) if comps else np.array([q_prev[0], q_now[0]])
-    out = ldft.serve(model, series(vals, h, components=comps), steps=n_steps + 2).field.values.reshape(n_steps + 2, -1)
+    out = ldft.serve(model, series(vals, h, components=comps), slices=n_steps + 2).field.values.reshape(n_steps + 2, -1)
     return (q_now, momentum(q_prev, q_now)), (out[-1], momentum(out[-2], out[-1]))
 
 
@@ -89,7 +89,7 @@ def test_energy_error_stays_bounded_over_long_runs():
     _, data = oscillator_data()
     model = ldft.PolynomialLagrangian(orders=(4, 4))
     ldft.learn(model, data)
-    q = ldft.serve(model, data[1].isel(t=slice(0, 2)), steps=3000).field.values
+    q = ldft.serve(model, data[1].isel(t=slice(0, 2)), slices=3000).field.values
     h = 0.1
     p = (q[2:] - q[:-2]) / (2 * h)
     e = 0.5 * p**2 + quartic(torch.tensor(q[1:-1])).numpy()

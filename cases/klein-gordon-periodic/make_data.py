@@ -10,6 +10,9 @@ data/train_00.nc .. train_79.nc  80 solutions of 20 steps (21 slices, T = 0.5) f
                                  and velocities (latticedft.systems.klein_gordon_training_set, seed 0: Fourier
                                  amplitudes N(0,1) exp(-2 k^4), so only the modes k = 0, 1 carry weight)
 data/test.nc                     the unseen u0 = sin(4 pi x), u1 = u0 (mode k = 2) over 400 steps (401 slices)
+data/travelling.nc               a wave of modes k = 1 and 3 travelling to the right, u(x) = sin(2 pi x) +
+                                 0.3 cos(6 pi x) and u1 = u(x - 0.03), over 400 steps (its pseudo-momentum is
+                                 not zero, unlike a standing wave's)
 
 Deterministic (seeded); a few seconds.
 """
@@ -18,12 +21,20 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from latticedft import systems
 from latticedft.io import write_field
 
 HERE = Path(__file__).resolve().parent
 N_TRAIN, STEPS, SEED = 80, 20, 0
 TEST_STEPS = 400
+NX, DX = 20, 0.05
+
+
+def travelling(shift: float) -> np.ndarray:
+    x = DX * np.arange(NX)
+    return np.sin(2 * np.pi * (x - shift)) + 0.3 * np.cos(6 * np.pi * (x - shift))
 
 
 def main() -> None:
@@ -33,8 +44,10 @@ def main() -> None:
     for m, f in enumerate(systems.klein_gordon_training_set(n=N_TRAIN, steps=STEPS, seed=SEED)):
         write_field(data / f"train_{m:02d}.nc", {"psi": f}, history=history)
     write_field(data / "test.nc", {"psi": systems.klein_gordon_test_field(steps=TEST_STEPS)}, history=history)
+    wave = systems.klein_gordon(travelling(0.0), travelling(0.03), steps=TEST_STEPS)
+    write_field(data / "travelling.nc", {"psi": wave}, history=history)
     total = sum(p.stat().st_size for p in data.glob("*.nc"))
-    print(f"wrote {N_TRAIN} training fields and data/test.nc ({total // 1024} kB in all)")
+    print(f"wrote {N_TRAIN} training fields, data/test.nc and data/travelling.nc ({total // 1024} kB in all)")
 
 
 if __name__ == "__main__":

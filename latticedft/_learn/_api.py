@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 
 import xarray as xr
 
@@ -12,10 +14,10 @@ from .._errors import InputError
 from .._lattice import BoundaryKinds
 from .._models import AbstractLagrangian, LinearLagrangian
 from ._exact import learn_exact
-from ._gauge import Gauge, gauge_named
+from ._gauge import AUTO, Gauge, gauge_named
 from ._neural import Training, learn_neural
-from ._report import LearnReport
-from ._stream import training_data
+from ._report import LearnReport, fit_warnings
+from ._stream import TrainingData, training_data
 
 __all__ = ["learn"]
 
@@ -23,11 +25,28 @@ __all__ = ["learn"]
 OPTIMIZERS = ("exact", "lbfgs", "adam")
 
 
+#: ``gauge="auto"``: unit-mass is kept when its training ``rel_res`` is at most this (exact to round-off).
+AUTO_EXACT = 1e-8
+#: ... otherwise trace is chosen when its ``rel_res`` is below this factor times unit-mass's ...
+AUTO_FACTOR = 0.1
+#: ... and the smallest singular value of ``h_0^2 M`` over its training cells is at least this.
+AUTO_MIN_SV = 1e-8
+
+#: The rule of ``gauge="auto"`` in words (docs/api.md repeats it).
+AUTO_RULE = (
+    "fit unit-mass; keep it when the field has one component (the two gauges are then the same condition), "
+    "when the model has a unit mass by construction, or when its rel_res <= 1e-8; otherwise fit trace from "
+    "the same start and choose it when its rel_res is below a tenth of unit-mass's and its mixed Hessian stays "
+    "invertible (min sv of h0^2 M >= 1e-8); else keep unit-mass"
+)
+
+
 def _checked(
     model: AbstractLagrangian, gauge: str, ridge: float | str, optimizer: str | None, max_iter: int
-) -> tuple[Gauge, str]:
-    """The gauge and the optimizer (its default filled in), or an InputError naming the bad argument."""
-    fix = gauge_named(gauge)
+) -> tuple[Gauge | None, str]:
+    """The gauge (``None`` for ``auto``) and the optimizer (its default filled in), or an InputError naming
+    the bad argument."""
+    fix = None if gauge == AUTO else gauge_named(gauge)
     if not isinstance(model, AbstractLagrangian):
         raise InputError(f"model: expected a latticedft model, got {type(model).__name__}")
     optimizer = optimizer or ("exact" if isinstance(model, LinearLagrangian) else "lbfgs")
@@ -37,16 +56,43 @@ def _checked(
         raise InputError.at("optimizer", f"'exact' needs a model linear in its parameters; {model.kind!r} is not")
     if not (ridge == "auto" or (isinstance(ridge, (int, float)) and not isinstance(ridge, bool) and ridge >= 0)):
         raise InputError.at("ridge", f"expected a number >= 0 or 'auto', got {ridge!r}")
-    if not isinstance(max_iter, int) or max_iter < 1:
+    if not isinstance(max_iter, int) or isinstance(max_iter, bool) or max_iter < 1:
         raise InputError.at("max_iter", f"expected a positive integer, got {max_iter!r}")
     return fix, optimizer
+
+
+def _check_number(name: str, value: object, *, strict: bool, optional: bool = False) -> None:
+    """Refuse ``value`` unless it is a finite real number ``> 0`` (``strict``) or ``>= 0`` (or None if ``optional``)."""
+    if optional and value is None:
+        return
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value < 0 or (strict and value == 0):  # type: ignore[operator]
+        what = "a number > 0" if strict else "a number >= 0"
+        raise InputError.at(name, f"expected {what}{' or None' if optional else ''}, got {value!r}")
+
+
+def _check_training(training: Training) -> None:
+    """Refuse bad iterative-training settings with an InputError naming the argument."""
+    _check_number("max_time", training.max_time, strict=True, optional=True)
+    _check_number("tol", training.tol, strict=False)
+    _check_number("rel_tol", training.rel_tol, strict=True, optional=True)
+    _check_number("lr", training.lr, strict=True)
+    _check_number("penalty", training.penalty, strict=False)
+    if training.progress is not None and not isinstance(training.progress, bool):
+        raise InputError.at("progress", f"expected True, False or None, got {training.progress!r}")
+
+
+def _bound_to(model: AbstractLagrangian, fields: TrainingData) -> int:
+    """Bind and prepare ``model`` on the training data and record the training range of each stencil feature
+    (chunk by chunk when streamed); returns the number of DEL equations (sites)."""
+    return fields.bind(model)
 
 
 def learn(
     model: AbstractLagrangian,
     data: xr.DataArray | str | os.PathLike[str] | Sequence[xr.DataArray | str | os.PathLike[str]],
     *,
-    gauge: str = "unit-mass",
+    gauge: str = "auto",
     ridge: float | str = 0.0,
     optimizer: str | None = None,
     max_iter: int = 500,
@@ -57,6 +103,7 @@ def learn(
     penalty: float = 1.0,
     boundary: BoundaryKinds | None = None,
     progress: bool | None = None,
+    symmetries: bool = False,
     chunk_sites: int | None = None,
 ) -> LearnReport:
     """Learn ``L_d`` from one or more observed fields; the model is fitted in place.
@@ -70,9 +117,14 @@ def learn(
         ``component`` axis), each on its own lattice of the same spacing. Lazy
         DataArrays (``xr.open_dataset(...)["psi"]`` unloaded, or dask-backed)
         and paths of field files are read one chunk at a time.
-    gauge : "unit-mass", "trace" or "none"
-        How the gauge is fixed (see :data:`GAUGES`). ``none`` shows the
-        collapse the loss alone leads to.
+    gauge : "unit-mass", "trace", "none" or "auto"
+        How the gauge is fixed (see :data:`GAUGES`). ``trace`` fixes only the
+        trace of the mean mixed Hessian (components of unequal mass, terms
+        linear in the velocity such as a magnetic field); ``none`` shows the
+        collapse the loss alone leads to; ``auto`` fits unit-mass and, for a
+        vector field whose unit-mass fit is not exact, trace too, and keeps
+        the better by the training residual (:data:`AUTO_RULE`; the choice is
+        in ``report.gauge`` and ``report.gauge_choice``).
     ridge : float or "auto"
         Linear models: Tikhonov weight (relative to the mean squared column
         norm); ``"auto"`` picks it from a grid by the held-out relative
@@ -91,6 +143,9 @@ def learn(
         attribute.
     progress : bool, optional
         Progress bar; ``None`` shows it only on a terminal.
+    symmetries : bool
+        Also test the learned ``L_d`` for every built-in symmetry of the data's lattice over the training
+        data (:func:`latticedft.symmetries`); the results are ``report.symmetries`` (docs/symmetries.md).
     chunk_sites : int, optional
         Training streams the data in chunks of about this many lattice sites,
         so memory does not grow with the data (default: from the model's
@@ -114,37 +169,59 @@ def learn(
     True
     """
     fix, optimizer = _checked(model, gauge, ridge, optimizer, max_iter)
+    settings = Training(
+        optimizer=optimizer,
+        max_iter=max_iter,
+        max_time=max_time,
+        tol=tol,
+        rel_tol=rel_tol,
+        lr=lr,
+        penalty=penalty,
+        progress=progress,
+    )
+    _check_training(settings)
+    if not isinstance(symmetries, bool):
+        raise InputError.at("symmetries", f"expected true or false, got {symmetries!r}")
     fields = training_data(data, boundary, chunk_sites)
-    nsites = fields.bind(model)
+    nsites = _bound_to(model, fields)
+    if fix is None:  # "auto"
+        report = _learn_auto(model, fields, ridge, nsites, settings, symmetries)
+    else:
+        report = _fit(model, fields, fix, ridge, nsites, settings, symmetries)
+    model.report_ = report
+    return report
+
+
+def _fit(
+    model: AbstractLagrangian,
+    fields: TrainingData,
+    fix: Gauge,
+    ridge: float | str,
+    nsites: int,
+    settings: Training,
+    symmetries: bool = False,
+) -> LearnReport:
+    """One fit of the bound ``model`` with the gauge ``fix``, measured."""
     t0 = time.perf_counter()
     history: list[tuple[int, float, float]] = []
     initial = None
     validation: dict[str, float] = {}
     used_ridge = 0.0
-    if optimizer == "exact" and isinstance(model, LinearLagrangian):  # _checked refuses 'exact' for others
+    if settings.optimizer == "exact" and isinstance(model, LinearLagrangian):  # _checked refuses 'exact' for others
         used_ridge, validation = learn_exact(model, fields, fix, ridge, nsites)
         iterations, reason = 1, "exact solve"
     else:
-        settings = Training(
-            optimizer=optimizer,
-            max_iter=max_iter,
-            max_time=max_time,
-            tol=tol,
-            rel_tol=rel_tol,
-            lr=lr,
-            penalty=penalty,
-            progress=progress,
-        )
         iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
     wall = time.perf_counter() - t0
-    diag = fields.diagnose(model, gauge)
-    report = LearnReport(
-        method=optimizer,
+    diag = fields.diagnose(model, fix.name, symmetries)
+    degenerate, warnings = fit_warnings(diag)
+    return LearnReport(
+        method=settings.optimizer,
         loss=diag["loss"],
         rel_res=diag["rel_res"],
         iterations=iterations,
         wall_time=wall,
-        gauge=gauge,
+        gauge=fix.name,
         gauge_residual=diag["gauge_residual"],
         hessian_min_sv=diag["hessian_min_sv"],
         hessian_cond=diag["hessian_cond"],
@@ -156,6 +233,45 @@ def learn(
         stop_reason=reason,
         history=history,
         validation=validation,
+        symmetries=diag.get("symmetries"),
+        hessian_max_sv=diag["hessian_max_sv"],
+        degenerate=degenerate,
+        warnings=warnings,
     )
-    model.report_ = report
-    return report
+
+
+def _learn_auto(
+    model: AbstractLagrangian,
+    fields: TrainingData,
+    ridge: float | str,
+    nsites: int,
+    settings: Training,
+    symmetries: bool = False,
+) -> LearnReport:
+    """``gauge="auto"``: the rule of :data:`AUTO_RULE`, every candidate fitted from the same start."""
+    start = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    first = _fit(model, fields, gauge_named("unit-mass"), ridge, nsites, settings, symmetries)
+    scores = {"unit-mass": first.rel_res}
+    if model.m == 1:
+        why = "one component: unit-mass and trace are the same condition"
+    elif model.unit_mass_by_construction:
+        why = "the model has a unit mass by construction"
+    elif first.rel_res <= AUTO_EXACT:
+        why = f"unit-mass fits to round-off (rel_res {first.rel_res:.1e} <= {AUTO_EXACT:g})"
+    else:
+        kept = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        model.load_state_dict(start)
+        second = _fit(model, fields, gauge_named("trace"), ridge, nsites, settings, symmetries)
+        scores["trace"] = second.rel_res
+        better = second.rel_res < AUTO_FACTOR * first.rel_res and second.hessian_min_sv >= AUTO_MIN_SV
+        wall = first.wall_time + second.wall_time
+        if better:
+            why = f"trace: rel_res {second.rel_res:.2e} against unit-mass {first.rel_res:.2e}"
+            return replace(second, wall_time=wall, gauge_requested="auto", gauge_scores=scores, gauge_choice=why)
+        model.load_state_dict(kept)
+        why = (
+            f"unit-mass: trace is not better by the factor {1 / AUTO_FACTOR:g} with an invertible M "
+            f"(rel_res {second.rel_res:.2e} against {first.rel_res:.2e}, min sv {second.hessian_min_sv:.2e})"
+        )
+        return replace(first, wall_time=wall, gauge_requested="auto", gauge_scores=scores, gauge_choice=why)
+    return replace(first, gauge_requested="auto", gauge_scores=scores, gauge_choice=why)

@@ -20,7 +20,7 @@ import torch
 
 from .._errors import InputError
 
-__all__ = ["Gauge", "UnitMass", "Trace", "NoGauge", "GAUGES", "gauge_named"]
+__all__ = ["Gauge", "UnitMass", "Trace", "NoGauge", "GAUGES", "AUTO", "AUTO_CANDIDATES", "gauge_named"]
 
 
 class Gauge:
@@ -102,13 +102,24 @@ class NoGauge(Gauge):
 
 _BY_NAME: dict[str, Gauge] = {g.name: g for g in (UnitMass(), Trace(), NoGauge())}
 
-#: Gauge fixes: ``unit-mass`` (mean mixed Hessian = -I/h0^2, every entry),
-#: ``trace`` (only its trace, for unequal masses), ``none`` (no fix: collapses).
-GAUGES = tuple(_BY_NAME)
+#: The choice of :func:`latticedft.learn` that is a rule, not a gauge: fit the candidates
+#: (:data:`AUTO_CANDIDATES`) and keep one (see ``latticedft._learn._api.AUTO_RULE``).
+AUTO = "auto"
+#: The gauges ``auto`` chooses from, in order of preference.
+AUTO_CANDIDATES = ("unit-mass", "trace")
+
+#: Gauge choices of :func:`latticedft.learn`: ``unit-mass`` (mean mixed Hessian = -I/h0^2, every entry),
+#: ``trace`` (only its trace, for unequal masses or velocity-linear terms such as a magnetic field),
+#: ``none`` (no fix: collapses) and ``auto`` (the better of unit-mass and trace, by the training residual).
+GAUGES = (*_BY_NAME, AUTO)
 
 
 def gauge_named(name: str) -> Gauge:
-    """The gauge called ``name`` (one of :data:`GAUGES`)."""
+    """The gauge called ``name`` (one of :data:`GAUGES` but ``auto``, which is a rule of ``learn``)."""
+    if name == AUTO:
+        raise InputError.at(
+            "gauge", "'auto' chooses a gauge while learning; measure a learned model with its report's gauge"
+        )
     if name not in _BY_NAME:
         raise InputError.at("gauge", f"expected one of {list(GAUGES)}, got {name!r}")
     return _BY_NAME[name]

@@ -15,11 +15,11 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import torch
-from tqdm.auto import tqdm
 
 from .._action import del_residual, mixed_hessian
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
+from .._progress import progress_bar
 from . import _dist
 from ._data import kinetic_scale, kinetic_sums, stacked
 from ._gauge import Gauge
@@ -243,12 +243,7 @@ def learn_neural(
     best = (initial, run.snapshot())
     reason = "max_iter"
     done = 0
-    bar = tqdm(
-        total=settings.max_iter,
-        desc=f"train ({settings.optimizer})",
-        leave=False,
-        disable=None if settings.progress is None else not settings.progress,
-    )
+    bar = progress_bar(settings.max_iter, f"train ({settings.optimizer})", settings.progress)
     try:
         while done < settings.max_iter:
             left = settings.max_iter - done
@@ -256,7 +251,7 @@ def learn_neural(
             done += step_its
             history.append((done, obj, time.perf_counter() - t0))
             bar.update(step_its)
-            bar.set_postfix(objective=f"{obj:.3e}")
+            bar.set_postfix(objective=f"{obj:.3e}", refresh=False)  # drawn at the bar's own interval
             if math.isfinite(obj) and obj < best[0]:
                 best = (obj, run.snapshot())
             elapsed = time.perf_counter() - t0

@@ -23,7 +23,7 @@ from .._stencil import Stencil
 from . import _dist
 from ._data import check_model_lattice, n_sites, site_sums
 from ._gauge import gauge_named
-from ._report import diagnose
+from ._report import diagnose, symmetry_reports
 from ._source import FieldSource, Piece, as_sources, pieces
 
 __all__ = ["TrainingData", "training_data", "default_chunk_sites"]
@@ -102,7 +102,9 @@ class TrainingData:
         self.stencil = model.stencil
         if self.in_memory:
             fields = self.fields
-            model.prepare([gather_cells(f.values, model.stencil, f.boundary) for f in fields])
+            cells = [gather_cells(f.values, model.stencil, f.boundary) for f in fields]
+            model.prepare(cells)
+            model.record_feature_range(cells)
             nsites = sum(n_sites(f, model) for f in fields)
         else:
             chunk = default_chunk_sites(model) if self.chunk_sites is None else self.chunk_sites
@@ -115,7 +117,10 @@ class TrainingData:
             # the input scaling needs every cell: each process reads them all (min/max only, no derivatives)
             w = int(model.stencil.width[0])
             own = [p for c in self.chunks for p in c if min(p.t1, self.sources[p.source].nt - w) > p.t0]
+            # the same for the training range of each stencil feature (min/max merge chunk by chunk); every
+            # process reads every cell, so all hold the same ranges without a reduction
             model.prepare(_Cells(self, own, model.stencil))
+            model.record_feature_range(_Cells(self, own, model.stencil))
             nsites = sum(s.n_sites(model.stencil) for s in self.sources)
         if nsites == 0:
             raise InputError("data: no interior site carries a DEL equation (lattices too small for the stencil)")
@@ -141,12 +146,16 @@ class TrainingData:
         )
 
     # -- diagnostics --------------------------------------------------------------------------------------
-    def diagnose(self, model: AbstractLagrangian, gauge: str) -> dict[str, float]:
+    def diagnose(self, model: AbstractLagrangian, gauge: str, symmetries: bool = False) -> dict[str, Any]:
         """:func:`latticedft.diagnose` of ``model`` on the training data: in memory, or summed chunk by chunk
-        (and process by process) with the same definitions."""
+        (and process by process) with the same definitions. ``symmetries`` tests the built-in symmetries over
+        the training fields, which that test holds in memory."""
         if self.in_memory:
-            return diagnose(model, self.fields, gauge=gauge)
-        return _diagnose_streamed(model, self, gauge)
+            return diagnose(model, self.fields, gauge=gauge, symmetries=symmetries)
+        out: dict[str, Any] = dict(_diagnose_streamed(model, self, gauge))
+        if symmetries:
+            out["symmetries"] = symmetry_reports(model, self.fields, None)
+        return out
 
 
 def training_data(data: Any, boundary: BoundaryKinds | None, chunk_sites: int | None) -> TrainingData:
@@ -183,6 +192,7 @@ def _diagnose_streamed(model: AbstractLagrangian, data: TrainingData, gauge: str
     counts = torch.zeros(2, dtype=torch.float64)  # sites, cells
     smin = torch.full((), math.inf, dtype=torch.float64)
     cmax = torch.zeros((), dtype=torch.float64)
+    smax = torch.zeros((), dtype=torch.float64)
     for chunk in data.my_chunks():
         for piece in chunk:
             f, skip = data.read(piece)
@@ -201,13 +211,14 @@ def _diagnose_streamed(model: AbstractLagrangian, data: TrainingData, gauge: str
             if mh.shape[0]:
                 sv = torch.linalg.svdvals(h0**2 * mh)
                 smin = torch.minimum(smin, sv[:, -1].min())
+                smax = torch.maximum(smax, sv[:, 0].max())
                 ok = sv[:, -1] > 0
                 if ok.any():
                     cmax = torch.maximum(cmax, (sv[ok, 0] / sv[ok, -1]).max())
             d2 = second_time_difference(f, st).reshape(-1, m)
             moment += d2.T @ d2
     sq, msum, moment, counts = (_dist.all_sum(t) for t in (sq, msum, moment, counts))
-    smin, cmax = _dist.all_min(smin), _dist.all_max(cmax)
+    smin, cmax, smax = _dist.all_min(smin), _dist.all_max(cmax), _dist.all_max(smax)
     mbar = msum / counts[1]
     gres = fix.residual(mbar, h0)
     smin_f = float(smin)
@@ -217,4 +228,11 @@ def _diagnose_streamed(model: AbstractLagrangian, data: TrainingData, gauge: str
     p = math.prod(model.spacing)
     scale = math.sqrt(max(float(p**2 * torch.trace(mbar.T @ mbar @ moment)), 0.0) / nsites)
     rel = math.sqrt(loss) / scale if scale > 0 else math.inf
-    return {"loss": loss, "rel_res": rel, "gauge_residual": gres, "hessian_min_sv": smin_f, "hessian_cond": cond}
+    return {
+        "loss": loss,
+        "rel_res": rel,
+        "gauge_residual": gres,
+        "hessian_min_sv": smin_f,
+        "hessian_cond": cond,
+        "hessian_max_sv": float(smax),
+    }

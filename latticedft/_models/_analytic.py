@@ -44,6 +44,8 @@ class AnalyticLagrangian(AbstractLagrangian):
         super().__init__(stencil)
         if not callable(fn):
             raise InputError.at("fn", f"expected a callable fn(cells, h), got {type(fn).__name__}")
+        if name is not None and not isinstance(name, str):
+            raise InputError.at("name", f"expected a string or None, got {type(name).__name__}")
         self.fn = fn
         self.name = name or getattr(fn, "__name__", "analytic")
         self._given_stencil = stencil
@@ -61,5 +63,5 @@ class AnalyticLagrangian(AbstractLagrangian):
     def options(self) -> dict[str, object]:
         return {"name": self.name}
 
-    def describe(self) -> str:
-        return super().describe() + f"\n  L_d = {self.name} (analytic)"
+    def describe(self, max_terms: int | None = 12) -> str:
+        return super().describe(max_terms) + f"\n  L_d = {self.name} (analytic)"

@@ -71,6 +71,8 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     proj: torch.Tensor
 
     def __init__(self, stencil: Stencil | None = None):
+        if stencil is not None and not isinstance(stencil, Stencil):
+            raise InputError.at("stencil", f"expected a latticedft.Stencil or None, got {type(stencil).__name__}")
         super().__init__()
         self._stencil: Stencil | None = stencil
         self._n: int | None = None
@@ -183,6 +185,36 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
         """``(..., n + 1, m)``: the stencil mean then ``g_0 ... g_{n-1}``."""
         return torch.einsum("pk,...km->...pm", self.proj, cells)
 
+    # -- the training range -------------------------------------------------------------------------------
+    def record_feature_range(self, cells: Iterable[torch.Tensor]) -> None:
+        """Store the range of the stencil's inputs over the training cells (a buffer: saved in model files).
+
+        Per feature of :meth:`mean_and_differences` (the stencil mean, then the difference along each axis,
+        per component), the minimum and maximum over every cell in ``cells`` (merged chunk by chunk); serving
+        measures how far its cells leave this range (``ServeResult.extrapolation``).
+        """
+        lo: torch.Tensor | None = None
+        hi: torch.Tensor | None = None
+        for c in cells:
+            feats = self.mean_and_differences(c.detach().to(torch.float64))
+            feats = feats.reshape(-1, *feats.shape[-2:])
+            if feats.shape[0] == 0:
+                continue
+            clo, chi = feats.amin(0), feats.amax(0)
+            lo = clo if lo is None else torch.minimum(lo, clo)
+            hi = chi if hi is None else torch.maximum(hi, chi)
+        if lo is not None and hi is not None:
+            self.set_feature_range(torch.stack([lo, hi]))
+
+    def set_feature_range(self, value: torch.Tensor) -> None:
+        """Set the training range ``(2, n + 1, m)`` (minima, maxima), e.g. from a model file's state."""
+        self.register_buffer("feature_range", value.detach().to(torch.float64).clone())
+
+    def trained_range(self) -> torch.Tensor | None:
+        """``(2, n + 1, m)``: the minima and maxima of :meth:`mean_and_differences` over the training cells,
+        or None (a model not learned from data, or read from a model file written before ranges were kept)."""
+        return self._buffers.get("feature_range")
+
     # -- description -------------------------------------------------------------------------------------
     def options(self) -> dict[str, Any]:
         """Constructor keywords that rebuild this model (JSON-compatible)."""
@@ -197,15 +229,16 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
 
         >>> from latticedft import PolynomialLagrangian
         >>> sorted(PolynomialLagrangian.option_checks())
-        ['basis', 'orders', 'scale', 'time_symmetric']
+        ['basis', 'orders', 'parity', 'scale', 'time_symmetric']
         """
         return option_checks_of(cls.__init__)
 
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
-    def describe(self) -> str:
-        """The learned ``L_d`` in words; subclasses add their terms."""
+    def describe(self, max_terms: int | None = 12) -> str:
+        """The learned ``L_d`` in words; subclasses add their terms (at most ``max_terms`` of them, the
+        largest first; ``None``: all)."""
         lines = [f"{type(self).__name__} (kind {self.kind!r}), {self.n_parameters()} parameters"]
         if self.bound:
             lines.append(

@@ -80,6 +80,8 @@ def _settings(
         if preset not in PRESETS:
             raise InputError.at("preset", f"unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
         out.update(PRESETS[preset])
+    if scale is not None and not isinstance(scale, bool):
+        raise InputError.at("scale", f"expected True, False or None, got {scale!r}")
     given = {"hidden": hidden, "activation": activation, "form": form, "features": features, "scale": scale}
     out.update({k: v for k, v in given.items() if v is not None})
     if out["form"] not in _FORM_CLASSES:
@@ -272,8 +274,8 @@ class MLPLagrangian(AbstractLagrangian):
         """Lines of :meth:`describe` that write ``L_d`` out."""
         return []
 
-    def describe(self) -> str:
-        head = super().describe()
+    def describe(self, max_terms: int | None = 12) -> str:
+        head = super().describe(max_terms)
         arch = " -> ".join(str(w) for w in [self._n_inputs() if self.bound else "?", *self.hidden, 1])
         lines = [
             head,

@@ -94,6 +94,11 @@ class PolynomialLagrangian(LinearLagrangian):
     time_symmetric : bool
         Keep only terms of even degree in the time difference ``g_0``
         (``L_d`` invariant under time reversal ``q_i <-> q_{i+1}`` in 1D).
+    parity : "even", optional
+        ``"even"``: keep only terms of even total degree (in the mean and the
+        differences together), with the mean scaled about 0, so that
+        ``L_d(-psi) = L_d(psi)`` exactly: the point reflection
+        ``psi -> -psi`` is a symmetry by construction (docs/symmetries.md).
     scale : bool
         Map every variable to ``[-1, 1]`` over the training data before
         building the basis (same span, far better conditioning).
@@ -122,6 +127,7 @@ class PolynomialLagrangian(LinearLagrangian):
         orders: Sequence[int] = (4, 8),
         *,
         time_symmetric: bool = False,
+        parity: str | None = None,
         scale: bool = True,
         basis: str = "legendre",
         stencil: Stencil | None = None,
@@ -133,10 +139,16 @@ class PolynomialLagrangian(LinearLagrangian):
             or not all(isinstance(o, int) and not isinstance(o, bool) and o >= 0 for o in orders)
         ):
             raise InputError.at("orders", f"expected two non-negative integers [P, Q], got {orders!r}")
+        for name, flag in (("time_symmetric", time_symmetric), ("scale", scale)):
+            if not isinstance(flag, (bool, np.bool_)):
+                raise InputError.at(name, f"expected True or False, got {flag!r}")
         if basis not in ("legendre", "monomial"):
             raise InputError.at("basis", f"expected 'legendre' or 'monomial', got {basis!r}")
+        if parity not in (None, "even"):
+            raise InputError.at("parity", f"expected 'even' (L_d(-psi) = L_d(psi)) or none, got {parity!r}")
         self.orders = (int(orders[0]), int(orders[1]))
         self.time_symmetric = bool(time_symmetric)
+        self.parity = parity
         self.scale = bool(scale)
         self.basis = basis
 
@@ -144,6 +156,7 @@ class PolynomialLagrangian(LinearLagrangian):
         return {
             "orders": list(self.orders),
             "time_symmetric": self.time_symmetric,
+            "parity": self.parity,
             "scale": self.scale,
             "basis": self.basis,
         }
@@ -157,6 +170,8 @@ class PolynomialLagrangian(LinearLagrangian):
         if self.time_symmetric:
             d_idx = [e for e in d_idx if sum(e[:m]) % 2 == 0]  # g_0 components come first
         exps = [s + d for d in d_idx for s in s_idx]
+        if self.parity == "even":  # every variable is odd under psi -> -psi, and so is P_k for odd k
+            exps = [e for e in exps if sum(e) % 2 == 0]
         self.register_buffer("exponents", torch.tensor(exps, dtype=torch.long))
         nvar = (n + 1) * m
         self.register_buffer("center", torch.zeros(nvar, dtype=torch.float64))
@@ -181,7 +196,7 @@ class PolynomialLagrangian(LinearLagrangian):
             if c.numel() == 0:
                 continue
             z = self.variables(c).reshape(-1, self.center.numel())
-            zlo, zhi, zabs = z.min(0).values, z.max(0).values, z[:, m:].abs().max(0).values
+            zlo, zhi, zabs = z.min(0).values, z.max(0).values, z.abs().max(0).values
             lo = zlo if lo is None else torch.minimum(lo, zlo)
             hi = zhi if hi is None else torch.maximum(hi, zhi)
             amax = zabs if amax is None else torch.maximum(amax, zabs)
@@ -190,7 +205,10 @@ class PolynomialLagrangian(LinearLagrangian):
         center = (hi + lo) / 2
         half = (hi - lo) / 2
         center[m:] = 0.0  # differences are only scaled, so the time-reversal parity is kept
-        half[m:] = amax
+        half[m:] = amax[m:]
+        if self.parity == "even":  # the mean too, so that psi -> -psi maps every scaled variable to minus itself
+            center[:m] = 0.0
+            half[:m] = amax[:m]
         half = torch.where(half > 0, half, torch.ones_like(half))
         self.center.copy_(center)
         self.halfwidth.copy_(half)
@@ -443,8 +461,10 @@ class PolynomialLagrangian(LinearLagrangian):
                 out[key] = out.get(key, 0.0) + a * float(np.prod([w for _, w in combo]))
         return out
 
-    def describe(self, max_terms: int = 12) -> str:
-        head = super().describe()
+    def describe(self, max_terms: int | None = 12) -> str:
+        """The learned ``L_d``: its largest ``max_terms`` monomials by magnitude (``None``: every one), in the
+        unscaled variables."""
+        head = super().describe(max_terms)
         if not self.bound:
             return head
         p, q = self.orders
@@ -452,6 +472,7 @@ class PolynomialLagrangian(LinearLagrangian):
             head,
             f"  basis: {self.basis} polynomials, degree <= {p} in the differences, <= {q} in the mean"
             + (", even in the time difference" if self.time_symmetric else "")
+            + (", even in psi" if self.parity == "even" else "")
             + f" ({self.n_terms} terms)",
         ]
         terms = self.monomials()
@@ -459,11 +480,14 @@ class PolynomialLagrangian(LinearLagrangian):
         keep = sorted(((k, v) for k, v in terms.items() if abs(v) > 1e-9 * big and any(k)), key=lambda kv: -abs(kv[1]))
         names = self._variable_names()
         lines.append("  L_d = (constant)" if not keep else "  L_d =")
-        for k, v in keep[:max_terms]:
+        shown = keep if max_terms is None else keep[:max_terms]
+        for k, v in shown:
             mono = " ".join(n if e == 1 else f"{n}^{e}" for n, e in zip(names, k) if e)
             lines.append(f"      {v:+.6g} {mono}")
-        if len(keep) > max_terms:
-            lines.append(f"      ... and {len(keep) - max_terms} smaller terms")
+        if len(keep) > len(shown):
+            lines.append(
+                f"      ... {len(keep) - len(shown)} more terms, smaller (use --all, or model.describe(max_terms=None))"
+            )
         lines.append(
             "  where mean = average of the stencil values, D<axis> = difference along <axis> (psi[x + e] - psi[x])"
         )

@@ -17,6 +17,7 @@ n-D driver).
 
 from __future__ import annotations
 
+import warnings
 from typing import overload
 
 import xarray as xr
@@ -28,9 +29,9 @@ from .._learn import check_model_lattice as _check_model_lattice
 from .._models import AbstractLagrangian
 from ._batch import _serve_batch
 from ._field import _serve_field
-from ._result import ServeResult, compare
+from ._result import ServeResult, compare, error_vs_time, invariant_vs_time
 
-__all__ = ["MODES", "ServeResult", "compare", "serve"]
+__all__ = ["MODES", "ServeResult", "compare", "error_vs_time", "invariant_vs_time", "serve"]
 
 MODES = ("newton", "sweep")
 
@@ -46,13 +47,27 @@ def _prepare_model(model: AbstractLagrangian, f: LatticeField) -> None:
     _check_model_lattice(model, f, "init")
 
 
-def _steps(steps: int | None, f: LatticeField) -> int:
-    """The number of time slices to serve: ``steps``, or by default as many as ``f`` holds."""
-    if steps is None:
+def _slices(slices: int | None, f: LatticeField, key: str = "slices") -> int:
+    """The number of time slices to serve: ``slices``, or by default as many as ``f`` holds."""
+    if slices is None:
         return f.shape[0]
-    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 3:
-        raise InputError(f"steps: expected an integer >= 3 (time slices of the served field), got {steps!r}")
-    return steps
+    if not isinstance(slices, int) or isinstance(slices, bool) or slices < 3:
+        raise InputError.at(
+            key,
+            f"expected an integer >= 3 (time slices of the served field, the two initial ones included), "
+            f"got {slices!r}",
+        )
+    return slices
+
+
+def _served_attrs(results: list[ServeResult], model: AbstractLagrangian) -> None:
+    """A served field is not the data it started from: the input's ``source`` attribute (how the initial
+    data were made) moves to ``latticedft_initial_from`` and ``source`` says what made the field."""
+    for r in results:
+        attrs = r.field.attrs
+        if "source" in attrs:
+            attrs["latticedft_initial_from"] = attrs.pop("source")
+        attrs["source"] = f"latticedft.serve: predicted from the first two slices by a {model.kind} L_d"
 
 
 @overload
@@ -60,7 +75,7 @@ def serve(
     model: AbstractLagrangian,
     init: xr.DataArray,
     *,
-    steps: int | None = None,
+    slices: int | None = None,
     boundary: BoundaryKinds | None = None,
     mode: str = "newton",
     rtol: float = 1e-10,
@@ -68,6 +83,7 @@ def serve(
     box: float | None = None,
     affine: bool = True,
     progress: bool | None = None,
+    steps: int | None = None,
 ) -> ServeResult: ...
 
 
@@ -76,7 +92,7 @@ def serve(
     model: AbstractLagrangian,
     init: list[xr.DataArray] | tuple[xr.DataArray, ...],
     *,
-    steps: int | None = None,
+    slices: int | None = None,
     boundary: BoundaryKinds | None = None,
     mode: str = "newton",
     rtol: float = 1e-10,
@@ -84,6 +100,7 @@ def serve(
     box: float | None = None,
     affine: bool = True,
     progress: bool | None = None,
+    steps: int | None = None,
 ) -> list[ServeResult]: ...
 
 
@@ -92,7 +109,7 @@ def serve(
     model: AbstractLagrangian,
     init: xr.DataArray | list[xr.DataArray] | tuple[xr.DataArray, ...],
     *,
-    steps: int | None = None,
+    slices: int | None = None,
     boundary: BoundaryKinds | None = None,
     mode: str = "newton",
     rtol: float = 1e-10,
@@ -100,6 +117,7 @@ def serve(
     box: float | None = None,
     affine: bool = True,
     progress: bool | None = None,
+    steps: int | None = None,
 ) -> ServeResult | list[ServeResult]:
     """Predict a field from its first two time slices (and boundary strips) with the learned ``L_d``.
 
@@ -111,9 +129,10 @@ def serve(
         The first two time slices, and for Dirichlet axes the boundary strips
         on every slice to serve (so usually the whole reference field). A
         list of 1D fields is served as one batch.
-    steps : int, optional
+    slices : int, optional
         Number of time slices of the served field, the two initial ones
-        included (default: the length of ``init`` along time).
+        included (default: the length of ``init`` along time): ``N`` time
+        steps from ``t_0`` are ``slices = N + 1``.
     boundary : "dirichlet", "periodic" or dict axis -> kind, optional
         Per spatial axis; default from the coordinates' ``periodic`` attribute,
         else Dirichlet.
@@ -135,6 +154,8 @@ def serve(
         fails it, Newton takes over. ``False``: always Newton.
     progress : bool, optional
         Progress bar; ``None`` shows it only on a terminal.
+    steps : int, optional
+        Deprecated alias of ``slices`` (the same count; a ``FutureWarning``).
 
     Returns
     -------
@@ -154,16 +175,34 @@ def serve(
     >>> osc = ldft.lagrangians.verlet(lambda q: 0.5 * q ** 2)
     >>> t = np.arange(2) * 0.1
     >>> init = xr.DataArray([1.0, np.cos(0.1)], dims="t", coords={"t": t}, name="psi")
-    >>> out = ldft.serve(osc, init, steps=64)
+    >>> out = ldft.serve(osc, init, slices=64)
     >>> out.complete, out.field.sizes["t"]
     (True, 64)
     """
+    if steps is not None:
+        if slices is not None:
+            raise InputError.at("steps", "give slices only (steps is its deprecated alias)")
+        warnings.warn(
+            "serve(slices=...) is deprecated: use slices=... (the same count: time slices served, "
+            "the two initial ones included)",
+            FutureWarning,
+            stacklevel=2,
+        )
+        slices = steps
     if mode not in MODES:
         raise InputError(f"mode: expected one of {list(MODES)}, got {mode!r}")
     if not (isinstance(rtol, float) and 0 < rtol < 1):
         raise InputError(f"rtol: expected a float in (0, 1), got {rtol!r}")
-    if box is not None and not (isinstance(box, (int, float)) and box > 0):
+    if box is not None and not (isinstance(box, (int, float)) and not isinstance(box, bool) and box > 0):
         raise InputError(f"box: expected a positive number, got {box!r}")
+    if not isinstance(max_newton, int) or isinstance(max_newton, bool) or max_newton < 1:
+        raise InputError.at(
+            "max_newton", f"expected a positive integer (Newton iterations per slice), got {max_newton!r}"
+        )
+    if not isinstance(affine, bool):
+        raise InputError.at("affine", f"expected True or False, got {affine!r}")
+    if progress is not None and not isinstance(progress, bool):
+        raise InputError.at("progress", f"expected True, False or None, got {progress!r}")
     batch = isinstance(init, (list, tuple))
     items = list(init) if isinstance(init, (list, tuple)) else [init]
     if not items:
@@ -177,7 +216,8 @@ def serve(
         _check_model_lattice(model, f, "init" if not batch else f"init[{k}]")
     n = fs[0].ndim
     if n == 1:
-        results = _serve_batch(model, fs, [_steps(steps, f) for f in fs], mode, rtol, max_newton, box, progress)
+        results = _serve_batch(model, fs, [_slices(slices, f) for f in fs], mode, rtol, max_newton, box, progress)
+        _served_attrs(results, model)
         failed = [(r, r.fail_at) for r in results if r.fail_at is not None]  # the members not complete
         if failed:
             first, (at_slice, res) = failed[0]
@@ -185,5 +225,13 @@ def serve(
         return results if batch else results[0]
     if box is not None:
         raise InputError("box: stopping when leaving a box is for 1D trajectories only")
-    out = [_serve_field(model, f, _steps(steps, f), mode, rtol, max_newton, progress, bool(affine)) for f in fs]
+    out: list[ServeResult] = []
+    for f in fs:
+        try:
+            out.append(_serve_field(model, f, _slices(slices, f), mode, rtol, max_newton, progress, bool(affine)))
+        except ServeError as err:
+            if isinstance(err.result, ServeResult):
+                _served_attrs([err.result], model)
+            raise
+    _served_attrs(out, model)
     return out if batch else out[0]

@@ -11,7 +11,7 @@ import torch
 from .._action import cell_derivatives, del_residual
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
-from ._slices import _SliceSystem
+from ._slices import _SliceSystem, is_singular
 
 
 class _AffineSlices:
@@ -154,17 +154,23 @@ def _affine_prefix(
     flat: torch.Tensor,
     rtol: float,
     vol: float,
-) -> tuple[int, float, float] | None:
+) -> tuple[int, float, float, float] | None:
     """Serve every slice of ``psi`` by the affine recurrence, if the model's DEL is affine, and check them.
 
-    Returns ``(slices, worst, dmax)``: how many leading slices pass the residual test (Newton serves the rest),
-    the largest residual among them and the Hessian scale of that test; ``None`` when the DEL is not affine
-    or its slice matrix is singular (Newton then reports it with the slice and site).
+    Returns ``(slices, worst, dmax, mscale)``: how many leading slices pass the residual test (Newton serves
+    the rest), the largest residual among them, the Hessian scale of that test and the largest singular value
+    of the mixed Hessian at a site; ``None`` when the DEL is not affine or its mixed Hessian is singular
+    (Newton then reports it with the slice and site).
     """
     steps, m = psi.shape[0], sys.m
     scale = float(f.values[:2].abs().max()) or 1.0
     probe = _AffineSlices.probe(model, sys.st, m, scale)
     if probe is None:
+        return None
+    hess = torch.from_numpy(probe[0])
+    ncell = int(sys.site_of[0].size)
+    smin, mscale, _ = sys.site_singular_values({(a, b): hess[a, b].expand(ncell, m, m) for a, b in sys.jac})
+    if is_singular(smin, mscale):
         return None
     try:
         op = _AffineSlices(sys, probe[0], probe[1])
@@ -178,4 +184,4 @@ def _affine_prefix(
     good = np.isfinite(res) & (res <= rtol * vol * op.dmax * scl)
     affine_slices = int(np.argmin(good)) if not good.all() else steps - 2
     worst = float(res[:affine_slices].max()) if affine_slices else 0.0
-    return affine_slices, worst, op.dmax
+    return affine_slices, worst, op.dmax, mscale

@@ -12,7 +12,9 @@ import torch
 from .._action import CellDerivatives, cell_derivatives
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
+from ._range import assess
 from ._result import ServeResult, _bar
+from ._slices import SINGULAR_RTOL, is_singular, singular_message
 
 
 @dataclass
@@ -26,6 +28,7 @@ class _GroupStep:
     ok: torch.Tensor  # converged
     sing: torch.Tensor  # stopped at a singular Jacobian (mixed Hessian)
     it: int  # Newton iterations taken
+    smin: torch.Tensor  # smallest singular value of the mixed Hessian met, per member
 
 
 class _Batch:
@@ -58,6 +61,18 @@ class _Batch:
         # step with a stale Jacobian was seen to land near a spurious root at a stiff turning point.
         self.const_model = bool(model.constant_mixed_hessian)
         self.jac_const: torch.Tensor | None = None
+        # per member: the largest singular value of the mixed Hessian met so far (the scale a singular one is
+        # measured against)
+        self.mscale = torch.zeros(b, dtype=torch.float64)
+
+    def conditioning(self, act: torch.Tensor, jac: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(smin, singular)`` per member of ``act``: the smallest singular value of its Jacobian (the mixed
+        Hessian) and whether it is singular relative to the largest met on that member so far."""
+        sv = jac.abs().reshape(-1, 1) if self.m == 1 else torch.linalg.svdvals(jac)
+        sv = torch.nan_to_num(sv, nan=0.0)
+        self.mscale[act] = torch.maximum(self.mscale[act], sv[:, 0])
+        scale, smin = self.mscale[act], sv[:, -1]
+        return smin, ~((scale > 0) & (smin > SINGULAR_RTOL * scale))  # vectorised is_singular
 
     def retire(self, k: int, slices: int, why: str, bad: bool, res: float = math.nan) -> None:
         """Member ``k`` stops after ``slices`` slices; ``bad``: it failed (with residual ``res``)."""
@@ -100,13 +115,17 @@ class _Batch:
         last = torch.zeros_like(u)
         halved = torch.zeros(n, dtype=torch.long)
         small = torch.zeros(n, dtype=torch.bool)
+        smin = torch.full((n,), math.inf, dtype=torch.float64)
         for it in range(1, max_newton + 1):
             g, jac = self.derivatives(torch.stack([q_now, u], dim=1), n)
             r = self.vol * (g[:, self.a0] + g_prev)
             rabs = r.abs().amax(-1)
             if rscale is None:  # size of the kinetic terms, per trajectory
                 rscale = torch.linalg.matrix_norm(jac, ord=math.inf).clamp_min(1e-300) * mag.clamp_min(1e-300)
-            ok = (rabs <= rtol * rscale) | (small & torch.isfinite(rabs))
+            s_now, degenerate = self.conditioning(act, jac)
+            smin = torch.minimum(smin, s_now)
+            sing = sing | degenerate  # a singular mixed Hessian is refused, whatever the residual says
+            ok = ((rabs <= rtol * rscale) | (small & torch.isfinite(rabs))) & ~sing
             self.iters[act] += (~ok).long() if it > 1 else 1
             if bool(ok.all()) or it == max_newton:
                 break
@@ -120,7 +139,7 @@ class _Batch:
             last = torch.where(take[:, None], step, last)
             halved = torch.where(take, 0, halved + worse.long())
             small = (take | worse) & (last.abs().amax(-1) <= rtol * mag)
-        return _GroupStep(act, u, g, rabs, ok, sing, it)
+        return _GroupStep(act, u, g, rabs, ok, sing, it, smin)
 
     def record(self, act_list: list[int], i: int, s: _GroupStep, max_newton: int, box: float | None) -> None:
         """Store slice ``i + 1`` of the members solved; retire those that failed or left the box."""
@@ -135,11 +154,11 @@ class _Batch:
                 k = act_list[j]
                 f = self.fs[k]
                 tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
-                why = (
-                    "singular mixed Hessian"
-                    if bool(s.sing[j])
-                    else f"Newton did not converge in {max_newton} iterations"
-                )
+                smin, scale = float(s.smin[j]), float(self.mscale[k])
+                if not bool(s.sing[j]):
+                    why = f"Newton did not converge in {max_newton} iterations"
+                else:
+                    why = singular_message(smin, scale) if is_singular(smin, scale) else "singular mixed Hessian"
                 res = float(s.rabs[j])
                 self.retire(k, i + 1, f"slice {i + 1} (t = {tval:.6g}): {why}, residual {res:.3e}", True, res)
                 self.worst[k] = max(float(self.worst[k]), res)
@@ -155,6 +174,7 @@ class _Batch:
         for k, f in enumerate(self.fs):
             n = self.length[k]
             lf = LatticeField.with_values(f, self.psi[k, :n].clone())
+            ext, warnings = assess(self.model, lf)
             out.append(
                 ServeResult(
                     field=lf.to_dataarray(),
@@ -168,6 +188,8 @@ class _Batch:
                     max_residual=float(self.worst[k]),
                     mode=mode,
                     solver=mode,
+                    extrapolation=ext,
+                    warnings=warnings,
                     fail_at=self.fail_at.get(k),
                 )
             )

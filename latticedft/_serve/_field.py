@@ -17,6 +17,7 @@ from .._lattice import LatticeField, gather_cells
 from .._models import AbstractLagrangian
 from ._affine import _affine_prefix
 from ._newton import _newton_slice
+from ._range import assess
 from ._result import ServeResult, _bar
 from ._slices import _site_label, _SliceSystem
 from ._sweep import _sweep_slice
@@ -32,7 +33,7 @@ def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int) -> torch.Ten
         raise InputError(
             f"init: holds {nt_given} time slices but the {kind.title} boundary along "
             f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
-            "fewer steps, or a periodic boundary"
+            "fewer slices, or a periodic boundary"
         )
     psi = torch.full((steps, *f.shape[1:], m), math.nan, dtype=torch.float64)
     psi[:2] = f.values[:2]
@@ -71,12 +72,13 @@ class _FieldRun:
         out = _affine_prefix(self.model, self.f, self.sys, self.psi, self.flat, rtol, self.vol)
         if out is None:
             return
-        self.affine_slices, worst, dmax = out
+        self.affine_slices, worst, dmax, mscale = out
         self.start = 1 + self.affine_slices
         if self.affine_slices:
             self.worst = worst
             self.total_it, self.max_it = self.affine_slices, 1
             self.cache["dmax"] = dmax
+            self.cache["mscale"] = mscale
         self.bar.update(self.affine_slices)
 
     def solver(self) -> str:
@@ -110,6 +112,7 @@ class _FieldRun:
     def _result(
         self, field: LatticeField, complete: bool, reason: str, slices: int, wall: float, rate: float, residual: float
     ) -> ServeResult:
+        ext, warnings = assess(self.model, field)
         return ServeResult(
             field=field.to_dataarray(),
             complete=complete,
@@ -122,6 +125,8 @@ class _FieldRun:
             max_residual=residual,
             mode=self.mode,
             solver=self.solver(),
+            extrapolation=ext,
+            warnings=warnings,
         )
 
     def fail(self, i: int, msg: str, row: int | None, res: float) -> ServeError:
@@ -136,7 +141,7 @@ class _FieldRun:
         tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
         text = (
             f"slice {i + 1} (t = {tval:.6g}): {msg}"
-            + (f" at site {site}" if site else "")
+            + (f" in the DEL equation of site {_site_text(f, site)}" if site else "")
             + (f", residual {res:.3e}" if math.isfinite(res) else "")
         )
         return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
@@ -150,6 +155,13 @@ class _FieldRun:
         return self._result(
             out, True, "complete", self.steps, wall, solved / wall if wall > 0 else math.inf, self.worst
         )
+
+
+def _site_text(f: LatticeField, site: tuple[int, ...]) -> str:
+    """``index t=12, x=5 (x = 0.3125)``: a lattice index, and apart the spatial coordinates it stands for."""
+    idx = ", ".join(f"{d}={i}" for d, i in zip(f.dims, site))
+    coords = ", ".join(f"{d} = {float(f.coords[d][i]):.6g}" for d, i in zip(f.dims[1:], site[1:]) if d in f.coords)
+    return f"index {idx}" + (f" ({coords})" if coords else "")
 
 
 def _serve_field(

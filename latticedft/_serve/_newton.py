@@ -9,13 +9,21 @@ import numpy as np
 import torch
 
 from .._action import CellDerivatives
-from ._slices import _scale, _SliceSystem
+from ._slices import _scale, _SliceSystem, is_singular, singular_message
 
 
 def _fresh_blocks(ev: CellDerivatives, sys: _SliceSystem, cache: dict[str, Any]) -> dict:
-    """Hessian blocks of the slice at the current state; records their diagonal size (the residual scale)."""
+    """Hessian blocks of the slice at the current state; records their diagonal size (the residual scale).
+
+    Also checks the mixed Hessian's conditioning at every unknown site: ``cache["singular"]`` is
+    ``(message, row)`` when its smallest singular value is singular relative to the largest met on this
+    field so far (``cache["mscale"]``), else None.
+    """
     blocks = ev.blocks(sys.pairs)
     cache["dmax"] = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
+    smin, smax, row = sys.site_singular_values(blocks)
+    cache["mscale"] = scale = max(cache.get("mscale", 0.0), smax)
+    cache["singular"] = (singular_message(smin, scale), row) if is_singular(smin, scale) else None
     return blocks
 
 
@@ -35,6 +43,8 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
             return it, res, ev.grad, ("residual is not finite", None, res)
         stale = it == 1 and "solve" in cache
         blocks = _fresh_blocks(ev, sys, cache) if "dmax" not in cache else None
+        if blocks is not None and cache["singular"]:
+            return it, res, ev.grad, (*cache["singular"], res)
         if rscale is None:
             rscale = vol * cache["dmax"] * _scale(flat, i, unk)
         if res <= rtol * rscale or small:
@@ -45,6 +55,8 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
             if not stale:
                 if blocks is None:
                     blocks = _fresh_blocks(ev, sys, cache)
+                    if cache["singular"]:
+                        return it, res, ev.grad, (*cache["singular"], res)
                 cache["solve"] = sys.factor(blocks, vol)
             delta = cache["solve"](-r)
         except (np.linalg.LinAlgError, ValueError) as exc:

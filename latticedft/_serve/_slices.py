@@ -3,6 +3,8 @@ factorised Jacobian, shared by the slice solvers (affine recurrence, slice-Newto
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import scipy.linalg
 import scipy.sparse
@@ -12,6 +14,11 @@ import torch
 from .._boundary import axis_kinds
 from .._lattice import LatticeField, interior_slices
 from .._models import AbstractLagrangian
+
+#: A slice whose mixed Hessian has a smallest singular value below ``SINGULAR_RTOL`` times its scale (the
+#: largest singular value met on the served field so far) is singular: serving stops there with a
+#: ``ServeError`` instead of accepting whatever Newton's method makes of it.
+SINGULAR_RTOL = 1e-10
 
 
 class _SliceSystem:
@@ -63,6 +70,13 @@ class _SliceSystem:
         self.banded = len(spatial) == 1 and not wraps
         self.triangular = bool(rows.size == 0 or (cols <= rows).all()) and not wraps
         self.diag_pairs = [(a, b) for (a, b), (_, r, c) in self.jac.items() if np.any(r == c)]
+        # the entries of the Jacobian's diagonal m x m blocks (an equation's own site on the next slice):
+        # per unknown site the mixed Hessian summed over the cells that hold it
+        self.diag_entries = [
+            (key, torch.from_numpy(cells[r == c]), torch.from_numpy(r[r == c]))
+            for key, (cells, r, c) in self.jac.items()
+            if np.any(r == c)
+        ]
 
     # EL on slice i (equation rows) from the per-cell gradients of the cells anchored at i-1 and i
     def residual(self, g_prev: torch.Tensor, g_cur: torch.Tensor, vol: float) -> np.ndarray:
@@ -87,6 +101,21 @@ class _SliceSystem:
             vs.append(v.reshape(-1))
         return np.concatenate(rs), np.concatenate(cs), np.concatenate(vs)
 
+    def site_singular_values(self, blocks: dict[tuple[int, int], torch.Tensor]) -> tuple[float, float, int]:
+        """``(smallest, largest, row)``: the extreme singular values of the Jacobian's diagonal blocks (the mixed
+        Hessian at each unknown site, without the cell volume) and the equation row of the smallest."""
+        m = self.m
+        diag = torch.zeros(self.n, m, m, dtype=torch.float64)
+        for key, cells, rows in self.diag_entries:
+            diag.index_add_(0, rows, blocks[key].reshape(-1, m, m)[cells])
+        if self.n == 0:
+            return math.inf, 0.0, 0
+        sv = diag.abs().reshape(-1, 1) if m == 1 else torch.linalg.svdvals(diag)
+        sv = torch.nan_to_num(sv, nan=0.0)
+        low = sv[:, -1]
+        worst = int(torch.argmin(low))
+        return float(low[worst]), float(sv[:, 0].max()), worst * m
+
     def factor(self, blocks, vol: float):
         """Assemble and factorise the slice Jacobian; returns ``solve(rhs)``."""
         rows, cols, vals = self.matrix_entries(blocks, vol)
@@ -103,6 +132,21 @@ class _SliceSystem:
             return scipy.sparse.linalg.splu(mat).solve
         except RuntimeError as exc:  # "Factor is exactly singular"
             raise np.linalg.LinAlgError(str(exc)) from None
+
+
+def singular_message(smin: float, scale: float) -> str:
+    """The reason a slice is refused: its mixed Hessian is singular relative to ``scale``."""
+    if scale <= 0:
+        return "mixed Hessian singular: it is zero (a degenerate L_d, e.g. learned with gauge 'none')"
+    return (
+        f"mixed Hessian singular: smallest singular value {smin:.3e}, {smin / scale:.1e} relative to its "
+        f"scale {scale:.3e} (below {SINGULAR_RTOL:g})"
+    )
+
+
+def is_singular(smin: float, scale: float) -> bool:
+    """Whether a smallest singular value ``smin`` is singular relative to ``scale`` (a zero scale is)."""
+    return not (scale > 0 and smin > SINGULAR_RTOL * scale)
 
 
 def _site_label(f: LatticeField, sys: _SliceSystem, tslice: int, row: int) -> tuple[int, ...]:

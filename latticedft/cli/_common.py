@@ -1,6 +1,8 @@
 """Shared pieces of the subcommands: arguments, logging, the results folder, the summary.
 
-Staging and publishing the results folder is :func:`latticedft._results.staged_results`.
+Staging and publishing the results folder is :func:`latticedft._results.staged_results`, inside
+:func:`latticedft._results.hold_results` (the lock); the checks made before anything is written are
+:mod:`latticedft._guards`.
 """
 
 from __future__ import annotations
@@ -12,16 +14,25 @@ import os
 import shlex
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from .._case import Case, load_case
-from .._errors import InputError
-from .._results import versions
+from .._errors import ConfigError, InputError
+from ._terminal import TqdmHandler
+
+if TYPE_CHECKING:
+    from .._case import Case
+
+# The engine (torch, xarray) is imported inside the functions that need it: `latticedft --help` and usage
+# errors answer without it.
 
 log = logging.getLogger("latticedft")
 
-#: exit statuses
-OK, BAD_INPUT, INCOMPLETE = 0, 1, 3
+#: exit statuses (SIGINT: 130, SIGTERM: 143, as a shell reports a process stopped by the signal)
+OK, BAD_INPUT, INCOMPLETE, INTERRUPTED, TERMINATED = 0, 1, 3, 130, 143
+
+
+class Terminated(BaseException):
+    """Raised in the main thread by the command line's SIGTERM handler (like KeyboardInterrupt for SIGINT)."""
 
 
 def add_case_arguments(p: argparse.ArgumentParser, *, overwrite: bool = False, out: bool = True) -> None:
@@ -35,7 +46,7 @@ def add_case_arguments(p: argparse.ArgumentParser, *, overwrite: bool = False, o
         default=[],
         dest="overrides",
         help="override a case.toml key for this run (TOML value), e.g. model.orders=[2,2], "
-        "train.max_time=10, serve.test.steps=30; repeatable",
+        "train.max_time=10, serve.test.slices=31; repeatable",
     )
     if overwrite:
         p.add_argument("--overwrite", action="store_true", help="replace an existing results folder")
@@ -56,7 +67,7 @@ def setup_logging(args: argparse.Namespace) -> logging.Handler:
     """INFO (or WARNING with -q, DEBUG with -v) to the current stderr."""
     log.setLevel(logging.DEBUG)
     log.propagate = False
-    handler = logging.StreamHandler(sys.stderr)
+    handler = TqdmHandler(sys.stderr)  # lines through tqdm.write: a progress bar stays whole
     level = (
         logging.WARNING
         if getattr(args, "quiet", False)
@@ -79,14 +90,49 @@ def command_line(argv: list[str]) -> str:
 
 
 def open_case(args: argparse.Namespace) -> Case:
+    from .._case import load_case
+
     case = load_case(args.case, args.overrides)
     log.debug("case %s, overrides %s", case.root, list(case.overrides))
     return case
 
 
 def results_dir(args: argparse.Namespace, case: Case) -> Path:
+    """The results folder (``--out`` or ``CASE/results``), checked: not a file, not the case folder or a folder
+    holding it, not one of the case's inputs, nor holding or inside one. A symlinked results folder is
+    followed: the real path is returned."""
+    from .._guards import case_inputs
+    from .._results import check_destination
+
     out = getattr(args, "out", None)
-    return Path(out) if out else case.results
+    dest = Path(out) if out else case.results
+    return check_destination(dest, inputs=case_inputs(case), root=case.root, what="--out" if out else "results folder")
+
+
+def checked_data(case: Case, dest: Path, *, train: bool = True, serve: bool = True) -> Any:
+    """Read and check every field of the case, then the limits (file names, model size, memory) of the stages
+    the command runs (``train``, ``serve``); nothing is written."""
+    from .._guards import check_before_writing
+    from .._pipeline import check_case
+
+    data = check_case(case)
+    check_before_writing(case, data, dest, train=train, serve=serve)
+    return data
+
+
+def refuse_learning_overrides(case: Case, command: str) -> None:
+    """``serve`` and ``export`` use the learned model: a ``--set model.*`` or ``train.*`` would be recorded
+    without taking effect, so it is refused."""
+    from .._case import parse_override
+
+    for text in case.overrides:
+        table = parse_override(text)[0][0]
+        if table in ("model", "train"):
+            raise ConfigError(
+                f"--set {text.split('=', 1)[0].strip()}: [{table}] settings take effect in "
+                f"`latticedft train` and `run`; `{command}` uses the learned model in "
+                "results/model.pt"
+            )
 
 
 def refuse_existing(dest: Path, args: argparse.Namespace) -> None:
@@ -114,6 +160,8 @@ def set_threads(case: Case) -> None:
 
 
 def summary_head(case: Case, argv: list[str], stage: str) -> dict[str, Any]:
+    from .._results import versions
+
     return {
         "case": case.name,
         "case_path": str(case.root),

@@ -12,7 +12,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from tqdm.auto import tqdm
+from tqdm.std import tqdm  # not tqdm.auto: no ipywidgets warning in Jupyter (latticedft._progress)
 
 from .._case import Case
 from .._errors import InputError
@@ -55,12 +55,24 @@ def recorded_exports(folder: Path) -> dict[str, list[str]]:
     }
 
 
+def model_warnings_of(model: Any, folder: Path) -> list[str]:
+    """The warnings of the model's training: from its report, or (a model read from ``model.pt``) from the
+    ``train`` section of ``folder/summary.json``."""
+    report = getattr(model, "report_", None)
+    if report is not None:
+        return list(report.warnings)
+    train = (read_summary(folder) or {}).get("train") or {}
+    found = train.get("warnings") if isinstance(train, dict) else None
+    return [str(w) for w in found] if isinstance(found, list) else []
+
+
 def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[str]) -> dict[str, Any]:
     """Serve every task into ``<task>.nc`` and export it; returns the summary's tasks section."""
     tasks: dict[str, Any] = {}
     attrs = config_attrs(case.raw, case.overrides, command_line(argv))
     history = command_line(argv) + (f" (overrides: {', '.join(case.overrides)})" if case.overrides else "")
     previous = recorded_exports(folder)
+    model_warnings = model_warnings_of(model, folder)
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
         out: TaskOutcome = serve_task(model, td)
@@ -71,8 +83,12 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
             out.field,
             out.reference,
             out.invariant,
-            attrs={**attrs, "latticedft_task": out.name, "latticedft_complete": "true" if out.complete else "false"},
+            attrs={**attrs, "latticedft_task": out.name, **out.file_attrs(model_warnings)},
             history=history,
+            charges=out.charges,
+            baseline=td.baseline,
+            steps=td.slices,
+            extra={"extrapolation": out.extrapolation} if out.extrapolation is not None else None,
         )
         out.record["file"] = path.name
         log.debug("wrote %s", path.name)
@@ -124,8 +140,15 @@ def export_one(
 
 
 def finish(folder: Path, summary: dict[str, Any]) -> int:
+    """Write ``summary.json`` with the exit status and every warning of the stage (``warnings``: the
+    training's, then each task's as ``"task <name>: ..."``); returns the exit status."""
     incomplete = [n for n, t in summary.get("tasks", {}).items() if not t.get("complete")]
     status = INCOMPLETE if incomplete else OK
+    train = summary.get("train")
+    summary["warnings"] = [
+        *((train.get("warnings") or []) if isinstance(train, dict) else []),
+        *(f"task {n}: {w}" for n, t in summary.get("tasks", {}).items() for w in t.get("warnings") or []),
+    ]
     summary["incomplete_tasks"] = incomplete
     summary["exit_status"] = status
     write_summary(folder, summary)

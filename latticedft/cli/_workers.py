@@ -20,12 +20,13 @@ import subprocess
 import sys
 import tempfile
 import time
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
-from .._case import Case
 from .._errors import InputError
-from .._learn import _dist
 from ._common import BAD_INPUT, OK
+
+if TYPE_CHECKING:  # the CLI's help and usage errors load no engine (torch, xarray)
+    from .._case import Case
 
 log = logging.getLogger("latticedft")
 
@@ -134,6 +135,8 @@ def _wait(procs: list[subprocess.Popen[bytes]], logs: list[Any]) -> int:
 
 def join() -> None:
     """Join the process group described by the environment (a no-op in a single process)."""
+    from .._learn import _dist
+
     if _dist.init_from_env():
         rank, size = _dist.world()
         log.info("training in %d processes (this is rank %d, backend %s)", size, rank, _dist_backend())

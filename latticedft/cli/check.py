@@ -1,12 +1,12 @@
-"""``latticedft check CASE``: validate case.toml and every data file, print a summary; writes nothing."""
+"""``latticedft check CASE``: validate case.toml, every data file and the limits (file names, memory) of a run;
+print a summary; writes nothing."""
 
 from __future__ import annotations
 
 import argparse
 import logging
 
-from .._pipeline import check_case
-from ._common import OK, add_case_arguments, open_case, results_dir
+from ._common import OK, add_case_arguments, checked_data, open_case, results_dir
 
 log = logging.getLogger("latticedft")
 
@@ -19,11 +19,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    from .._results import leftovers
+
     case = open_case(args)
-    data = check_case(case)
+    dest = results_dir(args, case)
+    data = checked_data(case, dest)
     for line in data.summary_lines(case):
         print(line)
-    dest = results_dir(args, case)
-    print(f"results: {dest} " + ("exists (run needs --overwrite)" if dest.exists() else "does not exist yet"))
+    shown = args.out if getattr(args, "out", None) else case.results
+    print(f"results: {shown} " + ("exists (run needs --overwrite)" if dest.exists() else "does not exist yet"))
+    left = leftovers(dest)
+    if left:
+        print(
+            f"results: an interrupted run left {', '.join(p.name for p in left)}; the next run, serve or export "
+            "cleans up (restoring earlier results parked there)"
+        )
     log.info("case %s is valid", case.name)
     return OK

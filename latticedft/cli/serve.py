@@ -6,11 +6,16 @@ import argparse
 import logging
 import time
 
-from .._modelfile import load_model
-from .._pipeline import check_case
-from .._results import read_summary, staged_results
-from ._common import add_case_arguments, open_case, require_results, results_dir, set_threads, summary_head
-from ._work import finish, serve_into
+from ._common import (
+    add_case_arguments,
+    checked_data,
+    open_case,
+    refuse_learning_overrides,
+    require_results,
+    results_dir,
+    set_threads,
+    summary_head,
+)
 
 log = logging.getLogger("latticedft")
 
@@ -21,19 +26,24 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    from .._results import hold_results, load_verified_model, read_summary, staged_results
+    from ._work import finish, serve_into
+
     t0 = time.perf_counter()
     case = open_case(args)
+    refuse_learning_overrides(case, "serve")
     dest = results_dir(args, case)
-    require_results(dest, "model.pt")
-    model = load_model(dest / "model.pt")
-    old = read_summary(dest) or {}
-    set_threads(case)
-    data = check_case(case)
-    with staged_results(dest, copy_existing=True) as folder:
-        log.debug("serving with %s", dest / "model.pt")
-        tasks = serve_into(folder, case, data, model, argv)
-        summary = summary_head(case, argv, "serve")
-        summary.update(train=old.get("train"), tasks=tasks, wall_time=time.perf_counter() - t0)
-        status = finish(folder, summary)
+    with hold_results(dest):
+        require_results(dest, "model.pt")
+        model = load_verified_model(dest)
+        old = read_summary(dest) or {}
+        set_threads(case)
+        data = checked_data(case, dest, train=False)
+        with staged_results(dest, copy_existing=True) as folder:
+            log.debug("serving with %s", dest / "model.pt")
+            tasks = serve_into(folder, case, data, model, argv)
+            summary = summary_head(case, argv, "serve")
+            summary.update(train=old.get("train"), tasks=tasks, wall_time=time.perf_counter() - t0)
+            status = finish(folder, summary)
     log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
     return status

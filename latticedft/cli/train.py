@@ -6,11 +6,16 @@ import argparse
 import logging
 import time
 
-from .._pipeline import check_case
-from .._results import staged_results
 from . import _workers
-from ._common import add_case_arguments, open_case, refuse_existing, results_dir, set_threads, summary_head
-from ._work import finish, train_into
+from ._common import (
+    add_case_arguments,
+    checked_data,
+    open_case,
+    refuse_existing,
+    results_dir,
+    set_threads,
+    summary_head,
+)
 
 log = logging.getLogger("latticedft")
 
@@ -26,19 +31,23 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace, argv: list[str]) -> int:
     if (status := _workers.supervise(args, argv)) is not None:
         return status
+    from .._results import hold_results, staged_results
+    from ._work import finish, train_into
+
     t0 = time.perf_counter()
     case = open_case(args)
     if _workers.is_helper():
         return _workers.train_only(case)
     dest = results_dir(args, case)
-    refuse_existing(dest, args)
-    set_threads(case)
-    data = check_case(case)
-    _workers.join()
-    with staged_results(dest) as folder:
-        _, train = train_into(folder, case, data, argv)
-        summary = summary_head(case, argv, "train")
-        summary.update(train=train, tasks={}, wall_time=time.perf_counter() - t0)
-        status = finish(folder, summary)
+    with hold_results(dest):
+        refuse_existing(dest, args)
+        set_threads(case)
+        data = checked_data(case, dest, serve=False)
+        _workers.join()
+        with staged_results(dest, replace_foreign=False) as folder:
+            _, train = train_into(folder, case, data, argv)
+            summary = summary_head(case, argv, "train")
+            summary.update(train=train, tasks={}, wall_time=time.perf_counter() - t0)
+            status = finish(folder, summary)
     log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
     return status

@@ -18,7 +18,9 @@ A new format is a module with its exporter, e.g. ``latticedft/io/xdmf.py``::
         def write(self, task: ExportTask) -> list[Path]:
             return write_xdmf(task.folder, task.name, task.field, task.extra, max_frames=task.max_frames)
 
-plus its line in :data:`EXPORTERS`.
+plus its line in :data:`EXPORTERS` and the names of its files in :data:`EXPORT_FILES`
+(``latticedft check`` checks with them that every file of a task fits the file system's limit on
+file names, whichever format a later ``export`` picks).
 
 >>> sorted(EXPORTERS)
 ['figures', 'paraview', 'xdmf']
@@ -30,16 +32,28 @@ from __future__ import annotations
 
 import importlib
 import logging
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from dataclasses import field as _field
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import xarray as xr
 
 from latticedft._errors import InputError
 
-__all__ = ["EXPORTERS", "DEFAULT_FORMATS", "Exporter", "ExportTask", "get_exporter", "export_formats", "remove_exports"]
+__all__ = [
+    "EXPORTERS",
+    "EXPORT_FILES",
+    "DEFAULT_FORMATS",
+    "Exporter",
+    "ExportTask",
+    "get_exporter",
+    "export_formats",
+    "remove_exports",
+    "export_file_names",
+    "TEMPORARY_NAME_EXTRA",
+]
 
 log = logging.getLogger("latticedft")
 
@@ -49,6 +63,26 @@ EXPORTERS: dict[str, str] = {
     "figures": "latticedft.io.figures:FigureExporter",
     "xdmf": "latticedft.io.xdmf:XdmfExporter",
 }
+
+#: The files each format may write for a task ``{name}``; ``{frame}`` is a slice number zero-padded to
+#: ``max(4, digits of the last slice)`` (:func:`export_file_names`). Every format of :data:`EXPORTERS` has
+#: its line; the test suite checks the exporters against it.
+EXPORT_FILES: dict[str, tuple[str, ...]] = {
+    "paraview": (
+        "{name}.pvd",
+        "{name}_{frame}.vtr",
+        "{name}_{frame}.vtp",
+        "{name}_spacetime.vtr",
+        "{name}.vtp",
+        "{name}_view.py",
+    ),
+    "figures": ("{name}.png",),
+    "xdmf": ("{name}.xdmf", "{name}.h5"),
+}
+
+#: The most characters a writer adds to a file's name for its temporary file (``.<file>.<12 hex>.tmp``),
+#: which is renamed to the file once written.
+TEMPORARY_NAME_EXTRA = 18
 
 #: The formats written when case.toml names none.
 DEFAULT_FORMATS: tuple[str, ...] = ("paraview", "figures")
@@ -63,8 +97,13 @@ class ExportTask:
 
     ``field`` is the served field, named after the case's variable (``psi``);
     ``reference`` and ``error`` (``field - reference``) lie on the same slices
-    when a reference covers them, else they are None. Every file an exporter
-    writes goes into ``folder`` and starts with ``name``.
+    when a reference covers them, else they are None. ``series`` are the task
+    file's other variables over time only (``invariant``, ``energy``,
+    ``charge_<name>``, ``baseline_err_max`` ...) and ``attrs`` its global
+    attributes (``latticedft_complete``, ``latticedft_steps``,
+    ``latticedft_stopped_at_slice``, ``latticedft_stop_reason``,
+    ``latticedft_warnings`` ...); both are empty when the task has no file.
+    Every file an exporter writes goes into ``folder`` and starts with ``name``.
     """
 
     folder: Path
@@ -75,6 +114,8 @@ class ExportTask:
     max_frames: int | None = None
     train: tuple[xr.DataArray, ...] | None = None
     title: str | None = None
+    attrs: Mapping[str, Any] = _field(default_factory=dict)
+    series: Mapping[str, xr.DataArray] = _field(default_factory=dict)
 
     @property
     def variable(self) -> str:
@@ -123,6 +164,23 @@ def export_formats(task: ExportTask, formats: Sequence[str]) -> list[Path]:
             log.debug("wrote %s (%s)", p.name, fmt)
         written += [p for p in files if p not in written]
     return written
+
+
+def export_file_names(name: str, slices: int, formats: Iterable[str] | None = None) -> list[str]:
+    """The names of every file the formats (default: every registered one) may write for task ``name`` of
+    ``slices`` time slices.
+
+    >>> export_file_names("test", 401, ["paraview"])[:2]
+    ['test.pvd', 'test_0400.vtr']
+    """
+    last = max(int(slices), 1) - 1
+    frame = f"{last:0{max(4, len(str(last)))}d}"  # the longest frame name: the last slice's
+    names: list[str] = []
+    for fmt in EXPORTERS if formats is None else formats:
+        names += [
+            p.format(name=name, frame=frame) for p in EXPORT_FILES[fmt] if p.format(name=name, frame=frame) not in names
+        ]
+    return names
 
 
 def remove_exports(folder: Path, names: Iterable[str]) -> list[str]:

@@ -69,6 +69,13 @@ def _one_line(text: object, limit: int = 200) -> str:
     return s if len(s) <= limit else s[: limit - 3] + "..."
 
 
+def _path(path: object, name: str) -> Path:
+    """``path`` as a Path, or an InputError naming the argument ``name``."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError.at(name, f"expected a file path, got {type(path).__name__}")
+    return Path(path)
+
+
 def read_field(
     path: str | os.PathLike[str],
     variable: str = "psi",
@@ -99,7 +106,15 @@ def read_field(
         Missing or unreadable file, missing variable, or a field that breaks
         the layout (see :func:`validate_field`); the message is one line.
     """
-    p = Path(path)
+    p = _path(path, "path")
+    if not isinstance(variable, str):
+        raise InputError.at("variable", f"expected the name of a data variable, got {variable!r}")
+    if components is not None and (
+        isinstance(components, str)
+        or not isinstance(components, Sequence)
+        or not all(isinstance(c, str) for c in components)
+    ):
+        raise InputError.at("components", f"expected a list of component labels or None, got {components!r}")
     if not p.exists():
         raise InputError(f"{p}: file not found; expected a netCDF field file")
     if p.is_dir():
@@ -223,7 +238,11 @@ def write_field(
     >>> bool((back == da).all())
     True
     """
-    target = Path(path)
+    target = _path(path, "path")
+    if attrs is not None and not isinstance(attrs, Mapping):
+        raise InputError.at("attrs", f"expected a mapping of attribute names to values, got {type(attrs).__name__}")
+    if history is not None and not isinstance(history, str):
+        raise InputError.at("history", f"expected a string, got {type(history).__name__}")
     folder = target.parent if str(target.parent) else Path(".")
     if not folder.is_dir():
         raise InputError(f"{target}: folder {folder} does not exist; expected an existing folder")
@@ -233,7 +252,16 @@ def write_field(
     else:
         if not fields:
             raise InputError(f"{target}: no fields to write; expected at least one DataArray")
+        if not isinstance(fields, Mapping):
+            raise InputError.at(
+                "fields", f"expected a mapping name -> DataArray or a Dataset, got {type(fields).__name__}"
+            )
         arrays = {str(k): v for k, v in fields.items()}
+        bad = [k for k, v in arrays.items() if not isinstance(v, xr.DataArray)]
+        if bad:
+            raise InputError.at(
+                "fields", f"{bad[0]!r}: expected an xarray.DataArray, got {type(arrays[bad[0]]).__name__}"
+            )
         try:
             aligned = xr.align(*arrays.values(), join="exact")
         except ValueError as exc:

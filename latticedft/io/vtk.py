@@ -32,6 +32,7 @@ import numpy as np
 import pyvista as pv
 import xarray as xr
 
+from latticedft._atomic import write_text_atomic
 from latticedft._errors import InputError
 from latticedft.io.exporters import Exporter, ExportTask
 from latticedft.io.fields import COMPONENT_DIM, lattice_dims, validate_field
@@ -72,7 +73,7 @@ def write_pvd(path: str | os.PathLike[str], entries: Sequence[tuple[float, str |
             rel = f.as_posix()
         lines.append(f'    <DataSet timestep="{float(t)!r}" group="" part="0" file={quoteattr(rel)}/>')
     lines += ["  </Collection>", "</VTKFile>", ""]
-    _atomic_write_text(target, "\n".join(lines))
+    write_text_atomic(target, "\n".join(lines))
     return target
 
 
@@ -104,16 +105,6 @@ def read_pvd(path: str | os.PathLike[str]) -> list[tuple[float, Path]]:
             raise InputError(f"{p}: DataSet entry {i} lacks a numeric 'timestep' or a 'file' attribute") from None
         out.append((t, (p.parent / f).resolve()))
     return out
-
-
-def _atomic_write_text(target: Path, text: str) -> None:
-    tmp = target.parent / f".{target.name}.{uuid.uuid4().hex[:12]}.tmp"
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, target)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def _save(mesh: pv.DataSet, target: Path) -> Path:
@@ -173,11 +164,14 @@ class ParaViewExporter(Exporter):
     name = "paraview"
     summary = (
         "<task>.pvd + one .vtr (lattice) or .vtp (1D) frame per written slice, at most max_frames; "
-        "1+1D also <task>_spacetime.vtr, 1D also <task>.vtp"
+        "1+1D also <task>_spacetime.vtr, 1D also <task>.vtp; <task>_view.py, a pvpython script that shows them"
     )
 
     def write(self, task: ExportTask) -> list[Path]:
-        return write_paraview(task.folder, task.name, task.field, task.extra, max_frames=task.max_frames)
+        from latticedft.io.pvview import write_view_script
+
+        files = write_paraview(task.folder, task.name, task.field, task.extra, max_frames=task.max_frames)
+        return files + [write_view_script(task.folder, task.name, task.field, has_reference=bool(task.extra))]
 
 
 def write_paraview(

@@ -20,6 +20,9 @@ every name from here (``from latticedft import systems; systems.leapfrog``):
   (:mod:`~latticedft.systems.klein_gordon_data`).
 * Sine-Gordon, exact: :func:`sine_gordon_breather`, :func:`kink_antikink`,
   and :func:`sine_gordon_energy` (:mod:`~latticedft.systems.sine_gordon`).
+* A charged particle in a uniform magnetic field (a Lagrangian linear in the
+  velocity), exact: :func:`charged_particle` and :func:`cyclotron_energy`
+  (:mod:`~latticedft.systems.magnetic`).
 * Energies of served fields: :func:`field_energy`, :func:`wave_energy`
   (string and membrane) and :func:`klein_gordon_energy`
   (:mod:`~latticedft.systems.energy`).
@@ -53,6 +56,7 @@ from latticedft.systems.klein_gordon_data import (
     klein_gordon_training_set,
 )
 from latticedft.systems.leapfrog_scheme import leapfrog
+from latticedft.systems.magnetic import charged_particle, cyclotron_energy
 from latticedft.systems.oscillators import (
     oscillator_sin,
     oscillator_sin_energy,
@@ -96,6 +100,8 @@ __all__ = [
     "sine_gordon_breather",
     "kink_antikink",
     "sine_gordon_energy",
+    "charged_particle",
+    "cyclotron_energy",
     "field_energy",
     "wave_energy",
     "klein_gordon_energy",

@@ -28,7 +28,6 @@ from typing import Any
 import numpy as np
 import xarray as xr
 from numpy.typing import ArrayLike, NDArray
-from scipy.integrate import solve_ivp
 
 from latticedft._errors import InputError
 from latticedft._layout import COMPONENT_DIM
@@ -254,6 +253,8 @@ def _check_finite(value: float, arg: str) -> float:
 def _solve(
     rhs: Callable[[float, _FloatArray], Any], y0: Sequence[float], t: _FloatArray, events: Any = None, what: str = "ODE"
 ) -> Any:
+    from scipy.integrate import solve_ivp  # imported here: scipy.integrate takes ~0.5 s to import
+
     sol = solve_ivp(
         rhs,
         (float(t[0]), float(t[-1])),

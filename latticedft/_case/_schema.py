@@ -1,0 +1,252 @@
+"""The case.toml schema (tables, keys, checks, defaults) and the validated objects a case becomes."""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .._errors import ConfigError, LatticeDFTError
+from .._learn import GAUGES, OPTIMIZERS
+from .._models import MODELS, AbstractLagrangian
+from .._models._options import OptionTypeError
+from .._serve import MODES
+from .._stencil import Stencil
+from ._checks import (
+    _Bad,
+    t_any,
+    t_bool,
+    t_boundary,
+    t_choice,
+    t_invariant,
+    t_name,
+    t_nonneg_float,
+    t_nonneg_int,
+    t_pos_float,
+    t_pos_int,
+    t_ridge,
+    t_str,
+    t_str_list,
+    t_unit_float,
+)
+
+CASE_FILE = "case.toml"
+
+
+_REQUIRED = object()
+
+
+#: table -> key -> (check, default). ``[[serve]]`` entries use ``SCHEMA["serve"]``.
+SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
+    "field": {
+        "variable": (t_str, "psi"),
+        "components": (t_str_list, None),
+    },
+    "train": {
+        "data": (t_str_list, _REQUIRED),
+        "boundary": (t_boundary, None),
+        "gauge": (t_choice(*GAUGES), "auto"),
+        "ridge": (t_ridge, 0.0),
+        "optimizer": (t_choice(*OPTIMIZERS), None),
+        "max_iter": (t_pos_int, 500),
+        "max_time": (t_pos_float, None),
+        "tol": (t_nonneg_float, 0.0),
+        "rel_tol": (t_pos_float, None),
+        "lr": (t_pos_float, 1e-3),
+        "penalty": (t_nonneg_float, 1.0),
+        "symmetries": (t_bool, False),
+        "chunk_sites": (t_nonneg_int, None),
+    },
+    "serve": {
+        "name": (t_name, _REQUIRED),
+        "from": (t_str, _REQUIRED),
+        "slices": (t_pos_int, None),
+        "steps": (t_pos_int, None),  # deprecated alias of slices (the same count)
+        "boundary": (t_boundary, None),
+        "mode": (t_choice(*MODES), "newton"),
+        "box": (t_pos_float, None),
+        "rtol": (t_unit_float, 1e-10),
+        "max_newton": (t_pos_int, 30),
+        "reference": (t_str, None),
+        "baseline": (t_str, None),
+        "invariant": (t_invariant, None),
+        "charges": (t_str_list, None),
+    },
+    "run": {
+        "threads": (t_pos_int, None),
+    },
+    "export": {
+        "formats": (t_str_list, None),  # None: latticedft.io.exporters.DEFAULT_FORMATS
+        "paraview": (t_bool, None),  # alias: true adds "paraview" to formats, false removes it
+        "figures": (t_bool, None),  # alias: the same for "figures"
+        "max_frames": (t_pos_int, 200),
+    },
+}
+
+
+_TABLES = ("field", "model", "train", "serve", "run", "export")
+
+
+#: ``[run] threads`` when the case does not set it: one torch thread. Measured (``python -m benchmarks.threads``,
+#: docs/performance.md): a second thread beside another busy process made cases/wave 17x slower, and on an
+#: idle machine only slice-Newton gained (1.9x).
+DEFAULT_THREADS = 1
+
+
+#: ``[[serve]] slices`` and its deprecated alias ``steps``.
+_SLICES_ALIASES = ("slices", "steps")
+
+
+def model_options(kind: str) -> dict[str, Any]:
+    """The constructor options of ``MODELS[kind]`` with their defaults (``stencil`` excluded)."""
+    sig = inspect.signature(MODELS[kind].__init__)
+    return {
+        name: (None if p.default is inspect.Parameter.empty else p.default)
+        for name, p in sig.parameters.items()
+        if name not in ("self", "stencil") and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    }
+
+
+def model_option_check(kind: str, option: str) -> Callable[[Any], Any]:
+    """The type check of a ``[model]`` option, from the annotation of the model class's constructor."""
+    check = MODELS[kind].option_checks().get(option, t_any)
+
+    def run(value: Any) -> Any:
+        try:
+            return check(value)
+        except OptionTypeError as bad:
+            raise _Bad(bad.expected) from None
+
+    return run
+
+
+@dataclass(frozen=True)
+class FieldConfig:
+    """``[field]``: name of the data variable and (optionally) the expected component labels."""
+
+    variable: str = "psi"
+    components: tuple[str, ...] | None = None
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """``[model]``: the model kind, its constructor options and the stencil."""
+
+    kind: str = "polynomial"
+    options: dict[str, Any] = field(default_factory=dict)
+    stencil: str | list[list[int]] | None = None
+
+    def build(self, n: int) -> AbstractLagrangian:
+        """A fresh model for an ``n``-dimensional lattice (raises ConfigError on bad options)."""
+        if self.stencil is None or self.stencil == "first-order":
+            st = Stencil.first_order(n)
+        elif self.stencil == "full-cell":
+            st = Stencil.full_cell(n)
+        elif isinstance(self.stencil, str):  # t_stencil lets no other name through
+            raise ConfigError(f"case.toml: model.stencil: unknown stencil {self.stencil!r}")
+        else:
+            if any(len(o) != n for o in self.stencil):
+                raise ConfigError(
+                    f"case.toml: model.stencil: expected offsets with {n} entries each "
+                    f"(the data have {n} lattice dims), got {self.stencil!r}"
+                )
+            try:
+                st = Stencil(self.stencil)
+            except LatticeDFTError as exc:
+                raise ConfigError(f"case.toml: model.stencil: {exc}") from None
+        try:
+            return MODELS[self.kind](**self.options, stencil=st)
+        except LatticeDFTError as exc:
+            raise ConfigError(f"case.toml: model.{exc}") from None
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """``[train]``: training files (globs resolved, sorted) and :func:`latticedft.learn` keywords."""
+
+    data: tuple[Path, ...]
+    patterns: tuple[str, ...]
+    boundary: str | dict[str, str] | None = None
+    learn: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ServeTask:
+    """One ``[[serve]]`` entry with its paths resolved."""
+
+    name: str
+    source: Path
+    slices: int | None = None
+    boundary: str | dict[str, str] | None = None
+    mode: str = "newton"
+    box: float | None = None
+    rtol: float = 1e-10
+    max_newton: int = 30
+    reference: Path | None = None
+    baseline: Path | None = None
+    invariant: str | None = None
+    #: Noether charges (names of built-in continuous symmetries, "energy", "auto") measured along the served field.
+    charges: tuple[str, ...] = ()
+    label: str = "serve[0]"
+    #: True when the file (or ``--set``) gave the deprecated key ``steps`` instead of ``slices``.
+    deprecated_steps: bool = False
+
+    def serve_kwargs(self) -> dict[str, Any]:
+        return {
+            "slices": self.slices,
+            "boundary": self.boundary,
+            "mode": self.mode,
+            "box": self.box,
+            "rtol": self.rtol,
+            "max_newton": self.max_newton,
+        }
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """``[run]``: torch threads (default 1: measured fastest for the cases and far safer on a shared machine;
+    ``python -m benchmarks.threads``, docs/performance.md)."""
+
+    threads: int
+
+
+@dataclass(frozen=True)
+class ExportConfig:
+    """``[export]``: the export formats of every task (names of ``latticedft.io.exporters.EXPORTERS``, written
+    in this order) and the most frames per task of the time-series formats."""
+
+    formats: tuple[str, ...] = ("paraview", "figures")
+    max_frames: int | None = 200
+
+    @property
+    def paraview(self) -> bool:
+        return "paraview" in self.formats
+
+    @property
+    def figures(self) -> bool:
+        return "figures" in self.formats
+
+
+@dataclass(frozen=True)
+class Case:
+    """A validated case directory."""
+
+    root: Path
+    field: FieldConfig
+    model: ModelConfig
+    train: TrainConfig
+    serve: tuple[ServeTask, ...]
+    run: RunConfig
+    export: ExportConfig
+    raw: dict[str, Any]
+    overrides: tuple[str, ...] = ()
+
+    @property
+    def results(self) -> Path:
+        return self.root / "results"
+
+    @property
+    def name(self) -> str:
+        return self.root.resolve().name
