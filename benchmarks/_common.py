@@ -25,6 +25,7 @@ class Config:
     out: Path | None = None
     threads: int = 1
     fidelity_steps: int | None = None  # None: 1e5 (300 when quick)
+    scale_fields: int | None = None  # None: 100 (the largest training set of train_scale)
 
 
 @dataclass

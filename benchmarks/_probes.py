@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 import latticedft as ldft
+import latticedft.io
 from latticedft import systems
 
 from ._common import PeakRSS
@@ -118,7 +119,51 @@ def train_kepler_paper(iterations: int, planets: list[str]) -> dict[str, Any]:
     }
 
 
-PROBES = {f.__name__: f for f in (serve_membrane, serve_string, train_kg_mlp, train_kepler_paper)}
+def scale_fields(n: int, nx: int, nt: int, first: int = 0) -> list[Any]:
+    """Fields ``first .. n - 1`` of a family of 1+1D wave-string fields (``nx`` sites, ``nt`` slices): two
+    modes each, different per field."""
+    return [systems.wave_string([(1 + k % 7, 0.5), (2 + k % 5, 0.2, 0.1 * k)], nx=nx, nt=nt) for k in range(first, n)]
+
+
+def train_scale(
+    n: int, nx: int, nt: int, orders: list[int], chunk_sites: int | None, files: str | None = None
+) -> dict[str, Any]:
+    """The exact solve of a polynomial L_d on ``n`` fields, in memory (``chunk_sites=0``) or streamed;
+    ``files``: a folder to write the fields to first and train from their paths (read lazily)."""
+    data: list[Any]
+    if files is None:
+        data = scale_fields(n, nx, nt)
+    else:  # written one at a time (and kept for the next call): none of them is in this process's memory
+        from pathlib import Path
+
+        folder = Path(files)
+        folder.mkdir(parents=True, exist_ok=True)
+        data = []
+        for k in range(n):
+            path = folder / f"field_{nx}x{nt}_{k:06d}.nc"
+            if not path.exists():
+                (f,) = scale_fields(k + 1, nx, nt, first=k)
+                ldft.io.write_field(path, {"psi": f})
+            data.append(str(path))
+    ldft.learn(ldft.PolynomialLagrangian(tuple(orders)), scale_fields(1, 16, 12), chunk_sites=chunk_sites)  # warm-up
+    mem = PeakRSS()
+    model = ldft.PolynomialLagrangian(tuple(orders))
+    t0 = time.perf_counter()
+    rep = ldft.learn(model, data, chunk_sites=chunk_sites, progress=False)
+    seconds = time.perf_counter() - t0
+    return {
+        "seconds": seconds,
+        "rss_before": mem.before,
+        "rss_peak": mem.peak(),
+        "reset": mem.reset,
+        "sites": rep.n_sites,
+        "rel_res": rep.rel_res,
+        "coef": model.coef.detach().tolist(),
+        "data_mib": n * nx * nt * 8 / 2**20,
+    }
+
+
+PROBES = {f.__name__: f for f in (serve_membrane, serve_string, train_kg_mlp, train_kepler_paper, train_scale)}
 
 
 def run(name: str, threads: int, kwargs: dict[str, Any]) -> dict[str, Any]:

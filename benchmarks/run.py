@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ._common import Config, Table, machine, markdown, text
 
-BENCHMARKS = ["serve_1p1d", "serve_2p1d", "serve_1d", "train", "fidelity", "memory", "noether"]
+BENCHMARKS = ["serve_1p1d", "serve_2p1d", "serve_1d", "train", "fidelity", "memory", "noether", "train_scale"]
 
 
 def _load():
@@ -71,6 +71,12 @@ def main(argv: list[str] | None = None) -> int:
         metavar="N",
         help="steps of the long-run fidelity benchmark (default 100000; 300 with --quick)",
     )
+    p.add_argument(
+        "--scale-fields",
+        type=int,
+        metavar="N",
+        help="fields of the largest training set of train_scale (default 100; 6 with --quick)",
+    )
     args = p.parse_args(argv)
     only = [n for item in args.only for n in item.split(",") if n]
     unknown = [n for n in only if n not in mods]
@@ -82,7 +88,13 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
-    cfg = Config(quick=args.quick, out=args.out, threads=args.threads, fidelity_steps=args.fidelity_steps)
+    cfg = Config(
+        quick=args.quick,
+        out=args.out,
+        threads=args.threads,
+        fidelity_steps=args.fidelity_steps,
+        scale_fields=args.scale_fields,
+    )
     command = "python -m benchmarks " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     info = machine(args.threads)
     print(

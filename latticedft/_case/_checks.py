@@ -41,6 +41,12 @@ def t_pos_int(v: Any) -> int:
     return int(v)
 
 
+def t_nonneg_int(v: Any) -> int:
+    if not _is_int(v) or v < 0:
+        raise _Bad("an integer >= 0")
+    return int(v)
+
+
 def t_float(v: Any) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
         raise _Bad("a number")

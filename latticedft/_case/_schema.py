@@ -23,6 +23,7 @@ from ._checks import (
     t_invariant,
     t_name,
     t_nonneg_float,
+    t_nonneg_int,
     t_pos_float,
     t_pos_int,
     t_ridge,
@@ -56,6 +57,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "lr": (t_pos_float, 1e-3),
         "penalty": (t_nonneg_float, 1.0),
         "symmetries": (t_bool, False),
+        "chunk_sites": (t_nonneg_int, None),
     },
     "serve": {
         "name": (t_name, _REQUIRED),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Sequence
 from dataclasses import replace
@@ -10,13 +11,13 @@ from dataclasses import replace
 import xarray as xr
 
 from .._errors import InputError
-from .._lattice import BoundaryKinds, LatticeField, gather_cells
+from .._lattice import BoundaryKinds
 from .._models import AbstractLagrangian, LinearLagrangian
-from ._data import as_fields, check_model_lattice, n_sites
 from ._exact import learn_exact
 from ._gauge import AUTO, Gauge, gauge_named
 from ._neural import Training, learn_neural
-from ._report import LearnReport, diagnose, fit_warnings
+from ._report import LearnReport, fit_warnings
+from ._stream import TrainingData, training_data
 
 __all__ = ["learn"]
 
@@ -81,24 +82,15 @@ def _check_training(training: Training) -> None:
         raise InputError.at("progress", f"expected True, False or None, got {training.progress!r}")
 
 
-def _bound_to(model: AbstractLagrangian, fields: list[LatticeField]) -> int:
-    """Bind and prepare ``model`` on the training fields; returns the number of DEL equations (sites)."""
-    for i, f in enumerate(fields):
-        check_model_lattice(model, f, f"data[{i}]")
-    f0 = fields[0]
-    model.bind(f0.ndim, f0.ncomp, f0.spacing, f0.components)
-    cells = [gather_cells(f.values, model.stencil, f.boundary) for f in fields]
-    model.prepare(cells)
-    model.record_feature_range(cells)
-    nsites = sum(n_sites(f, model) for f in fields)
-    if nsites == 0:
-        raise InputError("data: no interior site carries a DEL equation (lattices too small for the stencil)")
-    return nsites
+def _bound_to(model: AbstractLagrangian, fields: TrainingData) -> int:
+    """Bind and prepare ``model`` on the training data and record the training range of each stencil feature
+    (chunk by chunk when streamed); returns the number of DEL equations (sites)."""
+    return fields.bind(model)
 
 
 def learn(
     model: AbstractLagrangian,
-    data: xr.DataArray | Sequence[xr.DataArray],
+    data: xr.DataArray | str | os.PathLike[str] | Sequence[xr.DataArray | str | os.PathLike[str]],
     *,
     gauge: str = "auto",
     ridge: float | str = 0.0,
@@ -112,6 +104,7 @@ def learn(
     boundary: BoundaryKinds | None = None,
     progress: bool | None = None,
     symmetries: bool = False,
+    chunk_sites: int | None = None,
 ) -> LearnReport:
     """Learn ``L_d`` from one or more observed fields; the model is fitted in place.
 
@@ -119,9 +112,11 @@ def learn(
     ----------
     model : AbstractLagrangian
         The model to fit (e.g. ``PolynomialLagrangian((4, 8))``).
-    data : DataArray or list of DataArray
+    data : DataArray, path, or a list of them
         Observed fields (time first, then the spatial axes, then an optional
-        ``component`` axis), each on its own lattice of the same spacing.
+        ``component`` axis), each on its own lattice of the same spacing. Lazy
+        DataArrays (``xr.open_dataset(...)["psi"]`` unloaded, or dask-backed)
+        and paths of field files are read one chunk at a time.
     gauge : "unit-mass", "trace", "none" or "auto"
         How the gauge is fixed (see :data:`GAUGES`). ``trace`` fixes only the
         trace of the mean mixed Hessian (components of unequal mass, terms
@@ -151,6 +146,12 @@ def learn(
     symmetries : bool
         Also test the learned ``L_d`` for every built-in symmetry of the data's lattice over the training
         data (:func:`latticedft.symmetries`); the results are ``report.symmetries`` (docs/symmetries.md).
+    chunk_sites : int, optional
+        Training streams the data in chunks of about this many lattice sites,
+        so memory does not grow with the data (default: from the model's
+        size); ``0`` holds and processes all data at once (in memory). Under
+        an initialised ``torch.distributed`` process group every process
+        reads its share of the chunks and all end with the same model.
 
     Returns
     -------
@@ -181,7 +182,7 @@ def learn(
     _check_training(settings)
     if not isinstance(symmetries, bool):
         raise InputError.at("symmetries", f"expected true or false, got {symmetries!r}")
-    fields = as_fields(data, boundary)
+    fields = training_data(data, boundary, chunk_sites)
     nsites = _bound_to(model, fields)
     if fix is None:  # "auto"
         report = _learn_auto(model, fields, ridge, nsites, settings, symmetries)
@@ -193,7 +194,7 @@ def learn(
 
 def _fit(
     model: AbstractLagrangian,
-    fields: list[LatticeField],
+    fields: TrainingData,
     fix: Gauge,
     ridge: float | str,
     nsites: int,
@@ -212,7 +213,7 @@ def _fit(
     else:
         iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
     wall = time.perf_counter() - t0
-    diag = diagnose(model, fields, gauge=fix.name, symmetries=symmetries)
+    diag = fields.diagnose(model, fix.name, symmetries)
     degenerate, warnings = fit_warnings(diag)
     return LearnReport(
         method=settings.optimizer,
@@ -241,7 +242,7 @@ def _fit(
 
 def _learn_auto(
     model: AbstractLagrangian,
-    fields: list[LatticeField],
+    fields: TrainingData,
     ridge: float | str,
     nsites: int,
     settings: Training,

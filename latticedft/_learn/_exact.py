@@ -3,23 +3,36 @@
 For ``L_d = features @ coef`` the DEL residual on the interior sites is ``R @ coef`` and the gauge a set
 of linear equations ``G coef = g``; ``coef`` minimises ``|R coef|^2`` (plus an optional ridge) subject to
 them.
+
+Streamed (the default), ``R`` is never held: its rows are computed chunk by chunk and folded into the
+triangular factor ``T`` of a QR factorisation (``R = Q T``, so ``|R x| = |T x|`` for every ``x``), a
+``C x C`` matrix whatever the data size; the gauge rows are sums over cells. Householder QR is backward
+stable, so ``T`` keeps the singular values of ``R`` down to round-off of ``|R|``; the normal equations
+``R^T R`` would square the condition number and lose the directions below ``sqrt(eps)`` that the solve's
+cut-off (``1e-10``) must see. Several processes each fold their share and the factors are stacked and
+folded again (TSQR). In memory (``chunk_sites=0``) ``R`` itself is built and solved, as before.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
+import scipy.linalg.lapack
 import torch
 
 from .._errors import InputError
 from .._lattice import LatticeField, gather_cells, interior_slices
 from .._models import LinearLagrangian
-from ._data import kinetic_scale, time_split
+from . import _dist
+from ._data import kinetic_scale, kinetic_sums, site_sums, split_point, time_split
 from ._gauge import Gauge
+from ._source import FieldSource, Piece, pieces
+from ._stream import TrainingData
 
-__all__ = ["learn_exact", "residual_matrix", "gauge_matrix"]
+__all__ = ["learn_exact", "residual_matrix", "gauge_matrix", "site_rows", "Triangle"]
 
 _RIDGE_GRID = (0.0, 1e-14, 1e-12, 1e-10, 1e-8, 1e-6, 1e-4)
 
@@ -132,11 +145,9 @@ def _pick_ridge(
     return best, validation
 
 
-def learn_exact(
+def _learn_in_memory(
     model: LinearLagrangian, fields: list[LatticeField], gauge: Gauge, ridge: float | str, nsites: int
 ) -> tuple[float, dict[str, float]]:
-    """Solve for ``model.coef`` in place; returns the ridge weight used and the validation scores of
-    ``ridge="auto"`` (empty otherwise)."""
     rs = [residual_matrix(model, f) for f in fields]
     g_mat, g_vec = gauge_matrix(model, fields, gauge) or (None, None)
     validation: dict[str, float] = {}
@@ -147,3 +158,199 @@ def learn_exact(
     with torch.no_grad():
         model.coef.copy_(torch.from_numpy(theta))
     return float(ridge), validation
+
+
+# -- streamed --------------------------------------------------------------------------------------------------
+def _qr_r(a: np.ndarray) -> np.ndarray:
+    """The triangular factor of ``a`` (``min(rows, C) x C``)."""
+    return np.asarray(np.linalg.qr(a, mode="r"))  # mode "r": the array R alone
+
+
+def _fold_rows(t: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The triangular factor of ``t`` stacked on ``rows``. Once ``t`` is square, LAPACK's triangular-pentagonal
+    QR (``dtpqrt``) skips the known zeros below ``t``'s diagonal (about twice as fast as a QR of the stack)."""
+    c = t.shape[1]
+    if t.shape[0] == c and rows.shape[0] > 0:
+        r, _, _, info = scipy.linalg.lapack.dtpqrt(0, min(32, c), np.asfortranarray(t), np.asfortranarray(rows))
+        if info == 0:
+            return np.triu(r)
+    return _qr_r(np.vstack([t, rows]))
+
+
+class Triangle:
+    """Rows of a least-squares system folded as they come: the triangular factor ``T`` with ``|R x| = |T x|``
+    for the rows ``R`` added so far. Rows are buffered up to a few thousand and folded by one QR of ``T``
+    stacked on them."""
+
+    def __init__(self, c: int):
+        self.c = c
+        self.t = np.zeros((0, c))
+        self._buffer: list[np.ndarray] = []
+        self._buffered = 0
+        self._flush = max(8 * c, 1024)
+
+    def add(self, rows: np.ndarray) -> None:
+        self._buffer.append(rows)
+        self._buffered += rows.shape[0]
+        if self._buffered >= self._flush:
+            self._fold()
+
+    def _fold(self) -> None:
+        if self._buffer:
+            self.t = _fold_rows(self.t, np.vstack(self._buffer) if len(self._buffer) > 1 else self._buffer[0])
+            self._buffer, self._buffered = [], 0
+
+    def factor(self) -> np.ndarray:
+        """``T`` padded to ``C x C`` (zero rows change no norm)."""
+        self._fold()
+        out = np.zeros((self.c, self.c))
+        out[: self.t.shape[0]] = self.t
+        return out
+
+
+def _stacked_factor(ts: list[np.ndarray]) -> np.ndarray:
+    """The factor of the rows of several factors (one QR of them stacked)."""
+    return ts[0] if len(ts) == 1 else _qr_r(np.vstack(ts))
+
+
+def site_rows(model: LinearLagrangian, f: LatticeField, d: torch.Tensor) -> np.ndarray:
+    """Rows of ``R`` on the interior sites of ``f`` from the basis functions' per-cell derivatives ``d``
+    (``(*cells, K, m, C)``): one row per site and component."""
+    return site_sums(model, f, d).reshape(-1, d.shape[-1]).numpy()
+
+
+@dataclass
+class _Group:
+    """The streamed system of one group of fields (a ridge fold's unit): its factor, sites and kinetic sums."""
+
+    tri: Triangle
+    sites: float = 0.0
+    kinetic: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    t: np.ndarray | None = None
+
+
+@dataclass
+class _Pass:
+    """Sources read in one pass: each source's group, and whether its cells enter the gauge rows."""
+
+    sources: list[FieldSource]
+    chunks: list[list[Piece]]
+    group: list[int]
+    gauge: bool
+
+
+def _passes(data: TrainingData, ridge: float | str) -> tuple[list[_Pass], int, list[tuple[list[int], int]], list[int]]:
+    """(passes over the data, number of groups, ridge folds as (training groups, held-out group), the groups of
+    the final fit). Without ``ridge="auto"`` one group holds everything; with it each of the first six fields
+    is a group of its own (leave one field out), or a single field's first 70 % and the rest are two groups
+    read in a second pass besides the whole field."""
+    n = len(data.sources)
+    if ridge != "auto":
+        return [_Pass(data.sources, data.chunks, [0] * n, True)], 1, [], [0]
+    if n >= 2:
+        held = min(n, 6)
+        group = [min(i, held) for i in range(n)]
+        ngroups = held + (1 if n > held else 0)
+        folds = [([g for g in range(ngroups) if g != i], i) for i in range(held)]
+        return [_Pass(data.sources, data.chunks, group, True)], ngroups, folds, list(range(ngroups))
+    cut = split_point(data.sources[0].nt)
+    if cut is None:
+        raise InputError.at("ridge", "'auto' needs two or more fields, or one field of at least 9 time slices")
+    src = data.sources[0]
+    parts = [src.window(0, cut), src.window(cut, src.nt)]
+    assert data.stencil is not None
+    extra = pieces(parts, data.stencil, data.budget)
+    return (
+        [_Pass(data.sources, data.chunks, [2], True), _Pass(parts, extra, [0, 1], False)],
+        3,
+        [([0], 1)],
+        [2],
+    )
+
+
+def _learn_streamed(
+    model: LinearLagrangian, data: TrainingData, gauge: Gauge, ridge: float | str, nsites: int
+) -> tuple[float, dict[str, float]]:
+    st = model.stencil
+    m, c = model.m, model.n_terms
+    pair = (st.anchor, st.forward)
+    passes, ngroups, folds, final = _passes(data, ridge)
+    held_out = {v for _, v in folds}
+    groups = [_Group(Triangle(c)) for _ in range(ngroups)]
+    gsum = torch.zeros(m, m, c, dtype=torch.float64)
+    ncells = torch.zeros((), dtype=torch.float64)
+    rank, size = _dist.world()
+    for ps in passes:
+        for chunk in ps.chunks[rank::size]:
+            for piece in chunk:
+                f, skip = piece.read(ps.sources, st)
+                cells = gather_cells(f.values, st, f.boundary)
+                want = [pair] if gauge.fixes and ps.gauge else []
+                d, blocks = model.feature_derivatives(cells, want, first=True)
+                g = groups[ps.group[piece.source]]
+                rows = site_rows(model, f, d)
+                g.tri.add(rows)
+                g.sites += rows.shape[0] / m
+                if want:
+                    own = blocks[pair].reshape(-1, m, m, c)
+                    own = own[skip * (own.shape[0] // (f.shape[0] - int(st.width[0]))) :] if skip else own
+                    gsum += own.sum(0)
+                    ncells += own.shape[0]
+                if ps.group[piece.source] in held_out:
+                    total, count = kinetic_sums(f, model, None)
+                    g.kinetic[0] += total
+                    g.kinetic[1] += count
+    # combine the processes' shares: factors stacked and folded, sums summed
+    for g in groups:
+        g.t = _stacked_factor(_dist.all_gather(g.tri.factor()))
+        sums = _dist.all_sum(torch.tensor([g.sites, *g.kinetic], dtype=torch.float64))
+        g.sites, g.kinetic = float(sums[0]), [float(sums[1]), float(sums[2])]
+    g_mat = g_vec = None
+    if gauge.fixes:
+        gsum, ncells = _dist.all_sum(gsum), _dist.all_sum(ncells)
+        rows_ = gauge.constraint((gsum / ncells).permute(2, 0, 1).numpy(), model.spacing[0])
+        g_mat, g_vec = rows_ if rows_ is not None else (None, None)
+    validation: dict[str, float] = {}
+    if ridge == "auto":
+        ridge, validation = _pick_ridge_streamed(groups, folds, g_mat, g_vec)
+    t = _stacked_factor([g.t for g in (groups[i] for i in final) if g.t is not None]) / math.sqrt(nsites)
+    theta = _constrained_lstsq(t, g_mat, g_vec, float(ridge))
+    with torch.no_grad():
+        model.coef.copy_(torch.from_numpy(theta))
+    return float(ridge), validation
+
+
+def _pick_ridge_streamed(
+    groups: list[_Group], folds: list[tuple[list[int], int]], g_mat: np.ndarray | None, g_vec: np.ndarray | None
+) -> tuple[float, dict[str, float]]:
+    """:func:`_pick_ridge` on the groups' factors: ``|R_v theta| = |T_v theta|`` on the held-out group."""
+    factors = [  # each fold's training system, once
+        _stacked_factor([t for t in (groups[i].t for i in train) if t is not None])
+        / math.sqrt(sum(groups[i].sites for i in train))
+        for train, _ in folds
+    ]
+    validation: dict[str, float] = {}
+    best, best_score = 0.0, math.inf
+    for lam in _RIDGE_GRID:
+        scores = []
+        for rt, (_, val) in zip(factors, folds):
+            theta = _constrained_lstsq(rt, g_mat, g_vec, lam)
+            v = groups[val]
+            assert v.t is not None
+            res = math.sqrt(float(((v.t @ theta) ** 2).sum()) / v.sites)
+            scores.append(res / math.sqrt(v.kinetic[0] / max(v.kinetic[1], 1.0)))
+        score = float(np.mean(scores))
+        validation[f"{lam:g}"] = score
+        if score < best_score * (1 - 1e-9):
+            best, best_score = lam, score
+    return best, validation
+
+
+def learn_exact(
+    model: LinearLagrangian, data: TrainingData, gauge: Gauge, ridge: float | str, nsites: int
+) -> tuple[float, dict[str, float]]:
+    """Solve for ``model.coef`` in place; returns the ridge weight used and the validation scores of
+    ``ridge="auto"`` (empty otherwise)."""
+    if data.in_memory:
+        return _learn_in_memory(model, data.fields, gauge, ridge, nsites)
+    return _learn_streamed(model, data, gauge, ridge, nsites)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import abc
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -134,8 +134,9 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     def _build(self) -> None:
         """Create parameters and buffers once ``n``, ``m`` and the stencil are known."""
 
-    def prepare(self, cells: list[torch.Tensor]) -> None:
-        """Data-dependent set-up before training (input scaling), from the training cells."""
+    def prepare(self, cells: Iterable[torch.Tensor]) -> None:
+        """Data-dependent set-up before training (input scaling), from the training cells: a sequence of
+        ``(*cells, K, m)`` tensors that streamed training reads one chunk at a time (reduce chunk by chunk)."""
 
     def _require_bound(self) -> None:
         if not self.bound:
@@ -185,12 +186,12 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
         return torch.einsum("pk,...km->...pm", self.proj, cells)
 
     # -- the training range -------------------------------------------------------------------------------
-    def record_feature_range(self, cells: list[torch.Tensor]) -> None:
+    def record_feature_range(self, cells: Iterable[torch.Tensor]) -> None:
         """Store the range of the stencil's inputs over the training cells (a buffer: saved in model files).
 
         Per feature of :meth:`mean_and_differences` (the stencil mean, then the difference along each axis,
-        per component), the minimum and maximum over every cell in ``cells``; serving measures how far its
-        cells leave this range (``ServeResult.extrapolation``).
+        per component), the minimum and maximum over every cell in ``cells`` (merged chunk by chunk); serving
+        measures how far its cells leave this range (``ServeResult.extrapolation``).
         """
         lo: torch.Tensor | None = None
         hi: torch.Tensor | None = None

@@ -8,7 +8,7 @@ potential). Both share the options, the network and its input and output scaling
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, ClassVar, NamedTuple, Self, cast
 
 import torch
@@ -246,16 +246,25 @@ class MLPLagrangian(AbstractLagrangian):
         """Raw (unscaled) network inputs: per cell (free form) or per stencil site (potential)."""
         return self.inputs[self.features].of(self, cells)
 
-    def prepare(self, cells: list[torch.Tensor]) -> None:
+    def prepare(self, cells: Iterable[torch.Tensor]) -> None:
         if not self.scale:
             return
-        x = torch.cat([self._inputs(c).reshape(-1, self.in_center.numel()) for c in cells])
-        lo, hi = x.min(0).values, x.max(0).values
+        lo = hi = g0max = None
+        for c in cells:  # chunk by chunk: the cells may be read from files one slab at a time
+            if c.numel() == 0:
+                continue
+            x = self._inputs(c).reshape(-1, self.in_center.numel())
+            xlo, xhi = x.min(0).values, x.max(0).values
+            g0 = self.mean_and_differences(c)[..., 1, :].abs().max()
+            lo = xlo if lo is None else torch.minimum(lo, xlo)
+            hi = xhi if hi is None else torch.maximum(hi, xhi)
+            g0max = g0 if g0max is None else torch.maximum(g0max, g0)
+        if lo is None or hi is None or g0max is None:
+            return
         half = (hi - lo) / 2
         self.in_center.copy_((hi + lo) / 2)
         self.in_scale.copy_(torch.where(half > 0, half, torch.ones_like(half)))
-        g0 = torch.cat([self.mean_and_differences(c)[..., 1, :].reshape(-1) for c in cells])
-        kinetic = 0.5 * (g0.abs().max() / self.spacing[0]) ** 2
+        kinetic = 0.5 * (g0max / self.spacing[0]) ** 2
         self.out_scale.fill_(float(kinetic) if kinetic > 0 else 1.0)
 
     def _net(self, x: torch.Tensor) -> torch.Tensor:

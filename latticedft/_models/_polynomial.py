@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 import itertools
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from fractions import Fraction
 from typing import Any
 
@@ -187,19 +187,28 @@ class PolynomialLagrangian(LinearLagrangian):
         z = self.mean_and_differences(cells)
         return z.reshape(*z.shape[:-2], -1)
 
-    def prepare(self, cells: list[torch.Tensor]) -> None:
+    def prepare(self, cells: Iterable[torch.Tensor]) -> None:
         if not self.scale:
             return
-        z = torch.cat([self.variables(c).reshape(-1, self.center.numel()) for c in cells])
         m = self.m
-        lo, hi = z.min(0).values, z.max(0).values
+        lo = hi = amax = None
+        for c in cells:  # chunk by chunk: the cells may be read from files one slab at a time
+            if c.numel() == 0:
+                continue
+            z = self.variables(c).reshape(-1, self.center.numel())
+            zlo, zhi, zabs = z.min(0).values, z.max(0).values, z.abs().max(0).values
+            lo = zlo if lo is None else torch.minimum(lo, zlo)
+            hi = zhi if hi is None else torch.maximum(hi, zhi)
+            amax = zabs if amax is None else torch.maximum(amax, zabs)
+        if lo is None or hi is None or amax is None:
+            return
         center = (hi + lo) / 2
         half = (hi - lo) / 2
         center[m:] = 0.0  # differences are only scaled, so the time-reversal parity is kept
-        half[m:] = z[:, m:].abs().max(0).values
+        half[m:] = amax[m:]
         if self.parity == "even":  # the mean too, so that psi -> -psi maps every scaled variable to minus itself
             center[:m] = 0.0
-            half[:m] = z[:, :m].abs().max(0).values
+            half[:m] = amax[:m]
         half = torch.where(half > 0, half, torch.ones_like(half))
         self.center.copy_(center)
         self.halfwidth.copy_(half)

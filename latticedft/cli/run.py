@@ -6,6 +6,7 @@ import argparse
 import logging
 import time
 
+from . import _workers
 from ._common import (
     add_case_arguments,
     checked_data,
@@ -22,19 +23,25 @@ log = logging.getLogger("latticedft")
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="check, train, serve every task and export (the whole case)", description=__doc__)
     add_case_arguments(p, overwrite=True)
+    _workers.add_argument(p)
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    if (status := _workers.supervise(args, argv)) is not None:
+        return status
     from .._results import hold_results, staged_results
     from ._work import finish, serve_into, train_into
 
     t0 = time.perf_counter()
     case = open_case(args)
+    if _workers.is_helper():
+        return _workers.train_only(case)
     dest = results_dir(args, case)
     with hold_results(dest):
         refuse_existing(dest, args)
         set_threads(case)
         data = checked_data(case, dest)
+        _workers.join()
         log.info("checked %s: %d training field(s), %d serving task(s)", case.name, len(data.train), len(data.tasks))
         with staged_results(dest, replace_foreign=False) as folder:
             for line in data.summary_lines(case):

@@ -6,6 +6,7 @@ import argparse
 import logging
 import time
 
+from . import _workers
 from ._common import (
     add_case_arguments,
     checked_data,
@@ -24,19 +25,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "train", help="learn the model only (results/ with model.pt, model.json, summary.json)", description=__doc__
     )
     add_case_arguments(p, overwrite=True)
+    _workers.add_argument(p)
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    if (status := _workers.supervise(args, argv)) is not None:
+        return status
     from .._results import hold_results, staged_results
     from ._work import finish, train_into
 
     t0 = time.perf_counter()
     case = open_case(args)
+    if _workers.is_helper():
+        return _workers.train_only(case)
     dest = results_dir(args, case)
     with hold_results(dest):
         refuse_existing(dest, args)
         set_threads(case)
         data = checked_data(case, dest, serve=False)
+        _workers.join()
         with staged_results(dest, replace_foreign=False) as folder:
             _, train = train_into(folder, case, data, argv)
             summary = summary_head(case, argv, "train")

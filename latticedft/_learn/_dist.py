@@ -1,0 +1,112 @@
+"""Several processes: which share of the training data this process reads, and the collectives that combine
+the shares (:mod:`torch.distributed`).
+
+Training runs data-parallel when a process group is initialised (by ``torchrun``, by
+``latticedft train/run --workers N``, or by the caller before :func:`latticedft.learn`): every process
+reads its share of the chunks and the partial sums are combined here, so every process ends with the same
+model. Without a process group (the usual case) every function is the single-process identity.
+
+Tensors are reduced as float64 on the CPU (``gloo``); under ``nccl`` they travel through the process's GPU.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+__all__ = [
+    "world",
+    "is_parallel",
+    "all_sum",
+    "all_min",
+    "all_max",
+    "all_gather",
+    "backend_for",
+    "init_from_env",
+]
+
+
+def world() -> tuple[int, int]:
+    """(rank, number of processes) of the initialised process group; ``(0, 1)`` without one."""
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def is_parallel() -> bool:
+    """True when training is shared by more than one process."""
+    return world()[1] > 1
+
+
+def _device() -> torch.device:
+    if dist.get_backend() == "nccl":
+        return torch.device("cuda", torch.cuda.current_device())
+    return torch.device("cpu")
+
+
+def _reduce(t: torch.Tensor, op: dist.ReduceOp.RedOpType) -> torch.Tensor:
+    if not is_parallel():
+        return t
+    dev = _device()
+    buf = t.detach().to(dev, torch.float64).clone()
+    dist.all_reduce(buf, op=op)
+    return buf.to(t.device, t.dtype)
+
+
+def all_sum(t: torch.Tensor) -> torch.Tensor:
+    """The sum over processes of ``t`` (a new tensor; ``t`` itself without a process group)."""
+    return _reduce(t, dist.ReduceOp.SUM)
+
+
+def all_min(t: torch.Tensor) -> torch.Tensor:
+    """The elementwise minimum over processes."""
+    return _reduce(t, dist.ReduceOp.MIN)
+
+
+def all_max(t: torch.Tensor) -> torch.Tensor:
+    """The elementwise maximum over processes."""
+    return _reduce(t, dist.ReduceOp.MAX)
+
+
+def all_gather(a: np.ndarray) -> list[np.ndarray]:
+    """Every process's array of one common shape, in rank order (``[a]`` without a process group)."""
+    if not is_parallel():
+        return [a]
+    dev = _device()
+    t = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64)).to(dev)
+    out = [torch.empty_like(t) for _ in range(world()[1])]
+    dist.all_gather(out, t)
+    return [o.cpu().numpy() for o in out]
+
+
+def backend_for(local_processes: int) -> str:
+    """``nccl`` when every local process can have a GPU of its own, else ``gloo``."""
+    if torch.cuda.is_available() and dist.is_nccl_available() and torch.cuda.device_count() >= local_processes:
+        return "nccl"
+    return "gloo"
+
+
+def init_from_env(timeout_s: float = 1800.0) -> bool:
+    """Join the process group that ``torchrun`` (or ``--workers``) describes in the environment
+    (``RANK``, ``WORLD_SIZE``, ``MASTER_ADDR``, ``MASTER_PORT``); True when this process is one of several.
+
+    Does nothing when the group is already initialised or ``WORLD_SIZE`` is absent or 1. Each process then
+    uses ``torch.get_num_threads() // LOCAL_WORLD_SIZE`` threads (at least one): processes on one machine
+    share its cores.
+    """
+    if dist.is_available() and dist.is_initialized():
+        return is_parallel()
+    size = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    if size <= 1:
+        return False
+    local = int(os.environ.get("LOCAL_WORLD_SIZE", str(size)) or size)
+    backend = backend_for(local)
+    if backend == "nccl":
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0") or 0))
+    dist.init_process_group(backend, timeout=datetime.timedelta(seconds=timeout_s))
+    torch.set_num_threads(max(1, torch.get_num_threads() // max(local, 1)))
+    return True

@@ -1,0 +1,169 @@
+"""Training in several processes: ``--workers N`` on this machine, or the processes ``torchrun`` starts.
+
+``latticedft train/run CASE --workers N`` starts N copies of the same command (ranks 0 .. N-1) that form
+a ``torch.distributed`` process group (gloo on the loopback ``127.0.0.1``), and waits for them. Under
+``torchrun`` the command is already one of the group's processes (``RANK``, ``WORLD_SIZE`` ... in the
+environment). Either way every rank reads the case and trains on its share of the chunks
+(:func:`latticedft.learn` combines the shares); rank 0 alone writes the results folder and serves the
+tasks, the other ranks write nothing and exit after training.
+"""
+
+from __future__ import annotations
+
+import argparse
+import atexit
+import contextlib
+import logging
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from typing import IO, TYPE_CHECKING, Any
+
+from .._errors import InputError
+from ._common import BAD_INPUT, OK
+
+if TYPE_CHECKING:  # the CLI's help and usage errors load no engine (torch, xarray)
+    from .._case import Case
+
+log = logging.getLogger("latticedft")
+
+__all__ = ["add_argument", "supervise", "is_helper", "join", "train_only"]
+
+
+def add_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        metavar="N",
+        help="train in N local processes (data-parallel, torch.distributed over 127.0.0.1); rank 0 writes "
+        "the results. Under torchrun, leave it out: torchrun's processes are used",
+    )
+
+
+def _rank_env() -> tuple[int, int]:
+    """(RANK, WORLD_SIZE) from the environment (torchrun's, or this launcher's)."""
+    return int(os.environ.get("RANK", "0") or 0), int(os.environ.get("WORLD_SIZE", "1") or 1)
+
+
+def is_helper() -> bool:
+    """True in a rank other than 0 of a process group: it trains and writes nothing."""
+    rank, size = _rank_env()
+    return size > 1 and rank > 0
+
+
+def _without_workers(argv: list[str]) -> list[str]:
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--workers":
+            skip = True
+        elif not a.startswith("--workers="):
+            out.append(a)
+    return out
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def supervise(args: argparse.Namespace, argv: list[str]) -> int | None:
+    """With ``--workers N > 1`` (and no process group in the environment): run the N ranks and return the
+    exit status (rank 0's; 1 when another rank failed). ``None``: this process does the work itself."""
+    n = getattr(args, "workers", 1)
+    if n < 1:
+        raise InputError(f"--workers: expected a positive integer, got {n}")
+    if n == 1 or _rank_env()[1] > 1:
+        return None
+    port = _free_port()
+    base = dict(os.environ, MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), WORLD_SIZE=str(n))
+    base.update(LOCAL_WORLD_SIZE=str(n), OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1"))
+    cmd = [sys.executable, "-m", "latticedft", *_without_workers(argv)]
+    procs: list[subprocess.Popen[bytes]] = []
+    logs: list[IO[bytes] | None] = []
+    try:
+        for rank in range(n):
+            env = dict(base, RANK=str(rank), LOCAL_RANK=str(rank))
+            out = None if rank == 0 else tempfile.TemporaryFile()  # noqa: SIM115 - closed in the finally below
+            logs.append(out)
+            procs.append(subprocess.Popen(cmd, env=env, stdout=out, stderr=out))
+        return _wait(procs, logs)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        for f in logs:
+            if f is not None:
+                f.close()
+
+
+def _wait(procs: list[subprocess.Popen[bytes]], logs: list[Any]) -> int:
+    """Wait for every rank; stop the others as soon as one fails. Rank 0's status, or 1 when another failed."""
+    while True:
+        first = procs[0].poll()
+        failed = next((i for i, p in enumerate(procs[1:], 1) if p.poll() not in (None, 0)), None)
+        if first is not None and first != 0:
+            return int(first)  # rank 0 reported its own error (or an incomplete serving task)
+        if first is None and failed is None:
+            time.sleep(0.05)
+            continue
+        if first is not None:  # rank 0 is done: the others finished training before it could
+            for p in procs[1:]:
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    p.wait(timeout=60)
+            failed = next((i for i, p in enumerate(procs[1:], 1) if p.poll() != 0), None)
+            if failed is None:
+                return int(first)
+        assert failed is not None
+        logs[failed].seek(0)
+        tail = [ln for ln in logs[failed].read().decode(errors="replace").splitlines() if ln.strip()][-3:]
+        msg = " | ".join(ln.strip() for ln in tail) or f"exit status {procs[failed].poll()}"
+        print(f"latticedft: error: worker {failed} failed: {msg}", file=sys.stderr)
+        return BAD_INPUT
+
+
+def join() -> None:
+    """Join the process group described by the environment (a no-op in a single process)."""
+    from .._learn import _dist
+
+    if _dist.init_from_env():
+        rank, size = _dist.world()
+        log.info("training in %d processes (this is rank %d, backend %s)", size, rank, _dist_backend())
+        atexit.register(_leave)
+
+
+def _dist_backend() -> str:
+    import torch.distributed as dist
+
+    return str(dist.get_backend())
+
+
+def _leave() -> None:
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
+
+
+def train_only(case: Case) -> int:
+    """A helper rank's whole work: read the case, take part in training, write nothing."""
+    from .._pipeline import check_case, train_model
+    from ._common import set_threads
+
+    set_threads(case)
+    data = check_case(case)
+    join()
+    train_model(case, data)
+    _leave()
+    return OK
