@@ -215,6 +215,7 @@ rep = ldft.learn(m, data, optimizer="lbfgs", max_iter=8, chunk_sites=150, bounda
 out["mlp"] = [torch.cat([p.detach().reshape(-1) for p in m.parameters()]).tolist(), rep.loss, rep.iterations]
 json.dump(out, open(sys.argv[1], "w"))
 if dist.is_initialized():
+    dist.barrier()
     dist.destroy_process_group()
 """
 
@@ -239,10 +240,13 @@ def test_two_processes_on_the_loopback_learn_what_one_learns(tmp_path: Path) -> 
         subprocess.Popen(
             [sys.executable, str(script), str(tmp_path / f"two_{r}.json")],
             env=dict(env, MASTER_ADDR="127.0.0.1", MASTER_PORT=port, WORLD_SIZE="2", RANK=str(r), LOCAL_RANK=str(r)),
+            stderr=subprocess.PIPE,
+            text=True,
         )
         for r in range(2)
     ]
-    assert [p.wait(timeout=600) for p in procs] == [0, 0]
+    errors = [p.communicate(timeout=600)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], "\n".join(e[-3000:] for e in errors)
     ref = json.loads((tmp_path / "one.json").read_text())
     ranks = [json.loads((tmp_path / f"two_{r}.json").read_text()) for r in range(2)]
     assert ranks[0] == ranks[1]  # every process ends with the same model, bit for bit

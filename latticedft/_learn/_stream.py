@@ -109,7 +109,6 @@ class TrainingData:
         else:
             chunk = default_chunk_sites(model) if self.chunk_sites is None else self.chunk_sites
             self.budget = chunk
-            rank, size = _dist.world()
             if chunk == 0:  # several processes, whole fields: one field per chunk
                 self.chunks = [[p] for c in pieces(self.sources, model.stencil, 0) for p in c]
             else:

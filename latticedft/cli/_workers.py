@@ -30,7 +30,7 @@ if TYPE_CHECKING:  # the CLI's help and usage errors load no engine (torch, xarr
 
 log = logging.getLogger("latticedft")
 
-__all__ = ["add_argument", "supervise", "is_helper", "join", "train_only"]
+__all__ = ["add_argument", "supervise", "is_helper", "join", "leave", "train_only"]
 
 
 def add_argument(p: argparse.ArgumentParser) -> None:
@@ -150,9 +150,20 @@ def _dist_backend() -> str:
 
 
 def _leave() -> None:
+    """Leave the process group without waiting for the others (the fallback at exit after an error)."""
     import torch.distributed as dist
 
     if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
+
+
+def leave() -> None:
+    """After training, in every rank: wait for all, then leave the group together (a rank that leaves while
+    another still holds its connections can make that one abort at exit)."""
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        dist.barrier()
         dist.destroy_process_group()
 
 
@@ -165,5 +176,5 @@ def train_only(case: Case) -> int:
     data = check_case(case)
     join()
     train_model(case, data)
-    _leave()
+    leave()
     return OK

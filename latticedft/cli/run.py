@@ -47,6 +47,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
             for line in data.summary_lines(case):
                 log.debug("%s", line)
             model, train = train_into(folder, case, data, argv)
+            _workers.leave()  # the other ranks are done: serving and writing are rank 0's alone
             tasks = serve_into(folder, case, data, model, argv)
             summary = summary_head(case, argv, "run")
             summary.update(train=train, tasks=tasks, wall_time=time.perf_counter() - t0)

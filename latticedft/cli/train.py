@@ -46,6 +46,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
         _workers.join()
         with staged_results(dest, replace_foreign=False) as folder:
             _, train = train_into(folder, case, data, argv)
+            _workers.leave()  # the other ranks are done: writing the results is rank 0's alone
             summary = summary_head(case, argv, "train")
             summary.update(train=train, tasks={}, wall_time=time.perf_counter() - t0)
             status = finish(folder, summary)
