@@ -138,6 +138,33 @@ def _point_values(da: xr.DataArray, order: tuple[str, ...]) -> np.ndarray:
     return np.asarray(da.transpose(*dims).values, dtype=np.float64)
 
 
+def _checked_field(stem: str, field: xr.DataArray, max_frames: int | None) -> tuple[str, xr.DataArray, tuple[str, ...]]:
+    """The arguments every time-series export shares, checked: (the field's name, the field, its lattice dims)."""
+    if not stem or "/" in stem or os.sep in stem:
+        raise InputError(f"stem {stem!r}: expected a plain file name stem without folders")
+    if max_frames is not None and (not isinstance(max_frames, (int, np.integer)) or max_frames < 1):
+        raise InputError(f"max_frames={max_frames!r}: expected a positive integer or None")
+    name = str(field.name) if field.name is not None else "psi"
+    field = validate_field(field, f"field {name!r}", allow_nan=True)
+    return name, field, lattice_dims(field)
+
+
+def _point_arrays(
+    name: str,
+    field: xr.DataArray,
+    ldims: tuple[str, ...],
+    extra: Mapping[str, xr.DataArray] | None,
+    reserved: tuple[str, ...] = (),
+) -> dict[str, np.ndarray]:
+    """The field and the arrays beside it as point values in lattice order (names unique, not ``reserved``)."""
+    arrays = {name: _point_values(field, ldims)}
+    for key, arr in (extra or {}).items():
+        if key in arrays or key in reserved:
+            raise InputError(f"extra array {key!r}: name clashes with another array")
+        arrays[key] = _check_extra(key, arr, field, ldims)
+    return arrays
+
+
 def _check_extra(name: str, arr: xr.DataArray, field: xr.DataArray, ldims: tuple[str, ...]) -> np.ndarray:
     if not isinstance(arr, xr.DataArray):
         raise InputError(f"extra array {name!r}: expected an xarray.DataArray, got {type(arr).__name__}")
@@ -224,18 +251,8 @@ def write_paraview(
     ...     [p.name for p in write_paraview(d, "wave", da)]
     ['wave.pvd', 'wave_0000.vtr', 'wave_0001.vtr', 'wave_0002.vtr', 'wave_spacetime.vtr']
     """
-    if not stem or "/" in stem or os.sep in stem:
-        raise InputError(f"stem {stem!r}: expected a plain file name stem without folders")
-    if max_frames is not None and (not isinstance(max_frames, (int, np.integer)) or max_frames < 1):
-        raise InputError(f"max_frames={max_frames!r}: expected a positive integer or None")
-    name = str(field.name) if field.name is not None else "psi"
-    field = validate_field(field, f"field {name!r}", allow_nan=True)
-    ldims = lattice_dims(field)
-    arrays = {name: _point_values(field, ldims)}
-    for key, arr in (extra or {}).items():
-        if key in arrays or key in ("time", "TimeValue"):
-            raise InputError(f"extra array {key!r}: name clashes with another array")
-        arrays[key] = _check_extra(key, arr, field, ldims)
+    name, field, ldims = _checked_field(stem, field, max_frames)
+    arrays = _point_arrays(name, field, ldims, extra, reserved=("time", "TimeValue"))
     times = np.asarray(field.coords[ldims[0]].values, dtype=np.float64)
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)

@@ -39,8 +39,8 @@ import xarray as xr
 
 from latticedft._errors import InputError
 from latticedft.io.exporters import Exporter, ExportTask
-from latticedft.io.fields import COMPONENT_DIM, lattice_dims, validate_field
-from latticedft.io.vtk import _check_extra, _frame_indices, _point_values
+from latticedft.io.fields import COMPONENT_DIM
+from latticedft.io.vtk import _checked_field, _frame_indices, _point_arrays
 
 __all__ = ["write_xdmf", "read_xdmf", "XdmfExporter"]
 
@@ -134,20 +134,10 @@ def write_xdmf(
         A field that breaks the layout, more than 3 spatial dims, or extra
         arrays on another lattice.
     """
-    if not stem or "/" in stem or os.sep in stem:
-        raise InputError(f"stem {stem!r}: expected a plain file name stem without folders")
-    if max_frames is not None and (not isinstance(max_frames, (int, np.integer)) or max_frames < 1):
-        raise InputError(f"max_frames={max_frames!r}: expected a positive integer or None")
-    name = str(field.name) if field.name is not None else "psi"
-    field = validate_field(field, f"field {name!r}", allow_nan=True)
-    ldims = lattice_dims(field)
+    name, field, ldims = _checked_field(stem, field, max_frames)
     if len(ldims) > 4:
         raise InputError(f"field {name!r}: {len(ldims) - 1} spatial dims {ldims[1:]}; XDMF export supports at most 3")
-    arrays = {name: _point_values(field, ldims)}
-    for key, arr in (extra or {}).items():
-        if key in arrays:
-            raise InputError(f"extra array {key!r}: name clashes with another array")
-        arrays[key] = _check_extra(key, arr, field, ldims)
+    arrays = _point_arrays(name, field, ldims, extra)
     labels = (
         (
             [str(c) for c in field.coords[COMPONENT_DIM].values]
