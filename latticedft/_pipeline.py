@@ -205,12 +205,15 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
     model = case.model.build(len(data.dims))
     log.info("training %s model on %d field(s) ...", case.model.kind, len(data.train))
     try:
-        report = learn(model, data.train, boundary=case.train.boundary, progress=None, **case.train.learn)
+        report = learn(
+            model, data.train, boundary=case.train.boundary, progress=None, device=case.run.device, **case.train.learn
+        )
     except InputError as exc:
         if exc.key is not None and exc.key in case.train.learn:
             raise _as_case_error(exc, f"train.{exc.key}") from None
         raise
     log.info("%s", report.summary_line())
+    log.debug("training device: %s", report.device)
     if report.symmetries is not None:
         log.info("symmetries of the learned L_d over the training data (verdicts at tol 1e-9):")
         for line in report.symmetry_lines():
@@ -257,8 +260,9 @@ class TaskOutcome:
         return attrs
 
 
-def serve_task(model: Any, td: TaskData) -> TaskOutcome:
-    """Serve one task; a Newton failure gives an incomplete outcome (with a warning), not an exception.
+def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
+    """Serve one task (the model evaluated on ``device``); a Newton failure gives an incomplete outcome (with a
+    warning), not an exception.
 
     Kept in one piece (~80 lines): it is the task's record, built field by field in the order of
     summary.json; the checks and measurements it records are helpers of their own.
@@ -277,7 +281,7 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     t0 = time.perf_counter()
     stopped = ""
     try:
-        result = serve(model, td.init, progress=None, **t.serve_kwargs())
+        result = serve(model, td.init, progress=None, device=device, **t.serve_kwargs())
     except ServeError as err:
         result = err.result
         if isinstance(result, list):  # pragma: no cover - a single init gives one result
@@ -286,6 +290,7 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         stopped = str(err)  # the reason with its slice, site and residual
     wall = time.perf_counter() - t0
     pred = result.field
+    log.debug("task %s served on %s", t.name, result.device)
     rec: dict[str, Any] = result.to_dict()
     rec["stop_reason"] = None if result.complete else stopped
     for warning in result.warnings:  # the served field leaves the training range

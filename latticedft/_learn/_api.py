@@ -8,8 +8,10 @@ import time
 from collections.abc import Sequence
 from dataclasses import replace
 
+import torch
 import xarray as xr
 
+from .._device import device_label, on_device, resolve_device
 from .._errors import InputError
 from .._lattice import BoundaryKinds
 from .._models import AbstractLagrangian, LinearLagrangian
@@ -105,6 +107,7 @@ def learn(
     progress: bool | None = None,
     symmetries: bool = False,
     chunk_sites: int | None = None,
+    device: str | None = None,
 ) -> LearnReport:
     """Learn ``L_d`` from one or more observed fields; the model is fitted in place.
 
@@ -152,6 +155,13 @@ def learn(
         size); ``0`` holds and processes all data at once (in memory). Under
         an initialised ``torch.distributed`` process group every process
         reads its share of the chunks and all end with the same model.
+    device : "cpu", "cuda", "cuda:N" or "auto", optional
+        Where iterative training evaluates the model (its parameters, and
+        ``L_d`` with its derivatives on the cells of each chunk): default the
+        CPU; ``"auto"`` is CUDA when available. CUDA where none is available
+        falls back to the CPU with one :class:`DeviceWarning`. The exact solve
+        of linear models runs on the CPU. The fitted model is left on the CPU;
+        ``report.device`` names the device used.
 
     Returns
     -------
@@ -169,6 +179,7 @@ def learn(
     True
     """
     fix, optimizer = _checked(model, gauge, ridge, optimizer, max_iter)
+    where = resolve_device(device)
     settings = Training(
         optimizer=optimizer,
         max_iter=max_iter,
@@ -178,6 +189,7 @@ def learn(
         lr=lr,
         penalty=penalty,
         progress=progress,
+        device=where,
     )
     _check_training(settings)
     if not isinstance(symmetries, bool):
@@ -188,6 +200,7 @@ def learn(
         report = _learn_auto(model, fields, ridge, nsites, settings, symmetries)
     else:
         report = _fit(model, fields, fix, ridge, nsites, settings, symmetries)
+    report = replace(report, device=device_label(where) if optimizer != "exact" else "cpu")
     model.report_ = report
     return report
 
@@ -211,7 +224,8 @@ def _fit(
         used_ridge, validation = learn_exact(model, fields, fix, ridge, nsites)
         iterations, reason = 1, "exact solve"
     else:
-        iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
+        with on_device(model, settings.device or torch.device("cpu")):
+            iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
     wall = time.perf_counter() - t0
     diag = fields.diagnose(model, fix.name, symmetries)
     degenerate, warnings = fit_warnings(diag)

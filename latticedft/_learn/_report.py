@@ -65,6 +65,8 @@ class LearnReport:
     gauge_scores: dict[str, float] = field(default_factory=dict)
     #: ``gauge="auto"``: why ``gauge`` was chosen, in words.
     gauge_choice: str = ""
+    #: Where training evaluated the model: ``"cpu"`` or ``"cuda:N (GPU name)"`` (``learn(device=...)``).
+    device: str = "cpu"
 
     def summary_line(self) -> str:
         auto = f", gauge {self.gauge} (auto: {self.gauge_choice})" if self.gauge_requested == "auto" else ""
