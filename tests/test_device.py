@@ -228,3 +228,18 @@ def test_cli_run_records_the_device(tmp_path, capsys):
 def test_device_warning_is_public():
     assert issubclass(ldft.DeviceWarning, UserWarning)
     assert "DeviceWarning" in ldft.__all__
+
+
+@pytest.mark.slow
+def test_device_benchmark_runs(capsys):
+    """``python -m benchmarks.device`` on a machine without CUDA: says so and measures the CPU at small sizes
+    (no timing asserted; the two runs of each workload agree exactly)."""
+    from benchmarks import device as bench
+
+    assert bench.main(["--quick", "--device", "cpu"]) == 0
+    out = capsys.readouterr().out
+    rows = [ln for ln in out.splitlines() if ln.startswith(("serve 2+1D", "serve 3+1D", "train MLP"))]
+    assert len(rows) == 3
+    assert all(" 0.0e+00 " in ln and ln.rstrip().endswith("cpu") for ln in rows)
+    if NO_CUDA:
+        assert "CUDA is unavailable here" in out
