@@ -142,7 +142,7 @@ def test_bridge_patches_the_evaluations_and_removes_them():
 def test_training_and_serving_through_the_bridge_match(monkeypatch):
     """Iterative training (double backward through the bridged forward) and serving through the bridge give
     exactly what the plain model gives."""
-    ref_model, ref = _mlp_learned(None)
+    ref_model, ref = _mlp_learned(None, symmetries=True)
     field = wave_field(nx=17, nt=12)
     lin = ldft.PolynomialLagrangian(orders=(2, 0))
     ldft.learn(lin, field)
@@ -152,9 +152,10 @@ def test_training_and_serving_through_the_bridge_match(monkeypatch):
 
     monkeypatch.setattr(api, "on_device", _device._moved)
     monkeypatch.setattr(srv, "on_device", _device._moved)
-    model, rep = _mlp_learned(None)
+    model, rep = _mlp_learned(None, symmetries=True)
     np.testing.assert_array_equal(_params(model), _params(ref_model))
-    assert rep.loss == ref.loss
+    assert rep.loss == ref.loss and rep.rel_res == ref.rel_res and rep.hessian_min_sv == ref.hessian_min_sv
+    assert rep.symmetries == ref.symmetries and rep.symmetries
     out = ldft.serve(lin, field, affine=False)
     np.testing.assert_array_equal(out.field.values, served.field.values)
     assert not any(callable(lin.__dict__.get(name)) for name in _device._BRIDGED)

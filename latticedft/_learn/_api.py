@@ -223,11 +223,13 @@ def _fit(
     if settings.optimizer == "exact" and isinstance(model, LinearLagrangian):  # _checked refuses 'exact' for others
         used_ridge, validation = learn_exact(model, fields, fix, ridge, nsites)
         iterations, reason = 1, "exact solve"
-    else:
+        wall = time.perf_counter() - t0
+        diag = fields.diagnose(model, fix.name, symmetries)
+    else:  # iterative training and its diagnostics evaluate the model on the device
         with on_device(model, settings.device or torch.device("cpu")):
             iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
-    wall = time.perf_counter() - t0
-    diag = fields.diagnose(model, fix.name, symmetries)
+            wall = time.perf_counter() - t0
+            diag = fields.diagnose(model, fix.name, symmetries)
     degenerate, warnings = fit_warnings(diag)
     return LearnReport(
         method=settings.optimizer,
