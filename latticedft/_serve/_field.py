@@ -94,8 +94,11 @@ class _FieldRun:
     def solve_slice(self, i: int, g_prev: torch.Tensor, rtol: float, max_newton: int) -> torch.Tensor:
         """Solve slice ``i``'s equations for slice ``i + 1``; returns the gradients of the cells anchored at ``i``."""
         sys, flat, unk = self.sys, self.flat, self.unk
-        # predictor 2 psi_i - psi_{i-1} on the unknown sites
+        # predictor on the unknown sites: 2 psi_i - psi_{i-1} plus, for Newton, the previous slice's correction to
+        # its own such predictor (3 psi_i - 3 psi_{i-1} + psi_{i-2}: the next term of the extrapolation)
         flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
+        if self.mode == "newton" and i >= 2:
+            flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + flat[i - 2, unk]
         if self.mode == "newton":
             it, res, g_prev, err = _newton_slice(
                 self.model, sys, self.psi, flat, unk, i, g_prev, self.vol, rtol, max_newton, self.cells_at, self.cache
