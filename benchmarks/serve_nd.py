@@ -220,8 +220,9 @@ def run(cfg: Config) -> Table:
         "the sites of a slice. Serve time: the whole `ldft.serve` call after a 3-slice warm-up; leapfrog: "
         "the numpy leapfrog of psi_tt = Laplacian psi - sin psi written in this benchmark (np.roll), best of 3, "
         "in the same process.",
-        "slice solver: `ServeResult.slice_solver` chosen by solver='auto' (site-wise: the first-order stencil's "
-        "slice Jacobian is block diagonal for both L_d).",
+        "slice solver: `ServeResult.slice_solver` chosen by solver='auto': site-wise for sine-Gordon (its "
+        "first-order slice Jacobian is block diagonal); the polynomial's cell mean couples neighbouring unknowns, "
+        "so LU in 1+1D and Krylov beyond.",
         "Polynomial: `PolynomialLagrangian(orders=(2, 12), time_symmetric=True)` (the class of cases/sine-gordon) "
         "learned by exact least squares on a small sine-Gordon field of the same dimension; its last-slice column "
         "is the learned model's error. The sine-Gordon L_d serves the leapfrog exactly (round-off).",
