@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -11,8 +12,10 @@ import torch
 import latticedft as ldft
 from latticedft import ConfigError, lagrangians, systems
 from latticedft._case import load_case
+from latticedft.cli import main
+from latticedft.io import write_field
 
-from case_helpers import tiny_wave
+from case_helpers import tiny_wave, write_toml
 from helpers import membrane_field, wave_field
 
 
@@ -141,3 +144,43 @@ def test_krylov_non_convergence_names_slice_site_and_residual():
     assert "did not converge" in msg and "site" in msg and "residual" in msg and "\n" not in msg
     part = err.value.result
     assert not part.complete and part.slice_solver == "krylov" and part.field.sizes["t"] == err.value.slice
+
+
+def _sine_gordon_string(nt: int, amplitude: float):
+    """A 1+1D sine-Gordon field on 13 sites with fixed ends (numpy leapfrog, dt = dx / 2)."""
+    x = np.linspace(0.0, 1.0, 13)
+    u0 = amplitude * np.sin(np.pi * x)
+    u = systems.leapfrog(u0, u0.copy(), nt - 1, 0.5 / 12, 1 / 12, force=lambda v: -np.sin(v))
+    return systems.make_field(u, ("t", "x"), spacing=(0.5 / 12, 1 / 12))
+
+
+def test_summary_json_records_the_slice_solver(tmp_path: Path, capsys):
+    case = tmp_path / "sg"
+    (case / "data").mkdir(parents=True)
+    write_field(case / "data" / "train.nc", {"psi": _sine_gordon_string(30, 1.5)})
+    write_field(case / "data" / "test.nc", {"psi": _sine_gordon_string(20, 1.2)})
+    write_toml(
+        case,
+        """
+        [model]
+        kind = "polynomial"
+        orders = [2, 6]
+        time_symmetric = true
+        [train]
+        data = ["data/train.nc"]
+        [[serve]]
+        name = "test"
+        from = "data/test.nc"
+        solver = "krylov"
+        [run]
+        threads = 1
+        [export]
+        formats = []
+        """,
+    )
+    code = main(["run", str(case), "-q"])
+    capsys.readouterr()
+    assert code == 0
+    task = json.loads((case / "results" / "summary.json").read_text())["tasks"]["test"]
+    assert task["complete"] and task["solver"] == "newton" and task["slice_solver"] == "krylov"
+    assert task["max_error"] < 1e-2
