@@ -166,8 +166,10 @@ def serve(
         ``"sitewise"`` inverts the Jacobian's per-site ``m x m`` diagonal
         blocks (exact when each unknown site appears in one equation, as for
         the first-order stencil with an ``L_d`` whose spatial differences do
-        not mix with the time difference; otherwise a slower quasi-Newton
-        iteration); ``"krylov"`` runs GMRES preconditioned by those blocks;
+        not mix with the time difference; off-diagonal blocks up to 1e-6 of
+        the diagonal make it a quasi-Newton iteration, larger ones stop the
+        slice with a ``ServeError`` saying so); ``"krylov"`` runs GMRES
+        preconditioned by those blocks;
         ``"lu"`` factorises the sparse Jacobian. ``"auto"`` measures the
         off-diagonal blocks of each fresh Jacobian: site-wise when they
         vanish, else LU in 1+1D and Krylov in more dimensions. Newton's
