@@ -12,7 +12,7 @@ from .._errors import ConfigError, LatticeDFTError
 from .._learn import GAUGES, OPTIMIZERS
 from .._models import MODELS, AbstractLagrangian
 from .._models._options import OptionTypeError
-from .._serve import MODES
+from .._serve import MODES, SOLVERS
 from .._stencil import Stencil
 from ._checks import (
     _Bad,
@@ -74,6 +74,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "baseline": (t_str, None),
         "invariant": (t_invariant, None),
         "charges": (t_str_list, None),
+        "solver": (t_choice(*SOLVERS), "auto"),
     },
     "run": {
         "threads": (t_pos_int, None),
@@ -194,6 +195,8 @@ class ServeTask:
     label: str = "serve[0]"
     #: True when the file (or ``--set``) gave the deprecated key ``steps`` instead of ``slices``.
     deprecated_steps: bool = False
+    #: the linear solver of n-D slice-Newton's steps (``serve(..., solver=...)``)
+    solver: str = "auto"
 
     def serve_kwargs(self) -> dict[str, Any]:
         return {
@@ -203,6 +206,7 @@ class ServeTask:
             "box": self.box,
             "rtol": self.rtol,
             "max_newton": self.max_newton,
+            "solver": self.solver,
         }
 
 

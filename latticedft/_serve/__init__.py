@@ -10,7 +10,8 @@ together.
 
 One module per concept: ``_result`` (the result record and metrics),
 ``_slices`` (one slice as a system of equations), ``_affine`` (the affine
-recurrence of a quadratic ``L_d``), ``_newton`` (slice-Newton), ``_sweep``
+recurrence of a quadratic ``L_d``), ``_newton`` (slice-Newton), ``_solvers`` (the linear
+solve of a Newton step: site-wise, Krylov or LU), ``_sweep``
 (the site-by-site sweep), ``_batch`` (1D trajectories) and ``_field`` (the
 n-D driver).
 """
@@ -32,8 +33,9 @@ from .._models import AbstractLagrangian
 from ._batch import _serve_batch
 from ._field import _serve_field
 from ._result import ServeResult, compare, error_vs_time, invariant_vs_time
+from ._solvers import SOLVERS
 
-__all__ = ["MODES", "ServeResult", "compare", "error_vs_time", "invariant_vs_time", "serve"]
+__all__ = ["MODES", "SOLVERS", "ServeResult", "compare", "error_vs_time", "invariant_vs_time", "serve"]
 
 MODES = ("newton", "sweep")
 
@@ -93,6 +95,7 @@ def serve(
     progress: bool | None = None,
     steps: int | None = None,
     device: str | None = None,
+    solver: str = "auto",
 ) -> ServeResult: ...
 
 
@@ -111,6 +114,7 @@ def serve(
     progress: bool | None = None,
     steps: int | None = None,
     device: str | None = None,
+    solver: str = "auto",
 ) -> list[ServeResult]: ...
 
 
@@ -129,6 +133,7 @@ def serve(
     progress: bool | None = None,
     steps: int | None = None,
     device: str | None = None,
+    solver: str = "auto",
 ) -> ServeResult | list[ServeResult]:
     """Predict a field from its first two time slices (and boundary strips) with the learned ``L_d``.
 
@@ -173,6 +178,20 @@ def serve(
         CUDA when available. The slice's linear algebra stays on the CPU.
         CUDA where none is available falls back to the CPU with one
         :class:`DeviceWarning`. ``result.device`` names the device used.
+    solver : "auto", "sitewise", "krylov" or "lu"
+        n-D ``mode="newton"`` only: the linear solve of each Newton step.
+        ``"sitewise"`` inverts the Jacobian's per-site ``m x m`` diagonal
+        blocks (exact when each unknown site appears in one equation, as for
+        the first-order stencil with an ``L_d`` whose spatial differences do
+        not mix with the time difference; off-diagonal blocks up to 1e-6 of
+        the diagonal make it a quasi-Newton iteration, larger ones stop the
+        slice with a ``ServeError`` saying so); ``"krylov"`` runs GMRES
+        preconditioned by those blocks;
+        ``"lu"`` factorises the sparse Jacobian. ``"auto"`` measures the
+        off-diagonal blocks of each fresh Jacobian: site-wise when they
+        vanish, else LU in 1+1D and Krylov in more dimensions. Newton's
+        convergence test is the same for all. ``ServeResult.slice_solver``
+        says which one served.
 
     Returns
     -------
@@ -216,6 +235,8 @@ def serve(
         raise InputError.at(
             "max_newton", f"expected a positive integer (Newton iterations per slice), got {max_newton!r}"
         )
+    if solver not in SOLVERS:
+        raise InputError.at("solver", f"expected one of {list(SOLVERS)}, got {solver!r}")
     if not isinstance(affine, bool):
         raise InputError.at("affine", f"expected True or False, got {affine!r}")
     if progress is not None and not isinstance(progress, bool):
@@ -249,7 +270,9 @@ def serve(
     for f in fs:
         try:
             with on_device(model, where):
-                out.append(_serve_field(model, f, _slices(slices, f), mode, rtol, max_newton, progress, bool(affine)))
+                out.append(
+                    _serve_field(model, f, _slices(slices, f), mode, rtol, max_newton, progress, bool(affine), solver)
+                )
         except ServeError as err:
             if isinstance(err.result, ServeResult):
                 _served_attrs([err.result], model)

@@ -49,7 +49,9 @@ def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int) -> torch.Ten
 class _FieldRun:
     """One n-D field being served: its slice system, values, iteration counters and progress bar."""
 
-    def __init__(self, model: AbstractLagrangian, f: LatticeField, steps: int, mode: str, progress: bool | None):
+    def __init__(
+        self, model: AbstractLagrangian, f: LatticeField, steps: int, mode: str, progress: bool | None, solver: str
+    ):
         self.model, self.f, self.steps, self.mode = model, f, steps, mode
         self.sys = _SliceSystem(model, f)
         self.psi = _initial_values(f, self.sys, steps)
@@ -59,7 +61,7 @@ class _FieldRun:
         self.t0 = time.perf_counter()
         self.total_it, self.max_it, self.worst = 0, 0, 0.0
         self.bar = _bar(steps - 2, f"serve ({mode})", progress)
-        self.cache: dict[str, Any] = {}
+        self.cache: dict[str, Any] = {"solver": solver}
         self.start = 1  # first slice whose equations Newton (or the sweep) solves
         self.affine_slices = 0
 
@@ -92,8 +94,11 @@ class _FieldRun:
     def solve_slice(self, i: int, g_prev: torch.Tensor, rtol: float, max_newton: int) -> torch.Tensor:
         """Solve slice ``i``'s equations for slice ``i + 1``; returns the gradients of the cells anchored at ``i``."""
         sys, flat, unk = self.sys, self.flat, self.unk
-        # predictor 2 psi_i - psi_{i-1} on the unknown sites
+        # predictor on the unknown sites: 2 psi_i - psi_{i-1} plus, for Newton, the previous slice's correction to
+        # its own such predictor (3 psi_i - 3 psi_{i-1} + psi_{i-2}: the next term of the extrapolation)
         flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
+        if self.mode == "newton" and i >= 2:
+            flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + flat[i - 2, unk]
         if self.mode == "newton":
             it, res, g_prev, err = _newton_slice(
                 self.model, sys, self.psi, flat, unk, i, g_prev, self.vol, rtol, max_newton, self.cells_at, self.cache
@@ -125,6 +130,7 @@ class _FieldRun:
             max_residual=residual,
             mode=self.mode,
             solver=self.solver(),
+            slice_solver="+".join(self.cache.get("used", [])) or None,
             extrapolation=ext,
             warnings=warnings,
         )
@@ -173,9 +179,11 @@ def _serve_field(
     max_newton: int,
     progress: bool | None,
     affine: bool = True,
+    solver: str = "auto",
 ) -> ServeResult:
-    """Serve one n-D field: the affine recurrence first where allowed, then Newton (or the sweep) slice by slice."""
-    run = _FieldRun(model, f, steps, mode, progress)
+    """Serve one n-D field: the affine recurrence first where allowed, then Newton (or the sweep) slice by slice;
+    ``solver`` solves Newton's steps (``_solvers.SOLVERS``)."""
+    run = _FieldRun(model, f, steps, mode, progress, solver)
     if mode == "newton" and affine and steps > 2:
         run.serve_affine(rtol)
     g_prev = CellDerivatives(model, run.cells_at(run.start - 1)).grad

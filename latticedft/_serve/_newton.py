@@ -10,6 +10,11 @@ import torch
 
 from .._action import CellDerivatives
 from ._slices import _scale, _SliceSystem, is_singular, singular_message
+from ._solvers import SolverRefused, factor_step
+
+#: A chord step (the factorisation or preconditioner of an earlier Jacobian reused) is followed by another
+#: while each cuts the residual by at least this factor; otherwise the next step assembles a fresh Jacobian.
+CHORD_DROP = 1e-2
 
 
 def _fresh_blocks(ev: CellDerivatives, sys: _SliceSystem, cache: dict[str, Any]) -> dict:
@@ -28,10 +33,12 @@ def _fresh_blocks(ev: CellDerivatives, sys: _SliceSystem, cache: dict[str, Any])
 
 
 def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at, cache):
-    """Newton on one slice. The first step reuses the cached factorised Jacobian (a chord step, exact for
-    quadratic ``L_d``); fresh Hessian blocks are assembled only when that step did not converge."""
+    """Newton on one slice. Steps reuse the cached factorised Jacobian (chord steps, exact for quadratic
+    ``L_d``) while each cuts the residual a hundredfold; fresh Hessian blocks are assembled only when one did not.
+    The linear solver is ``cache["solver"]`` (``_solvers.SOLVERS``; ``cache["used"]`` collects those chosen)."""
     m = sys.m
     res = math.inf
+    prev = math.inf
     r = np.zeros(0)
     rscale = None
     small = False
@@ -41,7 +48,8 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
         res = float(np.abs(r).max()) if r.size else 0.0
         if not math.isfinite(res):
             return it, res, ev.grad, ("residual is not finite", None, res)
-        stale = it == 1 and "solve" in cache
+        stale = "solve" in cache and (it == 1 or res <= CHORD_DROP * prev)
+        prev = res
         blocks = _fresh_blocks(ev, sys, cache) if "dmax" not in cache else None
         if blocks is not None and cache["singular"]:
             return it, res, ev.grad, (*cache["singular"], res)
@@ -57,8 +65,13 @@ def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol
                     blocks = _fresh_blocks(ev, sys, cache)
                     if cache["singular"]:
                         return it, res, ev.grad, (*cache["singular"], res)
-                cache["solve"] = sys.factor(blocks, vol)
+                cache["solve"], name = factor_step(sys, blocks, vol, cache.get("solver", "auto"), rtol * rscale)
+                used = cache.setdefault("used", [])
+                if name not in used:
+                    used.append(name)
             delta = cache["solve"](-r)
+        except SolverRefused as exc:
+            return it, res, ev.grad, (str(exc), None, res)
         except (np.linalg.LinAlgError, ValueError) as exc:
             cache.pop("solve", None)
             row = int(np.argmax(np.abs(r)))

@@ -33,6 +33,10 @@ class ServeResult:
     #: one factorised solve per slice, checked afterwards) or "affine+newton" (Newton from the first slice
     #: that failed that check)
     solver: str = "newton"
+    #: the linear solver of n-D slice-Newton's steps: "sitewise", "krylov" or "lu" ("sitewise+krylov" and the
+    #: like when ``solver="auto"`` chose differently on different slices); None when no slice-Newton step was
+    #: taken (1D, the sweep, or the affine recurrence throughout)
+    slice_solver: str | None = None
     #: a failed member of a 1D batch: ``(slice, residual)`` where it failed (``None`` otherwise)
     fail_at: tuple[int, float] | None = dataclasses.field(default=None, repr=False, compare=False)
     #: ``extrapolation(t, feature)``: per slice, how far the served cells lie outside the model's training
@@ -64,6 +68,7 @@ class ServeResult:
                 "mode",
                 "solver",
                 "device",
+                "slice_solver",
             )
         }
         out["extrapolation"] = self.extrapolation_summary()

@@ -1,0 +1,145 @@
+"""The linear solve of a slice-Newton step: site-wise, Krylov (GMRES) or sparse LU.
+
+A Newton step on slice ``i`` solves ``J delta = -r`` with ``J`` the slice
+Jacobian: rows are the DEL equations of slice ``i``, columns the unknowns of
+slice ``i + 1``, and its ``m x m`` blocks are per-cell mixed Hessians summed
+over the cells that couple an equation's site to an unknown site.
+
+- ``"sitewise"``: only the diagonal blocks (an equation's own site on the next
+  slice), inverted all at once. Exact when the off-diagonal blocks vanish,
+  as for the first-order stencil with an ``L_d`` whose spatial differences do
+  not mix with the time difference (wave, Klein-Gordon, sine-Gordon ...):
+  then each unknown's equation is its own ``m x m`` system and the cost is
+  linear in the sites with no factorisation at all.
+- ``"krylov"``: restarted GMRES (``scipy.sparse.linalg.gmres``) on the
+  assembled sparse Jacobian, preconditioned by those inverted diagonal blocks
+  (block Jacobi): no fill-in, cost linear in the sites per iteration.
+- ``"lu"``: the sparse (1+1D Dirichlet: banded) LU factorisation.
+- ``"auto"``: site-wise when the off-diagonal blocks are below
+  ``OFFDIAG_RTOL`` of the diagonal ones (measured on every fresh Jacobian);
+  otherwise LU in 1+1D (a banded or nearly banded matrix: cheap to factorise)
+  and Krylov in more dimensions.
+
+Whatever solves the step, Newton's convergence test is the full DEL residual,
+so the solvers differ only in how many iterations they take.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+import torch
+
+from ._slices import _SliceSystem
+
+__all__ = ["SOLVERS", "OFFDIAG_RTOL", "SolverRefused", "choose_solver", "factor_step"]
+
+#: The values of ``serve(..., solver=...)`` and ``[[serve]] solver``.
+SOLVERS = ("auto", "sitewise", "krylov", "lu")
+
+#: ``"auto"`` solves site-wise when the slice Jacobian's off-diagonal blocks are below this fraction of its
+#: largest diagonal entry.
+OFFDIAG_RTOL = 1e-12
+
+#: GMRES stops when the step's linear residual is below this fraction of the Newton residual (or below a tenth of
+#: Newton's own tolerance); Newton's convergence test is unaffected.
+#: ``solver="sitewise"`` asked for explicitly still serves (as a quasi-Newton iteration, converging in a few more
+#: steps) while the off-diagonal blocks are below this fraction of the diagonal; beyond it the slice stops with an
+#: error that says so (the block-Jacobi iteration would crawl or diverge).
+SITEWISE_MAX_OFFDIAG = 1e-6
+
+GMRES_RTOL = 1e-8
+GMRES_RESTART = 40
+GMRES_MAXITER = 50  # restart cycles
+
+Solve = Callable[[np.ndarray], np.ndarray]
+
+
+class SolverRefused(Exception):
+    """The requested solver cannot serve this slice's Jacobian (the message says why and what to use)."""
+
+
+def _diag_and_offdiag(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Tensor]) -> tuple[torch.Tensor, float]:
+    """The diagonal ``m x m`` blocks ``(n, m, m)`` of the Jacobian (without the cell volume) and the largest
+    off-diagonal entry."""
+    m = sys.m
+    diag = torch.zeros(sys.n, m, m, dtype=torch.float64)
+    for key, cells, rows in sys.diag_entries:
+        diag.index_add_(0, rows, blocks[key].reshape(-1, m, m)[cells])
+    off = 0.0
+    for key, (at, r, c) in sys.jac.items():
+        sel = r != c
+        if np.any(sel):
+            off = max(off, float(blocks[key].reshape(-1, m, m)[at[sel]].abs().max()))
+    return diag, off
+
+
+def choose_solver(sys: _SliceSystem, requested: str, diag: torch.Tensor, off: float) -> str:
+    """The solver of a step: ``requested``, or for ``"auto"`` the one the Jacobian's structure calls for."""
+    scale = float(diag.abs().max()) if diag.numel() else 0.0
+    if requested == "sitewise" and off > SITEWISE_MAX_OFFDIAG * scale:
+        raise SolverRefused(
+            f"solver 'sitewise' needs a block-diagonal slice Jacobian, but its off-diagonal blocks reach "
+            f"{off / scale if scale else np.inf:.1e} of the diagonal (the stencil or L_d couples neighbouring "
+            "unknowns): use solver 'auto', 'krylov' or 'lu'"
+        )
+    if requested != "auto":
+        return requested
+    if off <= OFFDIAG_RTOL * scale:
+        return "sitewise"
+    return "lu" if len(sys.spatial) == 1 else "krylov"
+
+
+def _block_inverse(diag: torch.Tensor, vol: float) -> Solve:
+    """``rhs -> D^-1 rhs`` for the block-diagonal ``D = vol * diag`` (``(n, m, m)``), vectorised over the sites."""
+    n, m = diag.shape[0], diag.shape[-1]
+    if m == 1:
+        d = vol * diag.reshape(-1).numpy()
+        if not np.all(d != 0):
+            raise np.linalg.LinAlgError("zero on the diagonal")
+        inv_d = 1.0 / d
+        return lambda rhs: inv_d * rhs
+    inv, info = torch.linalg.inv_ex(vol * diag)
+    if n and bool((info != 0).any()):
+        raise np.linalg.LinAlgError("singular diagonal block")
+    inv_np = inv.numpy()
+    return lambda rhs: np.einsum("nij,nj->ni", inv_np, rhs.reshape(n, m)).reshape(-1)
+
+
+def _krylov(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Tensor], vol: float, diag, target: float) -> Solve:
+    """GMRES on the assembled Jacobian with the block-Jacobi preconditioner."""
+    rows, cols, vals = sys.matrix_entries(blocks, vol)
+    size = sys.n * sys.m
+    mat = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(size, size))
+    prec = _block_inverse(diag, vol)
+    pre = scipy.sparse.linalg.LinearOperator((size, size), matvec=prec, dtype=np.float64)
+    atol = 0.1 * target
+
+    def solve(rhs: np.ndarray) -> np.ndarray:
+        x0 = prec(rhs)  # the site-wise step: exact where the off-diagonal blocks vanish
+        x, _info = scipy.sparse.linalg.gmres(
+            mat, rhs, x0=x0, rtol=GMRES_RTOL, atol=atol, restart=GMRES_RESTART, maxiter=GMRES_MAXITER, M=pre
+        )
+        return np.asarray(x)  # an inexact step when GMRES stopped early: Newton's residual test decides
+
+    return solve
+
+
+def factor_step(
+    sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Tensor], vol: float, requested: str, target: float
+) -> tuple[Solve, str]:
+    """``(solve, name)``: the Newton step's ``solve(rhs)`` for the current Jacobian and the solver chosen.
+
+    ``target`` is Newton's absolute residual tolerance (GMRES aims a tenth below it). Raises
+    ``np.linalg.LinAlgError`` for a singular Jacobian (or, site-wise, a singular diagonal block).
+    """
+    diag, off = _diag_and_offdiag(sys, blocks)
+    name = choose_solver(sys, requested, diag, off)
+    if name == "lu":
+        return sys.factor(blocks, vol), name
+    if name == "sitewise":
+        return _block_inverse(diag, vol), name
+    return _krylov(sys, blocks, vol, diag, target), name
