@@ -209,8 +209,14 @@ def _serve_batch(
     """Step a batch of 1D trajectories together; a member that fails or leaves the box retires alone.
 
     ``mode="newton"`` solves all running members' slices in one batched Newton; ``"sweep"`` one member at a
-    time (in 1D the site-by-site sweep is that same Newton on the one site).
+    time (in 1D the site-by-site sweep is that same Newton on the one site). A model with numpy closed forms
+    (:meth:`LinearLagrangian.numpy_derivatives`) runs the same loop in numpy (``_fast1d``).
     """
+    from ._fast1d import numpy_derivatives_of, serve_fast  # it builds on _Batch
+
+    derivatives = numpy_derivatives_of(model)
+    if derivatives is not None:
+        return serve_fast(model, fs, steps, mode, rtol, max_newton, box, progress, derivatives)
     batch = _Batch(model, fs, steps)
     members = list(range(len(fs)))
     groups = [members] if mode == "newton" else [[k] for k in members]
