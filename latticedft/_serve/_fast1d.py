@@ -28,8 +28,10 @@ def numpy_derivatives_of(model: AbstractLagrangian):
     """The model's numpy closed forms for the pair ``(anchor, forward)`` of a 1D first-order stencil, or
     ``None`` (then the torch loop serves)."""
     hook = getattr(model, "numpy_derivatives", None)
+    if hook is None or not getattr(model, "linear", False):
+        return None
     st = model.stencil
-    if hook is None or not getattr(model, "linear", False) or st.ndim != 1 or st.size != 2:
+    if st.ndim != 1 or st.size != 2:
         return None
     return hook([(st.anchor, st.forward)])
 
@@ -102,9 +104,9 @@ class FastBatch(_Batch):
         if self.m == 1:
             sv = np.abs(jac.reshape(-1, 1))
             return sv if np.isfinite(sv[:, 0]).all() else np.nan_to_num(sv, nan=0.0)
-            bad = ~np.isfinite(jac).all(axis=(-2, -1))
-            sv = np.linalg.svd(np.where(bad[:, None, None], 0.0, jac), compute_uv=False)
-            sv[bad] = math.nan
+        bad = ~np.isfinite(jac).all(axis=(-2, -1))
+        sv = np.linalg.svd(np.where(bad[:, None, None], 0.0, jac), compute_uv=False)
+        sv[bad] = math.nan
         return sv if np.isfinite(sv).all() else np.nan_to_num(sv, nan=0.0)
 
     def step(self, act: np.ndarray, i: int, rtol: float, max_newton: int) -> _Step:
