@@ -8,6 +8,7 @@ import time
 from dataclasses import dataclass
 
 import torch
+import xarray as xr
 
 from .._action import CellDerivatives, cell_derivatives
 from .._lattice import LatticeField
@@ -167,14 +168,17 @@ class _Batch:
             for j in torch.nonzero(out).flatten().tolist():
                 self.retire(act_list[j], i + 2, f"left the box |psi| <= {box:g} at slice {i + 1}", False)
 
+    def assess(self, fields: list[LatticeField]) -> list[tuple[xr.DataArray | None, list[str]]]:
+        """``(extrapolation, warnings)`` of each member's served field."""
+        return [assess(self.model, lf) for lf in fields]
+
     def results(self, wall: float, mode: str) -> list[ServeResult]:
         """One result per member; a failed member's ``fail_at`` is ``(slice, residual)``."""
         solved = sum(max(n - 2, 0) for n in self.length)
         out = []
-        for k, f in enumerate(self.fs):
+        fields = [LatticeField.with_values(f, self.psi[k, : self.length[k]].clone()) for k, f in enumerate(self.fs)]
+        for k, (lf, (ext, warnings)) in enumerate(zip(fields, self.assess(fields))):
             n = self.length[k]
-            lf = LatticeField.with_values(f, self.psi[k, :n].clone())
-            ext, warnings = assess(self.model, lf)
             out.append(
                 ServeResult(
                     field=lf.to_dataarray(),

@@ -14,10 +14,12 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import xarray as xr
 
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
 from ._batch import _Batch
+from ._range import assess_batch
 from ._result import ServeResult, _bar
 from ._slices import SINGULAR_RTOL, is_singular, singular_message
 
@@ -94,6 +96,10 @@ class FastBatch(_Batch):
         super().retire(k, slices, why, bad, res)
         self.nlength[k] = slices
         self.running[k] = False
+
+    def assess(self, fields: list[LatticeField]) -> list[tuple[xr.DataArray | None, list[str]]]:
+        """The members' training-range excess in one pass over the batch (:func:`assess_batch`)."""
+        return assess_batch(self.model, fields, self.psi)
 
     def active(self, group: np.ndarray, i: int) -> np.ndarray:
         """The members of ``group`` that still have slice ``i + 1`` to solve."""
