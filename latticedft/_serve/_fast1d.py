@@ -38,6 +38,19 @@ def numpy_derivatives_of(model: AbstractLagrangian):
     return hook([(st.anchor, st.forward)])
 
 
+_FLOAT_MAX = float(np.finfo(np.float64).max)
+
+
+def _fmax(a: float, b: float) -> float:
+    """``numpy.maximum`` of two floats (NaN if either is)."""
+    return a if a >= b or a != a else b
+
+
+def _fmin(a: float, b: float) -> float:
+    """``numpy.minimum`` of two floats (NaN if either is)."""
+    return a if a <= b or a != a else b
+
+
 def _first(a: np.ndarray) -> np.ndarray:
     return a[:, 0]
 
@@ -182,6 +195,69 @@ class FastBatch(_Batch):
         self.niters[act] += count
         return _Step(act, u, g, rabs, ok, sing, it, smin)
 
+    def step_one(self, k: int, i: int, rtol: float, max_newton: int) -> _Step | None:
+        """:meth:`step` for one scalar member ``k`` in Python floats (the same IEEE operations in the same
+        order; NaN propagated as by numpy). Stores the slice itself and returns None when it converged;
+        otherwise returns the step for :meth:`store` to report."""
+        vol, a0, a1, fn = self.vol, self.a0, self.a1, self.fn
+        q_now, q_old = float(self.npsi[k, i, 0]), float(self.npsi[k, i - 1, 0])
+        g_prev = float(self.ngprev[k, 0])
+        u = 2 * q_now - q_old
+        mag = _fmax(_fmax(abs(q_now), abs(q_old)), abs(u))
+        rtol_mag = rtol * mag
+        rscale = math.nan
+        mscale = float(self.nmscale[k])
+        count, sing, prev, last, halved = 1, False, math.inf, 0.0, 0
+        small: bool | None = None
+        smin = math.inf
+        cells = np.empty((1, 2, 1))
+        cells[0, 0, 0] = q_now
+        for it in range(1, max_newton + 1):
+            cells[0, 1, 0] = u
+            g, (block,) = fn(cells)
+            jac = vol * float(block[0, 0, 0])
+            r = vol * (float(g[0, a0, 0]) + g_prev)
+            rabs = abs(r)
+            if it == 1:  # size of the kinetic terms
+                rscale = rtol * (_fmax(abs(jac), 1e-300) * _fmax(mag, 1e-300))
+            sv = abs(jac)
+            if not math.isfinite(sv):  # as numpy.nan_to_num(nan=0)
+                sv = 0.0 if sv != sv else _FLOAT_MAX
+            mscale = _fmax(mscale, sv)
+            smin = _fmin(smin, sv)
+            sing = sing or not sv > SINGULAR_RTOL * mscale
+            ok = rabs <= rscale
+            if small is not None:
+                ok = ok or (small and math.isfinite(rabs))
+            ok = ok and not sing
+            if it > 1:
+                count += not ok
+            if ok or it == max_newton:
+                break
+            worse = not (ok or sing or rabs < prev) and halved < 12
+            step = -r / jac if jac != 0 else math.nan  # (numpy: inf or nan; only its finiteness is used)
+            sing = sing or (not worse and not math.isfinite(step))
+            if not (ok or sing or worse):  # the full Newton step
+                u = u + step
+                prev, last, halved = rabs, step, 0
+                small = abs(step) <= rtol_mag
+                continue
+            if worse:
+                last = last / 2
+                u = u - last
+            halved = halved + worse
+            small = worse and abs(last) <= rtol_mag
+        self.nmscale[k] = mscale
+        self.niters[k] += count
+        if ok:
+            self.npsi[k, i + 1, 0] = u
+            self.ngprev[k, 0] = g[0, a1, 0]
+            self.nmax_iters[k] = max(int(self.nmax_iters[k]), it)
+            self.nworst[k] = _fmax(float(self.nworst[k]), rabs)
+            return None
+        one = np.array([k])
+        return _Step(one, np.array([[u]]), g, np.array([rabs]), np.array([ok]), np.array([sing]), it, np.array([smin]))
+
     def store(self, i: int, s: _Step, max_newton: int, box: float | None) -> None:
         """:meth:`_Batch.record` in numpy: store slice ``i + 1``; retire the members that failed or left the box."""
         act = s.act
@@ -229,7 +305,12 @@ def serve_fast(
             for group in groups:
                 act = batch.active(group, i)
                 if act.size:
-                    batch.store(i, batch.step(act, i, rtol, max_newton), max_newton, box)
+                    if act.size == 1 and batch.m == 1 and box is None:  # one scalar member: Python floats
+                        one = batch.step_one(int(act[0]), i, rtol, max_newton)
+                        if one is not None:
+                            batch.store(i, one, max_newton, box)
+                    else:
+                        batch.store(i, batch.step(act, i, rtol, max_newton), max_newton, box)
             bar.update(1)
     bar.close()
     return batch.results(time.perf_counter() - batch.t0, mode)
