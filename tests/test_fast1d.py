@@ -125,10 +125,11 @@ def test_sweep_mode_and_box_numpy_equal_torch(monkeypatch, oscillator):
 
 def test_vector_field_numpy_equals_torch(monkeypatch, kepler):
     model, data = kepler
-    inits = [d.isel(t=slice(0, 2)) for d in data]
+    # orbits inside the training range (where the learned L_d is known, and well conditioned)
+    inits = [systems.kepler_orbit(1.0, v, dt=0.05, n=2) for v in (1.0, 1.03)]
     fast, slow = _serve_both(monkeypatch, model, inits, slices=200)
     for a, b in zip(fast, slow):
-        assert a.complete
+        assert a.complete and not a.warnings
         _assert_same(a, b)
 
 

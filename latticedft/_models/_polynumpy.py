@@ -138,28 +138,35 @@ def numpy_derivatives(model: PolynomialLagrangian, pairs: Sequence[tuple[int, in
     ncombo = nvar + (nvar * (nvar + 1) // 2 if pairs else 0)
     if width**nvar <= _FOLDED_MAX_POWERS:
         basis_rows = _coefficient_matrix_f64(model.basis, deg).numpy()[:, :width]
-        g = folded_tensor(basis_rows, exps, coef, bool(pairs)).reshape(ncombo, -1).T.copy()  # (products, combos)
-        w_t, shift = np.ascontiguousarray(w.T), center / half
-        pairs_mat = np.concatenate(pair_mats, axis=1) if pair_mats else np.zeros((ncombo - nvar, 0))
+        g = folded_tensor(basis_rows, exps, coef, bool(pairs)).reshape(ncombo, -1).T  # (monomials, combos)
+        nb = len(pair_mats) * m * m
+        chain = np.zeros((ncombo, k * m + nb))  # the chain rule: dL/dz -> dL/dx, d2L/dz2 -> the blocks
+        chain[:nvar, : k * m] = w.T
+        if pair_mats:
+            chain[nvar:, k * m :] = np.concatenate(pair_mats, axis=1)
+        g_chain = g @ chain  # monomials -> [dL/dx | blocks]: one product per call
+        shift = center / half
         chunk = max(1, _FOLDED_CHUNK // width**nvar)
+        accumulate = np.multiply.accumulate
 
         def folded(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
             b = cells.shape[0]
             flat = cells.reshape(b, k * m)
-            y = np.empty((b, ncombo))
+            out = np.empty((b, k * m + nb))
             for lo in range(0, b, chunk):
                 bc = min(b - lo, chunk)
                 pw = np.empty((nvar, bc, width))  # powers (1, z, z^2, ...) of the scaled variables: cumulative products
                 pw[..., 0] = 1.0
                 pw[..., 1:] = (np.dot(flat[lo : lo + bc], w) - shift).T[..., None]
-                np.cumprod(pw, axis=-1, out=pw)
+                accumulate(pw, axis=-1, out=pw)
                 prods = pw[0]  # every monomial prod_v z_v^a_v
                 for v in range(1, nvar):
                     prods = (prods[:, :, None] * pw[v][:, None, :]).reshape(bc, -1)
-                y[lo : lo + bc] = np.dot(prods, g)  # dL/dz_v, then d^2L/dz_v dz_u
-            grad = np.dot(y[:, :nvar], w_t).reshape(b, k, m)
-            hess = np.dot(y[:, nvar:], pairs_mat)
-            return grad, [hess[:, q * m * m : (q + 1) * m * m].reshape(b, m, m) for q in range(len(pair_mats))]
+                out[lo : lo + bc] = np.dot(prods, g_chain)
+            grad = out[:, : k * m].reshape(b, k, m)
+            return grad, [
+                out[:, k * m + q * m * m : k * m + (q + 1) * m * m].reshape(b, m, m) for q in range(len(pairs))
+            ]
 
         return folded
     nrows = nvar + (nvar * (nvar + 1) // 2 if pairs else 0)
