@@ -26,10 +26,11 @@ def _init(a: float) -> xr.DataArray:
     return xr.DataArray([a, q1], dims="t", coords={"t": [0.0, DT]}, name="psi")
 
 
-def _model() -> ldft.PolynomialLagrangian:
+def _model(quick: bool) -> ldft.PolynomialLagrangian:
     """``PolynomialLagrangian(orders=(2, 8))`` (27 terms) learned on three Störmer–Verlet trajectories."""
     truth = ldft.lagrangians.verlet(lambda q: 0.5 * q**2 + 0.25 * q**4)
-    data = [ldft.serve(truth, _init(a), slices=120, progress=False).field for a in (0.4, 0.8, 1.2)]
+    slices = 40 if quick else 120
+    data = [ldft.serve(truth, _init(a), slices=slices, progress=False).field for a in (0.4, 0.8, 1.2)]
     model = ldft.PolynomialLagrangian(orders=(2, 8))
     ldft.learn(model, data)
     return model
@@ -57,8 +58,8 @@ def _serve(model, init, steps: int, torch_loop: bool = False):
 
 def run(cfg: Config) -> Table:
     torch.manual_seed(0)
-    model = _model()
-    n_torch, n_one, n_batch, sizes = (30, 300, 20, (64, 256)) if cfg.quick else (1000, 20000, 200, (64, 1024))
+    model = _model(cfg.quick)
+    n_torch, n_one, n_batch, sizes = (20, 200, 10, (16, 64)) if cfg.quick else (1000, 20000, 200, (64, 1024))
     table = Table(
         NAME,
         TITLE,
