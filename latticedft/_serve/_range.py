@@ -78,8 +78,11 @@ def extrapolation(model: AbstractLagrangian, f: LatticeField) -> xr.DataArray | 
     return _extrapolation_array(model, f, _excess(model, rng.to(torch.float64), f, f.values.detach()))
 
 
-def _extrapolation_array(model: AbstractLagrangian, f: LatticeField, per_anchor: np.ndarray) -> xr.DataArray:
-    """:func:`extrapolation` from the excess per anchor slice ``(slices - 1, features)``."""
+def _extrapolation_array(
+    model: AbstractLagrangian, f: LatticeField, per_anchor: np.ndarray, shared: dict | None = None
+) -> xr.DataArray:
+    """:func:`extrapolation` from the excess per anchor slice ``(slices - 1, features)``. ``shared``: the
+    coordinates already built for other members of a batch, by time axis (reused, not rebuilt)."""
     nt = f.shape[0]
     per_slice = np.zeros((nt, per_anchor.shape[1]))
     per_slice[:-1] = per_anchor  # the cells anchored on a slice ...
@@ -88,10 +91,15 @@ def _extrapolation_array(model: AbstractLagrangian, f: LatticeField, per_anchor:
     t = np.asarray(f.coords[tdim], dtype=np.float64)
     if t.size != nt:
         t = t[0] + f.spacing[0] * np.arange(nt, dtype=np.float64)
+    coords = None if shared is None else shared.get((tdim, t.tobytes()))
+    if coords is None:
+        coords = xr.Coordinates({tdim: t, "feature": feature_labels(model, f.dims, f.components)})
+        if shared is not None:
+            shared[(tdim, t.tobytes())] = coords
     return xr.DataArray(
         per_slice,
         dims=(tdim, "feature"),
-        coords={tdim: t, "feature": feature_labels(model, f.dims, f.components)},
+        coords=coords,
         name="extrapolation",
         attrs={
             "long_name": "excess of the stencil inputs beyond the training range, relative to its span",
@@ -154,8 +162,9 @@ def assess_batch(
     ex = torch.nan_to_num(torch.maximum(lo - feats, feats - hi).clamp_min(0.0) / span, nan=math.inf)
     per_anchor = ex.reshape(ex.shape[0], ex.shape[1], lo.numel()).numpy()
     out = []
+    shared: dict = {}  # members of one length and start share their coordinates
     for k, f in enumerate(fields):
-        ext = _extrapolation_array(model, f, per_anchor[k, : f.shape[0] - 1]) if f.shape[0] >= 2 else None
+        ext = _extrapolation_array(model, f, per_anchor[k, : f.shape[0] - 1], shared) if f.shape[0] >= 2 else None
         warning = extrapolation_warning(ext)
         out.append((ext, [warning] if warning else []))
     return out
