@@ -7,6 +7,8 @@ closed forms, so the numpy loop serves it) and once with the numpy route switche
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -71,6 +73,8 @@ def test_a_polynomial_is_served_by_the_numpy_loop_and_an_mlp_or_formula_is_not(o
     mlp.bind(1, 1, (0.1,))
     assert _fast1d.numpy_derivatives_of(mlp) is None
     assert _fast1d.numpy_derivatives_of(ldft.lagrangians.verlet(lambda q: 0.5 * q**2)) is None
+    away = copy.deepcopy(model).to("meta")  # parameters off the CPU (as on an accelerator): the torch loop serves
+    assert _fast1d.numpy_derivatives_of(away) is None
 
 
 def test_mlp_is_served_by_the_torch_loop(monkeypatch):
