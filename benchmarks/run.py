@@ -26,6 +26,7 @@ from ._common import Config, Table, machine, markdown, text
 
 BENCHMARKS = ["serve_1p1d", "serve_2p1d", "serve_1d", "train", "fidelity", "memory", "noether", "train_scale"]
 BENCHMARKS.append("serve_nd")  # n-D slice solvers against a numpy leapfrog
+BENCHMARKS.append("serve_fast1d")
 
 
 def _load():

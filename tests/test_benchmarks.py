@@ -40,14 +40,24 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "Symmetries of learned theories",
         "Scale: training",
         "n-D serving",
+        "1D serving in numpy",
         "Targets",
     ):
         assert f"== {title}" in out, f"table {title!r} missing from:\n{out}"
     results = json.loads((tmp_path / "results.json").read_text())
     names = [b["name"] for b in results["benchmarks"]]
-    assert names[-1] == "serve-nd"
-    names.remove("serve-nd")
-    assert names == ["serve-1+1d", "serve-2+1d", "serve-1d", "train", "fidelity", "memory", "noether", "train_scale"]
+    assert names == [
+        "serve-1+1d",
+        "serve-2+1d",
+        "serve-1d",
+        "train",
+        "fidelity",
+        "memory",
+        "noether",
+        "train_scale",
+        "serve-nd",
+        "serve-fast1d",
+    ]
     assert not results["failed"]
     assert all(b["rows"] for b in results["benchmarks"])
     checks = [c for b in results["benchmarks"] for c in b["checks"]]

@@ -6,6 +6,7 @@ import abc
 from collections.abc import Callable, Sequence
 from typing import Literal, overload
 
+import numpy as np
 import torch
 
 from ._base import _LINEAR_BASE, AbstractLagrangian
@@ -34,7 +35,8 @@ class LinearLagrangian(AbstractLagrangian):
     It may override :meth:`_build` (create what :meth:`features` needs, then call ``super()._build()``,
     which creates ``coef``), :meth:`feature_derivatives` (closed forms for the exact solve; the default is
     forward-mode automatic differentiation of :meth:`features`) and :meth:`fast_derivatives` (closed
-    forms for serving; the default ``None`` lets serving differentiate :meth:`forward` by autograd).
+    forms for serving; the default ``None`` lets serving differentiate :meth:`forward` by autograd) and
+    :meth:`numpy_derivatives` (closed forms in numpy: 1D serving then runs Newton's method in numpy).
 
     Attributes
     ----------
@@ -105,6 +107,13 @@ class LinearLagrangian(AbstractLagrangian):
                 )
             blocks[(a, b)] = torch.stack(rows, -3)
         return d, blocks
+
+    def numpy_derivatives(
+        self, pairs: Sequence[tuple[int, int]]
+    ) -> Callable[[np.ndarray], tuple[np.ndarray, list[np.ndarray]]] | None:
+        """A numpy function ``cells (B, K, m) -> (dL/dx (B, K, m), [d^2 L / dx_a dx_b (B, m, m) per pair])``
+        of the model as it is now, or ``None`` (the default): 1D serving then runs its Newton loop in torch."""
+        return None
 
     def _directional(self, t: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
         """``y -> d features(y) / d y . t``, to be differentiated once more."""

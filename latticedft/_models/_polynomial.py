@@ -13,6 +13,7 @@ import torch
 
 from .._errors import InputError
 from .._stencil import Stencil
+from . import _polynumpy
 from ._linear import LinearLagrangian
 
 __all__ = ["PolynomialLagrangian"]
@@ -313,26 +314,25 @@ class PolynomialLagrangian(LinearLagrangian):
         key = (self.exponents.data_ptr(), self.exponents._version, z.dtype, z.device)
         cache = self.__dict__.get("_factor_cache")
         if cache is None or cache[0] != key:
-            tables: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+            tables: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
             cache = (key, tables)
             self.__dict__["_factor_cache"] = cache
-        if r not in cache[1]:  # where each term's factors sit in the flattened tables, the powers, the matrix
-            exps = self.exponents.T.to(z.device)  # (V, C)
+        if r not in cache[1]:  # where each term's factors sit in the flattened tables; per variable, the matrix
+            exps = self.exponents.T.to(z.device)  # from its powers to its factor of every term (fused: no lookups)
             offs = (torch.arange(exps.shape[0], device=z.device) * (r * width))[None, :, None] + (
                 torch.arange(r, device=z.device) * width
             )[:, None, None]
-            cache[1][r] = (
-                (offs + exps[None]).reshape(-1),
-                torch.arange(width, dtype=z.dtype, device=z.device),
-                _coefficient_matrix(self.basis, deg, z.dtype, z.device)[:, : r * width].contiguous(),
+            fused = _polynumpy.fused_factor_matrix(
+                _coefficient_matrix_f64(self.basis, deg).numpy(), self.exponents.cpu().numpy(), order
             )
-        index, powers, mat = cache[1][r]
-        if deg > _VANDERMONDE_MAX_DEGREE:
-            table = torch.cat(self._tables_recurrence(z, order), dim=-1)
-        else:
-            table = z.unsqueeze(-1).pow(powers) @ mat  # (..., V, r * width)
-        picked = table.flatten(-2).index_select(-1, index)
-        return list(picked.unflatten(-1, (r, z.shape[-1], -1)).unbind(-3))
+            cache[1][r] = ((offs + exps[None]).reshape(-1), torch.from_numpy(fused).to(z.dtype).to(z.device))
+        index, fused_t = cache[1][r]
+        if deg > _VANDERMONDE_MAX_DEGREE:  # the recurrence's tables, then the factors picked from them
+            picked = torch.cat(self._tables_recurrence(z, order), dim=-1).flatten(-2).index_select(-1, index)
+            return list(picked.unflatten(-1, (r, z.shape[-1], -1)).unbind(-3))
+        pw = torch.cumprod(torch.cat([torch.ones_like(z)[..., None], z[..., None].expand(*z.shape, width - 1)], -1), -1)
+        out = (pw.movedim(-2, 0).reshape(z.shape[-1], -1, width) @ fused_t).reshape(z.shape[-1], *z.shape[:-1], -1)
+        return list(out.movedim(0, -2).unflatten(-1, (r, -1)).unbind(-2))  # powers by products, one product per var
 
     def _term_derivatives(self, z: torch.Tensor, second: bool) -> torch.Tensor:
         """``(..., V [+ npairs], C)``: ``d phi_c / dz_v`` for every ``v``, then (``second``)
@@ -417,6 +417,11 @@ class PolynomialLagrangian(LinearLagrangian):
             grad = (s[..., :nvar] @ aff["W"].T).unflatten(-1, (k, m))
             blocks = {(a, b): (s[..., nvar:] @ self._pair_matrix(aff, a, b)).unflatten(-1, (m, m)) for a, b in pairs}
         return grad, blocks
+
+    def numpy_derivatives(self, pairs: Sequence[tuple[int, int]]):
+        """The closed forms of :meth:`fast_derivatives` in numpy, with fused basis tables (see ``_polynumpy``)."""
+        self._require_bound()
+        return _polynumpy.numpy_derivatives(self, pairs)
 
     # -- description -------------------------------------------------------------------------------------
     def _variable_names(self) -> list[str]:

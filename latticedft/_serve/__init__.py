@@ -12,8 +12,9 @@ One module per concept: ``_result`` (the result record and metrics),
 ``_slices`` (one slice as a system of equations), ``_affine`` (the affine
 recurrence of a quadratic ``L_d``), ``_newton`` (slice-Newton), ``_solvers`` (the linear
 solve of a Newton step: site-wise, Krylov or LU), ``_sweep``
-(the site-by-site sweep), ``_batch`` (1D trajectories) and ``_field`` (the
-n-D driver).
+(the site-by-site sweep), ``_batch`` (1D trajectories), ``_fast1d`` (the
+same 1D loop in numpy, for models with numpy closed forms) and ``_field``
+(the n-D driver).
 """
 
 from __future__ import annotations

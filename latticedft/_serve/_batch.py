@@ -8,6 +8,7 @@ import time
 from dataclasses import dataclass
 
 import torch
+import xarray as xr
 
 from .._action import CellDerivatives, cell_derivatives
 from .._lattice import LatticeField
@@ -167,14 +168,17 @@ class _Batch:
             for j in torch.nonzero(out).flatten().tolist():
                 self.retire(act_list[j], i + 2, f"left the box |psi| <= {box:g} at slice {i + 1}", False)
 
+    def assess(self, fields: list[LatticeField]) -> list[tuple[xr.DataArray | None, list[str]]]:
+        """``(extrapolation, warnings)`` of each member's served field."""
+        return [assess(self.model, lf) for lf in fields]
+
     def results(self, wall: float, mode: str) -> list[ServeResult]:
         """One result per member; a failed member's ``fail_at`` is ``(slice, residual)``."""
         solved = sum(max(n - 2, 0) for n in self.length)
         out = []
-        for k, f in enumerate(self.fs):
+        fields = [LatticeField.with_values(f, self.psi[k, : self.length[k]].clone()) for k, f in enumerate(self.fs)]
+        for k, (lf, (ext, warnings)) in enumerate(zip(fields, self.assess(fields))):
             n = self.length[k]
-            lf = LatticeField.with_values(f, self.psi[k, :n].clone())
-            ext, warnings = assess(self.model, lf)
             out.append(
                 ServeResult(
                     field=lf.to_dataarray(),
@@ -209,8 +213,14 @@ def _serve_batch(
     """Step a batch of 1D trajectories together; a member that fails or leaves the box retires alone.
 
     ``mode="newton"`` solves all running members' slices in one batched Newton; ``"sweep"`` one member at a
-    time (in 1D the site-by-site sweep is that same Newton on the one site).
+    time (in 1D the site-by-site sweep is that same Newton on the one site). A model with numpy closed forms
+    (:meth:`LinearLagrangian.numpy_derivatives`) runs the same loop in numpy (``_fast1d``).
     """
+    from ._fast1d import numpy_derivatives_of, serve_fast  # it builds on _Batch
+
+    derivatives = numpy_derivatives_of(model)
+    if derivatives is not None:
+        return serve_fast(model, fs, steps, mode, rtol, max_newton, box, progress, derivatives)
     batch = _Batch(model, fs, steps)
     members = list(range(len(fs)))
     groups = [members] if mode == "newton" else [[k] for k in members]

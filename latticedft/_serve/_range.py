@@ -75,7 +75,15 @@ def extrapolation(model: AbstractLagrangian, f: LatticeField) -> xr.DataArray | 
     nt = f.shape[0]
     if rng is None or nt < 2 or tuple(rng.shape[1:]) != (f.ndim + 1, f.ncomp):
         return None
-    per_anchor = _excess(model, rng.to(torch.float64), f, f.values.detach())
+    return _extrapolation_array(model, f, _excess(model, rng.to(torch.float64), f, f.values.detach()))
+
+
+def _extrapolation_array(
+    model: AbstractLagrangian, f: LatticeField, per_anchor: np.ndarray, shared: dict | None = None
+) -> xr.DataArray:
+    """:func:`extrapolation` from the excess per anchor slice ``(slices - 1, features)``. ``shared``: the
+    coordinates already built for other members of a batch, by time axis (reused, not rebuilt)."""
+    nt = f.shape[0]
     per_slice = np.zeros((nt, per_anchor.shape[1]))
     per_slice[:-1] = per_anchor  # the cells anchored on a slice ...
     per_slice[1:] = np.maximum(per_slice[1:], per_anchor)  # ... and those anchored on the one before
@@ -83,10 +91,15 @@ def extrapolation(model: AbstractLagrangian, f: LatticeField) -> xr.DataArray | 
     t = np.asarray(f.coords[tdim], dtype=np.float64)
     if t.size != nt:
         t = t[0] + f.spacing[0] * np.arange(nt, dtype=np.float64)
+    coords = None if shared is None else shared.get((tdim, t.tobytes()))
+    if coords is None:
+        coords = xr.Coordinates({tdim: t, "feature": feature_labels(model, f.dims, f.components)})
+        if shared is not None:
+            shared[(tdim, t.tobytes())] = coords
     return xr.DataArray(
         per_slice,
         dims=(tdim, "feature"),
-        coords={tdim: t, "feature": feature_labels(model, f.dims, f.components)},
+        coords=coords,
         name="extrapolation",
         attrs={
             "long_name": "excess of the stencil inputs beyond the training range, relative to its span",
@@ -131,3 +144,27 @@ def assess(model: AbstractLagrangian, f: LatticeField) -> tuple[xr.DataArray | N
     ext = extrapolation(model, f)
     warning = extrapolation_warning(ext)
     return ext, [warning] if warning else []
+
+
+def assess_batch(
+    model: AbstractLagrangian, fields: list[LatticeField], values: torch.Tensor
+) -> list[tuple[xr.DataArray | None, list[str]]]:
+    """:func:`assess` of every member of a batch of 1D fields, their excess computed in one pass over the
+    batch's values ``(members, slices, m)`` (member ``k`` holds ``fields[k].shape[0]`` of those slices)."""
+    rng = model.trained_range() if isinstance(model, AbstractLagrangian) else None
+    f0 = fields[0]
+    if rng is None or tuple(rng.shape[1:]) != (f0.ndim + 1, f0.ncomp) or values.shape[1] < 2:
+        return [assess(model, f) for f in fields]
+    rng = rng.to(torch.float64)
+    lo, hi = rng[0], rng[1]
+    span = torch.maximum(hi - lo, 1e-12 * torch.maximum(lo.abs(), hi.abs())).clamp_min(1e-300)  # as _excess
+    feats = model.mean_and_differences(gather_cells(values, model.stencil, f0.boundary, batch=1))
+    ex = torch.nan_to_num(torch.maximum(lo - feats, feats - hi).clamp_min(0.0) / span, nan=math.inf)
+    per_anchor = ex.reshape(ex.shape[0], ex.shape[1], lo.numel()).numpy()
+    out = []
+    shared: dict = {}  # members of one length and start share their coordinates
+    for k, f in enumerate(fields):
+        ext = _extrapolation_array(model, f, per_anchor[k, : f.shape[0] - 1], shared) if f.shape[0] >= 2 else None
+        warning = extrapolation_warning(ext)
+        out.append((ext, [warning] if warning else []))
+    return out

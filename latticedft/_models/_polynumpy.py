@@ -1,0 +1,203 @@
+"""The polynomial ``L_d``'s gradient and Hessian blocks in numpy, fused: no autograd, no per-call table lookups.
+
+Serving a 1D trajectory evaluates a handful of cells per step, where the cost of a torch call (dispatch,
+autograd bookkeeping, ``index_select`` of the basis tables) dwarfs the arithmetic. Here everything that
+depends only on the model is precomputed once: per variable ``v`` a matrix ``M_v`` that maps the powers
+``(1, z, z^2, ...)`` of the scaled variable straight to the basis factor of every term and its first two
+derivatives (the coefficient matrix of the basis with its columns already picked by the term's exponent of
+``v``). A call then takes the powers by cumulative products, one matrix product per variable, the products
+of the other factors (prefix and suffix products, no division), and one product with ``coef``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from ._polynomial import PolynomialLagrangian
+
+#: ``fn(cells) -> (grad, blocks)``: ``cells`` ``(B, K, m)``; ``grad`` ``(B, K, m)``; one ``(B, m, m)`` block per pair.
+NumpyDerivatives = Callable[[np.ndarray], tuple[np.ndarray, list[np.ndarray]]]
+
+
+def fused_factor_matrix(coefficients: np.ndarray, exponents: np.ndarray, order: int) -> np.ndarray:
+    """``(V, D+1, (order+1) C)``: per variable, powers of ``z`` -> the basis factor of each term and its first
+    ``order`` derivatives (``coefficients`` is the ``(D+1, 3 (D+1))`` matrix of the basis tables, ``exponents``
+    the ``(C, V)`` exponent of each variable in each term)."""
+    width = coefficients.shape[0]
+    cols = np.arange(order + 1)[:, None, None] * width + exponents.T[None]  # (order+1, V, C)
+    return np.stack([coefficients[:, cols[:, v].reshape(-1)] for v in range(exponents.shape[1])])
+
+
+def _products(val: np.ndarray) -> tuple[list, list]:
+    """Prefix and suffix products of the factors ``val`` ``(V, B, C)`` (``None`` for an empty product)."""
+    nvar = val.shape[0]
+    pre: list[np.ndarray | None] = [None] * nvar
+    suf: list[np.ndarray | None] = [None] * nvar
+    for v in range(1, nvar):
+        p = pre[v - 1]
+        pre[v] = val[v - 1] if p is None else p * val[v - 1]
+    for v in range(nvar - 2, -1, -1):
+        s = suf[v + 1]
+        suf[v] = val[v + 1] if s is None else s * val[v + 1]
+    return pre, suf
+
+
+def _times(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+    return b if a is None else a if b is None else a * b
+
+
+def _product(out: np.ndarray, a: np.ndarray, b: np.ndarray | None) -> None:
+    """``out = a * b`` (``b`` None: 1)."""
+    if b is None:
+        if out is not a:
+            out[...] = a
+    else:
+        np.multiply(a, b, out=out)
+
+
+#: Most monomials ``prod_v z_v^a_v`` (``(D+1)^V``) for which the derivatives are evaluated from the folded
+#: coefficients (one product per derivative); above, term by term with the fused factor matrices.
+_FOLDED_MAX_POWERS = 1 << 13
+#: Monomial values per chunk of cells (bounded memory for large batches).
+_FOLDED_CHUNK = 1 << 21
+
+
+def _combos(nvar: int) -> list[tuple[int, ...]]:
+    """Derivative orders per variable: every first derivative, then the second ones in the order of ``_pairs``."""
+    out = [tuple(int(u == v) for u in range(nvar)) for v in range(nvar)]
+    for v in range(nvar):
+        for w in range(v, nvar):
+            j = [0] * nvar
+            j[v] += 1
+            j[w] += 1
+            out.append(tuple(j))
+    return out
+
+
+def folded_tensor(basis_rows: np.ndarray, exponents: np.ndarray, coef: np.ndarray, second: bool) -> np.ndarray:
+    """``(combos, D+1, ..., D+1)``: per derivative order of :func:`_combos`, the coefficients of that derivative
+    of ``L = sum_c coef_c prod_v P_{e_vc}(z_v)`` on the monomials ``prod_v z_v^a_v`` (``basis_rows[i, k]``: the
+    coefficient of ``z^i`` in ``P_k``)."""
+    c, nvar = exponents.shape
+    width = basis_rows.shape[0]
+    full = np.zeros((width,) * nvar)
+    for t in range(c):  # the monomial coefficients of L: sum over terms of outer products
+        outer = np.array(coef[t])
+        for v in range(nvar):
+            outer = np.multiply.outer(outer, basis_rows[:, exponents[t, v]])
+        full += outer
+    combos = _combos(nvar) if second else _combos(nvar)[:nvar]
+    out = np.zeros((len(combos),) + (width,) * nvar)
+    for q, js in enumerate(combos):
+        shifted = full[tuple(slice(j, None) for j in js)]  # A[a + j] ...
+        for v, j in enumerate(js):  # ... times (a + j)! / a! per variable
+            a = np.arange(width - j)
+            fac = np.ones(width - j)
+            for s in range(1, j + 1):
+                fac = fac * (a + s)
+            shape = [1] * nvar
+            shape[v] = width - j
+            shifted = shifted * fac.reshape(shape)
+        out[q][tuple(slice(0, width - j) for j in js)] = shifted
+    return out
+
+
+def numpy_derivatives(model: PolynomialLagrangian, pairs: Sequence[tuple[int, int]]) -> NumpyDerivatives | None:
+    """``fn(cells) -> (dL/dx, [d^2 L / dx_a dx_b for (a, b) in pairs])`` for ``model`` as it is now (its
+    coefficients and scaling are copied: call again after learning). ``None`` above degree 12, where the
+    basis is evaluated by its recurrence (the torch closed forms serve then)."""
+    from ._polynomial import _VANDERMONDE_MAX_DEGREE, _coefficient_matrix_f64, _pairs
+
+    deg = int(max(model.orders))
+    if deg > _VANDERMONDE_MAX_DEGREE:
+        return None
+    m = model.m
+    exps = model.exponents.detach().cpu().numpy()
+    nvar, width, c = exps.shape[1], deg + 1, exps.shape[0]
+    fused = fused_factor_matrix(_coefficient_matrix_f64(model.basis, deg).numpy(), exps, 2)  # (V, width, 3C)
+    coef = model.coef.detach().cpu().numpy().astype(np.float64)
+    center = model.center.detach().cpu().numpy()
+    half = model.halfwidth.detach().cpu().numpy()
+    proj = model.proj.detach().cpu().numpy().astype(np.float64)  # (n + 1, K): mean and differences
+    k = proj.shape[1]
+    p = np.einsum("pk,ij->kipj", proj, np.eye(m)).reshape(k * m, nvar)  # z = (x.flat @ p - center) / half
+    w = p / half  # dz/dx
+    rows = w.reshape(k, m, nvar)
+    vw = _pairs(nvar)
+    pair_mats = []  # (npairs, m m): block = (d2L/dz_v dz_w, v <= w) @ this
+    for a, b in pairs:
+        full = np.einsum("iv,jw->vwij", rows[a], rows[b])
+        pair_mats.append(
+            np.stack([full[v, u] + full[u, v] if v != u else full[v, v] for v, u in vw]).reshape(-1, m * m)
+        )
+
+    ncombo = nvar + (nvar * (nvar + 1) // 2 if pairs else 0)
+    if width**nvar <= _FOLDED_MAX_POWERS:
+        basis_rows = _coefficient_matrix_f64(model.basis, deg).numpy()[:, :width]
+        g = folded_tensor(basis_rows, exps, coef, bool(pairs)).reshape(ncombo, -1).T  # (monomials, combos)
+        nb = len(pair_mats) * m * m
+        chain = np.zeros((ncombo, k * m + nb))  # the chain rule: dL/dz -> dL/dx, d2L/dz2 -> the blocks
+        chain[:nvar, : k * m] = w.T
+        if pair_mats:
+            chain[nvar:, k * m :] = np.concatenate(pair_mats, axis=1)
+        g_chain = g @ chain  # monomials -> [dL/dx | blocks]: one product per call
+        shift = center / half
+        chunk = max(1, _FOLDED_CHUNK // width**nvar)
+        accumulate = np.multiply.accumulate
+
+        def folded(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+            b = cells.shape[0]
+            flat = cells.reshape(b, k * m)
+            out = np.empty((b, k * m + nb))
+            for lo in range(0, b, chunk):
+                bc = min(b - lo, chunk)
+                pw = np.empty((nvar, bc, width))  # powers (1, z, z^2, ...) of the scaled variables: cumulative products
+                pw[..., 0] = 1.0
+                pw[..., 1:] = (np.dot(flat[lo : lo + bc], w) - shift).T[..., None]
+                accumulate(pw, axis=-1, out=pw)
+                prods = pw[0]  # every monomial prod_v z_v^a_v
+                for v in range(1, nvar):
+                    prods = (prods[:, :, None] * pw[v][:, None, :]).reshape(bc, -1)
+                out[lo : lo + bc] = np.dot(prods, g_chain)
+            grad = out[:, : k * m].reshape(b, k, m)
+            return grad, [
+                out[:, k * m + q * m * m : k * m + (q + 1) * m * m].reshape(b, m, m) for q in range(len(pairs))
+            ]
+
+        return folded
+    nrows = nvar + (nvar * (nvar + 1) // 2 if pairs else 0)
+
+    def derivatives(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        b = cells.shape[0]
+        pw = np.empty((nvar, b, width))  # powers (1, z, z^2, ...) of the scaled variables, by cumulative products
+        pw[..., 0] = 1.0
+        pw[..., 1:] = ((cells.reshape(b, k * m) @ p - center) / half).T[..., None]
+        np.cumprod(pw, axis=-1, out=pw)
+        f = pw @ fused  # (V, B, 3C): values, first and second derivatives of every term's factors
+        val, d1, d2 = f[..., :c], f[..., c : 2 * c], f[..., 2 * c :]
+        pre, suf = _products(val)
+        excl = [_times(pre[v], suf[v]) for v in range(nvar)]
+        t = np.empty((nrows, b, c))  # d phi / dz_v, then d^2 phi / dz_v dz_u (v <= u), per term
+        for v in range(nvar):
+            _product(t[v], d1[v], excl[v])
+        j = nvar
+        for v in range(nvar if pairs else 0):
+            _product(t[j], d2[v], excl[v])
+            j += 1
+            between = pre[v]
+            for u in range(v + 1, nvar):
+                if u > v + 1:
+                    between = _times(between, val[u - 1])
+                np.multiply(d1[v], d1[u], out=t[j])
+                _product(t[j], t[j], _times(between, suf[u]))
+                j += 1
+        s = t @ coef  # (V [+ npairs], B)
+        grad = (w @ s[:nvar]).T.reshape(b, k, m)
+        blocks = [(s[nvar:].T @ mat).reshape(b, m, m) for mat in pair_mats]
+        return grad, blocks
+
+    return derivatives

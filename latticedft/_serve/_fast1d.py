@@ -1,0 +1,318 @@
+"""1D serving in numpy: the batched Newton loop of ``_batch`` for models with numpy closed forms.
+
+A 1D step solves a handful of ``m x m`` systems, where a torch call per operation costs far more than the
+arithmetic. A linear model that offers :meth:`LinearLagrangian.numpy_derivatives` (the polynomial does)
+is served here: the same Newton iteration as :meth:`_Batch.newton` (predictor, backtracking, the same
+convergence, conditioning and non-convergence tests, in the same order), on numpy arrays that share memory
+with the batch's torch tensors, so the results, reports and partial fields are built exactly as before.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import xarray as xr
+
+from .._lattice import LatticeField
+from .._models import AbstractLagrangian
+from ._batch import _Batch
+from ._range import assess_batch
+from ._result import ServeResult, _bar
+from ._slices import SINGULAR_RTOL, is_singular, singular_message
+
+__all__ = ["numpy_derivatives_of", "FastBatch", "serve_fast"]
+
+
+def numpy_derivatives_of(model: AbstractLagrangian):
+    """The model's numpy closed forms for the pair ``(anchor, forward)`` of a 1D first-order stencil, or
+    ``None`` (then the torch loop serves): also for a model whose parameters are not on the CPU."""
+    hook = getattr(model, "numpy_derivatives", None)
+    if hook is None or not getattr(model, "linear", False):
+        return None
+    if any(t.device.type != "cpu" for t in model.parameters()):  # a model moved to an accelerator stays there
+        return None
+    st = model.stencil
+    if st.ndim != 1 or st.size != 2:
+        return None
+    return hook([(st.anchor, st.forward)])
+
+
+_FLOAT_MAX = float(np.finfo(np.float64).max)
+
+
+def _fmax(a: float, b: float) -> float:
+    """``numpy.maximum`` of two floats (NaN if either is)."""
+    return a if a >= b or a != a else b
+
+
+def _fmin(a: float, b: float) -> float:
+    """``numpy.minimum`` of two floats (NaN if either is)."""
+    return a if a <= b or a != a else b
+
+
+def _first(a: np.ndarray) -> np.ndarray:
+    return a[:, 0]
+
+
+def _rowmax(a: np.ndarray) -> np.ndarray:
+    return a.max(-1)
+
+
+@dataclass
+class _Step:
+    """What Newton made of one slice of the members ``act`` (numpy arrays, one row per member)."""
+
+    act: np.ndarray
+    u: np.ndarray
+    g: np.ndarray
+    rabs: np.ndarray
+    ok: np.ndarray
+    sing: np.ndarray
+    it: int
+    smin: np.ndarray
+
+
+def _solve(jac: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray | bool]:
+    """``(step, failed)``: ``jac step = rhs`` per member; ``failed`` where the matrix is exactly singular (for
+    ``m = 1`` its step is not finite, which the caller tests anyway)."""
+    if jac.shape[-1] == 1:
+        return rhs / jac[..., 0], False
+    try:
+        return np.linalg.solve(jac, rhs[..., None])[..., 0], np.zeros(jac.shape[0], dtype=bool)
+    except np.linalg.LinAlgError:  # one member's matrix is singular: the others are solved one by one
+        step = np.full_like(rhs, math.nan)
+        failed = np.ones(jac.shape[0], dtype=bool)
+        for j in range(jac.shape[0]):
+            try:
+                step[j] = np.linalg.solve(jac[j], rhs[j])
+                failed[j] = False
+            except np.linalg.LinAlgError:
+                pass
+        return step, failed
+
+
+class FastBatch(_Batch):
+    """:class:`_Batch` with the Newton loop and the bookkeeping of each slice in numpy."""
+
+    def __init__(self, model: AbstractLagrangian, fs: list[LatticeField], steps: list[int], derivatives):
+        super().__init__(model, fs, steps)
+        self.fn = derivatives
+        # numpy views of the batch's tensors: what is written here is what ``results`` reads
+        self.npsi, self.ngprev = self.psi.numpy(), self.g_prev.numpy()
+        self.nworst, self.niters, self.nmax_iters = self.worst.numpy(), self.iters.numpy(), self.max_iters.numpy()
+        self.nmscale = self.mscale.numpy()
+        self.nlength = np.array(self.length, dtype=np.int64)
+        self.running = np.ones(len(fs), dtype=bool)
+
+    def retire(self, k: int, slices: int, why: str, bad: bool, res: float = math.nan) -> None:
+        super().retire(k, slices, why, bad, res)
+        self.nlength[k] = slices
+        self.running[k] = False
+
+    def assess(self, fields: list[LatticeField]) -> list[tuple[xr.DataArray | None, list[str]]]:
+        """The members' training-range excess in one pass over the batch (:func:`assess_batch`)."""
+        return assess_batch(self.model, fields, self.psi)
+
+    def active(self, group: np.ndarray, i: int) -> np.ndarray:
+        """The members of ``group`` that still have slice ``i + 1`` to solve."""
+        return group[self.running[group] & (self.nlength[group] > i + 1)]
+
+    def singular_values(self, jac: np.ndarray) -> np.ndarray:
+        """``(n, m)``: the singular values of each member's Jacobian (the mixed Hessian), NaN read as 0."""
+        if self.m == 1:
+            sv = np.abs(jac.reshape(-1, 1))
+            return sv if np.isfinite(sv[:, 0]).all() else np.nan_to_num(sv, nan=0.0)
+        bad = ~np.isfinite(jac).all(axis=(-2, -1))
+        sv = np.linalg.svd(np.where(bad[:, None, None], 0.0, jac), compute_uv=False)
+        sv[bad] = math.nan
+        return sv if np.isfinite(sv).all() else np.nan_to_num(sv, nan=0.0)
+
+    def step(self, act: np.ndarray, i: int, rtol: float, max_newton: int) -> _Step:
+        """Newton with backtracking for slice ``i + 1`` of the members ``act``: :meth:`_Batch.newton` and its
+        :meth:`_Batch.conditioning`, the same tests in the same order, with shortcuts where every member takes
+        its full Newton step (no halving, no member stopped)."""
+        n, vol, a0, m = act.size, self.vol, self.a0, self.m
+        q_now, q_old = self.npsi[act, i], self.npsi[act, i - 1]
+        g_prev = self.ngprev[act]
+        u = 2 * q_now - q_old
+        rowmax = _first if m == 1 else _rowmax  # the largest entry of each row
+        mag = np.maximum(np.maximum(rowmax(np.abs(q_now)), rowmax(np.abs(q_old))), rowmax(np.abs(u)))
+        rtol_mag = rtol * mag
+        rscale = None
+        mscale = self.nmscale[act]  # the largest singular value met per member (written back at the end)
+        count = np.ones(n, dtype=np.int64)  # Newton iterations counted per member
+        sing = np.zeros(n, dtype=bool)
+        prev = np.full(n, math.inf)
+        last = np.zeros_like(u)
+        halved = np.zeros(n, dtype=np.int64)
+        any_halved = False
+        small = None  # the last step was below rtol times the values (None: no member's was)
+        smin = np.full(n, math.inf)
+        cells = np.empty((n, 2, m))
+        cells[:, 0] = q_now
+        for it in range(1, max_newton + 1):
+            cells[:, 1] = u
+            g, (block,) = self.fn(cells)
+            jac = vol * block
+            r = vol * (g[:, a0] + g_prev)
+            rabs = rowmax(np.abs(r))
+            if rscale is None:  # size of the kinetic terms, per trajectory
+                rscale = rtol * (np.maximum(np.abs(jac).sum(-1).max(-1), 1e-300) * np.maximum(mag, 1e-300))
+            sv = self.singular_values(jac)
+            mscale = np.maximum(mscale, sv[:, 0])
+            smin = np.minimum(smin, sv[:, -1])
+            sing |= ~(sv[:, -1] > SINGULAR_RTOL * mscale)  # as is_singular: mscale >= sv >= 0 (0 when mscale is)
+            ok = rabs <= rscale
+            if small is not None:
+                ok |= small & np.isfinite(rabs)
+            ok &= ~sing
+            if it > 1:
+                count += ~ok
+            if ok.all() or it == max_newton:
+                break
+            worse = ~(ok | sing | (rabs < prev))
+            if any_halved:
+                worse &= halved < 12
+            step, failed = _solve(jac, -r)
+            sing |= ~worse & (failed | ~(np.isfinite(step[:, 0]) if m == 1 else np.isfinite(step).all(-1)))
+            take = ~(ok | sing | worse)
+            if take.all():  # every member takes its Newton step (none halved, none stopped)
+                u = u + step
+                prev, last = rabs, step
+                if any_halved:
+                    halved, any_halved = np.zeros(n, dtype=np.int64), False
+                small = rowmax(np.abs(step)) <= rtol_mag
+                continue
+            last = np.where(worse[:, None], last / 2, last)
+            u = np.where(worse[:, None], u - last, np.where(take[:, None], u + step, u))
+            prev = np.where(take, rabs, prev)
+            last = np.where(take[:, None], step, last)
+            halved = np.where(take, 0, halved + worse)
+            any_halved = bool(halved.any())
+            small = (take | worse) & (rowmax(np.abs(last)) <= rtol_mag)
+        self.nmscale[act] = mscale
+        self.niters[act] += count
+        return _Step(act, u, g, rabs, ok, sing, it, smin)
+
+    def step_one(self, k: int, i: int, rtol: float, max_newton: int) -> _Step | None:
+        """:meth:`step` for one scalar member ``k`` in Python floats (the same IEEE operations in the same
+        order; NaN propagated as by numpy). Stores the slice itself and returns None when it converged;
+        otherwise returns the step for :meth:`store` to report."""
+        vol, a0, a1, fn = self.vol, self.a0, self.a1, self.fn
+        q_now, q_old = float(self.npsi[k, i, 0]), float(self.npsi[k, i - 1, 0])
+        g_prev = float(self.ngprev[k, 0])
+        u = 2 * q_now - q_old
+        mag = _fmax(_fmax(abs(q_now), abs(q_old)), abs(u))
+        rtol_mag = rtol * mag
+        rscale = math.nan
+        mscale = float(self.nmscale[k])
+        count, sing, prev, last, halved = 1, False, math.inf, 0.0, 0
+        small: bool | None = None
+        smin = math.inf
+        cells = np.empty((1, 2, 1))
+        cells[0, 0, 0] = q_now
+        for it in range(1, max_newton + 1):
+            cells[0, 1, 0] = u
+            g, (block,) = fn(cells)
+            jac = vol * float(block[0, 0, 0])
+            r = vol * (float(g[0, a0, 0]) + g_prev)
+            rabs = abs(r)
+            if it == 1:  # size of the kinetic terms
+                rscale = rtol * (_fmax(abs(jac), 1e-300) * _fmax(mag, 1e-300))
+            sv = abs(jac)
+            if not math.isfinite(sv):  # as numpy.nan_to_num(nan=0)
+                sv = 0.0 if sv != sv else _FLOAT_MAX
+            mscale = _fmax(mscale, sv)
+            smin = _fmin(smin, sv)
+            sing = sing or not sv > SINGULAR_RTOL * mscale
+            ok = rabs <= rscale
+            if small is not None:
+                ok = ok or (small and math.isfinite(rabs))
+            ok = ok and not sing
+            if it > 1:
+                count += not ok
+            if ok or it == max_newton:
+                break
+            worse = not (ok or sing or rabs < prev) and halved < 12
+            step = -r / jac if jac != 0 else math.nan  # (numpy: inf or nan; only its finiteness is used)
+            sing = sing or (not worse and not math.isfinite(step))
+            if not (ok or sing or worse):  # the full Newton step
+                u = u + step
+                prev, last, halved = rabs, step, 0
+                small = abs(step) <= rtol_mag
+                continue
+            if worse:
+                last = last / 2
+                u = u - last
+            halved = halved + worse
+            small = worse and abs(last) <= rtol_mag
+        self.nmscale[k] = mscale
+        self.niters[k] += count
+        if ok:
+            self.npsi[k, i + 1, 0] = u
+            self.ngprev[k, 0] = g[0, a1, 0]
+            self.nmax_iters[k] = max(int(self.nmax_iters[k]), it)
+            self.nworst[k] = _fmax(float(self.nworst[k]), rabs)
+            return None
+        one = np.array([k])
+        return _Step(one, np.array([[u]]), g, np.array([rabs]), np.array([ok]), np.array([sing]), it, np.array([smin]))
+
+    def store(self, i: int, s: _Step, max_newton: int, box: float | None) -> None:
+        """:meth:`_Batch.record` in numpy: store slice ``i + 1``; retire the members that failed or left the box."""
+        act = s.act
+        self.npsi[act, i + 1] = s.u
+        self.ngprev[act] = s.g[:, self.a1]
+        self.nmax_iters[act] = np.maximum(self.nmax_iters[act], s.it)
+        self.nworst[act] = np.maximum(self.nworst[act], np.where(s.ok, s.rabs, self.nworst[act]))
+        if not s.ok.all():
+            for j in np.nonzero(~s.ok)[0].tolist():
+                k = int(act[j])
+                f = self.fs[k]
+                tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
+                smin, scale = float(s.smin[j]), float(self.nmscale[k])
+                if not bool(s.sing[j]):
+                    why = f"Newton did not converge in {max_newton} iterations"
+                else:
+                    why = singular_message(smin, scale) if is_singular(smin, scale) else "singular mixed Hessian"
+                res = float(s.rabs[j])
+                self.retire(k, i + 1, f"slice {i + 1} (t = {tval:.6g}): {why}, residual {res:.3e}", True, res)
+                self.nworst[k] = max(float(self.nworst[k]), res)
+        if box is not None:
+            out = (np.sqrt((s.u * s.u).sum(-1)) > box) & s.ok
+            for j in np.nonzero(out)[0].tolist():
+                self.retire(int(act[j]), i + 2, f"left the box |psi| <= {box:g} at slice {i + 1}", False)
+
+
+def serve_fast(
+    model: AbstractLagrangian,
+    fs: list[LatticeField],
+    steps: list[int],
+    mode: str,
+    rtol: float,
+    max_newton: int,
+    box: float | None,
+    progress: bool | None,
+    derivatives,
+) -> list[ServeResult]:
+    """``_serve_batch`` with the numpy Newton loop (``derivatives`` from :func:`numpy_derivatives_of`)."""
+    batch = FastBatch(model, fs, steps, derivatives)
+    members = np.arange(len(fs))
+    groups = [members] if mode == "newton" else [members[k : k + 1] for k in range(len(fs))]
+    bar = _bar(batch.nmax - 2, f"serve ({mode}, {len(fs)} trajectories)", progress)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # non-finite values are tested for
+        for i in range(1, batch.nmax - 1):
+            for group in groups:
+                act = batch.active(group, i)
+                if act.size:
+                    if act.size == 1 and batch.m == 1 and box is None:  # one scalar member: Python floats
+                        one = batch.step_one(int(act[0]), i, rtol, max_newton)
+                        if one is not None:
+                            batch.store(i, one, max_newton, box)
+                    else:
+                        batch.store(i, batch.step(act, i, rtol, max_newton), max_newton, box)
+            bar.update(1)
+    bar.close()
+    return batch.results(time.perf_counter() - batch.t0, mode)
