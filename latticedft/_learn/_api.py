@@ -12,7 +12,8 @@ import xarray as xr
 
 from .._errors import InputError
 from .._lattice import BoundaryKinds
-from .._models import AbstractLagrangian, LinearLagrangian
+from .._models import AbstractLagrangian, EnsembleLagrangian, LinearLagrangian
+from ._ensemble import learn_ensemble
 from ._exact import learn_exact
 from ._gauge import AUTO, Gauge, gauge_named
 from ._neural import Training, learn_neural
@@ -105,6 +106,8 @@ def learn(
     progress: bool | None = None,
     symmetries: bool = False,
     chunk_sites: int | None = None,
+    ensemble: int | None = None,
+    ensemble_seed: int = 0,
 ) -> LearnReport:
     """Learn ``L_d`` from one or more observed fields; the model is fitted in place.
 
@@ -152,6 +155,14 @@ def learn(
         size); ``0`` holds and processes all data at once (in memory). Under
         an initialised ``torch.distributed`` process group every process
         reads its share of the chunks and all end with the same model.
+    ensemble : int, optional
+        Also learn an ensemble of this many members (at least 2) for an error bar on served fields:
+        ``model`` is member 0, fitted on all the data as without ``ensemble``, and the ensemble
+        (:class:`EnsembleLagrangian`, the other members fitted on bootstrap resamples of the data's time
+        windows) is ``model.ensemble_``; serve it for ``mean`` and ``std``. Passing an
+        ``EnsembleLagrangian`` as ``model`` does the same.
+    ensemble_seed : int
+        Seed of the ensemble's resampling.
 
     Returns
     -------
@@ -168,7 +179,8 @@ def learn(
     >>> report.gauge_residual < 1e-10 and report.rel_res < 1e-3
     True
     """
-    fix, optimizer = _checked(model, gauge, ridge, optimizer, max_iter)
+    base = model.member(0) if isinstance(model, EnsembleLagrangian) else model  # the members' kind
+    fix, optimizer = _checked(base, gauge, ridge, optimizer, max_iter)
     settings = Training(
         optimizer=optimizer,
         max_iter=max_iter,
@@ -182,14 +194,41 @@ def learn(
     _check_training(settings)
     if not isinstance(symmetries, bool):
         raise InputError.at("symmetries", f"expected true or false, got {symmetries!r}")
+    ens = _ensemble_of(model, ensemble, ensemble_seed)
     fields = training_data(data, boundary, chunk_sites)
-    nsites = _bound_to(model, fields)
-    if fix is None:  # "auto"
-        report = _learn_auto(model, fields, ridge, nsites, settings, symmetries)
-    else:
-        report = _fit(model, fields, fix, ridge, nsites, settings, symmetries)
-    model.report_ = report
+
+    def fit(one: object, data: TrainingData) -> LearnReport:
+        assert isinstance(one, AbstractLagrangian)
+        nsites = _bound_to(one, data)
+        if fix is None:  # "auto"
+            report = _learn_auto(one, data, ridge, nsites, settings, symmetries)
+        else:
+            report = _fit(one, data, fix, ridge, nsites, settings, symmetries)
+        one.report_ = report
+        return report
+
+    if ens is None:
+        return fit(model, fields)
+    report = learn_ensemble(ens, fields, fit)
+    if ens is not model:
+        object.__setattr__(model, "ensemble_", ens)  # not a submodule: the ensemble holds the model
+        model.report_ = report
     return report
+
+
+def _ensemble_of(model: AbstractLagrangian, ensemble: int | None, seed: int) -> EnsembleLagrangian | None:
+    """The ensemble to learn: ``model`` itself, one built around it (``ensemble`` members), or None."""
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        raise InputError.at("ensemble_seed", f"expected an integer >= 0, got {seed!r}")
+    if ensemble is None:
+        return model if isinstance(model, EnsembleLagrangian) else None
+    if not isinstance(ensemble, int) or isinstance(ensemble, bool) or ensemble < 2:
+        raise InputError.at(
+            "ensemble", f"expected an integer >= 2 (members, the full-data model included), got {ensemble!r}"
+        )
+    if isinstance(model, EnsembleLagrangian):
+        raise InputError.at("ensemble", "the model is an EnsembleLagrangian already: give its members there")
+    return EnsembleLagrangian(model, members=ensemble, seed=seed)
 
 
 def _fit(

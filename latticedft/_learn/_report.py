@@ -65,6 +65,9 @@ class LearnReport:
     gauge_scores: dict[str, float] = field(default_factory=dict)
     #: ``gauge="auto"``: why ``gauge`` was chosen, in words.
     gauge_choice: str = ""
+    #: ``learn`` of an ensemble (:class:`latticedft.EnsembleLagrangian`): members, seed, the number of time
+    #: windows resampled, every member's ``rel_res`` (member 0 first) and their total wall time; else None.
+    ensemble: dict[str, Any] | None = None
 
     def summary_line(self) -> str:
         auto = f", gauge {self.gauge} (auto: {self.gauge_choice})" if self.gauge_requested == "auto" else ""
@@ -83,6 +86,8 @@ class LearnReport:
         d["history"] = [list(h) for h in self.history]
         if self.symmetries is None:
             del d["symmetries"]
+        if self.ensemble is None:
+            del d["ensemble"]
         return d
 
 
