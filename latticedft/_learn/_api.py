@@ -197,13 +197,15 @@ def learn(
     ens = _ensemble_of(model, ensemble, ensemble_seed)
     fields = training_data(data, boundary, chunk_sites)
 
-    def fit(one: object, data: TrainingData) -> LearnReport:
+    def fit(one: object, data: TrainingData, main: bool = True) -> LearnReport:
+        """Learn ``one`` (an ensemble's resampled members, ``main`` false, skip the symmetry tests)."""
         assert isinstance(one, AbstractLagrangian)
         nsites = _bound_to(one, data)
+        tests = symmetries and main
         if fix is None:  # "auto"
-            report = _learn_auto(one, data, ridge, nsites, settings, symmetries)
+            report = _learn_auto(one, data, ridge, nsites, settings, tests)
         else:
-            report = _fit(one, data, fix, ridge, nsites, settings, symmetries)
+            report = _fit(one, data, fix, ridge, nsites, settings, tests)
         one.report_ = report
         return report
 

@@ -41,15 +41,16 @@ def time_windows(sources: list[FieldSource], width: int) -> list[FieldSource]:
 
 
 def learn_ensemble(
-    ens: EnsembleLagrangian, fields: TrainingData, fit: Callable[[object, TrainingData], LearnReport]
+    ens: EnsembleLagrangian, fields: TrainingData, fit: Callable[[object, TrainingData, bool], LearnReport]
 ) -> LearnReport:
     """Fit member 0 on ``fields`` and every other member on a bootstrap resample of its time windows.
 
-    ``fit(model, data)`` binds and learns one model (the settings of the :func:`latticedft.learn` call).
+    ``fit(model, data, main)`` binds and learns one model (the settings of the :func:`latticedft.learn` call;
+    ``main`` false for the resampled members).
     Returns member 0's report with ``ensemble`` filled in (members, seed, windows, the members' ``rel_res``)
     and a warning when the data give a single window (the members cannot differ).
     """
-    first = fit(ens.member(0), fields)
+    first = fit(ens.member(0), fields, True)
     m0 = ens.member(0)
     ens.bind(m0.n, m0.m, m0.spacing, m0.components)
     windows = time_windows(fields.sources, int(m0.stencil.width[0]))
@@ -58,7 +59,7 @@ def learn_ensemble(
     for k in range(1, len(ens)):
         pick = rng.integers(0, len(windows), size=len(windows))
         data = TrainingData([windows[i] for i in pick], fields.chunk_sites)
-        reports.append(fit(ens.member(k), data))
+        reports.append(fit(ens.member(k), data, False))
     warnings = list(first.warnings)
     if len(windows) < 2:
         warnings.append(
