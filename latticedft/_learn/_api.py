@@ -197,15 +197,18 @@ def learn(
     ens = _ensemble_of(model, ensemble, ensemble_seed)
     fields = training_data(data, boundary, chunk_sites)
 
-    def fit(one: object, data: TrainingData, main: bool = True) -> LearnReport:
-        """Learn ``one`` (an ensemble's resampled members, ``main`` false, skip the symmetry tests)."""
+    def fit(one: object, data: TrainingData, main: LearnReport | None = None) -> LearnReport:
+        """Learn ``one``; an ensemble's resampled members (``main``: member 0's report) skip the symmetry tests
+        and take member 0's ridge and gauge where ``"auto"`` chose them."""
         assert isinstance(one, AbstractLagrangian)
         nsites = _bound_to(one, data)
-        tests = symmetries and main
-        if fix is None:  # "auto"
-            report = _learn_auto(one, data, ridge, nsites, settings, tests)
+        tests = symmetries and main is None
+        weight = main.ridge if main is not None and ridge == "auto" else ridge
+        chosen = gauge_named(main.gauge) if main is not None and fix is None else fix  # member 0's "auto" choice
+        if chosen is None:  # "auto"
+            report = _learn_auto(one, data, weight, nsites, settings, tests)
         else:
-            report = _fit(one, data, fix, ridge, nsites, settings, tests)
+            report = _fit(one, data, chosen, weight, nsites, settings, tests)
         one.report_ = report
         return report
 

@@ -41,16 +41,18 @@ def time_windows(sources: list[FieldSource], width: int) -> list[FieldSource]:
 
 
 def learn_ensemble(
-    ens: EnsembleLagrangian, fields: TrainingData, fit: Callable[[object, TrainingData, bool], LearnReport]
+    ens: EnsembleLagrangian,
+    fields: TrainingData,
+    fit: Callable[[object, TrainingData, LearnReport | None], LearnReport],
 ) -> LearnReport:
     """Fit member 0 on ``fields`` and every other member on a bootstrap resample of its time windows.
 
-    ``fit(model, data, main)`` binds and learns one model (the settings of the :func:`latticedft.learn` call;
-    ``main`` false for the resampled members).
+    ``fit(model, data, main)`` binds and learns one model with the settings of the :func:`latticedft.learn`
+    call (``main``: None for member 0, its report for the resampled members, which take its ridge).
     Returns member 0's report with ``ensemble`` filled in (members, seed, windows, the members' ``rel_res``)
     and a warning when the data give a single window (the members cannot differ).
     """
-    first = fit(ens.member(0), fields, True)
+    first = fit(ens.member(0), fields, None)
     m0 = ens.member(0)
     ens.bind(m0.n, m0.m, m0.spacing, m0.components)
     windows = time_windows(fields.sources, int(m0.stencil.width[0]))
@@ -59,7 +61,7 @@ def learn_ensemble(
     for k in range(1, len(ens)):
         pick = rng.integers(0, len(windows), size=len(windows))
         data = TrainingData([windows[i] for i in pick], fields.chunk_sites)
-        reports.append(fit(ens.member(k), data, False))
+        reports.append(fit(ens.member(k), data, first))
     warnings = list(first.warnings)
     if len(windows) < 2:
         warnings.append(
