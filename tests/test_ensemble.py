@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 from pathlib import Path
 
@@ -177,3 +178,23 @@ def test_bad_calibration_warns(tmp_path: Path) -> None:
     assert cal["within_2std"] == 0.0
     assert "calibration:" in calibration_warning(cal)
     assert calibration_warning(ldft.calibration(ref + 1.0, ref + 1.0, ref)) is None
+
+
+def test_a_member_that_stops_leaves_member_0_served(quartic: ldft.EnsembleLagrangian) -> None:
+    """A resampled member that cannot step (here: a degenerate one) stops the stacked run; member 0 is served
+    alone, and the spread covers only the slices every member reached, with a warning."""
+    broken = copy.deepcopy(quartic)
+    with torch.no_grad():
+        broken.member(2).coef.zero_()  # L_d = 0: a singular mixed Hessian from the first step
+    _, (ref,) = oscillator_data(amplitudes=(0.75,), steps=60)
+    out = ldft.serve(broken, ref)
+    assert out.complete and out.field.sizes["t"] == 60
+    np.testing.assert_array_equal(out.field.values, ldft.serve(quartic.member(0), ref).field.values)
+    assert np.isnan(out.std.values[-1]) and any(w.startswith("ensemble: the spread covers") for w in out.warnings)
+
+
+def test_members_take_member_0s_ridge() -> None:
+    train = [systems.oscillator_sin(a) for a in (1.2, 0.6)]
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 4)), members=3, seed=0)
+    report = ldft.learn(ens, train, ridge="auto")
+    assert all(ens.member(k).report_.ridge == report.ridge for k in range(3))
