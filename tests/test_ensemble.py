@@ -198,3 +198,16 @@ def test_members_take_member_0s_ridge() -> None:
     ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 4)), members=3, seed=0)
     report = ldft.learn(ens, train, ridge="auto")
     assert all(ens.member(k).report_.ridge == report.ridge for k in range(3))
+
+
+def test_memory_check_counts_the_members(tmp_path: Path) -> None:
+    from latticedft._guards import check_task_memory
+    from latticedft._pipeline import check_case
+
+    case = tiny_wave(tmp_path)
+    plain = load_case(case)
+    data = check_case(plain)
+    values = 30 * 13 * 8  # the task's field in bytes
+    check_task_memory(plain, data, available=4 * values)  # field, reference, error, written copy
+    with pytest.raises(ldft.ConfigError, match="3 ensemble members"):
+        check_task_memory(load_case(case, ["train.ensemble=3"]), data, available=4 * values)
