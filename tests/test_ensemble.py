@@ -211,3 +211,15 @@ def test_memory_check_counts_the_members(tmp_path: Path) -> None:
     check_task_memory(plain, data, available=4 * values)  # field, reference, error, written copy
     with pytest.raises(ldft.ConfigError, match="3 ensemble members"):
         check_task_memory(load_case(case, ["train.ensemble=3"]), data, available=4 * values)
+
+
+def test_mlp_members_start_from_their_own_seeds() -> None:
+    _, train = oscillator_data(amplitudes=(0.3, 0.9), steps=40)
+    mlp = ldft.MLPLagrangian(hidden=[8], activation="tanh", form="kinetic-potential", seed=0)
+    ens = ldft.EnsembleLagrangian(mlp, members=3, seed=0)
+    ldft.learn(ens, train, max_iter=3, progress=False)
+    seeds = [ens.member(k).seed for k in range(3)]
+    assert seeds[0] == 0 and len(set(seeds)) == 3
+    weights = [torch.cat([p.detach().flatten() for p in ens.member(k).parameters()]) for k in range(3)]
+    assert not torch.allclose(weights[1], weights[2])
+    assert ens.options()["model"]["options"]["seed"] == 0  # member 0 keeps the model's own seed
