@@ -24,9 +24,19 @@ from pathlib import Path
 
 from ._common import Config, Table, machine, markdown, text
 
-BENCHMARKS = ["serve_1p1d", "serve_2p1d", "serve_1d", "train", "fidelity", "memory", "noether", "train_scale"]
-BENCHMARKS.append("serve_nd")  # n-D slice solvers against a numpy leapfrog
-BENCHMARKS.append("serve_fast1d")
+BENCHMARKS = [
+    "serve_1p1d",
+    "serve_2p1d",
+    "serve_1d",
+    "train",
+    "fidelity",
+    "memory",
+    "noether",
+    "train_scale",
+    "serve_nd",  # n-D slice solvers against a numpy leapfrog
+    "serve_fast1d",  # 1D serving in numpy against Stormer-Verlet
+    "ensemble",  # the cost of an ensemble's error bar
+]
 
 
 def _load():

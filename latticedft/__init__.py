@@ -40,6 +40,7 @@ _PUBLIC: dict[str, str] = {
     "PRESETS": "._models",
     "AbstractLagrangian": "._models",
     "AnalyticLagrangian": "._models",
+    "EnsembleLagrangian": "._models",
     "LinearLagrangian": "._models",
     "MLPLagrangian": "._models",
     "PolynomialLagrangian": "._models",
@@ -54,6 +55,7 @@ _PUBLIC: dict[str, str] = {
     "relative_drift": "._noether",
     "symmetries": "._noether",
     "ServeResult": "._serve",
+    "calibration": "._serve",
     "compare": "._serve",
     "error_vs_time": "._serve",
     "invariant_vs_time": "._serve",
@@ -110,6 +112,7 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._models import PRESETS as PRESETS
     from ._models import AbstractLagrangian as AbstractLagrangian
     from ._models import AnalyticLagrangian as AnalyticLagrangian
+    from ._models import EnsembleLagrangian as EnsembleLagrangian
     from ._models import LinearLagrangian as LinearLagrangian
     from ._models import MLPLagrangian as MLPLagrangian
     from ._models import PolynomialLagrangian as PolynomialLagrangian
@@ -124,6 +127,7 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._noether import relative_drift as relative_drift
     from ._noether import symmetries as symmetries
     from ._serve import ServeResult as ServeResult
+    from ._serve import calibration as calibration
     from ._serve import compare as compare
     from ._serve import error_vs_time as error_vs_time
     from ._serve import invariant_vs_time as invariant_vs_time

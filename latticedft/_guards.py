@@ -203,6 +203,8 @@ def check_task_memory(case: Case, data: Any, available: int | None = None) -> No
         values = td.slices * math.prod(int(s) for s in td.init.shape[1:])
         covered = td.reference is not None and td.reference.shape[0] >= td.slices  # then _ref and _err are written
         copies = 4 if covered else 2
+        members = int(case.train.learn.get("ensemble") or 1)
+        copies += 2 * members + 2 if members > 1 else 0  # the stacked members, their split copy, mean and std
         need = values * 8 * copies
         if need > available:
             name = "steps" if t.deprecated_steps else "slices"
@@ -211,7 +213,8 @@ def check_task_memory(case: Case, data: Any, available: int | None = None) -> No
                 f"{_where(case, f'serve.{t.name}.{name}')}: {key}: task {t.name!r} needs about "
                 f"{_bytes(need)} of memory ({td.slices} slices of {values // td.slices} values, 8 bytes "
                 f"each, {copies} copies: the served field"
-                + (", its reference, its error" if copies == 4 else "")
+                + (", its reference, its error" if covered else "")
+                + (f", {members} ensemble members (twice), their mean and std" if members > 1 else "")
                 + f" and the copy written to disk) but {_bytes(available)} is available; "
                 "serve fewer slices"
             )

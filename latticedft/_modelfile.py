@@ -10,7 +10,7 @@ from typing import Any
 import torch
 
 from ._errors import InputError, ModelFileError
-from ._models import MODELS, AbstractLagrangian
+from ._models import MODELS, AbstractLagrangian, EnsembleLagrangian
 from ._stencil import Stencil
 
 __all__ = ["save_model", "load_model", "FORMAT_VERSION", "model_record"]
@@ -95,10 +95,11 @@ def load_model(path: str | os.PathLike) -> AbstractLagrangian:
             f"{path}: format version {rec.get('format_version')!r}; this latticedft reads version {FORMAT_VERSION}"
         )
     kind = rec.get("kind")
-    if kind not in MODELS:
-        raise ModelFileError(f"{path}: unknown model kind {kind!r}; expected one of {sorted(MODELS)}")
+    kinds: dict[str, Any] = {**MODELS, EnsembleLagrangian.kind: EnsembleLagrangian}
+    if kind not in kinds:
+        raise ModelFileError(f"{path}: unknown model kind {kind!r}; expected one of {sorted(kinds)}")
     try:
-        model = MODELS[kind](**rec["options"], stencil=Stencil(rec["stencil"]))
+        model = kinds[kind](**rec["options"], stencil=Stencil(rec["stencil"]))
         comps = tuple(rec["components"]) if rec.get("components") else None
         model.bind(int(rec["n"]), int(rec["m"]), tuple(rec["spacing"]), comps)
         state = rec["state_dict"]

@@ -214,6 +214,11 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
         raise
     log.info("%s", report.summary_line())
     log.debug("training device: %s", report.device)
+    if model.ensemble_ is not None:  # [train] ensemble: serve every member, member 0 the full-data model
+        model = model.ensemble_
+        log.info(
+            "ensemble: %d members on resamples of %d time windows", len(model), (report.ensemble or {}).get("windows")
+        )
     if report.symmetries is not None:
         log.info("symmetries of the learned L_d over the training data (verdicts at tol 1e-9):")
         for line in report.symmetry_lines():
@@ -237,6 +242,15 @@ class TaskOutcome:
     charges: xr.Dataset | None = None
     #: ``extrapolation(t, feature)`` of the served field against the model's training range (None without one)
     extrapolation: xr.DataArray | None = None
+    #: An ensemble served: the mean and standard deviation over its members (None for a single model)
+    mean: xr.DataArray | None = None
+    std: xr.DataArray | None = None
+
+    def spread(self, variable: str) -> dict[str, xr.DataArray]:
+        """``{"<variable>_mean": ..., "<variable>_std": ...}`` for an ensemble, else empty."""
+        if self.mean is None or self.std is None:
+            return {}
+        return {f"{variable}_mean": self.mean, f"{variable}_std": self.std}
 
     @property
     def complete(self) -> bool:
@@ -267,7 +281,8 @@ def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
     Kept in one piece (~80 lines): it is the task's record, built field by field in the order of
     summary.json; the checks and measurements it records are helpers of their own.
     """
-    from ._serve import compare, serve
+    from ._serve import calibration, compare, serve
+    from ._serve._ensemble import calibration_warning
 
     t = td.task
     if t.deprecated_steps:
@@ -314,6 +329,12 @@ def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
                 "max_error_same_slices": b_same["max_error"],
                 "rms_error_same_slices": b_same["rms_error"],
             }
+    if result.std is not None and td.reference is not None:  # an ensemble: is its spread an honest error bar?
+        rec["calibration"] = calibration(pred, result.std, td.reference)
+        bad = calibration_warning(rec["calibration"])
+        if bad:
+            rec["warnings"].append(bad)
+            log.warning("task %s: %s", t.name, bad)
     inv = None
     if td.invariant is not None:
         try:
@@ -347,6 +368,9 @@ def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
         msg += f" (baseline max {rec['baseline']['max_error_same_slices']:.3e})"
     if "invariant_drift" in rec and rec["invariant_drift"] is not None:
         msg += f", invariant drift {rec['invariant_drift']:.2e}"
+    if "calibration" in rec and rec["calibration"]["slices"]:
+        cal = rec["calibration"]
+        msg += f", within 2/3 std {cal['within_2std']:.0%}/{cal['within_3std']:.0%}"
     log.info("%s", msg + drift_text(rec))
     return TaskOutcome(
         name=t.name,
@@ -356,4 +380,6 @@ def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
         record=rec,
         charges=charges,
         extrapolation=result.extrapolation,
+        mean=result.mean,
+        std=result.std,
     )

@@ -41,6 +41,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "Scale: training",
         "n-D serving",
         "1D serving in numpy",
+        "Ensemble serving",
         "Targets",
     ):
         assert f"== {title}" in out, f"table {title!r} missing from:\n{out}"
@@ -57,6 +58,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "train_scale",
         "serve-nd",
         "serve-fast1d",
+        "ensemble",
     ]
     assert not results["failed"]
     assert all(b["rows"] for b in results["benchmarks"])

@@ -42,6 +42,12 @@ def t_pos_int(v: Any) -> int:
     return int(v)
 
 
+def t_ensemble(v: Any) -> int:
+    if not _is_int(v) or v < 2:
+        raise _Bad("an integer >= 2 (ensemble members, the full-data model included)")
+    return int(v)
+
+
 def t_nonneg_int(v: Any) -> int:
     if not _is_int(v) or v < 0:
         raise _Bad("an integer >= 0")

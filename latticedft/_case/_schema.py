@@ -21,6 +21,7 @@ from ._checks import (
     t_boundary,
     t_choice,
     t_device,
+    t_ensemble,
     t_invariant,
     t_name,
     t_nonneg_float,
@@ -59,6 +60,8 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "penalty": (t_nonneg_float, 1.0),
         "symmetries": (t_bool, False),
         "chunk_sites": (t_nonneg_int, None),
+        "ensemble": (t_ensemble, None),
+        "ensemble_seed": (t_nonneg_int, 0),
     },
     "serve": {
         "name": (t_name, _REQUIRED),

@@ -14,7 +14,8 @@ import xarray as xr
 from .._device import device_label, on_device, resolve_device
 from .._errors import InputError
 from .._lattice import BoundaryKinds
-from .._models import AbstractLagrangian, LinearLagrangian
+from .._models import AbstractLagrangian, EnsembleLagrangian, LinearLagrangian
+from ._ensemble import learn_ensemble
 from ._exact import learn_exact
 from ._gauge import AUTO, Gauge, gauge_named
 from ._neural import Training, learn_neural
@@ -108,6 +109,8 @@ def learn(
     symmetries: bool = False,
     chunk_sites: int | None = None,
     device: str | None = None,
+    ensemble: int | None = None,
+    ensemble_seed: int = 0,
 ) -> LearnReport:
     """Learn ``L_d`` from one or more observed fields; the model is fitted in place.
 
@@ -162,6 +165,14 @@ def learn(
         falls back to the CPU with one :class:`DeviceWarning`. The exact solve
         of linear models runs on the CPU. The fitted model is left on the CPU;
         ``report.device`` names the device used.
+    ensemble : int, optional
+        Also learn an ensemble of this many members (at least 2) for an error bar on served fields:
+        ``model`` is member 0, fitted on all the data as without ``ensemble``, and the ensemble
+        (:class:`EnsembleLagrangian`, the other members fitted on bootstrap resamples of the data's time
+        windows) is ``model.ensemble_``; serve it for ``mean`` and ``std``. Passing an
+        ``EnsembleLagrangian`` as ``model`` does the same.
+    ensemble_seed : int
+        Seed of the ensemble's resampling.
 
     Returns
     -------
@@ -178,7 +189,8 @@ def learn(
     >>> report.gauge_residual < 1e-10 and report.rel_res < 1e-3
     True
     """
-    fix, optimizer = _checked(model, gauge, ridge, optimizer, max_iter)
+    base = model.member(0) if isinstance(model, EnsembleLagrangian) else model  # the members' kind
+    fix, optimizer = _checked(base, gauge, ridge, optimizer, max_iter)
     where = resolve_device(device)
     settings = Training(
         optimizer=optimizer,
@@ -194,15 +206,48 @@ def learn(
     _check_training(settings)
     if not isinstance(symmetries, bool):
         raise InputError.at("symmetries", f"expected true or false, got {symmetries!r}")
+    ens = _ensemble_of(model, ensemble, ensemble_seed)
     fields = training_data(data, boundary, chunk_sites)
-    nsites = _bound_to(model, fields)
-    if fix is None:  # "auto"
-        report = _learn_auto(model, fields, ridge, nsites, settings, symmetries)
-    else:
-        report = _fit(model, fields, fix, ridge, nsites, settings, symmetries)
-    report = replace(report, device=device_label(where) if optimizer != "exact" else "cpu")
-    model.report_ = report
+    trained_on = device_label(where) if optimizer != "exact" else "cpu"
+
+    def fit(one: object, data: TrainingData, main: LearnReport | None = None) -> LearnReport:
+        """Learn ``one``; an ensemble's resampled members (``main``: member 0's report) skip the symmetry tests
+        and take member 0's ridge and gauge where ``"auto"`` chose them."""
+        assert isinstance(one, AbstractLagrangian)
+        nsites = _bound_to(one, data)
+        tests = symmetries and main is None
+        weight = main.ridge if main is not None and ridge == "auto" else ridge
+        chosen = gauge_named(main.gauge) if main is not None and fix is None else fix  # member 0's "auto" choice
+        if chosen is None:  # "auto"
+            report = _learn_auto(one, data, weight, nsites, settings, tests)
+        else:
+            report = _fit(one, data, chosen, weight, nsites, settings, tests)
+        report = replace(report, device=trained_on)
+        one.report_ = report
+        return report
+
+    if ens is None:
+        return fit(model, fields)
+    report = learn_ensemble(ens, fields, fit)
+    if ens is not model:
+        object.__setattr__(model, "ensemble_", ens)  # not a submodule: the ensemble holds the model
+        model.report_ = report
     return report
+
+
+def _ensemble_of(model: AbstractLagrangian, ensemble: int | None, seed: int) -> EnsembleLagrangian | None:
+    """The ensemble to learn: ``model`` itself, one built around it (``ensemble`` members), or None."""
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        raise InputError.at("ensemble_seed", f"expected an integer >= 0, got {seed!r}")
+    if ensemble is None:
+        return model if isinstance(model, EnsembleLagrangian) else None
+    if not isinstance(ensemble, int) or isinstance(ensemble, bool) or ensemble < 2:
+        raise InputError.at(
+            "ensemble", f"expected an integer >= 2 (members, the full-data model included), got {ensemble!r}"
+        )
+    if isinstance(model, EnsembleLagrangian):
+        raise InputError.at("ensemble", "the model is an EnsembleLagrangian already: give its members there")
+    return EnsembleLagrangian(model, members=ensemble, seed=seed)
 
 
 def _fit(

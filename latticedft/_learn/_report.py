@@ -67,6 +67,9 @@ class LearnReport:
     gauge_choice: str = ""
     #: Where training evaluated the model: ``"cpu"`` or ``"cuda:N (GPU name)"`` (``learn(device=...)``).
     device: str = "cpu"
+    #: ``learn`` of an ensemble (:class:`latticedft.EnsembleLagrangian`): members, seed, the number of time
+    #: windows resampled, every member's ``rel_res`` (member 0 first) and their total wall time; else None.
+    ensemble: dict[str, Any] | None = None
 
     def summary_line(self) -> str:
         auto = f", gauge {self.gauge} (auto: {self.gauge_choice})" if self.gauge_requested == "auto" else ""
@@ -85,6 +88,8 @@ class LearnReport:
         d["history"] = [list(h) for h in self.history]
         if self.symmetries is None:
             del d["symmetries"]
+        if self.ensemble is None:
+            del d["ensemble"]
         return d
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from ._analytic import AnalyticLagrangian
 from ._base import AbstractLagrangian
+from ._ensemble import EnsembleLagrangian
 from ._linear import LinearLagrangian
 from ._mlp import (
     PRESETS,
@@ -26,6 +27,7 @@ MODELS: dict[str, type[AbstractLagrangian]] = {
 __all__ = [
     "AbstractLagrangian",
     "AnalyticLagrangian",
+    "EnsembleLagrangian",
     "FreeMLPLagrangian",
     "KineticPotentialMLPLagrangian",
     "LinearLagrangian",

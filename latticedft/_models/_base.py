@@ -55,6 +55,8 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     rebinds_to_any_lattice: ClassVar[bool] = False
     #: The ``LearnReport`` of the last :func:`latticedft.learn` (``None`` before).
     report_: Any = None
+    #: ``learn(model, data, ensemble=N)``: the :class:`latticedft.EnsembleLagrangian` whose member 0 is this model.
+    ensemble_: Any = None
     #: The gauge a model file says the model was learned with (set by ``load_model``).
     gauge_: str | None = None
 

@@ -266,6 +266,7 @@ def export_task(
     from ..io.exporters import ExportTask, export_formats
 
     attrs, series = read_task_series(Path(folder) / f"{name}.nc", variable)
+    spread = read_spread(Path(folder) / f"{name}.nc", variable)
     task = ExportTask(
         folder=Path(folder),
         name=name,
@@ -277,9 +278,21 @@ def export_task(
         title=title or name,
         attrs=attrs,
         series=series,
+        spread=spread if spread is not None and spread.shape == pred.shape else None,
     )
     with _writing(Path(folder) / f"{name}.*"):
         return export_formats(task, formats)
+
+
+def read_spread(path: Path, variable: str) -> xr.DataArray | None:
+    """``<var>_std`` of a task file (an ensemble served), or None."""
+    from ..io.fields import read_field
+
+    if not Path(path).is_file():
+        return None
+    with xr.open_dataset(path, engine="netcdf4", decode_times=False) as ds:
+        found = f"{variable}_std" in ds.data_vars
+    return read_field(path, f"{variable}_std", allow_nan=True) if found else None
 
 
 def read_task_series(path: Path, variable: str) -> tuple[dict[str, Any], dict[str, xr.DataArray]]:
@@ -295,7 +308,7 @@ def read_task_series(path: Path, variable: str) -> tuple[dict[str, Any], dict[st
         if variable not in ds.data_vars:
             return attrs, {}
         tdim = ds[variable].dims[0]
-        skip = {variable, f"{variable}_ref", f"{variable}_err"}
+        skip = {variable, f"{variable}_ref", f"{variable}_err", f"{variable}_mean", f"{variable}_std"}
         series = {str(k): v.load() for k, v in ds.data_vars.items() if v.dims == (tdim,) and str(k) not in skip}
     return attrs, series
 

@@ -19,6 +19,7 @@ same 1D loop in numpy, for models with numpy closed forms) and ``_field``
 
 from __future__ import annotations
 
+import functools
 import warnings
 from typing import overload
 
@@ -30,13 +31,14 @@ from .._device import device_label, on_device, resolve_device
 from .._errors import InputError, ServeError
 from .._lattice import LatticeField, as_lattice_field
 from .._learn import check_model_lattice as _check_model_lattice
-from .._models import AbstractLagrangian
+from .._models import AbstractLagrangian, EnsembleLagrangian
 from ._batch import _serve_batch
+from ._ensemble import calibration, serve_ensemble
 from ._field import _serve_field
 from ._result import ServeResult, compare, error_vs_time, invariant_vs_time
 from ._solvers import SOLVERS
 
-__all__ = ["MODES", "SOLVERS", "ServeResult", "compare", "error_vs_time", "invariant_vs_time", "serve"]
+__all__ = ["MODES", "SOLVERS", "ServeResult", "calibration", "compare", "error_vs_time", "invariant_vs_time", "serve"]
 
 MODES = ("newton", "sweep")
 
@@ -254,6 +256,40 @@ def serve(
     _prepare_model(model, fs[0])
     for k, f in enumerate(fs):
         _check_model_lattice(model, f, "init" if not batch else f"init[{k}]")
+    run = functools.partial(
+        _run,
+        batch=batch,
+        slices=slices,
+        mode=mode,
+        rtol=rtol,
+        max_newton=max_newton,
+        box=box,
+        affine=affine,
+        progress=progress,
+        solver=solver,
+        where=where,
+    )
+    out = serve_ensemble(model, fs, run, batch) if isinstance(model, EnsembleLagrangian) else run(model, fs)
+    return out if batch else out[0]
+
+
+def _run(
+    model: AbstractLagrangian,
+    fs: list[LatticeField],
+    *,
+    batch: bool,
+    slices: int | None,
+    mode: str,
+    rtol: float,
+    max_newton: int,
+    box: float | None,
+    affine: bool,
+    progress: bool | None,
+    solver: str,
+    where: torch.device,
+) -> list[ServeResult]:
+    """Serve the checked fields ``fs`` with ``model``; a ServeError (``result`` a list for a ``batch``) when
+    one stops."""
     n = fs[0].ndim
     if n == 1:
         with on_device(model, where):
@@ -264,7 +300,7 @@ def serve(
         if failed:
             first, (at_slice, res) = failed[0]
             raise ServeError(first.reason, result=results if batch else first, slice=at_slice, residual=res)
-        return results if batch else results[0]
+        return results
     if box is not None:
         raise InputError("box: stopping when leaving a box is for 1D trajectories only")
     out: list[ServeResult] = []
@@ -281,4 +317,4 @@ def serve(
             raise
     _served_attrs(out, model)
     _served_on(out, where)
-    return out if batch else out[0]
+    return out

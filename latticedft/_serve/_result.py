@@ -47,6 +47,12 @@ class ServeResult:
     warnings: list[str] = dataclasses.field(default_factory=list)
     #: where the model was evaluated: ``"cpu"`` or ``"cuda:N (GPU name)"`` (``serve(device=...)``)
     device: str = "cpu"
+    #: An ensemble (:class:`latticedft.EnsembleLagrangian`) served: the mean and standard deviation over its
+    #: members, in ``field``'s layout (``field`` is member 0's, the full-data model's), and every member's
+    #: field along a leading ``member`` dim; None for a single model.
+    mean: xr.DataArray | None = dataclasses.field(default=None, repr=False)
+    std: xr.DataArray | None = dataclasses.field(default=None, repr=False)
+    members: xr.DataArray | None = dataclasses.field(default=None, repr=False)
 
     def extrapolation_summary(self) -> dict[str, Any] | None:
         """The largest excess per feature and the first slice beyond the tolerance (None without a range)."""
@@ -73,7 +79,19 @@ class ServeResult:
         }
         out["extrapolation"] = self.extrapolation_summary()
         out["warnings"] = list(self.warnings)
+        if self.members is not None:
+            out["ensemble_members"] = int(self.members.sizes["member"])
         return out
+
+    def to_dataset(self) -> xr.Dataset:
+        """The served field as a Dataset: ``psi`` (the field's name), and for an ensemble ``psi_mean`` and
+        ``psi_std`` beside it."""
+        name = str(self.field.name or "psi")
+        out = {name: self.field.rename(name)}
+        if self.mean is not None and self.std is not None:
+            out[f"{name}_mean"] = self.mean.rename(f"{name}_mean")
+            out[f"{name}_std"] = self.std.rename(f"{name}_std")
+        return xr.Dataset(out)
 
 
 def compare(pred: xr.DataArray, ref: xr.DataArray) -> dict[str, float]:

@@ -88,7 +88,10 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
             charges=out.charges,
             baseline=td.baseline,
             steps=td.slices,
-            extra={"extrapolation": out.extrapolation} if out.extrapolation is not None else None,
+            extra={
+                **({"extrapolation": out.extrapolation} if out.extrapolation is not None else {}),
+                **out.spread(case.field.variable),
+            },
         )
         out.record["file"] = path.name
         log.debug("wrote %s", path.name)

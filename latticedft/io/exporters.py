@@ -116,6 +116,8 @@ class ExportTask:
     title: str | None = None
     attrs: Mapping[str, Any] = _field(default_factory=dict)
     series: Mapping[str, xr.DataArray] = _field(default_factory=dict)
+    #: An ensemble served: the standard deviation over its members (``<var>_std``), in the field's layout.
+    spread: xr.DataArray | None = None
 
     @property
     def variable(self) -> str:
@@ -123,10 +125,14 @@ class ExportTask:
 
     @property
     def extra(self) -> dict[str, xr.DataArray]:
-        """``{"<var>_ref": reference, "<var>_err": error}`` when both are known, else ``{}``."""
-        if self.reference is None or self.error is None:
-            return {}
-        return {f"{self.variable}_ref": self.reference, f"{self.variable}_err": self.error}
+        """``{"<var>_ref": reference, "<var>_err": error}`` when both are known, and ``"<var>_std"`` for an
+        ensemble (else ``{}``): the arrays written beside the field."""
+        out = {}
+        if self.reference is not None and self.error is not None:
+            out = {f"{self.variable}_ref": self.reference, f"{self.variable}_err": self.error}
+        if self.spread is not None:
+            out[f"{self.variable}_std"] = self.spread
+        return out
 
 
 class Exporter:

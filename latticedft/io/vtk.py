@@ -198,7 +198,11 @@ class ParaViewExporter(Exporter):
         from latticedft.io.pvview import write_view_script
 
         files = write_paraview(task.folder, task.name, task.field, task.extra, max_frames=task.max_frames)
-        return files + [write_view_script(task.folder, task.name, task.field, has_reference=bool(task.extra))]
+        return files + [
+            write_view_script(
+                task.folder, task.name, task.field, has_reference=task.reference is not None and task.error is not None
+            )
+        ]
 
 
 def write_paraview(

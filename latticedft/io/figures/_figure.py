@@ -41,6 +41,7 @@ def _build(
     attrs: Mapping[str, Any] | None = None,
     title: str | None = None,
     train: Sequence[xr.DataArray] | None = None,
+    spread: xr.DataArray | None = None,
 ) -> Figure:
     """The figure of one task. Kept in one piece (~85 lines): it is the layout itself, a straight sequence
     of panels in grid order; each panel's drawing lives in ``_panels``."""
@@ -122,7 +123,7 @@ def _build(
     if n_time and not time_axes:
         time_axes = list(subs.pop(0).subplots(1, n_time, squeeze=False)[0])
     if err is not None:
-        _plot_errors(time_axes.pop(0), pred, err, series, span)
+        _plot_errors(time_axes.pop(0), pred, err, series, span, spread)
     if drift:
         _plot_drift(time_axes.pop(0), pred, drift, span)
     if title:
@@ -179,6 +180,7 @@ def task_figure(
             attrs=source.attrs,
             title=title or source.title or source.name,
             train=train if train is not None else (source.train if one_d else None),
+            spread=source.spread,
         )
     if isinstance(source, xr.Dataset):
         return _from_dataset(source, variable, title, train, "<dataset>")
@@ -203,10 +205,11 @@ def _from_dataset(
     tdim = pred.dims[0]
     ref = ds[f"{variable}_ref"] if f"{variable}_ref" in ds.data_vars else None
     err = ds[f"{variable}_err"] if f"{variable}_err" in ds.data_vars else None
-    skip = {variable, f"{variable}_ref", f"{variable}_err"}
+    skip = {variable, f"{variable}_ref", f"{variable}_err", f"{variable}_mean", f"{variable}_std"}
     series = {str(k): v for k, v in ds.data_vars.items() if v.dims == (tdim,) and str(k) not in skip}
     name = str(ds.attrs.get("latticedft_task") or stem)
-    return _build(pred, ref, err, series=series, attrs=ds.attrs, title=title or name, train=train)
+    spread = ds[f"{variable}_std"] if f"{variable}_std" in ds.data_vars else None
+    return _build(pred, ref, err, series=series, attrs=ds.attrs, title=title or name, train=train, spread=spread)
 
 
 def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 100) -> Path:

@@ -268,6 +268,7 @@ def _plot_errors(
     err: xr.DataArray,
     series: Mapping[str, xr.DataArray],
     span: tuple[float, float] | None,
+    spread: xr.DataArray | None = None,
 ) -> None:
     tdim = lattice_dims(pred)[0]
     var = str(pred.name or "psi")
@@ -281,6 +282,8 @@ def _plot_errors(
     else:
         ax.semilogy(t, _positive(worst), "-", color="tab:red", lw=1.5, label="learned L_d: max")
         ax.semilogy(t, _positive(rms), "--", color="tab:red", lw=1.2, label="learned L_d: rms")
+    if spread is not None and spread.shape == pred.shape:
+        _plot_band(ax, t, np.asarray(spread.transpose(*pred.dims).values), rms)
     base_max, base_rms = series.get("baseline_err_max"), series.get("baseline_err_rms")
     if one_site and base_max is not None:
         base_rms = None
@@ -312,6 +315,23 @@ def _plot_errors(
     _mark_unserved(ax, span, vertical=False)
     ax.grid(True, which="major", alpha=0.3)
     ax.legend(loc="best", fontsize="small")
+
+
+def _plot_band(ax: Axes, t: np.ndarray, std: np.ndarray, rms_error: np.ndarray) -> None:
+    """An ensemble's error bar: 2 and 3 times the RMS over sites of its standard deviation, per slice (the
+    error it bounds is the RMS error over sites; docs/uncertainty.md)."""
+    flat = std.reshape(std.shape[0], -1)
+    s = np.full(flat.shape[0], np.nan)
+    some = np.isfinite(flat).any(axis=1)  # slices the members did not all reach have no spread
+    s[some] = np.sqrt(np.nanmean(flat[some] ** 2, axis=1))
+    two, three = _positive(2 * s), _positive(3 * s)
+    found = np.concatenate([v[np.isfinite(v)] for v in (two, _positive(rms_error))])
+    if not found.size:
+        return
+    floor = float(found.min()) / 10
+    ax.fill_between(t, floor, np.where(np.isfinite(three), three, floor), color="tab:blue", alpha=0.12, lw=0)
+    ax.fill_between(t, floor, np.where(np.isfinite(two), two, floor), color="tab:blue", alpha=0.25, lw=0)
+    ax.semilogy(t, two, "-", color="tab:blue", lw=1, label="ensemble: 2 std (3 std lighter), rms over sites")
 
 
 def drift_series(series: Mapping[str, xr.DataArray]) -> dict[str, xr.DataArray]:

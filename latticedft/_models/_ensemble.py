@@ -1,0 +1,185 @@
+"""An ensemble of one model kind learned on resamples of the data: an error bar on what it serves."""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import torch
+
+from .._errors import InputError
+from .._stencil import Stencil
+from ._base import AbstractLagrangian
+
+__all__ = ["EnsembleLagrangian", "stacked"]
+
+
+class EnsembleLagrangian(AbstractLagrangian):
+    """``members`` copies of one model: member 0 learned on all the data, the others on bootstrap resamples.
+
+    :func:`latticedft.learn` fits member 0 on the full training data (it is the model a plain ``learn``
+    gives) and every other member on a bootstrap resample of the data's time windows: each training field
+    is cut into windows of consecutive time slices and a member learns from as many windows, drawn with
+    replacement from all of them (a resample over fields and windows). Members of a model with a ``seed``
+    option (MLPs) also start from different seeds. :func:`latticedft.serve` steps all members together as
+    one stacked field (the members' DEL equations never couple), and its result carries the spread:
+    ``psi`` is member 0's field, ``mean`` and ``std`` are over all members (docs/uncertainty.md).
+
+    As a Lagrangian (``forward``, :func:`latticedft.diagnose`) the ensemble is member 0.
+
+    Parameters
+    ----------
+    model : AbstractLagrangian
+        The model to copy; it becomes member 0 (fitted in place by ``learn``). A dict ``{"kind": ...,
+        "options": {...}}`` rebuilds one from :data:`latticedft.MODELS` (how model files store it).
+    members : int
+        Members in all, member 0 included (at least 2).
+    seed : int
+        Seed of the resampling (and of the members' initial weights).
+
+    >>> import latticedft as ldft
+    >>> ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 2)), members=5, seed=1)
+    >>> len(ens.members), ens.options()["model"]["kind"]
+    (5, 'polynomial')
+    """
+
+    kind = "ensemble"
+
+    def __init__(
+        self,
+        model: AbstractLagrangian | Mapping[str, Any],
+        *,
+        members: int = 9,
+        seed: int = 0,
+        stencil: Stencil | None = None,
+    ):
+        if isinstance(model, Mapping):
+            model = _rebuilt(model, stencil)
+        if not isinstance(model, AbstractLagrangian) or isinstance(model, EnsembleLagrangian):
+            raise InputError.at("model", f"expected a latticedft model (not an ensemble), got {type(model).__name__}")
+        if not isinstance(members, int) or isinstance(members, bool) or members < 2:
+            raise InputError.at("members", f"expected an integer >= 2 (member 0 included), got {members!r}")
+        if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+            raise InputError.at("seed", f"expected an integer >= 0, got {seed!r}")
+        super().__init__(stencil if stencil is not None else (model.stencil if model.has_stencil else None))
+        self.seed = seed
+        seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=members)
+        copies: list[AbstractLagrangian] = [model]
+        for k in range(1, members):
+            member = copy.deepcopy(model)
+            member.report_ = None
+            if isinstance(getattr(member, "seed", None), int):  # e.g. an MLP: another initial network
+                member.__dict__["seed"] = int(seeds[k])
+            copies.append(member)
+        self.members = torch.nn.ModuleList(copies)
+
+    def __len__(self) -> int:
+        return len(self.members)
+
+    def member(self, k: int) -> AbstractLagrangian:
+        """Member ``k`` (0: the model learned on all the data)."""
+        out = self.members[k]
+        assert isinstance(out, AbstractLagrangian)
+        return out
+
+    def _build(self) -> None:
+        for k in range(len(self)):
+            self.member(k).bind(self.n, self.m, self.spacing, self.components)
+
+    def forward(self, cells: torch.Tensor) -> torch.Tensor:
+        return self.member(0)(cells)
+
+    def fast_derivatives(
+        self, cells: torch.Tensor, pairs: list[tuple[int, int]]
+    ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]] | None:
+        return self.member(0).fast_derivatives(cells, pairs)
+
+    def trained_range(self) -> torch.Tensor | None:
+        return self.member(0).trained_range()
+
+    def options(self) -> dict[str, Any]:
+        base = self.member(0)
+        return {"model": {"kind": base.kind, "options": base.options()}, "members": len(self), "seed": self.seed}
+
+    def load_state_dict(self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False) -> Any:
+        """As ``torch.nn.Module.load_state_dict``, the members' training ranges (buffers made when learned)
+        registered first."""
+        for k in range(len(self)):
+            rng = state_dict.get(f"members.{k}.feature_range")
+            if isinstance(rng, torch.Tensor):
+                self.member(k).set_feature_range(rng)
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+    def describe(self, max_terms: int | None = 12) -> str:
+        lines = [f"EnsembleLagrangian: {len(self)} members (seed {self.seed}); member 0 learned on all the data:"]
+        lines.append(self.member(0).describe(max_terms))
+        rel = [self.member(k).report_.rel_res for k in range(1, len(self)) if self.member(k).report_ is not None]
+        if rel:
+            lines.append(f"  resampled members: rel_res {min(rel):.3e} .. {max(rel):.3e}")
+        return "\n".join(lines)
+
+
+def _rebuilt(spec: Mapping[str, Any], stencil: Stencil | None) -> AbstractLagrangian:
+    """The member model a model file describes: ``{"kind": ..., "options": {...}}``."""
+    from . import MODELS
+
+    kind = spec.get("kind")
+    if kind not in MODELS or not isinstance(spec.get("options"), Mapping):
+        raise InputError.at("model", f"expected {{'kind': one of {sorted(MODELS)}, 'options': {{...}}}}, got {spec!r}")
+    return MODELS[kind](**spec["options"], stencil=stencil)
+
+
+class _Stacked(AbstractLagrangian):
+    """The members of an ensemble as one ``L_d`` of ``members x m`` components: the sum of the members' ``L_d``,
+    member ``k`` seeing components ``k m .. (k + 1) m - 1``. Its DEL equations are the members' own, side by
+    side (never coupled), so one serving run steps every member."""
+
+    kind = "ensemble-stack"
+    saveable = False
+
+    def __init__(self, members: list[AbstractLagrangian]):
+        super().__init__(members[0].stencil)
+        self.parts = torch.nn.ModuleList(members)
+        self.mm = members[0].m
+
+    def forward(self, cells: torch.Tensor) -> torch.Tensor:
+        m = self.mm
+        total = torch.zeros(cells.shape[:-2], dtype=cells.dtype, device=cells.device)
+        for k, part in enumerate(self.parts):
+            total = total + part(cells[..., k * m : (k + 1) * m])
+        return total
+
+    def fast_derivatives(
+        self, cells: torch.Tensor, pairs: list[tuple[int, int]]
+    ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]] | None:
+        """The members' closed forms side by side (block-diagonal second derivatives), or None when a member
+        has none."""
+        m = self.mm
+        found = []
+        for k, part in enumerate(self.parts):
+            assert isinstance(part, AbstractLagrangian)
+            out = part.fast_derivatives(cells[..., k * m : (k + 1) * m], pairs)
+            if out is None:
+                return None
+            found.append(out)
+        grad = torch.cat([g for g, _ in found], dim=-1)
+        mm = m * len(found)
+        blocks: dict[tuple[int, int], torch.Tensor] = {}
+        for pair in pairs:
+            block = cells.new_zeros((*cells.shape[:-2], mm, mm))
+            for k, (_, b) in enumerate(found):
+                block[..., k * m : (k + 1) * m, k * m : (k + 1) * m] = b[pair]
+            blocks[pair] = block
+        return grad, blocks
+
+
+def stacked(ens: EnsembleLagrangian, components: tuple[str, ...]) -> AbstractLagrangian:
+    """The learned members of ``ens`` as one model on ``len(ens) * m`` components labelled ``components``."""
+    parts = [ens.member(k) for k in range(len(ens))]
+    flag = all(p.constant_mixed_hessian for p in parts)
+    cls = type("_Stacked", (_Stacked,), {"constant_mixed_hessian": flag})
+    model = cls(parts)
+    model.bind(ens.n, len(ens) * ens.m, ens.spacing, components)
+    return model

@@ -1,0 +1,225 @@
+"""Ensembles: members on resamples of the data, served together, with an error bar that is calibrated."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import xarray as xr
+
+import latticedft as ldft
+from latticedft import systems
+from latticedft._case import load_case
+from latticedft._learn._ensemble import time_windows
+from latticedft._learn._source import as_sources
+
+from case_helpers import run_cli, tiny_wave
+from helpers import oscillator_data
+
+
+@pytest.fixture(scope="module")
+def quartic() -> ldft.EnsembleLagrangian:
+    """A quartic oscillator learned with a polynomial that cannot hold it exactly (a fit with an error)."""
+    _, train = oscillator_data(amplitudes=(0.3, 0.6, 0.9), steps=120)
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 6)), members=5, seed=0)
+    ldft.learn(ens, train)
+    return ens
+
+
+@pytest.fixture(scope="module")
+def paper() -> ldft.EnsembleLagrangian:
+    """The paper's oscillator (Qin 2020, Example 1) with its 45-term polynomial, 5 members."""
+    train = [systems.oscillator_sin(a) for a in (1.2, 0.8, 0.4)]
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((4, 8)), members=5, seed=0)
+    ldft.learn(ens, train)
+    return ens
+
+
+def test_members_differ_and_member_0_is_the_plain_model(quartic: ldft.EnsembleLagrangian) -> None:
+    _, train = oscillator_data(amplitudes=(0.3, 0.6, 0.9), steps=120)
+    plain = ldft.PolynomialLagrangian((2, 6))
+    ldft.learn(plain, train)
+    coefs = [quartic.member(k).coef.detach() for k in range(len(quartic))]
+    assert torch.equal(coefs[0], plain.coef.detach())
+    for k in range(1, len(coefs)):
+        assert not torch.allclose(coefs[k], coefs[0], rtol=1e-6, atol=0)
+    assert quartic.report_.ensemble["members"] == 5 and len(quartic.report_.ensemble["rel_res"]) == 5
+
+
+def test_learn_ensemble_keyword(tmp_path: Path) -> None:
+    _, train = oscillator_data(amplitudes=(0.3, 0.9), steps=60)
+    model = ldft.PolynomialLagrangian((2, 4))
+    report = ldft.learn(model, train, ensemble=3, ensemble_seed=4)
+    ens = model.ensemble_
+    assert isinstance(ens, ldft.EnsembleLagrangian) and ens.member(0) is model and ens.seed == 4
+    assert report.ensemble["members"] == 3 and model.report_ is report
+    with pytest.raises(ldft.InputError, match="^ensemble: expected an integer >= 2"):
+        ldft.learn(ldft.PolynomialLagrangian((2, 4)), train, ensemble=1)
+    with pytest.raises(ldft.InputError, match="^members: expected an integer >= 2"):
+        ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 4)), members=1)
+
+
+def test_windows_hold_every_equation_once() -> None:
+    _, train = oscillator_data(amplitudes=(0.3, 0.9), steps=57)
+    windows = time_windows(as_sources(train, None), 1)
+    assert len(windows) == 2 * 5
+    owned = sum(w.nt - 2 for w in windows)  # first-order stencil: every slice but the first and last
+    assert owned == 2 * (57 - 2)
+
+
+def test_batched_serve_equals_members_one_by_one(quartic: ldft.EnsembleLagrangian) -> None:
+    _, (ref,) = oscillator_data(amplitudes=(0.75,), steps=120)
+    out = ldft.serve(quartic, ref)
+    assert out.complete and out.members.sizes["member"] == 5
+    for k in range(len(quartic)):
+        alone = ldft.serve(quartic.member(k), ref).field.values
+        np.testing.assert_allclose(out.members.values[k], alone, rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(out.field.values, out.members.values[0])
+    np.testing.assert_allclose(out.std.values, out.members.values.std(axis=0, ddof=1))
+    ds = out.to_dataset()
+    assert set(ds.data_vars) == {"psi", "psi_mean", "psi_std"}
+
+
+def test_batched_serve_in_1p1d() -> None:
+    train = systems.wave_string([(1, 1.0), (2, 0.4)], nx=13, nt=40)
+    test = systems.wave_string([(1, 0.5, 0.3), (3, 0.2)], nx=13, nt=30)
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 2)), members=3, seed=2)
+    ldft.learn(ens, train)
+    out = ldft.serve(ens, test)
+    for k in range(3):
+        alone = ldft.serve(ens.member(k), test).field.values
+        np.testing.assert_allclose(out.members.values[k], alone, rtol=0, atol=1e-9)
+
+
+def test_spread_grows_outside_the_training_range(quartic: ldft.EnsembleLagrangian) -> None:
+    _, (inside,) = oscillator_data(amplitudes=(0.75,), steps=120)
+    _, (outside,) = oscillator_data(amplitudes=(1.5,), steps=120)
+    s_in = float(ldft.serve(quartic, inside).std.mean())
+    s_out = float(ldft.serve(quartic, outside).std.mean())
+    assert s_out > 20 * s_in > 0
+
+
+def test_coverage_on_the_paper_oscillator(paper: ldft.EnsembleLagrangian) -> None:
+    """Inside the training range the error of the served field lies within 3 std on (nearly) every slice."""
+    for a in (1.0, 0.6):
+        ref = systems.oscillator_sin(a)
+        out = ldft.serve(paper, ref)
+        cal = ldft.calibration(out.field, out.std, ref)
+        assert cal["slices"] == 49
+        assert cal["within_3std"] >= 0.9, (a, cal)
+        assert 0.5 < cal["std_over_error"] < 50, (a, cal)
+
+
+def test_calibration_counts_slices() -> None:
+    t = np.arange(7.0)
+    ref = xr.DataArray(np.zeros(7), dims="t", coords={"t": t})
+    pred = ref.copy(data=[0, 0, 1.0, 1.0, 2.5, 1.0, np.nan])
+    cal = ldft.calibration(pred, ref + 1.0, ref)
+    assert cal["slices"] == 4 and cal["within_2std"] == 0.75 and cal["within_3std"] == 1.0
+    assert cal["std_over_error"] == pytest.approx(1 / 1.375)
+
+
+def test_model_file_round_trip(quartic: ldft.EnsembleLagrangian, tmp_path: Path) -> None:
+    path = ldft.save_model(quartic, tmp_path / "ens.pt")
+    back = ldft.load_model(path)
+    assert isinstance(back, ldft.EnsembleLagrangian) and len(back) == 5
+    for k in range(5):
+        assert torch.equal(back.member(k).coef, quartic.member(k).coef)
+    assert torch.equal(back.trained_range(), quartic.trained_range())
+    _, (ref,) = oscillator_data(amplitudes=(0.75,), steps=40)
+    np.testing.assert_array_equal(ldft.serve(back, ref).std.values, ldft.serve(quartic, ref).std.values)
+
+
+def test_case_keys_are_validated(tmp_path: Path) -> None:
+    case = tiny_wave(tmp_path)
+    text = (case / "case.toml").read_text()
+    (case / "case.toml").write_text(text.replace('data = ["data/train.nc"]', 'data = ["data/train.nc"]\nensemble = 1'))
+    with pytest.raises(ldft.ConfigError, match=r"train\.ensemble.*integer >= 2"):
+        load_case(case)
+    with pytest.raises(ldft.ConfigError, match=r"train\.ensemble_seed"):
+        load_case(case, ["train.ensemble=3", "train.ensemble_seed=-1"])
+    assert load_case(case, ["train.ensemble=3"]).train.learn["ensemble"] == 3
+
+
+def test_run_writes_the_spread(tmp_path: Path, capsys) -> None:
+    case = tiny_wave(tmp_path)
+    text = (case / "case.toml").read_text()
+    (case / "case.toml").write_text(text.replace('data = ["data/train.nc"]', 'data = ["data/train.nc"]\nensemble = 3'))
+    code, _, err = run_cli(capsys, "run", case)
+    assert code == 0, err
+    res = case / "results"
+    with xr.open_dataset(res / "test.nc") as ds:
+        assert {"psi", "psi_mean", "psi_std", "psi_ref"} <= set(ds.data_vars)
+        assert ds["psi_std"].dims == ds["psi"].dims
+    summary = json.loads((res / "summary.json").read_text())
+    task = summary["tasks"]["test"]
+    assert task["ensemble_members"] == 3
+    assert set(task["calibration"]) >= {"within_2std", "within_3std", "std_over_error", "slices"}
+    assert summary["train"]["ensemble"]["members"] == 3
+    pyvista = pytest.importorskip("pyvista")
+    frame = sorted(res.glob("test_*.vtr"))[1]
+    assert "psi_std" in pyvista.read(frame).point_data
+    assert (res / "test.png").is_file()
+    back = ldft.load_model(res / "model.pt")
+    assert isinstance(back, ldft.EnsembleLagrangian)
+
+
+def test_bad_calibration_warns(tmp_path: Path) -> None:
+    """A spread far below the error: the task is flagged in the record a run writes."""
+    t = np.arange(10.0)
+    ref = xr.DataArray(np.zeros(10), dims="t", coords={"t": t})
+    from latticedft._serve._ensemble import calibration_warning
+
+    cal = ldft.calibration(ref + 1.0, ref + 0.01, ref)
+    assert cal["within_2std"] == 0.0
+    assert "calibration:" in calibration_warning(cal)
+    assert calibration_warning(ldft.calibration(ref + 1.0, ref + 1.0, ref)) is None
+
+
+def test_a_member_that_stops_leaves_member_0_served(quartic: ldft.EnsembleLagrangian) -> None:
+    """A resampled member that cannot step (here: a degenerate one) stops the stacked run; member 0 is served
+    alone, and the spread covers only the slices every member reached, with a warning."""
+    broken = copy.deepcopy(quartic)
+    with torch.no_grad():
+        broken.member(2).coef.zero_()  # L_d = 0: a singular mixed Hessian from the first step
+    _, (ref,) = oscillator_data(amplitudes=(0.75,), steps=60)
+    out = ldft.serve(broken, ref)
+    assert out.complete and out.field.sizes["t"] == 60
+    np.testing.assert_array_equal(out.field.values, ldft.serve(quartic.member(0), ref).field.values)
+    assert np.isnan(out.std.values[-1]) and any(w.startswith("ensemble: the spread covers") for w in out.warnings)
+
+
+def test_members_take_member_0s_ridge() -> None:
+    train = [systems.oscillator_sin(a) for a in (1.2, 0.6)]
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 4)), members=3, seed=0)
+    report = ldft.learn(ens, train, ridge="auto")
+    assert all(ens.member(k).report_.ridge == report.ridge for k in range(3))
+
+
+def test_memory_check_counts_the_members(tmp_path: Path) -> None:
+    from latticedft._guards import check_task_memory
+    from latticedft._pipeline import check_case
+
+    case = tiny_wave(tmp_path)
+    plain = load_case(case)
+    data = check_case(plain)
+    values = 30 * 13 * 8  # the task's field in bytes
+    check_task_memory(plain, data, available=4 * values)  # field, reference, error, written copy
+    with pytest.raises(ldft.ConfigError, match="3 ensemble members"):
+        check_task_memory(load_case(case, ["train.ensemble=3"]), data, available=4 * values)
+
+
+def test_mlp_members_start_from_their_own_seeds() -> None:
+    _, train = oscillator_data(amplitudes=(0.3, 0.9), steps=40)
+    mlp = ldft.MLPLagrangian(hidden=[8], activation="tanh", form="kinetic-potential", seed=0)
+    ens = ldft.EnsembleLagrangian(mlp, members=3, seed=0)
+    ldft.learn(ens, train, max_iter=3, progress=False)
+    seeds = [ens.member(k).seed for k in range(3)]
+    assert seeds[0] == 0 and len(set(seeds)) == 3
+    weights = [torch.cat([p.detach().flatten() for p in ens.member(k).parameters()]) for k in range(3)]
+    assert not torch.allclose(weights[1], weights[2])
+    assert ens.options()["model"]["options"]["seed"] == 0  # member 0 keeps the model's own seed
