@@ -30,6 +30,7 @@ from .._models import AbstractLagrangian
 from ._batch import _serve_batch
 from ._field import _serve_field
 from ._result import ServeResult, compare, error_vs_time, invariant_vs_time
+from ._stream import SliceCallback, _serve_stream, check_every, thin_result
 
 __all__ = ["MODES", "ServeResult", "compare", "error_vs_time", "invariant_vs_time", "serve"]
 
@@ -84,6 +85,8 @@ def serve(
     affine: bool = True,
     progress: bool | None = None,
     steps: int | None = None,
+    every: int = 1,
+    on_slice: SliceCallback | None = None,
 ) -> ServeResult: ...
 
 
@@ -101,6 +104,8 @@ def serve(
     affine: bool = True,
     progress: bool | None = None,
     steps: int | None = None,
+    every: int = 1,
+    on_slice: SliceCallback | None = None,
 ) -> list[ServeResult]: ...
 
 
@@ -118,6 +123,8 @@ def serve(
     affine: bool = True,
     progress: bool | None = None,
     steps: int | None = None,
+    every: int = 1,
+    on_slice: SliceCallback | None = None,
 ) -> ServeResult | list[ServeResult]:
     """Predict a field from its first two time slices (and boundary strips) with the learned ``L_d``.
 
@@ -156,6 +163,17 @@ def serve(
         Progress bar; ``None`` shows it only on a terminal.
     steps : int, optional
         Deprecated alias of ``slices`` (the same count; a ``FutureWarning``).
+    every : int
+        Output cadence: keep only the time slices ``0, every, 2 every, ...``
+        and the last one. For ``every > 1`` an n-D field is served through a
+        rolling window of a few slices (memory bounded in the number of
+        slices); the result's field holds the kept slices with their ``t``
+        values, a coordinate ``slice(t)`` (the slice index) and the attribute
+        ``latticedft_every``; its ``extrapolation`` covers every slice. The
+        kept slices equal those of ``every=1``. ``1`` (default): every slice.
+    on_slice : callable, optional
+        ``on_slice(index, values)``, called with each kept slice (its index and
+        a NumPy array in the field's layout without time) as it is served.
 
     Returns
     -------
@@ -203,6 +221,9 @@ def serve(
         raise InputError.at("affine", f"expected True or False, got {affine!r}")
     if progress is not None and not isinstance(progress, bool):
         raise InputError.at("progress", f"expected True, False or None, got {progress!r}")
+    every = check_every(every)
+    if on_slice is not None and not callable(on_slice):
+        raise InputError.at("on_slice", f"expected a function on_slice(index, values), got {type(on_slice).__name__}")
     batch = isinstance(init, (list, tuple))
     items = list(init) if isinstance(init, (list, tuple)) else [init]
     if not items:
@@ -218,6 +239,8 @@ def serve(
     if n == 1:
         results = _serve_batch(model, fs, [_slices(slices, f) for f in fs], mode, rtol, max_newton, box, progress)
         _served_attrs(results, model)
+        if every > 1 or on_slice is not None:
+            results = [thin_result(r, every, on_slice) for r in results]
         failed = [(r, r.fail_at) for r in results if r.fail_at is not None]  # the members not complete
         if failed:
             first, (at_slice, res) = failed[0]
@@ -228,7 +251,11 @@ def serve(
     out: list[ServeResult] = []
     for f in fs:
         try:
-            out.append(_serve_field(model, f, _slices(slices, f), mode, rtol, max_newton, progress, bool(affine)))
+            if every == 1 and on_slice is None:
+                out.append(_serve_field(model, f, _slices(slices, f), mode, rtol, max_newton, progress, bool(affine)))
+            else:
+                n_f = _slices(slices, f)
+                out.append(_serve_stream(model, f, n_f, mode, rtol, max_newton, progress, affine, every, on_slice))
         except ServeError as err:
             if isinstance(err.result, ServeResult):
                 _served_attrs([err.result], model)
