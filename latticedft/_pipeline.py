@@ -158,6 +158,12 @@ def _check_task(
             raise _as_case_error(exc, f"{t.label}.boundary") from None
         raise
     check_charges(t.charges, f, f"{t.label}.charges")
+    if t.every > 1 and t.charges:
+        raise ConfigError(
+            f"case.toml: {t.label}.every: the Noether charges ({t.label}.charges) are measured on the whole "
+            "served field; give every = 1 or no charges",
+            key=f"{t.label}.every",
+        )
     missing = missing_edges(f.boundary, f.dims, nt, slices)
     if missing:
         axis, kind = missing
@@ -276,8 +282,14 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     log.info("serving %s: %d slices from %s (%s)", t.name, td.slices, t.source.name, t.mode)
     t0 = time.perf_counter()
     stopped = ""
+    kwargs = t.serve_kwargs()
+    meter = None
+    if t.every > 1:  # errors and the invariant measured on every slice as it is served
+        from ._task_stream import TaskMeter
+
+        meter = kwargs["on_slice"] = TaskMeter(td.reference, td.invariant)
     try:
-        result = serve(model, td.init, progress=None, **t.serve_kwargs())
+        result = serve(model, td.init, progress=None, **kwargs)
     except ServeError as err:
         result = err.result
         if isinstance(result, list):  # pragma: no cover - a single init gives one result
@@ -286,7 +298,11 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         stopped = str(err)  # the reason with its slice, site and residual
     wall = time.perf_counter() - t0
     pred = result.field
+    if meter is not None:
+        meter.finish()
     rec: dict[str, Any] = result.to_dict()
+    rec["every"] = t.every
+    rec["kept_slices"] = int(pred.sizes[pred.dims[0]])
     rec["stop_reason"] = None if result.complete else stopped
     for warning in result.warnings:  # the served field leaves the training range
         log.warning("task %s: %s", t.name, warning)
@@ -295,7 +311,7 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     rec["from"] = t.source.name
     rec["reference"] = None
     if td.reference is not None:
-        cmp = compare(pred, td.reference)
+        cmp = compare(pred, td.reference) if meter is None else meter.errors()
         rec.update(max_error=cmp["max_error"], rms_error=cmp["rms_error"], compared_slices=cmp["slices"])
         rec["reference"] = (t.reference or t.source).name
         if td.baseline is not None:
@@ -312,7 +328,9 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     inv = None
     if td.invariant is not None:
         try:
-            inv = td.invariant(pred)
+            if meter is not None and meter.error is not None:
+                raise meter.error
+            inv = td.invariant(pred) if meter is None else meter.invariant_series(str(pred.dims[0]))
             values = np.asarray(inv, dtype=np.float64)
             if not isinstance(inv, xr.DataArray) or inv.dims != (pred.dims[0],):
                 raise TypeError(f"expected a DataArray over {pred.dims[0]!r}, got {type(inv).__name__}")
@@ -327,6 +345,8 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         else:
             rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0]))) if finite.size else None
         rec["invariant"] = t.invariant
+        if meter is not None:  # the file holds the kept slices
+            inv = _kept(inv, pred)
     charges = task_charges(model, td, pred, rec)
     how = (
         f"{result.newton_iterations} Newton iterations"
@@ -350,5 +370,13 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         invariant=inv,
         record=rec,
         charges=charges,
-        extrapolation=result.extrapolation,
+        extrapolation=_kept(result.extrapolation, pred),
     )
+
+
+def _kept(series: xr.DataArray | None, pred: xr.DataArray) -> xr.DataArray | None:
+    """``series`` (over every slice served) on the slices ``pred`` keeps (its ``slice`` coordinate)."""
+    if series is None or "slice" not in pred.coords:
+        return series
+    tdim = pred.dims[0]
+    return series.isel({tdim: pred["slice"].values}).assign_coords({tdim: pred[tdim].values})

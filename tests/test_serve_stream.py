@@ -188,3 +188,64 @@ def test_periodic_cadence_from_two_slices():
     thin = ldft.serve(lagrangians.wave(1.0), two, boundary="periodic", slices=50, every=7)
     _assert_kept_equal(full, thin, 7)
     assert series is not None
+
+
+# -- a case task with every ------------------------------------------------------------------------------------
+
+
+def _run_wave(tmp_path, capsys, every: int):
+    import json
+
+    from case_helpers import FAST, copy_wave, run_cli
+
+    case = copy_wave(tmp_path / f"every{every}")
+    sets = ["--set", f"serve.test.every={every}", "--set", "export.formats=[]"]
+    code, _, err = run_cli(capsys, "run", case, "-q", *FAST, *sets)
+    assert code == 0, err
+    res = case / "results"
+    summary = json.loads((res / "summary.json").read_text())
+    with xr.open_dataset(res / "test.nc", engine="netcdf4", decode_times=False) as ds:
+        ds = ds.load()
+    return summary["tasks"]["test"], ds
+
+
+def test_a_case_task_with_every_keeps_the_slices_and_the_errors_of_every_1(tmp_path, capsys):
+    whole, whole_ds = _run_wave(tmp_path, capsys, 1)
+    thin, thin_ds = _run_wave(tmp_path, capsys, 7)
+    idx = _stream.kept_slices(60, 7)
+    assert (whole["every"], whole["kept_slices"]) == (1, 60)
+    assert (thin["every"], thin["kept_slices"]) == (7, len(idx))
+    assert thin_ds["slice"].values.tolist() == idx.tolist()
+    # the file holds the kept slices of the whole-field file, variable by variable
+    for name in ("psi", "psi_ref", "psi_err", "baseline_err_max", "baseline_err_rms", "extrapolation"):
+        if name in whole_ds:
+            np.testing.assert_array_equal(thin_ds[name].values, whole_ds[name].isel(t=idx).values, err_msg=name)
+    # the invariant is evaluated on windows of slices: the time step is read from each window's coordinate
+    np.testing.assert_allclose(thin_ds["invariant"].values, whole_ds["invariant"].isel(t=idx).values, rtol=1e-13)
+    assert set(thin_ds.data_vars) == set(whole_ds.data_vars)
+    # errors, invariant drift and extrapolation measured on every slice, not on the kept ones
+    assert thin["max_error"] == whole["max_error"] and thin["compared_slices"] == whole["compared_slices"]
+    assert thin["rms_error"] == pytest.approx(whole["rms_error"], rel=1e-12)  # summed in another order
+    assert thin["invariant_drift"] == pytest.approx(whole["invariant_drift"], rel=1e-9, abs=1e-15)
+    assert thin["extrapolation"] == whole["extrapolation"]
+    assert thin["baseline"] == whole["baseline"]
+
+
+def test_every_with_charges_is_refused_at_check(tmp_path, capsys):
+    from case_helpers import copy_wave, run_cli
+
+    case = copy_wave(tmp_path)
+    code, _, err = run_cli(
+        capsys, "check", case, "--set", "serve.test.every=10", "--set", 'serve.test.charges=["energy"]'
+    )
+    assert code != 0
+    assert "serve[0].every: the Noether charges" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("value", ["0", "2.5", '"ten"'])
+def test_invalid_every_in_the_case_file_is_refused(tmp_path, capsys, value):
+    from case_helpers import copy_wave, run_cli
+
+    case = copy_wave(tmp_path)
+    code, _, err = run_cli(capsys, "check", case, "--set", f"serve.test.every={value}")
+    assert code != 0 and "every" in err and "positive integer" in err

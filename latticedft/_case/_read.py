@@ -328,6 +328,7 @@ def _serve_task(ctx: _Ctx, entry: Any, i: int, root: Path, names: set[str]) -> S
         charges=tuple(s["charges"] or ()),
         label=label,
         deprecated_steps=slices_key == "steps",
+        every=s["every"],
     )
 
 

@@ -73,6 +73,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "baseline": (t_str, None),
         "invariant": (t_invariant, None),
         "charges": (t_str_list, None),
+        "every": (t_pos_int, 1),  # output cadence: keep every k-th slice (and the last)
     },
     "run": {
         "threads": (t_pos_int, None),
@@ -192,6 +193,8 @@ class ServeTask:
     label: str = "serve[0]"
     #: True when the file (or ``--set``) gave the deprecated key ``steps`` instead of ``slices``.
     deprecated_steps: bool = False
+    #: Output cadence: the task's file keeps every ``every``-th slice and the last (``serve(every=...)``).
+    every: int = 1
 
     def serve_kwargs(self) -> dict[str, Any]:
         return {
@@ -201,6 +204,7 @@ class ServeTask:
             "box": self.box,
             "rtol": self.rtol,
             "max_newton": self.max_newton,
+            "every": self.every,
         }
 
 
