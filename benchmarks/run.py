@@ -24,7 +24,17 @@ from pathlib import Path
 
 from ._common import Config, Table, machine, markdown, text
 
-BENCHMARKS = ["serve_1p1d", "serve_2p1d", "serve_1d", "train", "fidelity", "memory", "noether", "train_scale"]
+BENCHMARKS = [
+    "serve_1p1d",
+    "serve_2p1d",
+    "serve_1d",
+    "train",
+    "fidelity",
+    "memory",
+    "noether",
+    "train_scale",
+    "serve_scale",
+]
 
 
 def _load():

@@ -356,6 +356,8 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     msg = (
         f"task {t.name}: {'complete' if result.complete else 'INCOMPLETE'}, {result.slices} slices, {how}, {wall:.2f} s"
     )
+    if t.every > 1:
+        msg += f", every {t.every}: {rec['kept_slices']} slices kept"
     if "max_error" in rec:
         msg += f", max error {rec['max_error']:.3e}, rms {rec['rms_error']:.3e}"
     if "baseline" in rec:

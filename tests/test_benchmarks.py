@@ -44,7 +44,17 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         assert f"== {title}" in out, f"table {title!r} missing from:\n{out}"
     results = json.loads((tmp_path / "results.json").read_text())
     names = [b["name"] for b in results["benchmarks"]]
-    assert names == ["serve-1+1d", "serve-2+1d", "serve-1d", "train", "fidelity", "memory", "noether", "train_scale"]
+    assert names == [
+        "serve-1+1d",
+        "serve-2+1d",
+        "serve-1d",
+        "train",
+        "fidelity",
+        "memory",
+        "noether",
+        "train_scale",
+        "serve_scale",
+    ]
     assert not results["failed"]
     assert all(b["rows"] for b in results["benchmarks"])
     checks = [c for b in results["benchmarks"] for c in b["checks"]]
