@@ -263,8 +263,10 @@ class TaskOutcome:
         return attrs
 
 
-def serve_task(model: Any, td: TaskData) -> TaskOutcome:
+def serve_task(model: Any, td: TaskData, on_kept: Callable[[int, np.ndarray], Any] | None = None) -> TaskOutcome:
     """Serve one task; a Newton failure gives an incomplete outcome (with a warning), not an exception.
+
+    With ``every > 1``, ``on_kept(index, values)`` sees each kept slice as it is served.
 
     Kept in one piece (~80 lines): it is the task's record, built field by field in the order of
     summary.json; the checks and measurements it records are helpers of their own.
@@ -287,7 +289,7 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     if t.every > 1:  # errors and the invariant measured on every slice as it is served
         from ._task_stream import TaskMeter
 
-        meter = kwargs["on_slice"] = TaskMeter(td.reference, td.invariant)
+        meter = kwargs["on_slice"] = TaskMeter(td.reference, td.invariant, on_kept)
     try:
         result = serve(model, td.init, progress=None, **kwargs)
     except ServeError as err:

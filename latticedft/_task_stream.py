@@ -25,7 +25,13 @@ __all__ = ["TaskMeter"]
 class TaskMeter:
     """Errors against ``reference`` and the values of ``invariant``, measured slice by slice."""
 
-    def __init__(self, reference: xr.DataArray | None, invariant: Callable[[xr.DataArray], Any] | None):
+    def __init__(
+        self,
+        reference: xr.DataArray | None,
+        invariant: Callable[[xr.DataArray], Any] | None,
+        on_kept: Callable[[int, np.ndarray], Any] | None = None,
+    ):
+        self.on_kept = on_kept  # e.g. appends the kept slice to the task's part file
         self.reference = reference
         self.invariant = invariant
         self.max_error = 0.0
@@ -40,7 +46,9 @@ class TaskMeter:
         self.error: Exception | None = None
 
     def __call__(self, index: int, values: np.ndarray) -> None:
-        """A kept slice (nothing to do: the blocks carry every slice)."""
+        """A kept slice: handed on to ``on_kept`` (the blocks carry every slice for the measurements)."""
+        if self.on_kept is not None:
+            self.on_kept(index, values)
 
     def on_block(self, start: int, block: xr.DataArray) -> None:
         """Slices ``start .. start + len(block) - 1``, consecutive."""

@@ -249,3 +249,35 @@ def test_invalid_every_in_the_case_file_is_refused(tmp_path, capsys, value):
     case = copy_wave(tmp_path)
     code, _, err = run_cli(capsys, "check", case, "--set", f"serve.test.every={value}")
     assert code != 0 and "every" in err and "positive integer" in err
+
+
+def test_a_killed_cadenced_run_leaves_a_readable_part_file(tmp_path):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from case_helpers import FAST, copy_wave
+
+    case = copy_wave(tmp_path)
+    repo = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, LATTICEDFT_FAULT="kill:slice", OMP_NUM_THREADS="1")
+    env["PYTHONPATH"] = os.pathsep.join([str(repo), *filter(None, [os.environ.get("PYTHONPATH")])])
+    argv = ["run", case, "-q", *FAST, "--set", "serve.test.every=7", "--set", "export.formats=[]"]
+    proc = subprocess.run(
+        [sys.executable, "-m", "latticedft", *map(str, argv)], env=env, capture_output=True, text=True, check=False
+    )
+    assert proc.returncode == -9, proc.stderr[-2000:]  # killed at the first kept slice appended
+    assert not (case / "results").exists()
+    (part,) = case.glob("results.tmp-*/.test.nc.part")
+    with xr.open_dataset(part, engine="netcdf4", decode_times=False) as ds:
+        psi = ds["psi"].load()
+    assert psi["slice"].values.tolist() == [0] and psi.attrs == {} and ds.attrs["latticedft_every"] == 7
+    with xr.open_dataset(case / "data" / "test.nc", engine="netcdf4", decode_times=False) as data:
+        np.testing.assert_array_equal(psi.values[0], data["psi"].values[0])
+        np.testing.assert_array_equal(psi["x"].values, data["x"].values)
+
+
+def test_a_finished_cadenced_run_leaves_no_part_file(tmp_path, capsys):
+    _run_wave(tmp_path, capsys, 5)
+    assert not list(tmp_path.rglob("*.part"))
