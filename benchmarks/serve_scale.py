@@ -5,9 +5,9 @@
 The wave ``L_d`` (exactly quadratic: the affine recurrence serves it) on periodic 2+1D and 3+1D lattices,
 served from two slices with ``every = 100`` (every 100th slice and the last kept), each size in a fresh
 Python: its peak resident memory (``VmHWM`` reset before serving, ``benchmarks._common.PeakRSS``) and wall
-time. ``every = 1`` (the whole field held) at the smallest size, in the same run, for the ratio. About 5
-minutes on one core; ``--quick``: tiny lattices, in this process (seconds). Also run by
-``python -m benchmarks --only serve_scale``.
+time. ``every = 1`` (the whole field held) at the smallest size, in the same run, for the ratio. About 9
+minutes on a loaded core; ``--point N DIMS SLICES EVERY`` measures one size (e.g. ``--point 128 3 12 10``);
+``--quick``: tiny lattices, in this process (seconds). Also run by ``python -m benchmarks --only serve_scale``.
 """
 
 from __future__ import annotations
@@ -127,7 +127,18 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.serve_scale", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="tiny lattices in this process (seconds)")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--point",
+        nargs=4,
+        type=int,
+        metavar=("N", "DIMS", "SLICES", "EVERY"),
+        help="measure one size only (N^DIMS sites, in a fresh Python), e.g. --point 128 3 12 10",
+    )
     args = parser.parse_args(argv)
+    if args.point:
+        n, dims, slices, every = args.point
+        print(json.dumps(_fresh({"n": n, "dims": dims, "slices": slices, "every": every}, args.threads)))
+        return 0
     print(markdown(run(Config(quick=args.quick, threads=args.threads))))
     return 0
 

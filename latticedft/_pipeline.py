@@ -75,6 +75,7 @@ class CaseData:
                 + (", reference" if td.reference is not None else ", no reference")
                 + (", baseline" if td.baseline is not None else "")
                 + (f", charges {list(t.charges)}" if t.charges else "")
+                + (f", every {t.every}" if t.every > 1 else "")
                 + (f" (warning: {t.label}.steps is deprecated: write {t.label}.slices)" if t.deprecated_steps else "")
             )
         return lines
