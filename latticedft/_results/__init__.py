@@ -47,7 +47,6 @@ from ._files import write_field as write_field
 from ._files import write_model as write_model
 from ._files import write_summary as write_summary
 from ._files import write_task as write_task
-from ._part import PartFile as PartFile
 from ._safety import FAULT_ENV as FAULT_ENV
 from ._safety import FAULT_POINTS as FAULT_POINTS
 from ._safety import ResultsError as ResultsError
@@ -84,5 +83,4 @@ __all__ = [
     "write_model",
     "write_summary",
     "write_task",
-    "PartFile",
 ]
