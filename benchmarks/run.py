@@ -36,6 +36,7 @@ BENCHMARKS = [
     "serve_nd",  # n-D slice solvers against a numpy leapfrog
     "serve_fast1d",  # 1D serving in numpy against Stormer-Verlet
     "ensemble",  # the cost of an ensemble's error bar
+    "serve_scale",  # peak memory of serving with an output cadence
 ]
 
 

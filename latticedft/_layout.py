@@ -45,6 +45,7 @@ __all__ = [
     "coordinate_spacing",
     "field_spacing",
     "check_coordinate",
+    "SLICE_COORD",
     "parse_periodic",
     "axis_periodic",
     "field_periodic",
@@ -128,6 +129,11 @@ def field_spacing(da: xr.DataArray, source: str = "<array>") -> tuple[float, ...
     return tuple(out)
 
 
+#: The coordinate along time of a field that keeps some of the slices served (``serve(every=k)``): the
+#: index of each kept slice; the time coordinate is uniform per slice index.
+SLICE_COORD = "slice"
+
+
 def check_coordinate(da: xr.DataArray, dim: str, source: str) -> None:
     """Check that the coordinate of lattice dim ``dim`` is numeric, finite, uniform and increasing.
 
@@ -140,14 +146,14 @@ def check_coordinate(da: xr.DataArray, dim: str, source: str) -> None:
     c = c.astype(np.float64)
     if not np.all(np.isfinite(c)):
         raise InputError(f"{source}: coordinate '{dim}' holds NaN or inf; expected finite values")
-    steps = np.diff(c)
+    steps = np.diff(c) / _slice_steps(da, dim, source)
     lo, hi = float(steps.min()), float(steps.max())
     if lo <= 0.0:
         raise InputError(
             f"{source}: coordinate '{dim}' is not strictly increasing "
             f"(spacing ranges from {lo:.6g} to {hi:.6g}); expected uniform increasing values"
         )
-    h = (c[-1] - c[0]) / (c.size - 1)
+    h = float(steps.mean())
     # Tolerate round-off of the stored dtype (e.g. float32 coordinates).
     dtype = da.coords[dim].dtype
     eps = np.finfo(dtype if np.issubdtype(dtype, np.floating) else np.float64).eps
@@ -157,6 +163,21 @@ def check_coordinate(da: xr.DataArray, dim: str, source: str) -> None:
             f"{source}: coordinate '{dim}' is not uniformly spaced "
             f"(spacing ranges from {lo:.6g} to {hi:.6g}); expected a uniform lattice"
         )
+
+
+def _slice_steps(da: xr.DataArray, dim: str, source: str) -> np.ndarray:
+    """The steps of the lattice index along ``dim``: 1, or for the time slices kept of a field served with an
+    output cadence the steps of its ``slice`` coordinate (the coordinate is then uniform per slice index)."""
+    n = da.sizes[dim]
+    if SLICE_COORD not in da.coords or da.coords[SLICE_COORD].dims != (dim,):
+        return np.ones(max(n - 1, 0))
+    idx = np.asarray(da.coords[SLICE_COORD].values)
+    if not np.issubdtype(idx.dtype, np.integer) or idx.size < 2 or np.any(np.diff(idx) <= 0):
+        raise InputError(
+            f"{source}: coordinate '{SLICE_COORD}' along '{dim}' is not a strictly increasing integer "
+            "index; expected the kept time slices' indices"
+        )
+    return np.diff(idx).astype(np.float64)
 
 
 # -- the periodic attribute ----------------------------------------------------------------------------------

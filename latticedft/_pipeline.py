@@ -75,6 +75,7 @@ class CaseData:
                 + (", reference" if td.reference is not None else ", no reference")
                 + (", baseline" if td.baseline is not None else "")
                 + (f", charges {list(t.charges)}" if t.charges else "")
+                + (f", every {t.every}" if t.every > 1 else "")
                 + (f" (warning: {t.label}.steps is deprecated: write {t.label}.slices)" if t.deprecated_steps else "")
             )
         return lines
@@ -158,6 +159,18 @@ def _check_task(
             raise _as_case_error(exc, f"{t.label}.boundary") from None
         raise
     check_charges(t.charges, f, f"{t.label}.charges")
+    if t.every > 1 and t.charges:
+        raise ConfigError(
+            f"case.toml: {t.label}.every: the Noether charges ({t.label}.charges) are measured on the whole "
+            "served field; give every = 1 or no charges",
+            key=f"{t.label}.every",
+        )
+    if t.every > 1 and case.train.learn.get("ensemble"):
+        raise ConfigError(
+            f"case.toml: {t.label}.every: an ensemble (train.ensemble) is served whole, every member on every "
+            "slice; give every = 1 or no ensemble",
+            key=f"{t.label}.every",
+        )
     missing = missing_edges(f.boundary, f.dims, nt, slices)
     if missing:
         axis, kind = missing
@@ -274,9 +287,13 @@ class TaskOutcome:
         return attrs
 
 
-def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
+def serve_task(
+    model: Any, td: TaskData, on_kept: Callable[[int, np.ndarray], Any] | None = None, device: str = "cpu"
+) -> TaskOutcome:
     """Serve one task (the model evaluated on ``device``); a Newton failure gives an incomplete outcome (with a
     warning), not an exception.
+
+    With ``every > 1``, ``on_kept(index, values)`` sees each kept slice as it is served.
 
     Kept in one piece (~80 lines): it is the task's record, built field by field in the order of
     summary.json; the checks and measurements it records are helpers of their own.
@@ -295,8 +312,14 @@ def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
     log.info("serving %s: %d slices from %s (%s)", t.name, td.slices, t.source.name, t.mode)
     t0 = time.perf_counter()
     stopped = ""
+    kwargs = t.serve_kwargs()
+    meter = None
+    if t.every > 1:  # errors and the invariant measured on every slice as it is served
+        from ._task_stream import TaskMeter
+
+        meter = kwargs["on_slice"] = TaskMeter(td.reference, td.invariant, on_kept)
     try:
-        result = serve(model, td.init, progress=None, device=device, **t.serve_kwargs())
+        result = serve(model, td.init, progress=None, device=device, **kwargs)
     except ServeError as err:
         result = err.result
         if isinstance(result, list):  # pragma: no cover - a single init gives one result
@@ -306,7 +329,11 @@ def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
     wall = time.perf_counter() - t0
     pred = result.field
     log.debug("task %s served on %s", t.name, result.device)
+    if meter is not None:
+        meter.finish()
     rec: dict[str, Any] = result.to_dict()
+    rec["every"] = t.every
+    rec["kept_slices"] = int(pred.sizes[pred.dims[0]])
     rec["stop_reason"] = None if result.complete else stopped
     for warning in result.warnings:  # the served field leaves the training range
         log.warning("task %s: %s", t.name, warning)
@@ -315,7 +342,7 @@ def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
     rec["from"] = t.source.name
     rec["reference"] = None
     if td.reference is not None:
-        cmp = compare(pred, td.reference)
+        cmp = compare(pred, td.reference) if meter is None else meter.errors()
         rec.update(max_error=cmp["max_error"], rms_error=cmp["rms_error"], compared_slices=cmp["slices"])
         rec["reference"] = (t.reference or t.source).name
         if td.baseline is not None:
@@ -338,7 +365,9 @@ def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
     inv = None
     if td.invariant is not None:
         try:
-            inv = td.invariant(pred)
+            if meter is not None and meter.error is not None:
+                raise meter.error
+            inv = td.invariant(pred) if meter is None else meter.invariant_series(str(pred.dims[0]))
             values = np.asarray(inv, dtype=np.float64)
             if not isinstance(inv, xr.DataArray) or inv.dims != (pred.dims[0],):
                 raise TypeError(f"expected a DataArray over {pred.dims[0]!r}, got {type(inv).__name__}")
@@ -353,6 +382,8 @@ def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
         else:
             rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0]))) if finite.size else None
         rec["invariant"] = t.invariant
+        if meter is not None:  # the file holds the kept slices
+            inv = _kept(inv, pred)
     charges = task_charges(model, td, pred, rec)
     how = (
         f"{result.newton_iterations} Newton iterations"
@@ -362,6 +393,8 @@ def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
     msg = (
         f"task {t.name}: {'complete' if result.complete else 'INCOMPLETE'}, {result.slices} slices, {how}, {wall:.2f} s"
     )
+    if t.every > 1:
+        msg += f", every {t.every}: {rec['kept_slices']} slices kept"
     if "max_error" in rec:
         msg += f", max error {rec['max_error']:.3e}, rms {rec['rms_error']:.3e}"
     if "baseline" in rec:
@@ -379,7 +412,15 @@ def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
         invariant=inv,
         record=rec,
         charges=charges,
-        extrapolation=result.extrapolation,
+        extrapolation=_kept(result.extrapolation, pred),
         mean=result.mean,
         std=result.std,
     )
+
+
+def _kept(series: xr.DataArray | None, pred: xr.DataArray) -> xr.DataArray | None:
+    """``series`` (over every slice served) on the slices ``pred`` keeps (its ``slice`` coordinate)."""
+    if series is None or "slice" not in pred.coords:
+        return series
+    tdim = pred.dims[0]
+    return series.isel({tdim: pred["slice"].values}).assign_coords({tdim: pred[tdim].values})

@@ -59,6 +59,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "serve-nd",
         "serve-fast1d",
         "ensemble",
+        "serve_scale",
     ]
     assert not results["failed"]
     assert all(b["rows"] for b in results["benchmarks"])

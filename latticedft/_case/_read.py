@@ -329,6 +329,7 @@ def _serve_task(ctx: _Ctx, entry: Any, i: int, root: Path, names: set[str]) -> S
         label=label,
         deprecated_steps=slices_key == "steps",
         solver=s["solver"],
+        every=s["every"],
     )
 
 

@@ -78,6 +78,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "invariant": (t_invariant, None),
         "charges": (t_str_list, None),
         "solver": (t_choice(*SOLVERS), "auto"),
+        "every": (t_pos_int, 1),  # output cadence: keep every k-th slice (and the last)
     },
     "run": {
         "threads": (t_pos_int, None),
@@ -200,6 +201,8 @@ class ServeTask:
     deprecated_steps: bool = False
     #: the linear solver of n-D slice-Newton's steps (``serve(..., solver=...)``)
     solver: str = "auto"
+    #: Output cadence: the task's file keeps every ``every``-th slice and the last (``serve(every=...)``).
+    every: int = 1
 
     def serve_kwargs(self) -> dict[str, Any]:
         return {
@@ -210,6 +213,7 @@ class ServeTask:
             "rtol": self.rtol,
             "max_newton": self.max_newton,
             "solver": self.solver,
+            "every": self.every,
         }
 
 

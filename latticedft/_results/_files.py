@@ -136,9 +136,18 @@ def align_reference(pred: xr.DataArray, ref: xr.DataArray | None) -> xr.DataArra
         return None
     tdim = pred.dims[0]
     n = pred.sizes[tdim]
-    if ref.sizes.get(tdim, 0) < n or ref.shape[1:] != pred.shape[1:]:
+    idx = _slices_of(pred)
+    if ref.sizes.get(tdim, 0) < (int(idx[-1]) + 1 if len(idx) else n) or ref.shape[1:] != pred.shape[1:]:
         return None
-    return pred.copy(data=np.asarray(ref.values[:n], dtype=np.float64))
+    return pred.copy(data=np.asarray(ref.values[idx], dtype=np.float64))
+
+
+def _slices_of(pred: xr.DataArray) -> np.ndarray:
+    """The slice index of each of ``pred``'s slices: its ``slice`` coordinate (a field served with an output
+    cadence keeps some slices), else ``0 .. n - 1``."""
+    if "slice" in pred.coords:
+        return np.asarray(pred["slice"].values, dtype=np.int64)
+    return np.arange(pred.sizes[pred.dims[0]])
 
 
 def write_task(
@@ -202,9 +211,10 @@ def _baseline_errors(
     base = baseline.transpose(*pred.dims) if set(baseline.dims) == set(pred.dims) else baseline
     if base.shape[1:] != pred.shape[1:]:
         return {}
-    n = min(nt, base.sizes[tdim])
+    idx = _slices_of(pred)
+    n = int(np.count_nonzero(idx < base.sizes[tdim]))  # the kept slices the baseline holds
     diff = np.full(pred.shape, np.nan)
-    diff[:n] = np.asarray(base.values[:n], dtype=np.float64) - np.asarray(ref.values[:n], dtype=np.float64)
+    diff[:n] = np.asarray(base.values[idx[:n]], dtype=np.float64) - np.asarray(ref.values[:n], dtype=np.float64)
     flat = diff.reshape(nt, -1)
     with np.errstate(invalid="ignore"):
         worst = np.abs(flat).max(axis=1) if flat.shape[1] else np.full(nt, np.nan)

@@ -32,8 +32,8 @@ FAULT_ENV = "LATTICEDFT_FAULT"
 #: Named points of the fault hook: ``lock`` (the lock is held), ``stage`` (the staging folder exists),
 #: ``write`` (each model, task or JSON file written into it), ``after-stage`` (the stage's work is done, not
 #: yet published), ``mid-publish`` (between the two renames of the fallback, or after the swap before the
-#: old results are deleted).
-FAULT_POINTS = ("lock", "stage", "write", "after-stage", "mid-publish")
+#: old results are deleted), ``slice`` (each kept slice appended to a task's part file, ``[[serve]] every``).
+FAULT_POINTS = ("lock", "stage", "write", "after-stage", "mid-publish", "slice")
 
 
 class ResultsError(LatticeDFTError):

@@ -37,6 +37,7 @@ from ._ensemble import calibration, serve_ensemble
 from ._field import _serve_field
 from ._result import ServeResult, compare, error_vs_time, invariant_vs_time
 from ._solvers import SOLVERS
+from ._stream import SliceCallback, _serve_stream, check_every, thin_result
 
 __all__ = ["MODES", "SOLVERS", "ServeResult", "calibration", "compare", "error_vs_time", "invariant_vs_time", "serve"]
 
@@ -99,6 +100,8 @@ def serve(
     steps: int | None = None,
     device: str | None = None,
     solver: str = "auto",
+    every: int = 1,
+    on_slice: SliceCallback | None = None,
 ) -> ServeResult: ...
 
 
@@ -118,6 +121,8 @@ def serve(
     steps: int | None = None,
     device: str | None = None,
     solver: str = "auto",
+    every: int = 1,
+    on_slice: SliceCallback | None = None,
 ) -> list[ServeResult]: ...
 
 
@@ -137,6 +142,8 @@ def serve(
     steps: int | None = None,
     device: str | None = None,
     solver: str = "auto",
+    every: int = 1,
+    on_slice: SliceCallback | None = None,
 ) -> ServeResult | list[ServeResult]:
     """Predict a field from its first two time slices (and boundary strips) with the learned ``L_d``.
 
@@ -195,6 +202,17 @@ def serve(
         vanish, else LU in 1+1D and Krylov in more dimensions. Newton's
         convergence test is the same for all. ``ServeResult.slice_solver``
         says which one served.
+    every : int
+        Output cadence: keep only the time slices ``0, every, 2 every, ...``
+        and the last one. For ``every > 1`` an n-D field is served through a
+        rolling window of a few slices (memory bounded in the number of
+        slices); the result's field holds the kept slices with their ``t``
+        values, a coordinate ``slice(t)`` (the slice index) and the attribute
+        ``latticedft_every``; its ``extrapolation`` covers every slice. The
+        kept slices equal those of ``every=1``. ``1`` (default): every slice.
+    on_slice : callable, optional
+        ``on_slice(index, values)``, called with each kept slice (its index and
+        a NumPy array in the field's layout without time) as it is served.
 
     Returns
     -------
@@ -245,6 +263,9 @@ def serve(
     if progress is not None and not isinstance(progress, bool):
         raise InputError.at("progress", f"expected True, False or None, got {progress!r}")
     where = resolve_device(device)
+    every = check_every(every)
+    if on_slice is not None and not callable(on_slice):
+        raise InputError.at("on_slice", f"expected a function on_slice(index, values), got {type(on_slice).__name__}")
     batch = isinstance(init, (list, tuple))
     items = list(init) if isinstance(init, (list, tuple)) else [init]
     if not items:
@@ -268,8 +289,17 @@ def serve(
         progress=progress,
         solver=solver,
         where=where,
+        every=every,
+        on_slice=on_slice,
     )
-    out = serve_ensemble(model, fs, run, batch) if isinstance(model, EnsembleLagrangian) else run(model, fs)
+    if isinstance(model, EnsembleLagrangian):
+        if every > 1 or on_slice is not None:
+            raise InputError.at(
+                "every", "an ensemble is served whole (every member on every slice): give every=1 and no on_slice"
+            )
+        out = serve_ensemble(model, fs, run, batch)
+    else:
+        out = run(model, fs)
     return out if batch else out[0]
 
 
@@ -287,6 +317,8 @@ def _run(
     progress: bool | None,
     solver: str,
     where: torch.device,
+    every: int,
+    on_slice: SliceCallback | None,
 ) -> list[ServeResult]:
     """Serve the checked fields ``fs`` with ``model``; a ServeError (``result`` a list for a ``batch``) when
     one stops."""
@@ -296,6 +328,8 @@ def _run(
             results = _serve_batch(model, fs, [_slices(slices, f) for f in fs], mode, rtol, max_newton, box, progress)
         _served_attrs(results, model)
         _served_on(results, where)
+        if every > 1 or on_slice is not None:
+            results = [thin_result(r, every, on_slice) for r in results]
         failed = [(r, r.fail_at) for r in results if r.fail_at is not None]  # the members not complete
         if failed:
             first, (at_slice, res) = failed[0]
@@ -306,10 +340,14 @@ def _run(
     out: list[ServeResult] = []
     for f in fs:
         try:
+            n_f = _slices(slices, f)
             with on_device(model, where):
-                out.append(
-                    _serve_field(model, f, _slices(slices, f), mode, rtol, max_newton, progress, bool(affine), solver)
-                )
+                if every == 1 and on_slice is None:
+                    out.append(_serve_field(model, f, n_f, mode, rtol, max_newton, progress, bool(affine), solver))
+                else:
+                    out.append(
+                        _serve_stream(model, f, n_f, mode, rtol, max_newton, progress, affine, every, on_slice, solver)
+                    )
         except ServeError as err:
             if isinstance(err.result, ServeResult):
                 _served_attrs([err.result], model)

@@ -18,6 +18,7 @@ from .._case import Case
 from .._errors import InputError
 from .._pipeline import CaseData, TaskOutcome, serve_task, train_model
 from .._results import config_attrs, export_task, read_summary, read_task, write_model, write_summary, write_task
+from .._results._part import PartFile
 from ..io.exporters import remove_exports
 from ._common import INCOMPLETE, OK, command_line
 
@@ -75,7 +76,14 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
     model_warnings = model_warnings_of(model, folder)
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
-        out: TaskOutcome = serve_task(model, td, case.run.device)
+        part = (
+            PartFile(folder, td.task.name, case.field.variable, td.init, td.task.every) if td.task.every > 1 else None
+        )
+        try:
+            out: TaskOutcome = serve_task(model, td, part, case.run.device)
+        finally:
+            if part is not None:
+                part.close()
         path = write_task(
             folder,
             out.name,
@@ -93,6 +101,8 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
                 **out.spread(case.field.variable),
             },
         )
+        if part is not None:
+            part.remove()  # the whole file holds the kept slices now
         out.record["file"] = path.name
         log.debug("wrote %s", path.name)
         out.record["exports"] = export_one(folder, case, out.name, data, previous.get(out.name, ()), owners)

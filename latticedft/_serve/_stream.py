@@ -1,0 +1,399 @@
+"""Serving with an output cadence: a rolling window of slices, every ``every``-th slice kept.
+
+``serve(..., every=k)`` keeps in memory only the slices the stencil needs (a
+window of a few slices, refilled chunk by chunk) and the kept slices ``t = 0,
+k, 2k, ...`` and the last one. Each slice is solved by the same arithmetic as
+the whole-field driver (``_field``): the affine recurrence chunk by chunk with
+the same residual test, then slice-Newton (or the sweep) from the first slice
+that fails it, so the kept slices equal the whole field's. The Dirichlet
+strips are copied into the window slice by slice from the input field. The
+extrapolation record (``ServeResult.extrapolation``) covers every slice served.
+
+A callback ``on_slice(index, values)`` sees each kept slice as it is served; an
+object that also has a method ``on_block(start, block)`` sees every slice, as
+DataArrays of consecutive slices starting at slice ``start`` (the pipeline's
+error and invariant meters).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import ctypes.util
+import math
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+import xarray as xr
+
+from .._action import CellDerivatives
+from .._boundary import missing_edges
+from .._errors import InputError, ServeError
+from .._lattice import LatticeField, gather_cells
+from .._models import AbstractLagrangian
+from ._affine import _AffineSlices, _slice_residuals
+from ._newton import _newton_slice
+from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
+from ._result import ServeResult, _bar
+from ._slices import _site_label, _SliceSystem, is_singular
+from ._sweep import _sweep_slice
+
+__all__ = ["kept_slices", "check_every", "thin_result"]
+
+#: Bytes of the rolling window of new slices (at least ``_MIN_CHUNK`` slices).
+_WINDOW_BYTES = 32 * 2**20
+_MIN_CHUNK = 4
+#: Memory handed back to the system (``malloc_trim``) after this many bytes of slices served.
+_TRIM_BYTES = 128 * 2**20
+
+SliceCallback = Callable[[int, np.ndarray], Any]
+
+
+def check_every(every: Any) -> int:
+    """``every`` checked: an integer >= 1."""
+    if not isinstance(every, int) or isinstance(every, bool) or every < 1:
+        raise InputError.at("every", f"expected an integer >= 1 (keep every k-th time slice), got {every!r}")
+    return every
+
+
+def kept_slices(slices: int, every: int) -> np.ndarray:
+    """The slices kept of ``slices`` served: ``0, every, 2 every, ...`` and the last one.
+
+    >>> kept_slices(10, 4).tolist()
+    [0, 4, 8, 9]
+    """
+    idx = np.arange(0, slices, every, dtype=np.int64)
+    if slices and idx[-1] != slices - 1:
+        idx = np.append(idx, slices - 1)
+    return idx
+
+
+def _trim() -> None:
+    """Hand freed heap memory back to the system (glibc ``malloc_trim``), so that the RSS stays flat."""
+    if not sys.platform.startswith("linux"):
+        return
+    with contextlib.suppress(OSError, AttributeError):  # not glibc: nothing to trim
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+
+
+def _with_slice_coord(da: xr.DataArray, idx: np.ndarray, every: int) -> xr.DataArray:
+    """``da`` (its slices are slices ``idx`` of the served field) with the coordinate ``slice(t)``."""
+    tdim = da.dims[0]
+    da = da.assign_coords(slice=(tdim, np.asarray(idx, dtype=np.int64), {"long_name": "time slice index"}))
+    da.attrs["latticedft_every"] = int(every)
+    return da
+
+
+def thin_result(result: ServeResult, every: int, on_slice: SliceCallback | None) -> ServeResult:
+    """A whole-field result thinned to its kept slices (1D serving, where the whole field is small)."""
+    da = result.field
+    tdim = da.dims[0]
+    n = da.sizes[tdim]
+    block = getattr(on_slice, "on_block", None)
+    if block is not None:
+        block(0, da)
+    idx = kept_slices(n, every)
+    if on_slice is not None:
+        for k in idx:
+            on_slice(int(k), np.asarray(da.values[k]))
+    result.field = _with_slice_coord(da.isel({tdim: idx}), idx, every)
+    return result
+
+
+class _Stream:
+    """One n-D field served through a rolling window; the kept slices collected in one preallocated array."""
+
+    def __init__(
+        self,
+        model: AbstractLagrangian,
+        f: LatticeField,
+        steps: int,
+        mode: str,
+        every: int,
+        on_slice: SliceCallback | None,
+        progress: bool | None,
+        solver: str = "auto",
+    ):
+        self.model, self.f, self.steps, self.mode = model, f, steps, mode
+        self.on_slice = on_slice
+        self.on_block = getattr(on_slice, "on_block", None)
+        self.every = every
+        missing = missing_edges(f.boundary, f.dims, f.shape[0], steps)
+        if missing:
+            axis, kind = missing
+            raise InputError(
+                f"init: holds {f.shape[0]} time slices but the {kind.title} boundary along "
+                f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
+                "fewer slices, or a periodic boundary"
+            )
+        self.sys = sys_ = _SliceSystem(model, f)
+        m = f.ncomp
+        slice_bytes = sys_.nsite * m * 8
+        self.chunk = max(_MIN_CHUNK, _WINDOW_BYTES // max(slice_bytes, 1))
+        self.chunk = max(1, min(self.chunk, steps - 2))
+        self.buf = torch.full((self.chunk + 2, *f.shape[1:], m), math.nan, dtype=torch.float64)
+        self.flat = self.buf.reshape(self.chunk + 2, sys_.nsite, m)
+        known = np.ones(sys_.nsite, dtype=bool)
+        known[sys_.interior] = False
+        self.kidx = torch.from_numpy(np.nonzero(known)[0]) if known.any() else None
+        self.unk = torch.from_numpy(np.nonzero(sys_.interior)[0])
+        self.vol = math.prod(model.spacing)
+        self.kept = kept_slices(steps, every)
+        self.kept_values = np.empty((len(self.kept), *f.shape[1:], m))
+        self.nkept = 0
+        rng = model.trained_range()
+        self.rng = rng.to(torch.float64) if rng is not None and tuple(rng.shape[1:]) == (f.ndim + 1, m) else None
+        self.per_anchor = np.zeros((steps - 1, self.rng[0].numel())) if self.rng is not None else None
+        self.base = 0  # the slice held at buffer position 0
+        self.done = 0  # slices handed out (0 .. done - 1)
+        self.trimmed = 0
+        self.slice_bytes = slice_bytes
+        self.t0 = time.perf_counter()
+        self.total_it, self.max_it, self.worst = 0, 0, 0.0
+        self.affine_slices = 0
+        self.cache: dict[str, Any] = {"solver": solver}
+        self.before: torch.Tensor | None = None  # the slice before buffer position 0 (Newton's predictor)
+        self.bar = _bar(steps - 2, f"serve ({mode}, every {every})", progress)
+        self.buf[:2] = f.values[:2]
+
+    # -- the window ------------------------------------------------------------------------------------------
+    def fill(self, n_new: int) -> None:
+        """Positions ``2 .. n_new + 1``: NaN, with the known (Dirichlet) sites copied from the input, slice by slice."""
+        self.flat[2 : n_new + 2] = math.nan
+        if self.kidx is None:
+            return
+        m = self.f.ncomp
+        for p in range(2, n_new + 2):
+            g = self.base + p
+            self.flat[p, self.kidx] = self.f.values[g].reshape(self.sys.nsite, m)[self.kidx]
+
+    def cells_at(self, p: int) -> torch.Tensor:
+        """The cells anchored on buffer position ``p``."""
+        return gather_cells(self.buf[p : p + 2], self.model.stencil, self.f.boundary)
+
+    def emit(self, upto: int) -> None:
+        """Hand out the slices up to buffer position ``upto``: extrapolation, callbacks, the kept ones stored."""
+        first = self.done - self.base  # the first position not handed out yet
+        if upto < first:
+            return
+        if self.per_anchor is not None and self.rng is not None and upto >= 1:
+            lo = max(first - 1, 0)  # anchors lo .. upto - 1 (those before were measured already)
+            self.per_anchor[self.base + lo : self.base + upto] = _excess(
+                self.model, self.rng, self.f, self.buf[lo : upto + 1]
+            )
+        if self.on_block is not None:
+            block = self.f.with_values(self.buf[first : upto + 1], t0=self.t_of(self.base + first))
+            self.on_block(self.base + first, block.to_dataarray())
+        for p in range(first, upto + 1):
+            g = self.base + p
+            if self.nkept < len(self.kept) and self.kept[self.nkept] == g:
+                self.kept_values[self.nkept] = self.buf[p].numpy()
+                if self.on_slice is not None:
+                    v = self.kept_values[self.nkept]
+                    self.on_slice(g, v[..., 0] if self.f.components is None else v)
+                self.nkept += 1
+        self.done = self.base + upto + 1
+        if (self.done * self.slice_bytes) // _TRIM_BYTES > self.trimmed:
+            self.trimmed = (self.done * self.slice_bytes) // _TRIM_BYTES
+            _trim()
+
+    def t_of(self, g: int) -> float:
+        """The time coordinate of slice ``g`` (as the whole-field driver computes it)."""
+        t0 = float(self.f.coords[self.f.dims[0]][0])
+        return float((t0 + self.f.spacing[0] * np.arange(g + 1, dtype=np.float64))[g])
+
+    # -- solving ---------------------------------------------------------------------------------------------
+    def affine_setup(self) -> tuple[_AffineSlices, float] | None:
+        """The affine recurrence and the mixed Hessian's scale, when the DEL is affine (as ``_affine_prefix``)."""
+        sys_, m = self.sys, self.f.ncomp
+        scale = float(self.f.values[:2].abs().max()) or 1.0
+        probe = _AffineSlices.probe(self.model, sys_.st, m, scale)
+        if probe is None:
+            return None
+        hess = torch.from_numpy(probe[0])
+        ncell = int(sys_.site_of[0].size)
+        smin, mscale, _ = sys_.site_singular_values({(a, b): hess[a, b].expand(ncell, m, m) for a, b in sys_.jac})
+        if is_singular(smin, mscale):
+            return None
+        try:
+            return _AffineSlices(sys_, probe[0], probe[1]), mscale
+        except np.linalg.LinAlgError:
+            return None
+
+    def affine_chunk(self, op: _AffineSlices, n_new: int, rtol: float) -> int:
+        """Serve positions ``2 .. n_new + 1`` by the affine recurrence; how many leading ones pass the DEL test."""
+        w = n_new + 2
+        v = self.flat[:w].reshape(w, -1).numpy()
+        op.run(v, 1, n_new + 1)
+        res = _slice_residuals(self.model, self.f, self.buf[:w], 1, n_new + 1)
+        absmax = np.array([np.abs(row).max() for row in v])
+        scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), absmax[2:]).clip(1e-300)
+        good = np.isfinite(res) & (res <= rtol * self.vol * op.dmax * scl)
+        k = int(np.argmin(good)) if not good.all() else n_new
+        if k:
+            self.worst = max(self.worst, float(res[:k].max()))
+        return k
+
+    def solve(self, p: int, g_prev: torch.Tensor, rtol: float, max_newton: int) -> torch.Tensor:
+        """Solve the equations of buffer position ``p`` for position ``p + 1`` (as ``_FieldRun.solve_slice``)."""
+        flat, unk = self.flat, self.unk
+        flat[p + 1, unk] = 2 * flat[p, unk] - flat[p - 1, unk]
+        if self.mode == "newton" and self.base + p >= 2:  # the whole-field driver's predictor (``_field``)
+            older = flat[p - 2, unk] if p >= 2 else self.before[unk]  # type: ignore[index]
+            flat[p + 1, unk] += flat[p, unk] - 2 * flat[p - 1, unk] + older
+        if self.mode == "newton":
+            it, res, g_prev, err = _newton_slice(
+                self.model,
+                self.sys,
+                self.buf,
+                flat,
+                unk,
+                p,
+                g_prev,
+                self.vol,
+                rtol,
+                max_newton,
+                self.cells_at,
+                self.cache,
+            )
+        else:
+            it, res, g_prev, err = _sweep_slice(
+                self.model, self.sys, self.buf, flat, p, self.vol, rtol, max_newton, self.f
+            )
+        self.total_it += it
+        self.max_it = max(self.max_it, it)
+        self.worst = max(self.worst, res)
+        if err is not None:
+            msg, row, rval = err
+            raise self.fail(p, msg, row, rval)
+        self.bar.update(1)
+        return g_prev
+
+    # -- the result ------------------------------------------------------------------------------------------
+    def solver(self) -> str:
+        if self.mode == "sweep":
+            return "sweep"
+        if not self.affine_slices:
+            return "newton"
+        return "affine" if self.affine_slices >= self.steps - 2 else "affine+newton"
+
+    def result(self, nt: int, complete: bool, reason: str, rate: float, residual: float) -> ServeResult:
+        """The result over the ``nt`` slices served: the kept ones (the last slice among them)."""
+        n = self.nkept
+        idx = self.kept[:n]
+        values = self.kept_values[:n]
+        if n and idx[-1] != nt - 1:  # stopped early: the last slice served is kept too
+            last = self.buf[nt - 1 - self.base].numpy()[None]
+            idx, values = np.append(idx, nt - 1), np.concatenate([values, last])
+        f = self.f
+        da = f.with_values(torch.from_numpy(values)).to_dataarray()
+        tdim = f.dims[0]
+        t_all = f.coords[tdim][0] + f.spacing[0] * np.arange(nt, dtype=np.float64)
+        da = da.assign_coords({tdim: (tdim, t_all[idx], dict(da[tdim].attrs))})
+        da = _with_slice_coord(da, idx, self.every)
+        ext = None
+        if self.per_anchor is not None and nt >= 2:
+            per_slice = np.zeros((nt, self.per_anchor.shape[1]))
+            per_slice[:-1] = self.per_anchor[: nt - 1]
+            per_slice[1:] = np.maximum(per_slice[1:], self.per_anchor[: nt - 1])
+            ext = xr.DataArray(
+                per_slice,
+                dims=(tdim, "feature"),
+                coords={tdim: t_all, "feature": feature_labels(self.model, f.dims, f.components)},
+                name="extrapolation",
+                attrs={
+                    "long_name": "excess of the stencil inputs beyond the training range, relative to its span",
+                    "tolerance": EXTRAPOLATION_TOL,
+                },
+            )
+        warning = extrapolation_warning(ext)
+        return ServeResult(
+            field=da,
+            complete=complete,
+            reason=reason,
+            slices=nt,
+            newton_iterations=self.total_it,
+            max_newton_iterations=self.max_it,
+            wall_time=time.perf_counter() - self.t0,
+            sites_per_second=rate,
+            max_residual=residual,
+            mode=self.mode,
+            solver=self.solver(),
+            slice_solver="+".join(self.cache.get("used", [])) or None,
+            extrapolation=ext,
+            warnings=[warning] if warning else [],
+        )
+
+    def fail(self, p: int, msg: str, row: int | None, res: float) -> ServeError:
+        """The error for position ``p``'s equations failing, holding the kept slices up to there."""
+        from ._field import _site_text
+
+        self.bar.close()
+        i = self.base + p
+        self.emit(p)
+        wall = time.perf_counter() - self.t0
+        solved = (i + 1 - 2) * self.sys.n
+        result = self.result(i + 1, False, msg, solved / wall if wall > 0 else 0.0, res)
+        site = _site_label(self.f, self.sys, i, row) if row is not None else None
+        tval = float(self.f.coords[self.f.dims[0]][0] + (i + 1) * self.f.spacing[0])
+        text = (
+            f"slice {i + 1} (t = {tval:.6g}): {msg}"
+            + (f" in the DEL equation of site {_site_text(self.f, site)}" if site else "")
+            + (f", residual {res:.3e}" if math.isfinite(res) else "")
+        )
+        return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
+
+
+def _serve_stream(
+    model: AbstractLagrangian,
+    f: LatticeField,
+    steps: int,
+    mode: str,
+    rtol: float,
+    max_newton: int,
+    progress: bool | None,
+    affine: bool,
+    every: int,
+    on_slice: SliceCallback | None,
+    solver: str = "auto",
+) -> ServeResult:
+    """Serve one n-D field through a rolling window, keeping every ``every``-th slice and the last."""
+    run = _Stream(model, f, steps, mode, every, on_slice, progress, solver)
+    setup = run.affine_setup() if mode == "newton" and affine and steps > 2 else None
+    on_affine = setup is not None
+    g_prev: Any = None if on_affine else CellDerivatives(model, run.cells_at(0)).grad
+    run.emit(1)
+    while run.base + 2 < steps:
+        n_new = min(run.chunk, steps - run.base - 2)
+        run.fill(n_new)
+        start = 1  # the first position whose equations Newton (or the sweep) solves
+        if setup is not None and on_affine:
+            op, mscale = setup
+            k = run.affine_chunk(op, n_new, rtol)
+            run.affine_slices += k
+            run.bar.update(k)
+            start = 1 + k
+            if k < n_new:  # Newton takes over from the first slice the recurrence fails
+                on_affine = False
+                if run.affine_slices:
+                    run.total_it, run.max_it = run.affine_slices, 1
+                    run.cache["dmax"], run.cache["mscale"] = op.dmax, mscale
+                g_prev = CellDerivatives(model, run.cells_at(start - 1)).grad
+        for p in range(start, n_new + 1):
+            g_prev = run.solve(p, g_prev, rtol, max_newton)
+        run.emit(n_new + 1)
+        if run.base + n_new + 2 >= steps:
+            break
+        run.before = run.flat[n_new - 1].clone()
+        run.buf[:2] = run.buf[n_new : n_new + 2].clone()
+        run.base += n_new
+    run.bar.close()
+    wall = time.perf_counter() - run.t0
+    solved = (steps - 2) * run.sys.n
+    if on_affine and run.affine_slices:
+        run.total_it, run.max_it = run.affine_slices, 1
+    return run.result(steps, True, "complete", solved / wall if wall > 0 else math.inf, run.worst)
