@@ -8,7 +8,7 @@ new solutions by solving those equations slice by slice — a variational
 
 >>> import latticedft as ldft
 >>> sorted(ldft.MODELS)
-['mlp', 'polynomial']
+['features', 'mlp', 'polynomial']
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ _PUBLIC: dict[str, str] = {
     "PRESETS": "._models",
     "AbstractLagrangian": "._models",
     "AnalyticLagrangian": "._models",
+    "FeatureLagrangian": "._models",
     "LinearLagrangian": "._models",
     "MLPLagrangian": "._models",
     "PolynomialLagrangian": "._models",
@@ -52,6 +53,8 @@ _PUBLIC: dict[str, str] = {
     "noether_charges": "._noether",
     "relative_drift": "._noether",
     "symmetries": "._noether",
+    "SelectionReport": "._select",
+    "select": "._select",
     "ServeResult": "._serve",
     "compare": "._serve",
     "error_vs_time": "._serve",
@@ -108,6 +111,7 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._models import PRESETS as PRESETS
     from ._models import AbstractLagrangian as AbstractLagrangian
     from ._models import AnalyticLagrangian as AnalyticLagrangian
+    from ._models import FeatureLagrangian as FeatureLagrangian
     from ._models import LinearLagrangian as LinearLagrangian
     from ._models import MLPLagrangian as MLPLagrangian
     from ._models import PolynomialLagrangian as PolynomialLagrangian
@@ -121,6 +125,8 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._noether import noether_charges as noether_charges
     from ._noether import relative_drift as relative_drift
     from ._noether import symmetries as symmetries
+    from ._select import SelectionReport as SelectionReport
+    from ._select import select as select
     from ._serve import ServeResult as ServeResult
     from ._serve import compare as compare
     from ._serve import error_vs_time as error_vs_time

@@ -65,6 +65,8 @@ class LearnReport:
     gauge_scores: dict[str, float] = field(default_factory=dict)
     #: ``gauge="auto"``: why ``gauge`` was chosen, in words.
     gauge_choice: str = ""
+    #: ``select``: the candidate table and the choice (see ``latticedft.select``), else None.
+    selection: dict[str, Any] | None = None
 
     def summary_line(self) -> str:
         auto = f", gauge {self.gauge} (auto: {self.gauge_choice})" if self.gauge_requested == "auto" else ""
@@ -83,6 +85,8 @@ class LearnReport:
         d["history"] = [list(h) for h in self.history]
         if self.symmetries is None:
             del d["symmetries"]
+        if self.selection is None:
+            del d["selection"]
         return d
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from ._analytic import AnalyticLagrangian
 from ._base import AbstractLagrangian
+from ._features import FeatureLagrangian
 from ._linear import LinearLagrangian
 from ._mlp import (
     PRESETS,
@@ -21,11 +22,13 @@ from ._polynomial import PolynomialLagrangian
 MODELS: dict[str, type[AbstractLagrangian]] = {
     "polynomial": PolynomialLagrangian,
     "mlp": MLPLagrangian,  # type: ignore[type-abstract]  # abstract, but its __new__ builds the concrete form class
+    "features": FeatureLagrangian,
 }
 
 __all__ = [
     "AbstractLagrangian",
     "AnalyticLagrangian",
+    "FeatureLagrangian",
     "FreeMLPLagrangian",
     "KineticPotentialMLPLagrangian",
     "LinearLagrangian",
