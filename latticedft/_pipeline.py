@@ -203,9 +203,13 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
     from ._learn import learn
 
     model = case.model.build(len(data.dims))
-    log.info("training %s model on %d field(s) ...", case.model.kind, len(data.train))
     try:
-        report = learn(model, data.train, boundary=case.train.boundary, progress=None, **case.train.learn)
+        if case.model.select is not None:
+            model = _select_model(case, data, model)
+            report = model.report_
+        else:
+            log.info("training %s model on %d field(s) ...", case.model.kind, len(data.train))
+            report = learn(model, data.train, boundary=case.train.boundary, progress=None, **case.train.learn)
     except InputError as exc:
         if exc.key is not None and exc.key in case.train.learn:
             raise _as_case_error(exc, f"train.{exc.key}") from None
@@ -219,6 +223,25 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
     for warning in report.warnings:  # a degenerate M, a poor fit (thresholds in docs/outputs.md)
         log.warning("%s", warning)
     return model, report
+
+
+def _select_model(case: Case, data: CaseData, model: Any) -> Any:
+    """``[model] select``: score the candidates by serving held-out data (table to the log); the chosen model,
+    learned on all the data."""
+    from ._select import select
+
+    candidates = case.model.select if isinstance(case.model.select, str) else list(case.model.select or ())
+    log.info("selecting a model by serving held-out data (select = %s) ...", "auto" if candidates == "auto" else "list")
+    try:
+        sel = select(model, data.train, candidates, boundary=case.train.boundary, **case.train.learn)
+    except InputError as exc:
+        if exc.key == "candidates":
+            raise ConfigError(f"case.toml: model.select: {exc.problem}", key="model.select") from None
+        raise
+    for line in sel.table_lines():
+        log.info("  %s", line)
+    log.info("selection: %s", sel.reason)
+    return sel.model
 
 
 @dataclass
