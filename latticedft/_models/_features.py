@@ -178,7 +178,11 @@ class FeatureLagrangian(LinearLagrangian):
         for entry in self.library:
             if callable(entry):
                 out = entry(mean)
-                if not isinstance(out, torch.Tensor) or out.shape[: mean.dim() - 1] != mean.shape[:-1]:
+                if (
+                    not isinstance(out, torch.Tensor)
+                    or out.dim() not in (mean.dim() - 1, mean.dim())
+                    or out.shape[: mean.dim() - 1] != mean.shape[:-1]
+                ):
                     raise InputError.at(
                         "features",
                         f"{_name_of(entry)} returned {getattr(out, 'shape', type(out).__name__)}; expected a tensor "
