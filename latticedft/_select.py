@@ -38,7 +38,8 @@ class SelectionReport:
 
     ``rows[i]`` holds ``label`` (the candidate's settings in words), ``kind``, ``options``, ``ridge``,
     ``score`` (the largest error of the served held-out fields over the field's largest magnitude; ``inf``
-    for a failed fit or serve), ``status`` (``"ok"`` or why it failed) and ``wall_time`` (s).
+    for a failed fit or serve), ``status`` (``"ok"`` or why it failed), ``n_parameters`` (None when the fit
+    failed) and ``wall_time`` (s).
     """
 
     rows: list[dict[str, Any]]
@@ -178,8 +179,9 @@ def select(
     field's time slices, then serves each whole field from its first two slices (and, on Dirichlet axes,
     its boundary strips). Its score is the largest served error over the field's largest magnitude, worst
     field first; a fit that fails, a serve that stops or a non-finite field scores ``inf``. The best
-    candidate replaces the hand-set model only when its score is ``factor`` times smaller; when every
-    candidate fails the hand-set model is kept with a warning.
+    candidate is the one with the fewest parameters among those within ``factor`` of the lowest score; it
+    replaces the hand-set model only when its score is ``factor`` times smaller than the hand-set one's; when
+    every candidate fails the hand-set model is kept with a warning.
 
     Parameters
     ----------
@@ -241,8 +243,10 @@ def select(
     for _, fresh, r, row in specs:
         trial = copy.deepcopy(fresh)
         t0 = time.perf_counter()
+        n_parameters = None
         try:
             learn(trial, held, boundary=boundary, ridge=r, progress=False, **learn_kwargs)
+            n_parameters = trial.n_parameters()
             score, status = _score(trial, fields, boundary), "ok"
             if not math.isfinite(score):
                 status = "served field not finite"
@@ -250,9 +254,20 @@ def select(
             score, status = math.inf, f"serve stopped: {_short(exc)}"
         except LatticeDFTError as exc:
             score, status = math.inf, f"{type(exc).__name__}: {_short(exc)}"
-        rows.append({**row, "score": score, "status": status, "wall_time": time.perf_counter() - t0})
+        rows.append(
+            {
+                **row,
+                "score": score,
+                "status": status,
+                "n_parameters": n_parameters,
+                "wall_time": time.perf_counter() - t0,
+            }
+        )
     scores = [r["score"] for r in rows]
-    best = int(np.argmin(scores))
+    lowest = min(scores)
+    # among the candidates within the factor of the lowest score, the one with the fewest parameters
+    near = [i for i, sc in enumerate(scores) if math.isfinite(sc) and sc <= factor * lowest]
+    best = min(near, key=lambda i: (rows[i]["n_parameters"], scores[i])) if near else int(np.argmin(scores))
     warnings = []
     if not math.isfinite(scores[best]):
         chosen = 0
