@@ -198,7 +198,8 @@ def select(
     factor : float
         How much better (>= 1) a candidate must score to replace the hand-set model.
     boundary, **learn_kwargs
-        Passed to :func:`latticedft.learn` (and ``boundary`` to :func:`latticedft.serve`).
+        Passed to :func:`latticedft.learn` (and ``boundary`` to :func:`latticedft.serve`); ``symmetries``
+        only to the final fit.
 
     Returns
     -------
@@ -245,7 +246,7 @@ def select(
         t0 = time.perf_counter()
         n_parameters = None
         try:
-            learn(trial, held, boundary=boundary, ridge=r, progress=False, **learn_kwargs)
+            learn(trial, held, boundary=boundary, ridge=r, progress=False, **{**learn_kwargs, "symmetries": False})
             n_parameters = trial.n_parameters()
             score, status = _score(trial, fields, boundary), "ok"
             if not math.isfinite(score):
