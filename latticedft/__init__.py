@@ -8,7 +8,7 @@ new solutions by solving those equations slice by slice — a variational
 
 >>> import latticedft as ldft
 >>> sorted(ldft.MODELS)
-['mlp', 'polynomial']
+['features', 'mlp', 'polynomial']
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ _PUBLIC: dict[str, str] = {
     "AbstractLagrangian": "._models",
     "AnalyticLagrangian": "._models",
     "EnsembleLagrangian": "._models",
+    "FeatureLagrangian": "._models",
     "LinearLagrangian": "._models",
     "MLPLagrangian": "._models",
     "PolynomialLagrangian": "._models",
@@ -54,6 +55,8 @@ _PUBLIC: dict[str, str] = {
     "noether_charges": "._noether",
     "relative_drift": "._noether",
     "symmetries": "._noether",
+    "SelectionReport": "._select",
+    "select": "._select",
     "ServeResult": "._serve",
     "calibration": "._serve",
     "compare": "._serve",
@@ -113,6 +116,7 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._models import AbstractLagrangian as AbstractLagrangian
     from ._models import AnalyticLagrangian as AnalyticLagrangian
     from ._models import EnsembleLagrangian as EnsembleLagrangian
+    from ._models import FeatureLagrangian as FeatureLagrangian
     from ._models import LinearLagrangian as LinearLagrangian
     from ._models import MLPLagrangian as MLPLagrangian
     from ._models import PolynomialLagrangian as PolynomialLagrangian
@@ -126,6 +130,8 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._noether import noether_charges as noether_charges
     from ._noether import relative_drift as relative_drift
     from ._noether import symmetries as symmetries
+    from ._select import SelectionReport as SelectionReport
+    from ._select import select as select
     from ._serve import ServeResult as ServeResult
     from ._serve import calibration as calibration
     from ._serve import compare as compare

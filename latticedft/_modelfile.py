@@ -24,6 +24,11 @@ def model_record(model: AbstractLagrangian, gauge: str = "unit-mass") -> dict[st
         raise InputError.at("model", f"expected a latticedft model, got {type(model).__name__}")
     if not model.saveable:
         raise ModelFileError(f"model: a {type(model).__name__} cannot be written to a model file")
+    if getattr(model, "has_functions", False):
+        raise ModelFileError(
+            "model: its feature library holds Python functions, which a model file cannot store; "
+            "use the named features ('poly:K', 'trig:K', 'trig:K:w') to save it"
+        )
     model._require_bound()
     return {
         "format": "latticedft-model",

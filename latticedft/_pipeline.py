@@ -216,11 +216,19 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
     from ._learn import learn
 
     model = case.model.build(len(data.dims))
-    log.info("training %s model on %d field(s) ...", case.model.kind, len(data.train))
     try:
-        report = learn(
-            model, data.train, boundary=case.train.boundary, progress=None, device=case.run.device, **case.train.learn
-        )
+        if case.model.select is not None:
+            model, report = _select_and_learn(case, data, model)
+        else:
+            log.info("training %s model on %d field(s) ...", case.model.kind, len(data.train))
+            report = learn(
+                model,
+                data.train,
+                boundary=case.train.boundary,
+                progress=None,
+                device=case.run.device,
+                **case.train.learn,
+            )
     except InputError as exc:
         if exc.key is not None and exc.key in case.train.learn:
             raise _as_case_error(exc, f"train.{exc.key}") from None
@@ -240,6 +248,40 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
     for warning in report.warnings:  # a degenerate M, a poor fit (thresholds in docs/outputs.md)
         log.warning("%s", warning)
     return model, report
+
+
+def _select_and_learn(case: Case, data: CaseData, model: Any) -> tuple[Any, Any]:
+    """``[model] select``: score the candidates by serving held-out data (table to the log); the chosen model,
+    learned on all the data. With ``[train] ensemble`` the candidates are scored as single models and the chosen
+    one is then learned as the ensemble's member 0 (its report keeps the selection table and warnings)."""
+    from ._learn import learn
+    from ._select import select
+
+    learn_kw = dict(case.train.learn)
+    ens = {k: learn_kw.pop(k) for k in ("ensemble", "ensemble_seed") if k in learn_kw}
+    candidates = case.model.select if isinstance(case.model.select, str) else list(case.model.select or ())
+    log.info("selecting a model by serving held-out data (select = %s) ...", "auto" if candidates == "auto" else "list")
+    try:
+        sel = select(model, data.train, candidates, boundary=case.train.boundary, device=case.run.device, **learn_kw)
+    except InputError as exc:
+        if exc.key == "candidates":
+            raise ConfigError(f"case.toml: model.select: {exc.problem}", key="model.select") from None
+        raise
+    for line in sel.table_lines():
+        log.info("  %s", line)
+    log.info("selection: %s", sel.reason)
+    chosen: Any = sel.model
+    report = chosen.report_
+    if ens.get("ensemble"):
+        selection, warnings = report.selection, list(report.warnings)
+        learn_kw["ridge"] = report.ridge
+        report = learn(
+            chosen, data.train, boundary=case.train.boundary, progress=None, device=case.run.device, **learn_kw, **ens
+        )
+        report.selection = selection
+        report.warnings[:0] = [w for w in warnings if w not in report.warnings]
+        chosen.report_ = report
+    return chosen, report
 
 
 @dataclass

@@ -16,7 +16,7 @@ from typing import Any
 
 from .._errors import ConfigError, LatticeDFTError
 from .._models import MODELS
-from ._checks import _Bad, t_stencil, t_str
+from ._checks import _Bad, t_ridge, t_stencil, t_str
 from ._schema import (
     _REQUIRED,
     _SLICES_ALIASES,
@@ -222,6 +222,44 @@ def _validate(raw: dict[str, Any], root: Path, file: Path, overrides: tuple[str,
     )
 
 
+def _select_config(ctx: _Ctx, value: Any, kind: str) -> str | tuple[dict[str, Any], ...]:
+    """``[model] select``: ``"auto"`` or a list of candidate tables (a ``kind``, ``ridge`` and model options)."""
+    if value == "auto":
+        return "auto"
+    if not isinstance(value, list) or not value or not all(isinstance(c, dict) for c in value):
+        raise ctx.error(
+            "model.select",
+            f'expected "auto" or a list of candidate tables, e.g. [{{orders = [2, 2]}}], got {_describe(value)}',
+        )
+    out = []
+    for i, cand in enumerate(value):
+        where = f"model.select[{i}]"
+        ckind = ctx.check(f"{where}.kind", t_str, cand.get("kind", kind))
+        if ckind not in MODELS:
+            raise ctx.error(f"{where}.kind", f"unknown model kind {ckind!r}{_closest(ckind, sorted(MODELS))}")
+        valid = model_options(ckind)
+        checked: dict[str, Any] = {"kind": ckind} if "kind" in cand else {}
+        for key, v in cand.items():
+            if key == "kind":
+                continue
+            if key == "ridge":
+                checked[key] = ctx.check(f"{where}.ridge", t_ridge, v)
+            elif key in valid:
+                checked[key] = ctx.check(f"{where}.{key}", model_option_check(ckind, key), v)
+            else:
+                keys = ["kind", "ridge", *valid]
+                raise ctx.error(
+                    f"{where}.{key}",
+                    f"unknown key of a {ckind!r} candidate{_closest(key, keys)} (valid: {', '.join(keys)})",
+                )
+        try:
+            MODELS[ckind](**{k: v for k, v in checked.items() if k not in ("kind", "ridge")})
+        except LatticeDFTError as exc:
+            raise ctx.error(f"{where}.{exc.key}" if exc.key else where, exc.problem) from None
+        out.append(checked)
+    return tuple(out)
+
+
 def _model_config(ctx: _Ctx, raw: dict[str, Any]) -> ModelConfig:
     """``[model]``: the kind, its options (types from the constructor) and the stencil."""
     mraw = raw.get("model", {})
@@ -236,7 +274,7 @@ def _model_config(ctx: _Ctx, raw: dict[str, Any]) -> ModelConfig:
     valid = model_options(kind)
     options: dict[str, Any] = {}
     for key, value in mraw.items():
-        if key in ("kind", "stencil"):
+        if key in ("kind", "stencil", "select"):
             continue
         if key not in valid:
             keys = ["kind", "stencil", *valid]
@@ -248,7 +286,8 @@ def _model_config(ctx: _Ctx, raw: dict[str, Any]) -> ModelConfig:
             )
         options[key] = ctx.check(f"model.{key}", model_option_check(kind, key), value)
     stencil = ctx.check("model.stencil", t_stencil, mraw["stencil"]) if "stencil" in mraw else None
-    model_cfg = ModelConfig(kind=kind, options=options, stencil=stencil)
+    select = _select_config(ctx, mraw["select"], kind) if "select" in mraw else None
+    model_cfg = ModelConfig(kind=kind, options=options, stencil=stencil, select=select)
     try:  # the class's own checks of its options (e.g. an unknown activation), before any data are read
         MODELS[kind](**options)
     except LatticeDFTError as exc:

@@ -144,6 +144,8 @@ class ModelConfig:
     kind: str = "polynomial"
     options: dict[str, Any] = field(default_factory=dict)
     stencil: str | list[list[int]] | None = None
+    #: ``select``: ``"auto"`` or candidate tables (option changes, ``kind``, ``ridge``); None: no selection.
+    select: str | tuple[dict[str, Any], ...] | None = None
 
     def build(self, n: int) -> AbstractLagrangian:
         """A fresh model for an ``n``-dimensional lattice (raises ConfigError on bad options)."""

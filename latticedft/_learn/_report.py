@@ -70,6 +70,8 @@ class LearnReport:
     #: ``learn`` of an ensemble (:class:`latticedft.EnsembleLagrangian`): members, seed, the number of time
     #: windows resampled, every member's ``rel_res`` (member 0 first) and their total wall time; else None.
     ensemble: dict[str, Any] | None = None
+    #: ``select``: the candidate table and the choice (see ``latticedft.select``), else None.
+    selection: dict[str, Any] | None = None
 
     def summary_line(self) -> str:
         auto = f", gauge {self.gauge} (auto: {self.gauge_choice})" if self.gauge_requested == "auto" else ""
@@ -90,6 +92,8 @@ class LearnReport:
             del d["symmetries"]
         if self.ensemble is None:
             del d["ensemble"]
+        if self.selection is None:
+            del d["selection"]
         return d
 
 

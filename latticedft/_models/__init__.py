@@ -9,6 +9,7 @@ from __future__ import annotations
 from ._analytic import AnalyticLagrangian
 from ._base import AbstractLagrangian
 from ._ensemble import EnsembleLagrangian
+from ._features import FeatureLagrangian
 from ._linear import LinearLagrangian
 from ._mlp import (
     PRESETS,
@@ -22,12 +23,14 @@ from ._polynomial import PolynomialLagrangian
 MODELS: dict[str, type[AbstractLagrangian]] = {
     "polynomial": PolynomialLagrangian,
     "mlp": MLPLagrangian,  # type: ignore[type-abstract]  # abstract, but its __new__ builds the concrete form class
+    "features": FeatureLagrangian,
 }
 
 __all__ = [
     "AbstractLagrangian",
     "AnalyticLagrangian",
     "EnsembleLagrangian",
+    "FeatureLagrangian",
     "FreeMLPLagrangian",
     "KineticPotentialMLPLagrangian",
     "LinearLagrangian",

@@ -1,0 +1,298 @@
+"""Model selection by serving: each candidate learns from the first part of every training field and serves the
+whole field from its first two slices (and its boundary strips); the smallest error wins."""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from ._errors import InputError, LatticeDFTError, ServeError
+from ._lattice import BoundaryKinds
+from ._learn import learn
+from ._learn._data import as_fields
+from ._models import MODELS, AbstractLagrangian
+from ._serve import serve
+
+__all__ = ["SelectionReport", "select", "auto_candidates", "HOLD_OUT", "FACTOR"]
+
+#: The fraction of every training field's slices that no candidate learns from (its served error is the score).
+HOLD_OUT = 0.3
+#: A candidate replaces the hand-set model only when its score is below the hand-set score by this factor.
+FACTOR = 2.0
+#: Orders of the polynomial candidates of ``"auto"`` (beside the hand-set ones).
+AUTO_ORDERS = ((2, 2), (2, 4), (4, 4), (4, 8), (2, 8), (4, 12))
+#: Feature libraries of the ``"auto"`` candidates of a 1D field.
+AUTO_LIBRARIES = (("trig:1",), ("trig:2",), ("poly:4", "trig:1"))
+
+
+@dataclass
+class SelectionReport:
+    """What :func:`select` measured: one row per candidate (the hand-set model first), and the choice.
+
+    ``rows[i]`` holds ``label`` (the candidate's settings in words), ``kind``, ``options``, ``ridge``,
+    ``score`` (the largest error of the served held-out fields over the field's largest magnitude; ``inf``
+    for a failed fit or serve), ``status`` (``"ok"`` or why it failed), ``n_parameters`` (None when the fit
+    failed) and ``wall_time`` (s).
+    """
+
+    rows: list[dict[str, Any]]
+    chosen: int
+    reason: str
+    hold_out: float
+    factor: float
+    warnings: list[str] = field(default_factory=list)
+    #: The chosen candidate, learned on the whole of every training field.
+    model: AbstractLagrangian | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-compatible (scores of failed candidates as ``None``)."""
+        rows = [{**r, "score": r["score"] if math.isfinite(r["score"]) else None} for r in self.rows]
+        return {
+            "candidates": rows,
+            "chosen": self.chosen,
+            "chosen_label": self.rows[self.chosen]["label"],
+            "reason": self.reason,
+            "hold_out": self.hold_out,
+            "factor": self.factor,
+            "warnings": list(self.warnings),
+        }
+
+    def table_lines(self) -> list[str]:
+        """The candidate table, one line per candidate; the chosen one marked ``*``."""
+        lines = [f"{'':2}{'score':>10}  {'time':>7}  candidate"]
+        for i, r in enumerate(self.rows):
+            score = f"{r['score']:10.3e}" if math.isfinite(r["score"]) else f"{'failed':>10}"
+            note = "" if r["status"] == "ok" else f"  ({r['status']})"
+            lines.append(f"{'*' if i == self.chosen else ' ':2}{score}  {r['wall_time']:6.1f}s  {r['label']}{note}")
+        return lines
+
+
+def _label(change: Mapping[str, Any] | AbstractLagrangian) -> str:
+    """The candidate in words: its changes to the hand-set settings (``"hand-set"`` for none)."""
+    if isinstance(change, AbstractLagrangian):
+        return f"{change.kind}({', '.join(f'{k}={v!r}' for k, v in change.options().items())})"
+    return ", ".join(f"{k}={v!r}" for k, v in change.items()) or "hand-set"
+
+
+def auto_candidates(model: AbstractLagrangian, n: int, ridge: Any = 0.0) -> list[dict[str, Any]]:
+    """The candidates of ``"auto"`` for a hand-set model on an ``n``-dimensional lattice, as option changes.
+
+    Polynomial: the orders of :data:`AUTO_ORDERS`, time symmetry and input scaling flipped, ``ridge="auto"``,
+    and on a 1D lattice the feature libraries of :data:`AUTO_LIBRARIES` (``kind = "features"``, the hand-set
+    degree in the differences). Feature library: the same libraries, differences 2 and 4, time symmetry and
+    scaling flipped, ``ridge="auto"``. MLP: input scaling flipped.
+    """
+    opts = model.options()
+    out: list[dict[str, Any]] = []
+    if model.kind in ("polynomial", "features"):
+        if model.kind == "polynomial":
+            out += [{"orders": list(o)} for o in AUTO_ORDERS]
+            p = int(opts["orders"][0])
+        else:
+            out += [{"differences": d} for d in (2, 4)]
+            p = int(opts["differences"])
+        out += [{"time_symmetric": not opts["time_symmetric"]}, {"scale": not opts["scale"]}]
+        if ridge != "auto":
+            out.append({"ridge": "auto"})
+        if n == 1:
+            out += [{"kind": "features", "features": list(lib), "differences": max(p, 2)} for lib in AUTO_LIBRARIES]
+    elif "scale" in opts:
+        out.append({"scale": not opts["scale"]})
+    return out
+
+
+def _spec(model: AbstractLagrangian, change: Mapping[str, Any], ridge: Any) -> tuple[str, dict[str, Any], Any]:
+    """``(kind, options, ridge)`` of the hand-set model with ``change`` applied (a new kind starts from its
+    defaults)."""
+    change = dict(change)
+    new_ridge = change.pop("ridge", ridge)
+    kind = change.pop("kind", model.kind)
+    if kind not in MODELS:
+        raise InputError.at("candidates", f"unknown model kind {kind!r} (expected one of {sorted(MODELS)})")
+    options = {**(model.options() if kind == model.kind else {}), **change}
+    if kind == "mlp" and options.get("preset") is not None:  # a preset fills the rest; keep only what was set
+        options = {k: v for k, v in options.items() if k == "preset" or k in change}
+    return kind, options, new_ridge
+
+
+def _build(model: AbstractLagrangian, kind: str, options: dict[str, Any]) -> AbstractLagrangian:
+    stencil = model.stencil if model.has_stencil else None
+    try:
+        return MODELS[kind](**options, stencil=stencil)
+    except LatticeDFTError as exc:
+        raise InputError.at("candidates", f"{kind} {options}: {exc}") from None
+    except TypeError as exc:
+        raise InputError.at("candidates", f"bad options for kind {kind!r} ({exc})") from None
+
+
+def _split(fields: list[xr.DataArray], hold_out: float) -> list[xr.DataArray]:
+    """The first ``1 - hold_out`` of every field's slices (at least 3, and at least one slice held out)."""
+    out = []
+    for i, f in enumerate(fields):
+        nt = f.sizes[f.dims[0]]
+        keep = max(3, int(round(nt * (1.0 - hold_out))))
+        if keep >= nt:
+            raise InputError.at(
+                "data", f"field {i} holds {nt} time slices; selection needs at least 4 (3 to learn from, 1 held out)"
+            )
+        out.append(f.isel({f.dims[0]: slice(0, keep)}))
+    return out
+
+
+def _score(model: AbstractLagrangian, fields: list[xr.DataArray], boundary: BoundaryKinds | None) -> float:
+    """The largest served error over the largest magnitude, field by field; ``ServeError`` when one stops."""
+    worst = 0.0
+    for f in fields:
+        result = serve(model, f, boundary=boundary, progress=False)
+        pred = np.asarray(result.field.values)
+        ref = np.asarray(f.values)[: pred.shape[0]]
+        err = float(np.max(np.abs(pred - ref))) / max(float(np.max(np.abs(ref))), np.finfo(float).tiny)
+        worst = max(worst, err if math.isfinite(err) else math.inf)
+    return worst
+
+
+def _short(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) <= 120 else text[:117] + "..."
+
+
+def select(
+    model: AbstractLagrangian,
+    data: Any,
+    candidates: str | Sequence[Mapping[str, Any] | AbstractLagrangian] = "auto",
+    *,
+    hold_out: float = HOLD_OUT,
+    factor: float = FACTOR,
+    boundary: BoundaryKinds | None = None,
+    **learn_kwargs: Any,
+) -> SelectionReport:
+    """Choose a model by serving held-out data, then learn it on all of it.
+
+    Every candidate (the hand-set ``model`` first) learns from the first ``1 - hold_out`` of each training
+    field's time slices, then serves each whole field from its first two slices (and, on Dirichlet axes,
+    its boundary strips). Its score is the largest served error over the field's largest magnitude, worst
+    field first; a fit that fails, a serve that stops or a non-finite field scores ``inf``. The best
+    candidate is the one with the fewest parameters among those within ``factor`` of the lowest score; it
+    replaces the hand-set model only when its score is ``factor`` times smaller than the hand-set one's; when
+    every candidate fails the hand-set model is kept with a warning.
+
+    Parameters
+    ----------
+    model : AbstractLagrangian
+        The hand-set model (unlearned); the first candidate.
+    data : DataArray or a list of them
+        The training fields (as for :func:`latticedft.learn`), each with at least 4 time slices.
+    candidates : "auto" or list
+        ``"auto"`` (see :func:`auto_candidates`), or a list whose items are option changes of the hand-set
+        model (``{"orders": [2, 2]}``, ``{"kind": "features", "features": ["trig:1"]}``, ``{"ridge": "auto"}``)
+        or unlearned models.
+    hold_out : float
+        Fraction of every field's slices held out, in (0, 1).
+    factor : float
+        How much better (>= 1) a candidate must score to replace the hand-set model.
+    boundary, **learn_kwargs
+        Passed to :func:`latticedft.learn` (and ``boundary`` to :func:`latticedft.serve`); ``symmetries``
+        only to the final fit.
+
+    Returns
+    -------
+    SelectionReport
+        The candidate table and the choice; ``report.model`` is the chosen candidate learned on all the data
+        (its ``report_.selection`` holds :meth:`SelectionReport.to_dict`).
+    """
+    if not isinstance(model, AbstractLagrangian):
+        raise InputError.at("model", f"expected a latticedft model, got {type(model).__name__}")
+    if not (isinstance(hold_out, (int, float)) and not isinstance(hold_out, bool) and 0 < hold_out < 1):
+        raise InputError.at("hold_out", f"expected a number in (0, 1), got {hold_out!r}")
+    if not (isinstance(factor, (int, float)) and not isinstance(factor, bool) and factor >= 1):
+        raise InputError.at("factor", f"expected a number >= 1, got {factor!r}")
+    if isinstance(candidates, str) and candidates != "auto":
+        raise InputError.at("candidates", f"expected 'auto' or a list of candidates, got {candidates!r}")
+    items = list(data) if isinstance(data, (list, tuple)) else [data]
+    if not all(isinstance(d, xr.DataArray) for d in items):
+        raise InputError.at("data", "expected a DataArray or a list of DataArrays (time first)")
+    n = as_fields(items, boundary)[0].ndim  # checks the fields (one lattice, one layout)
+    fields: list[xr.DataArray] = [d.load() for d in items]
+    ridge = learn_kwargs.pop("ridge", 0.0)
+    changes = auto_candidates(model, n, ridge) if candidates == "auto" else list(candidates)
+    specs: list[tuple[str, AbstractLagrangian, Any, dict[str, Any]]] = []  # label, fresh model, ridge, row
+    seen: set[str] = set()
+    for change in [{}, *changes]:
+        if isinstance(change, AbstractLagrangian):
+            fresh, kind, options, r = change, change.kind, change.options(), ridge
+        elif isinstance(change, Mapping):
+            kind, options, r = _spec(model, change, ridge)
+            fresh = copy.deepcopy(model) if not change else _build(model, kind, options)
+            options = fresh.options()
+        else:
+            raise InputError.at("candidates", f"expected option tables or models, got {type(change).__name__}")
+        label = _label(change)
+        key = repr((kind, sorted(options.items()), r))
+        if key in seen:
+            continue
+        seen.add(key)
+        specs.append((label, fresh, r, {"label": label, "kind": kind, "options": options, "ridge": r}))
+    held = _split(fields, hold_out)
+    rows = []
+    for _, fresh, r, row in specs:
+        trial = copy.deepcopy(fresh)
+        t0 = time.perf_counter()
+        n_parameters = None
+        try:
+            learn(trial, held, boundary=boundary, ridge=r, progress=False, **{**learn_kwargs, "symmetries": False})
+            n_parameters = trial.n_parameters()
+            score, status = _score(trial, fields, boundary), "ok"
+            if not math.isfinite(score):
+                status = "served field not finite"
+        except ServeError as exc:
+            score, status = math.inf, f"serve stopped: {_short(exc)}"
+        except LatticeDFTError as exc:
+            score, status = math.inf, f"{type(exc).__name__}: {_short(exc)}"
+        rows.append(
+            {
+                **row,
+                "score": score,
+                "status": status,
+                "n_parameters": n_parameters,
+                "wall_time": time.perf_counter() - t0,
+            }
+        )
+    scores = [r["score"] for r in rows]
+    lowest = min(scores)
+    # among the candidates within the factor of the lowest score, the one with the fewest parameters
+    near = [i for i, sc in enumerate(scores) if math.isfinite(sc) and sc <= factor * lowest]
+    best = min(near, key=lambda i: (rows[i]["n_parameters"], scores[i])) if near else int(np.argmin(scores))
+    warnings = []
+    if not math.isfinite(scores[best]):
+        chosen = 0
+        reason = "every candidate failed; kept the hand-set model"
+        warnings.append(
+            f"model selection: every one of {len(rows)} candidates failed to serve the held-out data "
+            "(their reasons are in the candidate table); kept the hand-set model, which may not serve"
+        )
+    elif best == 0 or not scores[best] * factor < scores[0]:
+        chosen = 0
+        reason = (
+            f"the hand-set model scored {scores[0]:.3e}; no candidate was {factor:g}x better"
+            if best != 0
+            else f"the hand-set model scored best ({scores[0]:.3e})"
+        )
+    else:
+        chosen = best
+        reason = f"{rows[best]['label']} scored {scores[best]:.3e} against the hand-set model's {scores[0]:.3e}"
+    chosen_model = copy.deepcopy(specs[chosen][1])
+    report = learn(chosen_model, fields, boundary=boundary, ridge=specs[chosen][2], progress=False, **learn_kwargs)
+    sel = SelectionReport(
+        rows=rows, chosen=chosen, reason=reason, hold_out=float(hold_out), factor=float(factor), warnings=warnings
+    )
+    report.selection = sel.to_dict()
+    report.warnings.extend(warnings)
+    sel.model = chosen_model
+    return sel
