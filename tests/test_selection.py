@@ -236,3 +236,18 @@ def test_case_toml_accepts_auto_and_feature_models(tmp_path) -> None:
     ldft.io.write_field(case / "train.nc", {"psi": pendulum(1.0, 10)})
     cfg = load_case(case).model
     assert cfg.select == "auto" and cfg.options["features"] == ["poly:2", "trig:1"]
+
+
+def test_a_case_run_with_select_and_an_ensemble_learns_the_chosen_model_as_member_0(tmp_path, capsys) -> None:
+    case = oscillator_case(tmp_path)
+    text = (case / "case.toml").read_text().replace("orders = [4, 8]", "orders = [2, 2]\nselect = [{orders = [4, 8]}]")
+    (case / "case.toml").write_text(text.replace("[train]", "[train]\nensemble = 3", 1))
+    code, _, err = run_cli(capsys, "run", case, "--set", "export.formats=[]")
+    assert code in (0, 3), err
+    summary = json.loads((case / "results" / "summary.json").read_text())
+    assert summary["train"]["selection"]["chosen_label"] == "orders=[4, 8]"  # scored as single models
+    assert summary["train"]["ensemble"]["members"] == 3  # then the chosen one learned as an ensemble
+    options = json.loads((case / "results" / "model.json").read_text())["options"]
+    assert options["members"] == 3 and options["model"]["options"]["orders"] == [4, 8]
+    task = next(iter(summary["tasks"].values()))
+    assert task["ensemble_members"] == 3
