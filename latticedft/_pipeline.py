@@ -257,6 +257,20 @@ class TaskOutcome:
         return attrs
 
 
+def _start(model: Any, td: TaskData) -> tuple[xr.DataArray, str]:
+    """The task's initial data and how they were taken (``[[serve]] start``): ``denoised`` asks for it, ``auto``
+    denoises when training corrected noisy data."""
+    from ._learn._noise import DENOISE_SLICES, denoised_start
+
+    noise = getattr(getattr(model, "report_", None), "noise", None) or {}
+    if td.task.start == "data" or (td.task.start == "auto" and noise.get("method", "none") == "none"):
+        return td.init, "data"
+    log.info(
+        "serving %s from initial slices denoised by the learned DEL (first %d slices)", td.task.name, DENOISE_SLICES
+    )
+    return denoised_start(model, td.init), "denoised"
+
+
 def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     """Serve one task; a Newton failure gives an incomplete outcome (with a warning), not an exception.
 
@@ -276,8 +290,9 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     log.info("serving %s: %d slices from %s (%s)", t.name, td.slices, t.source.name, t.mode)
     t0 = time.perf_counter()
     stopped = ""
+    init, start = _start(model, td)
     try:
-        result = serve(model, td.init, progress=None, **t.serve_kwargs())
+        result = serve(model, init, progress=None, **t.serve_kwargs())
     except ServeError as err:
         result = err.result
         if isinstance(result, list):  # pragma: no cover - a single init gives one result
@@ -293,6 +308,7 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     rec["wall_time"] = wall
     rec["requested_slices"] = td.slices
     rec["from"] = t.source.name
+    rec["start"] = start
     rec["reference"] = None
     if td.reference is not None:
         cmp = compare(pred, td.reference)

@@ -58,6 +58,8 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "penalty": (t_nonneg_float, 1.0),
         "symmetries": (t_bool, False),
         "chunk_sites": (t_nonneg_int, None),
+        "noise": (t_choice("none", "auto", "correct"), "none"),
+        "noise_sigma": (t_nonneg_float, None),
     },
     "serve": {
         "name": (t_name, _REQUIRED),
@@ -73,6 +75,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "baseline": (t_str, None),
         "invariant": (t_invariant, None),
         "charges": (t_str_list, None),
+        "start": (t_choice("auto", "data", "denoised"), "auto"),
     },
     "run": {
         "threads": (t_pos_int, None),
@@ -192,6 +195,9 @@ class ServeTask:
     label: str = "serve[0]"
     #: True when the file (or ``--set``) gave the deprecated key ``steps`` instead of ``slices``.
     deprecated_steps: bool = False
+    #: Initial slices: ``data`` as read, ``denoised`` by the learned DEL, ``auto`` denoised when training
+    #: corrected noisy data.
+    start: str = "auto"
 
     def serve_kwargs(self) -> dict[str, Any]:
         return {

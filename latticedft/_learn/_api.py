@@ -16,6 +16,7 @@ from .._models import AbstractLagrangian, LinearLagrangian
 from ._exact import learn_exact
 from ._gauge import AUTO, Gauge, gauge_named
 from ._neural import Training, learn_neural
+from ._noise import NOISE_MODES, learn_noisy
 from ._report import LearnReport, fit_warnings
 from ._stream import TrainingData, training_data
 
@@ -105,6 +106,8 @@ def learn(
     progress: bool | None = None,
     symmetries: bool = False,
     chunk_sites: int | None = None,
+    noise: str = "none",
+    noise_sigma: float | None = None,
 ) -> LearnReport:
     """Learn ``L_d`` from one or more observed fields; the model is fitted in place.
 
@@ -152,6 +155,15 @@ def learn(
         size); ``0`` holds and processes all data at once (in memory). Under
         an initialised ``torch.distributed`` process group every process
         reads its share of the chunks and all end with the same model.
+    noise : "none", "auto" or "correct"
+        Noisy data (docs/noise.md): ``correct`` alternates the fit with a
+        correction of the training fields toward the learned DEL (errors in
+        variables; linear models fitted exactly); ``auto`` does so only when
+        the noise estimated from the data (:func:`estimate_noise`) is
+        significant. The estimate and what was done are in ``report.noise``.
+    noise_sigma : float, optional
+        The noise's standard deviation when known (field units); skips the
+        estimate.
 
     Returns
     -------
@@ -182,12 +194,21 @@ def learn(
     _check_training(settings)
     if not isinstance(symmetries, bool):
         raise InputError.at("symmetries", f"expected true or false, got {symmetries!r}")
+    if noise not in NOISE_MODES:
+        raise InputError.at("noise", f"expected 'auto', 'none' or 'correct', got {noise!r}")
+    _check_number("noise_sigma", noise_sigma, strict=False, optional=True)
     fields = training_data(data, boundary, chunk_sites)
-    nsites = _bound_to(model, fields)
-    if fix is None:  # "auto"
-        report = _learn_auto(model, fields, ridge, nsites, settings, symmetries)
+
+    def fit(fields: TrainingData) -> LearnReport:
+        nsites = _bound_to(model, fields)
+        if fix is None:  # "auto"
+            return _learn_auto(model, fields, ridge, nsites, settings, symmetries)
+        return _fit(model, fields, fix, ridge, nsites, settings, symmetries)
+
+    if noise == "none":
+        report = fit(fields)
     else:
-        report = _fit(model, fields, fix, ridge, nsites, settings, symmetries)
+        report = learn_noisy(model, fields, fit, noise, noise_sigma, lambda f: training_data(f, boundary, chunk_sites))
     model.report_ = report
     return report
 

@@ -65,6 +65,9 @@ class LearnReport:
     gauge_scores: dict[str, float] = field(default_factory=dict)
     #: ``gauge="auto"``: why ``gauge`` was chosen, in words.
     gauge_choice: str = ""
+    #: ``noise="auto"`` or ``"correct"``: the noise estimate (sigma, relative, resolved) and the correction
+    #: applied (method, rounds, rms shift of the training fields); None when ``noise="none"``.
+    noise: dict[str, Any] | None = None
 
     def summary_line(self) -> str:
         auto = f", gauge {self.gauge} (auto: {self.gauge_choice})" if self.gauge_requested == "auto" else ""
