@@ -86,6 +86,8 @@ class LearnReport:
         d["history"] = [list(h) for h in self.history]
         if self.symmetries is None:
             del d["symmetries"]
+        if self.noise is None:
+            del d["noise"]
         return d
 
 
