@@ -4,7 +4,7 @@ The noise estimate is difference-based. The ``k``-th time difference of a field 
 shrinks with ``k`` by the factor ``sin(h omega / 2)`` per order, while that of white noise of standard
 deviation ``sigma`` has the standard deviation ``sigma sqrt(C(2k, k))``. Normalised by that factor, the
 differences of order ``k`` give ``s_k``: it falls with ``k`` while the signal dominates and levels off at
-``sigma`` once the noise does. The estimate is resolved when two consecutive orders agree
+``sigma`` once the noise does. The estimate is resolved when four consecutive orders agree to 6 %
 (:data:`AGREE`); else it is unresolved (the data too short or too coarse to tell noise from signal).
 
 The correction (errors in variables) moves the fields ``psi`` from the data ``d`` toward the DEL of a
@@ -49,10 +49,12 @@ __all__ = [
 #: ``learn(..., noise=...)``: ``auto`` corrects when the estimated noise is significant, ``correct`` always,
 #: ``none`` never.
 NOISE_MODES = ("auto", "none", "correct")
-#: Two consecutive orders agree when their estimates differ by at most this fraction.
-AGREE = 0.2
+#: The estimate is resolved where :data:`SPAN` consecutive orders agree: their largest estimate is at most
+#: ``1 + AGREE`` times their smallest (a signal still falling by a few percent per order is not noise).
+AGREE = 0.06
+SPAN = 4
 #: Highest difference order tried.
-MAX_ORDER = 12
+MAX_ORDER = 20
 #: The estimated noise is significant (``noise="auto"`` corrects) above this fraction of the amplitude.
 SIGNIFICANT = 1e-6
 #: Weight of the DEL residual against the displacement of the fields (see the module docstring) in the first
@@ -78,9 +80,9 @@ class NoiseEstimate:
     sigma: float
     #: ``sigma`` relative to the amplitude (the largest ``|psi|``).
     relative: float
-    #: Whether two consecutive difference orders agreed.
+    #: Whether :data:`SPAN` consecutive difference orders agreed.
     resolved: bool
-    #: The first of the two agreeing orders (``None`` when unresolved).
+    #: The first of the agreeing orders (``None`` when unresolved).
     order: int | None
     #: ``s_k`` of every order tried.
     by_order: dict[int, float] = field(default_factory=dict)
@@ -92,7 +94,7 @@ class NoiseEstimate:
 
     def summary(self) -> str:
         if not self.resolved:
-            return "noise unresolved (no two difference orders agree)"
+            return f"noise unresolved (no {SPAN} consecutive difference orders agree)"
         return f"noise sigma = {self.sigma:.2e} ({self.relative:.1e} of the amplitude, orders {self.order}-)"
 
 
@@ -146,11 +148,10 @@ def estimate_noise(field: xr.DataArray | LatticeField | Sequence[xr.DataArray | 
         sq = sum(float((d**2).sum()) for d in diffs)
         count = sum(d.numel() for d in diffs)
         s[k] = math.sqrt(sq / count / math.comb(2 * k, k))
-    for k in range(2, top):
-        a, b = s[k], s[k + 1]
-        if b > 0 and abs(a / b - 1) <= AGREE:
-            plateau = sorted(s[j] for j in range(k, min(k + 4, top + 1)))
-            sigma = plateau[len(plateau) // 2]
+    for k in range(2, top - SPAN + 2):
+        run = [s[j] for j in range(k, k + SPAN)]
+        if min(run) > 0 and max(run) <= (1 + AGREE) * min(run):
+            sigma = sorted(run)[SPAN // 2]
             return NoiseEstimate(sigma, sigma / amp, True, k, s)
     return NoiseEstimate(0.0, 0.0, False, None, s)
 
