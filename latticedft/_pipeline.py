@@ -211,6 +211,11 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
             raise _as_case_error(exc, f"train.{exc.key}") from None
         raise
     log.info("%s", report.summary_line())
+    if report.noise is not None:  # [train] noise = "auto" | "correct"
+        nz = report.noise
+        est = f"sigma {nz['sigma']:.2e} ({nz['relative']:.1e} of the amplitude)" if nz["resolved"] else "unresolved"
+        done = f"{nz['method']}, rms shift {nz['shift']:.2e}" if nz["method"] != "none" else "none"
+        log.info("noise (%s): %s; correction: %s", nz["mode"], est, done)
     if report.symmetries is not None:
         log.info("symmetries of the learned L_d over the training data (verdicts at tol 1e-9):")
         for line in report.symmetry_lines():
