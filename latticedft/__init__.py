@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 _PUBLIC: dict[str, str] = {
     "action": "._action",
     "del_residual": "._action",
+    "DeviceWarning": "._device",
     "ConfigError": "._errors",
     "InputError": "._errors",
     "LatticeDFTError": "._errors",
@@ -94,6 +95,7 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from . import lagrangians as lagrangians
     from ._action import action as action
     from ._action import del_residual as del_residual
+    from ._device import DeviceWarning as DeviceWarning
     from ._errors import ConfigError as ConfigError
     from ._errors import InputError as InputError
     from ._errors import LatticeDFTError as LatticeDFTError

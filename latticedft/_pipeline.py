@@ -205,7 +205,9 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
     model = case.model.build(len(data.dims))
     log.info("training %s model on %d field(s) ...", case.model.kind, len(data.train))
     try:
-        report = learn(model, data.train, boundary=case.train.boundary, progress=None, **case.train.learn)
+        report = learn(
+            model, data.train, boundary=case.train.boundary, progress=None, device=case.run.device, **case.train.learn
+        )
     except InputError as exc:
         if exc.key is not None and exc.key in case.train.learn:
             raise _as_case_error(exc, f"train.{exc.key}") from None
@@ -216,6 +218,7 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
         est = f"sigma {nz['sigma']:.2e} ({nz['relative']:.1e} of the amplitude)" if nz["resolved"] else "unresolved"
         done = f"{nz['method']}, rms shift {nz['shift']:.2e}" if nz["method"] != "none" else "none"
         log.info("noise (%s): %s; correction: %s", nz["mode"], est, done)
+    log.debug("training device: %s", report.device)
     if report.symmetries is not None:
         log.info("symmetries of the learned L_d over the training data (verdicts at tol 1e-9):")
         for line in report.symmetry_lines():
@@ -276,8 +279,9 @@ def _start(model: Any, td: TaskData) -> tuple[xr.DataArray, str]:
     return denoised_start(model, td.init), "denoised"
 
 
-def serve_task(model: Any, td: TaskData) -> TaskOutcome:
-    """Serve one task; a Newton failure gives an incomplete outcome (with a warning), not an exception.
+def serve_task(model: Any, td: TaskData, device: str = "cpu") -> TaskOutcome:
+    """Serve one task (the model evaluated on ``device``); a Newton failure gives an incomplete outcome (with a
+    warning), not an exception.
 
     Kept in one piece (~80 lines): it is the task's record, built field by field in the order of
     summary.json; the checks and measurements it records are helpers of their own.
@@ -297,7 +301,7 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
     stopped = ""
     init, start = _start(model, td)
     try:
-        result = serve(model, init, progress=None, **t.serve_kwargs())
+        result = serve(model, init, progress=None, device=device, **t.serve_kwargs())
     except ServeError as err:
         result = err.result
         if isinstance(result, list):  # pragma: no cover - a single init gives one result
@@ -306,6 +310,7 @@ def serve_task(model: Any, td: TaskData) -> TaskOutcome:
         stopped = str(err)  # the reason with its slice, site and residual
     wall = time.perf_counter() - t0
     pred = result.field
+    log.debug("task %s served on %s", t.name, result.device)
     rec: dict[str, Any] = result.to_dict()
     rec["stop_reason"] = None if result.complete else stopped
     for warning in result.warnings:  # the served field leaves the training range

@@ -10,6 +10,7 @@ from typing import Any
 from .._boundary import BOUNDARY_KINDS, kinds_text
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+_DEVICE_RE = re.compile(r"^(cpu|auto|cuda(:\d+)?)$")
 
 
 # Each check returns the normalised value or raises _Bad(expected).
@@ -130,6 +131,12 @@ def t_invariant(v: Any) -> str:
 def t_name(v: Any) -> str:
     if not isinstance(v, str) or not _NAME_RE.match(v) or v in ("model", "summary", "run"):
         raise _Bad("a plain file-name stem (letters, digits, '_', '-', '.'; not 'model', 'summary' or 'run')")
+    return v
+
+
+def t_device(v: Any) -> str:
+    if not isinstance(v, str) or not _DEVICE_RE.match(v):
+        raise _Bad("'cpu', 'cuda', 'cuda:N' (N a GPU index) or 'auto'")
     return v
 
 

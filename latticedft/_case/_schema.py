@@ -20,6 +20,7 @@ from ._checks import (
     t_bool,
     t_boundary,
     t_choice,
+    t_device,
     t_invariant,
     t_name,
     t_nonneg_float,
@@ -79,6 +80,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
     },
     "run": {
         "threads": (t_pos_int, None),
+        "device": (t_device, "cpu"),
     },
     "export": {
         "formats": (t_str_list, None),  # None: latticedft.io.exporters.DEFAULT_FORMATS
@@ -216,6 +218,9 @@ class RunConfig:
     ``python -m benchmarks.threads``, docs/performance.md)."""
 
     threads: int
+    #: where training and serving evaluate the model (``learn``/``serve``'s ``device``); the command line
+    #: replaces a CUDA request it cannot honour by ``"cpu"`` (one warning)
+    device: str = "cpu"
 
 
 @dataclass(frozen=True)

@@ -8,8 +8,10 @@ import time
 from collections.abc import Sequence
 from dataclasses import replace
 
+import torch
 import xarray as xr
 
+from .._device import device_label, on_device, resolve_device
 from .._errors import InputError
 from .._lattice import BoundaryKinds
 from .._models import AbstractLagrangian, LinearLagrangian
@@ -108,6 +110,7 @@ def learn(
     chunk_sites: int | None = None,
     noise: str = "none",
     noise_sigma: float | None = None,
+    device: str | None = None,
 ) -> LearnReport:
     """Learn ``L_d`` from one or more observed fields; the model is fitted in place.
 
@@ -164,6 +167,13 @@ def learn(
     noise_sigma : float, optional
         The noise's standard deviation when known (field units); skips the
         estimate.
+    device : "cpu", "cuda", "cuda:N" or "auto", optional
+        Where iterative training evaluates the model (its parameters, and
+        ``L_d`` with its derivatives on the cells of each chunk): default the
+        CPU; ``"auto"`` is CUDA when available. CUDA where none is available
+        falls back to the CPU with one :class:`DeviceWarning`. The exact solve
+        of linear models runs on the CPU. The fitted model is left on the CPU;
+        ``report.device`` names the device used.
 
     Returns
     -------
@@ -181,6 +191,7 @@ def learn(
     True
     """
     fix, optimizer = _checked(model, gauge, ridge, optimizer, max_iter)
+    where = resolve_device(device)
     settings = Training(
         optimizer=optimizer,
         max_iter=max_iter,
@@ -190,6 +201,7 @@ def learn(
         lr=lr,
         penalty=penalty,
         progress=progress,
+        device=where,
     )
     _check_training(settings)
     if not isinstance(symmetries, bool):
@@ -209,6 +221,7 @@ def learn(
         report = fit(fields)
     else:
         report = learn_noisy(model, fields, fit, noise, noise_sigma, lambda f: training_data(f, boundary, chunk_sites))
+    report = replace(report, device=device_label(where) if optimizer != "exact" else "cpu")
     model.report_ = report
     return report
 
@@ -231,10 +244,13 @@ def _fit(
     if settings.optimizer == "exact" and isinstance(model, LinearLagrangian):  # _checked refuses 'exact' for others
         used_ridge, validation = learn_exact(model, fields, fix, ridge, nsites)
         iterations, reason = 1, "exact solve"
-    else:
-        iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
-    wall = time.perf_counter() - t0
-    diag = fields.diagnose(model, fix.name, symmetries)
+        wall = time.perf_counter() - t0
+        diag = fields.diagnose(model, fix.name, symmetries)
+    else:  # iterative training and its diagnostics evaluate the model on the device
+        with on_device(model, settings.device or torch.device("cpu")):
+            iterations, history, initial, reason = learn_neural(model, fields, fix, nsites, settings)
+            wall = time.perf_counter() - t0
+            diag = fields.diagnose(model, fix.name, symmetries)
     degenerate, warnings = fit_warnings(diag)
     return LearnReport(
         method=settings.optimizer,

@@ -7,6 +7,8 @@ reads its share of the chunks and the partial sums are combined here, so every p
 model. Without a process group (the usual case) every function is the single-process identity.
 
 Tensors are reduced as float64 on the CPU (``gloo``); under ``nccl`` they travel through the process's GPU.
+The backend follows the training device (:func:`latticedft._device.backend_for_device`): NCCL when the
+processes train on CUDA, each on ``cuda:<LOCAL_RANK>``, gloo otherwise.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ import os
 import numpy as np
 import torch
 import torch.distributed as dist
+
+from .._device import backend_for_device, resolve_device
 
 __all__ = [
     "world",
@@ -83,17 +87,22 @@ def all_gather(a: np.ndarray) -> list[np.ndarray]:
     return [o.cpu().numpy() for o in out]
 
 
-def backend_for(local_processes: int) -> str:
-    """``nccl`` when every local process can have a GPU of its own, else ``gloo``."""
-    if torch.cuda.is_available() and dist.is_nccl_available() and torch.cuda.device_count() >= local_processes:
+def backend_for(local_processes: int, device: str | None = None) -> str:
+    """``nccl`` when the processes train on CUDA (``device`` resolves to a GPU), NCCL is built in and every
+    local process can have a GPU of its own; else ``gloo``."""
+    if backend_for_device(resolve_device(device)) != "nccl":
+        return "gloo"
+    if dist.is_nccl_available() and torch.cuda.device_count() >= local_processes:
         return "nccl"
     return "gloo"
 
 
-def init_from_env(timeout_s: float = 1800.0) -> bool:
+def init_from_env(timeout_s: float = 1800.0, device: str | None = None) -> bool:
     """Join the process group that ``torchrun`` (or ``--workers``) describes in the environment
     (``RANK``, ``WORLD_SIZE``, ``MASTER_ADDR``, ``MASTER_PORT``); True when this process is one of several.
 
+    ``device`` is the training device (:func:`latticedft.learn`'s): CUDA selects NCCL, with this process on
+    ``cuda:<LOCAL_RANK>`` (its ``"cuda"`` from then on); anything else gloo.
     Does nothing when the group is already initialised or ``WORLD_SIZE`` is absent or 1. Each process then
     uses ``torch.get_num_threads() // LOCAL_WORLD_SIZE`` threads (at least one): processes on one machine
     share its cores.
@@ -104,7 +113,7 @@ def init_from_env(timeout_s: float = 1800.0) -> bool:
     if size <= 1:
         return False
     local = int(os.environ.get("LOCAL_WORLD_SIZE", str(size)) or size)
-    backend = backend_for(local)
+    backend = backend_for(local, device)
     if backend == "nccl":
         torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0") or 0))
     dist.init_process_group(backend, timeout=datetime.timedelta(seconds=timeout_s))

@@ -43,6 +43,7 @@ class Training:
     lr: float
     penalty: float
     progress: bool | None
+    device: torch.device | None = None  # where the model is evaluated (None: the CPU)
 
 
 def _objective(

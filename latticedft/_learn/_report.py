@@ -68,6 +68,8 @@ class LearnReport:
     #: ``noise="auto"`` or ``"correct"``: the noise estimate (sigma, relative, resolved) and the correction
     #: applied (method, rounds, rms shift of the training fields); None when ``noise="none"``.
     noise: dict[str, Any] | None = None
+    #: Where training evaluated the model: ``"cpu"`` or ``"cuda:N (GPU name)"`` (``learn(device=...)``).
+    device: str = "cpu"
 
     def summary_line(self) -> str:
         auto = f", gauge {self.gauge} (auto: {self.gauge_choice})" if self.gauge_requested == "auto" else ""

@@ -20,9 +20,11 @@ from __future__ import annotations
 import warnings
 from typing import overload
 
+import torch
 import xarray as xr
 
 from .._boundary import BoundaryKinds
+from .._device import device_label, on_device, resolve_device
 from .._errors import InputError, ServeError
 from .._lattice import LatticeField, as_lattice_field
 from .._learn import check_model_lattice as _check_model_lattice
@@ -70,6 +72,12 @@ def _served_attrs(results: list[ServeResult], model: AbstractLagrangian) -> None
         attrs["source"] = f"latticedft.serve: predicted from the first two slices by a {model.kind} L_d"
 
 
+def _served_on(results: list[ServeResult], where: torch.device) -> None:
+    """Record where the model was evaluated in each result."""
+    for r in results:
+        r.device = device_label(where)
+
+
 @overload
 def serve(
     model: AbstractLagrangian,
@@ -84,6 +92,7 @@ def serve(
     affine: bool = True,
     progress: bool | None = None,
     steps: int | None = None,
+    device: str | None = None,
 ) -> ServeResult: ...
 
 
@@ -101,6 +110,7 @@ def serve(
     affine: bool = True,
     progress: bool | None = None,
     steps: int | None = None,
+    device: str | None = None,
 ) -> list[ServeResult]: ...
 
 
@@ -118,6 +128,7 @@ def serve(
     affine: bool = True,
     progress: bool | None = None,
     steps: int | None = None,
+    device: str | None = None,
 ) -> ServeResult | list[ServeResult]:
     """Predict a field from its first two time slices (and boundary strips) with the learned ``L_d``.
 
@@ -156,6 +167,12 @@ def serve(
         Progress bar; ``None`` shows it only on a terminal.
     steps : int, optional
         Deprecated alias of ``slices`` (the same count; a ``FutureWarning``).
+    device : "cpu", "cuda", "cuda:N" or "auto", optional
+        Where the model is evaluated (``L_d``, its gradients and Hessian
+        blocks on the cells of each slice): default the CPU; ``"auto"`` is
+        CUDA when available. The slice's linear algebra stays on the CPU.
+        CUDA where none is available falls back to the CPU with one
+        :class:`DeviceWarning`. ``result.device`` names the device used.
 
     Returns
     -------
@@ -203,6 +220,7 @@ def serve(
         raise InputError.at("affine", f"expected True or False, got {affine!r}")
     if progress is not None and not isinstance(progress, bool):
         raise InputError.at("progress", f"expected True, False or None, got {progress!r}")
+    where = resolve_device(device)
     batch = isinstance(init, (list, tuple))
     items = list(init) if isinstance(init, (list, tuple)) else [init]
     if not items:
@@ -216,8 +234,10 @@ def serve(
         _check_model_lattice(model, f, "init" if not batch else f"init[{k}]")
     n = fs[0].ndim
     if n == 1:
-        results = _serve_batch(model, fs, [_slices(slices, f) for f in fs], mode, rtol, max_newton, box, progress)
+        with on_device(model, where):
+            results = _serve_batch(model, fs, [_slices(slices, f) for f in fs], mode, rtol, max_newton, box, progress)
         _served_attrs(results, model)
+        _served_on(results, where)
         failed = [(r, r.fail_at) for r in results if r.fail_at is not None]  # the members not complete
         if failed:
             first, (at_slice, res) = failed[0]
@@ -228,10 +248,13 @@ def serve(
     out: list[ServeResult] = []
     for f in fs:
         try:
-            out.append(_serve_field(model, f, _slices(slices, f), mode, rtol, max_newton, progress, bool(affine)))
+            with on_device(model, where):
+                out.append(_serve_field(model, f, _slices(slices, f), mode, rtol, max_newton, progress, bool(affine)))
         except ServeError as err:
             if isinstance(err.result, ServeResult):
                 _served_attrs([err.result], model)
+                _served_on([err.result], where)
             raise
     _served_attrs(out, model)
+    _served_on(out, where)
     return out if batch else out[0]

@@ -41,6 +41,8 @@ class ServeResult:
     extrapolation: xr.DataArray | None = None
     #: One-line warnings about the served field (it leaves the training range ...); empty when none.
     warnings: list[str] = dataclasses.field(default_factory=list)
+    #: where the model was evaluated: ``"cpu"`` or ``"cuda:N (GPU name)"`` (``serve(device=...)``)
+    device: str = "cpu"
 
     def extrapolation_summary(self) -> dict[str, Any] | None:
         """The largest excess per feature and the first slice beyond the tolerance (None without a range)."""
@@ -61,6 +63,7 @@ class ServeResult:
                 "max_residual",
                 "mode",
                 "solver",
+                "device",
             )
         }
         out["extrapolation"] = self.extrapolation_summary()

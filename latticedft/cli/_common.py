@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import json
 import logging
 import os
 import shlex
@@ -89,10 +90,21 @@ def command_line(argv: list[str]) -> str:
     return "latticedft " + " ".join(shlex.quote(a) for a in argv)
 
 
+def add_device_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--device",
+        metavar="DEVICE",
+        help="where the model computes: cpu, cuda, cuda:N or auto (cuda when available); the same as "
+        "--set run.device=DEVICE (default: [run] device, else cpu)",
+    )
+
+
 def open_case(args: argparse.Namespace) -> Case:
     from .._case import load_case
 
-    case = load_case(args.case, args.overrides)
+    device = getattr(args, "device", None)
+    extra = [f"run.device={json.dumps(device)}"] if device is not None else []
+    case = load_case(args.case, [*args.overrides, *extra])
     log.debug("case %s, overrides %s", case.root, list(case.overrides))
     return case
 
@@ -159,6 +171,25 @@ def set_threads(case: Case) -> None:
     log.debug("torch threads: %d", case.run.threads)
 
 
+def run_device(case: Case) -> Case:
+    """The case with ``[run] device`` resolved: a CUDA request this machine cannot honour becomes ``"cpu"``
+    with one warning (console and run.log); the device is logged."""
+    import dataclasses
+    import warnings
+
+    from .._device import DeviceWarning, device_label, resolve_device
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DeviceWarning)
+        where = resolve_device(case.run.device, key="run.device")
+    for w in caught:
+        log.warning("%s", w.message)
+    log.debug("device: %s", device_label(where))
+    if where.type == "cpu" and case.run.device != "cpu":
+        return dataclasses.replace(case, run=dataclasses.replace(case.run, device="cpu"))
+    return case
+
+
 def summary_head(case: Case, argv: list[str], stage: str) -> dict[str, Any]:
     from .._results import versions
 
@@ -170,5 +201,6 @@ def summary_head(case: Case, argv: list[str], stage: str) -> dict[str, Any]:
         "versions": versions(),
         "overrides": list(case.overrides),
         "config": case.raw,
+        "device": case.run.device,
         "finished": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     }

@@ -75,7 +75,7 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
     model_warnings = model_warnings_of(model, folder)
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
-        out: TaskOutcome = serve_task(model, td)
+        out: TaskOutcome = serve_task(model, td, case.run.device)
         path = write_task(
             folder,
             out.name,

@@ -133,11 +133,18 @@ def _wait(procs: list[subprocess.Popen[bytes]], logs: list[Any]) -> int:
         return BAD_INPUT
 
 
-def join() -> None:
-    """Join the process group described by the environment (a no-op in a single process)."""
+def join(device: str = "cpu") -> None:
+    """Join the process group described by the environment (a no-op in a single process); ``device`` is the
+    training device (CUDA: NCCL, each rank on its own GPU)."""
+    import warnings
+
+    from .._device import DeviceWarning
     from .._learn import _dist
 
-    if _dist.init_from_env():
+    with warnings.catch_warnings():  # the backend's choice only: run_device warns of a fallback, once
+        warnings.simplefilter("ignore", DeviceWarning)
+        joined = _dist.init_from_env(device=device)
+    if joined:
         rank, size = _dist.world()
         log.info("training in %d processes (this is rank %d, backend %s)", size, rank, _dist_backend())
         atexit.register(_leave)
@@ -170,11 +177,12 @@ def leave() -> None:
 def train_only(case: Case) -> int:
     """A helper rank's whole work: read the case, take part in training, write nothing."""
     from .._pipeline import check_case, train_model
-    from ._common import set_threads
+    from ._common import run_device, set_threads
 
     set_threads(case)
+    case = run_device(case)
     data = check_case(case)
-    join()
+    join(case.run.device)
     train_model(case, data)
     leave()
     return OK

@@ -9,10 +9,12 @@ import time
 from . import _workers
 from ._common import (
     add_case_arguments,
+    add_device_argument,
     checked_data,
     open_case,
     refuse_existing,
     results_dir,
+    run_device,
     set_threads,
     summary_head,
 )
@@ -23,6 +25,7 @@ log = logging.getLogger("latticedft")
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="check, train, serve every task and export (the whole case)", description=__doc__)
     add_case_arguments(p, overwrite=True)
+    add_device_argument(p)
     _workers.add_argument(p)
 
 
@@ -41,9 +44,10 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
         refuse_existing(dest, args)
         set_threads(case)
         data = checked_data(case, dest)
-        _workers.join()
+        _workers.join(case.run.device)
         log.info("checked %s: %d training field(s), %d serving task(s)", case.name, len(data.train), len(data.tasks))
         with staged_results(dest, replace_foreign=False) as folder:
+            case = run_device(case)  # in run.log too
             for line in data.summary_lines(case):
                 log.debug("%s", line)
             model, train = train_into(folder, case, data, argv)

@@ -8,11 +8,13 @@ import time
 
 from ._common import (
     add_case_arguments,
+    add_device_argument,
     checked_data,
     open_case,
     refuse_learning_overrides,
     require_results,
     results_dir,
+    run_device,
     set_threads,
     summary_head,
 )
@@ -23,6 +25,7 @@ log = logging.getLogger("latticedft")
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="serve every task with an existing results/model.pt", description=__doc__)
     add_case_arguments(p)
+    add_device_argument(p)
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
@@ -40,6 +43,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
         set_threads(case)
         data = checked_data(case, dest, train=False)
         with staged_results(dest, copy_existing=True) as folder:
+            case = run_device(case)  # in run.log too
             log.debug("serving with %s", dest / "model.pt")
             tasks = serve_into(folder, case, data, model, argv)
             summary = summary_head(case, argv, "serve")

@@ -9,10 +9,12 @@ import time
 from . import _workers
 from ._common import (
     add_case_arguments,
+    add_device_argument,
     checked_data,
     open_case,
     refuse_existing,
     results_dir,
+    run_device,
     set_threads,
     summary_head,
 )
@@ -25,6 +27,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "train", help="learn the model only (results/ with model.pt, model.json, summary.json)", description=__doc__
     )
     add_case_arguments(p, overwrite=True)
+    add_device_argument(p)
     _workers.add_argument(p)
 
 
@@ -43,8 +46,9 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
         refuse_existing(dest, args)
         set_threads(case)
         data = checked_data(case, dest, serve=False)
-        _workers.join()
+        _workers.join(case.run.device)
         with staged_results(dest, replace_foreign=False) as folder:
+            case = run_device(case)  # in run.log too
             _, train = train_into(folder, case, data, argv)
             _workers.leave()  # the other ranks are done: writing the results is rank 0's alone
             summary = summary_head(case, argv, "train")

@@ -1,0 +1,192 @@
+"""Serving and MLP training on a GPU against the CPU, measured side by side in one run.
+
+    python -m benchmarks.device [--device cuda] [--quick] [--threads N]
+
+Workloads (each timed on the CPU and on ``--device``, same data, same model, same seed):
+
+- 2+1D serving, 1024 x 1024 sites per slice (``--quick`` or without CUDA: 64 x 64), and 3+1D serving,
+  128^3 sites per slice (``--quick`` or without CUDA: 16^3): a kinetic-plus-potential MLP ``L_d`` (hidden
+  [32, 32], tanh), learned by a few L-BFGS iterations on a small field of the same spacing, serves 2 slices
+  after the two initial ones by slice-Newton (its gradients and Hessian blocks by autograd on the device);
+- MLP training: the same model form, 10 L-BFGS iterations on a 2+1D field of 256 x 256 x 8 sites (without
+  CUDA: 32 x 32 x 8), all data in one chunk.
+
+The table gives seconds on each device, their ratio (CPU / device: above 1 the device is faster) and the
+largest difference between the two results (served field, or final training loss relative). Not in the
+default benchmark run (it needs a GPU); without CUDA it says so and measures the CPU alone at small sizes.
+``uptime`` is printed before and after.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import subprocess
+import sys
+import time
+import warnings
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+NAME = "device"
+TITLE = "GPU against CPU: 2+1D and 3+1D serving by an MLP L_d, MLP training"
+
+#: lattice spacing (every axis but time) and time step of every field: one discrete theory serves them all
+H, DT = 0.01, 0.005
+
+
+def standing_wave(n: int, nt: int, ndim: int) -> Any:
+    """``prod_k sin(2 pi x_k) cos(w t)`` on ``n^ndim`` sites of spacing :data:`H`, ``nt`` slices of :data:`DT`."""
+    from latticedft import systems
+
+    x = H * np.arange(n)
+    space = np.ones([n] * ndim)
+    for k in range(ndim):
+        shape = [1] * ndim
+        shape[k] = n
+        space = space * (0.5 * np.sin(2 * np.pi * x)).reshape(shape)
+    w = 2 * np.pi * math.sqrt(ndim)
+    t = DT * np.arange(nt)
+    values = np.cos(w * t).reshape(-1, *[1] * ndim) * space[None]
+    return systems.make_field(values, ("t", *("z", "y", "x")[3 - ndim :]), spacing=(DT, *[H] * ndim))
+
+
+def mlp(seed: int = 0) -> Any:
+    import latticedft as ldft
+
+    return ldft.MLPLagrangian(hidden=[32, 32], activation="tanh", form="kinetic-potential", seed=seed)
+
+
+def _sync(device: str) -> None:
+    if device.startswith("cuda") and torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
+def _timed(fn: Callable[[], Any], device: str) -> tuple[float, Any]:
+    _sync(device)
+    t0 = time.perf_counter()
+    out = fn()
+    _sync(device)
+    return time.perf_counter() - t0, out
+
+
+def serving(ndim: int, n: int, device: str) -> dict[str, Any]:
+    """Seconds to serve 2 slices of ``n^ndim`` sites on the CPU and on ``device``, and the largest difference."""
+    import latticedft as ldft
+
+    model = mlp()
+    ldft.learn(model, standing_wave(12 if ndim == 3 else 24, 8, ndim), max_iter=5, progress=False)
+    field = standing_wave(n, 4, ndim)
+    out = []
+    for where in ("cpu", device):
+        ldft.serve(model, standing_wave(8, 4, ndim), affine=False, progress=False, device=where)  # warm-up
+        out.append(_timed(lambda w=where: _served(model, field, w), where))
+    (t_cpu, a), (t_dev, b) = out
+    return {
+        "sites": n**ndim * 2,
+        "cpu": t_cpu,
+        "device": t_dev,
+        "diff": float(np.abs(a.field.values - b.field.values).max()),
+        "label": b.device,
+        "complete": a.complete and b.complete,
+    }
+
+
+def _served(model: Any, field: Any, device: str) -> Any:
+    import latticedft as ldft
+
+    try:
+        return ldft.serve(model, field, affine=False, progress=False, device=device)
+    except ldft.ServeError as err:  # timed all the same; the table says it stopped
+        return err.result
+
+
+def training(n: int, device: str) -> dict[str, Any]:
+    """Seconds of 10 L-BFGS iterations on an ``n x n x 8`` field on the CPU and on ``device``."""
+    import latticedft as ldft
+
+    data = standing_wave(n, 8, 2)
+    out = []
+    for where in ("cpu", device):
+        model = mlp()
+        ldft.learn(mlp(), standing_wave(8, 8, 2), max_iter=2, progress=False, device=where)  # warm-up
+        out.append(
+            _timed(
+                lambda m=model, w=where: ldft.learn(m, data, max_iter=10, chunk_sites=0, progress=False, device=w),
+                where,
+            )
+        )
+    (t_cpu, a), (t_dev, b) = out
+    return {
+        "sites": n * n * 8,
+        "cpu": t_cpu,
+        "device": t_dev,
+        "diff": abs(a.loss - b.loss) / max(abs(a.loss), 1e-300),
+        "label": b.device,
+        "complete": True,
+    }
+
+
+def _uptime() -> str:
+    try:
+        return subprocess.run(["uptime"], capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "load average: " + ", ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.device", description=__doc__.split("\n\n")[0])
+    p.add_argument("--device", default="cuda", help="the device measured against the CPU (default cuda)")
+    p.add_argument("--quick", action="store_true", help="small sizes only (seconds)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads of the CPU runs (default 1)")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    from latticedft._device import DeviceWarning, resolve_device
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DeviceWarning)
+        resolved = resolve_device(args.device)
+    for w in caught:
+        print(f"note: {w.message}")
+    gpu = resolved.type == "cuda"
+    if not gpu:
+        print("CUDA is unavailable here: the CPU is measured against itself, at small sizes; no GPU figures")
+    big = gpu and not args.quick
+    device = str(resolved)
+    print(f"cores: {os.cpu_count()}; torch threads: {args.threads}; before: {_uptime()}", flush=True)
+    rows = []
+    for what, run in (
+        (f"serve 2+1D {1024 if big else 64}^2 x 2 slices", lambda: serving(2, 1024 if big else 64, device)),
+        (f"serve 3+1D {128 if big else 16}^3 x 2 slices", lambda: serving(3, 128 if big else 16, device)),
+        (f"train MLP 2+1D {256 if big else 32}^2 x 8, 10 L-BFGS its", lambda: training(256 if big else 32, device)),
+    ):
+        r = run()
+        rows.append(
+            [
+                what,
+                f"{r['sites']:.3g}",
+                f"{r['cpu']:.3f}",
+                f"{r['device']:.3f}",
+                f"{r['cpu'] / r['device']:.2f}",
+                f"{r['diff']:.1e}",
+                r["label"] + ("" if r["complete"] else " (stopped)"),
+            ]
+        )
+        print(f"  done: {what}", flush=True)
+    cols = ["workload", "sites", "cpu s", "device s", "cpu / device", "max diff", "device"]
+    widths = [max(len(str(x)) for x in col) for col in zip(cols, *rows)]
+    print(f"\n== {TITLE}")
+    for j, row in enumerate([cols, *rows]):
+        print("  ".join(str(c).ljust(w) if k == 0 else str(c).rjust(w) for k, (c, w) in enumerate(zip(row, widths))))
+        if j == 0:
+            print("  ".join("-" * w for w in widths))
+    print(f"after: {_uptime()}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
