@@ -34,6 +34,9 @@ _PUBLIC: dict[str, str] = {
     "LearnReport": "._learn",
     "diagnose": "._learn",
     "learn": "._learn",
+    "NoiseEstimate": "._learn",
+    "denoise": "._learn",
+    "estimate_noise": "._learn",
     "load_model": "._modelfile",
     "save_model": "._modelfile",
     "MODELS": "._models",
@@ -107,7 +110,10 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._lattice import as_lattice_field as as_lattice_field
     from ._learn import GAUGES as GAUGES
     from ._learn import LearnReport as LearnReport
+    from ._learn import NoiseEstimate as NoiseEstimate
+    from ._learn import denoise as denoise
     from ._learn import diagnose as diagnose
+    from ._learn import estimate_noise as estimate_noise
     from ._learn import learn as learn
     from ._modelfile import load_model as load_model
     from ._modelfile import save_model as save_model

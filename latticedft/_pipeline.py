@@ -234,6 +234,11 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
             raise _as_case_error(exc, f"train.{exc.key}") from None
         raise
     log.info("%s", report.summary_line())
+    if report.noise is not None:  # [train] noise = "auto" | "correct"
+        nz = report.noise
+        est = f"sigma {nz['sigma']:.2e} ({nz['relative']:.1e} of the amplitude)" if nz["resolved"] else "unresolved"
+        done = f"{nz['method']}, rms shift {nz['shift']:.2e}" if nz["method"] != "none" else "none"
+        log.info("noise (%s): %s; correction: %s", nz["mode"], est, done)
     log.debug("training device: %s", report.device)
     if model.ensemble_ is not None:  # [train] ensemble: serve every member, member 0 the full-data model
         model = model.ensemble_
@@ -329,6 +334,20 @@ class TaskOutcome:
         return attrs
 
 
+def _start(model: Any, td: TaskData) -> tuple[xr.DataArray, str]:
+    """The task's initial data and how they were taken (``[[serve]] start``): ``denoised`` asks for it, ``auto``
+    denoises when training corrected noisy data."""
+    from ._learn._noise import DENOISE_SLICES, denoised_start
+
+    noise = getattr(getattr(model, "report_", None), "noise", None) or {}
+    if td.task.start == "data" or (td.task.start == "auto" and noise.get("method", "none") == "none"):
+        return td.init, "data"
+    log.info(
+        "serving %s from initial slices denoised by the learned DEL (first %d slices)", td.task.name, DENOISE_SLICES
+    )
+    return denoised_start(model, td.init), "denoised"
+
+
 def serve_task(
     model: Any, td: TaskData, on_kept: Callable[[int, np.ndarray], Any] | None = None, device: str = "cpu"
 ) -> TaskOutcome:
@@ -360,8 +379,9 @@ def serve_task(
         from ._task_stream import TaskMeter
 
         meter = kwargs["on_slice"] = TaskMeter(td.reference, td.invariant, on_kept)
+    init, start = _start(model, td)
     try:
-        result = serve(model, td.init, progress=None, device=device, **kwargs)
+        result = serve(model, init, progress=None, device=device, **kwargs)
     except ServeError as err:
         result = err.result
         if isinstance(result, list):  # pragma: no cover - a single init gives one result
@@ -382,6 +402,7 @@ def serve_task(
     rec["wall_time"] = wall
     rec["requested_slices"] = td.slices
     rec["from"] = t.source.name
+    rec["start"] = start
     rec["reference"] = None
     if td.reference is not None:
         cmp = compare(pred, td.reference) if meter is None else meter.errors()

@@ -365,6 +365,7 @@ def _serve_task(ctx: _Ctx, entry: Any, i: int, root: Path, names: set[str]) -> S
         baseline=_resolve(ctx, root, f"{label}.baseline", s["baseline"]) if s["baseline"] else None,
         invariant=s["invariant"],
         charges=tuple(s["charges"] or ()),
+        start=s["start"],
         label=label,
         deprecated_steps=slices_key == "steps",
         solver=s["solver"],

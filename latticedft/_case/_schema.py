@@ -62,6 +62,8 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "chunk_sites": (t_nonneg_int, None),
         "ensemble": (t_ensemble, None),
         "ensemble_seed": (t_nonneg_int, 0),
+        "noise": (t_choice("none", "auto", "correct"), "none"),
+        "noise_sigma": (t_nonneg_float, None),
     },
     "serve": {
         "name": (t_name, _REQUIRED),
@@ -79,6 +81,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "charges": (t_str_list, None),
         "solver": (t_choice(*SOLVERS), "auto"),
         "every": (t_pos_int, 1),  # output cadence: keep every k-th slice (and the last)
+        "start": (t_choice("auto", "data", "denoised"), "auto"),
     },
     "run": {
         "threads": (t_pos_int, None),
@@ -205,6 +208,9 @@ class ServeTask:
     solver: str = "auto"
     #: Output cadence: the task's file keeps every ``every``-th slice and the last (``serve(every=...)``).
     every: int = 1
+    #: Initial slices: ``data`` as read, ``denoised`` by the learned DEL, ``auto`` denoised when training
+    #: corrected noisy data.
+    start: str = "auto"
 
     def serve_kwargs(self) -> dict[str, Any]:
         return {

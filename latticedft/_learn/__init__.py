@@ -16,8 +16,10 @@ from __future__ import annotations
 from ._api import OPTIMIZERS, learn
 from ._data import check_model_lattice
 from ._gauge import GAUGES
+from ._noise import NoiseEstimate, denoise, estimate_noise
 from ._report import LearnReport, diagnose
 
 _check_model_lattice = check_model_lattice  # the name the server imports
 
 __all__ = ["learn", "LearnReport", "diagnose", "GAUGES", "OPTIMIZERS", "check_model_lattice"]
+__all__ += ["NoiseEstimate", "denoise", "estimate_noise"]

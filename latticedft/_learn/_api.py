@@ -19,6 +19,7 @@ from ._ensemble import learn_ensemble
 from ._exact import learn_exact
 from ._gauge import AUTO, Gauge, gauge_named
 from ._neural import Training, learn_neural
+from ._noise import NOISE_MODES, learn_noisy
 from ._report import LearnReport, fit_warnings
 from ._stream import TrainingData, training_data
 
@@ -108,6 +109,8 @@ def learn(
     progress: bool | None = None,
     symmetries: bool = False,
     chunk_sites: int | None = None,
+    noise: str = "none",
+    noise_sigma: float | None = None,
     device: str | None = None,
     ensemble: int | None = None,
     ensemble_seed: int = 0,
@@ -158,6 +161,15 @@ def learn(
         size); ``0`` holds and processes all data at once (in memory). Under
         an initialised ``torch.distributed`` process group every process
         reads its share of the chunks and all end with the same model.
+    noise : "none", "auto" or "correct"
+        Noisy data (docs/noise.md): ``correct`` alternates the fit with a
+        correction of the training fields toward the learned DEL (errors in
+        variables; linear models fitted exactly); ``auto`` does so only when
+        the noise estimated from the data (:func:`estimate_noise`) is
+        significant. The estimate and what was done are in ``report.noise``.
+    noise_sigma : float, optional
+        The noise's standard deviation when known (field units); skips the
+        estimate.
     device : "cpu", "cuda", "cuda:N" or "auto", optional
         Where iterative training evaluates the model (its parameters, and
         ``L_d`` with its derivatives on the cells of each chunk): default the
@@ -206,7 +218,14 @@ def learn(
     _check_training(settings)
     if not isinstance(symmetries, bool):
         raise InputError.at("symmetries", f"expected true or false, got {symmetries!r}")
+    if noise not in NOISE_MODES:
+        raise InputError.at("noise", f"expected 'auto', 'none' or 'correct', got {noise!r}")
+    _check_number("noise_sigma", noise_sigma, strict=False, optional=True)
     ens = _ensemble_of(model, ensemble, ensemble_seed)
+    if ens is not None and noise != "none":
+        raise InputError.at(
+            "noise", "noise correction and an ensemble cannot be combined yet: give noise='none' or no ensemble"
+        )
     fields = training_data(data, boundary, chunk_sites)
     trained_on = device_label(where) if optimizer != "exact" else "cpu"
 
@@ -227,7 +246,18 @@ def learn(
         return report
 
     if ens is None:
-        return fit(model, fields)
+        if noise == "none":
+            return fit(model, fields)
+        report = learn_noisy(
+            model,
+            fields,
+            lambda fs: fit(model, fs),
+            noise,
+            noise_sigma,
+            lambda f: training_data(f, boundary, chunk_sites),
+        )
+        model.report_ = report
+        return report
     report = learn_ensemble(ens, fields, fit)
     if ens is not model:
         object.__setattr__(model, "ensemble_", ens)  # not a submodule: the ensemble holds the model

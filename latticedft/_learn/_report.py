@@ -65,6 +65,9 @@ class LearnReport:
     gauge_scores: dict[str, float] = field(default_factory=dict)
     #: ``gauge="auto"``: why ``gauge`` was chosen, in words.
     gauge_choice: str = ""
+    #: ``noise="auto"`` or ``"correct"``: the noise estimate (sigma, relative, resolved) and the correction
+    #: applied (method, rounds, rms shift of the training fields); None when ``noise="none"``.
+    noise: dict[str, Any] | None = None
     #: Where training evaluated the model: ``"cpu"`` or ``"cuda:N (GPU name)"`` (``learn(device=...)``).
     device: str = "cpu"
     #: ``learn`` of an ensemble (:class:`latticedft.EnsembleLagrangian`): members, seed, the number of time
@@ -94,6 +97,8 @@ class LearnReport:
             del d["ensemble"]
         if self.selection is None:
             del d["selection"]
+        if self.noise is None:
+            del d["noise"]
         return d
 
 
