@@ -161,7 +161,8 @@ def numpy_closed_forms(model: AbstractLagrangian, cells: torch.Tensor, pairs: Se
     forms = _NUMPY_FORMS.get(model)
     key = [(t, t._version) for t in state]
     if forms is None or len(forms[0]) != len(key) or any(a is not b or u != v for (a, u), (b, v) in zip(forms[0], key)):
-        forms = (key, {})
+        built: dict[tuple[tuple[int, int], ...], Any] = {}
+        forms = (key, built)
         _NUMPY_FORMS[model] = forms
     pairs = tuple(pairs)
     if pairs not in forms[1]:

@@ -112,43 +112,62 @@ def folded_tensor(
 
 
 #: Cells per call from which the derivatives are evaluated cells-last (:func:`_many_cells`), in chunks of
-#: ``_MANY_CHUNK`` cells (the monomials of a chunk stay in cache).
+#: ``_MANY_CHUNK`` cells (the intermediates of a chunk stay in cache).
 _MANY_CELLS = 256
-_MANY_CHUNK = 512
+_MANY_CHUNK = 2048
 
 
 def _many_cells(g_chain: np.ndarray, widths: Sequence[int], w: np.ndarray, shift: np.ndarray):
-    """``flat (B, K m) -> (B, cols)``: ``monomials @ g_chain`` for many cells, with only the monomials that some
-    column needs (a polynomial of low degree in the differences needs few of the ``prod(widths)``) and the cells
-    along the last axis (every product then runs over a long contiguous row). A monomial is the power of the
-    first variable times a product of the others' powers (its tail), computed once per distinct tail."""
+    """``flat (B, K m) -> (B, cols)``: ``monomials @ g_chain`` for many cells, cells along the last axis (every
+    product runs over a long contiguous row).
+
+    Only the monomials that some column needs count (a polynomial of low degree in the differences needs few
+    of the ``prod(widths)``). Each is the power of the widest variable (the head) times a product of the
+    others' powers (its tail); the columns are ``sum_tail tail * (C_tail @ powers of the head)``: one matrix
+    product for all tails, then one product and sum per chunk."""
     keep = np.nonzero(np.any(g_chain != 0, axis=1))[0]
     expo = np.stack(np.unravel_index(keep, tuple(widths)))  # (V, kept): the exponents of each kept monomial
-    if len(widths) > 1:
-        tails, tail_of = np.unique(expo[1:].T, axis=0, return_inverse=True)  # (ntail, V-1)
+    nvar = len(widths)
+    head = int(np.argmax(widths))
+    others = [v for v in range(nvar) if v != head]
+    if others:
+        tails, tail_of = np.unique(expo[others].T, axis=0, return_inverse=True)  # (ntail, V-1)
     else:
         tails, tail_of = np.zeros((1, 0), dtype=int), np.zeros(keep.size, dtype=int)
-    tail_of = tail_of.reshape(-1)
-    first = expo[0]
-    gt = np.ascontiguousarray(g_chain[keep].T)  # (cols, kept)
-    nvar, width = len(widths), max(widths)
-    wt = np.ascontiguousarray(w.T)
+    cols = g_chain.shape[1]
+    per_tail = np.zeros((len(tails), cols, widths[head]))  # C_tail: powers of the head -> columns
+    per_tail[tail_of.reshape(-1), :, expo[head]] = g_chain[keep]
+    stacked = per_tail.reshape(-1, widths[head])
+
+    nt, wh = len(tails), widths[head]
 
     def evaluate(flat: np.ndarray) -> np.ndarray:
         b = flat.shape[0]
-        out = np.empty((gt.shape[0], b))
-        pw = np.empty((width, nvar, b))  # powers z^i of every variable: (power, variable, cell)
-        pw[0] = 1.0
-        pw[1] = np.dot(wt, flat.T) - shift[:, None]
-        for i in range(2, width):
-            np.multiply(pw[i - 1], pw[1], out=pw[i])
+        out = np.empty((cols, b))
+        zt = np.dot(w.T, flat.T) - shift[:, None]  # (V, cells): the scaled variables
+        size = min(b, _MANY_CHUNK)
+        hp = np.empty((wh, size))  # powers of the head, then of each other variable (buffers reused per chunk)
+        op = [np.empty((widths[v], size)) for v in others]
+        tail = np.empty((nt, size))
+        buf = np.empty(nt * cols * size)  # the head's polynomials per tail and column
+        hp[0] = 1.0
+        for q in op:
+            q[0] = 1.0
         for lo in range(0, b, _MANY_CHUNK):
-            hi = min(b, lo + _MANY_CHUNK)
-            tail = np.ones((len(tails), hi - lo))
-            for v in range(1, nvar):
-                tail *= pw[tails[:, v - 1], v, lo:hi]
-            mono = pw[first, 0, lo:hi] * tail[tail_of]  # (kept, cells)
-            out[:, lo:hi] = np.dot(gt, mono)
+            n = min(b, lo + _MANY_CHUNK) - lo
+            if n < size:
+                hp, op, tail = hp[:, :n], [q[:, :n] for q in op], tail[:, :n]
+            for q, v in zip([hp, *op], [head, *others]):
+                for i in range(1, q.shape[0]):
+                    np.multiply(q[i - 1], zt[v, lo : lo + n], out=q[i])
+            tail[...] = 1.0
+            for j, q in enumerate(op):
+                tail *= q[tails[:, j]]
+            part = buf[: nt * cols * n].reshape(nt * cols, n)
+            np.dot(stacked, hp, out=part)
+            prod = part.reshape(nt, cols, n)
+            prod *= tail[:, None, :]
+            np.sum(prod, axis=0, out=out[:, lo : lo + n])
         return out.T
 
     return evaluate
