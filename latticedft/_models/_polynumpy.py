@@ -7,6 +7,12 @@ depends only on the model is precomputed once: per variable ``v`` a matrix ``M_v
 derivatives (the coefficient matrix of the basis with its columns already picked by the term's exponent of
 ``v``). A call then takes the powers by cumulative products, one matrix product per variable, the products
 of the other factors (prefix and suffix products, no division), and one product with ``coef``.
+
+Where the monomials ``prod_v z_v^a_v`` (each variable up to its own largest exponent) are few, the
+coefficients are folded once more, onto those monomials and through the chain rule: a call is then one
+product of the monomials with a fixed matrix. n-D slice-Newton evaluates whole slices of cells at a time;
+from ``_MANY_CELLS`` cells the cells run along the last axis and only the monomials some derivative needs
+are formed (:func:`_many_cells`).
 """
 
 from __future__ import annotations
