@@ -130,7 +130,7 @@ def _many_cells(g_chain: np.ndarray, widths: Sequence[int], w: np.ndarray, shift
     Only the monomials that some column needs count (a polynomial of low degree in the differences needs few
     of the ``prod(widths)``). Each is the power of the widest variable (the head) times a product of the
     others' powers (its tail); the columns are ``sum_tail tail * (C_tail @ powers of the head)``: one matrix
-    product for all tails, then one product and sum per chunk."""
+    product for all tails, then one weighted sum per chunk."""
     keep = np.nonzero(np.any(g_chain != 0, axis=1))[0]
     expo = np.stack(np.unravel_index(keep, tuple(widths)))  # (V, kept): the exponents of each kept monomial
     nvar = len(widths)
@@ -171,9 +171,7 @@ def _many_cells(g_chain: np.ndarray, widths: Sequence[int], w: np.ndarray, shift
                 tail *= q[tails[:, j]]
             part = buf[: nt * cols * n].reshape(nt * cols, n)
             np.dot(stacked, hp, out=part)
-            prod = part.reshape(nt, cols, n)
-            prod *= tail[:, None, :]
-            np.sum(prod, axis=0, out=out[:, lo : lo + n])
+            np.einsum("tcb,tb->cb", part.reshape(nt, cols, n), tail, out=out[:, lo : lo + n])
         return out.T
 
     return evaluate
