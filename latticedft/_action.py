@@ -8,8 +8,11 @@
 from __future__ import annotations
 
 import math
+import weakref
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 import xarray as xr
 
@@ -20,7 +23,15 @@ from ._stencil import Stencil
 if TYPE_CHECKING:  # the action evaluates any model; models sit a layer above
     from ._models import AbstractLagrangian
 
-__all__ = ["action", "del_residual", "mixed_hessian", "cell_derivatives", "CellDerivatives", "second_time_difference"]
+__all__ = [
+    "action",
+    "del_residual",
+    "mixed_hessian",
+    "cell_derivatives",
+    "CellDerivatives",
+    "numpy_closed_forms",
+    "second_time_difference",
+]
 
 
 def _check_action_args(model: Any, psi: object, spacing: object, periodic: object, batch: object) -> None:
@@ -130,17 +141,53 @@ def cell_derivatives(
     return g, blocks
 
 
+#: Per model, its numpy closed forms (:meth:`LinearLagrangian.numpy_derivatives`) per tuple of pairs, with the
+#: parameters and buffers they were built from (rebuilt when one is replaced or changed in place).
+_NUMPY_FORMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def numpy_closed_forms(model: AbstractLagrangian, cells: torch.Tensor, pairs: Sequence[tuple[int, int]]):
+    """The model's numpy ``fn(cells (B, K, m)) -> (dL/dx, [blocks per pair])`` for ``pairs``, or ``None``: for
+    a linear model that offers them, with its parameters and ``cells`` on the CPU in double precision (a model
+    on an accelerator keeps its torch closed forms). Built once per model state."""
+    hook = getattr(model, "numpy_derivatives", None)
+    if hook is None or not getattr(model, "linear", False) or cells.device.type != "cpu":
+        return None
+    if cells.dtype != torch.float64:
+        return None
+    state = [*model.parameters(), *model.buffers()]
+    if any(t.device.type != "cpu" for t in state):
+        return None
+    forms = _NUMPY_FORMS.get(model)
+    key = [(t, t._version) for t in state]
+    if forms is None or len(forms[0]) != len(key) or any(a is not b or u != v for (a, u), (b, v) in zip(forms[0], key)):
+        built: dict[tuple[tuple[int, int], ...], Any] = {}
+        forms = (key, built)
+        _NUMPY_FORMS[model] = forms
+    pairs = tuple(pairs)
+    if pairs not in forms[1]:
+        forms[1][pairs] = hook(pairs)
+    return forms[1][pairs]
+
+
 class CellDerivatives:
     """Per-cell gradient now, Hessian blocks on demand (serving skips them while a cached Jacobian serves).
 
     The gradient is taken without a graph; only when blocks are asked for is
     it taken again with one (one extra pass, saved on every slice that needs
-    no fresh Jacobian).
+    no fresh Jacobian). A model's numpy closed forms serve when it has them
+    (:func:`numpy_closed_forms`), then its torch ones, then autograd.
     """
 
     def __init__(self, model: AbstractLagrangian, cells: torch.Tensor):
         self.model = model
         self.cells = cells.detach()
+        fn = numpy_closed_forms(model, self.cells, ())
+        self._numpy = fn is not None
+        self._closed = False
+        if fn is not None:
+            self.grad = torch.from_numpy(fn(self._flat())[0].reshape(self.cells.shape))
+            return
         closed = model.fast_derivatives(self.cells, [])
         self._closed = closed is not None  # the model's closed forms serve the blocks too
         if closed is not None:
@@ -151,7 +198,16 @@ class CellDerivatives:
             (g,) = torch.autograd.grad(model(x).sum(), x)
         self.grad = g.detach()
 
+    def _flat(self) -> np.ndarray:
+        """The cells as one contiguous ``(B, K, m)`` array."""
+        c = self.cells
+        return np.ascontiguousarray(c.numpy()).reshape(-1, c.shape[-2], c.shape[-1])
+
     def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
+        if self._numpy and (fn := numpy_closed_forms(self.model, self.cells, pairs)) is not None:
+            lead, m = self.cells.shape[:-2], self.cells.shape[-1]
+            out = fn(self._flat())[1]
+            return {p: torch.from_numpy(b.reshape(*lead, m, m)) for p, b in zip(pairs, out)}
         if self._closed and (closed := self.model.fast_derivatives(self.cells, pairs)) is not None:
             return closed[1]
         return cell_derivatives(self.model, self.cells.detach(), pairs)[1]

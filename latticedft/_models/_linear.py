@@ -36,7 +36,8 @@ class LinearLagrangian(AbstractLagrangian):
     which creates ``coef``), :meth:`feature_derivatives` (closed forms for the exact solve; the default is
     forward-mode automatic differentiation of :meth:`features`) and :meth:`fast_derivatives` (closed
     forms for serving; the default ``None`` lets serving differentiate :meth:`forward` by autograd) and
-    :meth:`numpy_derivatives` (closed forms in numpy: 1D serving then runs Newton's method in numpy).
+    :meth:`numpy_derivatives` (closed forms in numpy: 1D serving then runs Newton's method in numpy, and n-D
+    slice-Newton evaluates its cells with them while the model is on the CPU).
 
     Attributes
     ----------
@@ -112,7 +113,8 @@ class LinearLagrangian(AbstractLagrangian):
         self, pairs: Sequence[tuple[int, int]]
     ) -> Callable[[np.ndarray], tuple[np.ndarray, list[np.ndarray]]] | None:
         """A numpy function ``cells (B, K, m) -> (dL/dx (B, K, m), [d^2 L / dx_a dx_b (B, m, m) per pair])``
-        of the model as it is now, or ``None`` (the default): 1D serving then runs its Newton loop in torch."""
+        of the model as it is now, or ``None`` (the default): 1D serving then runs its Newton loop in torch, and
+        n-D slice-Newton takes :meth:`fast_derivatives` (or autograd)."""
         return None
 
     def _directional(self, t: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:

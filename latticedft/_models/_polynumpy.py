@@ -7,6 +7,12 @@ depends only on the model is precomputed once: per variable ``v`` a matrix ``M_v
 derivatives (the coefficient matrix of the basis with its columns already picked by the term's exponent of
 ``v``). A call then takes the powers by cumulative products, one matrix product per variable, the products
 of the other factors (prefix and suffix products, no division), and one product with ``coef``.
+
+Where the monomials ``prod_v z_v^a_v`` (each variable up to its own largest exponent) are few, the
+coefficients are folded once more, onto those monomials and through the chain rule: a call is then one
+product of the monomials with a fixed matrix. n-D slice-Newton evaluates whole slices of cells at a time;
+from ``_MANY_CELLS`` cells the cells run along the last axis and only the monomials some derivative needs
+are formed (:func:`_many_cells`).
 """
 
 from __future__ import annotations
@@ -78,32 +84,97 @@ def _combos(nvar: int) -> list[tuple[int, ...]]:
     return out
 
 
-def folded_tensor(basis_rows: np.ndarray, exponents: np.ndarray, coef: np.ndarray, second: bool) -> np.ndarray:
-    """``(combos, D+1, ..., D+1)``: per derivative order of :func:`_combos`, the coefficients of that derivative
-    of ``L = sum_c coef_c prod_v P_{e_vc}(z_v)`` on the monomials ``prod_v z_v^a_v`` (``basis_rows[i, k]``: the
-    coefficient of ``z^i`` in ``P_k``)."""
+def folded_tensor(
+    basis_rows: np.ndarray, exponents: np.ndarray, coef: np.ndarray, second: bool, widths: Sequence[int] | None = None
+) -> np.ndarray:
+    """``(combos, *widths)``: per derivative order of :func:`_combos`, the coefficients of that derivative of
+    ``L = sum_c coef_c prod_v P_{e_vc}(z_v)`` on the monomials ``prod_v z_v^a_v`` (``basis_rows[i, k]``: the
+    coefficient of ``z^i`` in ``P_k``; ``widths[v]``: the powers ``a_v < widths[v]`` kept, at least one more than
+    the largest exponent of ``v``; all of ``basis_rows``' rows by default)."""
     c, nvar = exponents.shape
-    width = basis_rows.shape[0]
-    full = np.zeros((width,) * nvar)
+    shape = tuple(int(x) for x in widths) if widths is not None else (basis_rows.shape[0],) * nvar
+    full = np.zeros(shape)
     for t in range(c):  # the monomial coefficients of L: sum over terms of outer products
         outer = np.array(coef[t])
         for v in range(nvar):
-            outer = np.multiply.outer(outer, basis_rows[:, exponents[t, v]])
+            outer = np.multiply.outer(outer, basis_rows[: shape[v], exponents[t, v]])
         full += outer
     combos = _combos(nvar) if second else _combos(nvar)[:nvar]
-    out = np.zeros((len(combos),) + (width,) * nvar)
+    out = np.zeros((len(combos),) + shape)
     for q, js in enumerate(combos):
+        if any(j >= w for j, w in zip(js, shape)):  # a derivative above the variable's degree: zero
+            continue
         shifted = full[tuple(slice(j, None) for j in js)]  # A[a + j] ...
         for v, j in enumerate(js):  # ... times (a + j)! / a! per variable
-            a = np.arange(width - j)
-            fac = np.ones(width - j)
+            a = np.arange(shape[v] - j)
+            fac = np.ones(shape[v] - j)
             for s in range(1, j + 1):
                 fac = fac * (a + s)
-            shape = [1] * nvar
-            shape[v] = width - j
-            shifted = shifted * fac.reshape(shape)
-        out[q][tuple(slice(0, width - j) for j in js)] = shifted
+            axes = [1] * nvar
+            axes[v] = shape[v] - j
+            shifted = shifted * fac.reshape(axes)
+        out[q][tuple(slice(0, w - j) for j, w in zip(js, shape))] = shifted
     return out
+
+
+#: Cells per call from which the derivatives are evaluated cells-last (:func:`_many_cells`), in chunks of
+#: ``_MANY_CHUNK`` cells (the intermediates of a chunk stay in cache).
+_MANY_CELLS = 256
+_MANY_CHUNK = 2048
+
+
+def _many_cells(g_chain: np.ndarray, widths: Sequence[int], w: np.ndarray, shift: np.ndarray):
+    """``flat (B, K m) -> (B, cols)``: ``monomials @ g_chain`` for many cells, cells along the last axis (every
+    product runs over a long contiguous row).
+
+    Only the monomials that some column needs count (a polynomial of low degree in the differences needs few
+    of the ``prod(widths)``). Each is the power of the widest variable (the head) times a product of the
+    others' powers (its tail); the columns are ``sum_tail tail * (C_tail @ powers of the head)``: one matrix
+    product for all tails, then one weighted sum per chunk."""
+    keep = np.nonzero(np.any(g_chain != 0, axis=1))[0]
+    expo = np.stack(np.unravel_index(keep, tuple(widths)))  # (V, kept): the exponents of each kept monomial
+    nvar = len(widths)
+    head = int(np.argmax(widths))
+    others = [v for v in range(nvar) if v != head]
+    if others:
+        tails, tail_of = np.unique(expo[others].T, axis=0, return_inverse=True)  # (ntail, V-1)
+    else:
+        tails, tail_of = np.zeros((1, 0), dtype=int), np.zeros(keep.size, dtype=int)
+    cols = g_chain.shape[1]
+    per_tail = np.zeros((len(tails), cols, widths[head]))  # C_tail: powers of the head -> columns
+    per_tail[tail_of.reshape(-1), :, expo[head]] = g_chain[keep]
+    stacked = per_tail.reshape(-1, widths[head])
+
+    nt, wh = len(tails), widths[head]
+
+    def evaluate(flat: np.ndarray) -> np.ndarray:
+        b = flat.shape[0]
+        out = np.empty((cols, b))
+        zt = np.dot(w.T, flat.T) - shift[:, None]  # (V, cells): the scaled variables
+        size = min(b, _MANY_CHUNK)
+        hp = np.empty((wh, size))  # powers of the head, then of each other variable (buffers reused per chunk)
+        op = [np.empty((widths[v], size)) for v in others]
+        tail = np.empty((nt, size))
+        buf = np.empty(nt * cols * size)  # the head's polynomials per tail and column
+        hp[0] = 1.0
+        for q in op:
+            q[0] = 1.0
+        for lo in range(0, b, _MANY_CHUNK):
+            n = min(b, lo + _MANY_CHUNK) - lo
+            if n < size:
+                hp, op, tail = hp[:, :n], [q[:, :n] for q in op], tail[:, :n]
+            for q, v in zip([hp, *op], [head, *others]):
+                for i in range(1, q.shape[0]):
+                    np.multiply(q[i - 1], zt[v, lo : lo + n], out=q[i])
+            tail[...] = 1.0
+            for j, q in enumerate(op):
+                tail *= q[tails[:, j]]
+            part = buf[: nt * cols * n].reshape(nt * cols, n)
+            np.dot(stacked, hp, out=part)
+            np.einsum("tcb,tb->cb", part.reshape(nt, cols, n), tail, out=out[:, lo : lo + n])
+        return out.T
+
+    return evaluate
 
 
 def numpy_derivatives(model: PolynomialLagrangian, pairs: Sequence[tuple[int, int]]) -> NumpyDerivatives | None:
@@ -136,9 +207,10 @@ def numpy_derivatives(model: PolynomialLagrangian, pairs: Sequence[tuple[int, in
         )
 
     ncombo = nvar + (nvar * (nvar + 1) // 2 if pairs else 0)
-    if width**nvar <= _FOLDED_MAX_POWERS:
+    widths = [int(x) + 1 for x in exps.max(axis=0)] if c else [1] * nvar  # powers of each variable that occur
+    if int(np.prod(widths)) <= _FOLDED_MAX_POWERS:
         basis_rows = _coefficient_matrix_f64(model.basis, deg).numpy()[:, :width]
-        g = folded_tensor(basis_rows, exps, coef, bool(pairs)).reshape(ncombo, -1).T  # (monomials, combos)
+        g = folded_tensor(basis_rows, exps, coef, bool(pairs), widths).reshape(ncombo, -1).T  # (monomials, combos)
         nb = len(pair_mats) * m * m
         chain = np.zeros((ncombo, k * m + nb))  # the chain rule: dL/dz -> dL/dx, d2L/dz2 -> the blocks
         chain[:nvar, : k * m] = w.T
@@ -146,22 +218,24 @@ def numpy_derivatives(model: PolynomialLagrangian, pairs: Sequence[tuple[int, in
             chain[nvar:, k * m :] = np.concatenate(pair_mats, axis=1)
         g_chain = g @ chain  # monomials -> [dL/dx | blocks]: one product per call
         shift = center / half
-        chunk = max(1, _FOLDED_CHUNK // width**nvar)
+        chunk = max(1, _FOLDED_CHUNK // int(np.prod(widths)))
         accumulate = np.multiply.accumulate
+
+        many = _many_cells(g_chain, widths, w, shift)
 
         def folded(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
             b = cells.shape[0]
             flat = cells.reshape(b, k * m)
-            out = np.empty((b, k * m + nb))
-            for lo in range(0, b, chunk):
+            out = many(flat) if b >= _MANY_CELLS else np.empty((b, k * m + nb))
+            for lo in range(0, b if b < _MANY_CELLS else 0, chunk):
                 bc = min(b - lo, chunk)
                 pw = np.empty((nvar, bc, width))  # powers (1, z, z^2, ...) of the scaled variables: cumulative products
                 pw[..., 0] = 1.0
                 pw[..., 1:] = (np.dot(flat[lo : lo + bc], w) - shift).T[..., None]
                 accumulate(pw, axis=-1, out=pw)
-                prods = pw[0]  # every monomial prod_v z_v^a_v
+                prods = pw[0, :, : widths[0]]  # every monomial prod_v z_v^a_v
                 for v in range(1, nvar):
-                    prods = (prods[:, :, None] * pw[v][:, None, :]).reshape(bc, -1)
+                    prods = (prods[:, :, None] * pw[v, :, None, : widths[v]]).reshape(bc, -1)
                 out[lo : lo + bc] = np.dot(prods, g_chain)
             grad = out[:, : k * m].reshape(b, k, m)
             return grad, [
