@@ -7,6 +7,7 @@ The field layout (dims, spacing, the ``periodic`` attribute, components) is
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -19,6 +20,7 @@ from ._boundary import BoundaryKind, BoundaryKinds, axis_kinds, lattice_boundary
 from ._errors import InputError
 from ._layout import (
     COMPONENT_DIM,
+    PERIODIC_ATTR,
     component_labels,
     coordinate_spacing,
     field_periodic,
@@ -26,7 +28,17 @@ from ._layout import (
 )
 from ._stencil import Stencil
 
-__all__ = ["LatticeField", "as_lattice_field", "gather_cells", "interior_slices", "BoundaryKinds"]
+__all__ = [
+    "LatticeField",
+    "as_lattice_field",
+    "as_lattice_fields",
+    "to_dataarrays",
+    "like_dataarray",
+    "dataarray_parts",
+    "gather_cells",
+    "interior_slices",
+    "BoundaryKinds",
+]
 
 #: Per lattice axis: a boundary kind's name, a :class:`BoundaryKind`, or a periodic flag.
 AxisBoundaries = Sequence[str | bool | BoundaryKind]
@@ -148,6 +160,126 @@ def as_lattice_field(
         coord_attrs={d: dict(data[d].attrs) for d in dims},
         attrs=dict(data.attrs),
     )
+
+
+def _coordinate_bytes(v: xr.Variable) -> bytes:
+    """The values of a coordinate variable as bytes (an index coordinate's read from its pandas index)."""
+    values = getattr(getattr(getattr(v, "_data", None), "array", None), "values", None)  # without a copy
+    if not isinstance(values, np.ndarray) or values.dtype != v.dtype or values.shape != v.shape:
+        values = np.asarray(v.values)
+    return values.tobytes()
+
+
+def _layout_key(data: xr.DataArray) -> tuple | None:
+    """What :func:`as_lattice_field`'s checks read of ``data`` apart from its values (dims, shape, dtype,
+    name, every coordinate's values and ``periodic`` attribute), or None when it cannot be keyed."""
+    try:
+        coords = tuple(
+            (str(n), v.dims, v.dtype.str, v.shape, _coordinate_bytes(v), repr(v.attrs.get(PERIODIC_ATTR, None)))
+            for n, v in data.coords.variables.items()
+        )
+        key = (data.dims, data.shape, data.dtype.str, data.name, coords)
+        hash(key)
+    except (TypeError, ValueError):
+        return None
+    return key
+
+
+def _like_checked(data: xr.DataArray, f0: LatticeField) -> LatticeField | None:
+    """``as_lattice_field(data)`` for ``data`` laid out as the field ``f0`` came from: ``f0`` around ``data``'s
+    values and attributes; None when a value is not finite (the full check then names it)."""
+    values = np.asarray(data.values, dtype=np.float64)
+    if not np.isfinite(values).all():
+        return None
+    if f0.components is None:
+        values = values[..., None]
+    variables = data.coords.variables
+    return replace(
+        f0,
+        values=torch.from_numpy(np.ascontiguousarray(values)),
+        coords=dict(f0.coords),
+        coord_attrs={d: dict(variables[d].attrs) for d in f0.dims},
+        attrs=dict(data.attrs),
+    )
+
+
+def as_lattice_fields(
+    items: Sequence[xr.DataArray | LatticeField],
+    sources: Sequence[str],
+    *,
+    boundary: BoundaryKinds | None = None,
+    min_slices: int = 3,
+) -> list[LatticeField]:
+    """:func:`as_lattice_field` of every item (``sources[k]`` names item ``k`` in errors), in one pass: an
+    item laid out as one already checked (the same dims, shape, dtype, name, coordinates and their
+    ``periodic`` attributes) is not checked again, only its values; it gets that one's lattice description
+    around its own values and attributes. The same fields, and the same first error, as one by one."""
+    seen: dict[tuple, LatticeField] = {}
+    out = []
+    for data, src in zip(items, sources, strict=True):
+        key = _layout_key(data) if type(data) is xr.DataArray else None
+        f0 = seen.get(key) if key is not None else None
+        f = _like_checked(data, f0) if f0 is not None and isinstance(data, xr.DataArray) else None
+        if f is None:
+            f = as_lattice_field(data, source=src, boundary=boundary, min_slices=min_slices)
+            if key is not None:
+                seen[key] = f
+        out.append(f)
+    return out
+
+
+#: A DataArray's dims, name, coordinate variables and indexes (:func:`dataarray_parts`).
+DataArrayParts = tuple[tuple, Any, dict, dict]
+
+
+def dataarray_parts(template: xr.DataArray) -> DataArrayParts:
+    """What :func:`like_dataarray` builds other DataArrays around: ``template``'s dims, name, coordinates and
+    indexes (read once)."""
+    return template.dims, template.name, dict(template.coords.variables), dict(template.xindexes)
+
+
+def like_dataarray(
+    parts: DataArrayParts, values: np.ndarray, attrs: dict[str, Any], coord_attrs: dict[str, dict] | None = None
+) -> xr.DataArray:
+    """A DataArray with the dims, name, coordinates and indexes of a template (:func:`dataarray_parts`)
+    around ``values`` (of its shape) and ``attrs``, built without xarray's checks (the template passed them):
+    each coordinate a shallow copy with its own attributes (deep copies of ``coord_attrs[name]`` where given),
+    the immutable index objects shared."""
+    dims, name, variables, indexes = parts
+    coords = {}
+    for n, v in variables.items():
+        c = v.copy(deep=False)
+        if coord_attrs is not None and n in coord_attrs:
+            c.attrs = copy.deepcopy(coord_attrs[n])
+        coords[n] = c
+    variable = xr.Variable(dims, values, attrs, fastpath=True)
+    return xr.DataArray(variable, coords=coords, name=name, indexes=dict(indexes), fastpath=True)
+
+
+def to_dataarrays(fields: Sequence[LatticeField]) -> list[xr.DataArray]:
+    """:meth:`LatticeField.to_dataarray` of every field: the first of each lattice (dims, coordinates,
+    components, name) is built by it, the others around its coordinates (:func:`like_dataarray`)."""
+    templates: dict[tuple, DataArrayParts] = {}
+    out = []
+    for f in fields:
+        nt = int(f.values.shape[0])
+        coords = []
+        for d in f.dims:
+            c = np.asarray(f.coords[d], dtype=np.float64)
+            if d == f.dims[0] and len(c) != nt:
+                c = c[0] + f.spacing[0] * np.arange(nt, dtype=np.float64)
+            coords.append(c.tobytes())
+        key = (f.dims, f.components, f.name, tuple(f.values.shape), tuple(coords))
+        parts = templates.get(key)
+        if parts is None:
+            template = f.to_dataarray()
+            templates[key] = dataarray_parts(template)
+            out.append(template)
+            continue
+        v = f.values.detach().cpu().numpy()
+        v = np.ascontiguousarray(v[..., 0] if f.components is None else v)
+        out.append(like_dataarray(parts, v, dict(f.attrs), {d: f.coord_attrs.get(d, {}) for d in f.dims}))
+    return out
 
 
 def gather_cells(psi: torch.Tensor, stencil: Stencil, boundary: AxisBoundaries, batch: int = 0) -> torch.Tensor:

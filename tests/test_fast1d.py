@@ -12,12 +12,13 @@ import copy
 import numpy as np
 import pytest
 import torch
+import xarray as xr
 
 import latticedft as ldft
-from latticedft import systems
+from latticedft import _serve, systems
 from latticedft._action import cell_derivatives
-from latticedft._errors import ServeError
-from latticedft._lattice import gather_cells
+from latticedft._errors import InputError, ServeError
+from latticedft._lattice import as_lattice_field, as_lattice_fields, gather_cells
 from latticedft._learn._data import as_fields
 from latticedft._models import _polynumpy
 from latticedft._serve import _fast1d
@@ -239,3 +240,101 @@ def test_above_degree_12_the_torch_closed_forms_serve():
     model.bind(f0.ndim, f0.ncomp, f0.spacing, f0.components)
     assert model.numpy_derivatives([(0, 1)]) is None
     assert _fast1d.numpy_derivatives_of(model) is None
+
+
+def _one_by_one(monkeypatch):
+    """Switch the batch's shortcuts off: each input checked, each result built by xarray's own constructor."""
+    from latticedft import _lattice
+    from latticedft._serve import _batch, _range
+
+    monkeypatch.setattr(
+        _serve,
+        "as_lattice_fields",
+        lambda items, sources, **kw: [_lattice.as_lattice_field(d, source=s, **kw) for d, s in zip(items, sources)],
+    )
+    monkeypatch.setattr(_batch, "to_dataarrays", lambda fields: [f.to_dataarray() for f in fields])
+    real = _range._extrapolation_array
+    monkeypatch.setattr(_range, "_extrapolation_array", lambda model, f, per, shared=None: real(model, f, per))
+
+
+def _mixed_batch(data):
+    """Inits of mixed starts, attributes and lengths: some laid out alike, some not."""
+    a = data[0].isel(t=slice(0, 2)).assign_attrs(source="first")
+    b = data[1].isel(t=slice(0, 2))
+    b["t"].attrs["units"] = "s"
+    c = series([1.1, 1.09], 0.1).assign_coords(t=[0.5, 0.6])  # another start
+    d = data[2].isel(t=slice(0, 5))  # five slices given
+    e = series([1.6, 1.59], 0.1)  # beyond the training range: a warning
+    return [a, b, c, d, a.copy(), b.copy(), e, series([0.7, 0.69], 0.1, name="q")]
+
+
+def test_batch_results_are_those_built_one_by_one(monkeypatch, oscillator):
+    """Inputs checked and results built for the batch at once: the same results, identical DataArrays, as
+    checking and building each alone (mixed lengths, starts, names, attributes and a range warning)."""
+    model, data = oscillator
+    inits = _mixed_batch(data)
+    fast = ldft.serve(model, inits, progress=False)  # each member as long as its init: 2 or 5 slices
+    longer = ldft.serve(model, inits, slices=60, progress=False)
+    with monkeypatch.context() as mp:
+        _one_by_one(mp)
+        slow = ldft.serve(model, inits, progress=False)
+        slow_longer = ldft.serve(model, inits, slices=60, progress=False)
+    assert [r.slices for r in fast] == [2, 2, 2, 5, 2, 2, 2, 2]
+    assert any(r.warnings for r in longer) and not all(r.warnings for r in longer)
+    for a, b in [*zip(fast, slow), *zip(longer, slow_longer)]:
+        xr.testing.assert_identical(a.field, b.field)
+        assert a.field["t"].attrs == b.field["t"].attrs
+        if b.extrapolation is None:
+            assert a.extrapolation is None
+        else:
+            xr.testing.assert_identical(a.extrapolation, b.extrapolation)
+        assert a.to_dict() | {"wall_time": 0, "sites_per_second": 0} == b.to_dict() | {
+            "wall_time": 0,
+            "sites_per_second": 0,
+        }
+
+
+def test_batch_results_own_their_attributes(oscillator):
+    """Members built around one set of coordinates do not share what a user may change."""
+    model, data = oscillator
+    init = data[0].isel(t=slice(0, 2))
+    first, second = ldft.serve(model, [init, init.copy()], slices=20, progress=False)
+    first.field.attrs["note"] = 1
+    first.field["t"].attrs["units"] = "s"
+    first.field.values[3] = 99.0
+    first.extrapolation.attrs["note"] = 1
+    assert "note" not in second.field.attrs and "units" not in second.field["t"].attrs
+    assert second.field.values[3] != 99.0 and "note" not in second.extrapolation.attrs
+
+
+def test_a_bad_member_of_a_batch_is_named_as_one_by_one(oscillator):
+    model, data = oscillator
+    init = data[0].isel(t=slice(0, 2))
+    bad = init.copy()
+    bad.values[1] = np.nan
+    with pytest.raises(InputError, match=r"^init\[2\]: field 'psi' holds 1 NaN/inf value\(s\), the first at index t=1"):
+        ldft.serve(model, [init, init.copy(), bad, init.copy()], progress=False)
+    short = init.isel(t=slice(0, 1))
+    with pytest.raises(InputError, match=r"^init\[1\]: dim 't' has 1 site"):
+        ldft.serve(model, [init, short], progress=False)
+
+
+def test_lattice_fields_of_a_batch_equal_those_one_by_one(oscillator):
+    _, data = oscillator
+    inits = _mixed_batch(data)
+    periodic = series([0.2, 0.1, 0.0], 0.1)
+    inits.append(periodic)
+    fast = as_lattice_fields(inits, [f"init[{k}]" for k in range(len(inits))], min_slices=2)
+    for k, (f, d) in enumerate(zip(fast, inits)):
+        g = as_lattice_field(d, source=f"init[{k}]", min_slices=2)
+        assert torch.equal(f.values, g.values)
+        assert (f.spacing, f.boundary, f.dims, f.components, f.name) == (
+            g.spacing,
+            g.boundary,
+            g.dims,
+            g.components,
+            g.name,
+        )
+        assert f.attrs == g.attrs and f.coord_attrs == g.coord_attrs and f.coords.keys() == g.coords.keys()
+        for name in f.coords:
+            np.testing.assert_array_equal(f.coords[name], g.coords[name])

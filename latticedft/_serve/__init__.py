@@ -29,7 +29,7 @@ import xarray as xr
 from .._boundary import BoundaryKinds
 from .._device import device_label, on_device, resolve_device
 from .._errors import InputError, ServeError
-from .._lattice import LatticeField, as_lattice_field
+from .._lattice import LatticeField, as_lattice_fields
 from .._learn import check_model_lattice as _check_model_lattice
 from .._models import AbstractLagrangian, EnsembleLagrangian
 from ._batch import _serve_batch
@@ -270,10 +270,8 @@ def serve(
     items = list(init) if isinstance(init, (list, tuple)) else [init]
     if not items:
         raise InputError("init: no initial fields given")
-    fs = [
-        as_lattice_field(d, source="init" if not batch else f"init[{k}]", boundary=boundary, min_slices=2)
-        for k, d in enumerate(items)
-    ]
+    sources = [f"init[{k}]" for k in range(len(items))] if batch else ["init"]
+    fs = as_lattice_fields(items, sources, boundary=boundary, min_slices=2)  # one pass over a batch
     _prepare_model(model, fs[0])
     for k, f in enumerate(fs):
         _check_model_lattice(model, f, "init" if not batch else f"init[{k}]")

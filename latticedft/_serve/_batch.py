@@ -11,7 +11,7 @@ import torch
 import xarray as xr
 
 from .._action import CellDerivatives, cell_derivatives
-from .._lattice import LatticeField
+from .._lattice import LatticeField, to_dataarrays
 from .._models import AbstractLagrangian
 from ._range import assess
 from ._result import ServeResult, _bar
@@ -177,11 +177,12 @@ class _Batch:
         solved = sum(max(n - 2, 0) for n in self.length)
         out = []
         fields = [LatticeField.with_values(f, self.psi[k, : self.length[k]].clone()) for k, f in enumerate(self.fs)]
-        for k, (lf, (ext, warnings)) in enumerate(zip(fields, self.assess(fields))):
+        arrays = to_dataarrays(fields)  # members of one lattice share their coordinates' construction
+        for k, (da, (ext, warnings)) in enumerate(zip(arrays, self.assess(fields))):
             n = self.length[k]
             out.append(
                 ServeResult(
-                    field=lf.to_dataarray(),
+                    field=da,
                     complete=not self.failed[k],
                     reason=self.reason[k],
                     slices=n,

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 import xarray as xr
 
-from .._lattice import LatticeField, gather_cells
+from .._lattice import LatticeField, dataarray_parts, gather_cells, like_dataarray
 from .._models import AbstractLagrangian
 
 __all__ = [
@@ -91,21 +91,19 @@ def _extrapolation_array(
     t = np.asarray(f.coords[tdim], dtype=np.float64)
     if t.size != nt:
         t = t[0] + f.spacing[0] * np.arange(nt, dtype=np.float64)
-    coords = None if shared is None else shared.get((tdim, t.tobytes()))
-    if coords is None:
-        coords = xr.Coordinates({tdim: t, "feature": feature_labels(model, f.dims, f.components)})
-        if shared is not None:
-            shared[(tdim, t.tobytes())] = coords
-    return xr.DataArray(
-        per_slice,
-        dims=(tdim, "feature"),
-        coords=coords,
-        name="extrapolation",
-        attrs={
-            "long_name": "excess of the stencil inputs beyond the training range, relative to its span",
-            "tolerance": EXTRAPOLATION_TOL,
-        },
-    )
+    attrs = {
+        "long_name": "excess of the stencil inputs beyond the training range, relative to its span",
+        "tolerance": EXTRAPOLATION_TOL,
+    }
+    key = (tdim, t.tobytes(), f.dims, f.components)
+    parts = None if shared is None else shared.get(key)
+    if parts is not None:  # built around the coordinates of a member already recorded
+        return like_dataarray(parts, per_slice, attrs)
+    coords = xr.Coordinates({tdim: t, "feature": feature_labels(model, f.dims, f.components)})
+    out = xr.DataArray(per_slice, dims=(tdim, "feature"), coords=coords, name="extrapolation", attrs=attrs)
+    if shared is not None:
+        shared[key] = dataarray_parts(out)
+    return out
 
 
 def extrapolation_summary(ext: xr.DataArray | None) -> dict[str, Any] | None:
@@ -163,8 +161,9 @@ def assess_batch(
     per_anchor = ex.reshape(ex.shape[0], ex.shape[1], lo.numel()).numpy()
     out = []
     shared: dict = {}  # members of one length and start share their coordinates
+    outside = np.asarray((per_anchor > EXTRAPOLATION_TOL).any(axis=2))  # (members, anchors): where a warning may be due
     for k, f in enumerate(fields):
         ext = _extrapolation_array(model, f, per_anchor[k, : f.shape[0] - 1], shared) if f.shape[0] >= 2 else None
-        warning = extrapolation_warning(ext)
+        warning = extrapolation_warning(ext) if ext is not None and outside[k, : f.shape[0] - 1].any() else None
         out.append((ext, [warning] if warning else []))
     return out
