@@ -32,6 +32,16 @@ class _GroupStep:
     smin: torch.Tensor  # smallest singular value of the mixed Hessian met, per member
 
 
+def failure_text(f: LatticeField, i: int, singular: bool, smin: float, scale: float, max_newton: int) -> str:
+    """Why a trajectory stopped on slice ``i + 1``: Newton did not converge, or its mixed Hessian is singular."""
+    tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
+    if not singular:
+        why = f"Newton did not converge in {max_newton} iterations"
+    else:
+        why = singular_message(smin, scale) if is_singular(smin, scale) else "singular mixed Hessian"
+    return f"slice {i + 1} (t = {tval:.6g}): {why}"
+
+
 class _Batch:
     """The values of a batch of 1D trajectories and each member's bookkeeping (length, reason, iterations)."""
 
@@ -153,15 +163,9 @@ class _Batch:
         if bool(bad.any()):
             for j in torch.nonzero(bad).flatten().tolist():
                 k = act_list[j]
-                f = self.fs[k]
-                tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
-                smin, scale = float(s.smin[j]), float(self.mscale[k])
-                if not bool(s.sing[j]):
-                    why = f"Newton did not converge in {max_newton} iterations"
-                else:
-                    why = singular_message(smin, scale) if is_singular(smin, scale) else "singular mixed Hessian"
                 res = float(s.rabs[j])
-                self.retire(k, i + 1, f"slice {i + 1} (t = {tval:.6g}): {why}, residual {res:.3e}", True, res)
+                why = failure_text(self.fs[k], i, bool(s.sing[j]), float(s.smin[j]), float(self.mscale[k]), max_newton)
+                self.retire(k, i + 1, f"{why}, residual {res:.3e}", True, res)
                 self.worst[k] = max(float(self.worst[k]), res)
         if box is not None:
             out = (s.u.norm(dim=-1) > box) & s.ok

@@ -18,10 +18,10 @@ import xarray as xr
 
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
-from ._batch import _Batch
+from ._batch import _Batch, failure_text
 from ._range import assess_batch
 from ._result import ServeResult, _bar
-from ._slices import SINGULAR_RTOL, is_singular, singular_message
+from ._slices import SINGULAR_RTOL
 
 __all__ = ["numpy_derivatives_of", "FastBatch", "serve_fast"]
 
@@ -270,15 +270,9 @@ class FastBatch(_Batch):
         if not s.ok.all():
             for j in np.nonzero(~s.ok)[0].tolist():
                 k = int(act[j])
-                f = self.fs[k]
-                tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
-                smin, scale = float(s.smin[j]), float(self.nmscale[k])
-                if not bool(s.sing[j]):
-                    why = f"Newton did not converge in {max_newton} iterations"
-                else:
-                    why = singular_message(smin, scale) if is_singular(smin, scale) else "singular mixed Hessian"
                 res = float(s.rabs[j])
-                self.retire(k, i + 1, f"slice {i + 1} (t = {tval:.6g}): {why}, residual {res:.3e}", True, res)
+                why = failure_text(self.fs[k], i, bool(s.sing[j]), float(s.smin[j]), float(self.nmscale[k]), max_newton)
+                self.retire(k, i + 1, f"{why}, residual {res:.3e}", True, res)
                 self.nworst[k] = max(float(self.nworst[k]), res)
         if box is not None:
             out = (np.sqrt((s.u * s.u).sum(-1)) > box) & s.ok
