@@ -151,10 +151,8 @@ def run_cases(names: tuple[str, ...]) -> list[list]:
             sel_time = float(sum(c.get("wall_time") or 0.0 for c in sel.get("candidates", [])))
             chosen = sel.get("chosen_label", "")
             if sel:
-                score = [c.get("score") for c in sel["candidates"]]
-                chosen += (
-                    f" (score {score[sel['chosen']]:.1e}, hand-set {score[0]:.1e})" if None not in score[:1] else ""
-                )
+                best, hand = (sel["candidates"][i].get("score") for i in (sel["chosen"], 0))
+                chosen += f" (score {best:.1e}, hand-set {hand:.1e})" if best is not None and hand is not None else ""
             for task, rec in summary["tasks"].items():
                 err = rec.get("max_error")
                 err = float("inf") if err is None else float(err)
