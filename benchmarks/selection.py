@@ -9,7 +9,14 @@ on the same test):
   101 slices, served 3,000 steps; error over the horizon.
 - ``cases``: the repository's 1D cases ``oscillator-sin`` and ``oscillator-wells`` (the double well) run by
   the command line
-  with and without ``--set model.select="auto"``; largest task error.
+  with and without ``--set model.select="auto"`` in a temporary copy; per task its largest error, then the
+  run's wall time, the selection's (the candidates' times summed) and the choice (with its score and the
+  hand-set one's).
+- ``fields``: the field cases ``wave``, ``klein-gordon-periodic`` and ``sine-gordon`` the same way (their data
+  made by the case's ``make_data.py`` in the temporary copy where they are not committed); every task's error.
+  ``--case NAME`` runs any one case so (``--case kepler``, ``--case wave-2d``).
+- ``scores``: ``oscillator-sin``'s ``"auto"`` candidates scored on held-out windows (``hold_out`` 0.3 and
+  0.5) and with each training sequence left out, beside their test errors (learned on all three sequences).
 - ``kepler``: one orbit from q0 = (1, 0), v0 = (0, 0.6), h = 0.1, 50 steps, ``preset = "radial"``; test orbits
   from q0 = (1.1, -0.01), v0 = (0, 1.0) and (0, 0.9) (outside the training radii); error over the 200 steps,
   after 50 and after 200 steps; also the preset with ``scale = false``.
@@ -181,14 +188,17 @@ def _fitted(hand: Any, change: dict, fields: list[xr.DataArray]) -> Any:
 def scores(quick: bool) -> list[list]:
     """``cases/oscillator-sin``: every candidate of ``"auto"`` scored three ways (served held-out windows with
     ``hold_out`` 0.3, the default, and 0.5; each training sequence served by the candidate learned from the
-    other two) beside the test errors of the candidate learned from all three sequences."""
+    other two) beside the case's task errors of the candidate learned from all three sequences."""
     from latticedft import _select as sel
 
     data = REPO / "cases" / "oscillator-sin" / "data"
     train = [xr.open_dataarray(data / f"train_{a}.nc").load() for a in ("1.20", "0.80", "0.40")]
-    tests = [xr.open_dataarray(data / f"{n}.nc").load() for n in ("test_m0.60", "test_0.10")]
+    tests = [xr.open_dataarray(data / f"{n}.nc").load() for n in ("test_m0.60", "test_0.10", "train_1.20")]
     hand = ldft.PolynomialLagrangian((4, 8))
-    print("  candidate: held-out score (hold_out 0.3, 0.5), sequence 1.2 / 0.8 / 0.4 left out; test_m0.60, test_0.10")
+    print(
+        "  candidate: held-out score (hold_out 0.3, 0.5), sequence 1.2 / 0.8 / 0.4 left out;"
+        " tasks test_m0.60, test_0.10, train"
+    )
     rows = []
     for change in [{}, *sel.auto_candidates(hand, 1, "auto")]:
 
