@@ -53,6 +53,8 @@ class SelectionReport:
     warnings: list[str] = field(default_factory=list)
     #: The chosen candidate, learned on the whole of every training field.
     model: AbstractLagrangian | None = None
+    #: A hand-set score at or below this kept the hand-set model.
+    keep_below: float = KEEP_BELOW
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible (scores of failed candidates as ``None``)."""
@@ -64,6 +66,7 @@ class SelectionReport:
             "reason": self.reason,
             "hold_out": self.hold_out,
             "factor": self.factor,
+            "keep_below": self.keep_below,
             "warnings": list(self.warnings),
         }
 
@@ -305,7 +308,13 @@ def select(
     chosen_model = copy.deepcopy(specs[chosen][1])
     report = learn(chosen_model, fields, boundary=boundary, ridge=specs[chosen][2], progress=False, **learn_kwargs)
     sel = SelectionReport(
-        rows=rows, chosen=chosen, reason=reason, hold_out=float(hold_out), factor=float(factor), warnings=warnings
+        rows=rows,
+        chosen=chosen,
+        reason=reason,
+        hold_out=float(hold_out),
+        factor=float(factor),
+        warnings=warnings,
+        keep_below=float(keep_below),
     )
     report.selection = sel.to_dict()
     report.warnings.extend(warnings)

@@ -146,6 +146,7 @@ def test_select_keeps_a_hand_set_model_that_serves_the_held_out_slices_below_kee
     hand, other = (r["score"] for r in rep.rows)
     assert hand <= KEEP_BELOW and other * 2 < hand, rep.table_lines()
     assert rep.chosen == 0 and "keep_below" in rep.reason
+    assert rep.to_dict()["keep_below"] == KEEP_BELOW
     assert rep.model.options()["orders"] == [4, 8]
     off = ldft.select(PolynomialLagrangian((4, 8)), train, [{"orders": [4, 12]}], ridge="auto", keep_below=0.0)
     assert off.chosen == 1 and off.model.options()["orders"] == [4, 12]
