@@ -9,7 +9,14 @@ on the same test):
   101 slices, served 3,000 steps; error over the horizon.
 - ``cases``: the repository's 1D cases ``oscillator-sin`` and ``oscillator-wells`` (the double well) run by
   the command line
-  with and without ``--set model.select="auto"``; largest task error.
+  with and without ``--set model.select="auto"`` in a temporary copy; per task its largest error, then the
+  run's wall time, the selection's (the candidates' times summed) and the choice (with its score and the
+  hand-set one's).
+- ``fields``: the field cases ``wave``, ``klein-gordon-periodic`` and ``sine-gordon`` the same way (their data
+  made by the case's ``make_data.py`` in the temporary copy where they are not committed); every task's error.
+  ``--case NAME`` runs any one case so (``--case kepler``, ``--case wave-2d``).
+- ``scores``: ``oscillator-sin``'s ``"auto"`` candidates scored on held-out windows (``hold_out`` 0.3 and
+  0.5) and with each training sequence left out, beside their test errors (learned on all three sequences).
 - ``kepler``: one orbit from q0 = (1, 0), v0 = (0, 0.6), h = 0.1, 50 steps, ``preset = "radial"``; test orbits
   from q0 = (1.1, -0.01), v0 = (0, 1.0) and (0, 0.9) (outside the training radii); error over the 200 steps,
   after 50 and after 200 steps; also the preset with ``scale = false``.
@@ -22,6 +29,7 @@ benchmark runs on; the selection's own cost (every candidate learned and served 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import shutil
 import subprocess
@@ -118,37 +126,111 @@ def wave(quick: bool) -> list[list]:
     return _compare("wave 1024 fixed ends", ldft.PolynomialLagrangian((4, 8)), field, {"": field}, None)
 
 
-def cases(quick: bool) -> list[list]:
+def _run_case(name: str, extra: list[str]) -> tuple[dict[str, Any], float, str]:
+    """Run ``cases/<name>`` by the command line in a temporary copy (its data made there by ``make_data.py``
+    when they are not in the repository); ``(summary, wall time, error text)``."""
+    with tempfile.TemporaryDirectory() as tmp:
+        case = Path(tmp) / name
+        shutil.copytree(REPO / "cases" / name, case, ignore=shutil.ignore_patterns("results*"))
+        if not any(p.suffix == ".nc" for p in (case / "data").glob("*")) and (case / "make_data.py").exists():
+            subprocess.run([sys.executable, "make_data.py"], cwd=case, check=False, capture_output=True)
+        t0 = time.perf_counter()
+        cmd = [sys.executable, "-m", "latticedft", "run", str(case), "--set", "export.formats=[]", *extra]
+        proc = subprocess.run(cmd, check=False, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        path = case / "results" / "summary.json"
+        if not path.exists():
+            return {}, wall, (proc.stderr.strip().splitlines() or ["no summary.json"])[-1]
+        return json.loads(path.read_text()), wall, ""
+
+
+def run_cases(names: tuple[str, ...]) -> list[list]:
+    """Each case hand-set and with ``select = "auto"``: one row per task and model with the task's largest
+    error, the run's wall time and the selection's (every candidate learned and served once), and the choice."""
     rows = []
-    for name in ("oscillator-sin", "oscillator-wells"):
+    for name in names:
         for label, extra in (("hand-set", []), ("auto", ["--set", 'model.select="auto"'])):
-            with tempfile.TemporaryDirectory() as tmp:
-                case = Path(tmp) / name
-                shutil.copytree(REPO / "cases" / name, case, ignore=shutil.ignore_patterns("results*"))
-                t0 = time.perf_counter()
-                cmd = [sys.executable, "-m", "latticedft", "run", str(case), "--set", "export.formats=[]", *extra]
-                subprocess.run(cmd, check=False, capture_output=True)
-                wall = time.perf_counter() - t0
-                summary = json.loads((case / "results" / "summary.json").read_text())
-                errs = [t.get("max_error") for t in summary["tasks"].values()]
-                worst = max((e if e is not None else float("inf")) for e in errs)
-                chosen = (summary["train"].get("selection") or {}).get("chosen_label", "")
-                rows.append([f"case {name}", label, worst, wall, chosen])
+            summary, wall, failed = _run_case(name, extra)
+            if failed:
+                rows.append([f"case {name}", label, float("inf"), wall, float("nan"), f"run failed: {failed}"])
+                continue
+            sel = summary["train"].get("selection") or {}
+            sel_time = float(sum(c.get("wall_time") or 0.0 for c in sel.get("candidates", [])))
+            chosen = sel.get("chosen_label", "")
+            if sel:
+                best, hand = (sel["candidates"][i].get("score") for i in (sel["chosen"], 0))
+                chosen += f" (score {best:.1e}, hand-set {hand:.1e})" if best is not None and hand is not None else ""
+            for task, rec in summary["tasks"].items():
+                err = rec.get("max_error")
+                err = float("inf") if err is None else float(err)
+                rows.append([f"{name} {task}", label, err, wall, sel_time if sel else float("nan"), chosen])
     return rows
 
 
-SYSTEMS = {"pendulum": pendulum, "cases": cases, "kepler": kepler, "wave": wave}
+def cases(quick: bool) -> list[list]:
+    return run_cases(("oscillator-sin", "oscillator-wells"))
+
+
+def fields(quick: bool) -> list[list]:
+    return run_cases(("wave", "klein-gordon-periodic", "sine-gordon"))
+
+
+def _fitted(hand: Any, change: dict, fields: list[xr.DataArray]) -> Any:
+    """The candidate ``change`` of the hand-set model (``ridge = "auto"`` unless it changes it), learned."""
+    from latticedft import _select as sel
+
+    kind, options, ridge = sel._spec(hand, change, "auto")
+    model = copy.deepcopy(hand) if not change else sel._build(hand, kind, options)
+    ldft.learn(model, fields, ridge=ridge, progress=False)
+    return model
+
+
+def scores(quick: bool) -> list[list]:
+    """``cases/oscillator-sin``: every candidate of ``"auto"`` scored three ways (served held-out windows with
+    ``hold_out`` 0.3, the default, and 0.5; each training sequence served by the candidate learned from the
+    other two) beside the case's task errors of the candidate learned from all three sequences."""
+    from latticedft import _select as sel
+
+    data = REPO / "cases" / "oscillator-sin" / "data"
+    train = [xr.open_dataarray(data / f"train_{a}.nc").load() for a in ("1.20", "0.80", "0.40")]
+    tests = [xr.open_dataarray(data / f"{n}.nc").load() for n in ("test_m0.60", "test_0.10", "train_1.20")]
+    hand = ldft.PolynomialLagrangian((4, 8))
+    print(
+        "  candidate: held-out score (hold_out 0.3, 0.5), sequence 1.2 / 0.8 / 0.4 left out;"
+        " tasks test_m0.60, test_0.10, train"
+    )
+    rows = []
+    for change in [{}, *sel.auto_candidates(hand, 1, "auto")]:
+
+        def score(fit: list[xr.DataArray], served: list[xr.DataArray], change: dict = change) -> float:
+            try:
+                return sel._score(_fitted(hand, change, fit), served, None)
+            except ldft.LatticeDFTError:
+                return float("inf")
+
+        out = [score(sel._split(train, h), train) for h in (0.3, 0.5)]
+        out += [score([f for j, f in enumerate(train) if j != i], [train[i]]) for i in range(len(train))]
+        model = _fitted(hand, change, train)
+        out += [_error(model, t)[0] for t in tests]
+        rows.append([sel._label(change), f"{model.n_parameters()}", *out, ""])
+    return rows
+
+
+SYSTEMS = {"pendulum": pendulum, "cases": cases, "fields": fields, "scores": scores, "kepler": kepler, "wave": wave}
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.selection", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="the pendulum only, 300 steps")
     p.add_argument("--only", action="append", default=[], metavar="NAME", help=f"among {', '.join(SYSTEMS)}")
+    p.add_argument("--case", action="append", default=[], metavar="CASE", help="a repository case (cases/CASE)")
     args = p.parse_args(argv)
-    names = args.only or (["pendulum"] if args.quick else list(SYSTEMS))
-    for name in names:
+    names = args.only or ([] if args.case else ["pendulum"] if args.quick else list(SYSTEMS))
+    runs = [(name, lambda name=name: SYSTEMS[name](args.quick)) for name in names]
+    runs += [(f"case {c}", lambda c=c: run_cases((c,))) for c in args.case]
+    for name, run in runs:
         print(f"== {name}", flush=True)
-        for row in SYSTEMS[name](args.quick):
+        for row in run():
             nums = " ".join(f"{v:10.3e}" if isinstance(v, float) else str(v) for v in row[2:-1])
             print(f"  {row[0]:<24} {row[1]:<9} {nums}  {row[-1]}", flush=True)
     return 0

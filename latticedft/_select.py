@@ -20,12 +20,15 @@ from ._learn._data import as_fields
 from ._models import MODELS, AbstractLagrangian
 from ._serve import serve
 
-__all__ = ["SelectionReport", "select", "auto_candidates", "HOLD_OUT", "FACTOR"]
+__all__ = ["SelectionReport", "select", "auto_candidates", "HOLD_OUT", "FACTOR", "KEEP_BELOW"]
 
 #: The fraction of every training field's slices that no candidate learns from (its served error is the score).
 HOLD_OUT = 0.3
 #: A candidate replaces the hand-set model only when its score is below the hand-set score by this factor.
 FACTOR = 2.0
+#: The hand-set model is kept when its score is at or below this: it serves the held-out slices to this relative
+#: error, and a lower score there no longer predicts a lower error elsewhere (docs/selection.md).
+KEEP_BELOW = 1e-6
 #: Orders of the polynomial candidates of ``"auto"`` (beside the hand-set ones).
 AUTO_ORDERS = ((2, 2), (2, 4), (4, 4), (4, 8), (2, 8), (4, 12))
 #: Feature libraries of the ``"auto"`` candidates of a 1D field.
@@ -50,6 +53,8 @@ class SelectionReport:
     warnings: list[str] = field(default_factory=list)
     #: The chosen candidate, learned on the whole of every training field.
     model: AbstractLagrangian | None = None
+    #: A hand-set score at or below this kept the hand-set model.
+    keep_below: float = KEEP_BELOW
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible (scores of failed candidates as ``None``)."""
@@ -61,6 +66,7 @@ class SelectionReport:
             "reason": self.reason,
             "hold_out": self.hold_out,
             "factor": self.factor,
+            "keep_below": self.keep_below,
             "warnings": list(self.warnings),
         }
 
@@ -170,6 +176,7 @@ def select(
     *,
     hold_out: float = HOLD_OUT,
     factor: float = FACTOR,
+    keep_below: float = KEEP_BELOW,
     boundary: BoundaryKinds | None = None,
     **learn_kwargs: Any,
 ) -> SelectionReport:
@@ -180,8 +187,8 @@ def select(
     its boundary strips). Its score is the largest served error over the field's largest magnitude, worst
     field first; a fit that fails, a serve that stops or a non-finite field scores ``inf``. The best
     candidate is the one with the fewest parameters among those within ``factor`` of the lowest score; it
-    replaces the hand-set model only when its score is ``factor`` times smaller than the hand-set one's; when
-    every candidate fails the hand-set model is kept with a warning.
+    replaces the hand-set model only when its score is ``factor`` times smaller than the hand-set one's and the
+    hand-set score is above ``keep_below``; when every candidate fails the hand-set model is kept with a warning.
 
     Parameters
     ----------
@@ -197,6 +204,9 @@ def select(
         Fraction of every field's slices held out, in (0, 1).
     factor : float
         How much better (>= 1) a candidate must score to replace the hand-set model.
+    keep_below : float
+        A hand-set score at or below this (>= 0) keeps the hand-set model whatever the other scores: held-out
+        slices served to this relative error no longer rank models by their error on other data (0: off).
     boundary, **learn_kwargs
         Passed to :func:`latticedft.learn` (and ``boundary`` to :func:`latticedft.serve`); ``symmetries``
         only to the final fit.
@@ -213,6 +223,8 @@ def select(
         raise InputError.at("hold_out", f"expected a number in (0, 1), got {hold_out!r}")
     if not (isinstance(factor, (int, float)) and not isinstance(factor, bool) and factor >= 1):
         raise InputError.at("factor", f"expected a number >= 1, got {factor!r}")
+    if not (isinstance(keep_below, (int, float)) and not isinstance(keep_below, bool) and keep_below >= 0):
+        raise InputError.at("keep_below", f"expected a number >= 0, got {keep_below!r}")
     if isinstance(candidates, str) and candidates != "auto":
         raise InputError.at("candidates", f"expected 'auto' or a list of candidates, got {candidates!r}")
     items = list(data) if isinstance(data, (list, tuple)) else [data]
@@ -277,6 +289,12 @@ def select(
             f"model selection: every one of {len(rows)} candidates failed to serve the held-out data "
             "(their reasons are in the candidate table); kept the hand-set model, which may not serve"
         )
+    elif best != 0 and scores[0] <= keep_below:
+        chosen = 0
+        reason = (
+            f"the hand-set model scored {scores[0]:.3e}, at or below keep_below = {keep_below:g}: kept "
+            f"({rows[best]['label']} scored {scores[best]:.3e})"
+        )
     elif best == 0 or not scores[best] * factor < scores[0]:
         chosen = 0
         reason = (
@@ -290,7 +308,13 @@ def select(
     chosen_model = copy.deepcopy(specs[chosen][1])
     report = learn(chosen_model, fields, boundary=boundary, ridge=specs[chosen][2], progress=False, **learn_kwargs)
     sel = SelectionReport(
-        rows=rows, chosen=chosen, reason=reason, hold_out=float(hold_out), factor=float(factor), warnings=warnings
+        rows=rows,
+        chosen=chosen,
+        reason=reason,
+        hold_out=float(hold_out),
+        factor=float(factor),
+        warnings=warnings,
+        keep_below=float(keep_below),
     )
     report.selection = sel.to_dict()
     report.warnings.extend(warnings)
