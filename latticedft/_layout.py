@@ -369,7 +369,8 @@ def validate_field(
         check_coordinate(da, dim, source)
     if not (np.issubdtype(da.dtype, np.floating) or np.issubdtype(da.dtype, np.integer)) or da.dtype == bool:
         raise InputError(f"{source}: {what} has dtype {da.dtype}; expected real numbers")
-    lazy = not da.variable._in_memory  # a file opened lazily: its values are read in blocks of slices
+    # a file opened lazily (or dask-backed): its values are read in blocks of slices
+    lazy = da.chunks is not None or not getattr(da.variable, "_in_memory", True)
     if da.dtype != np.float64 and not lazy:
         da = da.astype(np.float64)
     if not allow_nan:

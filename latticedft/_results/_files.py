@@ -144,7 +144,7 @@ def align_reference(pred: xr.DataArray, ref: xr.DataArray | None) -> xr.DataArra
 
 def _at_slices(da: xr.DataArray, idx: np.ndarray) -> np.ndarray:
     """Slices ``idx`` of ``da`` as float64 (of a field opened lazily, only those slices are read)."""
-    if da.variable._in_memory:
+    if da.chunks is None and getattr(da.variable, "_in_memory", True):
         return np.asarray(da.values[idx], dtype=np.float64)
     tdim = da.dims[0]
     out = np.empty((len(idx), *da.shape[1:]))

@@ -32,6 +32,7 @@ from .._errors import InputError, ServeError
 from .._lattice import LatticeField, as_lattice_field
 from .._layout import lattice_dims
 from .._learn import check_model_lattice as _check_model_lattice
+from .._learn._source import is_lazy
 from .._models import AbstractLagrangian, EnsembleLagrangian
 from ._batch import _serve_batch
 from ._ensemble import calibration, serve_ensemble
@@ -57,8 +58,9 @@ def _prepare_model(model: AbstractLagrangian, f: LatticeField) -> None:
 
 
 def _in_file(init: Any) -> bool:
-    """``init`` is an n-D DataArray whose values are left in its file (opened lazily: ``read_field(lazy=True)``)."""
-    return isinstance(init, xr.DataArray) and not init.variable._in_memory and len(lattice_dims(init)) > 1
+    """``init`` is an n-D DataArray whose values are left in its file (opened lazily: ``read_field(lazy=True)``,
+    or dask-backed)."""
+    return isinstance(init, xr.DataArray) and is_lazy(init) and len(lattice_dims(init)) > 1
 
 
 def _slices(slices: int | None, f: LatticeField, key: str = "slices") -> int:
@@ -160,7 +162,10 @@ def serve(
     init : DataArray, or a list of 1D DataArrays
         The first two time slices, and for Dirichlet axes the boundary strips
         on every slice to serve (so usually the whole reference field). A
-        list of 1D fields is served as one batch.
+        list of 1D fields is served as one batch. An n-D field opened lazily
+        (``io.read_field(path, lazy=True)``) and served with ``every > 1`` (or
+        ``on_slice``) stays in its file: its first two slices are loaded and
+        the strips read block by block as the window advances.
     slices : int, optional
         Number of time slices of the served field, the two initial ones
         included (default: the length of ``init`` along time): ``N`` time
