@@ -8,6 +8,8 @@ Python: its peak resident memory (``VmHWM`` reset before serving, ``benchmarks._
 time. ``every = 1`` (the whole field held) at the smallest size, in the same run, for the ratio. About 9
 minutes on a loaded core; ``--point N DIMS SLICES EVERY`` measures one size (e.g. ``--point 128 3 12 10``);
 ``--quick``: tiny lattices, in this process (seconds). Also run by ``python -m benchmarks --only serve_scale``.
+``--case N SLICES EVERY`` runs a case (a Dirichlet membrane whose ``from``/reference and baseline files hold
+``SLICES`` slices of ``N^2`` sites) twice, its files read whole and left on disk, side by side.
 """
 
 from __future__ import annotations
@@ -67,11 +69,76 @@ def probe(n: int, dims: int, slices: int, every: int) -> dict[str, Any]:
     }
 
 
-def _fresh(kwargs: dict[str, Any], threads: int) -> dict[str, Any]:
+def case_probe(n: int, slices: int, every: int, whole: bool) -> dict[str, Any]:
+    """Run a case (a Dirichlet membrane of ``n^2`` sites, ``slices`` slices in ``from``, which is also the
+    reference, and a baseline of the same size; ``every``) with ``latticedft run``: its peak RSS and wall time.
+    ``whole``: its files read whole, as before a task with ``every > 1`` left them on disk."""
+    import shutil
+    import tempfile
+    import textwrap
+
+    import latticedft._pipeline as pipeline
+    from latticedft import systems
+    from latticedft.cli import main
+    from latticedft.io.fields import read_field, write_field
+
+    root = Path(tempfile.mkdtemp(prefix="serve_scale_case_"))
+    try:
+        (root / "data").mkdir()
+        train = systems.wave_membrane([(1, 1, 1.0), (2, 1, 0.4)], nx=n, ny=n, nt=40)
+        write_field(root / "data" / "train.nc", {"psi": train})
+        test = systems.wave_membrane([(1, 2, 0.6), (3, 1, 0.3)], nx=n, ny=n, nt=slices)
+        write_field(root / "data" / "test.nc", {"psi": test})
+        field_mib = test.nbytes / 2**20
+        del train, test
+        shutil.copy(root / "data" / "test.nc", root / "data" / "base.nc")
+        text = f"""
+            [model]
+            kind = "polynomial"
+            orders = [2, 2]
+            [train]
+            data = ["data/train.nc"]
+            [[serve]]
+            name = "test"
+            from = "data/test.nc"
+            boundary = "dirichlet"
+            baseline = "data/base.nc"
+            every = {every}
+            [run]
+            threads = 1
+            [export]
+            formats = []
+        """
+        (root / "case.toml").write_text(textwrap.dedent(text))
+        if whole:
+            pipeline.read_field = lambda *a, lazy=False, **kw: read_field(*a, **kw)  # type: ignore[assignment]
+        _trim()
+        mem = PeakRSS()
+        t0 = time.perf_counter()
+        code = main(["run", str(root), "-q"])
+        if code != 0:
+            raise RuntimeError(f"latticedft run exited {code}")
+        return {
+            "seconds": time.perf_counter() - t0,
+            "rss_before": mem.before,
+            "rss_peak": mem.peak(),
+            "field_mib": field_mib,
+        }
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def _trim() -> None:
+    from latticedft._serve._stream import _trim as trim
+
+    trim()
+
+
+def _fresh(kwargs: dict[str, Any], threads: int, probe: str = "probe") -> dict[str, Any]:
     root = Path(__file__).resolve().parent.parent
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
     code = (
-        "import json, sys, torch; from benchmarks.serve_scale import probe; "
+        f"import json, sys, torch; from benchmarks.serve_scale import {probe} as probe; "
         f"torch.set_num_threads({threads}); print('@@' + json.dumps(probe(**json.loads(sys.argv[1]))))"
     )
     proc = subprocess.run(
@@ -134,7 +201,30 @@ def main(argv: list[str] | None = None) -> int:
         metavar=("N", "DIMS", "SLICES", "EVERY"),
         help="measure one size only (N^DIMS sites, in a fresh Python), e.g. --point 128 3 12 10",
     )
+    parser.add_argument(
+        "--case",
+        nargs=3,
+        type=int,
+        metavar=("N", "SLICES", "EVERY"),
+        help="a case run (Dirichlet membrane N^2, reference and baseline of SLICES slices) with its files read "
+        "whole and left on disk, each in a fresh Python, e.g. --case 128 1500 100",
+    )
     args = parser.parse_args(argv)
+    if args.case:
+        n, slices, every = args.case
+        rows = {}
+        for whole in (True, False):
+            kw = {"n": n, "slices": slices, "every": every, "whole": whole}
+            rows["read whole" if whole else "block by block"] = _fresh(kw, args.threads, "case_probe")
+        print(f"case run: {n}^2 Dirichlet membrane, {slices} slices, every = {every} (peak RSS, MiB)")
+        for name, r in rows.items():
+            print(
+                f"  files {name:14s} field {r['field_mib']:.0f} MiB  peak {r['rss_peak']:.0f}  "
+                f"growth {r['rss_peak'] - r['rss_before']:.0f}  wall {r['seconds']:.0f} s"
+            )
+        a, b = (r["rss_peak"] - r["rss_before"] for r in rows.values())
+        print(f"  growth ratio (whole / block by block): {a / max(b, 1e-9):.2f}")
+        return 0
     if args.point:
         n, dims, slices, every = args.point
         print(json.dumps(_fresh({"n": n, "dims": dims, "slices": slices, "every": every}, args.threads)))

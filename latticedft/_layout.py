@@ -29,6 +29,7 @@ with a one-line message that names the ``source`` and what was expected.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -288,6 +289,35 @@ def _site_text(da: xr.DataArray, index: tuple[Any, ...]) -> str:
     return f"index {idx}" + (f" ({', '.join(coords)})" if coords else "")
 
 
+#: Bytes of values read at a time when a lazily opened field is scanned for NaN/inf.
+SCAN_BYTES = 64 * 2**20
+
+
+def _non_finite_block(values: np.ndarray, t0: int) -> tuple[int, tuple[int, ...]]:
+    """The count of NaN/inf values in ``values`` (slices from ``t0`` on) and the index of the first."""
+    bad = ~np.isfinite(values)
+    n_bad = int(bad.sum())
+    if not n_bad:
+        return 0, ()
+    first = [int(i) for i in np.unravel_index(int(np.argmax(bad.reshape(-1))), bad.shape)]
+    if first:
+        first[0] += t0
+    return n_bad, tuple(first)
+
+
+def _non_finite(da: xr.DataArray) -> tuple[int, tuple[int, ...]]:
+    """:func:`_non_finite_block` of a lazily opened field, read in blocks of slices (never whole)."""
+    tdim, nt = da.dims[0], da.shape[0]
+    step = max(1, SCAN_BYTES // max(1, math.prod(da.shape[1:]) * da.dtype.itemsize))
+    total, first = 0, ()  # type: tuple[int, tuple[int, ...]]
+    for a in range(0, nt, step):
+        n, at = _non_finite_block(np.asarray(da.isel({tdim: slice(a, a + step)}).values), a)
+        if n and not total:
+            first = at
+        total += n
+    return total, first
+
+
 def validate_field(
     da: xr.DataArray,
     source: str = "<array>",
@@ -339,13 +369,13 @@ def validate_field(
         check_coordinate(da, dim, source)
     if not (np.issubdtype(da.dtype, np.floating) or np.issubdtype(da.dtype, np.integer)) or da.dtype == bool:
         raise InputError(f"{source}: {what} has dtype {da.dtype}; expected real numbers")
-    if da.dtype != np.float64:
+    # a file opened lazily (or dask-backed): its values are read in blocks of slices
+    lazy = da.chunks is not None or not getattr(da.variable, "_in_memory", True)
+    if da.dtype != np.float64 and not lazy:
         da = da.astype(np.float64)
     if not allow_nan:
-        bad = ~np.isfinite(da.values)
-        n_bad = int(bad.sum())
+        n_bad, first = _non_finite(da) if lazy else _non_finite_block(da.values, 0)
         if n_bad:
-            first = np.unravel_index(int(np.argmax(bad.reshape(-1))), bad.shape)
             raise InputError(
                 f"{source}: {what} holds {n_bad} NaN/inf value(s), the first at {_site_text(da, first)}; "
                 "expected finite values"

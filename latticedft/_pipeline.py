@@ -92,8 +92,9 @@ def _same_spacing(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
     return len(a) == len(b) and all(math.isclose(x, y, rel_tol=1e-6) for x, y in zip(a, b))
 
 
-def _read(path: Path, case: Case, components: tuple[str, ...] | None) -> xr.DataArray:
-    return read_field(path, case.field.variable, components=list(components) if components else None)
+def _read(path: Path, case: Case, components: tuple[str, ...] | None, lazy: bool = False) -> xr.DataArray:
+    """A field of the case, validated; ``lazy``: its values left in the file (a task with ``every > 1``)."""
+    return read_field(path, case.field.variable, components=list(components) if components else None, lazy=lazy)
 
 
 def _as_case_error(exc: LatticeDFTError, key: str) -> ConfigError:
@@ -137,7 +138,8 @@ def check_case(case: Case) -> CaseData:
 def _check_task(
     case: Case, t: ServeTask, dims: tuple[str, ...], spacing: tuple[float, ...], comps: tuple[str, ...] | None
 ) -> TaskData:
-    init = _read(t.source, case, comps)
+    lazy = t.every > 1 and len(dims) > 1  # served slice by slice: the files are read where they are needed
+    init = _read(t.source, case, comps, lazy)
     if lattice_dims(init) != dims:
         raise InputError(
             f"{t.source}: lattice dims {lattice_dims(init)} differ from the training data's {dims} ({t.label}.from)"
@@ -153,7 +155,8 @@ def _check_task(
     slices = t.slices if t.slices is not None else nt
     key = f"{t.label}.{'steps' if t.deprecated_steps else 'slices'}"
     try:
-        f = as_lattice_field(init, source=str(t.source), boundary=t.boundary, min_slices=2)
+        head = init.isel({dims[0]: slice(0, 2)}).compute() if lazy else init  # the boundary needs no values
+        f = as_lattice_field(head, source=str(t.source), boundary=t.boundary, min_slices=2)
     except InputError as exc:
         if exc.key == "boundary":
             raise _as_case_error(exc, f"{t.label}.boundary") from None
@@ -184,7 +187,7 @@ def _check_task(
         raise ConfigError(f"case.toml: {t.label}.box: stopping at a box is for 1D trajectories only")
     ref: xr.DataArray | None
     if t.reference is not None:
-        ref = _read(t.reference, case, comps)
+        ref = _read(t.reference, case, comps, lazy)
         if ref.shape[1:] != init.shape[1:] or lattice_dims(ref) != dims:
             raise InputError(
                 f"{t.reference}: shape {dict(ref.sizes)} does not match {t.source.name} "
@@ -194,7 +197,7 @@ def _check_task(
         ref = init if nt > 2 else None
     base = None
     if t.baseline is not None:
-        base = _read(t.baseline, case, comps)
+        base = _read(t.baseline, case, comps, lazy)
         if base.shape[1:] != init.shape[1:] or lattice_dims(base) != dims:
             raise InputError(
                 f"{t.baseline}: shape {dict(base.sizes)} does not match {t.source.name} "
@@ -409,8 +412,16 @@ def serve_task(
         rec.update(max_error=cmp["max_error"], rms_error=cmp["rms_error"], compared_slices=cmp["slices"])
         rec["reference"] = (t.reference or t.source).name
         if td.baseline is not None:
-            b = compare(td.baseline, td.reference)
-            b_same = compare(td.baseline.isel({pred.dims[0]: slice(0, cmp["slices"])}), td.reference)
+            if meter is None:
+                b = compare(td.baseline, td.reference)
+                b_same = compare(td.baseline.isel({pred.dims[0]: slice(0, cmp["slices"])}), td.reference)
+            else:  # block by block: the files stay on disk
+                from ._task_stream import compare_blocks
+
+                b, b_same = (
+                    compare_blocks(td.baseline, td.reference),
+                    compare_blocks(td.baseline, td.reference, int(cmp["slices"])),
+                )
             rec["baseline"] = {
                 "file": t.baseline.name if t.baseline else None,
                 "max_error": b["max_error"],

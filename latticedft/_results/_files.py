@@ -139,7 +139,18 @@ def align_reference(pred: xr.DataArray, ref: xr.DataArray | None) -> xr.DataArra
     idx = _slices_of(pred)
     if ref.sizes.get(tdim, 0) < (int(idx[-1]) + 1 if len(idx) else n) or ref.shape[1:] != pred.shape[1:]:
         return None
-    return pred.copy(data=np.asarray(ref.values[idx], dtype=np.float64))
+    return pred.copy(data=_at_slices(ref, idx))
+
+
+def _at_slices(da: xr.DataArray, idx: np.ndarray) -> np.ndarray:
+    """Slices ``idx`` of ``da`` as float64 (of a field opened lazily, only those slices are read)."""
+    if da.chunks is None and getattr(da.variable, "_in_memory", True):
+        return np.asarray(da.values[idx], dtype=np.float64)
+    tdim = da.dims[0]
+    out = np.empty((len(idx), *da.shape[1:]))
+    for k, i in enumerate(idx):  # one slice at a time: the file's library may read a whole range for a list
+        out[k] = da.isel({tdim: int(i)}).values
+    return out
 
 
 def _slices_of(pred: xr.DataArray) -> np.ndarray:
@@ -214,7 +225,7 @@ def _baseline_errors(
     idx = _slices_of(pred)
     n = int(np.count_nonzero(idx < base.sizes[tdim]))  # the kept slices the baseline holds
     diff = np.full(pred.shape, np.nan)
-    diff[:n] = np.asarray(base.values[idx[:n]], dtype=np.float64) - np.asarray(ref.values[:n], dtype=np.float64)
+    diff[:n] = _at_slices(base, idx[:n]) - np.asarray(ref.values[:n], dtype=np.float64)
     flat = diff.reshape(nt, -1)
     with np.errstate(invalid="ignore"):
         worst = np.abs(flat).max(axis=1) if flat.shape[1] else np.full(nt, np.nan)

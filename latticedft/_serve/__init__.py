@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import functools
 import warnings
-from typing import overload
+from typing import Any, overload
 
 import torch
 import xarray as xr
@@ -30,14 +30,16 @@ from .._boundary import BoundaryKinds
 from .._device import device_label, on_device, resolve_device
 from .._errors import InputError, ServeError
 from .._lattice import LatticeField, as_lattice_fields
+from .._layout import lattice_dims
 from .._learn import check_model_lattice as _check_model_lattice
+from .._learn._source import is_lazy
 from .._models import AbstractLagrangian, EnsembleLagrangian
 from ._batch import _serve_batch
 from ._ensemble import calibration, serve_ensemble
 from ._field import _serve_field
 from ._result import ServeResult, compare, error_vs_time, invariant_vs_time
 from ._solvers import SOLVERS
-from ._stream import SliceCallback, _serve_stream, check_every, thin_result
+from ._stream import SliceCallback, SliceSource, _serve_stream, check_every, lazy_field, thin_result
 
 __all__ = ["MODES", "SOLVERS", "ServeResult", "calibration", "compare", "error_vs_time", "invariant_vs_time", "serve"]
 
@@ -53,6 +55,12 @@ def _prepare_model(model: AbstractLagrangian, f: LatticeField) -> None:
     if not model.bound:
         raise InputError(f"model: {type(model).__name__} has not been learned yet (latticedft.learn)")
     _check_model_lattice(model, f, "init")
+
+
+def _in_file(init: Any) -> bool:
+    """``init`` is an n-D DataArray whose values are left in its file (opened lazily: ``read_field(lazy=True)``,
+    or dask-backed)."""
+    return isinstance(init, xr.DataArray) and is_lazy(init) and len(lattice_dims(init)) > 1
 
 
 def _slices(slices: int | None, f: LatticeField, key: str = "slices") -> int:
@@ -154,7 +162,10 @@ def serve(
     init : DataArray, or a list of 1D DataArrays
         The first two time slices, and for Dirichlet axes the boundary strips
         on every slice to serve (so usually the whole reference field). A
-        list of 1D fields is served as one batch.
+        list of 1D fields is served as one batch. An n-D field opened lazily
+        (``io.read_field(path, lazy=True)``) and served with ``every > 1`` (or
+        ``on_slice``) stays in its file: its first two slices are loaded and
+        the strips read block by block as the window advances.
     slices : int, optional
         Number of time slices of the served field, the two initial ones
         included (default: the length of ``init`` along time): ``N`` time
@@ -270,8 +281,13 @@ def serve(
     items = list(init) if isinstance(init, (list, tuple)) else [init]
     if not items:
         raise InputError("init: no initial fields given")
-    sources = [f"init[{k}]" for k in range(len(items))] if batch else ["init"]
-    fs = as_lattice_fields(items, sources, boundary=boundary, min_slices=2)  # one pass over a batch
+    sources: list[SliceSource | None] = [None] * len(items)
+    if not batch and (every > 1 or on_slice is not None) and _in_file(items[0]):  # read slice by slice
+        head, sources[0] = lazy_field(items[0], "init", boundary)
+        fs = [head]
+    else:
+        names = [f"init[{k}]" for k in range(len(items))] if batch else ["init"]
+        fs = as_lattice_fields(items, names, boundary=boundary, min_slices=2)  # one pass over a batch
     _prepare_model(model, fs[0])
     for k, f in enumerate(fs):
         _check_model_lattice(model, f, "init" if not batch else f"init[{k}]")
@@ -289,6 +305,7 @@ def serve(
         where=where,
         every=every,
         on_slice=on_slice,
+        sources=sources,
     )
     if isinstance(model, EnsembleLagrangian):
         if every > 1 or on_slice is not None:
@@ -317,6 +334,7 @@ def _run(
     where: torch.device,
     every: int,
     on_slice: SliceCallback | None,
+    sources: list[SliceSource | None] | None = None,
 ) -> list[ServeResult]:
     """Serve the checked fields ``fs`` with ``model``; a ServeError (``result`` a list for a ``batch``) when
     one stops."""
@@ -336,15 +354,17 @@ def _run(
     if box is not None:
         raise InputError("box: stopping when leaving a box is for 1D trajectories only")
     out: list[ServeResult] = []
-    for f in fs:
+    for f, src in zip(fs, sources or [None] * len(fs)):
         try:
-            n_f = _slices(slices, f)
+            n_f = _slices(slices, f) if slices is not None or src is None else src.nt
             with on_device(model, where):
                 if every == 1 and on_slice is None:
                     out.append(_serve_field(model, f, n_f, mode, rtol, max_newton, progress, bool(affine), solver))
                 else:
                     out.append(
-                        _serve_stream(model, f, n_f, mode, rtol, max_newton, progress, affine, every, on_slice, solver)
+                        _serve_stream(
+                            model, f, n_f, mode, rtol, max_newton, progress, affine, every, on_slice, solver, src
+                        )
                     )
         except ServeError as err:
             if isinstance(err.result, ServeResult):

@@ -6,7 +6,8 @@ k, 2k, ...`` and the last one. Each slice is solved by the same arithmetic as
 the whole-field driver (``_field``): the affine recurrence chunk by chunk with
 the same residual test, then slice-Newton (or the sweep) from the first slice
 that fails it, so the kept slices equal the whole field's. The Dirichlet
-strips are copied into the window slice by slice from the input field. The
+strips are copied into the window slice by slice from the input field (read
+block by block from its file when it was opened lazily: :func:`lazy_field`). The
 extrapolation record (``ServeResult.extrapolation``) covers every slice served.
 
 A callback ``on_slice(index, values)`` sees each kept slice as it is served; an
@@ -33,7 +34,8 @@ import xarray as xr
 from .._action import CellDerivatives
 from .._boundary import missing_edges
 from .._errors import InputError, ServeError
-from .._lattice import LatticeField, gather_cells
+from .._lattice import LatticeField, as_lattice_field, gather_cells
+from .._layout import validate_field
 from .._models import AbstractLagrangian
 from ._affine import _AffineSlices, _slice_residuals
 from ._newton import _newton_slice
@@ -42,7 +44,7 @@ from ._result import ServeResult, _bar
 from ._slices import _site_label, _SliceSystem, is_singular
 from ._sweep import _sweep_slice
 
-__all__ = ["kept_slices", "check_every", "thin_result"]
+__all__ = ["kept_slices", "check_every", "thin_result", "SliceSource", "lazy_field"]
 
 #: Bytes of the rolling window of new slices (at least ``_MIN_CHUNK`` slices).
 _WINDOW_BYTES = 32 * 2**20
@@ -104,6 +106,34 @@ def thin_result(result: ServeResult, every: int, on_slice: SliceCallback | None)
     return result
 
 
+class SliceSource:
+    """The slices of an input field left in its file (a DataArray opened lazily), read block by block.
+
+    ``source(a, b)`` is slices ``a .. b - 1`` as ``f.values[a:b]`` would hold them (float64, the component
+    axis last); ``nt`` the slices the file holds.
+    """
+
+    def __init__(self, da: xr.DataArray, has_comp: bool):
+        self.da, self.tdim, self.has_comp = da, da.dims[0], has_comp
+        self.nt = int(da.sizes[self.tdim])
+
+    def __call__(self, a: int, b: int) -> torch.Tensor:
+        v = np.asarray(self.da.isel({self.tdim: slice(a, b)}).values, dtype=np.float64)
+        return torch.from_numpy(np.ascontiguousarray(v if self.has_comp else v[..., None]))
+
+
+def lazy_field(da: xr.DataArray, source: str, boundary: Any) -> tuple[LatticeField, SliceSource]:
+    """A lazily opened ``da`` as the field of its first two slices and the source of the others.
+
+    ``da`` is validated as :func:`as_lattice_field` does (its NaN/inf scan reads blocks of slices); only the
+    first two slices are loaded.
+    """
+    validate_field(da, source)
+    tdim = da.dims[0]
+    head = as_lattice_field(da.isel({tdim: slice(0, 2)}).compute(), source=source, boundary=boundary, min_slices=2)
+    return head, SliceSource(da, head.components is not None)
+
+
 class _Stream:
     """One n-D field served through a rolling window; the kept slices collected in one preallocated array."""
 
@@ -117,16 +147,19 @@ class _Stream:
         on_slice: SliceCallback | None,
         progress: bool | None,
         solver: str = "auto",
+        source: SliceSource | None = None,
     ):
         self.model, self.f, self.steps, self.mode = model, f, steps, mode
+        self.source = source  # the input's slices left in its file (then ``f`` holds the first two)
         self.on_slice = on_slice
         self.on_block = getattr(on_slice, "on_block", None)
         self.every = every
-        missing = missing_edges(f.boundary, f.dims, f.shape[0], steps)
+        nt = f.shape[0] if source is None else source.nt
+        missing = missing_edges(f.boundary, f.dims, nt, steps)
         if missing:
             axis, kind = missing
             raise InputError(
-                f"init: holds {f.shape[0]} time slices but the {kind.title} boundary along "
+                f"init: holds {nt} time slices but the {kind.title} boundary along "
                 f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
                 "fewer slices, or a periodic boundary"
             )
@@ -167,9 +200,10 @@ class _Stream:
         if self.kidx is None:
             return
         m = self.f.ncomp
+        lo = self.base + 2
+        known = self.f.values[lo : lo + n_new] if self.source is None else self.source(lo, lo + n_new)
         for p in range(2, n_new + 2):
-            g = self.base + p
-            self.flat[p, self.kidx] = self.f.values[g].reshape(self.sys.nsite, m)[self.kidx]
+            self.flat[p, self.kidx] = known[p - 2].reshape(self.sys.nsite, m)[self.kidx]
 
     def cells_at(self, p: int) -> torch.Tensor:
         """The cells anchored on buffer position ``p``."""
@@ -360,9 +394,11 @@ def _serve_stream(
     every: int,
     on_slice: SliceCallback | None,
     solver: str = "auto",
+    source: SliceSource | None = None,
 ) -> ServeResult:
-    """Serve one n-D field through a rolling window, keeping every ``every``-th slice and the last."""
-    run = _Stream(model, f, steps, mode, every, on_slice, progress, solver)
+    """Serve one n-D field through a rolling window, keeping every ``every``-th slice and the last (the
+    input's later slices read from ``source`` when ``f`` holds its first two only)."""
+    run = _Stream(model, f, steps, mode, every, on_slice, progress, solver, source)
     setup = run.affine_setup() if mode == "newton" and affine and steps > 2 else None
     on_affine = setup is not None
     g_prev: Any = None if on_affine else CellDerivatives(model, run.cells_at(0)).grad

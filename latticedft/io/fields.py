@@ -82,12 +82,16 @@ def read_field(
     *,
     components: Sequence[str] | None = None,
     allow_nan: bool = False,
+    lazy: bool = False,
 ) -> xr.DataArray:
     """Read and validate one field from a netCDF file.
 
     The file is opened with xarray's netCDF4 engine (times are not decoded:
     lattice coordinates stay numbers), loaded into memory as float64 and
-    closed before returning.
+    closed before returning. With ``lazy=True`` the values stay in the file
+    (opened until the DataArray is dropped, in the file's own dtype) and are
+    read where the DataArray is indexed; the NaN/inf check reads them in
+    blocks of slices.
 
     Parameters
     ----------
@@ -99,6 +103,8 @@ def read_field(
         Expected labels of the ``component`` dim (e.g. ``["x", "y"]``).
     allow_nan
         Accept NaN/inf values (e.g. reloading a prediction that stopped early).
+    lazy
+        Leave the values in the file (read slice by slice where indexed).
 
     Raises
     ------
@@ -123,18 +129,37 @@ def read_field(
         ds = xr.open_dataset(p, engine="netcdf4", decode_times=False, decode_timedelta=False)
     except Exception as exc:  # the library raises OSError, ValueError, ... for bad files
         raise InputError(f"{p}: not a readable netCDF file ({type(exc).__name__}: {_one_line(exc, 120)})") from None
-    with ds:
-        if variable not in ds.data_vars:
-            present = sorted(str(v) for v in ds.data_vars)
-            raise InputError(f"{p}: no variable {variable!r}; variables present: {present!r}")
+    if lazy:
         try:
-            da = ds[variable].load()
-        except Exception as exc:
+            da = validate_field(_variable(ds, p, variable, lazy), str(p), components=components, allow_nan=allow_nan)
+        except InputError:
+            ds.close()
+            raise
+        except Exception as exc:  # a block of values that cannot be read
+            ds.close()
             raise InputError(
                 f"{p}: cannot read variable {variable!r} ({type(exc).__name__}: {_one_line(exc, 120)})"
             ) from None
+        return da.copy(deep=False)
+    with ds:
+        da = _variable(ds, p, variable, lazy)
     da = validate_field(da, str(p), components=components, allow_nan=allow_nan)
     return da.copy(deep=False)
+
+
+def _variable(ds: xr.Dataset, p: Path, variable: str, lazy: bool) -> xr.DataArray:
+    """``ds[variable]``, loaded unless ``lazy`` (its values read where it is indexed)."""
+    if variable not in ds.data_vars:
+        present = sorted(str(v) for v in ds.data_vars)
+        raise InputError(f"{p}: no variable {variable!r}; variables present: {present!r}")
+    if lazy:
+        return ds[variable]
+    try:
+        return ds[variable].load()
+    except Exception as exc:
+        raise InputError(
+            f"{p}: cannot read variable {variable!r} ({type(exc).__name__}: {_one_line(exc, 120)})"
+        ) from None
 
 
 # ----------------------------------------------------------------------------- writing
