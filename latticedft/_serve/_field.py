@@ -46,6 +46,36 @@ def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int) -> torch.Ten
     return psi
 
 
+def solve_and_tally(
+    run: Any, psi: torch.Tensor, i: int, g_prev: torch.Tensor, rtol: float, max_newton: int, older: Any
+) -> torch.Tensor:
+    """Solve the equations of slice ``i`` of ``run`` (a whole-field or a windowed run: ``psi``/``run.flat`` its
+    slices) for slice ``i + 1``; the iterations are counted on ``run``, a failure raised by ``run.fail``.
+
+    The predictor on the unknown sites is ``2 psi_i - psi_{i-1}`` plus, for Newton with ``older`` (slice
+    ``i - 2`` on those sites), the previous slice's correction to its own such predictor
+    (``3 psi_i - 3 psi_{i-1} + psi_{i-2}``: the next term of the extrapolation).
+    """
+    flat, unk = run.flat, run.unk
+    flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
+    if run.mode == "newton" and older is not None:
+        flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + older
+    if run.mode == "newton":
+        it, res, g_prev, err = _newton_slice(
+            run.model, run.sys, psi, flat, unk, i, g_prev, run.vol, rtol, max_newton, run.cells_at, run.cache
+        )
+    else:
+        it, res, g_prev, err = _sweep_slice(run.model, run.sys, psi, flat, i, run.vol, rtol, max_newton, run.f)
+    run.total_it += it
+    run.max_it = max(run.max_it, it)
+    run.worst = max(run.worst, res)
+    if err is not None:
+        msg, row, rval = err
+        raise run.fail(i, msg, row, rval)
+    run.bar.update(1)
+    return g_prev
+
+
 class _FieldRun:
     """One n-D field being served: its slice system, values, iteration counters and progress bar."""
 
@@ -93,26 +123,8 @@ class _FieldRun:
 
     def solve_slice(self, i: int, g_prev: torch.Tensor, rtol: float, max_newton: int) -> torch.Tensor:
         """Solve slice ``i``'s equations for slice ``i + 1``; returns the gradients of the cells anchored at ``i``."""
-        sys, flat, unk = self.sys, self.flat, self.unk
-        # predictor on the unknown sites: 2 psi_i - psi_{i-1} plus, for Newton, the previous slice's correction to
-        # its own such predictor (3 psi_i - 3 psi_{i-1} + psi_{i-2}: the next term of the extrapolation)
-        flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
-        if self.mode == "newton" and i >= 2:
-            flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + flat[i - 2, unk]
-        if self.mode == "newton":
-            it, res, g_prev, err = _newton_slice(
-                self.model, sys, self.psi, flat, unk, i, g_prev, self.vol, rtol, max_newton, self.cells_at, self.cache
-            )
-        else:
-            it, res, g_prev, err = _sweep_slice(self.model, sys, self.psi, flat, i, self.vol, rtol, max_newton, self.f)
-        self.total_it += it
-        self.max_it = max(self.max_it, it)
-        self.worst = max(self.worst, res)
-        if err is not None:
-            msg, row, rval = err
-            raise self.fail(i, msg, row, rval)
-        self.bar.update(1)
-        return g_prev
+        older = self.flat[i - 2, self.unk] if i >= 2 else None
+        return solve_and_tally(self, self.psi, i, g_prev, rtol, max_newton, older)
 
     def _result(
         self, field: LatticeField, complete: bool, reason: str, slices: int, wall: float, rate: float, residual: float

@@ -38,11 +38,10 @@ from .._lattice import LatticeField, as_lattice_field, gather_cells
 from .._layout import validate_field
 from .._models import AbstractLagrangian
 from ._affine import _AffineSlices, _slice_residuals
-from ._newton import _newton_slice
+from ._field import solve_and_tally
 from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
 from ._result import ServeResult, _bar
 from ._slices import _site_label, _SliceSystem, is_singular
-from ._sweep import _sweep_slice
 
 __all__ = ["kept_slices", "check_every", "thin_result", "SliceSource", "lazy_field"]
 
@@ -274,38 +273,10 @@ class _Stream:
 
     def solve(self, p: int, g_prev: torch.Tensor, rtol: float, max_newton: int) -> torch.Tensor:
         """Solve the equations of buffer position ``p`` for position ``p + 1`` (as ``_FieldRun.solve_slice``)."""
-        flat, unk = self.flat, self.unk
-        flat[p + 1, unk] = 2 * flat[p, unk] - flat[p - 1, unk]
-        if self.mode == "newton" and self.base + p >= 2:  # the whole-field driver's predictor (``_field``)
-            older = flat[p - 2, unk] if p >= 2 else self.before[unk]  # type: ignore[index]
-            flat[p + 1, unk] += flat[p, unk] - 2 * flat[p - 1, unk] + older
-        if self.mode == "newton":
-            it, res, g_prev, err = _newton_slice(
-                self.model,
-                self.sys,
-                self.buf,
-                flat,
-                unk,
-                p,
-                g_prev,
-                self.vol,
-                rtol,
-                max_newton,
-                self.cells_at,
-                self.cache,
-            )
-        else:
-            it, res, g_prev, err = _sweep_slice(
-                self.model, self.sys, self.buf, flat, p, self.vol, rtol, max_newton, self.f
-            )
-        self.total_it += it
-        self.max_it = max(self.max_it, it)
-        self.worst = max(self.worst, res)
-        if err is not None:
-            msg, row, rval = err
-            raise self.fail(p, msg, row, rval)
-        self.bar.update(1)
-        return g_prev
+        older = None
+        if self.base + p >= 2:  # slice p - 2 of the whole field: in the window, or the one before it
+            older = self.flat[p - 2, self.unk] if p >= 2 else self.before[self.unk]  # type: ignore[index]
+        return solve_and_tally(self, self.buf, p, g_prev, rtol, max_newton, older)
 
     # -- the result ------------------------------------------------------------------------------------------
     def solver(self) -> str:
