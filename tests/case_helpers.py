@@ -112,3 +112,20 @@ def nan_field(path: Path) -> None:
     psi = systems.wave_string([(1, 1.0)], nx=13, nt=20)
     psi[5, 4] = np.nan
     write_field(path, {"psi": psi})
+
+
+def run_wave_every(tmp_path: Path, capsys, every: int):
+    """Run a copy of cases/wave with task `test` served at `every`; its summary record and its loaded task file."""
+    import json
+
+    import xarray as xr
+
+    case = copy_wave(tmp_path / f"every{every}")
+    sets = ["--set", f"serve.test.every={every}", "--set", "export.formats=[]"]
+    code, _, err = run_cli(capsys, "run", case, "-q", *FAST, *sets)
+    assert code == 0, err
+    res = case / "results"
+    summary = json.loads((res / "summary.json").read_text())
+    with xr.open_dataset(res / "test.nc", engine="netcdf4", decode_times=False) as ds:
+        ds = ds.load()
+    return summary["tasks"]["test"], ds

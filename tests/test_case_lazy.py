@@ -15,6 +15,7 @@ from latticedft import _layout, _task_stream, lagrangians
 from latticedft._serve import _stream
 from latticedft.io.fields import read_field
 
+from case_helpers import run_wave_every
 from helpers import membrane_field, wave_field
 
 
@@ -103,30 +104,14 @@ def test_a_lazy_init_with_too_few_slices_for_its_strips_is_refused(tmp_path):
         ldft.serve(lagrangians.wave(1.0), init, slices=30, every=4)
 
 
-def _run_wave(tmp_path, capsys, every: int):
-    import json
-
-    from case_helpers import FAST, copy_wave, run_cli
-
-    case = copy_wave(tmp_path / f"every{every}")
-    sets = ["--set", f"serve.test.every={every}", "--set", "export.formats=[]"]
-    code, _, err = run_cli(capsys, "run", case, "-q", *FAST, *sets)
-    assert code == 0, err
-    res = case / "results"
-    summary = json.loads((res / "summary.json").read_text())
-    with xr.open_dataset(res / "test.nc", engine="netcdf4", decode_times=False) as ds:
-        ds = ds.load()
-    return summary["tasks"]["test"], ds
-
-
 def test_a_case_task_with_every_reads_its_files_block_by_block(tmp_path, capsys, reads, monkeypatch):
-    whole, whole_ds = _run_wave(tmp_path, capsys, 1)
+    whole, whole_ds = run_wave_every(tmp_path, capsys, 1)
     nt_file = read_field(Path(__file__).parents[1] / "cases" / "wave" / "data" / "test.nc").sizes["t"]
     assert _longest(reads, "data/test.nc") == nt_file  # every = 1: the field is read whole
     slice_bytes = int(np.prod(whole_ds["psi"].shape[1:])) * 8
     _small_blocks(monkeypatch, slice_bytes)
     reads.clear()
-    thin, thin_ds = _run_wave(tmp_path, capsys, 7)
+    thin, thin_ds = run_wave_every(tmp_path, capsys, 7)
     # from (also the reference) and baseline: blocks of at most 4 slices, the first two, or one kept slice
     assert 0 < _longest(reads, "data/test.nc") <= 4
     assert 0 < _longest(reads, "data/test_leapfrog.nc") <= 4

@@ -11,6 +11,7 @@ import latticedft as ldft
 from latticedft import lagrangians
 from latticedft._serve import _stream
 
+from case_helpers import run_wave_every
 from helpers import membrane_field, oscillator_data, series, wave_field
 
 
@@ -193,25 +194,9 @@ def test_periodic_cadence_from_two_slices():
 # -- a case task with every ------------------------------------------------------------------------------------
 
 
-def _run_wave(tmp_path, capsys, every: int):
-    import json
-
-    from case_helpers import FAST, copy_wave, run_cli
-
-    case = copy_wave(tmp_path / f"every{every}")
-    sets = ["--set", f"serve.test.every={every}", "--set", "export.formats=[]"]
-    code, _, err = run_cli(capsys, "run", case, "-q", *FAST, *sets)
-    assert code == 0, err
-    res = case / "results"
-    summary = json.loads((res / "summary.json").read_text())
-    with xr.open_dataset(res / "test.nc", engine="netcdf4", decode_times=False) as ds:
-        ds = ds.load()
-    return summary["tasks"]["test"], ds
-
-
 def test_a_case_task_with_every_keeps_the_slices_and_the_errors_of_every_1(tmp_path, capsys):
-    whole, whole_ds = _run_wave(tmp_path, capsys, 1)
-    thin, thin_ds = _run_wave(tmp_path, capsys, 7)
+    whole, whole_ds = run_wave_every(tmp_path, capsys, 1)
+    thin, thin_ds = run_wave_every(tmp_path, capsys, 7)
     idx = _stream.kept_slices(60, 7)
     assert (whole["every"], whole["kept_slices"]) == (1, 60)
     assert (thin["every"], thin["kept_slices"]) == (7, len(idx))
@@ -279,5 +264,5 @@ def test_a_killed_cadenced_run_leaves_a_readable_part_file(tmp_path):
 
 
 def test_a_finished_cadenced_run_leaves_no_part_file(tmp_path, capsys):
-    _run_wave(tmp_path, capsys, 5)
+    run_wave_every(tmp_path, capsys, 5)
     assert not list(tmp_path.rglob("*.part"))

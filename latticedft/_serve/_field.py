@@ -46,6 +46,21 @@ def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int) -> torch.Ten
     return psi
 
 
+def slice_error(
+    f: LatticeField, sys: _SliceSystem, i: int, msg: str, row: int | None, res: float, result: ServeResult
+) -> ServeError:
+    """The error for slice ``i``'s equations failing (at equation ``row``): slice, time, site and residual in
+    one line, with the partial ``result``."""
+    site = _site_label(f, sys, i, row) if row is not None else None
+    tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
+    text = (
+        f"slice {i + 1} (t = {tval:.6g}): {msg}"
+        + (f" in the DEL equation of site {_site_text(f, site)}" if site else "")
+        + (f", residual {res:.3e}" if math.isfinite(res) else "")
+    )
+    return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
+
+
 def solve_and_tally(
     run: Any, psi: torch.Tensor, i: int, g_prev: torch.Tensor, rtol: float, max_newton: int, older: Any
 ) -> torch.Tensor:
@@ -155,14 +170,7 @@ class _FieldRun:
         wall = time.perf_counter() - self.t0
         solved = (i + 1 - 2) * sys.n
         result = self._result(part, False, msg, i + 1, wall, solved / wall if wall > 0 else 0.0, res)
-        site = _site_label(f, sys, i, row) if row is not None else None
-        tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
-        text = (
-            f"slice {i + 1} (t = {tval:.6g}): {msg}"
-            + (f" in the DEL equation of site {_site_text(f, site)}" if site else "")
-            + (f", residual {res:.3e}" if math.isfinite(res) else "")
-        )
-        return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
+        return slice_error(f, sys, i, msg, row, res, result)
 
     def finish(self) -> ServeResult:
         """The complete served field."""

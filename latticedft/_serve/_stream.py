@@ -38,10 +38,10 @@ from .._lattice import LatticeField, as_lattice_field, gather_cells
 from .._layout import validate_field
 from .._models import AbstractLagrangian
 from ._affine import _AffineSlices, _slice_residuals
-from ._field import solve_and_tally
+from ._field import slice_error, solve_and_tally
 from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
 from ._result import ServeResult, _bar
-from ._slices import _site_label, _SliceSystem, is_singular
+from ._slices import _SliceSystem, is_singular
 
 __all__ = ["kept_slices", "check_every", "thin_result", "SliceSource", "lazy_field"]
 
@@ -335,22 +335,13 @@ class _Stream:
 
     def fail(self, p: int, msg: str, row: int | None, res: float) -> ServeError:
         """The error for position ``p``'s equations failing, holding the kept slices up to there."""
-        from ._field import _site_text
-
         self.bar.close()
         i = self.base + p
         self.emit(p)
         wall = time.perf_counter() - self.t0
         solved = (i + 1 - 2) * self.sys.n
         result = self.result(i + 1, False, msg, solved / wall if wall > 0 else 0.0, res)
-        site = _site_label(self.f, self.sys, i, row) if row is not None else None
-        tval = float(self.f.coords[self.f.dims[0]][0] + (i + 1) * self.f.spacing[0])
-        text = (
-            f"slice {i + 1} (t = {tval:.6g}): {msg}"
-            + (f" in the DEL equation of site {_site_text(self.f, site)}" if site else "")
-            + (f", residual {res:.3e}" if math.isfinite(res) else "")
-        )
-        return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
+        return slice_error(self.f, self.sys, i, msg, row, res, result)
 
 
 def _serve_stream(
