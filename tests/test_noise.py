@@ -87,15 +87,49 @@ def test_auto_leaves_clean_data_alone() -> None:
         assert np.array_equal(v.numpy(), b.state_dict()[k].numpy())
 
 
-def test_noisy_data_not_corrected_warn() -> None:
+def test_a_given_sigma_of_zero_leaves_noisy_data_alone() -> None:
     rng = np.random.default_rng(1)
     train = [noisy(duffing(q, 121), 1e-2, rng) for q in (1.3, 1.6)]
     rep = ldft.learn(ldft.PolynomialLagrangian(orders=(2, 4)), train, progress=False, noise="auto", noise_sigma=0.0)
     assert rep.noise is not None and rep.noise["given"] and rep.noise["method"] == "none"
-    model = ldft.MLPLagrangian(hidden=(8,))
-    rep = ldft.learn(model, train, progress=False, noise="correct", max_iter=5)
-    assert rep.noise is not None and rep.noise["method"] == "none"
-    assert any("noisy training data" in w and "linear models only" in w for w in rep.warnings)
+
+
+def test_noise_correction_of_a_neural_model() -> None:
+    """An iterative model is corrected too (refits from its previous weights): at sigma = 1e-3 a small
+    kinetic-potential MLP serves 50 steps within 10 sigma and several times better than fitted plainly."""
+    rng = np.random.default_rng(0)
+    train = [noisy(duffing(q, 161), 1e-3, rng) for q in (0.6, 1.0, 1.3, 1.45, 1.6, 1.75)]
+    ref = duffing(1.55, 51)
+    test = noisy(ref, 1e-3, rng)
+    errors = {}
+    for mode in ("none", "correct"):
+        model = ldft.MLPLagrangian(preset="kinetic-potential", hidden=[16, 16])
+        rep = ldft.learn(model, train, progress=False, noise=mode, max_iter=200)
+        start = test if mode == "none" else denoised_start(model, test)
+        errors[mode] = served_error(model, start, ref)
+    assert rep.noise is not None and rep.noise["method"] == "errors in variables" and rep.noise["rounds"] >= 1
+    assert errors["correct"] < 1e-2
+    assert errors["correct"] < errors["none"] / 5
+
+
+def test_noise_correction_with_an_ensemble() -> None:
+    """Member 0 is the noise-corrected model of a plain ``noise="correct"`` call; the other members learn on
+    resamples of the corrected fields, so they fit them as well as member 0 fits (a noisy field fits worse)."""
+    rng = np.random.default_rng(4)
+    train = [noisy(duffing(q, 161), 1e-3, rng) for q in (0.6, 1.0, 1.3, 1.6, 1.75)]
+    alone = ldft.PolynomialLagrangian(orders=(2, 6))
+    rep_alone = ldft.learn(alone, train, progress=False, noise="correct")
+    model = ldft.PolynomialLagrangian(orders=(2, 6))
+    rep = ldft.learn(model, train, progress=False, noise="correct", ensemble=4)
+    for k, v in alone.state_dict().items():
+        assert np.array_equal(v.numpy(), model.state_dict()[k].numpy())
+    assert rep.noise == rep_alone.noise and rep.ensemble is not None
+    plain = ldft.learn(ldft.PolynomialLagrangian(orders=(2, 6)), train, progress=False)
+    members = rep.ensemble["rel_res"]
+    assert len(members) == 4 and members[0] == rep_alone.rel_res
+    assert max(members) < plain.rel_res / 10
+    std = ldft.serve(model.ensemble_, train[2].isel(t=slice(0, 2)), slices=40, progress=False).std
+    assert std is not None and 0 < float(std.max()) < 1e-1
 
 
 def test_denoise_moves_toward_the_del() -> None:
@@ -179,3 +213,7 @@ def test_serve_start_option() -> None:
     ldft.learn(aware, train, progress=False, noise="auto")
     assert _start(aware, _TaskData("auto", init))[1] == "denoised"
     assert _start(aware, _TaskData("data", init)) == (init, "data")
+    member0 = ldft.PolynomialLagrangian(orders=(2, 4))
+    ldft.learn(member0, train, progress=False, noise="auto", ensemble=3)
+    out_ens, how = _start(member0.ensemble_, _TaskData("auto", init))  # a case serves the ensemble
+    assert how == "denoised" and np.allclose(out_ens.values, _start(aware, _TaskData("auto", init))[0].values)

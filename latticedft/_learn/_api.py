@@ -164,9 +164,12 @@ def learn(
     noise : "none", "auto" or "correct"
         Noisy data (docs/noise.md): ``correct`` alternates the fit with a
         correction of the training fields toward the learned DEL (errors in
-        variables; linear models fitted exactly); ``auto`` does so only when
-        the noise estimated from the data (:func:`estimate_noise`) is
-        significant. The estimate and what was done are in ``report.noise``.
+        variables: exact refits of a linear model; an iterative model is
+        refitted from its previous weights, about five trainings in all);
+        ``auto`` does so only when the noise estimated from the data
+        (:func:`estimate_noise`) is significant. The estimate and what was
+        done are in ``report.noise``. With ``ensemble``, member 0 is learned
+        so and the other members on resamples of the corrected fields.
     noise_sigma : float, optional
         The noise's standard deviation when known (field units); skips the
         estimate.
@@ -222,10 +225,6 @@ def learn(
         raise InputError.at("noise", f"expected 'auto', 'none' or 'correct', got {noise!r}")
     _check_number("noise_sigma", noise_sigma, strict=False, optional=True)
     ens = _ensemble_of(model, ensemble, ensemble_seed)
-    if ens is not None and noise != "none":
-        raise InputError.at(
-            "noise", "noise correction and an ensemble cannot be combined yet: give noise='none' or no ensemble"
-        )
     fields = training_data(data, boundary, chunk_sites)
     trained_on = device_label(where) if optimizer != "exact" else "cpu"
 
@@ -245,20 +244,24 @@ def learn(
         one.report_ = report
         return report
 
-    if ens is None:
+    def fit_noisy(one: AbstractLagrangian) -> tuple[LearnReport, TrainingData]:
+        """Learn ``one`` with the noise handling asked for; the report and the data of its last fit."""
         if noise == "none":
-            return fit(model, fields)
-        report = learn_noisy(
-            model,
+            return fit(one, fields), fields
+        report, used = learn_noisy(
+            one,
             fields,
-            lambda fs: fit(model, fs),
+            lambda fs: fit(one, fs),
             noise,
             noise_sigma,
             lambda f: training_data(f, boundary, chunk_sites),
         )
-        model.report_ = report
-        return report
-    report = learn_ensemble(ens, fields, fit)
+        one.report_ = report
+        return report, used
+
+    if ens is None:
+        return fit_noisy(model)[0]
+    report = learn_ensemble(ens, fit_noisy, fit)
     if ens is not model:
         object.__setattr__(model, "ensemble_", ens)  # not a submodule: the ensemble holds the model
         model.report_ = report

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -42,18 +43,20 @@ def time_windows(sources: list[FieldSource], width: int) -> list[FieldSource]:
 
 def learn_ensemble(
     ens: EnsembleLagrangian,
-    fields: TrainingData,
+    fit_first: Callable[[Any], tuple[LearnReport, TrainingData]],
     fit: Callable[[object, TrainingData, LearnReport | None], LearnReport],
 ) -> LearnReport:
-    """Fit member 0 on ``fields`` and every other member on a bootstrap resample of its time windows.
+    """Fit member 0 on all the data and every other member on a bootstrap resample of its time windows.
 
-    ``fit(model, data, main)`` binds and learns one model with the settings of the :func:`latticedft.learn`
-    call (``main``: None for member 0, its report for the resampled members, which take its ridge).
-    Returns member 0's report with ``ensemble`` filled in (members, seed, windows, the members' ``rel_res``)
-    and a warning when the data give a single window (the members cannot differ).
+    ``fit_first(member)`` learns member 0 as :func:`latticedft.learn` was asked to (noise correction
+    included) and returns its report and the data it was last fitted on (the corrected fields after a noise
+    correction): the resampled members learn on windows of those. ``fit(model, data, main)`` binds and
+    learns one model with the call's settings (``main``: member 0's report, whose ridge and gauge choice the
+    members take). Returns member 0's report with ``ensemble`` filled in (members, seed, windows, the
+    members' ``rel_res``) and a warning when the data give a single window (the members cannot differ).
     """
-    first = fit(ens.member(0), fields, None)
     m0 = ens.member(0)
+    first, fields = fit_first(m0)
     ens.bind(m0.n, m0.m, m0.spacing, m0.components)
     windows = time_windows(fields.sources, int(m0.stencil.width[0]))
     rng = np.random.default_rng(ens.seed)

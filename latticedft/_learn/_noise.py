@@ -29,7 +29,7 @@ import xarray as xr
 from .._action import _action, _check_model
 from .._errors import InputError
 from .._lattice import LatticeField, as_lattice_field, interior_slices
-from .._models import AbstractLagrangian, LinearLagrangian
+from .._models import AbstractLagrangian
 from ._report import LearnReport
 from ._stream import TrainingData
 
@@ -293,17 +293,18 @@ def learn_noisy(
     mode: str,
     sigma: float | None,
     make: Callable[[list[LatticeField]], TrainingData],
-) -> LearnReport:
-    """``learn(..., noise="auto" | "correct")``: estimate the noise, fit, and for a linear model fitted
-    exactly alternate :data:`ROUNDS` corrections of the training fields with refits; the report's ``noise``
-    records the estimate and what was done."""
+) -> tuple[LearnReport, TrainingData]:
+    """``learn(..., noise="auto" | "correct")``: estimate the noise, fit, and when correcting alternate
+    :data:`ROUNDS` corrections of the training fields with refits (an exact solve for a linear model; an
+    iterative model's refits start from its previous weights). Returns the report (its ``noise`` records the
+    estimate and what was done) and the training data of the last fit (the corrected fields when corrected),
+    on which an ensemble's resampled members learn."""
     fields = data.fields
     amp = max(float(f.values.abs().max()) for f in fields) or 1.0
     given = None if sigma is None else NoiseEstimate(float(sigma), float(sigma) / amp, True, None)
     est = estimate_noise(fields) if given is None else given
     report = fit(data)
     wanted = mode == "correct" or (mode == "auto" and est.significant)
-    linear = isinstance(model, LinearLagrangian) and report.method == "exact"
     info: dict[str, Any] = {
         "mode": mode,
         "sigma": est.sigma,
@@ -313,11 +314,13 @@ def learn_noisy(
         "method": "none",
     }
     warnings = list(report.warnings)
-    if wanted and linear:
+    used = data
+    if wanted:
         current = fields
         for k in range(ROUNDS):
             current = correct_fields(model, fields, current, STRENGTH * STRENGTH_GROWTH**k)
-            report = fit(make(current))
+            used = make(current)
+            report = fit(used)
         shift = math.sqrt(
             sum(float(((c.values - d.values) ** 2).sum()) for c, d in zip(current, fields, strict=True))
             / sum(d.values.numel() for d in fields)
@@ -329,10 +332,7 @@ def learn_noisy(
                 f"noise correction moved the training fields by {shift:.2e} (rms), over {SHIFT_WARN:g} times the "
                 f"noise sigma {est.sigma:.2e}: the model may not describe the data"
             )
-    elif est.significant:
-        why = "the model is not fitted exactly (linear models only)" if wanted else f"noise={mode!r}"
-        warnings.append(f"noisy training data ({est.summary()}) not corrected ({why}): the fit may be biased")
-    return replace(report, noise=info, warnings=warnings)
+    return replace(report, noise=info, warnings=warnings), used
 
 
 def denoised_start(model: AbstractLagrangian, init: xr.DataArray, slices: int = DENOISE_SLICES) -> xr.DataArray:
