@@ -3,19 +3,20 @@
     python -m benchmarks.noise [SYSTEM ...] [--sigmas S,S,...] [--seeds N]
 
 SYSTEM is any of ``duffing``, ``sin``, ``wells``, ``kepler``, ``kepler-coarse``, ``wave`` (default: all).
-``kepler`` learns the radial MLP of ``cases/kepler`` from three of its planets' orbits (Venus, Earth, Mars) at
-the case's sampling, dt = 0.05, and serves two of its Earth launches (``earth_0.98`` inside the training radii,
-``earth_1.13`` reaching outside) for one period; ``kepler-coarse`` does the same sampled at dt = 0.2.
-Every system's training fields and test fields get Gaussian noise of standard deviation ``sigma`` times each
-field's amplitude (its largest ``|psi|``; seeded). Columns: the sigma estimated from the noisy training data; latticedft plain (learned from
-the noisy data, served from the first two noisy slices); latticedft noise-aware (``noise="auto"``, served
-from the first two slices of ``denoise`` of the first 20 noisy slices, as ``[[serve]] start = "denoised"``
-does); PySINDy (oscillators only; "inf" when its simulation diverges: the state ``(q, q')`` with ``q'`` by
-4th-order differences of the noisy samples, a cubic polynomial library, STLSQ; simulated from the first
-noisy sample and its 4th-order derivative estimate over the same 20 samples). The error is the largest
-``|psi - psi_ref|`` over the test field (50 steps for the oscillators, 80 for the string, one period for the orbits) relative to the
-amplitude, the worst over the test fields and seeds. PySINDy is optional (``pip install latticedft[bench]``);
-without it its column says so. One noise level of one system took 40 to 220 s on a shared two-core machine.
+``kepler`` learns the radial MLP of ``cases/kepler`` from three of its planets' orbits (Venus, Earth, Mars) at the
+case's sampling, dt = 0.05, and serves two of its Earth launches (``earth_0.98`` inside the training radii,
+``earth_1.13`` reaching outside) for one period; ``kepler-coarse`` does the same sampled at dt = 0.2. Every
+system's training fields and test fields get Gaussian noise of standard deviation ``sigma`` times each field's
+amplitude (its largest ``|psi|``; seeded). Columns: the sigma estimated from the noisy training data; latticedft
+plain (learned from the noisy data, served from the first two noisy slices); latticedft noise-aware
+(``noise="auto"``, served from the first two slices of ``denoise`` of the first 20 noisy slices, as ``[[serve]]
+start = "denoised"`` does); PySINDy (oscillators only; "inf" when its simulation diverges: the state ``(q, q')``
+with ``q'`` by 4th-order differences of the noisy samples, a cubic polynomial library, STLSQ; simulated from the
+first noisy sample and its 4th-order derivative estimate over the same 20 samples). The error is the largest ``|psi
+- psi_ref|`` over the test field (50 steps for the oscillators, 80 for the string, one period for the orbits)
+relative to the amplitude, the worst over the test fields and seeds. PySINDy is optional (``pip install
+latticedft[bench]``); without it its column says so. One noise level of one system took 40 to 220 s on a shared
+two-core machine.
 """
 
 from __future__ import annotations
