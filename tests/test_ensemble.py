@@ -16,6 +16,8 @@ from latticedft import systems
 from latticedft._case import load_case
 from latticedft._learn._ensemble import time_windows
 from latticedft._learn._source import as_sources
+from latticedft._models._ensemble import stacked
+from latticedft._serve._fast1d import numpy_derivatives_of
 
 from case_helpers import run_cli, tiny_wave
 from helpers import oscillator_data
@@ -61,6 +63,33 @@ def test_learn_ensemble_keyword(tmp_path: Path) -> None:
         ldft.learn(ldft.PolynomialLagrangian((2, 4)), train, ensemble=1)
     with pytest.raises(ldft.InputError, match="^members: expected an integer >= 2"):
         ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 4)), members=1)
+
+
+@pytest.mark.parametrize("cells_per_call", [1, 7, 300])  # 300: from _MANY_CELLS each member on its own
+def test_stacked_polynomials_evaluate_together_as_their_closed_forms(
+    paper: ldft.EnsembleLagrangian, cells_per_call: int
+) -> None:
+    """The numpy forms of a stacked ensemble of polynomials (all members in one batched product) equal the
+    members' torch closed forms side by side, blocks on the diagonal and zero elsewhere; also for a vector
+    field. Serving an ensemble of polynomials takes them."""
+    orbit = systems.kepler_orbit(1.0, 0.9, n=80)
+    planar = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 4)), members=3, seed=1)
+    ldft.learn(planar, [orbit])
+    rng = np.random.default_rng(cells_per_call)
+    pairs = [(0, 1), (0, 0), (1, 1)]
+    for ens in (paper, planar):
+        model = stacked(ens, tuple(f"c{i}" for i in range(len(ens) * ens.m)))
+        form = model.numpy_derivatives(pairs)
+        assert form is not None and form.__qualname__.startswith("stacked_numpy_derivatives")
+        assert numpy_derivatives_of(model) is not None  # 1D serving runs the numpy loop
+        cells = rng.uniform(-1.0, 1.0, (cells_per_call, 2, model.m))
+        grad, blocks = form(cells)
+        tgrad, tblocks = model.fast_derivatives(torch.tensor(cells), pairs)
+        np.testing.assert_allclose(grad, tgrad.numpy(), rtol=0, atol=1e-11)
+        for q, pair in enumerate(pairs):
+            np.testing.assert_allclose(blocks[q], tblocks[pair].numpy(), rtol=0, atol=1e-11)
+            mask = np.kron(np.eye(len(ens)), np.ones((ens.m, ens.m))) == 0
+            assert not blocks[q][:, mask].any()
 
 
 def test_windows_hold_every_equation_once() -> None:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import copy
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -173,6 +173,43 @@ class _Stacked(AbstractLagrangian):
                 block[..., k * m : (k + 1) * m, k * m : (k + 1) * m] = b[pair]
             blocks[pair] = block
         return grad, blocks
+
+    def numpy_derivatives(
+        self, pairs: Sequence[tuple[int, int]]
+    ) -> Callable[[np.ndarray], tuple[np.ndarray, list[np.ndarray]]] | None:
+        """The members' numpy closed forms side by side (as :meth:`fast_derivatives`), or None when a member
+        offers none: an ensemble of polynomials is then served by the numpy loops as one model is."""
+        from . import _polynumpy
+        from ._polynomial import PolynomialLagrangian
+
+        parts = [p for p in self.parts if isinstance(p, PolynomialLagrangian)]
+        if len(parts) == len(self.parts):  # polynomials of one shape: evaluated together
+            together = _polynumpy.stacked_numpy_derivatives(parts, pairs)
+            if together is not None:
+                return together
+        m = self.mm
+        forms = []
+        for part in self.parts:
+            hook = getattr(part, "numpy_derivatives", None)
+            form = hook(pairs) if hook is not None else None
+            if form is None:
+                return None
+            forms.append(form)
+        npairs = len(pairs)
+
+        def derivatives(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+            found = [form(cells[..., k * m : (k + 1) * m]) for k, form in enumerate(forms)]
+            grad = np.concatenate([g for g, _ in found], axis=-1)
+            mm = m * len(found)
+            blocks = []
+            for j in range(npairs):
+                block = np.zeros((*cells.shape[:-2], mm, mm))
+                for k, (_, b) in enumerate(found):
+                    block[..., k * m : (k + 1) * m, k * m : (k + 1) * m] = b[j]
+                blocks.append(block)
+            return grad, blocks
+
+        return derivatives
 
 
 def stacked(ens: EnsembleLagrangian, components: tuple[str, ...]) -> AbstractLagrangian:

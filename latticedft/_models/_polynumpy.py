@@ -18,6 +18,7 @@ are formed (:func:`_many_cells`).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -177,15 +178,94 @@ def _many_cells(g_chain: np.ndarray, widths: Sequence[int], w: np.ndarray, shift
     return evaluate
 
 
+@dataclass(frozen=True)
+class _Folded:
+    """What a folded evaluation needs: ``z = x.flat @ w - shift`` (``(K m, V)``, ``(V,)``), the powers of each
+    variable that occur (``widths``), the matrix from the monomials to ``[dL/dx | blocks]`` and the shape."""
+
+    w: np.ndarray
+    shift: np.ndarray
+    widths: tuple[int, ...]
+    g_chain: np.ndarray
+    k: int
+    m: int
+    npairs: int
+
+
+def stacked_numpy_derivatives(
+    members: Sequence[PolynomialLagrangian], pairs: Sequence[tuple[int, int]]
+) -> NumpyDerivatives | None:
+    """The numpy closed forms of polynomial ``members`` side by side (member ``n`` sees components
+    ``n m .. (n + 1) m - 1`` of the cells; its blocks sit on the diagonal), evaluated together: one batched
+    product for all members where each member's would be one (a few cells: 1D serving). ``None`` unless every
+    member folds its coefficients with the same powers (same orders and stencil); from ``_MANY_CELLS`` cells
+    each member is evaluated on its own (n-D slices)."""
+    built = [_numpy_forms(mem, pairs) for mem in members]
+    forms = [f for f, _ in built if f is not None]
+    parts = [p for _, p in built if p is not None]
+    if len(forms) < len(built) or len(parts) < len(built):
+        return None
+    first = parts[0]
+    if any(p.widths != first.widths or p.k != first.k or p.m != first.m for p in parts):
+        return None
+    n, k, m, nvar, npairs = len(parts), first.k, first.m, len(first.widths), len(pairs)
+    w = np.stack([p.w for p in parts])  # (N, K m, V)
+    shift = np.stack([p.shift for p in parts])[:, None, :]  # (N, 1, V)
+    g_chain = np.stack([p.g_chain for p in parts])  # (N, monomials, cols)
+    widths, width = first.widths, max(first.widths)
+    eye = np.eye(n)
+
+    def each(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        found = [f(cells[..., j * m : (j + 1) * m]) for j, f in enumerate(forms)]
+        grad = np.concatenate([g for g, _ in found], axis=-1)
+        return grad, [_diagonal(np.stack([b[q] for _, b in found]), eye) for q in range(npairs)]
+
+    def together(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        b = cells.shape[0]
+        if b >= _MANY_CELLS:
+            return each(cells)
+        flat = cells.reshape(b, k, n, m).transpose(2, 0, 1, 3).reshape(n, b, k * m)
+        pw = np.empty((nvar, n, b, width))
+        pw[..., 0] = 1.0
+        pw[..., 1:] = (np.matmul(flat, w) - shift).transpose(2, 0, 1)[..., None]
+        np.multiply.accumulate(pw, axis=-1, out=pw)
+        prods = pw[0, :, :, : widths[0]]  # (N, B, monomials so far)
+        for v in range(1, nvar):
+            prods = (prods[..., :, None] * pw[v, :, :, None, : widths[v]]).reshape(n, b, -1)
+        out = np.matmul(prods, g_chain)  # (N, B, cols)
+        grad = out[..., : k * m].reshape(n, b, k, m).transpose(1, 2, 0, 3).reshape(b, k, n * m)
+        blocks = [
+            _diagonal(out[..., k * m + q * m * m : k * m + (q + 1) * m * m].reshape(n, b, m, m), eye)
+            for q in range(npairs)
+        ]
+        return grad, blocks
+
+    return together
+
+
+def _diagonal(blocks: np.ndarray, eye: np.ndarray) -> np.ndarray:
+    """``(N, B, m, m)`` -> ``(B, N m, N m)``, the ``N`` blocks on the diagonal."""
+    n, b, m, _ = blocks.shape
+    return np.einsum("nbij,nl->bnilj", blocks, eye).reshape(b, n * m, n * m)
+
+
 def numpy_derivatives(model: PolynomialLagrangian, pairs: Sequence[tuple[int, int]]) -> NumpyDerivatives | None:
     """``fn(cells) -> (dL/dx, [d^2 L / dx_a dx_b for (a, b) in pairs])`` for ``model`` as it is now (its
     coefficients and scaling are copied: call again after learning). ``None`` above degree 12, where the
     basis is evaluated by its recurrence (the torch closed forms serve then)."""
+    return _numpy_forms(model, pairs)[0]
+
+
+def _numpy_forms(
+    model: PolynomialLagrangian, pairs: Sequence[tuple[int, int]]
+) -> tuple[NumpyDerivatives | None, _Folded | None]:
+    """:func:`numpy_derivatives` and, where the coefficients are folded onto the monomials, what the folded
+    evaluation is made of (for :func:`stacked_numpy_derivatives`)."""
     from ._polynomial import _VANDERMONDE_MAX_DEGREE, _coefficient_matrix_f64, _pairs
 
     deg = int(max(model.orders))
     if deg > _VANDERMONDE_MAX_DEGREE:
-        return None
+        return None, None
     m = model.m
     exps = model.exponents.detach().cpu().numpy()
     nvar, width, c = exps.shape[1], deg + 1, exps.shape[0]
@@ -242,7 +322,7 @@ def numpy_derivatives(model: PolynomialLagrangian, pairs: Sequence[tuple[int, in
                 out[:, k * m + q * m * m : k * m + (q + 1) * m * m].reshape(b, m, m) for q in range(len(pairs))
             ]
 
-        return folded
+        return folded, _Folded(w, shift, tuple(widths), g_chain, k, m, len(pairs))
     nrows = nvar + (nvar * (nvar + 1) // 2 if pairs else 0)
 
     def derivatives(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -274,4 +354,4 @@ def numpy_derivatives(model: PolynomialLagrangian, pairs: Sequence[tuple[int, in
         blocks = [(s[nvar:].T @ mat).reshape(b, m, m) for mat in pair_mats]
         return grad, blocks
 
-    return derivatives
+    return derivatives, None

@@ -1,10 +1,11 @@
 """1D serving in numpy: the batched Newton loop of ``_batch`` for models with numpy closed forms.
 
 A 1D step solves a handful of ``m x m`` systems, where a torch call per operation costs far more than the
-arithmetic. A linear model that offers :meth:`LinearLagrangian.numpy_derivatives` (the polynomial does)
-is served here: the same Newton iteration as :meth:`_Batch.newton` (predictor, backtracking, the same
-convergence, conditioning and non-convergence tests, in the same order), on numpy arrays that share memory
-with the batch's torch tensors, so the results, reports and partial fields are built exactly as before.
+arithmetic. A linear model that offers :meth:`LinearLagrangian.numpy_derivatives` (the polynomial does), and
+an ensemble of such models stacked as components, is served here: the same Newton iteration as
+:meth:`_Batch.newton` (predictor, backtracking, the same convergence, conditioning and non-convergence tests,
+in the same order), on numpy arrays that share memory with the batch's torch tensors, so the results, reports
+and partial fields are built exactly as before.
 """
 
 from __future__ import annotations
@@ -29,8 +30,8 @@ __all__ = ["numpy_derivatives_of", "FastBatch", "serve_fast"]
 def numpy_derivatives_of(model: AbstractLagrangian):
     """The model's numpy closed forms for the pair ``(anchor, forward)`` of a 1D first-order stencil, or
     ``None`` (then the torch loop serves): also for a model whose parameters are not on the CPU."""
-    hook = getattr(model, "numpy_derivatives", None)
-    if hook is None or not getattr(model, "linear", False):
+    hook = getattr(model, "numpy_derivatives", None)  # linear models, and stacked ensembles of them
+    if hook is None:
         return None
     if any(t.device.type != "cpu" for t in model.parameters()):  # a model moved to an accelerator stays there
         return None
