@@ -14,8 +14,9 @@ from latticedft import ConfigError, InputError, systems
 from latticedft._case import load_case
 from latticedft._learn._noise import DENOISE_SLICES, denoised_start
 from latticedft._pipeline import _start
+from latticedft.io import write_field
 
-from case_helpers import tiny_wave
+from case_helpers import run_cli, tiny_wave, write_toml
 
 H = 0.25  # the double-well Duffing oscillator psi'' = psi - psi^3, sampled every H
 
@@ -217,3 +218,45 @@ def test_serve_start_option() -> None:
     ldft.learn(member0, train, progress=False, noise="auto", ensemble=3)
     out_ens, how = _start(member0.ensemble_, _TaskData("auto", init))  # a case serves the ensemble
     assert how == "denoised" and np.allclose(out_ens.values, _start(aware, _TaskData("auto", init))[0].values)
+
+
+def test_case_with_noise_correction_and_an_ensemble(tmp_path: Path, capsys) -> None:
+    """A case learning noisy data with ``noise = "auto"`` and ``ensemble = 3``: the training corrects the
+    fields, the members learn on them, the task starts from denoised slices and writes the spread."""
+    import json
+
+    rng = np.random.default_rng(5)
+    case = tmp_path / "noisy"
+    (case / "data").mkdir(parents=True)
+    for i, q in enumerate((1.0, 1.3, 1.6)):
+        write_field(case / "data" / f"train{i}.nc", {"psi": noisy(duffing(q, 121), 1e-3, rng)})
+    write_field(case / "data" / "test.nc", {"psi": noisy(duffing(1.45, 41), 1e-3, rng)})
+    write_toml(
+        case,
+        """
+        [model]
+        kind = "polynomial"
+        orders = [2, 4]
+        [train]
+        data = ["data/train*.nc"]
+        noise = "auto"
+        ensemble = 3
+        [[serve]]
+        name = "test"
+        from = "data/test.nc"
+        [run]
+        threads = 1
+        [export]
+        formats = []
+        """,
+    )
+    code, out, err = run_cli(capsys, "run", case)
+    assert code == 0, err
+    summary = json.loads((case / "results" / "summary.json").read_text())
+    train = summary["train"]
+    assert train["noise"]["method"] == "errors in variables" and train["ensemble"]["members"] == 3
+    task = summary["tasks"]["test"]
+    assert task["complete"] and task["start"] == "denoised" and task["ensemble_members"] == 3
+    with xr.open_dataset(case / "results" / "test.nc") as ds:
+        assert {"psi", "psi_mean", "psi_std"} <= set(ds.data_vars)
+        assert float(ds["psi_std"].isel(t=slice(2, None)).max()) > 0
