@@ -69,8 +69,8 @@ def run(cfg: Config) -> Table:
         ens, init, slices = build(cfg.quick)
         one = ens.member(0)
         ldft.serve(one, init, slices=slices, progress=False)  # warm-up (first-call costs)
-        t_one, alone = best_time(lambda: ldft.serve(one, init, slices=slices, progress=False), REPEAT)
-        t_all, both = best_time(lambda: ldft.serve(ens, init, slices=slices, progress=False), REPEAT)
+        t_one, alone = best_time(lambda m=one, f=init, n=slices: ldft.serve(m, f, slices=n, progress=False), REPEAT)
+        t_all, both = best_time(lambda m=ens, f=init, n=slices: ldft.serve(m, f, slices=n, progress=False), REPEAT)
         diff = float(np.nanmax(np.abs(both.field.values - alone.field.values)))
         rate_one = (slices - 2) / t_one
         rate_all = MEMBERS * (slices - 2) / t_all
