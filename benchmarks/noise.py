@@ -1,6 +1,6 @@
 """Noisy data: served error against the noise level, latticedft plain and noise-aware, and PySINDy.
 
-    python -m benchmarks.noise [SYSTEM ...] [--sigmas S,S,...] [--seeds N]
+    python -m benchmarks.noise [SYSTEM ...] [--sigmas S,S,...] [--seeds N] [--ratios]
 
 SYSTEM is any of ``duffing``, ``sin``, ``wells``, ``kepler``, ``kepler-coarse``, ``wave`` (default: all).
 ``kepler`` learns the radial MLP of ``cases/kepler`` from three of its planets' orbits (Venus, Earth, Mars) at the
@@ -251,12 +251,32 @@ def figure(path: str, sigma: float = 1e-3) -> None:
     print(f"wrote {path}")
 
 
+def ratios(names: list[str], sigmas: tuple[float, ...]) -> Table:
+    """Per system and noise level (seed 0), the noise's share of the training data's second time differences
+    (``NoiseEstimate.second_difference_ratio``), beside the level above which ``learn`` warns."""
+    from latticedft._learn._noise import SECOND_DIFFERENCE_WARN
+
+    table = Table(NAME, "Noise share of the second time differences (seed 0)", ["system", *map(str, sigmas)])
+    for name in names:
+        clean = SYSTEMS[name].train()
+        row: list = [SYSTEMS[name].label]
+        for sigma in sigmas:
+            rng = np.random.default_rng(0)
+            est = ldft.estimate_noise([_noisy(f, sigma, rng) for f in clean])
+            share = est.second_difference_ratio
+            row.append("unresolved" if share is None else share)
+        table.rows.append(row)
+    table.notes.append(f"learn(..., noise='auto'|'correct') warns above {SECOND_DIFFERENCE_WARN:g}.")
+    return table
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.noise", description=__doc__.split("\n\n")[0])
     p.add_argument("systems", nargs="*", help=f"systems: {', '.join(SYSTEMS)} (default: all)")
     p.add_argument("--sigmas", default=",".join(str(s) for s in SIGMAS), help="noise levels (comma-separated)")
     p.add_argument("--seeds", type=int, default=1, help="noise realisations per level (the worst is reported)")
     p.add_argument("--figure", metavar="PNG", help="only draw the error-against-time figure of docs/noise.md")
+    p.add_argument("--ratios", action="store_true", help="only the noise's share of the second differences")
     args = p.parse_args(argv)
     if args.figure:
         figure(args.figure)
@@ -265,6 +285,9 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         p.error(f"unknown system {unknown[0]!r}: expected one of {', '.join(SYSTEMS)}")
     sigmas = tuple(float(s) for s in args.sigmas.split(","))
+    if args.ratios:
+        print(markdown(ratios(args.systems or list(SYSTEMS), tuple(s for s in sigmas if s > 0))))
+        return 0
     table = Table(
         NAME,
         TITLE,

@@ -12,7 +12,7 @@ from scipy.integrate import solve_ivp
 import latticedft as ldft
 from latticedft import ConfigError, InputError, systems
 from latticedft._case import load_case
-from latticedft._learn._noise import DENOISE_SLICES, denoised_start
+from latticedft._learn._noise import DENOISE_SLICES, SECOND_DIFFERENCE_WARN, denoised_start
 from latticedft._pipeline import _start
 from latticedft.io import write_field
 
@@ -93,6 +93,24 @@ def test_a_given_sigma_of_zero_leaves_noisy_data_alone() -> None:
     train = [noisy(duffing(q, 121), 1e-2, rng) for q in (1.3, 1.6)]
     rep = ldft.learn(ldft.PolynomialLagrangian(orders=(2, 4)), train, progress=False, noise="auto", noise_sigma=0.0)
     assert rep.noise is not None and rep.noise["given"] and rep.noise["method"] == "none"
+
+
+def test_noise_that_swamps_the_second_differences_warns() -> None:
+    """The share of the noise in the second time differences grows with sigma and as the sampling gets finer;
+    above SECOND_DIFFERENCE_WARN learning says the equations may be unreliable, below it does not."""
+    shares = {}
+    for dt, sigma in ((0.25, 1e-3), (0.25, 1e-2), (0.05, 1e-2)):
+        t = np.arange(int(40 / dt)) * dt
+        sol = solve_ivp(lambda _, y: [y[1], y[0] - y[0] ** 3], (0, t[-1]), [1.3, 0.0], t_eval=t, rtol=1e-11, atol=1e-11)
+        clean = systems.make_field(sol.y[0], ("t",), spacing=dt)
+        data = noisy(clean, sigma, np.random.default_rng(6))
+        rep = ldft.learn(ldft.PolynomialLagrangian(orders=(2, 4)), data, progress=False, noise="correct")
+        assert rep.noise is not None
+        shares[dt, sigma] = rep.noise["second_difference_ratio"]
+        warned = any("second time differences" in w for w in rep.warnings)
+        assert warned == (shares[dt, sigma] > SECOND_DIFFERENCE_WARN)
+    assert shares[0.25, 1e-3] < shares[0.25, 1e-2] < shares[0.05, 1e-2]
+    assert shares[0.25, 1e-3] < SECOND_DIFFERENCE_WARN < shares[0.05, 1e-2]
 
 
 def test_noise_correction_of_a_neural_model() -> None:

@@ -70,6 +70,9 @@ DENOISE_STRENGTH = 1e5
 DENOISE_SLICES = 20
 #: A correction that moves the training fields by more than this many sigma (rms) is reported as a warning.
 SHIFT_WARN = 3.0
+#: Noisy data whose noise is more than this share of their second time differences are reported as a warning
+#: (on the systems of ``benchmarks.noise``, every row the noise-aware fit failed lay above it: docs/noise.md).
+SECOND_DIFFERENCE_WARN = 0.7
 
 
 @dataclass
@@ -91,6 +94,16 @@ class NoiseEstimate:
     def significant(self) -> bool:
         """Resolved and above :data:`SIGNIFICANT` of the amplitude."""
         return self.resolved and self.relative > SIGNIFICANT
+
+    @property
+    def second_difference_ratio(self) -> float | None:
+        """The noise's share of the data's second time differences (which the DEL equations must explain):
+        ``sqrt(6) sigma`` over their RMS, that is ``sigma / s_2``; near 1 the noise dominates them. ``None``
+        when unresolved or not computed."""
+        s2 = self.by_order.get(2)
+        if not self.resolved or not s2:
+            return None
+        return min(1.0, self.sigma / s2)
 
     def summary(self) -> str:
         if not self.resolved:
@@ -313,6 +326,9 @@ def learn_noisy(
         "given": sigma is not None,
         "method": "none",
     }
+    ratio = est.second_difference_ratio if given is None else None
+    if ratio is not None:
+        info["second_difference_ratio"] = ratio
     warnings = list(report.warnings)
     used = data
     if wanted:
@@ -332,6 +348,12 @@ def learn_noisy(
                 f"noise correction moved the training fields by {shift:.2e} (rms), over {SHIFT_WARN:g} times the "
                 f"noise sigma {est.sigma:.2e}: the model may not describe the data"
             )
+    if est.significant and ratio is not None and ratio > SECOND_DIFFERENCE_WARN:
+        warnings.append(
+            f"the noise makes up {100 * ratio:.0f} % of the data's second time differences ({est.summary()}), "
+            "which the learned equations must explain: they may be unreliable; data sampled coarser in time are "
+            "less affected (a stride of k divides the share by about k^2 while it is small)"
+        )
     return replace(report, noise=info, warnings=warnings), used
 
 
