@@ -153,10 +153,17 @@ def _split(fields: list[xr.DataArray], hold_out: float) -> list[xr.DataArray]:
 
 
 def _score(model: AbstractLagrangian, fields: list[xr.DataArray], boundary: BoundaryKinds | None) -> float:
-    """The largest served error over the largest magnitude, field by field; ``ServeError`` when one stops."""
+    """The largest served error over the largest magnitude, field by field; ``ServeError`` when one stops.
+    A candidate whose training corrected noisy data serves from denoised initial slices, as a case's task
+    with ``start = "auto"`` would."""
+    from ._learn._noise import denoised_start
+
+    noise = getattr(getattr(model, "report_", None), "noise", None) or {}
+    denoise = noise.get("method", "none") != "none"
     worst = 0.0
     for f in fields:
-        result = serve(model, f, boundary=boundary, progress=False)
+        start = denoised_start(model, f) if denoise else f
+        result = serve(model, start, boundary=boundary, progress=False)
         pred = np.asarray(result.field.values)
         ref = np.asarray(f.values)[: pred.shape[0]]
         err = float(np.max(np.abs(pred - ref))) / max(float(np.max(np.abs(ref))), np.finfo(float).tiny)
