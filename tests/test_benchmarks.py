@@ -80,3 +80,27 @@ def test_unknown_benchmark_is_refused():
     )
     assert proc.returncode == 2
     assert "unknown benchmark 'nope'" in proc.stderr
+
+
+def test_noise_benchmark_ratios_and_systems():
+    """``python -m benchmarks.noise --ratios`` prints the noise's share of the second differences; the Kepler
+    systems sample the case's orbits at their own steps."""
+    from benchmarks import noise
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks.noise", "duffing", "kepler-coarse", "--ratios", "--sigmas", "1e-3,1e-2"],
+        cwd=ROOT,
+        env=dict(os.environ, OMP_NUM_THREADS="1"),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = [line for line in proc.stdout.splitlines() if line.startswith("| double-well") or "dt = 0.2" in line]
+    assert len(rows) == 2
+    shares = [[float(v) for v in row.strip("|").split("|")[1:]] for row in rows]
+    assert all(0 < a < b <= 1 for a, b in shares)  # more noise, a larger share
+    for name, dt in (("kepler", 0.05), ("kepler-coarse", 0.2)):
+        field = noise.SYSTEMS[name].test()[0]
+        assert abs(float(field.t[1] - field.t[0]) - dt) < 1e-12
