@@ -13,6 +13,7 @@ import xarray as xr
 
 import latticedft as ldft
 from latticedft import systems
+from latticedft._action import cell_derivatives
 from latticedft._case import load_case
 from latticedft._learn._ensemble import time_windows
 from latticedft._learn._source import as_sources
@@ -90,6 +91,35 @@ def test_stacked_polynomials_evaluate_together_as_their_closed_forms(
             np.testing.assert_allclose(blocks[q], tblocks[pair].numpy(), rtol=0, atol=1e-11)
             mask = np.kron(np.eye(len(ens)), np.ones((ens.m, ens.m))) == 0
             assert not blocks[q][:, mask].any()
+
+
+def test_stacked_networks_evaluate_together_as_one_by_one() -> None:
+    """An ensemble of MLPs is evaluated by one vectorised call over its members: its L_d, gradient and
+    block-diagonal Hessian blocks equal the members' own side by side, and serving it equals serving each
+    member alone."""
+    orbit = systems.kepler_orbit(1.0, 0.9, n=60)
+    model = ldft.MLPLagrangian(preset="radial", hidden=[8])
+    ldft.learn(model, orbit, progress=False, max_iter=20, ensemble=3)
+    ens = model.ensemble_
+    st = stacked(ens, tuple(f"c{i}" for i in range(6)))
+    assert st._batched() is not None
+    cells = torch.tensor(np.random.default_rng(3).uniform(0.5, 1.2, (7, 2, 6)))
+    pairs = [(0, 1), (0, 0), (1, 1)]
+    grad, blocks = st.fast_derivatives(cells, pairs)
+    value = st(cells)
+    for k in range(3):
+        part = cells[..., 2 * k : 2 * k + 2]
+        g, b = cell_derivatives(ens.member(k), part, pairs)
+        np.testing.assert_allclose(grad[..., 2 * k : 2 * k + 2].numpy(), g.numpy(), rtol=0, atol=1e-12)
+        for pair in pairs:
+            block = blocks[pair][..., 2 * k : 2 * k + 2, 2 * k : 2 * k + 2]
+            np.testing.assert_allclose(block.numpy(), b[pair].numpy(), rtol=0, atol=1e-12)
+    loop = sum(ens.member(k)(cells[..., 2 * k : 2 * k + 2]) for k in range(3))
+    np.testing.assert_allclose(value.detach().numpy(), loop.detach().numpy(), rtol=0, atol=1e-12)
+    out = ldft.serve(ens, orbit, slices=40, progress=False)
+    for k in range(3):
+        alone = ldft.serve(ens.member(k), orbit, slices=40, progress=False).field.values
+        np.testing.assert_allclose(out.members.values[k], alone, rtol=0, atol=1e-10)
 
 
 def test_windows_hold_every_equation_once() -> None:
