@@ -150,9 +150,8 @@ def numpy_closed_forms(model: AbstractLagrangian, cells: torch.Tensor, pairs: Se
     """The model's numpy ``fn(cells (B, K, m)) -> (dL/dx, [blocks per pair])`` for ``pairs``, or ``None``: for
     a linear model that offers them, with its parameters and ``cells`` on the CPU in double precision (a model
     on an accelerator keeps its torch closed forms). Built once per model state."""
-    hook = getattr(model, "numpy_derivatives", None)  # linear models, and stacked ensembles of them
-    ready = getattr(model, "linear", False) or getattr(model, "numpy_ready", False)
-    if hook is None or not ready or cells.device.type != "cpu":
+    hook = getattr(model, "numpy_derivatives", None)
+    if hook is None or not getattr(model, "numpy_ready", False) or cells.device.type != "cpu":
         return None
     if cells.dtype != torch.float64:
         return None

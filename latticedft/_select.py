@@ -17,6 +17,7 @@ from ._errors import InputError, LatticeDFTError, ServeError
 from ._lattice import BoundaryKinds
 from ._learn import learn
 from ._learn._data import as_fields
+from ._learn._noise import denoised_start
 from ._models import MODELS, AbstractLagrangian
 from ._serve import serve
 
@@ -156,8 +157,6 @@ def _score(model: AbstractLagrangian, fields: list[xr.DataArray], boundary: Boun
     """The largest served error over the largest magnitude, field by field; ``ServeError`` when one stops.
     A candidate whose training corrected noisy data serves from denoised initial slices, as a case's task
     with ``start = "auto"`` would."""
-    from ._learn._noise import denoised_start
-
     noise = getattr(getattr(model, "report_", None), "noise", None) or {}
     denoise = noise.get("method", "none") != "none"
     worst = 0.0

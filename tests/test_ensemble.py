@@ -102,7 +102,7 @@ def test_stacked_networks_evaluate_together_as_one_by_one() -> None:
     ldft.learn(model, orbit, progress=False, max_iter=20, ensemble=3)
     ens = model.ensemble_
     st = stacked(ens, tuple(f"c{i}" for i in range(6)))
-    assert st._batched() is not None
+    assert st._batched is not None
     cells = torch.tensor(np.random.default_rng(3).uniform(0.5, 1.2, (7, 2, 6)))
     pairs = [(0, 1), (0, 0), (1, 1)]
     grad, blocks = st.fast_derivatives(cells, pairs)

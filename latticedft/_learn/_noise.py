@@ -326,7 +326,7 @@ def learn_noisy(
         "given": sigma is not None,
         "method": "none",
     }
-    ratio = est.second_difference_ratio if given is None else None
+    ratio = est.second_difference_ratio  # None for a given sigma: no orders were estimated
     if ratio is not None:
         info["second_difference_ratio"] = ratio
     warnings = list(report.warnings)

@@ -43,6 +43,9 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     kind: ClassVar[str] = "abstract"
     #: True when ``L_d`` is linear in its parameters (``coef``): learned exactly.
     linear: ClassVar[bool] = False
+    #: True when the model may offer numpy closed forms (``numpy_derivatives``; linear models, and stacked
+    #: ensembles of them): the serving loops ask this before building them.
+    numpy_ready: ClassVar[bool] = False
     #: True when the mixed time Hessian is ``-I / h_0^2`` by construction.
     unit_mass_by_construction: ClassVar[bool] = False
     #: True when every block coupling two different stencil sites is constant (1D serving then assembles

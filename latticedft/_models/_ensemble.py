@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -146,7 +147,7 @@ class _Stacked(AbstractLagrangian):
 
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
         m = self.mm
-        batched = self._batched()
+        batched = self._batched
         if batched is not None:  # one vectorised call for every member
             params, buffers, call = batched
             per = cells.unflatten(-1, (len(self.parts), m)).movedim(-2, 0)  # (members, ..., K, m)
@@ -156,33 +157,29 @@ class _Stacked(AbstractLagrangian):
             total = total + part(cells[..., k * m : (k + 1) * m])
         return total
 
+    @functools.cached_property
     def _batched(self) -> tuple[dict, dict, Any] | None:
         """The members' parameters and buffers stacked along a leading axis and a function of one member's
         slice, when the members are neural networks of one structure (their ``L_d`` is then evaluated by one
         ``torch.func.vmap`` call instead of one call per member); ``None`` otherwise. Built once: the stacked
         model is made for one serving run, after learning."""
-        if "_stacked_state" not in self.__dict__:
-            state = None
-            parts = list(self.parts)
+        parts = list(self.parts)
 
-            def shape(p: torch.nn.Module) -> tuple:  # the structure; the initial seed does not change it
-                opts = p.options() if isinstance(p, AbstractLagrangian) else {}
-                return (type(p), sorted((k, repr(v)) for k, v in opts.items() if k != "seed"))
+        def shape(p: torch.nn.Module) -> tuple:  # the structure; the initial seed does not change it
+            opts = p.options() if isinstance(p, AbstractLagrangian) else {}
+            return (type(p), sorted((k, repr(v)) for k, v in opts.items() if k != "seed"), sorted(p.state_dict()))
 
-            same = all(shape(p) == shape(parts[0]) for p in parts)
-            names = [sorted(n for n, _ in p.named_buffers()) for p in parts]
-            neural = not getattr(parts[0], "linear", False) and any(True for _ in parts[0].parameters())
-            if same and neural and all(n == names[0] for n in names):
-                params, buffers = torch.func.stack_module_state(parts)
-                params = {k: v.detach() for k, v in params.items()}
-                base = copy.deepcopy(parts[0]).to("meta")
+        neural = not getattr(parts[0], "linear", False) and any(True for _ in parts[0].parameters())
+        if not neural or any(shape(p) != shape(parts[0]) for p in parts):
+            return None
+        params, buffers = torch.func.stack_module_state(parts)
+        params = {k: v.detach() for k, v in params.items()}
+        base = copy.deepcopy(parts[0]).to("meta")
 
-                def call(p: dict, b: dict, x: torch.Tensor) -> torch.Tensor:
-                    return torch.func.functional_call(base, (p, b), (x,))
+        def call(p: dict, b: dict, x: torch.Tensor) -> torch.Tensor:
+            return torch.func.functional_call(base, (p, b), (x,))
 
-                state = (params, buffers, call)
-            self.__dict__["_stacked_state"] = state
-        return self.__dict__["_stacked_state"]
+        return params, buffers, call
 
     def fast_derivatives(
         self, cells: torch.Tensor, pairs: list[tuple[int, int]]
@@ -198,20 +195,13 @@ class _Stacked(AbstractLagrangian):
                 return self._autograd_derivatives(cells, pairs)
             found.append(out)
         grad = torch.cat([g for g, _ in found], dim=-1)
-        mm = m * len(found)
-        blocks: dict[tuple[int, int], torch.Tensor] = {}
-        for pair in pairs:
-            block = cells.new_zeros((*cells.shape[:-2], mm, mm))
-            for k, (_, b) in enumerate(found):
-                block[..., k * m : (k + 1) * m, k * m : (k + 1) * m] = b[pair]
-            blocks[pair] = block
-        return grad, blocks
+        return grad, {pair: _block_diagonal(torch.stack([b[pair] for _, b in found])) for pair in pairs}
 
     @property
-    def numpy_ready(self) -> bool:
-        """Whether :meth:`numpy_derivatives` may give closed forms: every member is linear in its parameters
-        (the serving loops ask this before building them)."""
-        return all(getattr(p, "linear", False) for p in self.parts)
+    def numpy_ready(self) -> bool:  # type: ignore[override]
+        """Whether :meth:`numpy_derivatives` may give closed forms: every member may (the serving loops ask
+        this before building them)."""
+        return all(getattr(p, "numpy_ready", False) for p in self.parts)
 
     def _autograd_derivatives(
         self, cells: torch.Tensor, pairs: list[tuple[int, int]]
@@ -231,12 +221,10 @@ class _Stacked(AbstractLagrangian):
                 for j in range(m):
                     (h,) = torch.autograd.grad(per[..., b, :, j].sum(), x, retain_graph=True, allow_unused=True)
                     cols[b].append((torch.zeros_like(x) if h is None else h).unflatten(-1, (n, m)))
-        eye = torch.eye(n, dtype=cells.dtype, device=cells.device)
         blocks = {}
         for a, b in pairs:
             col = torch.stack([c[..., a, :, :] for c in cols[b]], dim=-1)  # (..., members, m (row), m (column))
-            block = torch.einsum("...kij,kl->...kilj", col, eye)  # member k's block on the diagonal
-            blocks[(a, b)] = block.reshape(*col.shape[:-3], n * m, n * m).detach()
+            blocks[(a, b)] = _block_diagonal(col.movedim(-3, 0)).detach()
         return g.detach(), blocks
 
     def numpy_derivatives(
@@ -252,7 +240,6 @@ class _Stacked(AbstractLagrangian):
             together = _polynumpy.stacked_numpy_derivatives(parts, pairs)
             if together is not None:
                 return together
-        m = self.mm
         forms = []
         for part in self.parts:
             hook = getattr(part, "numpy_derivatives", None)
@@ -260,21 +247,14 @@ class _Stacked(AbstractLagrangian):
             if form is None:
                 return None
             forms.append(form)
-        npairs = len(pairs)
+        return _polynumpy.side_by_side(forms, self.mm, len(pairs))
 
-        def derivatives(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-            found = [form(cells[..., k * m : (k + 1) * m]) for k, form in enumerate(forms)]
-            grad = np.concatenate([g for g, _ in found], axis=-1)
-            mm = m * len(found)
-            blocks = []
-            for j in range(npairs):
-                block = np.zeros((*cells.shape[:-2], mm, mm))
-                for k, (_, b) in enumerate(found):
-                    block[..., k * m : (k + 1) * m, k * m : (k + 1) * m] = b[j]
-                blocks.append(block)
-            return grad, blocks
 
-        return derivatives
+def _block_diagonal(blocks: torch.Tensor) -> torch.Tensor:
+    """``(members, ..., m, m)`` -> ``(..., members m, members m)``, member ``k``'s block on the diagonal."""
+    n, m = blocks.shape[0], blocks.shape[-1]
+    eye = torch.eye(n, dtype=blocks.dtype, device=blocks.device)
+    return torch.einsum("k...ij,kl->...kilj", blocks, eye).reshape(*blocks.shape[1:-2], n * m, n * m)
 
 
 def stacked(ens: EnsembleLagrangian, components: tuple[str, ...]) -> AbstractLagrangian:

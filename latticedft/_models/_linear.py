@@ -46,6 +46,7 @@ class LinearLagrangian(AbstractLagrangian):
     """
 
     linear = True
+    numpy_ready = True
 
     @property
     @abc.abstractmethod

@@ -189,7 +189,6 @@ class _Folded:
     g_chain: np.ndarray
     k: int
     m: int
-    npairs: int
 
 
 def stacked_numpy_derivatives(
@@ -202,8 +201,8 @@ def stacked_numpy_derivatives(
     each member is evaluated on its own (n-D slices)."""
     built = [_numpy_forms(mem, pairs) for mem in members]
     forms = [f for f, _ in built if f is not None]
-    parts = [p for _, p in built if p is not None]
-    if len(forms) < len(built) or len(parts) < len(built):
+    parts = [p for _, p in built if p is not None]  # a folded member has its forms too
+    if len(parts) < len(built):
         return None
     first = parts[0]
     if any(p.widths != first.widths or p.k != first.k or p.m != first.m for p in parts):
@@ -213,12 +212,7 @@ def stacked_numpy_derivatives(
     shift = np.stack([p.shift for p in parts])[:, None, :]  # (N, 1, V)
     g_chain = np.stack([p.g_chain for p in parts])  # (N, monomials, cols)
     widths, width = first.widths, max(first.widths)
-    eye = np.eye(n)
-
-    def each(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-        found = [f(cells[..., j * m : (j + 1) * m]) for j, f in enumerate(forms)]
-        grad = np.concatenate([g for g, _ in found], axis=-1)
-        return grad, [_diagonal(np.stack([b[q] for _, b in found]), eye) for q in range(npairs)]
+    each = side_by_side(forms, m, npairs)
 
     def together(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
         b = cells.shape[0]
@@ -235,18 +229,29 @@ def stacked_numpy_derivatives(
         out = np.matmul(prods, g_chain)  # (N, B, cols)
         grad = out[..., : k * m].reshape(n, b, k, m).transpose(1, 2, 0, 3).reshape(b, k, n * m)
         blocks = [
-            _diagonal(out[..., k * m + q * m * m : k * m + (q + 1) * m * m].reshape(n, b, m, m), eye)
-            for q in range(npairs)
+            _diagonal(out[..., k * m + q * m * m : k * m + (q + 1) * m * m].reshape(n, b, m, m)) for q in range(npairs)
         ]
         return grad, blocks
 
     return together
 
 
-def _diagonal(blocks: np.ndarray, eye: np.ndarray) -> np.ndarray:
+def side_by_side(forms: Sequence[NumpyDerivatives], m: int, npairs: int) -> NumpyDerivatives:
+    """The closed forms of members that never couple, one call each: member ``n`` sees components
+    ``n m .. (n + 1) m - 1`` of the cells; gradients side by side, blocks on the diagonal."""
+
+    def derivatives(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        found = [f(cells[..., j * m : (j + 1) * m]) for j, f in enumerate(forms)]
+        grad = np.concatenate([g for g, _ in found], axis=-1)
+        return grad, [_diagonal(np.stack([b[q] for _, b in found])) for q in range(npairs)]
+
+    return derivatives
+
+
+def _diagonal(blocks: np.ndarray) -> np.ndarray:
     """``(N, B, m, m)`` -> ``(B, N m, N m)``, the ``N`` blocks on the diagonal."""
     n, b, m, _ = blocks.shape
-    return np.einsum("nbij,nl->bnilj", blocks, eye).reshape(b, n * m, n * m)
+    return np.einsum("nbij,nl->bnilj", blocks, np.eye(n)).reshape(b, n * m, n * m)
 
 
 def numpy_derivatives(model: PolynomialLagrangian, pairs: Sequence[tuple[int, int]]) -> NumpyDerivatives | None:
@@ -322,7 +327,7 @@ def _numpy_forms(
                 out[:, k * m + q * m * m : k * m + (q + 1) * m * m].reshape(b, m, m) for q in range(len(pairs))
             ]
 
-        return folded, _Folded(w, shift, tuple(widths), g_chain, k, m, len(pairs))
+        return folded, _Folded(w, shift, tuple(widths), g_chain, k, m)
     nrows = nvar + (nvar * (nvar + 1) // 2 if pairs else 0)
 
     def derivatives(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:

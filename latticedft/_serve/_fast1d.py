@@ -30,8 +30,8 @@ __all__ = ["numpy_derivatives_of", "FastBatch", "serve_fast"]
 def numpy_derivatives_of(model: AbstractLagrangian):
     """The model's numpy closed forms for the pair ``(anchor, forward)`` of a 1D first-order stencil, or
     ``None`` (then the torch loop serves): also for a model whose parameters are not on the CPU."""
-    hook = getattr(model, "numpy_derivatives", None)  # linear models, and stacked ensembles of them
-    if hook is None or not (getattr(model, "linear", False) or getattr(model, "numpy_ready", False)):
+    hook = getattr(model, "numpy_derivatives", None)
+    if hook is None or not getattr(model, "numpy_ready", False):
         return None
     if any(t.device.type != "cpu" for t in model.parameters()):  # a model moved to an accelerator stays there
         return None
