@@ -425,6 +425,31 @@ def test_symlinked_results_are_followed(tmp_path: Path, template: Path) -> None:
     assert staging_left(tmp_path) == []
 
 
+@pytest.mark.parametrize("command", ["export", "serve"])
+def test_links_inside_the_results_are_never_written_through(tmp_path: Path, template: Path, command: str) -> None:
+    """A results file that links elsewhere (here run.log to the case's own data, and a task file to a file
+    outside the case) is replaced by a copy: the file it pointed to stays byte-identical."""
+    case = earlier(template, tmp_path / "a")
+    data = case / "data" / "test_leapfrog.nc"
+    outside = tmp_path / "outside.nc"
+    shutil.copyfile(case / "results" / "test.nc", outside)
+    (case / "results" / "run.log").unlink()
+    (case / "results" / "run.log").symlink_to(data)
+    (case / "results" / "test.nc").unlink()
+    (case / "results" / "test.nc").symlink_to(outside)
+    (case / "results" / "dangling").symlink_to(tmp_path / "nowhere")
+    before, outside_before = hashes(case / "data"), hashes(tmp_path)["outside.nc"]
+    done = cli(command, case, *(["--set", 'export.formats=["xdmf"]'] if command == "export" else []))
+    assert done.code == 0, done.err
+    assert "Traceback" not in done.err
+    assert "run.log was a link to" in done.err + done.out and "left out of the updated results" in done.err + done.out
+    assert hashes(case / "data") == before and hashes(tmp_path)["outside.nc"] == outside_before
+    results = case / "results"
+    assert not any(p.is_symlink() for p in results.rglob("*"))
+    assert b"DEBUG" in (results / "run.log").read_bytes()
+    assert staging_left(tmp_path) == []
+
+
 def test_out_that_is_a_file_is_refused(scenarios: _Scenarios) -> None:
     _refused(scenarios, "out-file", "--out", "exists and is not a folder")
     assert (scenarios.root / "afile").read_text() == "a file, not a folder\n"

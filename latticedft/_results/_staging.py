@@ -222,6 +222,7 @@ class Staging:
                 for root, dirs, _ in os.walk(self.tmp):  # a read-only results folder: its copy is writable
                     for d in [root, *(os.path.join(root, x) for x in dirs)]:
                         os.chmod(d, os.stat(d).st_mode | stat.S_IRWXU)
+                _replace_links(self.tmp, self.dest)
             else:
                 self.tmp.mkdir()
         except BaseException:
@@ -265,6 +266,32 @@ class Staging:
     def discard(self) -> None:
         if not self.published:
             _rmtree(self.tmp)
+
+
+def _replace_links(tmp: Path, dest: Path) -> None:
+    """Nothing inside a results folder is followed as a link when written: in the staging copy ``tmp`` of
+    ``dest``, a link to a regular file becomes a copy of that file, and any other link (to a folder, a device,
+    nothing) is left out; each with a warning naming it."""
+    for root, dirs, files in os.walk(tmp):
+        for name in [*dirs, *files]:
+            link = Path(root, name)
+            if not link.is_symlink():
+                continue
+            shown = _show(dest / link.relative_to(tmp))
+            target = os.readlink(link)
+            try:
+                regular = stat.S_ISREG(os.stat(link).st_mode)
+            except OSError:
+                regular = False
+            if regular:
+                copy = link.with_name(f"{name}.tmp-link-{uuid.uuid4().hex[:10]}")
+                shutil.copyfile(link, copy)
+                os.replace(copy, link)
+                log.warning("%s was a link to %s: the updated results hold a copy of that file instead", shown, target)
+            else:
+                link.unlink()
+                log.warning("%s was a link to %s (not a regular file): left out of the updated results", shown, target)
+        dirs[:] = [d for d in dirs if not Path(root, d).is_symlink() and Path(root, d).is_dir()]
 
 
 def _is_results_folder(folder: Path) -> bool:
