@@ -207,6 +207,7 @@ def scenarios(template: Path, tmp_path_factory: pytest.TempPathFactory) -> Itera
             None,
         ),
         "hidden-memory": (("check", mlp, "-q"), None),
+        "threads": (("run", c("threads"), "--overwrite", "-q", "--set", "run.threads=100000"), None),
         # 10. model files verified
         "nan-weights": (("serve", nan_case, "-q"), None),
         "changed-model": (("info", changed, "-q"), None),
@@ -543,6 +544,10 @@ def test_long_task_name_refused_at_check(scenarios: _Scenarios) -> None:
 
 def test_task_too_big_for_memory_refused_before_training(scenarios: _Scenarios) -> None:
     _refused(scenarios, "steps-memory", "serve[0].slices", "of memory", "available")
+
+
+def test_threads_beyond_the_cores_refused(scenarios: _Scenarios) -> None:
+    _refused(scenarios, "threads", "run.threads", "an integer from 1 to", "got 100000")
 
 
 def test_model_too_big_for_memory_refused_at_check(scenarios: _Scenarios) -> None:

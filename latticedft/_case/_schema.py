@@ -31,6 +31,7 @@ from ._checks import (
     t_ridge,
     t_str,
     t_str_list,
+    t_threads,
     t_unit_float,
 )
 
@@ -84,7 +85,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "start": (t_choice("auto", "data", "denoised"), "auto"),
     },
     "run": {
-        "threads": (t_pos_int, None),
+        "threads": (t_threads, None),
         "device": (t_device, "cpu"),
     },
     "export": {
