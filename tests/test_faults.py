@@ -232,6 +232,10 @@ def scenarios(template: Path, tmp_path_factory: pytest.TempPathFactory) -> Itera
         # 4. signals
         "sigterm": (("run", c("sigterm"), "--overwrite", "-q"), "term:after-stage"),
         "sigint": (("serve", c("sigint"), "-q"), "int:stage"),
+        "int-loading": (("run", c("int-loading"), "--overwrite", "-q"), "int:loading"),
+        "term-loading": (("serve", c("term-loading"), "-q"), "term:loading"),
+        "int-exit": (("serve", c("int-exit"), "-q"), "int:exit"),
+        "term-exit": (("serve", c("term-exit"), "-q"), "term:exit"),
         "sigterm-mid-publish": (("run", c("sigterm-mid-publish"), "--overwrite", "-q"), "no-exchange,term:mid-publish"),
         # 2. kills
         "kill-after-stage": (("serve", c("kill-after-stage"), "-q"), "kill:after-stage"),
@@ -397,6 +401,19 @@ def test_sigterm_publishes_nothing(scenarios: _Scenarios) -> None:
 
 def test_sigint_publishes_nothing(scenarios: _Scenarios) -> None:
     _refused(scenarios, "sigint", "nothing was published", code=130, prefix="latticedft: interrupted")
+
+
+@pytest.mark.parametrize("name, code", [("int-loading", 130), ("term-loading", 143)])
+def test_a_signal_while_the_engine_loads_is_one_line(scenarios: _Scenarios, name: str, code: int) -> None:
+    _refused(scenarios, name, "nothing was published", code=code, prefix="latticedft: ")
+
+
+@pytest.mark.parametrize("name", ["int-exit", "term-exit"])
+def test_a_signal_after_the_outcome_changes_nothing(scenarios: _Scenarios, name: str) -> None:
+    done = scenarios.done[name]
+    assert done.code == 0 and done.err == "", (done.code, done.err)
+    assert summary(scenarios.cases[name])["exit_status"] == 0
+    assert staging_left(scenarios.cases[name].parent) == []
 
 
 def test_sigterm_during_publishing_waits_for_it(scenarios: _Scenarios) -> None:

@@ -16,7 +16,7 @@ import xarray as xr
 
 from .._atomic import write_text_atomic
 from .._errors import InputError, ModelFileError
-from ._safety import _show, _writing, log
+from ._safety import _show, _signals_deferred, _writing, log
 
 
 def versions() -> dict[str, str]:
@@ -301,7 +301,8 @@ def export_task(
         series=series,
         spread=spread if spread is not None and spread.shape == pred.shape else None,
     )
-    with _writing(Path(folder) / f"{name}.*"):
+    # the exporters run native libraries (VTK, HDF5): a signal is delivered once they return, never inside them
+    with _writing(Path(folder) / f"{name}.*"), _signals_deferred():
         return export_formats(task, formats)
 
 
