@@ -3,9 +3,10 @@
 :func:`progress_bar` picks the bar class once: ``tqdm.notebook`` inside a Jupyter kernel *with* ipywidgets,
 plain ``tqdm`` otherwise. (``tqdm.auto`` warns "IProgress not found" at import in a kernel without
 ipywidgets, so latticedft never imports it.) ``progress=None`` shows the bar when stderr is a terminal
-and in a Jupyter kernel, and nowhere else. Where the bar cannot redraw in place (a notebook without ipywidgets, a file), every refresh is a
-new line, so it refreshes at most every :data:`PLAIN_INTERVAL` seconds and keeps its last line; on a
-terminal or as a widget it refreshes every :data:`LIVE_INTERVAL` seconds and disappears when done.
+and in a Jupyter kernel, and nowhere else. Where the bar cannot redraw in place (a notebook without
+ipywidgets, a file), every refresh is a new line, so it refreshes at most every :data:`PLAIN_INTERVAL`
+seconds and keeps its last line; on a terminal or as a widget it refreshes every :data:`LIVE_INTERVAL`
+seconds and disappears when done.
 """
 
 from __future__ import annotations
