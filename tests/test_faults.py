@@ -303,6 +303,8 @@ def test_out_beside_the_results_is_fine(scenarios: _Scenarios) -> None:
         ("data/train.nc", "is the case's input file"),
         ("case.toml", "is the case's input file"),
         ("myinvariant.py", "is the case's input file"),
+        ("results/nested", "lies inside the results folder"),
+        ("loop", "is a link that loops"),
     ],
 )
 def test_destinations_refused(tmp_path: Path, where: str, needle: str) -> None:
@@ -312,11 +314,40 @@ def test_destinations_refused(tmp_path: Path, where: str, needle: str) -> None:
     (case / "myinvariant.py").write_text("def energy(field):\n    return field.sum('x')\n")
     text = (case / "case.toml").read_text().replace('"latticedft.systems:wave_energy"', '"myinvariant:energy"')
     (case / "case.toml").write_text(text)
+    (case / "loop").symlink_to(case / "loop")
     loaded = load_case(case)
     with pytest.raises(ResultsError, match=needle):
         check_destination(case / where, inputs=case_inputs(loaded), root=loaded.root, what="--out")
     for fine in ("results", "results2", "../elsewhere"):
         check_destination(case / fine, inputs=case_inputs(loaded), root=loaded.root)
+
+
+def test_out_inside_any_results_folder_is_refused(tmp_path: Path, template: Path) -> None:
+    case = earlier(template, tmp_path / "a")
+    done = cli("run", case, "--out", tmp_path / "a" / "wave" / "results" / "deeper" / "nested", "-q")
+    one_line(done.err, "lies inside the results folder")
+    other = tmp_path / "other"
+    assert cli("train", case, "--out", other, "-q").code == 0
+    done = cli("run", case, "--out", other / "sub", "-q")
+    one_line(done.err, "lies inside the results folder", "other")
+    assert (other / ".latticedft-results").is_file() and not (other / "sub").exists()
+
+
+def test_overwrite_replaces_only_folders_latticedft_wrote(tmp_path: Path, template: Path) -> None:
+    """A summary.json alone does not make a folder ours: the user's files beside it are never deleted. A results
+    folder of an earlier version (no marker, only files a run writes) is still replaced."""
+    case = earlier(template, tmp_path / "a")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    shutil.copyfile(case / "results" / "summary.json", mine / "summary.json")
+    (mine / "thesis.tex").write_text("years of work\n")
+    done = cli("run", case, "--out", mine, "--overwrite", "-q")
+    one_line(done.err, "holds files that latticedft did not write")
+    assert (mine / "thesis.tex").read_text() == "years of work\n"
+    (case / "results" / ".latticedft-results").unlink()  # as an earlier version wrote it
+    done = cli("run", case, "--overwrite", "-q")
+    assert done.code == 0, done.err
+    assert (case / "results" / ".latticedft-results").is_file()
 
 
 # -- 2. publishing is atomic, and the next run recovers ------------------------------------------------------------

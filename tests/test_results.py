@@ -12,7 +12,7 @@ import pytest
 import pyvista as pv
 
 import latticedft as ldft
-from latticedft._results import RUN_LOG, Staging, json_safe, staged_results
+from latticedft._results import MARKER, RUN_LOG, Staging, json_safe, staged_results
 from latticedft.cli import main
 from latticedft.io import read_field, read_pvd
 
@@ -73,7 +73,7 @@ def test_staging_publishes_or_leaves_everything(tmp_path: Path) -> None:
     (s.tmp / "new.txt").write_text("new")
     s.publish()
     s.discard()  # no-op after publish
-    assert sorted(p.name for p in dest.iterdir()) == ["new.txt", "old.txt"]
+    assert sorted(p.name for p in dest.iterdir()) == [MARKER, "new.txt", "old.txt"]
     assert [p.name for p in tmp_path.iterdir()] == ["results"]
 
 
@@ -108,17 +108,17 @@ def test_staged_results_publishes_on_success(tmp_path: Path) -> None:
         logging.getLogger("latticedft").debug("written a.txt")
         assert len(_handlers()) == len(before) + 1
     assert _handlers() == before
-    assert sorted(p.name for p in dest.iterdir()) == ["a.txt", RUN_LOG]
+    assert sorted(p.name for p in dest.iterdir()) == [MARKER, "a.txt", RUN_LOG]
     assert "DEBUG written a.txt" in (dest / RUN_LOG).read_text()
     logging.getLogger("latticedft").debug("after the block")
     assert "after the block" not in (dest / RUN_LOG).read_text()
     (dest / "stale.txt").write_text("stale")
     with staged_results(dest, run_log=False) as folder:  # a fresh folder replaces dest
         (folder / "b.txt").write_text("b")
-    assert [p.name for p in dest.iterdir()] == ["b.txt"] and leftovers(tmp_path / "sub") == []
+    assert sorted(p.name for p in dest.iterdir()) == [MARKER, "b.txt"] and leftovers(tmp_path / "sub") == []
     with staged_results(dest, copy_existing=True) as folder:  # a copy of dest, and a run.log
         (folder / "c.txt").write_text("c")
-    assert sorted(p.name for p in dest.iterdir()) == ["b.txt", "c.txt", RUN_LOG]
+    assert sorted(p.name for p in dest.iterdir()) == [MARKER, "b.txt", "c.txt", RUN_LOG]
 
 
 def test_json_safe() -> None:

@@ -50,6 +50,7 @@ from ._files import write_task as write_task
 from ._safety import FAULT_ENV as FAULT_ENV
 from ._safety import FAULT_POINTS as FAULT_POINTS
 from ._safety import ResultsError as ResultsError
+from ._staging import MARKER as MARKER
 from ._staging import RUN_LOG as RUN_LOG
 from ._staging import Staging as Staging
 from ._staging import check_destination as check_destination
@@ -61,6 +62,7 @@ from ._staging import staged_results as staged_results
 __all__ = [
     "FAULT_ENV",
     "FAULT_POINTS",
+    "MARKER",
     "RUN_LOG",
     "ResultsError",
     "Staging",

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import logging
 import os
 import re
@@ -36,7 +37,11 @@ from ._safety import (
 RUN_LOG = "run.log"
 
 
-_MARKER = "summary.json"  # every published results folder holds one
+#: Every results folder latticedft stages holds this file: a folder with it (or an empty one) may be replaced
+#: by ``--overwrite``; any other folder is the user's and is never deleted.
+MARKER = ".latticedft-results"
+_MARKER_TEXT = "A results folder written by latticedft: its next run replaces the whole folder.\n"
+_WRITTEN = frozenset({"model.pt", "model.json", "summary.json", "run.log", MARKER})
 
 
 #: The results folders this process published, in order (the command line says whether an interrupted
@@ -53,6 +58,12 @@ def check_destination(
     folder ``root``, or that is, contains or lies inside one of ``inputs`` (files and folders the case
     reads). A ``dest`` inside ``root`` (``CASE/results``, ``CASE/results2``) is fine.
     """
+    if os.path.islink(dest):
+        try:
+            os.stat(dest)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                raise ResultsError(f"{what} {_show(dest)}: is a link that loops (to itself); remove it") from None
     real = Path(os.path.realpath(dest))
     shown = f"{what} {_show(dest)}" + (f" (a link to {_show(real)})" if os.path.islink(dest) else "")
     why = "; results replace their folder as a whole, so they must go elsewhere (the default is CASE/results)"
@@ -61,6 +72,12 @@ def check_destination(
         if real == r or r.is_relative_to(real):
             verb = "is" if real == r else "contains"
             raise ResultsError(f"{shown}: {verb} the case folder {_show(root)}{why}")
+    outer = _results_above(real, None if root is None else Path(os.path.realpath(root)) / "results")
+    if outer is not None:
+        raise ResultsError(
+            f"{shown}: lies inside the results folder {_show(outer)}, which the next run replaces as a whole "
+            "(with everything in it); choose a folder beside it"
+        )
     real_inputs = [(p, Path(os.path.realpath(p))) for p in inputs]
     matches = (
         [("is", p, r) for p, r in real_inputs if real == r]  # the most telling relation first
@@ -77,6 +94,15 @@ def check_destination(
     if real.exists() and not real.is_dir():
         raise ResultsError(f"{shown}: exists and is not a folder; results go into a folder of their own")
     return real
+
+
+def _results_above(real: Path, default: Path | None) -> Path | None:
+    """The nearest folder above ``real`` that is a results folder (the case's default one, or one holding the
+    marker), or None."""
+    for parent in real.parents:
+        if parent == default or (parent / MARKER).is_file():
+            return parent
+    return None
 
 
 def _staging_re(name: str) -> re.Pattern[str]:
@@ -225,6 +251,7 @@ class Staging:
                 _replace_links(self.tmp, self.dest)
             else:
                 self.tmp.mkdir()
+            (self.tmp / MARKER).write_text(_MARKER_TEXT, encoding="utf-8")
         except BaseException:
             _rmtree(self.tmp)
             raise
@@ -295,7 +322,24 @@ def _replace_links(tmp: Path, dest: Path) -> None:
 
 
 def _is_results_folder(folder: Path) -> bool:
-    return (folder / _MARKER).is_file() or not any(folder.iterdir())
+    """True for a folder latticedft wrote (it holds the marker, or is a results folder written before the
+    marker existed) and for an empty one."""
+    return (folder / MARKER).is_file() or not any(folder.iterdir()) or _earlier_results(folder)
+
+
+def _earlier_results(folder: Path) -> bool:
+    """A results folder of a version without the marker: a latticedft ``summary.json``, and only the files a run
+    writes (the fixed names, and files named after the tasks it lists)."""
+    try:
+        summary = json.loads((folder / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    if not isinstance(summary, dict) or "latticedft" not in (summary.get("versions") or {}):
+        return False
+    tasks = [str(t) for t in (summary.get("tasks") or {})]
+    return all(
+        p.name in _WRITTEN or any(p.name.startswith((f"{t}.", f"{t}_")) for t in tasks) for p in folder.iterdir()
+    )
 
 
 @contextmanager
@@ -314,14 +358,14 @@ def staged_results(
     :func:`hold_results` is taken for the block unless this process holds it.
 
     ``replace_foreign=False`` refuses to replace an existing non-empty ``dest``
-    that is not a results folder (no ``summary.json``): the command line never
+    that latticedft did not write (no marker file :data:`MARKER`): the command line never
     deletes a folder of files it did not write. An :class:`OSError` (disk full,
     a read-only folder) becomes a one-line :class:`ResultsError` naming the path.
     """
     with hold_results(dest) as real:
         if not replace_foreign and not copy_existing and real.is_dir() and not _is_results_folder(real):
             raise ResultsError(
-                f"{_show(dest)}: holds files that latticedft did not write (no {_MARKER}); "
+                f"{_show(dest)}: holds files that latticedft did not write (no {MARKER}); "
                 "refusing to replace it: choose another --out or remove the folder"
             )
         staging: Staging | None = None
