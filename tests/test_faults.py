@@ -499,6 +499,31 @@ def test_links_inside_the_results_are_never_written_through(tmp_path: Path, temp
     assert staging_left(tmp_path) == []
 
 
+def test_a_model_file_linked_to_a_device_is_named_as_such(tmp_path: Path, template: Path) -> None:
+    case = earlier(template, tmp_path / "a")
+    (case / "results" / "model.pt").unlink()
+    (case / "results" / "model.pt").symlink_to("/dev/zero")
+    done = cli("serve", case, "-q")
+    one_line(done.err, "model.pt: is not a regular file", "/dev/zero")
+
+
+def test_check_beside_a_run_in_progress_does_not_call_it_interrupted(tmp_path: Path, template: Path) -> None:
+    import fcntl
+
+    case = earlier(template, tmp_path / "a")
+    (case / "results.tmp-0123456789").mkdir()  # the staging folder of a run that holds the lock
+    fd = os.open(case, os.O_RDONLY)
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    try:
+        done = cli("check", case)
+    finally:
+        os.close(fd)
+    assert done.code == 0, done.err
+    assert "a run in progress is writing results.tmp-0123456789" in done.out and "interrupted" not in done.out
+    done = cli("check", case)  # the lock released: now it is a leftover
+    assert "an interrupted run left results.tmp-0123456789" in done.out
+
+
 def test_out_that_is_a_file_is_refused(scenarios: _Scenarios) -> None:
     _refused(scenarios, "out-file", "--out", "exists and is not a folder")
     assert (scenarios.root / "afile").read_text() == "a file, not a folder\n"

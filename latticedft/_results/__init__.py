@@ -54,6 +54,7 @@ from ._staging import MARKER as MARKER
 from ._staging import RUN_LOG as RUN_LOG
 from ._staging import Staging as Staging
 from ._staging import check_destination as check_destination
+from ._staging import held_by_another as held_by_another
 from ._staging import hold_results as hold_results
 from ._staging import leftovers as leftovers
 from ._staging import published as published
@@ -63,6 +64,7 @@ __all__ = [
     "FAULT_ENV",
     "FAULT_POINTS",
     "MARKER",
+    "held_by_another",
     "RUN_LOG",
     "ResultsError",
     "Staging",

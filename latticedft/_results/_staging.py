@@ -207,6 +207,30 @@ def hold_results(dest: str | os.PathLike[str]) -> Iterator[Path]:
                     break
 
 
+def held_by_another(dest: str | os.PathLike[str]) -> bool:
+    """True when another process holds the lock of ``dest`` (a run in progress); takes nothing."""
+    parent = Path(os.path.realpath(dest)).parent
+    if str(parent) in _held or not parent.is_dir():
+        return False
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no lock
+        return False
+    try:
+        fd = os.open(parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)  # releases a lock taken here
+    return False
+
+
 def _lock(parent: Path) -> int:
     try:
         import fcntl
