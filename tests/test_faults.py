@@ -524,6 +524,23 @@ def test_check_beside_a_run_in_progress_does_not_call_it_interrupted(tmp_path: P
     assert "an interrupted run left results.tmp-0123456789" in done.out
 
 
+def test_a_leftover_that_cannot_be_removed_is_not_called_removed(tmp_path: Path, template: Path) -> None:
+    case = earlier(template, tmp_path / "a")
+    stuck = case / "results.tmp-0123456789"
+    stuck.mkdir()
+    (stuck / "f").write_text("x")
+    if shutil.which("chattr") is None or subprocess.run(["chattr", "+i", str(stuck / "f")]).returncode != 0:
+        pytest.skip("chattr +i is not available here (needs root and a file system with attributes)")
+    try:
+        done = cli("serve", case)
+        second = cli("serve", case)
+    finally:
+        subprocess.run(["chattr", "-i", str(stuck / "f")])
+    for d in (done, second):
+        assert d.code == 0, d.err
+        assert "could not remove results.tmp-0123456789" in d.err and "removed (" not in d.err, d.err
+
+
 def test_out_that_is_a_file_is_refused(scenarios: _Scenarios) -> None:
     _refused(scenarios, "out-file", "--out", "exists and is not a folder")
     assert (scenarios.root / "afile").read_text() == "a file, not a folder\n"

@@ -133,6 +133,17 @@ def _recover(dest: Path) -> None:
     for p in left:
         if p != restored:
             _rmtree(p)
+    stuck = [p for p in left if p != restored and os.path.lexists(p)]
+    if stuck:  # an immutable file, a folder of another user: say so instead of claiming it was removed
+        log.warning(
+            "could not remove %s beside %s (a file there cannot be deleted: immutable, or not yours); "
+            "remove it by hand",
+            ", ".join(p.name for p in stuck),
+            _show(dest),
+        )
+        left = [p for p in left if p not in stuck]
+        if not left:
+            return
     names = ", ".join(p.name for p in left)
     if restored is not None:
         log.warning(
