@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import pyvista as pv
+import xarray as xr
 
 import latticedft as ldft
 from latticedft._results import MARKER, RUN_LOG, Staging, json_safe, staged_results
@@ -141,3 +142,28 @@ def test_paraview_opens_every_result(run: Path, tmp_path: Path) -> None:
     for i, step in enumerate(pvd["steps"]):
         assert {"psi", "psi_ref", "psi_err"} <= set(step["ranges"])
         assert step["ranges"]["psi"] == pytest.approx([psi.values[i].min(), psi.values[i].max()], abs=1e-14)
+
+
+def test_task_file_labels_say_what_each_variable_is(tmp_path: Path) -> None:
+    """psi_ref is described as the reference (its own source, not "predicted by ..."), psi_err carries nothing of
+    either operand, and an invariant that inherited the field's attributes is not called by the field's name."""
+    from latticedft import systems
+    from latticedft._results import write_task
+
+    ref = systems.wave_string([(1, 1.0)], nx=9, nt=7).assign_attrs(
+        long_name="string displacement", units="m", source="an experiment"
+    )
+    pred = (ref * 1.01).assign_attrs(ref.attrs, source="latticedft.serve: predicted ...")
+    invariant = (pred**2).sum("x", keep_attrs=True)  # a user's function handing on psi's attributes
+    path = write_task(tmp_path, "task", "psi", pred, ref, invariant, attrs={}, history="test")
+    with xr.open_dataset(path) as ds:
+        assert ds["psi_ref"].attrs["source"] == "an experiment" and ds["psi_ref"].attrs["comment"] == "reference"
+        assert ds["psi_ref"].attrs["long_name"] == "string displacement" and ds["psi_ref"].attrs["units"] == "m"
+        assert ds["psi_err"].attrs == {"long_name": "psi - psi_ref", "units": "m"}
+        assert ds["invariant"].attrs == {"long_name": "invariant"}
+        assert ds["psi"].attrs["source"].startswith("latticedft.serve")
+    assert "comment" not in pred.attrs  # the caller's field is not changed
+    named = (pred**2).sum("x", keep_attrs=False).assign_attrs(long_name="discrete energy", units="J")
+    path = write_task(tmp_path, "named", "psi", pred, ref, named, attrs={}, history="test")
+    with xr.open_dataset(path) as ds:
+        assert ds["invariant"].attrs == {"long_name": "discrete energy", "units": "J"}
