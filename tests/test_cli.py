@@ -98,6 +98,7 @@ def test_info_prints_case_model_and_summary(wave_run: Path, capsys) -> None:
     code, out, err = run_cli(capsys, "info", wave_run)
     assert code == 0
     assert "L_d =" in out and "training: loss" in out and "task test: complete" in out
+    assert "verdict: good: the data obey the learned equations" in out
 
 
 def test_check_prints_a_summary_and_writes_nothing(tmp_path: Path, capsys) -> None:
