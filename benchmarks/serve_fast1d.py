@@ -12,7 +12,7 @@ import torch
 import xarray as xr
 
 import latticedft as ldft
-from latticedft._serve import _fast1d
+from latticedft._serve import _onedim
 
 from ._common import Check, Config, Table
 
@@ -50,7 +50,7 @@ def verlet(amps: np.ndarray, steps: int) -> np.ndarray:
 def _serve(model, init, steps: int, torch_loop: bool = False):
     t0 = time.perf_counter()
     if torch_loop:
-        with mock.patch.object(_fast1d, "numpy_derivatives_of", lambda model: None):
+        with mock.patch.object(_onedim, "numpy_derivatives_of", lambda model: None):
             out = ldft.serve(model, init, slices=steps + 2, progress=False)
     else:
         out = ldft.serve(model, init, slices=steps + 2, progress=False)

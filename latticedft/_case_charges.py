@@ -21,7 +21,7 @@ import numpy as np
 import xarray as xr
 
 from ._errors import ConfigError, LatticeDFTError
-from ._lattice import LatticeField
+from ._lattice import LatticeField, as_lattice_field
 from ._noether import noether_charges, symmetries
 from ._noether._group import Symmetry, standard_symmetries
 
@@ -171,8 +171,6 @@ def task_charges(model: Any, td: TaskData, pred: xr.DataArray, rec: dict[str, An
         return None
     served = _served(pred, slices)
     try:
-        from ._lattice import as_lattice_field
-
         f = as_lattice_field(served, boundary=t.boundary, min_slices=2)
         if AUTO in names:
             found = _auto(model, served, f, t.boundary, rec)

@@ -25,6 +25,9 @@ from typing import Any
 
 from ._case import CASE_FILE, Case
 from ._errors import ConfigError
+from ._models import MODELS
+from ._serve._stream import kept_slices
+from .io.exporters import TEMPORARY_NAME_EXTRA, export_file_names
 
 __all__ = [
     "available_memory",
@@ -87,8 +90,6 @@ def name_max(folder: str | os.PathLike[str]) -> int:
 def check_file_names(case: Case, data: Any, dest: Path) -> None:
     """Refuse a task name whose longest file (export formats of every kind, temporary names included) or a
     results folder whose staging folder would not fit the file system's limit on file names."""
-    from .io.exporters import TEMPORARY_NAME_EXTRA, export_file_names
-
     limit = name_max(dest.parent)
     if len(dest.name.encode()) + _STAGING_EXTRA > limit:
         raise ConfigError(
@@ -146,8 +147,6 @@ def available_memory() -> int | None:
 
 def _parameter_lower_bound(case: Case, data: Any) -> tuple[int, str] | None:
     """(a lower bound of the parameter count, the key that sets it) of the case's model, or None."""
-    from ._models import MODELS
-
     options = case.model.options
     if case.model.kind == "mlp" and isinstance(options.get("hidden"), list):
         model: Any = None  # the layer sizes as given: nothing is built
@@ -198,8 +197,6 @@ def check_task_memory(case: Case, data: Any, available: int | None = None) -> No
     available = available_memory() if available is None else available
     if available is None:
         return
-    from ._serve._stream import kept_slices
-
     for td in data.tasks:
         t = td.task
         held = td.slices if t.every == 1 else len(kept_slices(td.slices, t.every))  # every > 1: the kept ones

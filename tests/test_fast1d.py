@@ -21,7 +21,7 @@ from latticedft._errors import InputError, ServeError
 from latticedft._lattice import as_lattice_field, as_lattice_fields, gather_cells
 from latticedft._learn._data import as_fields
 from latticedft._models import _polynumpy
-from latticedft._serve import _fast1d
+from latticedft._serve import _fast1d, _onedim
 
 from helpers import oscillator_data, series
 
@@ -48,7 +48,7 @@ def _serve_both(monkeypatch, model, init, **kw):
     """``serve`` by the numpy loop, then by the torch loop (numpy route switched off)."""
     fast = ldft.serve(model, init, progress=False, **kw)
     with monkeypatch.context() as mp:
-        mp.setattr(_fast1d, "numpy_derivatives_of", lambda model: None)
+        mp.setattr(_onedim, "numpy_derivatives_of", lambda model: None)
         slow = ldft.serve(model, init, progress=False, **kw)
     return fast, slow
 
@@ -86,7 +86,7 @@ def test_mlp_is_served_by_the_torch_loop(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("the numpy loop serves models with numpy closed forms only")
 
-    monkeypatch.setattr(_fast1d, "serve_fast", refuse)
+    monkeypatch.setattr(_onedim, "serve_fast", refuse)
     out = ldft.serve(mlp, data[0].isel(t=slice(0, 2)), slices=12, progress=False)
     assert out.field.sizes["t"] == 12
 
@@ -143,7 +143,7 @@ def _failure(monkeypatch, model, init, **kw) -> list[ServeError]:
     for off in (False, True):
         with monkeypatch.context() as mp:
             if off:
-                mp.setattr(_fast1d, "numpy_derivatives_of", lambda model: None)
+                mp.setattr(_onedim, "numpy_derivatives_of", lambda model: None)
             with pytest.raises(ServeError) as info:
                 ldft.serve(model, init, progress=False, **kw)
             errs.append(info.value)

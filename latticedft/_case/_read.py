@@ -16,6 +16,7 @@ from typing import Any
 
 from .._errors import ConfigError, LatticeDFTError
 from .._models import MODELS
+from ..io.exporters import DEFAULT_FORMATS, EXPORTERS
 from ._checks import _Bad, t_ridge, t_stencil, t_str
 from ._schema import (
     _REQUIRED,
@@ -379,8 +380,6 @@ def _export_config(ctx: _Ctx, ex: dict[str, Any]) -> ExportConfig:
     An alias that contradicts an explicit ``formats`` is an error, unless one of the two comes from
     ``--set`` (the override wins).
     """
-    from ..io.exporters import DEFAULT_FORMATS, EXPORTERS
-
     given = ex["formats"] is not None
     formats = list(ex["formats"]) if given else list(DEFAULT_FORMATS)
     for i, fmt in enumerate(formats):

@@ -13,6 +13,7 @@ from .._action import del_residual, mixed_hessian
 from .._errors import InputError
 from .._lattice import BoundaryKinds, LatticeField
 from .._models import AbstractLagrangian
+from .._noether import symmetries as _symmetries
 from ._data import as_fields, kinetic_scale
 from ._gauge import gauge_named
 
@@ -190,11 +191,10 @@ def diagnose(
 
 def symmetry_reports(model: AbstractLagrangian, fields: list[LatticeField], candidates: Any) -> list[dict[str, Any]]:
     """:func:`latticedft.symmetries` of ``model`` over ``fields`` as JSON-ready dicts."""
-    from .._noether import symmetries as test
-
     keys = ("name", "kind", "residual", "residual_equations", "verdict")
     return [
-        {k: (r.verdict if k == "verdict" else r.to_dict()[k]) for k in keys} for r in test(model, fields, candidates)
+        {k: (r.verdict if k == "verdict" else r.to_dict()[k]) for k in keys}
+        for r in _symmetries(model, fields, candidates)
     ]
 
 

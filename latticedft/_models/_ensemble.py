@@ -12,7 +12,9 @@ import torch
 
 from .._errors import InputError
 from .._stencil import Stencil
+from . import _polynumpy
 from ._base import AbstractLagrangian
+from ._polynomial import PolynomialLagrangian
 
 __all__ = ["EnsembleLagrangian", "stacked"]
 
@@ -232,9 +234,6 @@ class _Stacked(AbstractLagrangian):
     ) -> Callable[[np.ndarray], tuple[np.ndarray, list[np.ndarray]]] | None:
         """The members' numpy closed forms side by side (as :meth:`fast_derivatives`), or None when a member
         offers none: an ensemble of polynomials is then served by the numpy loops as one model is."""
-        from . import _polynumpy
-        from ._polynomial import PolynomialLagrangian
-
         parts = [p for p in self.parts if isinstance(p, PolynomialLagrangian)]
         if len(parts) == len(self.parts):  # polynomials of one shape: evaluated together
             together = _polynumpy.stacked_numpy_derivatives(parts, pairs)

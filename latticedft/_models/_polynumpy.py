@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ._polybasis import _VANDERMONDE_MAX_DEGREE, _coefficient_matrix_f64, _pairs
+
 if TYPE_CHECKING:
     from ._polynomial import PolynomialLagrangian
 
@@ -266,8 +268,6 @@ def _numpy_forms(
 ) -> tuple[NumpyDerivatives | None, _Folded | None]:
     """:func:`numpy_derivatives` and, where the coefficients are folded onto the monomials, what the folded
     evaluation is made of (for :func:`stacked_numpy_derivatives`)."""
-    from ._polynomial import _VANDERMONDE_MAX_DEGREE, _coefficient_matrix_f64, _pairs
-
     deg = int(max(model.orders))
     if deg > _VANDERMONDE_MAX_DEGREE:
         return None, None

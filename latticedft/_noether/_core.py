@@ -21,6 +21,7 @@ import xarray as xr
 
 from .._errors import InputError
 from .._lattice import LatticeField, as_lattice_field, gather_cells
+from .._models import AnalyticLagrangian
 from ._group import Symmetry
 
 __all__ = ["FieldEval", "interior", "prepare"]
@@ -54,9 +55,7 @@ def prepare(model: Any, data: Any, boundary: Any = None, min_slices: int = 2) ->
                 f"data: fields differ in lattice dims, components or spacing ({f.dims}, m = {f.ncomp}, "
                 f"h = {f.spacing} vs {f0.dims}, m = {f0.ncomp}, h = {f0.spacing})"
             )
-    import latticedft  # the public class; the models package may move
-
-    if isinstance(model, latticedft.AnalyticLagrangian):
+    if isinstance(model, AnalyticLagrangian):
         model.bind(f0.ndim, f0.ncomp, f0.spacing, f0.components)
     elif not getattr(model, "bound", True) or getattr(model, "spacing", None) is None:
         raise InputError(f"{type(model).__name__}: not bound to a lattice yet; learn it first (latticedft.learn)")

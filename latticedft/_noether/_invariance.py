@@ -7,7 +7,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from .._errors import InputError
-from ._core import FieldEval, prepare, ratio
+from .._lattice import as_lattice_field
+from ._core import FieldEval, _listify, prepare, ratio
 from ._group import Symmetry, resolve_symmetries, standard_symmetries
 
 __all__ = ["DEFAULT_TOL", "SymmetryReport", "builtin_symmetries", "symmetries"]
@@ -127,9 +128,6 @@ def builtin_symmetries(data: Any, *, boundary: Any = None) -> list[Symmetry]:
     >>> [s.name for s in builtin_symmetries(systems.kepler_orbit(1.0, 1.0, n=3))]
     ['shift-x', 'shift-y', 'reflection', 'rotation-xy', 'time-reversal']
     """
-    from .._lattice import as_lattice_field
-    from ._core import _listify
-
     f = as_lattice_field(_listify(data)[0], boundary=boundary, min_slices=2)
     return standard_symmetries(f.ndim, f.ncomp, f.periodic, f.dims, f.components)
 

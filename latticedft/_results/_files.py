@@ -14,15 +14,17 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
+from .. import __version__
 from .._atomic import write_text_atomic
 from .._errors import InputError, ModelFileError
+from ..io.exporters import ExportTask, export_formats
+from ..io.fields import read_field
+from ..io.fields import write_field as _write_field
 from ._safety import _show, _signals_deferred, _writing, log
 
 
 def versions() -> dict[str, str]:
     import torch
-
-    from .. import __version__
 
     return {
         "latticedft": __version__,
@@ -262,15 +264,11 @@ def _baseline_errors(
 
 
 def write_field(path: Path, fields: Mapping[str, xr.DataArray], *, attrs: Mapping[str, Any], history: str) -> Path:
-    from ..io.fields import write_field as _write
-
-    return _write(path, fields, attrs=dict(attrs), history=history)
+    return _write_field(path, fields, attrs=dict(attrs), history=history)
 
 
 def read_task(path: Path, variable: str) -> tuple[xr.DataArray, xr.DataArray | None, xr.DataArray | None]:
     """Reload ``<name>.nc``: (served field, reference or None, error or None)."""
-    from ..io.fields import read_field
-
     if not path.is_file():
         raise InputError(f"{path}: file not found; run `latticedft serve` first")
     with xr.open_dataset(path, engine="netcdf4", decode_times=False) as ds:
@@ -302,8 +300,6 @@ def export_task(
     ``energy``, ``charge_*``, ``baseline_err_*`` ...) go to the exporters too
     (:func:`read_task_series`).
     """
-    from ..io.exporters import ExportTask, export_formats
-
     attrs, series = read_task_series(Path(folder) / f"{name}.nc", variable)
     spread = read_spread(Path(folder) / f"{name}.nc", variable)
     task = ExportTask(
@@ -326,8 +322,6 @@ def export_task(
 
 def read_spread(path: Path, variable: str) -> xr.DataArray | None:
     """``<var>_std`` of a task file (an ensemble served), or None."""
-    from ..io.fields import read_field
-
     if not Path(path).is_file():
         return None
     with xr.open_dataset(path, engine="netcdf4", decode_times=False) as ds:
@@ -372,8 +366,6 @@ def read_summary(folder: Path) -> dict[str, Any] | None:
 
 def config_attrs(config: Mapping[str, Any], overrides: tuple[str, ...], command: str) -> dict[str, Any]:
     """Global attributes of a task file."""
-    from .. import __version__
-
     return {
         "source": f"latticedft {__version__}",
         "latticedft_config": _config_attr(config),

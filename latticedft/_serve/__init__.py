@@ -34,9 +34,9 @@ from .._layout import lattice_dims
 from .._learn import check_model_lattice as _check_model_lattice
 from .._learn._source import is_lazy
 from .._models import AbstractLagrangian, EnsembleLagrangian
-from ._batch import _serve_batch
 from ._ensemble import calibration, serve_ensemble
 from ._field import _serve_field
+from ._onedim import _serve_batch
 from ._result import ServeResult, compare, error_vs_time, invariant_vs_time
 from ._solvers import SOLVERS
 from ._stream import SliceCallback, SliceSource, _serve_stream, check_every, lazy_field, thin_result

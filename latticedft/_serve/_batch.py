@@ -14,7 +14,7 @@ from .._action import CellDerivatives, cell_derivatives
 from .._lattice import LatticeField, to_dataarrays
 from .._models import AbstractLagrangian
 from ._range import assess
-from ._result import ServeResult, _bar
+from ._result import ServeResult
 from ._slices import SINGULAR_RTOL, is_singular, singular_message
 
 
@@ -203,38 +203,3 @@ class _Batch:
                 )
             )
         return out
-
-
-def _serve_batch(
-    model: AbstractLagrangian,
-    fs: list[LatticeField],
-    steps: list[int],
-    mode: str,
-    rtol: float,
-    max_newton: int,
-    box: float | None,
-    progress: bool | None,
-) -> list[ServeResult]:
-    """Step a batch of 1D trajectories together; a member that fails or leaves the box retires alone.
-
-    ``mode="newton"`` solves all running members' slices in one batched Newton; ``"sweep"`` one member at a
-    time (in 1D the site-by-site sweep is that same Newton on the one site). A model with numpy closed forms
-    (:meth:`LinearLagrangian.numpy_derivatives`) runs the same loop in numpy (``_fast1d``).
-    """
-    from ._fast1d import numpy_derivatives_of, serve_fast  # it builds on _Batch
-
-    derivatives = numpy_derivatives_of(model)
-    if derivatives is not None:
-        return serve_fast(model, fs, steps, mode, rtol, max_newton, box, progress, derivatives)
-    batch = _Batch(model, fs, steps)
-    members = list(range(len(fs)))
-    groups = [members] if mode == "newton" else [[k] for k in members]
-    bar = _bar(batch.nmax - 2, f"serve ({mode}, {len(fs)} trajectories)", progress)
-    for i in range(1, batch.nmax - 1):
-        for group in groups:
-            act_list = batch.members(group, i)
-            if act_list:
-                batch.record(act_list, i, batch.newton(act_list, i, rtol, max_newton), max_newton, box)
-        bar.update(1)
-    bar.close()
-    return batch.results(time.perf_counter() - batch.t0, mode)

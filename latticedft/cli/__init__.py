@@ -12,6 +12,7 @@ signal came after the publishing step).
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
@@ -113,8 +114,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"latticedft: error: {where}{exc.strerror or ' '.join(str(exc).split())}", file=sys.stderr)
         return BAD_INPUT
     except BrokenPipeError:  # e.g. `latticedft info CASE | head`: stop quietly
-        import os
-
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 0

@@ -8,12 +8,14 @@ Staging and publishing the results folder is :func:`latticedft._results.staged_r
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as _dt
 import json
 import logging
 import os
 import shlex
 import sys
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -180,9 +182,6 @@ def set_threads(case: Case) -> None:
 def run_device(case: Case) -> Case:
     """The case with ``[run] device`` resolved: a CUDA request this machine cannot honour becomes ``"cpu"``
     with one warning (console and run.log); the device is logged."""
-    import dataclasses
-    import warnings
-
     from .._device import DeviceWarning, device_label, resolve_device
 
     with warnings.catch_warnings(record=True) as caught:

@@ -20,6 +20,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import warnings
 from typing import IO, TYPE_CHECKING, Any
 
 from .._errors import InputError
@@ -136,8 +137,6 @@ def _wait(procs: list[subprocess.Popen[bytes]], logs: list[Any]) -> int:
 def join(device: str = "cpu") -> None:
     """Join the process group described by the environment (a no-op in a single process); ``device`` is the
     training device (CUDA: NCCL, each rank on its own GPU)."""
-    import warnings
-
     from .._device import DeviceWarning
     from .._learn import _dist
 

@@ -37,6 +37,7 @@ import json
 import os
 import uuid
 from collections.abc import Hashable, Mapping, Sequence
+from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
@@ -193,8 +194,6 @@ def _safe_attrs(attrs: Mapping[Hashable, Any]) -> dict[str, Any]:
 
 def _package_version() -> str:
     try:
-        from importlib.metadata import version
-
         return version("latticedft")
     except Exception:
         return "unknown"

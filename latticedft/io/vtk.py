@@ -36,6 +36,7 @@ from latticedft._atomic import write_text_atomic
 from latticedft._errors import InputError
 from latticedft.io.exporters import Exporter, ExportTask
 from latticedft.io.fields import COMPONENT_DIM, lattice_dims, validate_field
+from latticedft.io.pvview import write_view_script
 
 __all__ = ["write_paraview", "read_pvd", "write_pvd", "DEFAULT_MAX_POLYLINE_FRAMES", "ParaViewExporter"]
 
@@ -195,8 +196,6 @@ class ParaViewExporter(Exporter):
     )
 
     def write(self, task: ExportTask) -> list[Path]:
-        from latticedft.io.pvview import write_view_script
-
         files = write_paraview(task.folder, task.name, task.field, task.extra, max_frames=task.max_frames)
         return files + [
             write_view_script(
