@@ -48,6 +48,8 @@ _PUBLIC: dict[str, str] = {
     "LinearLagrangian": "._models",
     "MLPLagrangian": "._models",
     "PolynomialLagrangian": "._models",
+    "get_options": "._options",
+    "set_options": "._options",
     "DiscoveryReport": "._noether",
     "Symmetry": "._noether",
     "SymmetryReport": "._noether",
@@ -136,6 +138,8 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._noether import noether_charges as noether_charges
     from ._noether import relative_drift as relative_drift
     from ._noether import symmetries as symmetries
+    from ._options import get_options as get_options
+    from ._options import set_options as set_options
     from ._select import SelectionReport as SelectionReport
     from ._select import select as select
     from ._serve import ServeResult as ServeResult

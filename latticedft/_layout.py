@@ -37,6 +37,7 @@ import numpy as np
 import xarray as xr
 
 from ._errors import InputError
+from ._options import option
 
 __all__ = [
     "COMPONENT_DIM",
@@ -289,10 +290,6 @@ def _site_text(da: xr.DataArray, index: tuple[Any, ...]) -> str:
     return f"index {idx}" + (f" ({', '.join(coords)})" if coords else "")
 
 
-#: Bytes of values read at a time when a lazily opened field is scanned for NaN/inf.
-SCAN_BYTES = 64 * 2**20
-
-
 def _non_finite_block(values: np.ndarray, t0: int) -> tuple[int, tuple[int, ...]]:
     """The count of NaN/inf values in ``values`` (slices from ``t0`` on) and the index of the first."""
     bad = ~np.isfinite(values)
@@ -308,7 +305,7 @@ def _non_finite_block(values: np.ndarray, t0: int) -> tuple[int, tuple[int, ...]
 def _non_finite(da: xr.DataArray) -> tuple[int, tuple[int, ...]]:
     """:func:`_non_finite_block` of a lazily opened field, read in blocks of slices (never whole)."""
     tdim, nt = da.dims[0], da.shape[0]
-    step = max(1, SCAN_BYTES // max(1, math.prod(da.shape[1:]) * da.dtype.itemsize))
+    step = max(1, option("scan_bytes") // max(1, math.prod(da.shape[1:]) * da.dtype.itemsize))
     total, first = 0, ()  # type: tuple[int, tuple[int, ...]]
     for a in range(0, nt, step):
         n, at = _non_finite_block(np.asarray(da.isel({tdim: slice(a, a + step)}).values), a)

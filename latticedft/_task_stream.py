@@ -19,10 +19,9 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-__all__ = ["TaskMeter", "compare_blocks"]
+from ._options import option
 
-#: Bytes of each of the two fields read at a time by :func:`compare_blocks`.
-BLOCK_BYTES = 32 * 2**20
+__all__ = ["TaskMeter", "compare_blocks"]
 
 
 def compare_blocks(a: xr.DataArray, b: xr.DataArray, slices: int | None = None) -> dict[str, float]:
@@ -31,7 +30,7 @@ def compare_blocks(a: xr.DataArray, b: xr.DataArray, slices: int | None = None) 
     """
     tdim = a.dims[0]
     n = min(a.sizes[tdim], b.sizes[b.dims[0]], a.sizes[tdim] if slices is None else slices)
-    step = max(1, BLOCK_BYTES // max(1, 8 * int(np.prod(a.shape[1:]))))
+    step = max(1, option("task_block_bytes") // max(1, 8 * int(np.prod(a.shape[1:]))))
     worst, sum_sq, count = 0.0, 0.0, 0
     for lo in range(0, n, step):
         hi = min(n, lo + step)

@@ -6,8 +6,18 @@ import numpy as np
 import pytest
 import torch
 
+import latticedft
+
 torch.set_default_dtype(torch.float64)
 torch.set_num_threads(1)
+
+
+@pytest.fixture(autouse=True)
+def _options():
+    """Tuning knobs a test sets with ``latticedft.set_options(...)`` are put back after it."""
+    saved = latticedft.get_options()
+    yield
+    latticedft.set_options(**saved)
 
 
 @pytest.fixture(autouse=True)

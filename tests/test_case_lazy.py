@@ -11,7 +11,7 @@ import xarray as xr
 from xarray.backends import netCDF4_
 
 import latticedft as ldft
-from latticedft import _layout, _task_stream, lagrangians
+from latticedft import lagrangians
 from latticedft._serve import _stream
 from latticedft.io.fields import read_field
 
@@ -42,17 +42,16 @@ def _longest(reads, name: str, ndim: int = 2) -> int:
     return max(sizes, default=0)
 
 
-def _small_blocks(monkeypatch, slice_bytes: int, slices: int = 4) -> None:
+def _small_blocks(slice_bytes: int, slices: int = 4) -> None:
     """Blocks of ``slices`` slices for the NaN scan, the comparisons and the serving window."""
-    monkeypatch.setattr(_layout, "SCAN_BYTES", slices * slice_bytes)
-    monkeypatch.setattr(_task_stream, "BLOCK_BYTES", slices * slice_bytes)
-    monkeypatch.setattr(_stream, "_WINDOW_BYTES", slices * slice_bytes)
+    size = slices * slice_bytes
+    ldft.set_options(scan_bytes=size, task_block_bytes=size, serve_window_bytes=size)
 
 
-def test_a_lazy_read_leaves_the_values_in_the_file_and_gives_the_same_field(tmp_path, reads, monkeypatch):
+def test_a_lazy_read_leaves_the_values_in_the_file_and_gives_the_same_field(tmp_path, reads):
     field = membrane_field(n=6, nt=30)
     field.to_netcdf(tmp_path / "f.nc")
-    _small_blocks(monkeypatch, 6 * 8 * 8, slices=5)
+    _small_blocks(6 * 8 * 8, slices=5)
     lazy = read_field(tmp_path / "f.nc", lazy=True)
     assert not lazy.variable._in_memory
     assert 0 < _longest(reads, "/f.nc", 3) <= 5  # the NaN/inf scan read blocks of 5 slices
@@ -61,13 +60,13 @@ def test_a_lazy_read_leaves_the_values_in_the_file_and_gives_the_same_field(tmp_
     xr.testing.assert_identical(lazy.load(), whole)
 
 
-def test_the_nan_scan_in_blocks_gives_the_error_of_a_whole_read(tmp_path, monkeypatch):
+def test_the_nan_scan_in_blocks_gives_the_error_of_a_whole_read(tmp_path):
     field = wave_field(nx=9, nt=40)
     values = field.values.copy()
     values[23, 4] = np.nan  # in the fifth block of 5 slices
     values[37, 2] = np.inf
     field.copy(data=values).to_netcdf(tmp_path / "bad.nc")
-    monkeypatch.setattr(_layout, "SCAN_BYTES", 5 * 9 * 8)
+    ldft.set_options(scan_bytes=5 * 9 * 8)
     with pytest.raises(ldft.InputError) as whole:
         read_field(tmp_path / "bad.nc")
     with pytest.raises(ldft.InputError) as lazy:
@@ -78,11 +77,11 @@ def test_the_nan_scan_in_blocks_gives_the_error_of_a_whole_read(tmp_path, monkey
 
 
 @pytest.mark.parametrize("make, every", [(lambda: wave_field(nx=17, nt=45), 6), (lambda: membrane_field(8, 25), 4)])
-def test_a_dirichlet_field_left_in_its_file_is_served_as_the_whole_field(tmp_path, reads, monkeypatch, make, every):
+def test_a_dirichlet_field_left_in_its_file_is_served_as_the_whole_field(tmp_path, reads, make, every):
     field = make()
     field.to_netcdf(tmp_path / "init.nc")
     slice_bytes = int(np.prod(field.shape[1:])) * 8
-    _small_blocks(monkeypatch, slice_bytes)
+    _small_blocks(slice_bytes)
     model = lagrangians.wave(1.0)
     whole = ldft.serve(model, field, every=1)
     init = read_field(tmp_path / "init.nc", lazy=True)
@@ -104,12 +103,12 @@ def test_a_lazy_init_with_too_few_slices_for_its_strips_is_refused(tmp_path):
         ldft.serve(lagrangians.wave(1.0), init, slices=30, every=4)
 
 
-def test_a_case_task_with_every_reads_its_files_block_by_block(tmp_path, capsys, reads, monkeypatch):
+def test_a_case_task_with_every_reads_its_files_block_by_block(tmp_path, capsys, reads):
     whole, whole_ds = run_wave_every(tmp_path, capsys, 1)
     nt_file = read_field(Path(__file__).parents[1] / "cases" / "wave" / "data" / "test.nc").sizes["t"]
     assert _longest(reads, "data/test.nc") == nt_file  # every = 1: the field is read whole
     slice_bytes = int(np.prod(whole_ds["psi"].shape[1:])) * 8
-    _small_blocks(monkeypatch, slice_bytes)
+    _small_blocks(slice_bytes)
     reads.clear()
     thin, thin_ds = run_wave_every(tmp_path, capsys, 7)
     # from (also the reference) and baseline: blocks of at most 4 slices, the first two, or one kept slice

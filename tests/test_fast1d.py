@@ -20,7 +20,6 @@ from latticedft._action import cell_derivatives
 from latticedft._errors import InputError, ServeError
 from latticedft._lattice import as_lattice_field, as_lattice_fields, gather_cells
 from latticedft._learn._data import as_fields
-from latticedft._models import _polynumpy
 from latticedft._serve import _fast1d, _onedim
 
 from helpers import oscillator_data, series
@@ -206,9 +205,9 @@ def _random_model(case: str):
 
 @pytest.mark.parametrize("folded", [True, False])
 @pytest.mark.parametrize("case", list(CASES))
-def test_numpy_derivatives_equal_autograd(monkeypatch, case, folded):
+def test_numpy_derivatives_equal_autograd(case, folded):
     if not folded:  # term by term with the fused factor matrices (what large models use)
-        monkeypatch.setattr(_polynumpy, "_FOLDED_MAX_POWERS", 0)
+        ldft.set_options(folded_max_powers=0)
     model, x = _random_model(case)
     pairs = [(0, 1), (0, 0), (1, 1), (1, 0)]
     fn = model.numpy_derivatives(pairs)
@@ -224,11 +223,11 @@ def test_numpy_derivatives_equal_autograd(monkeypatch, case, folded):
         assert np.abs(block - ref).max() <= 1e-12 * np.abs(ref).max()
 
 
-def test_numpy_derivatives_in_chunks_equal_one_pass(monkeypatch):
+def test_numpy_derivatives_in_chunks_equal_one_pass():
     model, x = _random_model("vector-(2,4)")
     whole = model.numpy_derivatives([(0, 1)])(x.numpy())
-    monkeypatch.setattr(_polynumpy, "_FOLDED_CHUNK", 7 * 5**4)  # 7 cells per chunk
-    parts = model.numpy_derivatives([(0, 1)])(x.numpy())
+    with ldft.set_options(folded_chunk=7 * 5**4):  # 7 cells per chunk
+        parts = model.numpy_derivatives([(0, 1)])(x.numpy())
     np.testing.assert_allclose(whole[0], parts[0], rtol=1e-14, atol=1e-14 * np.abs(whole[0]).max())
     np.testing.assert_allclose(whole[1][0], parts[1][0], rtol=1e-14, atol=1e-14 * np.abs(whole[1][0]).max())
 

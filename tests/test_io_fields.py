@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from latticedft._errors import InputError
+from latticedft import InputError
 from latticedft.io import (
     field_periodic,
     field_spacing,

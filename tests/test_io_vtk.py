@@ -9,7 +9,7 @@ import pytest
 import pyvista as pv
 import xarray as xr
 
-from latticedft._errors import InputError
+from latticedft import InputError
 from latticedft.io import read_pvd, write_paraview
 from latticedft.io.figures import plot_prediction
 

@@ -20,7 +20,6 @@ from latticedft._lattice import gather_cells
 from latticedft._learn._data import as_fields
 from latticedft._learn._exact import gauge_matrix, residual_matrix
 from latticedft._learn._gauge import gauge_named
-from latticedft._models import _polynomial
 
 from helpers import membrane_field, oscillator_data, wave_field
 
@@ -146,15 +145,15 @@ def test_fast_derivatives_equal_autograd(case):
     assert none == {} and _rel(grad_only, g_ref.detach()) < 1e-12
 
 
-def test_chunked_evaluation_equals_one_pass(monkeypatch):
+def test_chunked_evaluation_equals_one_pass():
     (model, _), fields = _bound_pair("1+1d")
     with torch.no_grad():
         model.coef.copy_(torch.linspace(-1, 1, model.n_terms, dtype=torch.float64))
     x = gather_cells(fields[0].values, model.stencil, fields[0].periodic)
     pr = [(model.stencil.anchor, model.stencil.forward), (0, 0)]
     whole = model.feature_derivatives(x, pr), model.fast_derivatives(x, pr)
-    monkeypatch.setattr(_polynomial, "_CHUNK_ELEMENTS", 5000)  # many chunks of a few cells
-    parts = model.feature_derivatives(x, pr), model.fast_derivatives(x, pr)
+    with ldft.set_options(poly_chunk_elements=5000):  # many chunks of a few cells
+        parts = model.feature_derivatives(x, pr), model.fast_derivatives(x, pr)
     for (d0, b0), (d1, b1) in zip(whole, parts):  # equal up to the round-off of differently batched products
         assert d0.shape == d1.shape and _rel(d1, d0) < 1e-14
         for key in pr:

@@ -69,8 +69,8 @@ def _assert_kept_equal(full: ldft.ServeResult, thin: ldft.ServeResult, every: in
         (_coupled_strings(), _vector_field(), "dirichlet", 6),  # vector field
     ],
 )
-def test_cadenced_serving_equals_full_serving_on_the_kept_slices(model, field, boundary, every, monkeypatch):
-    monkeypatch.setattr(_stream, "_WINDOW_BYTES", 1)  # a window of a few slices: many refills
+def test_cadenced_serving_equals_full_serving_on_the_kept_slices(model, field, boundary, every):
+    ldft.set_options(serve_window_bytes=1)  # a window of a few slices: many refills
     full = ldft.serve(model, field, boundary=boundary)
     thin = ldft.serve(model, field, boundary=boundary, every=every)
     _assert_kept_equal(full, thin, every)
@@ -78,8 +78,8 @@ def test_cadenced_serving_equals_full_serving_on_the_kept_slices(model, field, b
         xr.testing.assert_identical(full.extrapolation, thin.extrapolation)
 
 
-def test_sweep_and_affine_handover_are_served_the_same_with_a_cadence(monkeypatch):
-    monkeypatch.setattr(_stream, "_WINDOW_BYTES", 1)
+def test_sweep_and_affine_handover_are_served_the_same_with_a_cadence():
+    ldft.set_options(serve_window_bytes=1)
     field = wave_field(nx=17, nt=15)
     full = ldft.serve(_sine_gordon(), field, mode="sweep")
     _assert_kept_equal(full, ldft.serve(_sine_gordon(), field, mode="sweep", every=3), 3)

@@ -1,4 +1,4 @@
-"""Symmetries and Noether charges of discrete Lagrangians (latticedft._noether, docs/symmetries.md).
+"""Symmetries and Noether charges of discrete Lagrangians (ldft.symmetries, ldft.noether_charges, docs/symmetries.md).
 
 Each built-in symmetry is tested on Lagrangians whose symmetries are known; discovery must find the
 rotation generator of a Kepler theory; charges of exact symmetries must be conserved along served

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import xarray as xr
 
+from latticedft import InputError
 from latticedft import systems as S
-from latticedft._errors import InputError
 
 AXES = {"t": "T", "x": "X", "y": "Y"}
 

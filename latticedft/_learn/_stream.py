@@ -19,6 +19,7 @@ from .._action import del_residual, mixed_hessian, second_time_difference
 from .._errors import InputError
 from .._lattice import BoundaryKinds, LatticeField, gather_cells
 from .._models import AbstractLagrangian, LinearLagrangian
+from .._options import option
 from .._stencil import Stencil
 from . import _dist
 from ._data import check_model_lattice, n_sites, site_sums
@@ -28,18 +29,12 @@ from ._source import FieldSource, Piece, as_sources, pieces
 
 __all__ = ["TrainingData", "training_data", "default_chunk_sites"]
 
-#: Streamed chunks of a linear model hold about this many basis-function derivatives (doubles) per chunk:
-#: ``sites * m * n_terms`` (2**21: ~16 MiB for each such array).
-_LINEAR_BUDGET = 2**21
-#: Sites per chunk of iterative training (its autograd graph holds a few KiB per site).
-_NEURAL_CHUNK = 2**16
-
 
 def default_chunk_sites(model: AbstractLagrangian) -> int:
     """Sites per chunk when ``chunk_sites`` is not given (``model`` bound)."""
     if isinstance(model, LinearLagrangian):
-        return max(1024, _LINEAR_BUDGET // (model.n_terms * model.m))
-    return _NEURAL_CHUNK
+        return max(1024, option("learn_linear_budget") // (model.n_terms * model.m))
+    return int(option("learn_neural_chunk"))
 
 
 class _Cells(Sequence[torch.Tensor]):

@@ -10,16 +10,13 @@ import numpy as np
 import torch
 
 from .._errors import InputError
+from .._options import option
 from .._stencil import Stencil
 from . import _polynumpy
 from ._linear import LinearLagrangian
 from ._polybasis import _VANDERMONDE_MAX_DEGREE, _coefficient_matrix_f64, _pairs
 
 __all__ = ["PolynomialLagrangian"]
-
-#: Elements of the closed-form derivatives' intermediates (cells x terms x derivatives) above which the
-#: cells are taken in chunks.
-_CHUNK_ELEMENTS = 1 << 22
 
 
 def _multi_indices(nvars: int, max_total: int) -> list[tuple[int, ...]]:
@@ -326,7 +323,7 @@ class PolynomialLagrangian(LinearLagrangian):
 
     def _by_chunks(self, z: torch.Tensor, per_cell: int, fn) -> list[torch.Tensor]:
         """``fn`` on the cells of ``z``, in chunks (of the flattened cells) that bound the intermediates."""
-        size = max(1, _CHUNK_ELEMENTS // max(per_cell, 1))
+        size = max(1, option("poly_chunk_elements") // max(per_cell, 1))
         if z.numel() <= size * z.shape[-1]:
             return list(fn(z))
         zf = z.reshape(-1, z.shape[-1])

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .._options import option
 from ._polybasis import _VANDERMONDE_MAX_DEGREE, _coefficient_matrix_f64, _pairs
 
 if TYPE_CHECKING:
@@ -66,13 +67,6 @@ def _product(out: np.ndarray, a: np.ndarray, b: np.ndarray | None) -> None:
             out[...] = a
     else:
         np.multiply(a, b, out=out)
-
-
-#: Most monomials ``prod_v z_v^a_v`` (``(D+1)^V``) for which the derivatives are evaluated from the folded
-#: coefficients (one product per derivative); above, term by term with the fused factor matrices.
-_FOLDED_MAX_POWERS = 1 << 13
-#: Monomial values per chunk of cells (bounded memory for large batches).
-_FOLDED_CHUNK = 1 << 21
 
 
 def _combos(nvar: int) -> list[tuple[int, ...]]:
@@ -293,7 +287,7 @@ def _numpy_forms(
 
     ncombo = nvar + (nvar * (nvar + 1) // 2 if pairs else 0)
     widths = [int(x) + 1 for x in exps.max(axis=0)] if c else [1] * nvar  # powers of each variable that occur
-    if int(np.prod(widths)) <= _FOLDED_MAX_POWERS:
+    if int(np.prod(widths)) <= option("folded_max_powers"):
         basis_rows = _coefficient_matrix_f64(model.basis, deg).numpy()[:, :width]
         g = folded_tensor(basis_rows, exps, coef, bool(pairs), widths).reshape(ncombo, -1).T  # (monomials, combos)
         nb = len(pair_mats) * m * m
@@ -303,7 +297,7 @@ def _numpy_forms(
             chain[nvar:, k * m :] = np.concatenate(pair_mats, axis=1)
         g_chain = g @ chain  # monomials -> [dL/dx | blocks]: one product per call
         shift = center / half
-        chunk = max(1, _FOLDED_CHUNK // int(np.prod(widths)))
+        chunk = max(1, option("folded_chunk") // int(np.prod(widths)))
         accumulate = np.multiply.accumulate
 
         many = _many_cells(g_chain, widths, w, shift)

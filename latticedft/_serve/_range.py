@@ -19,6 +19,7 @@ import xarray as xr
 
 from .._lattice import LatticeField, dataarray_parts, gather_cells, like_dataarray
 from .._models import AbstractLagrangian
+from .._options import option
 
 __all__ = [
     "EXTRAPOLATION_TOL",
@@ -31,8 +32,6 @@ __all__ = [
 #: A served field whose cells leave the training range of a feature by more than this fraction of the
 #: feature's training span is reported (a warning; the field is still served).
 EXTRAPOLATION_TOL = 0.05
-
-_SITES_PER_PASS = 250_000  # cells gathered per pass: bounded memory on large fields
 
 
 def feature_labels(model: AbstractLagrangian, dims: tuple[str, ...], components: tuple[str, ...] | None) -> list[str]:
@@ -51,7 +50,7 @@ def _excess(model: AbstractLagrangian, rng: torch.Tensor, f: LatticeField, value
     span = torch.maximum(span, 1e-12 * torch.maximum(lo.abs(), hi.abs())).clamp_min(1e-300)
     nt = values.shape[0]
     nsite = max(int(np.prod(values.shape[1:-1])), 1)
-    width = max(2, min(nt, _SITES_PER_PASS // nsite + 1))
+    width = max(2, min(nt, option("range_sites_per_pass") // nsite + 1))
     out = np.zeros((nt - 1, lo.numel()))
     j = 0
     while j < nt - 1:

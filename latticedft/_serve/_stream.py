@@ -37,6 +37,7 @@ from .._errors import InputError, ServeError
 from .._lattice import LatticeField, as_lattice_field, gather_cells
 from .._layout import validate_field
 from .._models import AbstractLagrangian
+from .._options import option
 from ._affine import _AffineSlices, _slice_residuals
 from ._field import slice_error, solve_and_tally
 from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
@@ -45,8 +46,6 @@ from ._slices import _SliceSystem, is_singular
 
 __all__ = ["kept_slices", "check_every", "thin_result", "SliceSource", "lazy_field"]
 
-#: Bytes of the rolling window of new slices (at least ``_MIN_CHUNK`` slices).
-_WINDOW_BYTES = 32 * 2**20
 _MIN_CHUNK = 4
 #: Memory handed back to the system (``malloc_trim``) after this many bytes of slices served.
 _TRIM_BYTES = 128 * 2**20
@@ -165,7 +164,7 @@ class _Stream:
         self.sys = sys_ = _SliceSystem(model, f)
         m = f.ncomp
         slice_bytes = sys_.nsite * m * 8
-        self.chunk = max(_MIN_CHUNK, _WINDOW_BYTES // max(slice_bytes, 1))
+        self.chunk = max(_MIN_CHUNK, option("serve_window_bytes") // max(slice_bytes, 1))
         self.chunk = max(1, min(self.chunk, steps - 2))
         self.buf = torch.full((self.chunk + 2, *f.shape[1:], m), math.nan, dtype=torch.float64)
         self.flat = self.buf.reshape(self.chunk + 2, sys_.nsite, m)
