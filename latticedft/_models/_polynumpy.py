@@ -268,7 +268,6 @@ def _numpy_forms(
     m = model.m
     exps = model.exponents.detach().cpu().numpy()
     nvar, width, c = exps.shape[1], deg + 1, exps.shape[0]
-    fused = fused_factor_matrix(_coefficient_matrix_f64(model.basis, deg).numpy(), exps, 2)  # (V, width, 3C)
     coef = model.coef.detach().cpu().numpy().astype(np.float64)
     center = model.center.detach().cpu().numpy()
     half = model.halfwidth.detach().cpu().numpy()
@@ -276,53 +275,92 @@ def _numpy_forms(
     k = proj.shape[1]
     p = np.einsum("pk,ij->kipj", proj, np.eye(m)).reshape(k * m, nvar)  # z = (x.flat @ p - center) / half
     w = p / half  # dz/dx
-    rows = w.reshape(k, m, nvar)
-    vw = _pairs(nvar)
-    pair_mats = []  # (npairs, m m): block = (d2L/dz_v dz_w, v <= w) @ this
-    for a, b in pairs:
-        full = np.einsum("iv,jw->vwij", rows[a], rows[b])
-        pair_mats.append(
-            np.stack([full[v, u] + full[u, v] if v != u else full[v, v] for v, u in vw]).reshape(-1, m * m)
-        )
-
+    pair_mats = _pair_matrices(w.reshape(k, m, nvar), pairs)
     ncombo = nvar + (nvar * (nvar + 1) // 2 if pairs else 0)
     widths = [int(x) + 1 for x in exps.max(axis=0)] if c else [1] * nvar  # powers of each variable that occur
     if int(np.prod(widths)) <= option("folded_max_powers"):
         basis_rows = _coefficient_matrix_f64(model.basis, deg).numpy()[:, :width]
         g = folded_tensor(basis_rows, exps, coef, bool(pairs), widths).reshape(ncombo, -1).T  # (monomials, combos)
-        nb = len(pair_mats) * m * m
-        chain = np.zeros((ncombo, k * m + nb))  # the chain rule: dL/dz -> dL/dx, d2L/dz2 -> the blocks
-        chain[:nvar, : k * m] = w.T
-        if pair_mats:
-            chain[nvar:, k * m :] = np.concatenate(pair_mats, axis=1)
-        g_chain = g @ chain  # monomials -> [dL/dx | blocks]: one product per call
-        shift = center / half
-        chunk = max(1, option("folded_chunk") // int(np.prod(widths)))
-        accumulate = np.multiply.accumulate
+        return _folded_forms(g, w, center / half, widths, width, pair_mats, k, m)
+    fused = fused_factor_matrix(_coefficient_matrix_f64(model.basis, deg).numpy(), exps, 2)  # (V, width, 3C)
+    return _term_forms(fused, coef, p, center, half, pair_mats, k, m, bool(pairs)), None
 
-        many = _many_cells(g_chain, widths, w, shift)
 
-        def folded(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-            b = cells.shape[0]
-            flat = cells.reshape(b, k * m)
-            out = many(flat) if b >= _MANY_CELLS else np.empty((b, k * m + nb))
-            for lo in range(0, b if b < _MANY_CELLS else 0, chunk):
-                bc = min(b - lo, chunk)
-                pw = np.empty((nvar, bc, width))  # powers (1, z, z^2, ...) of the scaled variables: cumulative products
-                pw[..., 0] = 1.0
-                pw[..., 1:] = (np.dot(flat[lo : lo + bc], w) - shift).T[..., None]
-                accumulate(pw, axis=-1, out=pw)
-                prods = pw[0, :, : widths[0]]  # every monomial prod_v z_v^a_v
-                for v in range(1, nvar):
-                    prods = (prods[:, :, None] * pw[v, :, None, : widths[v]]).reshape(bc, -1)
-                out[lo : lo + bc] = np.dot(prods, g_chain)
-            grad = out[:, : k * m].reshape(b, k, m)
-            return grad, [
-                out[:, k * m + q * m * m : k * m + (q + 1) * m * m].reshape(b, m, m) for q in range(len(pairs))
-            ]
+def _pair_matrices(rows: np.ndarray, pairs: Sequence[tuple[int, int]]) -> list[np.ndarray]:
+    """Per pair ``(a, b)``: the ``(npairs, m m)`` matrix that takes the second derivatives ``d2L/dz_v dz_w``
+    (``v <= w``) to the block ``d2L/dx_a dx_b`` (block = this row vector @ the matrix); ``rows`` is ``dz/dx``
+    as ``(K, m, V)``."""
+    m, nvar = rows.shape[1], rows.shape[2]
+    vw = _pairs(nvar)
+    pair_mats = []
+    for a, b in pairs:
+        full = np.einsum("iv,jw->vwij", rows[a], rows[b])
+        pair_mats.append(
+            np.stack([full[v, u] + full[u, v] if v != u else full[v, v] for v, u in vw]).reshape(-1, m * m)
+        )
+    return pair_mats
 
-        return folded, _Folded(w, shift, tuple(widths), g_chain, k, m)
-    nrows = nvar + (nvar * (nvar + 1) // 2 if pairs else 0)
+
+def _folded_forms(
+    g: np.ndarray,
+    w: np.ndarray,
+    shift: np.ndarray,
+    widths: list[int],
+    width: int,
+    pair_mats: list[np.ndarray],
+    k: int,
+    m: int,
+) -> tuple[NumpyDerivatives, _Folded]:
+    """The forms evaluated from the coefficients folded onto the monomials: ``g`` takes the monomials to
+    ``[dL/dz | d2L/dz_v dz_w]``, ``z = x.flat @ w - shift``, a variable has at most ``width`` powers."""
+    nvar, ncombo, npairs = len(widths), g.shape[1], len(pair_mats)
+    nb = npairs * m * m
+    chain = np.zeros((ncombo, k * m + nb))  # the chain rule: dL/dz -> dL/dx, d2L/dz2 -> the blocks
+    chain[:nvar, : k * m] = w.T
+    if pair_mats:
+        chain[nvar:, k * m :] = np.concatenate(pair_mats, axis=1)
+    g_chain = g @ chain  # monomials -> [dL/dx | blocks]: one product per call
+    chunk = max(1, option("folded_chunk") // int(np.prod(widths)))
+    accumulate = np.multiply.accumulate
+
+    many = _many_cells(g_chain, widths, w, shift)
+
+    def folded(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        b = cells.shape[0]
+        flat = cells.reshape(b, k * m)
+        out = many(flat) if b >= _MANY_CELLS else np.empty((b, k * m + nb))
+        for lo in range(0, b if b < _MANY_CELLS else 0, chunk):
+            bc = min(b - lo, chunk)
+            pw = np.empty((nvar, bc, width))  # powers (1, z, z^2, ...) of the scaled variables: cumulative products
+            pw[..., 0] = 1.0
+            pw[..., 1:] = (np.dot(flat[lo : lo + bc], w) - shift).T[..., None]
+            accumulate(pw, axis=-1, out=pw)
+            prods = pw[0, :, : widths[0]]  # every monomial prod_v z_v^a_v
+            for v in range(1, nvar):
+                prods = (prods[:, :, None] * pw[v, :, None, : widths[v]]).reshape(bc, -1)
+            out[lo : lo + bc] = np.dot(prods, g_chain)
+        grad = out[:, : k * m].reshape(b, k, m)
+        return grad, [out[:, k * m + q * m * m : k * m + (q + 1) * m * m].reshape(b, m, m) for q in range(npairs)]
+
+    return folded, _Folded(w, shift, tuple(widths), g_chain, k, m)
+
+
+def _term_forms(
+    fused: np.ndarray,
+    coef: np.ndarray,
+    p: np.ndarray,
+    center: np.ndarray,
+    half: np.ndarray,
+    pair_mats: list[np.ndarray],
+    k: int,
+    m: int,
+    with_pairs: bool,
+) -> NumpyDerivatives:
+    """The forms evaluated term by term with the fused factor matrices ``fused`` (``(V, width, 3C)``);
+    ``z = (x.flat @ p - center) / half``."""
+    nvar, width, c = fused.shape[0], fused.shape[1], fused.shape[2] // 3
+    w = p / half  # dz/dx
+    nrows = nvar + (nvar * (nvar + 1) // 2 if with_pairs else 0)
 
     def derivatives(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
         b = cells.shape[0]
@@ -338,7 +376,7 @@ def _numpy_forms(
         for v in range(nvar):
             _product(t[v], d1[v], excl[v])
         j = nvar
-        for v in range(nvar if pairs else 0):
+        for v in range(nvar if with_pairs else 0):
             _product(t[j], d2[v], excl[v])
             j += 1
             between = pre[v]
@@ -353,4 +391,4 @@ def _numpy_forms(
         blocks = [(s[nvar:].T @ mat).reshape(b, m, m) for mat in pair_mats]
         return grad, blocks
 
-    return derivatives, None
+    return derivatives

@@ -32,22 +32,11 @@ from ._panels import (
 from ._status import _RED, _Status, _stop_span
 
 
-def _build(
-    pred: xr.DataArray,
-    ref: xr.DataArray | None,
-    err: xr.DataArray | None = None,
-    *,
-    series: Mapping[str, xr.DataArray] | None = None,
-    attrs: Mapping[str, Any] | None = None,
-    title: str | None = None,
-    train: Sequence[xr.DataArray] | None = None,
-    spread: xr.DataArray | None = None,
-) -> Figure:
-    """The figure of one task. Kept in one piece (~85 lines): it is the layout itself, a straight sequence
-    of panels in grid order; each panel's drawing lives in ``_panels``."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
+def _aligned(
+    pred: xr.DataArray, ref: xr.DataArray | None, err: xr.DataArray | None
+) -> tuple[xr.DataArray, xr.DataArray | None, xr.DataArray | None, tuple[str, ...]]:
+    """The prediction checked (components last), the reference on its lattice, the error to show (``pred -
+    ref`` unless a matching one is given, in the prediction's units) and the lattice dims."""
     if not isinstance(pred, xr.DataArray):
         raise InputError(f"prediction: expected an xarray.DataArray, got {type(pred).__name__}")
     dims = lattice_dims(pred)
@@ -63,6 +52,41 @@ def _build(
         err = pred - ref
     if err is not None:
         err = err.assign_attrs(units=pred.attrs.get("units", err.attrs.get("units")))
+    return pred, ref, err, dims
+
+
+def _status_box(sub: Any, lines: list[str]) -> None:
+    """The status lines (INCOMPLETE, WARNING) in a red box across the top of the figure."""
+    sub.text(
+        0.5,
+        0.5,
+        "\n".join(lines),
+        ha="center",
+        va="center",
+        color=_RED,
+        fontsize="medium",
+        fontweight="bold",
+        bbox={"facecolor": "#fff0f0", "edgecolor": _RED, "boxstyle": "round,pad=0.4"},
+    )
+
+
+def _build(
+    pred: xr.DataArray,
+    ref: xr.DataArray | None,
+    err: xr.DataArray | None = None,
+    *,
+    series: Mapping[str, xr.DataArray] | None = None,
+    attrs: Mapping[str, Any] | None = None,
+    title: str | None = None,
+    train: Sequence[xr.DataArray] | None = None,
+    spread: xr.DataArray | None = None,
+) -> Figure:
+    """The figure of one task: the layout, a straight sequence of panels in grid order; each panel's drawing
+    lives in ``_panels``."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    pred, ref, err, dims = _aligned(pred, ref, err)
     series = dict(series or {})
     status = _Status(attrs or {}, pred.sizes[dims[0]])
     span = _stop_span(pred, status)
@@ -90,17 +114,7 @@ def _build(
     FigureCanvasAgg(fig)
     subs = list(fig.subfigures(len(heights), 1, height_ratios=heights, squeeze=False)[:, 0])
     if lines:
-        subs.pop(0).text(
-            0.5,
-            0.5,
-            "\n".join(lines),
-            ha="center",
-            va="center",
-            color=_RED,
-            fontsize="medium",
-            fontweight="bold",
-            bbox={"facecolor": "#fff0f0", "edgecolor": _RED, "boxstyle": "round,pad=0.4"},
-        )
+        _status_box(subs.pop(0), lines)
     field_fig = subs.pop(0)
     train = list(train or [])
     time_axes: list[Axes] = []
