@@ -140,9 +140,9 @@ DEFERRED_PACKAGES: dict[str, str] = {
     "matplotlib": "figures: only when a figure is drawn",
     "meshio": "XDMF export: an optional dependency",
     "h5py": "XDMF export: an optional dependency",
-    "netCDF4": "part files: appended slice by slice through the netCDF4 library only while a task is served",
-    "tqdm": "progress bars: tqdm.notebook needs ipywidgets, chosen only where a notebook runs",
-    "fcntl": "POSIX only: the results-folder lock falls back where it is missing",
+    "netCDF4": "part files: written through the netCDF4 library itself only when a task is served with a cadence",
+    "tqdm": "progress bars: tqdm.notebook needs ipywidgets and serves only in a notebook; tqdm.std with the first bar",
+    "fcntl": "POSIX only: where it is missing, the results folder is not locked",
 }
 
 #: Imports of package modules inside functions: (importing module or package, imported module) -> why.
