@@ -343,7 +343,7 @@ def _start(model: AbstractLagrangian, td: TaskData) -> tuple[xr.DataArray, str]:
     denoises when training corrected noisy data."""
     from ._learn._noise import DENOISE_SLICES, denoised_start
 
-    noise = getattr(getattr(model, "report_", None), "noise", None) or {}
+    noise = (model.report_.noise if model.report_ is not None else None) or {}
     if td.task.start == "data" or (td.task.start == "auto" and noise.get("method", "none") == "none"):
         return td.init, "data"
     log.info(

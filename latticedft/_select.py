@@ -136,7 +136,7 @@ def _score(model: AbstractLagrangian, fields: list[xr.DataArray], boundary: Boun
     """The largest served error over the largest magnitude, field by field; ``ServeError`` when one stops.
     A candidate whose training corrected noisy data serves from denoised initial slices, as a case's task
     with ``start = "auto"`` would."""
-    noise = getattr(getattr(model, "report_", None), "noise", None) or {}
+    noise = (model.report_.noise if model.report_ is not None else None) or {}
     denoise = noise.get("method", "none") != "none"
     worst = 0.0
     for f in fields:
