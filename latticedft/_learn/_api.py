@@ -11,6 +11,7 @@ from dataclasses import dataclass, replace
 import torch
 import xarray as xr
 
+from .._contract import GaugeName
 from .._device import device_label, on_device, resolve_device
 from .._errors import InputError
 from .._lattice import BoundaryKinds, LatticeField
@@ -358,8 +359,9 @@ def _learn_auto(
 ) -> LearnReport:
     """``gauge="auto"``: the rule of :data:`AUTO_RULE`, every candidate fitted from the same start."""
     start = {k: v.detach().clone() for k, v in model.state_dict().items()}
-    first = _fit(model, fields, gauge_named("unit-mass"), ridge, nsites, settings, symmetries)
-    scores = {"unit-mass": first.rel_res}
+    unit_mass, trace = gauge_named(GaugeName.UNIT_MASS), gauge_named(GaugeName.TRACE)
+    first = _fit(model, fields, unit_mass, ridge, nsites, settings, symmetries)
+    scores = {unit_mass.name: first.rel_res}
     if model.m == 1:
         why = "one component: unit-mass and trace are the same condition"
     elif model.unit_mass_by_construction:
@@ -369,8 +371,8 @@ def _learn_auto(
     else:
         kept = {k: v.detach().clone() for k, v in model.state_dict().items()}
         model.load_state_dict(start)
-        second = _fit(model, fields, gauge_named("trace"), ridge, nsites, settings, symmetries)
-        scores["trace"] = second.rel_res
+        second = _fit(model, fields, trace, ridge, nsites, settings, symmetries)
+        scores[trace.name] = second.rel_res
         better = second.rel_res < AUTO_FACTOR * first.rel_res and second.hessian_min_sv >= AUTO_MIN_SV
         wall = first.wall_time + second.wall_time
         if better:
