@@ -47,6 +47,7 @@ _PUBLIC: dict[str, str] = {
     "FeatureLagrangian": "._models",
     "LinearLagrangian": "._models",
     "MLPLagrangian": "._models",
+    "ModelKind": "._models",
     "PolynomialLagrangian": "._models",
     "get_options": "._options",
     "set_options": "._options",
@@ -127,6 +128,7 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._models import FeatureLagrangian as FeatureLagrangian
     from ._models import LinearLagrangian as LinearLagrangian
     from ._models import MLPLagrangian as MLPLagrangian
+    from ._models import ModelKind as ModelKind
     from ._models import PolynomialLagrangian as PolynomialLagrangian
     from ._noether import DiscoveryReport as DiscoveryReport
     from ._noether import Symmetry as Symmetry

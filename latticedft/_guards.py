@@ -146,33 +146,13 @@ def available_memory() -> int | None:
 
 
 def _parameter_lower_bound(case: Case, data: Any) -> tuple[int, str] | None:
-    """(a lower bound of the parameter count, the key that sets it) of the case's model, or None."""
-    options = case.model.options
-    if case.model.kind == "mlp" and isinstance(options.get("hidden"), list):
-        model: Any = None  # the layer sizes as given: nothing is built
-    else:
-        try:
-            model = MODELS[case.model.kind](**options)  # resolves presets and defaults; tensors come with bind()
-        except Exception:  # noqa: BLE001 - bad options are the case reader's to report
-            return None
-    n = len(data.dims)
+    """(a lower bound of the parameter count, the key that sets it) of the case's model, or None: its kind's
+    :meth:`~latticedft.AbstractLagrangian.parameter_lower_bound`."""
+    kind = MODELS.get(case.model.kind)
+    if kind is None:  # the case reader reports it
+        return None
     m = len(data.components) if data.components else 1
-    if case.model.kind == "mlp":
-        hidden = [int(h) for h in (options["hidden"] if model is None else getattr(model, "hidden", []))]
-        if not hidden:
-            return None
-        count, width = 0, 1  # at least one input
-        for h in hidden:
-            count += (width + 1) * h
-            width = h
-        return count + width + 1, "model.hidden"
-    if case.model.kind == "polynomial":
-        p, q = getattr(model, "orders", (0, 0))
-        terms = math.comb(q + m, m) * math.comb(p + n * m, n * m)
-        if getattr(model, "time_symmetric", False):
-            terms //= 2  # the even powers of the time differences: at least half
-        return terms, "model.orders"
-    return None
+    return kind.parameter_lower_bound(case.model.options, len(data.dims), m)
 
 
 def check_model_size(case: Case, data: Any, available: int | None = None) -> None:

@@ -23,6 +23,7 @@ import xarray as xr
 from ._boundary import missing_edges
 from ._case import Case, ServeTask, load_invariant
 from ._case_charges import check_charges, drift_text, task_charges
+from ._contract import AbstractLagrangian
 from ._errors import ConfigError, InputError, LatticeDFTError, ServeError
 from ._lattice import as_lattice_field
 from ._layout import component_labels, field_spacing, lattice_dims
@@ -258,7 +259,7 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
     return model, report
 
 
-def _select_and_learn(case: Case, data: CaseData, model: Any) -> tuple[Any, Any]:
+def _select_and_learn(case: Case, data: CaseData, model: AbstractLagrangian) -> tuple[Any, Any]:
     """``[model] select``: score the candidates by serving held-out data (table to the log); the chosen model,
     learned on all the data. With ``[train] ensemble`` the candidates are scored as single models and the chosen
     one is then learned as the ensemble's member 0 (its report keeps the selection table and warnings)."""
@@ -337,12 +338,12 @@ class TaskOutcome:
         return attrs
 
 
-def _start(model: Any, td: TaskData) -> tuple[xr.DataArray, str]:
+def _start(model: AbstractLagrangian, td: TaskData) -> tuple[xr.DataArray, str]:
     """The task's initial data and how they were taken (``[[serve]] start``): ``denoised`` asks for it, ``auto``
     denoises when training corrected noisy data."""
     from ._learn._noise import DENOISE_SLICES, denoised_start
 
-    noise = getattr(getattr(model, "report_", None), "noise", None) or {}
+    noise = (model.report_.noise if model.report_ is not None else None) or {}
     if td.task.start == "data" or (td.task.start == "auto" and noise.get("method", "none") == "none"):
         return td.init, "data"
     log.info(
@@ -352,7 +353,10 @@ def _start(model: Any, td: TaskData) -> tuple[xr.DataArray, str]:
 
 
 def serve_task(
-    model: Any, td: TaskData, on_kept: Callable[[int, np.ndarray], Any] | None = None, device: str = "cpu"
+    model: AbstractLagrangian,
+    td: TaskData,
+    on_kept: Callable[[int, np.ndarray], Any] | None = None,
+    device: str = "cpu",
 ) -> TaskOutcome:
     """Serve one task (the model evaluated on ``device``); a Newton failure gives an incomplete outcome (with a
     warning), not an exception.

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -10,8 +9,8 @@ from typing import Any
 
 from .._errors import ConfigError, LatticeDFTError
 from .._learn import GAUGES, OPTIMIZERS
+from .._modeloptions import OptionTypeError
 from .._models import MODELS, AbstractLagrangian
-from .._models._options import OptionTypeError
 from .._serve import MODES, SOLVERS
 from .._stencil import Stencil
 from ._checks import (
@@ -112,12 +111,7 @@ _SLICES_ALIASES = ("slices", "steps")
 
 def model_options(kind: str) -> dict[str, Any]:
     """The constructor options of ``MODELS[kind]`` with their defaults (``stencil`` excluded)."""
-    sig = inspect.signature(MODELS[kind].__init__)
-    return {
-        name: (None if p.default is inspect.Parameter.empty else p.default)
-        for name, p in sig.parameters.items()
-        if name not in ("self", "stencil") and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
-    }
+    return MODELS[kind].option_defaults()
 
 
 def model_option_check(kind: str, option: str) -> Callable[[Any], Any]:

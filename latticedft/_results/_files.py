@@ -9,7 +9,7 @@ import os
 import platform
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import xarray as xr
@@ -21,6 +21,9 @@ from ..io.exporters import ExportTask, export_formats
 from ..io.fields import read_field
 from ..io.fields import write_field as _write_field
 from ._safety import _show, _signals_deferred, _writing, log
+
+if TYPE_CHECKING:
+    from .._contract import AbstractLagrangian
 
 
 def versions() -> dict[str, str]:
@@ -70,13 +73,13 @@ def sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def write_model(folder: Path, model: Any, report: Any, meta: Mapping[str, Any]) -> dict[str, Any]:
+def write_model(folder: Path, model: AbstractLagrangian, report: Any, meta: Mapping[str, Any]) -> dict[str, Any]:
     """``model.pt`` (:func:`latticedft.save_model`) and ``model.json`` (same record, no tensors)."""
     from .._modelfile import model_record, save_model
 
     with _writing(folder / "model.pt"):
         pt = save_model(model, folder / "model.pt", gauge=report.gauge if report is not None else None)
-    record = model_record(model, report.gauge if report is not None else "unit-mass")
+    record = model_record(model, report.gauge if report is not None else None)
     record["n_parameters"] = model.n_parameters()
     record["training"] = report.to_dict() if report is not None else None
     record["sha256"] = sha256(pt)

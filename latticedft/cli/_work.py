@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tqdm.std import tqdm  # not tqdm.auto: no ipywidgets warning in Jupyter (latticedft._progress)
 
@@ -21,6 +21,9 @@ from .._results import config_attrs, export_task, read_summary, read_task, write
 from .._results._part import PartFile
 from ..io.exporters import remove_exports
 from ._common import INCOMPLETE, OK, command_line
+
+if TYPE_CHECKING:
+    from .._contract import AbstractLagrangian
 
 log = logging.getLogger("latticedft")
 
@@ -56,7 +59,7 @@ def recorded_exports(folder: Path) -> dict[str, list[str]]:
     }
 
 
-def model_warnings_of(model: Any, folder: Path) -> list[str]:
+def model_warnings_of(model: AbstractLagrangian, folder: Path) -> list[str]:
     """The warnings of the model's training: from its report, or (a model read from ``model.pt``) from the
     ``train`` section of ``folder/summary.json``."""
     report = getattr(model, "report_", None)
@@ -67,7 +70,7 @@ def model_warnings_of(model: Any, folder: Path) -> list[str]:
     return [str(w) for w in found] if isinstance(found, list) else []
 
 
-def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[str]) -> dict[str, Any]:
+def serve_into(folder: Path, case: Case, data: CaseData, model: AbstractLagrangian, argv: list[str]) -> dict[str, Any]:
     """Serve every task into ``<task>.nc`` and export it; returns the summary's tasks section."""
     tasks: dict[str, Any] = {}
     attrs = config_attrs(case.raw, case.overrides, command_line(argv))
