@@ -71,11 +71,11 @@ class CaseData:
             t = td.task
             lines.append(
                 f"serve {t.name}: from {_rel(t.source, case.root)} {dict(td.init.sizes)}, "
-                f"{td.slices} slices, boundary {t.boundary or 'from file/dirichlet'}, mode {t.mode}"
+                f"{td.slices} slices, boundary {t.boundary or 'from file/dirichlet'}, mode {t.options.mode}"
                 + (", reference" if td.reference is not None else ", no reference")
                 + (", baseline" if td.baseline is not None else "")
                 + (f", charges {list(t.charges)}" if t.charges else "")
-                + (f", every {t.every}" if t.every > 1 else "")
+                + t.cadence.describe()
                 + (f" (warning: {t.label}.steps is deprecated: write {t.label}.slices)" if t.deprecated_steps else "")
             )
         return lines
@@ -138,7 +138,7 @@ def check_case(case: Case) -> CaseData:
 def _check_task(
     case: Case, t: ServeTask, dims: tuple[str, ...], spacing: tuple[float, ...], comps: tuple[str, ...] | None
 ) -> TaskData:
-    lazy = t.every > 1 and len(dims) > 1  # served slice by slice: the files are read where they are needed
+    lazy = t.cadence.thins and len(dims) > 1  # served slice by slice: the files are read where they are needed
     init = _read(t.source, case, comps, lazy)
     if lattice_dims(init) != dims:
         raise InputError(
@@ -162,13 +162,13 @@ def _check_task(
             raise _as_case_error(exc, f"{t.label}.boundary") from None
         raise
     check_charges(t.charges, f, f"{t.label}.charges")
-    if t.every > 1 and t.charges:
+    if t.cadence.thins and t.charges:
         raise ConfigError(
             f"case.toml: {t.label}.every: the Noether charges ({t.label}.charges) are measured on the whole "
             "served field; give every = 1 or no charges",
             key=f"{t.label}.every",
         )
-    if t.every > 1 and case.train.learn.get("ensemble"):
+    if t.cadence.thins and case.train.learn.get("ensemble"):
         raise ConfigError(
             f"case.toml: {t.label}.every: an ensemble (train.ensemble) is served whole, every member on every "
             "slice; give every = 1 or no ensemble",
@@ -183,7 +183,7 @@ def _check_task(
             "or fewer slices",
             key=key,
         )
-    if t.box is not None and len(dims) != 1:
+    if t.options.box is not None and len(dims) != 1:
         raise ConfigError(f"case.toml: {t.label}.box: stopping at a box is for 1D trajectories only")
     ref: xr.DataArray | None
     if t.reference is not None:
@@ -373,18 +373,18 @@ def serve_task(
             t.label,
             t.label,
         )
-    log.info("serving %s: %d slices from %s (%s)", t.name, td.slices, t.source.name, t.mode)
+    log.info("serving %s: %d slices from %s (%s)", t.name, td.slices, t.source.name, t.options.mode)
     t0 = time.perf_counter()
     stopped = ""
-    kwargs = t.serve_kwargs()
+    options = t.options.replace(progress=None, device=device)
     meter = None
-    if t.every > 1:  # errors and the invariant measured on every slice as it is served
+    if t.cadence.thins:  # errors and the invariant measured on every slice as it is served
         from ._task_stream import TaskMeter
 
-        meter = kwargs["on_slice"] = TaskMeter(td.reference, td.invariant, on_kept)
+        meter = TaskMeter(td.reference, td.invariant, on_kept)
     init, start = _start(model, td)
     try:
-        result = serve(model, init, progress=None, device=device, **kwargs)
+        result = serve(model, init, slices=t.slices, boundary=t.boundary, options=options, on_slice=meter)
     except ServeError as err:
         result = err.result
         if isinstance(result, list):  # pragma: no cover - a single init gives one result
@@ -397,7 +397,7 @@ def serve_task(
     if meter is not None:
         meter.finish()
     rec: dict[str, Any] = result.to_dict()
-    rec["every"] = t.every
+    rec["every"] = t.cadence.every
     rec["kept_slices"] = int(pred.sizes[pred.dims[0]])
     rec["stop_reason"] = None if result.complete else stopped
     for warning in result.warnings:  # the served field leaves the training range
@@ -467,8 +467,8 @@ def serve_task(
     msg = (
         f"task {t.name}: {'complete' if result.complete else 'INCOMPLETE'}, {result.slices} slices, {how}, {wall:.2f} s"
     )
-    if t.every > 1:
-        msg += f", every {t.every}: {rec['kept_slices']} slices kept"
+    if t.cadence.thins:
+        msg += f"{t.cadence.describe()}: {rec['kept_slices']} slices kept"
     if "max_error" in rec:
         msg += f", max error {rec['max_error']:.3e}, rms {rec['rms_error']:.3e}"
     if "baseline" in rec:

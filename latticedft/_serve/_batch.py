@@ -13,6 +13,7 @@ import xarray as xr
 from .._action import CellDerivatives, cell_derivatives
 from .._lattice import LatticeField, to_dataarrays
 from .._models import AbstractLagrangian
+from ._options import ServeOptions
 from ._range import assess
 from ._result import ServeResult, _bar
 from ._slices import SINGULAR_RTOL, is_singular, singular_message
@@ -209,11 +210,7 @@ def _serve_batch(
     model: AbstractLagrangian,
     fs: list[LatticeField],
     steps: list[int],
-    mode: str,
-    rtol: float,
-    max_newton: int,
-    box: float | None,
-    progress: bool | None,
+    options: ServeOptions,
 ) -> list[ServeResult]:
     """Step a batch of 1D trajectories together; a member that fails or leaves the box retires alone.
 
@@ -223,6 +220,8 @@ def _serve_batch(
     """
     from ._fast1d import numpy_derivatives_of, serve_fast  # it builds on _Batch
 
+    mode, rtol, max_newton, box = options.mode, options.rtol, options.max_newton, options.box
+    progress = options.progress
     derivatives = numpy_derivatives_of(model)
     if derivatives is not None:
         return serve_fast(model, fs, steps, mode, rtol, max_newton, box, progress, derivatives)

@@ -77,7 +77,9 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
         part = (
-            PartFile(folder, td.task.name, case.field.variable, td.init, td.task.every) if td.task.every > 1 else None
+            PartFile(folder, td.task.name, case.field.variable, td.init, td.task.cadence.every)
+            if td.task.cadence.thins
+            else None
         )
         try:
             out: TaskOutcome = serve_task(model, td, part, case.run.device)
