@@ -8,7 +8,8 @@ the paper's site-by-site sweep (Qin 2020, Sec. 2, Steps 1-5), kept as a
 reference. In 1D a slice is one site and a batch of trajectories is stepped
 together.
 
-One module per concept: ``_result`` (the result record and metrics),
+One module per concept: ``_options`` (the serving options and the output cadence, as values),
+``_result`` (the result record and metrics),
 ``_slices`` (one slice as a system of equations), ``_affine`` (the affine
 recurrence of a quadratic ``L_d``), ``_newton`` (slice-Newton), ``_solvers`` (the linear
 solve of a Newton step: site-wise, Krylov or LU), ``_sweep``
