@@ -211,7 +211,9 @@ class ServeOptions:
     def from_keywords(cls, base: ServeOptions | None = None, **keywords: Any) -> ServeOptions:
         """``base`` (default: the defaults) with the options given as keywords; a TypeError names an unknown
         keyword, as Python's would."""
-        names = [f.name for f in dataclasses.fields(cls)]
+        if base is not None and not isinstance(base, ServeOptions):
+            raise InputError.at("options", f"expected a ServeOptions, got {type(base).__name__}")
+        names = [f.name for f in dataclasses.fields(cls if base is None else type(base))]
         for key in keywords:
             if key not in names:
                 near = difflib.get_close_matches(key, names, n=1, cutoff=0.6)
@@ -219,8 +221,6 @@ class ServeOptions:
                 raise TypeError(f"serve() got an unexpected keyword argument {key!r}{hint}")
         if base is None:
             return cls(**keywords)
-        if not isinstance(base, ServeOptions):
-            raise InputError.at("options", f"expected a ServeOptions, got {type(base).__name__}")
         return dataclasses.replace(base, **keywords) if keywords else base
 
     @classmethod
