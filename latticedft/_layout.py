@@ -318,6 +318,21 @@ def _non_finite(da: xr.DataArray) -> tuple[int, tuple[int, ...]]:
     return total, first
 
 
+_TIME_NAMES = ("t", "time")
+
+
+def _check_time_first(da: xr.DataArray, dims: tuple[str, ...], source: str) -> None:
+    """The time dim comes first: a dim named ``t`` or ``time``, or whose coordinate says ``axis: T`` or
+    ``standard_name: time``, anywhere else is an error (``field.transpose("x", "t")`` would serve x as time)."""
+    for dim in dims[1:]:
+        attrs = da.coords[dim].attrs if dim in da.coords else {}
+        if dim.lower() in _TIME_NAMES or attrs.get("axis") == "T" or attrs.get("standard_name") == "time":
+            raise InputError(
+                f"{source}: the time dim '{dim}' is in place {dims.index(dim) + 1} of the dims {dims}; "
+                f"expected time first and x last (da.transpose('{dim}', ...))"
+            )
+
+
 def validate_field(
     da: xr.DataArray,
     source: str = "<array>",
@@ -365,6 +380,7 @@ def validate_field(
     dims = lattice_dims(da)
     if not dims:
         raise InputError(f"{source}: {what} has no lattice dims; expected e.g. psi(t), psi(t, x)")
+    _check_time_first(da, dims, source)
     for dim in dims:
         check_coordinate(da, dim, source)
     if not (np.issubdtype(da.dtype, np.floating) or np.issubdtype(da.dtype, np.integer)) or da.dtype == bool:

@@ -70,6 +70,22 @@ def save_model(model: AbstractLagrangian, path: str | os.PathLike, *, gauge: str
     return path
 
 
+def not_a_file(path: Path) -> str:
+    """Why ``path`` (not a regular file) cannot be read as a file: missing, or what it is instead."""
+    if not os.path.lexists(path):
+        return "model file not found"
+    if os.path.islink(path) and not path.exists():
+        return f"a link to {os.readlink(path)}, which does not exist"
+    what = "a folder" if path.is_dir() else "not a regular file (a device, a pipe or a socket)"
+    link = f" (a link to {os.readlink(path)})" if os.path.islink(path) else ""
+    return f"is {what}{link}; expected a model file"
+
+
+def _head(path: Path) -> bytes:
+    with open(path, "rb") as f:
+        return f.read(64)
+
+
 def load_model(path: str | os.PathLike) -> AbstractLagrangian:
     """Read a model file written by :func:`save_model`; never unpickles arbitrary objects.
 
@@ -82,7 +98,13 @@ def load_model(path: str | os.PathLike) -> AbstractLagrangian:
         raise InputError.at("path", f"expected a file path, got {type(path).__name__}")
     path = Path(path)
     if not path.is_file():
-        raise ModelFileError(f"{path}: model file not found")
+        raise ModelFileError(f"{path}: {not_a_file(path)}")
+    head = _head(path)
+    if head[:2] != b"PK" and head[:1] != b"\x80":  # neither torch's zip format nor a pickle
+        raise ModelFileError(
+            f"{path}: not a model file: expected a file written by latticedft (torch's zip format), "
+            f"found one starting with {head[:16]!r}"
+        )
     try:
         rec = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # corrupt zip, truncated file, or a pickled object refused by weights_only

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from ._faults import _fault
+from ._atomic import fault
 
 __all__ = ["PartFile", "complete_part", "part_path"]
 
@@ -77,7 +77,7 @@ class PartFile:
         self.svar[self.n] = index
         self.n += 1
         self.ds.sync()
-        _fault("slice", self.path)
+        fault("slice", self.path)
 
     def close(self) -> None:
         if self.ds.isopen():

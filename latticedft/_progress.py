@@ -2,10 +2,11 @@
 
 :func:`progress_bar` picks the bar class once: ``tqdm.notebook`` inside a Jupyter kernel *with* ipywidgets,
 plain ``tqdm`` otherwise. (``tqdm.auto`` warns "IProgress not found" at import in a kernel without
-ipywidgets, so latticedft never imports it.) ``progress=None`` shows the bar only when stderr is a
-terminal. Where the bar cannot redraw in place (a notebook without ipywidgets, a file), every refresh is a
-new line, so it refreshes at most every :data:`PLAIN_INTERVAL` seconds and keeps its last line; on a
-terminal or as a widget it refreshes every :data:`LIVE_INTERVAL` seconds and disappears when done.
+ipywidgets, so latticedft never imports it.) ``progress=None`` shows the bar when stderr is a terminal
+and in a Jupyter kernel, and nowhere else. Where the bar cannot redraw in place (a notebook without
+ipywidgets, a file), every refresh is a new line, so it refreshes at most every :data:`PLAIN_INTERVAL`
+seconds and keeps its last line; on a terminal or as a widget it refreshes every :data:`LIVE_INTERVAL`
+seconds and disappears when done.
 """
 
 from __future__ import annotations
@@ -41,9 +42,9 @@ def _isatty(stream: Any) -> bool:
 
 
 def progress_bar(total: int, desc: str, progress: bool | None) -> Any:
-    """A bar over ``total`` steps; ``progress``: True, False, or None (only when stderr is a terminal)."""
+    """A bar over ``total`` steps; ``progress``: True, False, or None (on a terminal and in Jupyter only)."""
     tty = _isatty(sys.stderr)
-    show = tty if progress is None else bool(progress)
+    show = (tty or in_jupyter()) if progress is None else bool(progress)
     if show and not tty and in_jupyter() and _widgets():
         from tqdm.notebook import tqdm as notebook_tqdm
 

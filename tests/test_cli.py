@@ -98,6 +98,7 @@ def test_info_prints_case_model_and_summary(wave_run: Path, capsys) -> None:
     code, out, err = run_cli(capsys, "info", wave_run)
     assert code == 0
     assert "L_d =" in out and "training: loss" in out and "task test: complete" in out
+    assert "verdict: good: the data obey the learned equations" in out
 
 
 def test_check_prints_a_summary_and_writes_nothing(tmp_path: Path, capsys) -> None:
@@ -111,7 +112,13 @@ def test_check_prints_a_summary_and_writes_nothing(tmp_path: Path, capsys) -> No
 def test_train_then_serve_then_export(tmp_path: Path, capsys) -> None:
     case = tiny_wave(tmp_path)
     assert run_cli(capsys, "train", case, "-q")[0] == 0
-    assert {p.name for p in (case / "results").iterdir()} == {"model.pt", "model.json", "summary.json", "run.log"}
+    assert {p.name for p in (case / "results").iterdir()} == {
+        "model.pt",
+        "model.json",
+        "summary.json",
+        "run.log",
+        ".latticedft-results",
+    }
     code, _, err = run_cli(capsys, "serve", case)
     assert code == 0 and "task test: complete" in err
     res = case / "results"

@@ -14,7 +14,7 @@ from latticedft.io.exporters import DEFAULT_FORMATS, EXPORTERS, Exporter, get_ex
 from case_helpers import leftovers, run_cli, tiny_wave, write_toml
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
-KEEP = {"model.pt", "model.json", "summary.json", "run.log"}
+KEEP = {"model.pt", "model.json", "summary.json", "run.log", ".latticedft-results"}
 
 
 def _two_tasks(tmp: Path) -> Path:

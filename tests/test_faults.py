@@ -207,6 +207,7 @@ def scenarios(template: Path, tmp_path_factory: pytest.TempPathFactory) -> Itera
             None,
         ),
         "hidden-memory": (("check", mlp, "-q"), None),
+        "threads": (("run", c("threads"), "--overwrite", "-q", "--set", "run.threads=100000"), None),
         # 10. model files verified
         "nan-weights": (("serve", nan_case, "-q"), None),
         "changed-model": (("info", changed, "-q"), None),
@@ -231,6 +232,10 @@ def scenarios(template: Path, tmp_path_factory: pytest.TempPathFactory) -> Itera
         # 4. signals
         "sigterm": (("run", c("sigterm"), "--overwrite", "-q"), "term:after-stage"),
         "sigint": (("serve", c("sigint"), "-q"), "int:stage"),
+        "int-loading": (("run", c("int-loading"), "--overwrite", "-q"), "int:loading"),
+        "term-loading": (("serve", c("term-loading"), "-q"), "term:loading"),
+        "int-exit": (("serve", c("int-exit"), "-q"), "int:exit"),
+        "term-exit": (("serve", c("term-exit"), "-q"), "term:exit"),
         "sigterm-mid-publish": (("run", c("sigterm-mid-publish"), "--overwrite", "-q"), "no-exchange,term:mid-publish"),
         # 2. kills
         "kill-after-stage": (("serve", c("kill-after-stage"), "-q"), "kill:after-stage"),
@@ -298,6 +303,8 @@ def test_out_beside_the_results_is_fine(scenarios: _Scenarios) -> None:
         ("data/train.nc", "is the case's input file"),
         ("case.toml", "is the case's input file"),
         ("myinvariant.py", "is the case's input file"),
+        ("results/nested", "lies inside the results folder"),
+        ("loop", "is a link that loops"),
     ],
 )
 def test_destinations_refused(tmp_path: Path, where: str, needle: str) -> None:
@@ -307,11 +314,40 @@ def test_destinations_refused(tmp_path: Path, where: str, needle: str) -> None:
     (case / "myinvariant.py").write_text("def energy(field):\n    return field.sum('x')\n")
     text = (case / "case.toml").read_text().replace('"latticedft.systems:wave_energy"', '"myinvariant:energy"')
     (case / "case.toml").write_text(text)
+    (case / "loop").symlink_to(case / "loop")
     loaded = load_case(case)
     with pytest.raises(ResultsError, match=needle):
         check_destination(case / where, inputs=case_inputs(loaded), root=loaded.root, what="--out")
     for fine in ("results", "results2", "../elsewhere"):
         check_destination(case / fine, inputs=case_inputs(loaded), root=loaded.root)
+
+
+def test_out_inside_any_results_folder_is_refused(tmp_path: Path, template: Path) -> None:
+    case = earlier(template, tmp_path / "a")
+    done = cli("run", case, "--out", tmp_path / "a" / "wave" / "results" / "deeper" / "nested", "-q")
+    one_line(done.err, "lies inside the results folder")
+    other = tmp_path / "other"
+    assert cli("train", case, "--out", other, "-q").code == 0
+    done = cli("run", case, "--out", other / "sub", "-q")
+    one_line(done.err, "lies inside the results folder", "other")
+    assert (other / ".latticedft-results").is_file() and not (other / "sub").exists()
+
+
+def test_overwrite_replaces_only_folders_latticedft_wrote(tmp_path: Path, template: Path) -> None:
+    """A summary.json alone does not make a folder ours: the user's files beside it are never deleted. A results
+    folder of an earlier version (no marker, only files a run writes) is still replaced."""
+    case = earlier(template, tmp_path / "a")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    shutil.copyfile(case / "results" / "summary.json", mine / "summary.json")
+    (mine / "thesis.tex").write_text("years of work\n")
+    done = cli("run", case, "--out", mine, "--overwrite", "-q")
+    one_line(done.err, "holds files that latticedft did not write")
+    assert (mine / "thesis.tex").read_text() == "years of work\n"
+    (case / "results" / ".latticedft-results").unlink()  # as an earlier version wrote it
+    done = cli("run", case, "--overwrite", "-q")
+    assert done.code == 0, done.err
+    assert (case / "results" / ".latticedft-results").is_file()
 
 
 # -- 2. publishing is atomic, and the next run recovers ------------------------------------------------------------
@@ -398,6 +434,19 @@ def test_sigint_publishes_nothing(scenarios: _Scenarios) -> None:
     _refused(scenarios, "sigint", "nothing was published", code=130, prefix="latticedft: interrupted")
 
 
+@pytest.mark.parametrize("name, code", [("int-loading", 130), ("term-loading", 143)])
+def test_a_signal_while_the_engine_loads_is_one_line(scenarios: _Scenarios, name: str, code: int) -> None:
+    _refused(scenarios, name, "nothing was published", code=code, prefix="latticedft: ")
+
+
+@pytest.mark.parametrize("name", ["int-exit", "term-exit"])
+def test_a_signal_after_the_outcome_changes_nothing(scenarios: _Scenarios, name: str) -> None:
+    done = scenarios.done[name]
+    assert done.code == 0 and done.err == "", (done.code, done.err)
+    assert summary(scenarios.cases[name])["exit_status"] == 0
+    assert staging_left(scenarios.cases[name].parent) == []
+
+
 def test_sigterm_during_publishing_waits_for_it(scenarios: _Scenarios) -> None:
     s, name = scenarios, "sigterm-mid-publish"
     case = s.cases[name]
@@ -423,6 +472,73 @@ def test_symlinked_results_are_followed(tmp_path: Path, template: Path) -> None:
     assert hashes(target) != old and (target / "summary.json").is_file()
     assert inputs_of(case) == inputs_of(template)
     assert staging_left(tmp_path) == []
+
+
+@pytest.mark.parametrize("command", ["export", "serve"])
+def test_links_inside_the_results_are_never_written_through(tmp_path: Path, template: Path, command: str) -> None:
+    """A results file that links elsewhere (here run.log to the case's own data, and a task file to a file
+    outside the case) is replaced by a copy: the file it pointed to stays byte-identical."""
+    case = earlier(template, tmp_path / "a")
+    data = case / "data" / "test_leapfrog.nc"
+    outside = tmp_path / "outside.nc"
+    shutil.copyfile(case / "results" / "test.nc", outside)
+    (case / "results" / "run.log").unlink()
+    (case / "results" / "run.log").symlink_to(data)
+    (case / "results" / "test.nc").unlink()
+    (case / "results" / "test.nc").symlink_to(outside)
+    (case / "results" / "dangling").symlink_to(tmp_path / "nowhere")
+    before, outside_before = hashes(case / "data"), hashes(tmp_path)["outside.nc"]
+    done = cli(command, case, *(["--set", 'export.formats=["xdmf"]'] if command == "export" else []))
+    assert done.code == 0, done.err
+    assert "Traceback" not in done.err
+    assert "run.log was a link to" in done.err + done.out and "left out of the updated results" in done.err + done.out
+    assert hashes(case / "data") == before and hashes(tmp_path)["outside.nc"] == outside_before
+    results = case / "results"
+    assert not any(p.is_symlink() for p in results.rglob("*"))
+    assert b"DEBUG" in (results / "run.log").read_bytes()
+    assert staging_left(tmp_path) == []
+
+
+def test_a_model_file_linked_to_a_device_is_named_as_such(tmp_path: Path, template: Path) -> None:
+    case = earlier(template, tmp_path / "a")
+    (case / "results" / "model.pt").unlink()
+    (case / "results" / "model.pt").symlink_to("/dev/zero")
+    done = cli("serve", case, "-q")
+    one_line(done.err, "model.pt: is not a regular file", "/dev/zero")
+
+
+def test_check_beside_a_run_in_progress_does_not_call_it_interrupted(tmp_path: Path, template: Path) -> None:
+    import fcntl
+
+    case = earlier(template, tmp_path / "a")
+    (case / "results.tmp-0123456789").mkdir()  # the staging folder of a run that holds the lock
+    fd = os.open(case, os.O_RDONLY)
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    try:
+        done = cli("check", case)
+    finally:
+        os.close(fd)
+    assert done.code == 0, done.err
+    assert "a run in progress is writing results.tmp-0123456789" in done.out and "interrupted" not in done.out
+    done = cli("check", case)  # the lock released: now it is a leftover
+    assert "an interrupted run left results.tmp-0123456789" in done.out
+
+
+def test_a_leftover_that_cannot_be_removed_is_not_called_removed(tmp_path: Path, template: Path) -> None:
+    case = earlier(template, tmp_path / "a")
+    stuck = case / "results.tmp-0123456789"
+    stuck.mkdir()
+    (stuck / "f").write_text("x")
+    if shutil.which("chattr") is None or subprocess.run(["chattr", "+i", str(stuck / "f")]).returncode != 0:
+        pytest.skip("chattr +i is not available here (needs root and a file system with attributes)")
+    try:
+        done = cli("serve", case)
+        second = cli("serve", case)
+    finally:
+        subprocess.run(["chattr", "-i", str(stuck / "f")])
+    for d in (done, second):
+        assert d.code == 0, d.err
+        assert "could not remove results.tmp-0123456789" in d.err and "removed (" not in d.err, d.err
 
 
 def test_out_that_is_a_file_is_refused(scenarios: _Scenarios) -> None:
@@ -518,6 +634,10 @@ def test_long_task_name_refused_at_check(scenarios: _Scenarios) -> None:
 
 def test_task_too_big_for_memory_refused_before_training(scenarios: _Scenarios) -> None:
     _refused(scenarios, "steps-memory", "serve[0].slices", "of memory", "available")
+
+
+def test_threads_beyond_the_cores_refused(scenarios: _Scenarios) -> None:
+    _refused(scenarios, "threads", "run.threads", "an integer from 1 to", "got 100000")
 
 
 def test_model_too_big_for_memory_refused_at_check(scenarios: _Scenarios) -> None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import latticedft as ldft
-from latticedft import lagrangians
+from latticedft import lagrangians, systems
 
 from helpers import membrane_field, oscillator_data, series, wave_field
 
@@ -137,3 +137,16 @@ def test_kinetic_potential_has_unit_mass_on_any_stencil(stencil):
     rep = ldft.learn(model, train, max_iter=5)
     assert model.unit_mass_by_construction
     assert rep.gauge_residual < 1e-12 and abs(rep.hessian_min_sv - 1) < 1e-12
+
+
+def test_the_verdict_says_the_fit_in_words() -> None:
+    from latticedft._learn._report import POOR_FIT_REL_RES, fit_verdict
+
+    good = ldft.learn(ldft.PolynomialLagrangian((2, 2)), systems.wave_string([(1, 1.0), (2, 0.3)], nx=21, nt=41))
+    assert good.verdict().startswith("verdict: good:") and "next: serve it" in good.verdict()
+    poor = fit_verdict(False, 10 * POOR_FIT_REL_RES)
+    assert poor.startswith("verdict: poor:") and "next:" in poor and "select" in poor
+    assert "train longer" in fit_verdict(False, 10 * POOR_FIT_REL_RES, "lbfgs") and "train longer" not in poor
+    dead = fit_verdict(True, 0.0)
+    assert dead.startswith("verdict: unusable:") and "gauge" in dead
+    assert all("\n" not in v for v in (poor, dead, good.verdict()))

@@ -55,6 +55,29 @@ def test_corrupt_file(tmp_path):
         ldft.load_model(path)
 
 
+@pytest.mark.parametrize(
+    "make, needle",
+    [
+        (lambda p: p.write_text("cats are nice\n"), "not a model file: expected a file written by latticedft"),
+        (lambda p: p.write_text("model = 3\n"), "found one starting with b'model = 3"),
+        (
+            lambda p: p.symlink_to("/dev/zero"),
+            "is not a regular file (a device, a pipe or a socket) (a link to /dev/zero)",
+        ),
+        (lambda p: p.mkdir(), "is a folder"),
+        (lambda p: p.symlink_to(p.parent / "gone.pt"), "which does not exist"),
+    ],
+    ids=["text", "text-m", "dev-zero", "folder", "dangling"],
+)
+def test_what_a_model_path_is_instead_is_said(tmp_path, make, needle):
+    """A text file is not "pickled Python objects", a link to /dev/zero is not "not found"."""
+    path = tmp_path / "model.pt"
+    make(path)
+    with pytest.raises(ldft.ModelFileError) as err:
+        ldft.load_model(path)
+    assert needle in str(err.value) and "pickled" not in str(err.value) and "\n" not in str(err.value)
+
+
 def test_analytic_models_are_not_saveable(tmp_path):
     model = ldft.lagrangians.wave()
     model.bind(2, 1, (0.1, 0.1))

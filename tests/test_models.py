@@ -167,7 +167,8 @@ def test_model_files_of_format_version_1_load(name, cls):
     q = torch.linspace(-1.0, 1.0, 7, dtype=torch.float64)
     cells = torch.stack([q, 0.9 * q + 0.05], -1)[..., None]
     expected = json.loads((FILES_V1 / "expected.json").read_text())[name]
-    assert model(cells).detach().tolist() == expected
+    # to round-off: the last digits of a float64 network depend on the CPU's vector instructions
+    assert model(cells).detach().tolist() == pytest.approx(expected, rel=1e-12, abs=1e-14)
 
 
 def test_the_contract_is_declared():

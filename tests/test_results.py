@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import pyvista as pv
+import xarray as xr
 
 import latticedft as ldft
-from latticedft._results import RUN_LOG, Staging, json_safe, staged_results
+from latticedft._results import MARKER, RUN_LOG, Staging, json_safe, staged_results
 from latticedft.cli import main
 from latticedft.io import read_field, read_pvd
 
@@ -73,7 +74,7 @@ def test_staging_publishes_or_leaves_everything(tmp_path: Path) -> None:
     (s.tmp / "new.txt").write_text("new")
     s.publish()
     s.discard()  # no-op after publish
-    assert sorted(p.name for p in dest.iterdir()) == ["new.txt", "old.txt"]
+    assert sorted(p.name for p in dest.iterdir()) == [MARKER, "new.txt", "old.txt"]
     assert [p.name for p in tmp_path.iterdir()] == ["results"]
 
 
@@ -108,17 +109,17 @@ def test_staged_results_publishes_on_success(tmp_path: Path) -> None:
         logging.getLogger("latticedft").debug("written a.txt")
         assert len(_handlers()) == len(before) + 1
     assert _handlers() == before
-    assert sorted(p.name for p in dest.iterdir()) == ["a.txt", RUN_LOG]
+    assert sorted(p.name for p in dest.iterdir()) == [MARKER, "a.txt", RUN_LOG]
     assert "DEBUG written a.txt" in (dest / RUN_LOG).read_text()
     logging.getLogger("latticedft").debug("after the block")
     assert "after the block" not in (dest / RUN_LOG).read_text()
     (dest / "stale.txt").write_text("stale")
     with staged_results(dest, run_log=False) as folder:  # a fresh folder replaces dest
         (folder / "b.txt").write_text("b")
-    assert [p.name for p in dest.iterdir()] == ["b.txt"] and leftovers(tmp_path / "sub") == []
+    assert sorted(p.name for p in dest.iterdir()) == [MARKER, "b.txt"] and leftovers(tmp_path / "sub") == []
     with staged_results(dest, copy_existing=True) as folder:  # a copy of dest, and a run.log
         (folder / "c.txt").write_text("c")
-    assert sorted(p.name for p in dest.iterdir()) == ["b.txt", "c.txt", RUN_LOG]
+    assert sorted(p.name for p in dest.iterdir()) == [MARKER, "b.txt", "c.txt", RUN_LOG]
 
 
 def test_json_safe() -> None:
@@ -141,3 +142,28 @@ def test_paraview_opens_every_result(run: Path, tmp_path: Path) -> None:
     for i, step in enumerate(pvd["steps"]):
         assert {"psi", "psi_ref", "psi_err"} <= set(step["ranges"])
         assert step["ranges"]["psi"] == pytest.approx([psi.values[i].min(), psi.values[i].max()], abs=1e-14)
+
+
+def test_task_file_labels_say_what_each_variable_is(tmp_path: Path) -> None:
+    """psi_ref is described as the reference (its own source, not "predicted by ..."), psi_err carries nothing of
+    either operand, and an invariant that inherited the field's attributes is not called by the field's name."""
+    from latticedft import systems
+    from latticedft._results import write_task
+
+    ref = systems.wave_string([(1, 1.0)], nx=9, nt=7).assign_attrs(
+        long_name="string displacement", units="m", source="an experiment"
+    )
+    pred = (ref * 1.01).assign_attrs(ref.attrs, source="latticedft.serve: predicted ...")
+    invariant = (pred**2).sum("x", keep_attrs=True)  # a user's function handing on psi's attributes
+    path = write_task(tmp_path, "task", "psi", pred, ref, invariant, attrs={}, history="test")
+    with xr.open_dataset(path) as ds:
+        assert ds["psi_ref"].attrs["source"] == "an experiment" and ds["psi_ref"].attrs["comment"] == "reference"
+        assert ds["psi_ref"].attrs["long_name"] == "string displacement" and ds["psi_ref"].attrs["units"] == "m"
+        assert ds["psi_err"].attrs == {"long_name": "psi - psi_ref", "units": "m"}
+        assert ds["invariant"].attrs == {"long_name": "invariant"}
+        assert ds["psi"].attrs["source"].startswith("latticedft.serve")
+    assert "comment" not in pred.attrs  # the caller's field is not changed
+    named = (pred**2).sum("x", keep_attrs=False).assign_attrs(long_name="discrete energy", units="J")
+    path = write_task(tmp_path, "named", "psi", pred, ref, named, attrs={}, history="test")
+    with xr.open_dataset(path) as ds:
+        assert ds["invariant"].attrs == {"long_name": "discrete energy", "units": "J"}

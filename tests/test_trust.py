@@ -12,7 +12,7 @@ import torch
 import xarray as xr
 
 import latticedft as ldft
-from latticedft import io
+from latticedft import io, systems
 from latticedft._learn._report import POOR_FIT_REL_RES
 from latticedft._serve._range import EXTRAPOLATION_TOL
 
@@ -267,6 +267,10 @@ BAD_CALLS = {
     "learn: optimizer": (lambda m, d: ldft.learn(ldft.PolynomialLagrangian((2, 2)), d, optimizer="sgd"), "optimizer"),
     "learn: model": (lambda m, d: ldft.learn("polynomial", d), "model"),
     "learn: data": (lambda m, d: ldft.learn(ldft.PolynomialLagrangian((2, 2)), None), "data"),
+    "learn: time dim not first": (
+        lambda m, d: ldft.learn(ldft.PolynomialLagrangian((2, 2)), systems.wave_string([(1, 1.0)], 9, 9).T),
+        "the time dim 't' is in place 2",
+    ),
     # diagnose
     "diagnose: model": (lambda m, d: ldft.diagnose(None, d), "model"),
     "diagnose: unbound": (lambda m, d: ldft.diagnose(ldft.PolynomialLagrangian((2, 2)), d), "not bound"),
@@ -280,6 +284,10 @@ BAD_CALLS = {
     "serve: affine": (lambda m, d: ldft.serve(m, d[0], affine="no"), "affine"),
     "serve: progress": (lambda m, d: ldft.serve(m, d[0], progress=1), "progress"),
     "serve: init": (lambda m, d: ldft.serve(m, np.zeros(4)), "init"),
+    "serve: time dim not first": (
+        lambda m, d: ldft.serve(m, d[0].expand_dims(x=[0.0, 1.0]).transpose("x", "t")),
+        "the time dim 't' is in place 2",
+    ),
     "serve: model": (lambda m, d: ldft.serve(None, d[0]), "model"),
     "serve: box": (lambda m, d: ldft.serve(m, d[0], box=True), "box"),
     # compare

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import re
 from collections.abc import Callable
 from typing import Any
@@ -39,6 +40,21 @@ def t_bool(v: Any) -> bool:
 def t_pos_int(v: Any) -> int:
     if not _is_int(v) or v < 1:
         raise _Bad("a positive integer")
+    return int(v)
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the system tells it)."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def t_threads(v: Any) -> int:
+    cores = available_cores()
+    if not _is_int(v) or not 1 <= v <= cores:
+        raise _Bad(f"an integer from 1 to {cores} (the cores this machine gives the run)")
     return int(v)
 
 

@@ -31,6 +31,7 @@ from ._checks import (
     t_ridge,
     t_str,
     t_str_list,
+    t_threads,
 )
 
 CASE_FILE = "case.toml"
@@ -78,7 +79,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         # then the serving options: the fields of ServeOptions that are case keys (serve_schema)
     },
     "run": {
-        "threads": (t_pos_int, None),
+        "threads": (t_threads, None),
         "device": (t_device, "cpu"),
     },
     "export": {

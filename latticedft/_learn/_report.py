@@ -16,7 +16,15 @@ from .._models import AbstractLagrangian
 from ._data import as_fields, kinetic_scale
 from ._gauge import gauge_named
 
-__all__ = ["LearnReport", "diagnose", "symmetry_lines", "POOR_FIT_REL_RES", "DEGENERATE_RTOL", "fit_warnings"]
+__all__ = [
+    "LearnReport",
+    "diagnose",
+    "symmetry_lines",
+    "POOR_FIT_REL_RES",
+    "DEGENERATE_RTOL",
+    "fit_verdict",
+    "fit_warnings",
+]
 
 #: A fit whose relative DEL residual ``rel_res`` exceeds this is reported as poor (a warning): its DEL
 #: equations do not hold on the training data to 1 %, and a field served with it is unreliable. The repo's
@@ -83,6 +91,11 @@ class LearnReport:
             f"gauge residual = {self.gauge_residual:.1e}, min sv(h0^2 M) = {self.hessian_min_sv:.3g}, "
             f"cond(M) = {self.hessian_cond:.3g}, {self.iterations} iterations, {self.wall_time:.2f} s{auto}"
         )
+
+    def verdict(self) -> str:
+        """The fit in plain words, with the next step to try: one line (the figures behind it are in
+        :meth:`summary_line`; the thresholds are :data:`DEGENERATE_RTOL` and :data:`POOR_FIT_REL_RES`)."""
+        return fit_verdict(self.degenerate, self.rel_res, self.method)
 
     def symmetry_lines(self) -> list[str]:
         """One line per tested symmetry (empty when none was tested)."""
@@ -183,6 +196,25 @@ def symmetry_reports(model: AbstractLagrangian, fields: list[LatticeField], cand
     return [
         {k: (r.verdict if k == "verdict" else r.to_dict()[k]) for k in keys} for r in test(model, fields, candidates)
     ]
+
+
+def fit_verdict(degenerate: bool, rel_res: float, method: str = "exact") -> str:
+    """One plain line on a fit, and what to try next (see :meth:`LearnReport.verdict`)."""
+    if degenerate:
+        return (
+            "verdict: unusable: the learned L_d has no usable kinetic term, so it cannot step a field; next: keep "
+            "the default gauge (not 'none'), give data that move more, or try another model kind"
+        )
+    if not rel_res <= POOR_FIT_REL_RES:
+        more = "train longer (max_iter) or " if method != "exact" else ""
+        return (
+            f"verdict: poor: the data do not obey the learned equations (off by {rel_res:.0%} of their size); "
+            f'next: {more}try higher orders, another model kind, or select = "auto" to compare candidates'
+        )
+    return (
+        f"verdict: good: the data obey the learned equations to {rel_res:.1e} of their size; next: serve it "
+        "(a served field that leaves the training range is flagged)"
+    )
 
 
 def fit_warnings(diag: dict[str, Any]) -> tuple[bool, list[str]]:

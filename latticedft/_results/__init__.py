@@ -50,9 +50,11 @@ from ._files import write_task as write_task
 from ._safety import FAULT_ENV as FAULT_ENV
 from ._safety import FAULT_POINTS as FAULT_POINTS
 from ._safety import ResultsError as ResultsError
+from ._staging import MARKER as MARKER
 from ._staging import RUN_LOG as RUN_LOG
 from ._staging import Staging as Staging
 from ._staging import check_destination as check_destination
+from ._staging import held_by_another as held_by_another
 from ._staging import hold_results as hold_results
 from ._staging import leftovers as leftovers
 from ._staging import published as published
@@ -61,6 +63,8 @@ from ._staging import staged_results as staged_results
 __all__ = [
     "FAULT_ENV",
     "FAULT_POINTS",
+    "MARKER",
+    "held_by_another",
     "RUN_LOG",
     "ResultsError",
     "Staging",

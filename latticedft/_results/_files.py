@@ -16,7 +16,7 @@ import xarray as xr
 
 from .._atomic import write_text_atomic
 from .._errors import InputError, ModelFileError
-from ._safety import _show, _writing, log
+from ._safety import _show, _signals_deferred, _writing, log
 
 
 def versions() -> dict[str, str]:
@@ -161,6 +161,17 @@ def _slices_of(pred: xr.DataArray) -> np.ndarray:
     return np.arange(pred.sizes[pred.dims[0]])
 
 
+def _invariant_named(invariant: xr.DataArray, pred: xr.DataArray) -> xr.DataArray:
+    """The task's invariant as ``invariant``; a function computed from the field often hands on the field's
+    attributes: its ``long_name`` (and the field's provenance) would then call the invariant "position"."""
+    out = invariant.rename("invariant")
+    inherited = {k for k, v in out.attrs.items() if k in pred.attrs and pred.attrs[k] == v}
+    if "long_name" in inherited or not out.attrs.get("long_name"):
+        out.attrs = {k: v for k, v in out.attrs.items() if k not in inherited and k != "units"}
+        out.attrs["long_name"] = "invariant"
+    return out
+
+
 def write_task(
     folder: Path,
     name: str,
@@ -192,22 +203,29 @@ def write_task(
     cadence, :mod:`latticedft._part_file`); it is completed into ``<name>.nc`` (the same variables and
     attributes), so that the field is not written twice.
     """
-    pred = pred.rename(variable)
+    pred = pred.rename(variable).copy(deep=False)  # its own attributes: the caller's field is not changed
     quantity = str(pred.attrs.get("long_name") or variable)
     units = pred.attrs.get("units")
     unit_attrs = {"units": units} if units is not None else {}
     pred.attrs = {**pred.attrs, "long_name": quantity, "comment": "served by the learned discrete Lagrangian"}
     fields: dict[str, xr.DataArray] = {variable: pred}
     ref_al = align_reference(pred, ref)
-    if ref_al is not None:
-        ref_al.attrs = {**ref_al.attrs, "comment": "reference"}
+    if ref_al is not None and ref is not None:
+        # the reference's own description (not the served field's "predicted by ..."), under the quantity's name
+        ref_al.attrs = {
+            **{k: v for k, v in ref.attrs.items() if k not in ("comment", "latticedft_initial_from")},
+            "long_name": quantity,
+            **unit_attrs,
+            "comment": "reference",
+        }
         fields[f"{variable}_ref"] = ref_al
-        err = (pred - ref_al).assign_attrs(long_name=f"{variable} - {variable}_ref", **unit_attrs)
+        err = pred - ref_al
+        err.attrs = {"long_name": f"{variable} - {variable}_ref", **unit_attrs}  # nothing of either operand
         fields[f"{variable}_err"] = err
         if baseline is not None:
             fields.update(_baseline_errors(pred, ref_al, baseline, unit_attrs))
     if invariant is not None:
-        fields["invariant"] = invariant.rename("invariant")
+        fields["invariant"] = _invariant_named(invariant, pred)
     if charges is not None:
         fields.update({str(k): v.rename(str(k)) for k, v in charges.data_vars.items()})
     fields.update({k: v.rename(k) for k, v in (extra or {}).items()})
@@ -325,7 +343,8 @@ def export_task(
         series=series,
         spread=spread if spread is not None and spread.shape == pred.shape else None,
     )
-    with _writing(Path(folder) / f"{name}.*"):
+    # the exporters run native libraries (VTK, HDF5): a signal is delivered once they return, never inside them
+    with _writing(Path(folder) / f"{name}.*"), _signals_deferred():
         return export_formats(task, formats)
 
 

@@ -21,11 +21,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from .._atomic import FAULT_ENV as FAULT_ENV
+from .._atomic import FAULT_POINTS as FAULT_POINTS
+from .._atomic import fault as _fault
+from .._atomic import fault_flag as _fault_flag
 from .._errors import LatticeDFTError
-from .._faults import FAULT_ENV as FAULT_ENV
-from .._faults import FAULT_POINTS as FAULT_POINTS
-from .._faults import _fault as _fault
-from .._faults import _fault_flag as _fault_flag
 
 log = logging.getLogger("latticedft")
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import logging
 import os
 import re
@@ -36,7 +37,11 @@ from ._safety import (
 RUN_LOG = "run.log"
 
 
-_MARKER = "summary.json"  # every published results folder holds one
+#: Every results folder latticedft stages holds this file: a folder with it (or an empty one) may be replaced
+#: by ``--overwrite``; any other folder is the user's and is never deleted.
+MARKER = ".latticedft-results"
+_MARKER_TEXT = "A results folder written by latticedft: its next run replaces the whole folder.\n"
+_WRITTEN = frozenset({"model.pt", "model.json", "summary.json", "run.log", MARKER})
 
 
 #: The results folders this process published, in order (the command line says whether an interrupted
@@ -53,6 +58,12 @@ def check_destination(
     folder ``root``, or that is, contains or lies inside one of ``inputs`` (files and folders the case
     reads). A ``dest`` inside ``root`` (``CASE/results``, ``CASE/results2``) is fine.
     """
+    if os.path.islink(dest):
+        try:
+            os.stat(dest)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                raise ResultsError(f"{what} {_show(dest)}: is a link that loops (to itself); remove it") from None
     real = Path(os.path.realpath(dest))
     shown = f"{what} {_show(dest)}" + (f" (a link to {_show(real)})" if os.path.islink(dest) else "")
     why = "; results replace their folder as a whole, so they must go elsewhere (the default is CASE/results)"
@@ -61,6 +72,12 @@ def check_destination(
         if real == r or r.is_relative_to(real):
             verb = "is" if real == r else "contains"
             raise ResultsError(f"{shown}: {verb} the case folder {_show(root)}{why}")
+    outer = _results_above(real, None if root is None else Path(os.path.realpath(root)) / "results")
+    if outer is not None:
+        raise ResultsError(
+            f"{shown}: lies inside the results folder {_show(outer)}, which the next run replaces as a whole "
+            "(with everything in it); choose a folder beside it"
+        )
     real_inputs = [(p, Path(os.path.realpath(p))) for p in inputs]
     matches = (
         [("is", p, r) for p, r in real_inputs if real == r]  # the most telling relation first
@@ -77,6 +94,15 @@ def check_destination(
     if real.exists() and not real.is_dir():
         raise ResultsError(f"{shown}: exists and is not a folder; results go into a folder of their own")
     return real
+
+
+def _results_above(real: Path, default: Path | None) -> Path | None:
+    """The nearest folder above ``real`` that is a results folder (the case's default one, or one holding the
+    marker), or None."""
+    for parent in real.parents:
+        if parent == default or (parent / MARKER).is_file():
+            return parent
+    return None
 
 
 def _staging_re(name: str) -> re.Pattern[str]:
@@ -107,6 +133,17 @@ def _recover(dest: Path) -> None:
     for p in left:
         if p != restored:
             _rmtree(p)
+    stuck = [p for p in left if p != restored and os.path.lexists(p)]
+    if stuck:  # an immutable file, a folder of another user: say so instead of claiming it was removed
+        log.warning(
+            "could not remove %s beside %s (a file there cannot be deleted: immutable, or not yours); "
+            "remove it by hand",
+            ", ".join(p.name for p in stuck),
+            _show(dest),
+        )
+        left = [p for p in left if p not in stuck]
+        if not left:
+            return
     names = ", ".join(p.name for p in left)
     if restored is not None:
         log.warning(
@@ -181,6 +218,30 @@ def hold_results(dest: str | os.PathLike[str]) -> Iterator[Path]:
                     break
 
 
+def held_by_another(dest: str | os.PathLike[str]) -> bool:
+    """True when another process holds the lock of ``dest`` (a run in progress); takes nothing."""
+    parent = Path(os.path.realpath(dest)).parent
+    if str(parent) in _held or not parent.is_dir():
+        return False
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no lock
+        return False
+    try:
+        fd = os.open(parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)  # releases a lock taken here
+    return False
+
+
 def _lock(parent: Path) -> int:
     try:
         import fcntl
@@ -222,8 +283,10 @@ class Staging:
                 for root, dirs, _ in os.walk(self.tmp):  # a read-only results folder: its copy is writable
                     for d in [root, *(os.path.join(root, x) for x in dirs)]:
                         os.chmod(d, os.stat(d).st_mode | stat.S_IRWXU)
+                _replace_links(self.tmp, self.dest)
             else:
                 self.tmp.mkdir()
+            (self.tmp / MARKER).write_text(_MARKER_TEXT, encoding="utf-8")
         except BaseException:
             _rmtree(self.tmp)
             raise
@@ -267,8 +330,51 @@ class Staging:
             _rmtree(self.tmp)
 
 
+def _replace_links(tmp: Path, dest: Path) -> None:
+    """Nothing inside a results folder is followed as a link when written: in the staging copy ``tmp`` of
+    ``dest``, a link to a regular file becomes a copy of that file, and any other link (to a folder, a device,
+    nothing) is left out; each with a warning naming it."""
+    for root, dirs, files in os.walk(tmp):
+        for name in [*dirs, *files]:
+            link = Path(root, name)
+            if not link.is_symlink():
+                continue
+            shown = _show(dest / link.relative_to(tmp))
+            target = os.readlink(link)
+            try:
+                regular = stat.S_ISREG(os.stat(link).st_mode)
+            except OSError:
+                regular = False
+            if regular:
+                copy = link.with_name(f"{name}.tmp-link-{uuid.uuid4().hex[:10]}")
+                shutil.copyfile(link, copy)
+                os.replace(copy, link)
+                log.warning("%s was a link to %s: the updated results hold a copy of that file instead", shown, target)
+            else:
+                link.unlink()
+                log.warning("%s was a link to %s (not a regular file): left out of the updated results", shown, target)
+        dirs[:] = [d for d in dirs if not Path(root, d).is_symlink() and Path(root, d).is_dir()]
+
+
 def _is_results_folder(folder: Path) -> bool:
-    return (folder / _MARKER).is_file() or not any(folder.iterdir())
+    """True for a folder latticedft wrote (it holds the marker, or is a results folder written before the
+    marker existed) and for an empty one."""
+    return (folder / MARKER).is_file() or not any(folder.iterdir()) or _earlier_results(folder)
+
+
+def _earlier_results(folder: Path) -> bool:
+    """A results folder of a version without the marker: a latticedft ``summary.json``, and only the files a run
+    writes (the fixed names, and files named after the tasks it lists)."""
+    try:
+        summary = json.loads((folder / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    if not isinstance(summary, dict) or "latticedft" not in (summary.get("versions") or {}):
+        return False
+    tasks = [str(t) for t in (summary.get("tasks") or {})]
+    return all(
+        p.name in _WRITTEN or any(p.name.startswith((f"{t}.", f"{t}_")) for t in tasks) for p in folder.iterdir()
+    )
 
 
 @contextmanager
@@ -287,14 +393,14 @@ def staged_results(
     :func:`hold_results` is taken for the block unless this process holds it.
 
     ``replace_foreign=False`` refuses to replace an existing non-empty ``dest``
-    that is not a results folder (no ``summary.json``): the command line never
+    that latticedft did not write (no marker file :data:`MARKER`): the command line never
     deletes a folder of files it did not write. An :class:`OSError` (disk full,
     a read-only folder) becomes a one-line :class:`ResultsError` naming the path.
     """
     with hold_results(dest) as real:
         if not replace_foreign and not copy_existing and real.is_dir() and not _is_results_folder(real):
             raise ResultsError(
-                f"{_show(dest)}: holds files that latticedft did not write (no {_MARKER}); "
+                f"{_show(dest)}: holds files that latticedft did not write (no {MARKER}); "
                 "refusing to replace it: choose another --out or remove the folder"
             )
         staging: Staging | None = None

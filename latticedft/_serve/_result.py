@@ -178,5 +178,5 @@ def invariant_vs_time(field: xr.DataArray, invariant: Callable[[xr.DataArray], A
 
 
 def _bar(total: int, desc: str, progress: bool | None) -> Any:
-    """A progress bar over ``total`` slices; ``progress=None`` shows it only on a terminal."""
+    """A progress bar over ``total`` slices; ``progress=None`` shows it on a terminal and in Jupyter only."""
     return progress_bar(total, desc, progress)

@@ -15,7 +15,9 @@ import argparse
 import signal
 import sys
 import threading
+from pathlib import Path
 
+from .._atomic import fault
 from .._errors import LatticeDFTError
 from . import check as _check
 from . import export as _export
@@ -79,23 +81,29 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
+    entry = argv is None  # the process's own command line: its outcome is final once main returns
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser()
+    previous = _on_sigterm()  # first of all: a signal while the engine loads is answered like any other
+    handler = None
+    published: list[Path] = []
+    n_published = 0
     try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:  # --help, --version, usage errors
-        return int(exc.code or 0) if not isinstance(exc.code, str) else 2
-    handler = setup_logging(args)
-    # the engine is imported only now (--help and usage errors answer without it); on a terminal a first
-    # line shows at once while it loads
-    with loading_note(sys.stderr, show=args.command != "new" and not getattr(args, "quiet", False)):
-        from .. import _results
+        parser = build_parser()
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as exc:  # --help, --version, usage errors
+            return int(exc.code or 0) if not isinstance(exc.code, str) else 2
+        handler = setup_logging(args)
+        # the engine is imported only now (--help and usage errors answer without it); on a terminal a first
+        # line shows at once while it loads
+        with loading_note(sys.stderr, show=args.command != "new" and not getattr(args, "quiet", False)):
+            fault("loading")
+            from .. import _results
 
-        if args.command != "new":
-            from .. import _case  # noqa: F401  (torch)
-    n_published = len(_results.published)
-    previous = _on_sigterm()
-    try:
+            if args.command != "new":
+                from .. import _case  # noqa: F401  (torch)
+        published = _results.published
+        n_published = len(published)
         return int(SUBCOMMANDS[args.command].main(args, argv))
     except LatticeDFTError as exc:
         print(f"latticedft: error: {' '.join(str(exc).split())}", file=sys.stderr)
@@ -112,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     except (KeyboardInterrupt, Terminated) as exc:
         what = "interrupted" if isinstance(exc, KeyboardInterrupt) else "terminated (SIGTERM)"
-        done = _results.published[n_published:]
+        done = published[n_published:]
         print(
             f"latticedft: {what}; "
             + (f"after publishing {', '.join(_show(p) for p in done)}" if done else "nothing was published"),
@@ -120,9 +128,19 @@ def main(argv: list[str] | None = None) -> int:
         )
         return INTERRUPTED if isinstance(exc, KeyboardInterrupt) else TERMINATED
     finally:
-        if previous is not None:
+        if entry:  # the outcome is decided and said: a late Ctrl-C or SIGTERM no longer changes it
+            _ignore_signals()
+            fault("exit")
+        elif previous is not None:
             signal.signal(signal.SIGTERM, previous)
-        detach(handler)
+        if handler is not None:
+            detach(handler)
+
+
+def _ignore_signals() -> None:
+    if threading.current_thread() is threading.main_thread():
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, signal.SIG_IGN)
 
 
 def _raise_terminated(signum: int, frame: object) -> None:

@@ -153,8 +153,14 @@ def refuse_existing(dest: Path, args: argparse.Namespace) -> None:
 
 
 def require_results(dest: Path, what: str) -> None:
-    if not (dest / what).is_file():
-        raise InputError(f"{_show(dest)}/{what}: not found; run `latticedft run` (or `train`) first")
+    path = dest / what
+    if path.is_file():
+        return
+    if os.path.lexists(path) and (path.exists() or not os.path.islink(path)):
+        kind = "a folder" if path.is_dir() else "not a regular file (a device, a pipe or a socket)"
+        link = f" (a link to {os.readlink(path)})" if os.path.islink(path) else ""
+        raise InputError(f"{_show(dest)}/{what}: is {kind}{link}; run `latticedft run` (or `train`) to write it again")
+    raise InputError(f"{_show(dest)}/{what}: not found; run `latticedft run` (or `train`) first")
 
 
 def _show(p: Path) -> str:

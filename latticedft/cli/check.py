@@ -19,7 +19,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
-    from .._results import leftovers
+    from .._results import held_by_another, leftovers
 
     case = open_case(args)
     dest = results_dir(args, case)
@@ -29,7 +29,9 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
     shown = args.out if getattr(args, "out", None) else case.results
     print(f"results: {shown} " + ("exists (run needs --overwrite)" if dest.exists() else "does not exist yet"))
     left = leftovers(dest)
-    if left:
+    if left and held_by_another(dest):
+        print(f"results: a run in progress is writing {', '.join(p.name for p in left)} (it holds the lock)")
+    elif left:
         print(
             f"results: an interrupted run left {', '.join(p.name for p in left)}; the next run, serve or export "
             "cleans up (restoring earlier results parked there)"

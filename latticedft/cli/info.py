@@ -22,7 +22,7 @@ def _fmt(v: object) -> str:
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
-    from .._learn._report import symmetry_lines
+    from .._learn._report import fit_verdict, symmetry_lines
     from .._results import load_verified_model, read_summary
 
     case = open_case(args)
@@ -55,6 +55,8 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
             "hessian_cond",
         )
         print("training: " + ", ".join(f"{k} {_fmt(train[k])}" for k in keys if k in train))
+        if isinstance(train.get("rel_res"), float):
+            print(fit_verdict(bool(train.get("degenerate")), train["rel_res"], str(train.get("method", "exact"))))
         if isinstance(train.get("symmetries"), list):
             print("symmetries of the learned L_d over the training data:")
             for line in symmetry_lines(train["symmetries"]):

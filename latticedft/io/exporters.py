@@ -88,7 +88,7 @@ TEMPORARY_NAME_EXTRA = 18
 DEFAULT_FORMATS: tuple[str, ...] = ("paraview", "figures")
 
 # Files of a results folder that no export owns, whatever a summary says.
-_NOT_EXPORTS = frozenset({"model.pt", "model.json", "summary.json", "run.log"})
+_NOT_EXPORTS = frozenset({"model.pt", "model.json", "summary.json", "run.log", ".latticedft-results"})
 
 
 @dataclass(frozen=True)
