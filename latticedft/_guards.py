@@ -154,19 +154,40 @@ def _parameter_lower_bound(case: Case, data: Any) -> tuple[int, str] | None:
     return kind.parameter_lower_bound(case.model.options, len(data.dims), m)
 
 
+#: Sites in the smallest chunk the exact solve of a linear model reads (``_learn._stream``: at least 1024).
+_MIN_EXACT_CHUNK = 1024
+
+
+def training_bytes(count: int, linear: bool, m: int) -> tuple[int, str]:
+    """A lower bound of the memory training needs for a model of ``count`` parameters, and what it holds.
+
+    Every model holds its parameters and their gradients (8 bytes each, twice). A model linear in its ``count``
+    coefficients is solved exactly: the solve keeps the ``count x count`` triangle of its least-squares system and
+    reads at least :data:`_MIN_EXACT_CHUNK` sites at a time, ``m`` rows of ``count`` values each.
+    """
+    if not linear:
+        return count * 8 * 2, "with their gradients"
+    need = 8 * (count * count + _MIN_EXACT_CHUNK * m * count)
+    return need, "for the exact solve's least-squares triangle and one chunk of its rows"
+
+
 def check_model_size(case: Case, data: Any, available: int | None = None) -> None:
-    """Refuse a model whose parameters alone (8 bytes each, twice: values and gradients) exceed the memory."""
+    """Refuse a model whose training cannot fit in the memory: its parameters with their gradients, and for a
+    model learned exactly the least-squares triangle and one chunk of rows (:func:`training_bytes`)."""
     found = _parameter_lower_bound(case, data)
     available = available_memory() if available is None else available
     if found is None or available is None:
         return
     count, key = found
-    need = count * 8 * 2
+    kind = MODELS.get(case.model.kind)
+    linear = kind is not None and kind.model_class.linear and case.train.learn.get("optimizer") in (None, "exact")
+    m = len(data.components) if data.components else 1
+    need, what = training_bytes(count, linear, m)
     if need > available:
         value = case.model.options.get(key.split(".")[1])
         raise ConfigError(
             f"{_where(case, key)}: {key}: {value!r} means at least {count:.3g} parameters, "
-            f"{_bytes(need)} with their gradients, but {_bytes(available)} of memory is available; "
+            f"{_bytes(need)} {what}, but {_bytes(available)} of memory is available; "
             "choose a smaller model"
         )
 

@@ -207,6 +207,7 @@ def scenarios(template: Path, tmp_path_factory: pytest.TempPathFactory) -> Itera
             None,
         ),
         "hidden-memory": (("check", mlp, "-q"), None),
+        "orders-memory": (("run", c("orders-memory"), "--overwrite", "-q", "--set", "model.orders=[200,200]"), None),
         "threads": (("run", c("threads"), "--overwrite", "-q", "--set", "run.threads=100000"), None),
         # 10. model files verified
         "nan-weights": (("serve", nan_case, "-q"), None),
@@ -634,6 +635,12 @@ def test_long_task_name_refused_at_check(scenarios: _Scenarios) -> None:
 
 def test_task_too_big_for_memory_refused_before_training(scenarios: _Scenarios) -> None:
     _refused(scenarios, "steps-memory", "serve[0].slices", "of memory", "available")
+
+
+def test_a_polynomial_too_big_to_solve_is_refused_before_training(scenarios: _Scenarios) -> None:
+    """[200, 200] has 4.1e6 terms: 65 MB of parameters, but the exact solve's least-squares triangle alone needs
+    133 TB (it was accepted, then training allocated 18 GiB and died)."""
+    _refused(scenarios, "orders-memory", "model.orders", "4.08e+06 parameters", "least-squares triangle")
 
 
 def test_threads_beyond_the_cores_refused(scenarios: _Scenarios) -> None:

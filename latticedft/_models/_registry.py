@@ -27,6 +27,9 @@ class KindClass(Protocol):
     """What the registry reads of a kind's class before any model is built: its constructor's signature and
     these class methods of :class:`AbstractLagrangian` (an abstract class, such as ``MLPLagrangian``, will do)."""
 
+    #: True when the kind's ``L_d`` is linear in its parameters (learned by the exact solve).
+    linear: bool
+
     def option_checks(self) -> dict[str, Callable[[Any], Any]]: ...
 
     def option_defaults(self) -> dict[str, Any]: ...
