@@ -643,6 +643,23 @@ def test_a_polynomial_too_big_to_solve_is_refused_before_training(scenarios: _Sc
     _refused(scenarios, "orders-memory", "model.orders", "4.08e+06 parameters", "least-squares triangle")
 
 
+@pytest.mark.parametrize("command", ["serve", "export"])
+def test_an_edited_model_table_is_not_served_as_if_used(tmp_path: Path, template: Path, command: str) -> None:
+    """After an edit of [model] in case.toml, serve would record orders [3, 3] in summary.json while serving the
+    model learned with [2, 2]: refused, naming the key and both values."""
+    case = earlier(template, tmp_path / "a")
+    text = (case / "case.toml").read_text()
+    (case / "case.toml").write_text(text.replace("orders = [2, 2]", "orders = [3, 3]"))
+    before = hashes(case)
+    done = cli(command, case, *(["--set", 'export.formats=["xdmf"]'] if command == "export" else []))
+    one_line(done.err, "model.orders: is [3, 3] now", "learned with [2, 2]", f"`{command}` uses the learned model")
+    assert done.code == 1 and hashes(case) == before
+    # a key given with --set at training is not an edit: the model learned with it is served
+    assert cli("run", case, "--overwrite", "-q", "--set", "model.orders=[2,4]").code == 0
+    done = cli(command, case, "-q", *(["--set", 'export.formats=["xdmf"]'] if command == "export" else []))
+    assert done.code == 0, done.err
+
+
 def test_threads_beyond_the_cores_refused(scenarios: _Scenarios) -> None:
     _refused(scenarios, "threads", "run.threads", "an integer from 1 to", "got 100000")
 

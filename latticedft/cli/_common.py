@@ -149,6 +149,43 @@ def refuse_learning_overrides(case: Case, command: str) -> None:
             )
 
 
+def refuse_changed_learning(case: Case, dest: Path, command: str) -> None:
+    """``serve`` and ``export`` use the learned model: when case.toml's ``[model]`` or ``[train]`` differs from the
+    one ``model.json`` records (an edit after training), the outputs would record settings that were not used, so
+    the command is refused with the first difference."""
+    try:
+        record = json.loads((dest / "model.json").read_text(encoding="utf-8"))
+        learned, overrides = record.get("config"), record.get("overrides") or []
+    except (OSError, ValueError, AttributeError):
+        return  # no record to compare with: the model file's own check reports a missing model.json
+    if not isinstance(learned, dict):
+        return
+    # a key set by --set when the model was learned is expected to differ from the file: not an edit
+    overridden = {str(o).split("=", 1)[0].strip() for o in overrides}
+    for table in ("model", "train"):
+        now, then = case.raw.get(table) or {}, learned.get(table) or {}
+        changed = [
+            k
+            for k in sorted({*now, *then})
+            if now.get(k, _ABSENT) != then.get(k, _ABSENT) and f"{table}.{k}" not in overridden
+        ]
+        if not changed:
+            continue
+        key = changed[0]
+        raise ConfigError(
+            f"{_show(case.root / 'case.toml')}: {table}.{key}: is {_shown(now.get(key, _ABSENT))} now but the model in "
+            f"{_show(dest)}/model.pt was learned with {_shown(then.get(key, _ABSENT))}; `{command}` uses the learned "
+            "model: run `latticedft train` (or `run`) to learn the edited case, or undo the edit"
+        )
+
+
+_ABSENT = object()
+
+
+def _shown(value: Any) -> str:
+    return "unset" if value is _ABSENT else json.dumps(value)
+
+
 def refuse_existing(dest: Path, args: argparse.Namespace) -> None:
     if dest.exists() and not getattr(args, "overwrite", False):
         raise InputError(f"{_show(dest)}/ exists; use --overwrite to replace it")

@@ -7,7 +7,15 @@ import logging
 import time
 
 from .._errors import ConfigError
-from ._common import OK, add_case_arguments, open_case, refuse_learning_overrides, require_results, results_dir
+from ._common import (
+    OK,
+    add_case_arguments,
+    open_case,
+    refuse_changed_learning,
+    refuse_learning_overrides,
+    require_results,
+    results_dir,
+)
 
 log = logging.getLogger("latticedft")
 
@@ -41,6 +49,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
             require_results(dest, f"{task.name}.nc")
         if (dest / "model.pt").is_file():
             load_verified_model(dest)  # results whose model was changed after serving are not re-exported
+            refuse_changed_learning(case, dest, "export")
         with staged_results(dest, copy_existing=True) as folder:
             summary = read_summary(folder) or {}
             previous = recorded_exports(folder)

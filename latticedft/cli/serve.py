@@ -11,6 +11,7 @@ from ._common import (
     add_device_argument,
     checked_data,
     open_case,
+    refuse_changed_learning,
     refuse_learning_overrides,
     require_results,
     results_dir,
@@ -39,6 +40,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
     with hold_results(dest):
         require_results(dest, "model.pt")
         model = load_verified_model(dest)
+        refuse_changed_learning(case, dest, "serve")
         old = read_summary(dest) or {}
         set_threads(case)
         data = checked_data(case, dest, train=False)
