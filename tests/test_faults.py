@@ -230,6 +230,7 @@ def scenarios(template: Path, tmp_path_factory: pytest.TempPathFactory) -> Itera
         # 7. disk full, no permission (injected in the staged writes)
         "enospc": (("run", c("enospc"), "--overwrite", "-q"), "enospc:write"),
         "eacces": (("serve", c("eacces"), "-q"), "eacces:stage"),
+        "enospc-publish": (("run", c("enospc-publish"), "--overwrite"), "enospc:after-stage"),
         # 4. signals
         "sigterm": (("run", c("sigterm"), "--overwrite", "-q"), "term:after-stage"),
         "sigint": (("serve", c("sigint"), "-q"), "int:stage"),
@@ -658,6 +659,12 @@ def test_an_edited_model_table_is_not_served_as_if_used(tmp_path: Path, template
     assert cli("run", case, "--overwrite", "-q", "--set", "model.orders=[2,4]").code == 0
     done = cli(command, case, "-q", *(["--set", 'export.formats=["xdmf"]'] if command == "export" else []))
     assert done.code == 0, done.err
+
+
+def test_no_success_line_when_publishing_fails(scenarios: _Scenarios) -> None:
+    done = scenarios.done["enospc-publish"]
+    assert done.code == 1 and "No space left on device" in done.err, done.err
+    assert "results in" not in done.out + done.err  # it was printed before publishing, then publishing failed
 
 
 def test_threads_beyond_the_cores_refused(scenarios: _Scenarios) -> None:

@@ -56,5 +56,6 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
             summary = summary_head(case, argv, "run")
             summary.update(train=train, tasks=tasks, wall_time=time.perf_counter() - t0)
             status = finish(folder, summary)
-            log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
+            log.debug("all stages done in %.1f s; publishing %s", time.perf_counter() - t0, dest)
+    log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)  # once published, never before
     return status
