@@ -284,6 +284,7 @@ BAD_CALLS = {
     "serve: affine": (lambda m, d: ldft.serve(m, d[0], affine="no"), "affine"),
     "serve: progress": (lambda m, d: ldft.serve(m, d[0], progress=1), "progress"),
     "serve: init": (lambda m, d: ldft.serve(m, np.zeros(4)), "init"),
+    "serve: slices beyond the memory": (lambda m, d: ldft.serve(m, d[0], slices=10**12), "slices"),
     "serve: time dim not first": (
         lambda m, d: ldft.serve(m, d[0].expand_dims(x=[0.0, 1.0]).transpose("x", "t")),
         "the time dim 't' is in place 2",

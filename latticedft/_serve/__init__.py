@@ -20,6 +20,7 @@ same 1D loop in numpy, for models with numpy closed forms) and ``_field``
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 from typing import Any, overload
@@ -304,7 +305,21 @@ class _Plan:
 
     def run(self, model: AbstractLagrangian, fs: list[LatticeField]) -> list[ServeResult]:
         """Serve the checked fields ``fs`` with ``model``; a ServeError (``result`` a list for a ``batch``)
-        when one stops."""
+        when one stops, an InputError naming ``slices`` when the served field cannot be allocated."""
+        try:
+            return self._run(model, fs)
+        except (MemoryError, RuntimeError) as exc:
+            if isinstance(exc, RuntimeError) and "allocate" not in str(exc):
+                raise
+            n = max(_slices(self.slices, f) for f in fs)
+            values = n * max(math.prod(f.shape[1:]) for f in fs) * len(fs)
+            raise InputError.at(
+                "slices",
+                f"{n} slices of {values // n} values cannot be held in memory (about {8 * values / 2**30:.3g} GiB "
+                "for the served field alone); serve fewer slices",
+            ) from None
+
+    def _run(self, model: AbstractLagrangian, fs: list[LatticeField]) -> list[ServeResult]:
         if fs[0].ndim == 1:
             return self._run_1d(model, fs)
         if self.options.box is not None:
