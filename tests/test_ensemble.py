@@ -282,3 +282,22 @@ def test_mlp_members_start_from_their_own_seeds() -> None:
     weights = [torch.cat([p.detach().flatten() for p in ens.member(k).parameters()]) for k in range(3)]
     assert not torch.allclose(weights[1], weights[2])
     assert ens.options()["model"]["options"]["seed"] == 0  # member 0 keeps the model's own seed
+
+
+@pytest.mark.parametrize("m", [1, 2])
+def test_the_box_measures_member_0s_own_field(m: int) -> None:
+    """serve(ensemble, init, box=b) stops where member 0 served alone stops: the box tested the norm of all the
+    members' stacked components (a 5-member Kepler ensemble stopped at r = b / sqrt(5))."""
+    train = [systems.oscillator_sin(a) for a in (1.2, 0.8, 0.4)]
+    if m == 2:  # two uncoupled copies: a vector field
+        train = [xr.concat([f, 0.5 * f], "component").transpose("t", "component") for f in train]
+        train = [f.assign_coords(component=["x", "y"]) for f in train]
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 4)), members=3, seed=0)
+    ldft.learn(ens, train)
+    k = int(abs(train[0].isel(component=0) if m == 2 else train[0]).argmin())  # start near a zero crossing
+    init, box = train[0].isel(t=slice(k, None)), 0.9
+    alone = ldft.serve(ens.member(0), init, box=box)
+    together = ldft.serve(ens, init, box=box)
+    assert "left the box" in alone.reason and 2 < alone.field.sizes["t"] < init.sizes["t"]
+    assert together.field.sizes["t"] == alone.field.sizes["t"]
+    np.testing.assert_allclose(together.field.values, alone.field.values, rtol=0, atol=1e-12)

@@ -154,6 +154,14 @@ class _Stacked(AbstractLagrangian):
         """The stacked members, in order."""
         return [p for p in self.parts if isinstance(p, AbstractLagrangian)]
 
+    @property
+    def n_members(self) -> int:
+        """The members stacked side by side: their components follow one another (member 0's first)."""
+        return len(self.parts)
+
+    def member(self, k: int) -> AbstractLagrangian:
+        return self._members()[k]
+
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
         m = self.mm
         batched = self._batched

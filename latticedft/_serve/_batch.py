@@ -167,8 +167,8 @@ class _Batch:
                 why = failure_text(self.fs[k], i, bool(s.sing[j]), float(s.smin[j]), float(self.mscale[k]), max_newton)
                 self.retire(k, i + 1, f"{why}, residual {res:.3e}", True, res)
                 self.worst[k] = max(float(self.worst[k]), res)
-        if box is not None:
-            out = (s.u.norm(dim=-1) > box) & s.ok
+        if box is not None:  # member 0's own components (a stacked ensemble stops where member 0 alone would)
+            out = (s.u[..., : self.m // self.model.n_members].norm(dim=-1) > box) & s.ok
             for j in torch.nonzero(out).flatten().tolist():
                 self.retire(act_list[j], i + 2, f"left the box |psi| <= {box:g} at slice {i + 1}", False)
 

@@ -275,8 +275,9 @@ class FastBatch(_Batch):
                 why = failure_text(self.fs[k], i, bool(s.sing[j]), float(s.smin[j]), float(self.nmscale[k]), max_newton)
                 self.retire(k, i + 1, f"{why}, residual {res:.3e}", True, res)
                 self.nworst[k] = max(float(self.nworst[k]), res)
-        if box is not None:
-            out = (np.sqrt((s.u * s.u).sum(-1)) > box) & s.ok
+        if box is not None:  # member 0's own components (a stacked ensemble stops where member 0 alone would)
+            own = s.u[..., : self.m // self.model.n_members]
+            out = (np.sqrt((own * own).sum(-1)) > box) & s.ok
             for j in np.nonzero(out)[0].tolist():
                 self.retire(int(act[j]), i + 2, f"left the box |psi| <= {box:g} at slice {i + 1}", False)
 
