@@ -230,7 +230,9 @@ def write_task(
     if steps is not None:
         all_attrs["latticedft_steps"] = int(steps)
     with _writing(folder / f"{name}.nc"):
-        return write_field(folder / f"{name}.nc", fields, attrs=all_attrs, history=history)
+        # no CF axis X, Y, Z on the spatial coordinates: ParaView's netCDF CF reader would read them as longitude
+        # and latitude and wrap the field onto a sphere
+        return write_field(folder / f"{name}.nc", fields, attrs=all_attrs, history=history, spatial_axes=False)
 
 
 def _baseline_errors(
@@ -263,8 +265,15 @@ def _baseline_errors(
     }
 
 
-def write_field(path: Path, fields: Mapping[str, xr.DataArray], *, attrs: Mapping[str, Any], history: str) -> Path:
-    return _write_field(path, fields, attrs=dict(attrs), history=history)
+def write_field(
+    path: Path,
+    fields: Mapping[str, xr.DataArray],
+    *,
+    attrs: Mapping[str, Any],
+    history: str,
+    spatial_axes: bool = True,
+) -> Path:
+    return _write_field(path, fields, attrs=dict(attrs), history=history, spatial_axes=spatial_axes)
 
 
 def read_task(path: Path, variable: str) -> tuple[xr.DataArray, xr.DataArray | None, xr.DataArray | None]:
