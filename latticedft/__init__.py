@@ -47,6 +47,7 @@ _PUBLIC: dict[str, str] = {
     "FeatureLagrangian": "._models",
     "LinearLagrangian": "._models",
     "MLPLagrangian": "._models",
+    "ModelKind": "._models",
     "PolynomialLagrangian": "._models",
     "get_options": "._options",
     "set_options": "._options",
@@ -62,6 +63,7 @@ _PUBLIC: dict[str, str] = {
     "symmetries": "._noether",
     "SelectionReport": "._select",
     "select": "._select",
+    "ServeOptions": "._serve",
     "ServeResult": "._serve",
     "calibration": "._serve",
     "compare": "._serve",
@@ -127,6 +129,7 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._models import FeatureLagrangian as FeatureLagrangian
     from ._models import LinearLagrangian as LinearLagrangian
     from ._models import MLPLagrangian as MLPLagrangian
+    from ._models import ModelKind as ModelKind
     from ._models import PolynomialLagrangian as PolynomialLagrangian
     from ._noether import DiscoveryReport as DiscoveryReport
     from ._noether import Symmetry as Symmetry
@@ -142,6 +145,7 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._options import set_options as set_options
     from ._select import SelectionReport as SelectionReport
     from ._select import select as select
+    from ._serve import ServeOptions as ServeOptions
     from ._serve import ServeResult as ServeResult
     from ._serve import calibration as calibration
     from ._serve import compare as compare

@@ -10,18 +10,16 @@ from __future__ import annotations
 import math
 import weakref
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 import xarray as xr
 
+from ._contract import AbstractLagrangian, NumpyForms
 from ._errors import InputError
 from ._lattice import AxisBoundaries, LatticeField, as_lattice_field, gather_cells, interior_slices
 from ._stencil import Stencil
-
-if TYPE_CHECKING:  # the action evaluates any model; models sit a layer above
-    from ._models import AbstractLagrangian
 
 __all__ = [
     "action",
@@ -34,7 +32,9 @@ __all__ = [
 ]
 
 
-def _check_action_args(model: Any, psi: object, spacing: object, periodic: object, batch: object) -> None:
+def _check_action_args(
+    model: AbstractLagrangian, psi: object, spacing: object, periodic: object, batch: object
+) -> None:
     """Refuse bad :func:`action` arguments with an InputError naming the argument."""
     _check_model(model)
     if not isinstance(psi, torch.Tensor):
@@ -57,7 +57,7 @@ def _check_action_args(model: Any, psi: object, spacing: object, periodic: objec
 
 
 def action(
-    model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: AxisBoundaries, batch: int = 0
+    model: AbstractLagrangian, psi: torch.Tensor, spacing: tuple[float, ...], periodic: AxisBoundaries, batch: int = 0
 ) -> torch.Tensor:
     """Total discrete action of one field ``psi`` with shape ``(*N, m)`` (summed over ``batch`` leading axes).
 
@@ -67,15 +67,17 @@ def action(
     return _action(model, psi, spacing, periodic, batch)
 
 
-def _action(model, psi: torch.Tensor, spacing: tuple[float, ...], periodic: AxisBoundaries, batch: int) -> torch.Tensor:
+def _action(
+    model: AbstractLagrangian, psi: torch.Tensor, spacing: tuple[float, ...], periodic: AxisBoundaries, batch: int
+) -> torch.Tensor:
     """:func:`action` without the argument checks (the engine's own calls)."""
     cells = gather_cells(psi, model.stencil, periodic, batch)
     return math.prod(spacing) * model(cells).sum()
 
 
-def _check_model(model: object) -> None:
+def _check_model(model: AbstractLagrangian) -> None:
     """Refuse anything but a model bound to a lattice (an InputError naming ``model``)."""
-    if not isinstance(model, torch.nn.Module) or not hasattr(type(model), "bound"):  # not an AbstractLagrangian
+    if not isinstance(model, AbstractLagrangian):
         raise InputError.at("model", f"expected a latticedft model, got {type(model).__name__}")
     if not model.bound:
         raise InputError.at(
@@ -83,7 +85,9 @@ def _check_model(model: object) -> None:
         )
 
 
-def del_residual(model, f: LatticeField | xr.DataArray, *, create_graph: bool = False) -> torch.Tensor:
+def del_residual(
+    model: AbstractLagrangian, f: LatticeField | xr.DataArray, *, create_graph: bool = False
+) -> torch.Tensor:
     """DEL residual ``EL_y`` on the interior sites of ``f``: shape ``(*interior, m)``.
 
     ``f`` is a :class:`LatticeField` or a DataArray in the field layout
@@ -141,17 +145,18 @@ def cell_derivatives(
     return g, blocks
 
 
-#: Per model, its numpy closed forms (:meth:`LinearLagrangian.numpy_derivatives`) per tuple of pairs, with the
+#: Per model, its numpy closed forms (:meth:`AbstractLagrangian.numpy_derivatives`) per tuple of pairs, with the
 #: parameters and buffers they were built from (rebuilt when one is replaced or changed in place).
 _NUMPY_FORMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def numpy_closed_forms(model: AbstractLagrangian, cells: torch.Tensor, pairs: Sequence[tuple[int, int]]):
+def numpy_closed_forms(
+    model: AbstractLagrangian, cells: torch.Tensor, pairs: Sequence[tuple[int, int]]
+) -> NumpyForms | None:
     """The model's numpy ``fn(cells (B, K, m)) -> (dL/dx, [blocks per pair])`` for ``pairs``, or ``None``: for
     a linear model that offers them, with its parameters and ``cells`` on the CPU in double precision (a model
     on an accelerator keeps its torch closed forms). Built once per model state."""
-    hook = getattr(model, "numpy_derivatives", None)
-    if hook is None or not getattr(model, "numpy_ready", False) or cells.device.type != "cpu":
+    if not model.numpy_ready or cells.device.type != "cpu":
         return None
     if cells.dtype != torch.float64:
         return None
@@ -166,7 +171,7 @@ def numpy_closed_forms(model: AbstractLagrangian, cells: torch.Tensor, pairs: Se
         _NUMPY_FORMS[model] = forms
     pairs = tuple(pairs)
     if pairs not in forms[1]:
-        forms[1][pairs] = hook(pairs)
+        forms[1][pairs] = model.numpy_derivatives(pairs)
     return forms[1][pairs]
 
 
@@ -213,7 +218,7 @@ class CellDerivatives:
         return cell_derivatives(self.model, self.cells.detach(), pairs)[1]
 
 
-def mixed_hessian(model, f: LatticeField, *, create_graph: bool = False) -> torch.Tensor:
+def mixed_hessian(model: AbstractLagrangian, f: LatticeField, *, create_graph: bool = False) -> torch.Tensor:
     """The mixed time Hessian ``M = d^2 L_d / dpsi_x dpsi_{x+e_0}`` on every cell of ``f``: ``(ncells, m, m)``."""
     st = model.stencil
     cells = gather_cells(f.values, st, f.boundary, f.batch)

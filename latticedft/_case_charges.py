@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import xarray as xr
 
+from ._contract import AbstractLagrangian, GaugeName
 from ._errors import ConfigError, LatticeDFTError
 from ._lattice import LatticeField, as_lattice_field
 from ._noether import noether_charges, symmetries
@@ -86,13 +87,13 @@ def check_charges(charges: tuple[str, ...], f: LatticeField, key: str) -> None:
 
 
 # -- units ----------------------------------------------------------------------------------------------------
-def _units(pred: xr.DataArray, sym: Symmetry | None, gauge: str | None) -> str | None:
+def _units(pred: xr.DataArray, sym: Symmetry | None, gauge: GaugeName | None) -> str | None:
     """Units of a charge (``sym``) or of the energy (``None``) when the field and its coordinates have units.
 
     In the unit-mass (and trace) gauge ``L_d`` is a Lagrangian per unit mass: ``[psi]^2 / [t]^2`` per unit
     spatial volume; the energy has the units of ``L_s`` and a charge those of ``P . xi``.
     """
-    if gauge not in ("unit-mass", "trace"):
+    if gauge not in (GaugeName.UNIT_MASS, GaugeName.TRACE):
         return None
     tdim, space = pred.dims[0], [d for d in pred.dims[1:] if d != "component"]
     psi = pred.attrs.get("units")
@@ -145,7 +146,9 @@ def _served(pred: xr.DataArray, slices: int) -> xr.DataArray:
     return pred.isel({pred.dims[0]: slice(0, slices)})
 
 
-def _auto(model: Any, served: xr.DataArray, f: LatticeField, boundary: Any, rec: dict[str, Any]) -> list[str]:
+def _auto(
+    model: AbstractLagrangian, served: xr.DataArray, f: LatticeField, boundary: Any, rec: dict[str, Any]
+) -> list[str]:
     """The continuous built-in symmetries that ``ldft.symmetries`` finds exact on the served field."""
     reports = symmetries(model, served, [s.name for s in _continuous(f)], boundary=boundary)
     rec["charges_auto"] = [
@@ -157,7 +160,7 @@ def _auto(model: Any, served: xr.DataArray, f: LatticeField, boundary: Any, rec:
     return found
 
 
-def task_charges(model: Any, td: TaskData, pred: xr.DataArray, rec: dict[str, Any]) -> xr.Dataset | None:
+def task_charges(model: AbstractLagrangian, td: TaskData, pred: xr.DataArray, rec: dict[str, Any]) -> xr.Dataset | None:
     """The task's charges along the solved slices of ``pred``, on ``pred``'s time coordinate (NaN at ``t_0``:
     a charge belongs to a slab and is given at its later slice); their drifts go to ``rec["charges"]``.
 
@@ -185,7 +188,7 @@ def task_charges(model: Any, td: TaskData, pred: xr.DataArray, rec: dict[str, An
         rec["charges_error"] = str(exc)
         return None
     syms = {s.name: s for s in _continuous(f)}
-    gauge = getattr(model, "gauge_", None) or getattr(getattr(model, "report_", None), "gauge", None)
+    gauge = model.gauge
     tdim = pred.dims[0]
     out: dict[str, xr.DataArray] = {}
     record: dict[str, Any] = {}

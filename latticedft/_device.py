@@ -21,11 +21,14 @@ import re
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from ._errors import InputError
+
+if TYPE_CHECKING:  # the device layer moves any model; the contract sits layers above
+    from ._contract import AbstractLagrangian
 
 __all__ = ["DEVICES", "DeviceWarning", "resolve_device", "device_label", "on_device", "backend_for_device"]
 
@@ -33,17 +36,6 @@ __all__ = ["DEVICES", "DeviceWarning", "resolve_device", "device_label", "on_dev
 DEVICES = ("cpu", "cuda", "cuda:N", "auto")
 
 _CUDA_RE = re.compile(r"^cuda(?::(\d+))?$")
-
-#: The model's methods that evaluate ``L_d`` or its features on cells, or return one of its buffers: they run
-#: on the model's device and answer on the caller's.
-_BRIDGED = (
-    "forward",
-    "fast_derivatives",
-    "mean_and_differences",
-    "features",
-    "feature_derivatives",
-    "trained_range",
-)
 
 
 class DeviceWarning(UserWarning):
@@ -143,10 +135,10 @@ def _bridged(method: Callable[..., Any], device: torch.device) -> Callable[..., 
 
 
 @contextmanager
-def on_device(model: torch.nn.Module, device: torch.device) -> Iterator[torch.nn.Module]:
-    """Inside the block, ``model``'s parameters and buffers are on ``device`` and its evaluations
-    (:data:`_BRIDGED`) take and return tensors on the caller's device; on leaving, the model is back on the
-    CPU. On the CPU the block changes nothing."""
+def on_device(model: AbstractLagrangian, device: torch.device) -> Iterator[AbstractLagrangian]:
+    """Inside the block, ``model``'s parameters and buffers are on ``device`` and its evaluations (the methods
+    its class lists in ``bridged``) take and return tensors on the caller's device; on leaving, the model is
+    back on the CPU. On the CPU the block changes nothing."""
     if device.type == "cpu":
         yield model
         return
@@ -155,9 +147,9 @@ def on_device(model: torch.nn.Module, device: torch.device) -> Iterator[torch.nn
 
 
 @contextmanager
-def _moved(model: torch.nn.Module, device: torch.device) -> Iterator[None]:
+def _moved(model: AbstractLagrangian, device: torch.device) -> Iterator[None]:
     """The work of :func:`on_device` for any device (the CPU too: the tests exercise the bridge there)."""
-    patched = [name for name in _BRIDGED if callable(getattr(model, name, None))]
+    patched = list(model.bridged)
     model.to(device)
     for name in patched:
         object.__setattr__(model, name, _bridged(getattr(model, name), device))

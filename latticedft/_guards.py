@@ -26,7 +26,6 @@ from typing import Any
 from ._case import CASE_FILE, Case
 from ._errors import ConfigError
 from ._models import MODELS
-from ._serve._stream import kept_slices
 from .io.exporters import TEMPORARY_NAME_EXTRA, export_file_names
 
 __all__ = [
@@ -146,33 +145,13 @@ def available_memory() -> int | None:
 
 
 def _parameter_lower_bound(case: Case, data: Any) -> tuple[int, str] | None:
-    """(a lower bound of the parameter count, the key that sets it) of the case's model, or None."""
-    options = case.model.options
-    if case.model.kind == "mlp" and isinstance(options.get("hidden"), list):
-        model: Any = None  # the layer sizes as given: nothing is built
-    else:
-        try:
-            model = MODELS[case.model.kind](**options)  # resolves presets and defaults; tensors come with bind()
-        except Exception:  # noqa: BLE001 - bad options are the case reader's to report
-            return None
-    n = len(data.dims)
+    """(a lower bound of the parameter count, the key that sets it) of the case's model, or None: its kind's
+    :meth:`~latticedft.AbstractLagrangian.parameter_lower_bound`."""
+    kind = MODELS.get(case.model.kind)
+    if kind is None:  # the case reader reports it
+        return None
     m = len(data.components) if data.components else 1
-    if case.model.kind == "mlp":
-        hidden = [int(h) for h in (options["hidden"] if model is None else getattr(model, "hidden", []))]
-        if not hidden:
-            return None
-        count, width = 0, 1  # at least one input
-        for h in hidden:
-            count += (width + 1) * h
-            width = h
-        return count + width + 1, "model.hidden"
-    if case.model.kind == "polynomial":
-        p, q = getattr(model, "orders", (0, 0))
-        terms = math.comb(q + m, m) * math.comb(p + n * m, n * m)
-        if getattr(model, "time_symmetric", False):
-            terms //= 2  # the even powers of the time differences: at least half
-        return terms, "model.orders"
-    return None
+    return kind.parameter_lower_bound(case.model.options, len(data.dims), m)
 
 
 def check_model_size(case: Case, data: Any, available: int | None = None) -> None:
@@ -199,7 +178,7 @@ def check_task_memory(case: Case, data: Any, available: int | None = None) -> No
         return
     for td in data.tasks:
         t = td.task
-        held = td.slices if t.every == 1 else len(kept_slices(td.slices, t.every))  # every > 1: the kept ones
+        held = t.cadence.kept_count(td.slices)  # with an output cadence: the kept slices
         values = held * math.prod(int(s) for s in td.init.shape[1:])
         covered = td.reference is not None and td.reference.shape[0] >= td.slices  # then _ref and _err are written
         copies = 4 if covered else 2
@@ -211,7 +190,7 @@ def check_task_memory(case: Case, data: Any, available: int | None = None) -> No
             key = f"{t.label}.{name}" if t.slices is not None else f"{t.label}.from"
             raise ConfigError(
                 f"{_where(case, f'serve.{t.name}.{name}')}: {key}: task {t.name!r} needs about "
-                f"{_bytes(need)} of memory ({held} {'kept ' if t.every > 1 else ''}slices of {values // held} "
+                f"{_bytes(need)} of memory ({held} {'kept ' if t.cadence.thins else ''}slices of {values // held} "
                 "values, 8 bytes "
                 f"each, {copies} copies: the served field"
                 + (", its reference, its error" if covered else "")

@@ -9,6 +9,7 @@ from typing import Any
 
 import torch
 
+from ._contract import DEFAULT_GAUGE, parse_gauge
 from ._errors import InputError, ModelFileError
 from ._models import MODELS, AbstractLagrangian, EnsembleLagrangian
 from ._stencil import Stencil
@@ -18,13 +19,13 @@ __all__ = ["save_model", "load_model", "FORMAT_VERSION", "model_record"]
 FORMAT_VERSION = 1
 
 
-def model_record(model: AbstractLagrangian, gauge: str = "unit-mass") -> dict[str, Any]:
-    """Everything of a model file except ``state_dict`` (JSON-compatible)."""
+def model_record(model: AbstractLagrangian, gauge: str | None = None) -> dict[str, Any]:
+    """Everything of a model file except ``state_dict`` (JSON-compatible); ``gauge`` default: the model's."""
     if not isinstance(model, AbstractLagrangian):
         raise InputError.at("model", f"expected a latticedft model, got {type(model).__name__}")
     if not model.saveable:
         raise ModelFileError(f"model: a {type(model).__name__} cannot be written to a model file")
-    if getattr(model, "has_functions", False):
+    if model.has_functions:
         raise ModelFileError(
             "model: its feature library holds Python functions, which a model file cannot store; "
             "use the named features ('poly:K', 'trig:K', 'trig:K:w') to save it"
@@ -36,7 +37,7 @@ def model_record(model: AbstractLagrangian, gauge: str = "unit-mass") -> dict[st
         "kind": model.kind,
         "options": model.options(),
         "stencil": model.stencil.to_list(),
-        "gauge": gauge,
+        "gauge": (parse_gauge(gauge) if gauge is not None else model.gauge or DEFAULT_GAUGE).value,
         "n": model.n,
         "m": model.m,
         "spacing": list(model.spacing),
@@ -50,8 +51,7 @@ def save_model(model: AbstractLagrangian, path: str | os.PathLike, *, gauge: str
         raise InputError.at("path", f"expected a file path, got {type(path).__name__}")
     if gauge is not None and not isinstance(gauge, str):
         raise InputError.at("gauge", f"expected the name of the gauge the model was learned with, got {gauge!r}")
-    report = getattr(model, "report_", None)
-    record = model_record(model, gauge or (report.gauge if report else "unit-mass"))
+    record = model_record(model, gauge or None)
     record["state_dict"] = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
@@ -133,6 +133,7 @@ def load_model(path: str | os.PathLike) -> AbstractLagrangian:
         if isinstance(state, dict) and isinstance(state.get("feature_range"), torch.Tensor):
             model.set_feature_range(state["feature_range"])  # files written before ranges were kept have none
         model.load_state_dict(state)
+        model.gauge = rec.get("gauge", DEFAULT_GAUGE)
     except ModelFileError:
         raise
     except Exception as exc:
@@ -140,5 +141,4 @@ def load_model(path: str | os.PathLike) -> AbstractLagrangian:
             f"{path}: inconsistent model file ({type(exc).__name__}: "
             f"{str(exc).strip().splitlines()[0][:160] if str(exc).strip() else ''})"
         ) from None
-    model.gauge_ = rec.get("gauge", "unit-mass")
     return model

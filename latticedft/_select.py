@@ -30,10 +30,6 @@ FACTOR = 2.0
 #: The hand-set model is kept when its score is at or below this: it serves the held-out slices to this relative
 #: error, and a lower score there no longer predicts a lower error elsewhere (docs/selection.md).
 KEEP_BELOW = 1e-6
-#: Orders of the polynomial candidates of ``"auto"`` (beside the hand-set ones).
-AUTO_ORDERS = ((2, 2), (2, 4), (4, 4), (4, 8), (2, 8), (4, 12))
-#: Feature libraries of the ``"auto"`` candidates of a 1D field.
-AUTO_LIBRARIES = (("trig:1",), ("trig:2",), ("poly:4", "trig:1"))
 
 
 @dataclass
@@ -89,30 +85,13 @@ def _label(change: Mapping[str, Any] | AbstractLagrangian) -> str:
 
 
 def auto_candidates(model: AbstractLagrangian, n: int, ridge: Any = 0.0) -> list[dict[str, Any]]:
-    """The candidates of ``"auto"`` for a hand-set model on an ``n``-dimensional lattice, as option changes.
-
-    Polynomial: the orders of :data:`AUTO_ORDERS`, time symmetry and input scaling flipped, ``ridge="auto"``,
-    and on a 1D lattice the feature libraries of :data:`AUTO_LIBRARIES` (``kind = "features"``, the hand-set
-    degree in the differences). Feature library: the same libraries, differences 2 and 4, time symmetry and
-    scaling flipped, ``ridge="auto"``. MLP: input scaling flipped.
+    """The candidates of ``"auto"`` for a hand-set model on an ``n``-dimensional lattice, as option changes: its
+    kind's own (:meth:`AbstractLagrangian.auto_candidates`). Polynomial: other orders, time symmetry and input
+    scaling flipped, ``ridge="auto"``, and on a 1D lattice feature libraries (``kind = "features"``); feature
+    library: differences 2 and 4, then the same; MLP (and any kind with a ``scale`` option): input scaling
+    flipped.
     """
-    opts = model.options()
-    out: list[dict[str, Any]] = []
-    if model.kind in ("polynomial", "features"):
-        if model.kind == "polynomial":
-            out += [{"orders": list(o)} for o in AUTO_ORDERS]
-            p = int(opts["orders"][0])
-        else:
-            out += [{"differences": d} for d in (2, 4)]
-            p = int(opts["differences"])
-        out += [{"time_symmetric": not opts["time_symmetric"]}, {"scale": not opts["scale"]}]
-        if ridge != "auto":
-            out.append({"ridge": "auto"})
-        if n == 1:
-            out += [{"kind": "features", "features": list(lib), "differences": max(p, 2)} for lib in AUTO_LIBRARIES]
-    elif "scale" in opts:
-        out.append({"scale": not opts["scale"]})
-    return out
+    return model.auto_candidates(n, ridge)
 
 
 def _spec(model: AbstractLagrangian, change: Mapping[str, Any], ridge: Any) -> tuple[str, dict[str, Any], Any]:
@@ -124,7 +103,7 @@ def _spec(model: AbstractLagrangian, change: Mapping[str, Any], ridge: Any) -> t
     if kind not in MODELS:
         raise InputError.at("candidates", f"unknown model kind {kind!r} (expected one of {sorted(MODELS)})")
     options = {**(model.options() if kind == model.kind else {}), **change}
-    if kind == "mlp" and options.get("preset") is not None:  # a preset fills the rest; keep only what was set
+    if options.get("preset") is not None:  # a preset (an MLP's) fills the rest; keep only what was set
         options = {k: v for k, v in options.items() if k == "preset" or k in change}
     return kind, options, new_ridge
 
@@ -157,7 +136,7 @@ def _score(model: AbstractLagrangian, fields: list[xr.DataArray], boundary: Boun
     """The largest served error over the largest magnitude, field by field; ``ServeError`` when one stops.
     A candidate whose training corrected noisy data serves from denoised initial slices, as a case's task
     with ``start = "auto"`` would."""
-    noise = getattr(getattr(model, "report_", None), "noise", None) or {}
+    noise = (model.report_.noise if model.report_ is not None else None) or {}
     denoise = noise.get("method", "none") != "none"
     worst = 0.0
     for f in fields:

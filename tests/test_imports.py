@@ -32,7 +32,7 @@ def test_import_latticedft_is_light_and_names_load_on_use() -> None:
     loaded = _loaded(
         """
         import latticedft as ldft
-        assert sorted(ldft.MODELS) == ["features", "mlp", "polynomial"] and callable(ldft.learn)
+        assert {"features", "mlp", "polynomial"} <= set(ldft.MODELS) and callable(ldft.learn)
         assert ldft.lagrangians.wave and ldft.systems.make_field and ldft.__version__
         from latticedft import serve, InputError
         assert "learn" in dir(ldft) and "systems" in dir(ldft)

@@ -13,6 +13,7 @@ import torch
 import latticedft as ldft
 from latticedft import ConfigError
 from latticedft._case import ModelConfig, load_case
+from latticedft._contract import GaugeName
 from latticedft._learn._gauge import GAUGES, gauge_named
 from latticedft._models import FreeMLPLagrangian, KineticPotentialMLPLagrangian
 
@@ -186,6 +187,43 @@ def test_the_contract_is_declared():
     assert ldft.AnalyticLagrangian.rebinds_to_any_lattice
     assert not ldft.PolynomialLagrangian.rebinds_to_any_lattice and not ldft.MLPLagrangian.rebinds_to_any_lattice
     assert ldft.AbstractLagrangian.fast_derivatives(ldft.MLPLagrangian(), torch.zeros(1, 2, 1), []) is None
+
+
+def test_the_capabilities_have_defaults_and_the_kinds_override_them():
+    model = ldft.MLPLagrangian(hidden=[4])
+    assert model.numpy_derivatives([(0, 1)]) is None and not model.has_functions
+    assert model.n_members == 1 and model.member(0) is model and "features" not in model.bridged
+    assert "features" in ldft.PolynomialLagrangian.bridged
+    assert ldft.AbstractLagrangian.parameter_lower_bound({}, 1, 1) is None
+    assert ldft.MODELS["mlp"].parameter_lower_bound({"hidden": [4]}, 1, 1) == (2 * 4 + 5, "model.hidden")
+    assert ldft.MODELS["polynomial"].parameter_lower_bound({"orders": [2, 2]}, 1, 1) == (9, "model.orders")
+    assert model.auto_candidates(1) == [{"scale": not model.scale}]
+    model.reseed(7)
+    assert model.seed == 7
+
+
+def test_the_registry_holds_factories():
+    kp = ldft.MODELS["mlp"](form="kinetic-potential", hidden=[4])  # a function picks the class of the form
+    assert type(kp) is KineticPotentialMLPLagrangian and isinstance(ldft.MODELS["mlp"], ldft.ModelKind)
+    assert ldft.MODELS["mlp"].option_defaults()["seed"] == 0 and "form" in ldft.MODELS["mlp"].option_checks()
+    assert ldft.MODELS["polynomial"].factory is ldft.PolynomialLagrangian
+    with pytest.raises(TypeError, match="AbstractLagrangian"):
+        ldft.MODELS["not-a-model"] = dict  # type: ignore[assignment]
+    assert "not-a-model" not in ldft.MODELS
+
+
+def test_the_gauge_is_one_property(tmp_path):
+    _, data = oscillator_data(steps=60)
+    model = ldft.PolynomialLagrangian((2, 2))
+    assert model.gauge is None
+    ldft.learn(model, data, gauge="trace")
+    assert model.gauge is GaugeName.TRACE and model.report_.gauge == "trace"
+    path = ldft.save_model(model, tmp_path / "m.pt")
+    written = torch.load(path, weights_only=True)["gauge"]
+    assert written == "trace" and type(written) is str  # model files keep a plain string
+    assert ldft.load_model(path).gauge is GaugeName.TRACE
+    with pytest.raises(ldft.InputError, match="gauge"):
+        model.gauge = "auto"
 
 
 def test_each_gauge_measures_what_it_penalises():

@@ -266,3 +266,62 @@ def test_a_killed_cadenced_run_leaves_a_readable_part_file(tmp_path):
 def test_a_finished_cadenced_run_leaves_no_part_file(tmp_path, capsys):
     run_wave_every(tmp_path, capsys, 5)
     assert not list(tmp_path.rglob("*.part"))
+
+
+@pytest.mark.parametrize("appended", [4, 3, 0])
+def test_a_completed_part_file_is_the_file_written_whole(tmp_path, appended):
+    """The part file completed into ``<task>.nc`` holds what ``write_task`` writes whole, bit for bit: with
+    every kept slice appended, without the last one (a task stopped between two kept slices), or none."""
+    from latticedft import systems
+    from latticedft._part_file import PartFile
+    from latticedft._results import write_task
+
+    template = systems.wave_string([(1, 1.0)], nx=9, nt=12)
+    idx = np.array([0, 3, 6, 8])
+    pred = template.isel(t=idx).assign_coords(slice=("t", idx, {"long_name": "time slice index"}))
+    pred.attrs = {**pred.attrs, "latticedft_every": 3, "source": "served"}
+    ref = template.isel(t=slice(0, 9))
+    inv = xr.DataArray(np.arange(4.0), dims="t", coords={"t": pred["t"].values}, name="invariant")
+    kw = dict(attrs={"latticedft_task": "test", "latticedft_complete": "false"}, history="h", steps=12)
+    whole = write_task(tmp_path, "whole", "psi", pred, ref, inv, **kw)
+    part = PartFile(tmp_path, "test", "psi", template, 3)
+    for k in range(appended):
+        part(int(idx[k]), template.values[idx[k]])
+    part.close()
+    done = write_task(tmp_path, "test", "psi", pred, ref, inv, part=part.path, **kw)
+    assert done == tmp_path / "test.nc" and not part.path.exists()
+    with xr.open_dataset(whole, decode_times=False) as a, xr.open_dataset(done, decode_times=False) as b:
+        assert b["psi"].encoding["chunksizes"] == (1, 9)  # the part file's variable, completed in place
+        a.attrs.pop("history"), b.attrs.pop("history")
+        xr.testing.assert_identical(a.load(), b.load())
+
+
+def test_part_file_of_a_vector_field_completes_to_the_task_file(tmp_path) -> None:
+    """String labels (``component``) are a character array in the part file, as in the task file it becomes:
+    readable while it grows, and the completed file holds the labels, the kept slices and no spatial axis."""
+    import netCDF4
+
+    from latticedft._part_file import PartFile
+    from latticedft._results import write_task
+
+    t, x = np.arange(9) * 0.1, np.arange(5) * 0.25
+    psi = xr.DataArray(
+        np.random.default_rng(0).random((9, 5, 2)),
+        dims=("t", "x", "component"),
+        coords={"t": t, "x": ("x", x, {"axis": "X"}), "component": ["u", "v"]},
+        name="psi",
+    )
+    kept = [0, 4, 8]
+    part = PartFile(tmp_path, "task", "psi", psi, 4)
+    for i in kept:
+        part(i, psi.values[i])
+    with xr.open_dataset(part.path) as ds:
+        assert ds["component"].values.tolist() == ["u", "v"]
+    part.close()
+    pred = psi.isel(t=kept).assign_coords(slice=("t", kept))
+    path = write_task(tmp_path, "task", "psi", pred, None, None, attrs={}, history="test", part=part.path)
+    with xr.open_dataset(path) as ds:
+        assert ds["component"].values.tolist() == ["u", "v"] and "axis" not in ds["x"].attrs
+        np.testing.assert_array_equal(ds["psi"].values, pred.values)
+    with netCDF4.Dataset(path) as nc:
+        assert nc["component"].dtype == np.dtype("S1")

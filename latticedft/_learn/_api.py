@@ -5,15 +5,16 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Sequence
-from dataclasses import replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 
 import torch
 import xarray as xr
 
+from .._contract import GaugeName
 from .._device import device_label, on_device, resolve_device
 from .._errors import InputError
-from .._lattice import BoundaryKinds
+from .._lattice import BoundaryKinds, LatticeField
 from .._models import AbstractLagrangian, EnsembleLagrangian, LinearLagrangian
 from ._ensemble import learn_ensemble
 from ._exact import learn_exact
@@ -48,15 +49,16 @@ AUTO_RULE = (
 def _checked(
     model: AbstractLagrangian, gauge: str, ridge: float | str, optimizer: str | None, max_iter: int
 ) -> tuple[Gauge | None, str]:
-    """The gauge (``None`` for ``auto``) and the optimizer (its default filled in), or an InputError naming
-    the bad argument."""
+    """The gauge (``None`` for ``auto``) and the optimizer (its default filled in, from the kind of the model,
+    or of an ensemble's members), or an InputError naming the bad argument."""
     fix = None if gauge == AUTO else gauge_named(gauge)
     if not isinstance(model, AbstractLagrangian):
         raise InputError(f"model: expected a latticedft model, got {type(model).__name__}")
-    optimizer = optimizer or ("exact" if isinstance(model, LinearLagrangian) else "lbfgs")
+    model = model.member(0)
+    optimizer = optimizer or ("exact" if model.linear else "lbfgs")
     if optimizer not in OPTIMIZERS:
         raise InputError.at("optimizer", f"expected 'exact', 'lbfgs' or 'adam', got {optimizer!r}")
-    if optimizer == "exact" and not isinstance(model, LinearLagrangian):
+    if optimizer == "exact" and not model.linear:
         raise InputError.at("optimizer", f"'exact' needs a model linear in its parameters; {model.kind!r} is not")
     if not (ridge == "auto" or (isinstance(ridge, (int, float)) and not isinstance(ridge, bool) and ridge >= 0)):
         raise InputError.at("ridge", f"expected a number >= 0 or 'auto', got {ridge!r}")
@@ -204,8 +206,7 @@ def learn(
     >>> report.gauge_residual < 1e-10 and report.rel_res < 1e-3
     True
     """
-    base = model.member(0) if isinstance(model, EnsembleLagrangian) else model  # the members' kind
-    fix, optimizer = _checked(base, gauge, ridge, optimizer, max_iter)
+    fix, optimizer = _checked(model, gauge, ridge, optimizer, max_iter)
     where = resolve_device(device)
     settings = Training(
         optimizer=optimizer,
@@ -226,46 +227,60 @@ def learn(
     _check_number("noise_sigma", noise_sigma, strict=False, optional=True)
     ens = _ensemble_of(model, ensemble, ensemble_seed)
     fields = training_data(data, boundary, chunk_sites)
-    trained_on = device_label(where) if optimizer != "exact" else "cpu"
-
-    def fit(one: object, data: TrainingData, main: LearnReport | None = None) -> LearnReport:
-        """Learn ``one``; an ensemble's resampled members (``main``: member 0's report) skip the symmetry tests
-        and take member 0's ridge and gauge where ``"auto"`` chose them."""
-        assert isinstance(one, AbstractLagrangian)
-        nsites = _bound_to(one, data)
-        tests = symmetries and main is None
-        weight = main.ridge if main is not None and ridge == "auto" else ridge
-        chosen = gauge_named(main.gauge) if main is not None and fix is None else fix  # member 0's "auto" choice
-        if chosen is None:  # "auto"
-            report = _learn_auto(one, data, weight, nsites, settings, tests)
-        else:
-            report = _fit(one, data, chosen, weight, nsites, settings, tests)
-        report = replace(report, device=trained_on)
-        one.report_ = report
-        return report
-
-    def fit_noisy(one: AbstractLagrangian) -> tuple[LearnReport, TrainingData]:
-        """Learn ``one`` with the noise handling asked for; the report and the data of its last fit."""
-        if noise == "none":
-            return fit(one, fields), fields
-        report, used = learn_noisy(
-            one,
-            fields,
-            lambda fs: fit(one, fs),
-            noise,
-            noise_sigma,
-            lambda f: training_data(f, boundary, chunk_sites),
-        )
-        one.report_ = report
-        return report, used
-
+    learner = _Learner(
+        fix=fix,
+        ridge=ridge,
+        settings=settings,
+        symmetries=symmetries,
+        noise=noise,
+        noise_sigma=noise_sigma,
+        make=lambda f: training_data(f, boundary, chunk_sites),
+        trained_on=device_label(where) if optimizer != "exact" else "cpu",
+    )
     if ens is None:
-        return fit_noisy(model)[0]
-    report = learn_ensemble(ens, fit_noisy, fit)
+        return learner.fit_noisy(model, fields)[0]
+    report = learn_ensemble(ens, lambda one: learner.fit_noisy(one, fields), learner.fit)
     if ens is not model:
         object.__setattr__(model, "ensemble_", ens)  # not a submodule: the ensemble holds the model
         model.report_ = report
     return report
+
+
+@dataclass(frozen=True)
+class _Learner:
+    """The settings of one :func:`learn` call, applied to a model (member 0 of an ensemble, or another member)."""
+
+    fix: Gauge | None  # None: "auto"
+    ridge: float | str
+    settings: Training
+    symmetries: bool
+    noise: str
+    noise_sigma: float | None
+    make: Callable[[list[LatticeField]], TrainingData]  # the training data of corrected fields
+    trained_on: str  # the device label of the reports
+
+    def fit(self, one: AbstractLagrangian, data: TrainingData, main: LearnReport | None = None) -> LearnReport:
+        """Learn ``one``; an ensemble's resampled members (``main``: member 0's report) skip the symmetry tests
+        and take member 0's ridge and gauge where ``"auto"`` chose them."""
+        nsites = _bound_to(one, data)
+        tests = self.symmetries and main is None
+        weight = main.ridge if main is not None and self.ridge == "auto" else self.ridge
+        chosen = gauge_named(main.gauge) if main is not None and self.fix is None else self.fix  # member 0's choice
+        if chosen is None:  # "auto"
+            report = _learn_auto(one, data, weight, nsites, self.settings, tests)
+        else:
+            report = _fit(one, data, chosen, weight, nsites, self.settings, tests)
+        report = replace(report, device=self.trained_on)
+        one.report_ = report
+        return report
+
+    def fit_noisy(self, one: AbstractLagrangian, fields: TrainingData) -> tuple[LearnReport, TrainingData]:
+        """Learn ``one`` with the noise handling asked for; the report and the data of its last fit."""
+        if self.noise == "none":
+            return self.fit(one, fields), fields
+        report, used = learn_noisy(one, fields, lambda fs: self.fit(one, fs), self.noise, self.noise_sigma, self.make)
+        one.report_ = report
+        return report, used
 
 
 def _ensemble_of(model: AbstractLagrangian, ensemble: int | None, seed: int) -> EnsembleLagrangian | None:
@@ -344,8 +359,9 @@ def _learn_auto(
 ) -> LearnReport:
     """``gauge="auto"``: the rule of :data:`AUTO_RULE`, every candidate fitted from the same start."""
     start = {k: v.detach().clone() for k, v in model.state_dict().items()}
-    first = _fit(model, fields, gauge_named("unit-mass"), ridge, nsites, settings, symmetries)
-    scores = {"unit-mass": first.rel_res}
+    unit_mass, trace = gauge_named(GaugeName.UNIT_MASS), gauge_named(GaugeName.TRACE)
+    first = _fit(model, fields, unit_mass, ridge, nsites, settings, symmetries)
+    scores = {unit_mass.name: first.rel_res}
     if model.m == 1:
         why = "one component: unit-mass and trace are the same condition"
     elif model.unit_mass_by_construction:
@@ -355,8 +371,8 @@ def _learn_auto(
     else:
         kept = {k: v.detach().clone() for k, v in model.state_dict().items()}
         model.load_state_dict(start)
-        second = _fit(model, fields, gauge_named("trace"), ridge, nsites, settings, symmetries)
-        scores["trace"] = second.rel_res
+        second = _fit(model, fields, trace, ridge, nsites, settings, symmetries)
+        scores[trace.name] = second.rel_res
         better = second.rel_res < AUTO_FACTOR * first.rel_res and second.hessian_min_sv >= AUTO_MIN_SV
         wall = first.wall_time + second.wall_time
         if better:

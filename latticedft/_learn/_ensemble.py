@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .._models import EnsembleLagrangian
+from .._models import AbstractLagrangian, EnsembleLagrangian
 from ._report import LearnReport
 from ._source import FieldSource
 from ._stream import TrainingData
@@ -44,7 +44,7 @@ def time_windows(sources: list[FieldSource], width: int) -> list[FieldSource]:
 def learn_ensemble(
     ens: EnsembleLagrangian,
     fit_first: Callable[[Any], tuple[LearnReport, TrainingData]],
-    fit: Callable[[object, TrainingData, LearnReport | None], LearnReport],
+    fit: Callable[[AbstractLagrangian, TrainingData, LearnReport | None], LearnReport],
 ) -> LearnReport:
     """Fit member 0 on all the data and every other member on a bootstrap resample of its time windows.
 

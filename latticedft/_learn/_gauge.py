@@ -18,6 +18,7 @@ from typing import ClassVar
 import numpy as np
 import torch
 
+from .._contract import GaugeName
 from .._errors import InputError
 
 __all__ = ["Gauge", "UnitMass", "Trace", "NoGauge", "GAUGES", "AUTO", "AUTO_CANDIDATES", "gauge_named"]
@@ -47,7 +48,7 @@ class Gauge:
 class UnitMass(Gauge):
     """``h_0^2 mbar = -I``: every entry, the unit mass of a kinetic term ``|g_0|^2 / (2 h_0^2)``."""
 
-    name = "unit-mass"
+    name = GaugeName.UNIT_MASS.value
 
     def _defect(self, mbar: torch.Tensor, h0: float) -> torch.Tensor:
         return h0**2 * mbar + torch.eye(mbar.shape[0], dtype=mbar.dtype)
@@ -67,7 +68,7 @@ class UnitMass(Gauge):
 class Trace(Gauge):
     """``h_0^2 tr(mbar) / m = -1``: only the trace, for components of unequal masses."""
 
-    name = "trace"
+    name = GaugeName.TRACE.value
 
     def _defect(self, mbar: torch.Tensor, h0: float) -> torch.Tensor:
         return h0**2 * torch.trace(mbar) / mbar.shape[0] + 1
@@ -87,7 +88,7 @@ class NoGauge(Gauge):
     """No fix: the learner drifts towards ``L_d = const``. Reports measure it against the unit mass (the
     collapse shows as a residual near 1)."""
 
-    name = "none"
+    name = GaugeName.NONE.value
     fixes = False
 
     def residual(self, mbar: torch.Tensor, h0: float) -> float:
@@ -106,7 +107,7 @@ _BY_NAME: dict[str, Gauge] = {g.name: g for g in (UnitMass(), Trace(), NoGauge()
 #: (:data:`AUTO_CANDIDATES`) and keep one (see ``latticedft._learn._api.AUTO_RULE``).
 AUTO = "auto"
 #: The gauges ``auto`` chooses from, in order of preference.
-AUTO_CANDIDATES = ("unit-mass", "trace")
+AUTO_CANDIDATES = (UnitMass.name, Trace.name)
 
 #: Gauge choices of :func:`latticedft.learn`: ``unit-mass`` (mean mixed Hessian = -I/h0^2, every entry),
 #: ``trace`` (only its trace, for unequal masses or velocity-linear terms such as a magnetic field),

@@ -10,6 +10,7 @@ from typing import Any
 import torch
 
 from .._action import del_residual, mixed_hessian
+from .._contract import DEFAULT_GAUGE
 from .._errors import InputError
 from .._lattice import BoundaryKinds, LatticeField
 from .._models import AbstractLagrangian
@@ -133,7 +134,7 @@ def diagnose(
     model: AbstractLagrangian,
     data: Any,
     *,
-    gauge: str = "unit-mass",
+    gauge: str = DEFAULT_GAUGE.value,
     boundary: BoundaryKinds | None = None,
     symmetries: bool | Sequence[Any] = False,
 ) -> dict[str, Any]:

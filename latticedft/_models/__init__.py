@@ -1,13 +1,13 @@
 """Models of the discrete Lagrangian density, behind one abstract interface.
 
-A new model is one class (a subclass of :class:`AbstractLagrangian`, or of :class:`LinearLagrangian` when
-``L_d`` is linear in its parameters) plus one line in :data:`MODELS`.
+A new model kind is one class (a subclass of :class:`AbstractLagrangian`, or of :class:`LinearLagrangian`
+when ``L_d`` is linear in its parameters) plus one line in :data:`MODELS` (``MODELS[kind] = TheClass``).
 """
 
 from __future__ import annotations
 
+from .._contract import AbstractLagrangian
 from ._analytic import AnalyticLagrangian
-from ._base import AbstractLagrangian
 from ._ensemble import EnsembleLagrangian
 from ._features import FeatureLagrangian
 from ._linear import LinearLagrangian
@@ -16,15 +16,16 @@ from ._mlp import (
     FreeMLPLagrangian,
     KineticPotentialMLPLagrangian,
     MLPLagrangian,
+    mlp_lagrangian,
 )
 from ._polynomial import PolynomialLagrangian
+from ._registry import ModelKind, ModelRegistry
 
-#: ``[model] kind = ...`` in case.toml and model files name these classes (the key is the class's ``kind``).
-MODELS: dict[str, type[AbstractLagrangian]] = {
-    "polynomial": PolynomialLagrangian,
-    "mlp": MLPLagrangian,  # type: ignore[type-abstract]  # abstract, but its __new__ builds the concrete form class
-    "features": FeatureLagrangian,
-}
+#: ``[model] kind = ...`` in case.toml and model files name these kinds (the key is the models' ``kind``).
+MODELS = ModelRegistry()
+MODELS["polynomial"] = PolynomialLagrangian
+MODELS["mlp"] = ModelKind("mlp", mlp_lagrangian, MLPLagrangian)  # the form option picks the class
+MODELS["features"] = FeatureLagrangian
 
 __all__ = [
     "AbstractLagrangian",
@@ -37,5 +38,7 @@ __all__ = [
     "MLPLagrangian",
     "PolynomialLagrangian",
     "MODELS",
+    "ModelKind",
+    "ModelRegistry",
     "PRESETS",
 ]

@@ -6,9 +6,9 @@ from collections.abc import Callable
 
 import torch
 
+from .._contract import AbstractLagrangian
 from .._errors import InputError
 from .._stencil import Stencil
-from ._base import AbstractLagrangian
 
 __all__ = ["AnalyticLagrangian"]
 

@@ -4,16 +4,16 @@ from __future__ import annotations
 
 import copy
 import functools
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 import torch
 
+from .._contract import AbstractLagrangian, NumpyForms
 from .._errors import InputError
 from .._stencil import Stencil
 from . import _polynumpy
-from ._base import AbstractLagrangian
 from ._polynomial import PolynomialLagrangian
 
 __all__ = ["EnsembleLagrangian", "stacked"]
@@ -73,13 +73,16 @@ class EnsembleLagrangian(AbstractLagrangian):
         for k in range(1, members):
             member = copy.deepcopy(model)
             member.report_ = None
-            if isinstance(getattr(member, "seed", None), int):  # e.g. an MLP: another initial network
-                member.__dict__["seed"] = int(seeds[k])
+            member.reseed(int(seeds[k]))  # e.g. an MLP: another initial network
             copies.append(member)
         self.members = torch.nn.ModuleList(copies)
 
     def __len__(self) -> int:
         return len(self.members)
+
+    @property
+    def n_members(self) -> int:
+        return len(self)
 
     def member(self, k: int) -> AbstractLagrangian:
         """Member ``k`` (0: the model learned on all the data)."""
@@ -129,7 +132,7 @@ def _rebuilt(spec: Mapping[str, Any], stencil: Stencil | None) -> AbstractLagran
     from . import MODELS
 
     kind = spec.get("kind")
-    if kind not in MODELS or not isinstance(spec.get("options"), Mapping):
+    if not isinstance(kind, str) or kind not in MODELS or not isinstance(spec.get("options"), Mapping):
         raise InputError.at("model", f"expected {{'kind': one of {sorted(MODELS)}, 'options': {{...}}}}, got {spec!r}")
     return MODELS[kind](**spec["options"], stencil=stencil)
 
@@ -146,6 +149,10 @@ class _Stacked(AbstractLagrangian):
         super().__init__(members[0].stencil)
         self.parts = torch.nn.ModuleList(members)
         self.mm = members[0].m
+
+    def _members(self) -> list[AbstractLagrangian]:
+        """The stacked members, in order."""
+        return [p for p in self.parts if isinstance(p, AbstractLagrangian)]
 
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
         m = self.mm
@@ -165,13 +172,13 @@ class _Stacked(AbstractLagrangian):
         slice, when the members are neural networks of one structure (their ``L_d`` is then evaluated by one
         ``torch.func.vmap`` call instead of one call per member); ``None`` otherwise. Built once: the stacked
         model is made for one serving run, after learning."""
-        parts = list(self.parts)
+        parts = self._members()
 
-        def shape(p: torch.nn.Module) -> tuple:  # the structure; the initial seed does not change it
-            opts = p.options() if isinstance(p, AbstractLagrangian) else {}
+        def shape(p: AbstractLagrangian) -> tuple:  # the structure; the initial seed does not change it
+            opts = p.options()
             return (type(p), sorted((k, repr(v)) for k, v in opts.items() if k != "seed"), sorted(p.state_dict()))
 
-        neural = not getattr(parts[0], "linear", False) and any(True for _ in parts[0].parameters())
+        neural = not parts[0].linear and any(True for _ in parts[0].parameters())
         if not neural or any(shape(p) != shape(parts[0]) for p in parts):
             return None
         params, buffers = torch.func.stack_module_state(parts)
@@ -190,8 +197,7 @@ class _Stacked(AbstractLagrangian):
         at once when a member has none (:meth:`_autograd_derivatives`)."""
         m = self.mm
         found = []
-        for k, part in enumerate(self.parts):
-            assert isinstance(part, AbstractLagrangian)
+        for k, part in enumerate(self._members()):
             out = part.fast_derivatives(cells[..., k * m : (k + 1) * m], pairs)
             if out is None:
                 return self._autograd_derivatives(cells, pairs)
@@ -203,7 +209,7 @@ class _Stacked(AbstractLagrangian):
     def numpy_ready(self) -> bool:  # type: ignore[override]
         """Whether :meth:`numpy_derivatives` may give closed forms: every member may (the serving loops ask
         this before building them)."""
-        return all(getattr(p, "numpy_ready", False) for p in self.parts)
+        return all(p.numpy_ready for p in self._members())
 
     def _autograd_derivatives(
         self, cells: torch.Tensor, pairs: list[tuple[int, int]]
@@ -229,9 +235,7 @@ class _Stacked(AbstractLagrangian):
             blocks[(a, b)] = _block_diagonal(col.movedim(-3, 0)).detach()
         return g.detach(), blocks
 
-    def numpy_derivatives(
-        self, pairs: Sequence[tuple[int, int]]
-    ) -> Callable[[np.ndarray], tuple[np.ndarray, list[np.ndarray]]] | None:
+    def numpy_derivatives(self, pairs: Sequence[tuple[int, int]]) -> NumpyForms | None:
         """The members' numpy closed forms side by side (as :meth:`fast_derivatives`), or None when a member
         offers none: an ensemble of polynomials is then served by the numpy loops as one model is."""
         parts = [p for p in self.parts if isinstance(p, PolynomialLagrangian)]
@@ -240,9 +244,8 @@ class _Stacked(AbstractLagrangian):
             if together is not None:
                 return together
         forms = []
-        for part in self.parts:
-            hook = getattr(part, "numpy_derivatives", None)
-            form = hook(pairs) if hook is not None else None
+        for part in self._members():
+            form = part.numpy_derivatives(pairs)
             if form is None:
                 return None
             forms.append(form)

@@ -133,6 +133,10 @@ class FeatureLagrangian(LinearLagrangian):
             "scale": self.scale,
         }
 
+    def auto_candidates(self, n: int, ridge: Any = 0.0) -> list[dict[str, Any]]:
+        """Differences of degree 2 and 4, then the candidates every linear kind shares."""
+        return [{"differences": d} for d in (2, 4)] + self._auto_tail(self.differences, n, ridge)
+
     # -- structure ---------------------------------------------------------------------------------------
     def _build(self) -> None:
         n, m = self.n, self.m

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable, Sequence
-from typing import Literal, overload
+from typing import Any, Literal, overload
 
-import numpy as np
 import torch
 
-from ._base import _LINEAR_BASE, AbstractLagrangian
+from .._contract import _LINEAR_BASE, AbstractLagrangian
 
-__all__ = ["LinearLagrangian"]
+__all__ = ["LinearLagrangian", "AUTO_LIBRARIES"]
+
+#: Feature libraries of the ``select = "auto"`` candidates of a linear model on a 1D field.
+AUTO_LIBRARIES = (("trig:1",), ("trig:2",), ("poly:4", "trig:1"))
 
 
 def _unit(x: torch.Tensor, a: int, i: int) -> torch.Tensor:
@@ -47,6 +49,7 @@ class LinearLagrangian(AbstractLagrangian):
 
     linear = True
     numpy_ready = True
+    bridged = (*AbstractLagrangian.bridged, "features", "feature_derivatives")
 
     @property
     @abc.abstractmethod
@@ -110,13 +113,19 @@ class LinearLagrangian(AbstractLagrangian):
             blocks[(a, b)] = torch.stack(rows, -3)
         return d, blocks
 
-    def numpy_derivatives(
-        self, pairs: Sequence[tuple[int, int]]
-    ) -> Callable[[np.ndarray], tuple[np.ndarray, list[np.ndarray]]] | None:
-        """A numpy function ``cells (B, K, m) -> (dL/dx (B, K, m), [d^2 L / dx_a dx_b (B, m, m) per pair])``
-        of the model as it is now, or ``None`` (the default): 1D serving then runs its Newton loop in torch, and
-        n-D slice-Newton takes :meth:`fast_derivatives` (or autograd)."""
-        return None
+    def _auto_tail(self, degree: int, n: int, ridge: Any) -> list[dict[str, Any]]:
+        """The ``select = "auto"`` candidates every linear kind shares (after its own): time symmetry and input
+        scaling flipped, ``ridge="auto"``, and on a 1D lattice the feature libraries of :data:`AUTO_LIBRARIES`
+        (``kind = "features"``, with ``degree`` in the differences, at least 2)."""
+        opts = self.options()
+        out: list[dict[str, Any]] = [{"time_symmetric": not opts["time_symmetric"]}, {"scale": not opts["scale"]}]
+        if ridge != "auto":
+            out.append({"ridge": "auto"})
+        if n == 1:
+            out += [
+                {"kind": "features", "features": list(lib), "differences": max(degree, 2)} for lib in AUTO_LIBRARIES
+            ]
+        return out
 
     def _directional(self, t: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
         """``y -> d features(y) / d y . t``, to be differentiated once more."""

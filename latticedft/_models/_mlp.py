@@ -8,16 +8,16 @@ potential). Both share the options, the network and its input and output scaling
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, ClassVar, NamedTuple, Self, cast
 
 import torch
 
+from .._contract import AbstractLagrangian
 from .._errors import InputError
 from .._stencil import Stencil
-from ._base import AbstractLagrangian
 
-__all__ = ["MLPLagrangian", "FreeMLPLagrangian", "KineticPotentialMLPLagrangian", "PRESETS"]
+__all__ = ["MLPLagrangian", "FreeMLPLagrangian", "KineticPotentialMLPLagrangian", "PRESETS", "mlp_lagrangian"]
 
 _ACTIVATIONS = {
     "sigmoid": torch.nn.Sigmoid,
@@ -147,12 +147,7 @@ class MLPLagrangian(AbstractLagrangian):
     out_scale: torch.Tensor
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
-        target: type[MLPLagrangian] = cls
-        if cls is MLPLagrangian:  # the factory: the class of the form asked for (directly or by a preset)
-            form = kwargs.get("form")
-            if form is None and kwargs.get("preset") is not None:
-                form = _settings(None, None, None, None, None, kwargs["preset"])["form"]
-            target = _FORM_CLASSES.get(form or "free", FreeMLPLagrangian)  # an unknown form: __init__ says so
+        target = _form_class(kwargs) if cls is MLPLagrangian else cls  # MLPLagrangian(...): as mlp_lagrangian
         return cast(Self, super().__new__(target))  # target is cls, or a form class when cls is MLPLagrangian
 
     def __init__(
@@ -205,6 +200,27 @@ class MLPLagrangian(AbstractLagrangian):
         self.features = feats
         self.scale = bool(opts["scale"])
         self.seed = seed
+
+    def reseed(self, seed: int) -> None:
+        self.seed = seed
+
+    @classmethod
+    def parameter_lower_bound(cls, options: Mapping[str, Any], n: int, m: int) -> tuple[int, str] | None:
+        """The weights and biases of the hidden layers and the output, with at least one input."""
+        hidden = options.get("hidden")
+        if not isinstance(hidden, list):  # from a preset or the defaults
+            try:
+                hidden = mlp_lagrangian(**options).hidden
+            except Exception:  # noqa: BLE001 - bad options are the case reader's to report
+                return None
+        sizes = [int(h) for h in hidden]
+        if not sizes:
+            return None
+        count, width = 0, 1  # at least one input
+        for h in sizes:
+            count += (width + 1) * h
+            width = h
+        return count + width + 1, "model.hidden"
 
     def options(self) -> dict[str, Any]:
         return {
@@ -363,3 +379,17 @@ class KineticPotentialMLPLagrangian(MLPLagrangian):
 _FORM_CLASSES: dict[str, type[MLPLagrangian]] = {
     cls.form: cls for cls in (FreeMLPLagrangian, KineticPotentialMLPLagrangian)
 }
+
+
+def _form_class(options: Mapping[str, Any]) -> type[MLPLagrangian]:
+    """The class of the form ``options`` ask for, directly or by a preset (an unknown form: the free form's
+    constructor says so)."""
+    form = options.get("form")
+    if form is None and options.get("preset") is not None:
+        form = _settings(None, None, None, None, None, options["preset"])["form"]
+    return _FORM_CLASSES.get(form or "free", FreeMLPLagrangian)
+
+
+def mlp_lagrangian(*args: Any, **options: Any) -> MLPLagrangian:
+    """``kind = "mlp"``: the MLP of the form its options ask for (the options of :class:`MLPLagrangian`)."""
+    return _form_class(options)(*args, **options)

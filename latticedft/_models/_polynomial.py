@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterable, Sequence
+import math
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -16,7 +17,10 @@ from . import _polynumpy
 from ._linear import LinearLagrangian
 from ._polybasis import _VANDERMONDE_MAX_DEGREE, _coefficient_matrix_f64, _pairs
 
-__all__ = ["PolynomialLagrangian"]
+__all__ = ["PolynomialLagrangian", "AUTO_ORDERS"]
+
+#: Orders of the polynomial candidates of ``select = "auto"`` (beside the hand-set ones).
+AUTO_ORDERS = ((2, 2), (2, 4), (4, 4), (4, 8), (2, 8), (4, 12))
 
 
 def _multi_indices(nvars: int, max_total: int) -> list[tuple[int, ...]]:
@@ -117,6 +121,24 @@ class PolynomialLagrangian(LinearLagrangian):
             "scale": self.scale,
             "basis": self.basis,
         }
+
+    @classmethod
+    def parameter_lower_bound(cls, options: Mapping[str, Any], n: int, m: int) -> tuple[int, str] | None:
+        """The monomials of the orders (half of them when time-symmetric: the even powers of the time
+        differences)."""
+        try:
+            model = cls(**options)  # resolves the defaults; tensors come with bind()
+        except Exception:  # noqa: BLE001 - bad options are the case reader's to report
+            return None
+        p, q = model.orders
+        terms = math.comb(q + m, m) * math.comb(p + n * m, n * m)
+        if model.time_symmetric:
+            terms //= 2  # the even powers of the time differences: at least half
+        return terms, "model.orders"
+
+    def auto_candidates(self, n: int, ridge: Any = 0.0) -> list[dict[str, Any]]:
+        """The orders of :data:`AUTO_ORDERS`, then the candidates every linear kind shares."""
+        return [{"orders": list(o)} for o in AUTO_ORDERS] + self._auto_tail(self.orders[0], n, ridge)
 
     # -- structure ---------------------------------------------------------------------------------------
     def _build(self) -> None:

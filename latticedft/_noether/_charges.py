@@ -20,6 +20,7 @@ import numpy as np
 import torch
 import xarray as xr
 
+from .._contract import AbstractLagrangian
 from .._errors import InputError
 from .._lattice import gather_cells
 from ._core import FieldEval, prepare
@@ -28,7 +29,7 @@ from ._group import Symmetry, resolve_symmetries
 __all__ = ["discrete_energy", "noether_charge", "noether_charges", "relative_drift"]
 
 
-def _one_field(model: Any, field: Any, boundary: Any) -> FieldEval:
+def _one_field(model: AbstractLagrangian, field: Any, boundary: Any) -> FieldEval:
     fields = prepare(model, field, boundary)
     if len(fields) != 1:
         raise InputError(f"field: expected one field, got {len(fields)}")
@@ -74,7 +75,9 @@ def _charge(ev: FieldEval, sym: Symmetry) -> xr.DataArray:
     )
 
 
-def noether_charge(model: Any, field: Any, symmetry: Symmetry | str, *, boundary: Any = None) -> xr.DataArray:
+def noether_charge(
+    model: AbstractLagrangian, field: Any, symmetry: Symmetry | str, *, boundary: Any = None
+) -> xr.DataArray:
     """The discrete Noether charge of a continuous symmetry on every slab of a field.
 
     ``J_i = H sum_cells sum_{a: later slice} dL_d/dpsi_a . xi(psi_a)`` (``H`` the cell volume), the
@@ -117,7 +120,7 @@ def _energy(ev: FieldEval) -> xr.DataArray:
     )
 
 
-def discrete_energy(model: Any, field: Any, *, boundary: Any = None) -> xr.DataArray:
+def discrete_energy(model: AbstractLagrangian, field: Any, *, boundary: Any = None) -> xr.DataArray:
     """The discrete energy ``E_i = (P^-_i + P^+_{i+1})/2 . (Q_{i+1} - Q_i)/h_0 - L_s(Q_i, Q_{i+1})`` per slab.
 
     Variational integrators do not conserve it exactly; on a served field it oscillates in a bounded
@@ -127,7 +130,7 @@ def discrete_energy(model: Any, field: Any, *, boundary: Any = None) -> xr.DataA
     return _energy(_one_field(model, field, boundary))
 
 
-def noether_charges(model: Any, field: Any, charges: Any = None, *, boundary: Any = None) -> xr.Dataset:
+def noether_charges(model: AbstractLagrangian, field: Any, charges: Any = None, *, boundary: Any = None) -> xr.Dataset:
     """Several charges and the discrete energy of one field as a Dataset over time.
 
     ``charges``: names of built-in symmetries, :class:`Symmetry` objects and ``"energy"`` (one or a list;

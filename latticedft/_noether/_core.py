@@ -19,9 +19,9 @@ import numpy as np
 import torch
 import xarray as xr
 
+from .._contract import AbstractLagrangian
 from .._errors import InputError
 from .._lattice import LatticeField, as_lattice_field, gather_cells
-from .._models import AnalyticLagrangian
 from ._group import Symmetry
 
 __all__ = ["FieldEval", "interior", "prepare"]
@@ -43,7 +43,7 @@ def _listify(data: Any) -> list[Any]:
     return [d.field if hasattr(d, "field") and isinstance(d.field, xr.DataArray) else d for d in items]
 
 
-def prepare(model: Any, data: Any, boundary: Any = None, min_slices: int = 2) -> list[LatticeField]:
+def prepare(model: AbstractLagrangian, data: Any, boundary: Any = None, min_slices: int = 2) -> list[LatticeField]:
     """Validate the fields, check they share a lattice, and bind (analytic) or check the model."""
     fields = [as_lattice_field(d, boundary=boundary, min_slices=min_slices) for d in _listify(data)]
     f0 = fields[0]
@@ -55,9 +55,9 @@ def prepare(model: Any, data: Any, boundary: Any = None, min_slices: int = 2) ->
                 f"data: fields differ in lattice dims, components or spacing ({f.dims}, m = {f.ncomp}, "
                 f"h = {f.spacing} vs {f0.dims}, m = {f0.ncomp}, h = {f0.spacing})"
             )
-    if isinstance(model, AnalyticLagrangian):
+    if model.rebinds_to_any_lattice:  # a formula in h (an analytic L_d): valid on any lattice
         model.bind(f0.ndim, f0.ncomp, f0.spacing, f0.components)
-    elif not getattr(model, "bound", True) or getattr(model, "spacing", None) is None:
+    elif not model.bound:
         raise InputError(f"{type(model).__name__}: not bound to a lattice yet; learn it first (latticedft.learn)")
     if (model.n, model.m) != (f0.ndim, f0.ncomp):
         raise InputError(f"model: bound to n = {model.n}, m = {model.m}; the data have n = {f0.ndim}, m = {f0.ncomp}")
@@ -79,7 +79,7 @@ def _rms_sum(x: torch.Tensor) -> float:
 class FieldEval:
     """One field's cells, ``L_d`` per cell and the per-cell gradient ``G_a = dL_d/dpsi_{x+s_a}``."""
 
-    model: Any
+    model: AbstractLagrangian
     f: LatticeField
 
     def __post_init__(self) -> None:

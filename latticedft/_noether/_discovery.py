@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from .._contract import AbstractLagrangian
 from ._core import FieldEval, prepare
 from ._group import Symmetry
 from ._invariance import DEFAULT_TOL, SymmetryReport, _check_tol, measure
@@ -73,7 +74,12 @@ def _canonical(theta: np.ndarray) -> np.ndarray:
 
 
 def discover_symmetries(
-    model: Any, data: Any, *, tol: float = DEFAULT_TOL, boundary: Any = None, max_generators: int | None = None
+    model: AbstractLagrangian,
+    data: Any,
+    *,
+    tol: float = DEFAULT_TOL,
+    boundary: Any = None,
+    max_generators: int | None = None,
 ) -> DiscoveryReport:
     """Fit the generators ``xi(psi) = M psi + w`` of the affine internal symmetries of ``L_d`` over data.
 

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from .._contract import AbstractLagrangian
 from .._errors import InputError
 from .._lattice import as_lattice_field
 from ._core import FieldEval, _listify, prepare, ratio
@@ -89,7 +90,7 @@ def _check_tol(tol: Any) -> float:
     return float(tol)
 
 
-def measure(model: Any, evals: list[FieldEval], sym: Symmetry, tol: float) -> SymmetryReport:
+def measure(model: AbstractLagrangian, evals: list[FieldEval], sym: Symmetry, tol: float) -> SymmetryReport:
     """One report from prepared field evaluations."""
     num = den = 0.0
     for ev in evals:
@@ -133,7 +134,7 @@ def builtin_symmetries(data: Any, *, boundary: Any = None) -> list[Symmetry]:
 
 
 def symmetries(
-    model: Any, data: Any, candidates: Any = None, *, tol: float = DEFAULT_TOL, boundary: Any = None
+    model: AbstractLagrangian, data: Any, candidates: Any = None, *, tol: float = DEFAULT_TOL, boundary: Any = None
 ) -> list[SymmetryReport]:
     """Test a (learned) ``L_d`` for symmetries over data — usually the training fields.
 

@@ -9,7 +9,7 @@ import os
 import platform
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import xarray as xr
@@ -17,10 +17,14 @@ import xarray as xr
 from .. import __version__
 from .._atomic import write_text_atomic
 from .._errors import InputError, ModelFileError
+from .._part_file import complete_part
 from ..io.exporters import ExportTask, export_formats
-from ..io.fields import read_field
+from ..io.fields import prepared_dataset, read_field
 from ..io.fields import write_field as _write_field
 from ._safety import _show, _signals_deferred, _writing, log
+
+if TYPE_CHECKING:
+    from .._contract import AbstractLagrangian
 
 
 def versions() -> dict[str, str]:
@@ -70,13 +74,13 @@ def sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def write_model(folder: Path, model: Any, report: Any, meta: Mapping[str, Any]) -> dict[str, Any]:
+def write_model(folder: Path, model: AbstractLagrangian, report: Any, meta: Mapping[str, Any]) -> dict[str, Any]:
     """``model.pt`` (:func:`latticedft.save_model`) and ``model.json`` (same record, no tensors)."""
     from .._modelfile import model_record, save_model
 
     with _writing(folder / "model.pt"):
         pt = save_model(model, folder / "model.pt", gauge=report.gauge if report is not None else None)
-    record = model_record(model, report.gauge if report is not None else "unit-mass")
+    record = model_record(model, report.gauge if report is not None else None)
     record["n_parameters"] = model.n_parameters()
     record["training"] = report.to_dict() if report is not None else None
     record["sha256"] = sha256(pt)
@@ -188,6 +192,7 @@ def write_task(
     steps: int | None = None,
     charges: xr.Dataset | None = None,
     extra: Mapping[str, xr.DataArray] | None = None,
+    part: Path | None = None,
 ) -> Path:
     """``<name>.nc``: the served field, ``<var>_ref`` and ``<var>_err`` when a reference covers it, the
     ``invariant`` and the task's ``charges`` (``charge_<name>(t)``, ``energy(t)``) when given, and the
@@ -199,6 +204,10 @@ def write_task(
     (NaN where the baseline holds no slice), so that the figures of a later
     ``export`` need the file alone. ``steps`` (the slices the task asked for)
     is written as the global attribute ``latticedft_steps``.
+
+    ``part``: the part file that holds the served field's kept slices already (a task with an output
+    cadence, :mod:`latticedft._part_file`); it is completed into ``<name>.nc`` (the same variables and
+    attributes), so that the field is not written twice.
     """
     pred = pred.rename(variable).copy(deep=False)  # its own attributes: the caller's field is not changed
     quantity = str(pred.attrs.get("long_name") or variable)
@@ -229,10 +238,26 @@ def write_task(
     all_attrs = dict(attrs)
     if steps is not None:
         all_attrs["latticedft_steps"] = int(steps)
-    with _writing(folder / f"{name}.nc"):
-        # no CF axis X, Y, Z on the spatial coordinates: ParaView's netCDF CF reader would read them as longitude
-        # and latitude and wrap the field onto a sphere
-        return write_field(folder / f"{name}.nc", fields, attrs=all_attrs, history=history, spatial_axes=False)
+    target = folder / f"{name}.nc"
+    # spatial_axes=False: no CF axis X, Y, Z on the spatial coordinates, which ParaView's netCDF CF reader would
+    # read as longitude and latitude (and wrap the field onto a sphere)
+    with _writing(target):
+        if part is not None:
+            return _complete_part(part, target, variable, fields, all_attrs, history)
+        return write_field(target, fields, attrs=all_attrs, history=history, spatial_axes=False)
+
+
+def _complete_part(
+    part: Path,
+    target: Path,
+    variable: str,
+    fields: Mapping[str, xr.DataArray],
+    attrs: Mapping[str, Any],
+    history: str,
+) -> Path:
+    """``target`` made from ``part`` (holding ``variable``'s kept slices) and the other ``fields``."""
+    ds, encoding = prepared_dataset(fields, attrs, history, where=str(target), spatial_axes=False)
+    return complete_part(part, target, ds, encoding, variable)
 
 
 def _baseline_errors(

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
+from .._contract import NumpyForms
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
 from ._batch import _Batch, failure_text
@@ -27,18 +28,17 @@ from ._slices import SINGULAR_RTOL
 __all__ = ["numpy_derivatives_of", "FastBatch", "serve_fast"]
 
 
-def numpy_derivatives_of(model: AbstractLagrangian):
+def numpy_derivatives_of(model: AbstractLagrangian) -> NumpyForms | None:
     """The model's numpy closed forms for the pair ``(anchor, forward)`` of a 1D first-order stencil, or
     ``None`` (then the torch loop serves): also for a model whose parameters are not on the CPU."""
-    hook = getattr(model, "numpy_derivatives", None)
-    if hook is None or not getattr(model, "numpy_ready", False):
+    if not model.numpy_ready:
         return None
     if any(t.device.type != "cpu" for t in model.parameters()):  # a model moved to an accelerator stays there
         return None
     st = model.stencil
     if st.ndim != 1 or st.size != 2:
         return None
-    return hook([(st.anchor, st.forward)])
+    return model.numpy_derivatives([(st.anchor, st.forward)])
 
 
 _FLOAT_MAX = float(np.finfo(np.float64).max)

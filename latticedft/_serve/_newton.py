@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from .._action import CellDerivatives
+from .._contract import AbstractLagrangian
 from ._slices import _scale, _SliceSystem, is_singular, singular_message
 from ._solvers import SolverRefused, factor_step
 
@@ -32,7 +33,9 @@ def _fresh_blocks(ev: CellDerivatives, sys: _SliceSystem, cache: dict[str, Any])
     return blocks
 
 
-def _newton_slice(model, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at, cache):
+def _newton_slice(
+    model: AbstractLagrangian, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at, cache
+):
     """Newton on one slice. Steps reuse the cached factorised Jacobian (chord steps, exact for quadratic
     ``L_d``) while each cuts the residual a hundredfold; fresh Hessian blocks are assembled only when one did not.
     The linear solver is ``cache["solver"]`` (``_solvers.SOLVERS``; ``cache["used"]`` collects those chosen)."""

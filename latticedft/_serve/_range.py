@@ -70,7 +70,7 @@ def extrapolation(model: AbstractLagrangian, f: LatticeField) -> xr.DataArray | 
     Per time slice, the largest excess beyond the training range of the cells that hold the slice, per
     feature, relative to the feature's training span: 0 inside the range, 0.5 half a span outside.
     """
-    rng = model.trained_range() if isinstance(model, AbstractLagrangian) else None
+    rng = model.trained_range()
     nt = f.shape[0]
     if rng is None or nt < 2 or tuple(rng.shape[1:]) != (f.ndim + 1, f.ncomp):
         return None
@@ -148,7 +148,7 @@ def assess_batch(
 ) -> list[tuple[xr.DataArray | None, list[str]]]:
     """:func:`assess` of every member of a batch of 1D fields, their excess computed in one pass over the
     batch's values ``(members, slices, m)`` (member ``k`` holds ``fields[k].shape[0]`` of those slices)."""
-    rng = model.trained_range() if isinstance(model, AbstractLagrangian) else None
+    rng = model.trained_range()
     f0 = fields[0]
     if rng is None or tuple(rng.shape[1:]) != (f0.ndim + 1, f0.ncomp) or values.shape[1] < 2:
         return [assess(model, f) for f in fields]

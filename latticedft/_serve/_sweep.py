@@ -7,10 +7,11 @@ import math
 import numpy as np
 import torch
 
+from .._contract import AbstractLagrangian
 from ._slices import _scale, _SliceSystem
 
 
-def _sweep_slice(model, sys: _SliceSystem, psi, flat, i, vol, rtol, max_newton, f):
+def _sweep_slice(model: AbstractLagrangian, sys: _SliceSystem, psi, flat, i, vol, rtol, max_newton, f):
     """The paper's site-by-site sweep (Gauss-Seidel when the slice system is not triangular)."""
     st = sys.st
     m = sys.m

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tqdm.std import tqdm  # not tqdm.auto: no ipywidgets warning in Jupyter (latticedft._progress)
 
@@ -18,9 +18,11 @@ from .._case import Case
 from .._errors import InputError
 from .._pipeline import CaseData, TaskOutcome, serve_task, train_model
 from .._results import config_attrs, export_task, read_summary, read_task, write_model, write_summary, write_task
-from .._results._part import PartFile
 from ..io.exporters import remove_exports
 from ._common import INCOMPLETE, OK, command_line
+
+if TYPE_CHECKING:
+    from .._contract import AbstractLagrangian
 
 log = logging.getLogger("latticedft")
 
@@ -56,7 +58,7 @@ def recorded_exports(folder: Path) -> dict[str, list[str]]:
     }
 
 
-def model_warnings_of(model: Any, folder: Path) -> list[str]:
+def model_warnings_of(model: AbstractLagrangian, folder: Path) -> list[str]:
     """The warnings of the model's training: from its report, or (a model read from ``model.pt``) from the
     ``train`` section of ``folder/summary.json``."""
     report = getattr(model, "report_", None)
@@ -67,7 +69,7 @@ def model_warnings_of(model: Any, folder: Path) -> list[str]:
     return [str(w) for w in found] if isinstance(found, list) else []
 
 
-def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[str]) -> dict[str, Any]:
+def serve_into(folder: Path, case: Case, data: CaseData, model: AbstractLagrangian, argv: list[str]) -> dict[str, Any]:
     """Serve every task into ``<task>.nc`` and export it; returns the summary's tasks section."""
     tasks: dict[str, Any] = {}
     attrs = config_attrs(case.raw, case.overrides, command_line(argv))
@@ -76,14 +78,7 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
     model_warnings = model_warnings_of(model, folder)
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
-        part = (
-            PartFile(folder, td.task.name, case.field.variable, td.init, td.task.every) if td.task.every > 1 else None
-        )
-        try:
-            out: TaskOutcome = serve_task(model, td, part, case.run.device)
-        finally:
-            if part is not None:
-                part.close()
+        out: TaskOutcome = serve_task(model, td, case.run.device, stage=folder, variable=case.field.variable)
         path = write_task(
             folder,
             out.name,
@@ -100,9 +95,8 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: Any, argv: list[
                 **({"extrapolation": out.extrapolation} if out.extrapolation is not None else {}),
                 **out.spread(case.field.variable),
             },
+            part=out.part,  # the kept slices, written as they were served: completed into <task>.nc
         )
-        if part is not None:
-            part.remove()  # the whole file holds the kept slices now
         out.record["file"] = path.name
         log.debug("wrote %s", path.name)
         out.record["exports"] = export_one(folder, case, out.name, data, previous.get(out.name, ()), owners)

@@ -1,23 +1,58 @@
-"""The abstract discrete Lagrangian density ``L_d`` and the shared features."""
+"""The model contract: what the engine asks of a model of the discrete Lagrangian density ``L_d``.
+
+:class:`AbstractLagrangian` is the base class of every model. It binds a model to a lattice and holds the
+features the models share; its methods and class attributes with defaults are the *capabilities* the
+action, the learner, the server and the case pipeline read. A model kind overrides the ones it has
+(closed-form derivatives, a lower bound on its parameters, the candidates ``select = "auto"`` tries) and
+inherits the defaults of the others, so nothing above this module looks a capability up by name.
+
+The gauge a model was learned with is a :class:`GaugeName`: reports and model files write its value (a
+plain string), and :func:`parse_gauge` reads one back.
+"""
 
 from __future__ import annotations
 
 import abc
+import enum
+import inspect
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
-from .._errors import InputError
-from .._stencil import Stencil
-from ._options import option_checks_of
+from ._errors import InputError
+from ._modeloptions import option_checks_of
+from ._stencil import Stencil
 
-__all__ = ["AbstractLagrangian"]
+__all__ = ["AbstractLagrangian", "DEFAULT_GAUGE", "GaugeName", "NumpyForms", "parse_gauge"]
 
 #: ``LinearLagrangian`` once its module has defined it (it checks that ``linear = True`` comes with its contract).
 _LINEAR_BASE: list[type] = []
+
+#: Numpy closed forms of a model for given stencil pairs: ``fn(cells (B, K, m)) -> (dL/dx, [blocks per pair])``.
+NumpyForms = Callable[[np.ndarray], tuple[np.ndarray, list[np.ndarray]]]
+
+
+class GaugeName(enum.StrEnum):
+    """The gauges :func:`latticedft.learn` fixes, by the names that case files, reports and model files use."""
+
+    UNIT_MASS = "unit-mass"
+    TRACE = "trace"
+    NONE = "none"
+
+
+#: The gauge of a model file that names none (and of a model saved before it was learned).
+DEFAULT_GAUGE = GaugeName.UNIT_MASS
+
+
+def parse_gauge(value: object, *, key: str = "gauge") -> GaugeName:
+    """The :class:`GaugeName` of ``value`` (a name such as ``"unit-mass"``); an InputError naming ``key``
+    for anything else."""
+    if isinstance(value, str) and value in GaugeName.__members__.values():
+        return GaugeName(value)
+    raise InputError.at(key, f"expected one of {[g.value for g in GaugeName]}, got {value!r}")
 
 
 class AbstractLagrangian(torch.nn.Module, abc.ABC):
@@ -36,14 +71,18 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
       checks ``[model]`` values against them, see :meth:`option_checks`), returned by :meth:`options`;
     - :meth:`_build`: parameters and buffers, once the lattice is known;
     - :meth:`forward`: ``L_d`` on a batch of cells, smooth (serving differentiates twice);
-    - optionally :meth:`prepare` (input scaling from the training data), :meth:`fast_derivatives`
-      (closed-form derivatives for serving), :meth:`describe`, and the class flags below.
+    - optionally :meth:`prepare` (input scaling from the training data), :meth:`describe`, and the
+      capabilities below, each with a default: the class flags, :meth:`fast_derivatives` and
+      :meth:`numpy_derivatives` (closed-form derivatives for serving; ``None``: autograd),
+      :attr:`has_functions`, :attr:`bridged`, :meth:`parameter_lower_bound` (the memory check),
+      :meth:`auto_candidates` (``select = "auto"``), :meth:`reseed` (ensemble members), and
+      :attr:`n_members` with :meth:`member` (an ensemble's members; a model is its own only member).
     """
 
     kind: ClassVar[str] = "abstract"
     #: True when ``L_d`` is linear in its parameters (``coef``): learned exactly.
     linear: ClassVar[bool] = False
-    #: True when the model may offer numpy closed forms (``numpy_derivatives``; linear models, and stacked
+    #: True when the model may offer numpy closed forms (:meth:`numpy_derivatives`; linear models, and stacked
     #: ensembles of them): the serving loops ask this before building them.
     numpy_ready: ClassVar[bool] = False
     #: True when the mixed time Hessian is ``-I / h_0^2`` by construction.
@@ -56,12 +95,14 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     #: True for models without learned parameters (a formula in the spacings): serving binds them to the
     #: lattice it is given instead of checking that lattice against the one they were learned on.
     rebinds_to_any_lattice: ClassVar[bool] = False
-    #: The ``LearnReport`` of the last :func:`latticedft.learn` (``None`` before).
-    report_: Any = None
+    #: The methods that evaluate ``L_d`` or its features on cells, or return one of its buffers: on a device
+    #: other than the CPU they run on the model's device and answer on the caller's (``latticedft._device``).
+    bridged: ClassVar[tuple[str, ...]] = ("forward", "fast_derivatives", "mean_and_differences", "trained_range")
     #: ``learn(model, data, ensemble=N)``: the :class:`latticedft.EnsembleLagrangian` whose member 0 is this model.
     ensemble_: Any = None
-    #: The gauge a model file says the model was learned with (set by ``load_model``).
-    gauge_: str | None = None
+    #: What :attr:`report_` and :attr:`gauge` return.
+    _report: Any = None
+    _gauge: GaugeName | None = None
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -156,6 +197,29 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
             raise self._unbound_error()
         return self._n, self._m, self._spacing
 
+    # -- what learning left: the report and the gauge -----------------------------------------------------
+    @property
+    def report_(self) -> Any:
+        """The ``LearnReport`` of the last :func:`latticedft.learn` (``None`` before); setting a report sets
+        :attr:`gauge` to the report's gauge."""
+        return self._report
+
+    @report_.setter
+    def report_(self, report: Any) -> None:
+        object.__setattr__(self, "_report", report)
+        if report is not None:
+            self.gauge = report.gauge
+
+    @property
+    def gauge(self) -> GaugeName | None:
+        """The gauge ``L_d`` was learned with: set by :func:`latticedft.learn` (with :attr:`report_`) and by
+        :func:`latticedft.load_model`; ``None`` before either."""
+        return self._gauge
+
+    @gauge.setter
+    def gauge(self, value: GaugeName | str | None) -> None:
+        object.__setattr__(self, "_gauge", None if value is None else parse_gauge(value))
+
     # -- evaluation ---------------------------------------------------------------------------------------
     @abc.abstractmethod
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
@@ -172,6 +236,47 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
         the action module differentiates :meth:`forward` by autograd.
         """
         return None
+
+    def numpy_derivatives(self, pairs: Sequence[tuple[int, int]]) -> NumpyForms | None:
+        """Numpy closed forms ``fn(cells (B, K, m)) -> (dL/dx, [blocks per pair])`` for ``pairs``, or ``None``
+        (the default): asked only when :attr:`numpy_ready` is true, and served on the CPU in double precision."""
+        return None
+
+    # -- capabilities read by learning, serving and the case pipeline -------------------------------------
+    @property
+    def has_functions(self) -> bool:
+        """True when the model holds Python functions (a model file cannot store it); False by default."""
+        return False
+
+    @property
+    def n_members(self) -> int:
+        """Models in this one: an ensemble's members; 1 for any other model."""
+        return 1
+
+    def member(self, k: int) -> AbstractLagrangian:
+        """Member ``k`` (0: the model learned on all the data); a model that is no ensemble is its member 0."""
+        if k != 0:
+            raise IndexError(f"{type(self).__name__} has one member; asked for member {k}")
+        return self
+
+    def reseed(self, seed: int) -> None:
+        """Start from another initial state (the members of an ensemble): models with a ``seed`` option take
+        ``seed``; the others (the default) have nothing to change."""
+
+    @classmethod
+    def parameter_lower_bound(cls, options: Mapping[str, Any], n: int, m: int) -> tuple[int, str] | None:
+        """``(a lower bound of the parameter count, the option key that sets it)`` of this kind with
+        ``options`` on a lattice of ``n`` dimensions and ``m`` components, without building any tensor; or
+        ``None`` (the default: no bound known). The memory check before a case runs refuses a model whose
+        parameters alone exceed the memory. Bad options give ``None``: they are the case reader's to report."""
+        return None
+
+    def auto_candidates(self, n: int, ridge: Any = 0.0) -> list[dict[str, Any]]:
+        """The candidates of ``select = "auto"`` for this hand-set model on an ``n``-dimensional lattice, as
+        option changes (a change may name another ``kind``, and ``ridge``). The default: input scaling
+        flipped when the model has a ``scale`` option, else none."""
+        opts = self.options()
+        return [{"scale": not opts["scale"]}] if "scale" in opts else []
 
     # -- features shared by models ------------------------------------------------------------------------
     def _projection(self) -> torch.Tensor:
@@ -237,6 +342,17 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
         ['basis', 'orders', 'parity', 'scale', 'time_symmetric']
         """
         return option_checks_of(cls.__init__)
+
+    @classmethod
+    def option_defaults(cls) -> dict[str, Any]:
+        """Option name -> its default in the constructor (``None`` for an option without one); ``stencil`` is
+        not an option."""
+        sig = inspect.signature(cls.__init__)
+        return {
+            name: (None if p.default is inspect.Parameter.empty else p.default)
+            for name, p in sig.parameters.items()
+            if name not in ("self", "stencil") and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+        }
 
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())

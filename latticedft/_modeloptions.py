@@ -12,7 +12,7 @@ separate option table. Values (ranges, choices) are then checked by the construc
 >>> checks["scale"]("yes")
 Traceback (most recent call last):
 ...
-latticedft._models._options.OptionTypeError: true or false
+latticedft._modeloptions.OptionTypeError: true or false
 """
 
 from __future__ import annotations
