@@ -29,6 +29,22 @@ def part_path(folder: Path, name: str) -> Path:
     return Path(folder) / f".{name}.nc.part"
 
 
+def _labels(nc: Any, dim: str, values: np.ndarray) -> Any:
+    """The coordinate ``dim`` of string labels as ``write_field`` writes it: a CF character array
+    (``dim, string<n>``, UTF-8)."""
+    import netCDF4
+
+    encoded = [str(v).encode("utf-8") for v in values.tolist()]
+    width = max([1, *map(len, encoded)])
+    if f"string{width}" not in nc.dimensions:
+        nc.createDimension(f"string{width}", width)
+    var = nc.createVariable(dim, "S1", (dim, f"string{width}"))
+    var.set_auto_chartostring(False)
+    var[:] = netCDF4.stringtochar(np.array(encoded, dtype=f"S{width}"))
+    var.setncattr("_Encoding", "utf-8")
+    return var
+
+
 class PartFile:
     """``.<task>.nc.part``: the variable ``variable(t, ...)`` with ``t`` unlimited and ``slice(t)``, appended."""
 
@@ -47,9 +63,11 @@ class PartFile:
             self.ds.createDimension(d, template.sizes[d])
             if d in template.coords:
                 values = np.asarray(template[d].values)
-                kind: Any = str if values.dtype.kind in "UO" else "f8"
-                var = self.ds.createVariable(d, kind, (d,))
-                var[:] = values.astype(object) if kind is str else values.astype(np.float64)
+                if values.dtype.kind in "UO":
+                    var = _labels(self.ds, d, values)
+                else:
+                    var = self.ds.createVariable(d, "f8", (d,))
+                    var[:] = values.astype(np.float64)
                 var.setncatts({k: v for k, v in template[d].attrs.items() if isinstance(v, (str, int, float))})
         self.tvar = self.ds.createVariable(tdim, "f8", (tdim,))
         self.tvar.setncatts({k: v for k, v in template[tdim].attrs.items() if isinstance(v, (str, int, float))})

@@ -177,12 +177,12 @@ def _check_task(
             key=f"{t.label}.every",
         )
     missing = missing_edges(f.boundary, f.dims, nt, slices)
-    if missing:
+    if missing and t.options.boundary_value is None:
         axis, kind = missing
         raise ConfigError(
             f"case.toml: {key}: {slices} slices need the {kind.title} strips along "
-            f"{axis!r} on every slice, but {t.source.name} holds {nt}; give the whole field "
-            "or fewer slices",
+            f"{axis!r} on every slice, but {t.source.name} holds {nt}; give the whole field, "
+            f"fewer slices or {t.label}.boundary_value",
             key=key,
         )
     if t.options.box is not None and len(dims) != 1:
@@ -213,7 +213,19 @@ def _check_task(
             inv = load_invariant(t.invariant, case.root)
         except ConfigError as exc:
             raise ConfigError(f"case.toml: {t.label}.{exc}") from None
-    return TaskData(task=t, init=init, reference=ref, baseline=base, slices=slices, invariant=inv)
+    return TaskData(task=_edges_loaded(case, t), init=init, reference=ref, baseline=base, slices=slices, invariant=inv)
+
+
+def _edges_loaded(case: Case, t: ServeTask) -> ServeTask:
+    """``t`` with its ``boundary_value = "module:function"`` imported (modules in the case folder are found)."""
+    spec = t.options.boundary_value
+    if not isinstance(spec, str):
+        return t
+    try:
+        fn = load_invariant(spec, case.root, what="boundary_value")
+    except ConfigError as exc:
+        raise ConfigError(f"case.toml: {t.label}.{exc}", key=f"{t.label}.boundary_value") from None
+    return dataclasses.replace(t, options=t.options.replace(boundary_value=fn))
 
 
 def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:

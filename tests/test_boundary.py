@@ -7,6 +7,7 @@ import itertools
 import numpy as np
 import pytest
 import torch
+import xarray as xr
 
 import latticedft as ldft
 from latticedft import _boundary, _case, systems
@@ -205,7 +206,69 @@ def test_strips_checked_by_the_case_run(tmp_path) -> None:
         check_case(load_case(case, ["serve.test.slices=50"]))
     assert str(err.value) == (
         "case.toml: serve[0].slices: 50 slices need the Dirichlet strips along 'x' on every "
-        "slice, but test.nc holds 30; give the whole field or fewer slices"
+        "slice, but test.nc holds 30; give the whole field, fewer slices or serve[0].boundary_value"
     )
     assert err.value.key == "serve[0].slices"
     check_case(load_case(case, ["serve.test.slices=50", "serve.test.boundary=periodic"]))
+
+
+def test_boundary_value_serves_past_the_end_of_the_data() -> None:
+    """A number or a function of (t, *coords) gives the Dirichlet strips beyond the data: the served field
+    equals the one served from the whole field (whose strips hold those values), on the whole-field and the
+    windowed (``every``) paths; without it the strips are missing."""
+    train = systems.wave_string([(1, 1.0), (2, 0.5, 0.3)], nx=13, nt=41)
+    whole = systems.wave_string([(1, 0.6, 0.5), (3, 0.2)], nx=13, nt=61)
+    whole = whole.copy(data=whole.values.copy())
+    whole.values[:, [0, -1]] = 0.0
+    model = ldft.PolynomialLagrangian(orders=(2, 2))
+    ldft.learn(model, train)
+    expected = ldft.serve(model, whole).field.values
+    head = whole.isel(t=slice(0, 2))
+    served = ldft.serve(model, head, slices=61, boundary_value=0.0).field
+    np.testing.assert_array_equal(served.values, expected)
+    by_function = ldft.serve(model, whole.isel(t=slice(0, 20)), slices=61, boundary_value=lambda t, x: 0.0 * x)
+    np.testing.assert_array_equal(by_function.field.values, expected)
+    windowed = ldft.serve(model, head, slices=61, boundary_value=0.0, every=7).field
+    np.testing.assert_array_equal(windowed.values, expected[windowed["slice"].values])
+    with pytest.raises(ldft.InputError, match="boundary_value"):
+        ldft.serve(model, head, slices=61)
+    with pytest.raises(ldft.InputError, match="boundary_value: the function returned shape"):
+        ldft.serve(model, head, slices=61, boundary_value=lambda t, x: np.zeros(3))
+
+
+def test_boundary_value_in_a_case(tmp_path, capsys) -> None:
+    from case_helpers import run_cli, tiny_wave
+
+    case = tiny_wave(tmp_path)
+    (case / "edges.py").write_text("def zero(t, x):\n    return 0.0 * x\n")
+    code, _, err = run_cli(capsys, "check", case, "--set", "serve.test.slices=50")
+    assert code == 1 and "boundary_value" in err
+    for value in ("0.0", '"edges:zero"'):
+        code, _, err = run_cli(
+            capsys,
+            "run",
+            case,
+            "-q",
+            "--overwrite",
+            "--set",
+            "serve.test.slices=50",
+            "--set",
+            f"serve.test.boundary_value={value}",
+        )
+        assert code == 0, err
+        with xr.open_dataset(case / "results" / "test.nc") as ds:
+            assert ds.sizes["t"] == 50 and np.isfinite(ds["psi"].values).all()
+    code, _, err = run_cli(capsys, "check", case, "--set", "serve.test.boundary_value=[1]")
+    assert code == 1 and "serve[0].boundary_value" in err and len(err.strip().splitlines()) == 1
+    code, _, err = run_cli(
+        capsys,
+        "run",
+        case,
+        "-q",
+        "--overwrite",
+        "--set",
+        "serve.test.slices=50",
+        "--set",
+        'serve.test.boundary_value="edges:none"',
+    )
+    assert code == 1 and "serve[0].boundary_value 'edges:none': module 'edges' has no function 'none'" in err, err

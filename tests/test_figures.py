@@ -154,7 +154,10 @@ def test_incomplete_task_and_warnings_are_marked(tmp_path: Path) -> None:
     box = [t for t in texts if t.startswith("INCOMPLETE")]
     assert box and "INCOMPLETE: stopped at slice 25 of 40 (Newton did not converge at slice 25)" in box[0]
     assert all(f"WARNING: {w}" in box[0] for w in warn)
-    assert texts.count("not served") == 5  # hatched on the three images and both panels over time
+    # hatched on the served field's image, its error's and both panels over time, not on the reference's
+    assert texts.count("not served") == 4
+    reference = [ax for ax in _panels(fig) if ax.get_title() == "reference"][0]
+    assert not [t for t in reference.texts if t.get_text() == "not served"]
     status = [t for t in fig.findobj() if getattr(t, "get_text", None) and t.get_text() == box[0]][0]
     assert status.get_color() != "black"
 
@@ -199,6 +202,16 @@ def test_other_layouts_are_labelled(tmp_path: Path, layout: str) -> None:
     if layout == "orbit":
         orbit = [ax for ax in _panels(fig) if not ax.get_title()][0]
         assert orbit.get_xlabel() == "position psi_x [au]" and orbit.get_ylabel() == "position psi_y [au]"
+        # time in units of 58.14 days is drawn in days
+        error = _panel(fig, "error against the reference")
+        assert ref.t.attrs["units"] == "58.14 days" and error.get_xlabel() == "time t [days]"
+        drawn = np.asarray(error.get_lines()[0].get_xdata())
+        np.testing.assert_allclose(drawn, ref.t.values * 58.14, rtol=1e-15)
+    if layout == "series":  # a long quantity label is wrapped to fit its axes (whole words, nothing lost)
+        field = [ax for ax in _panels(fig) if "prediction" in _labels(ax)][0]
+        ylabel = field.get_ylabel()
+        whole = "oscillator displacement (Qin 2020 Example 1) psi (dimensionless)"
+        assert "\n" in ylabel and ylabel.split() == whole.split()
 
 
 def test_run_writes_the_baseline_error_and_draws_it(tmp_path: Path, capsys) -> None:

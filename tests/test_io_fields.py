@@ -104,6 +104,30 @@ def test_cf_attributes_and_encoding(tmp_path: Path) -> None:
     assert field_periodic(read_field(p)) == (None, True)
 
 
+def test_label_coordinates_are_character_arrays_without_an_axis(tmp_path: Path) -> None:
+    """Coordinates of strings (``component``, ``feature``) are CF character arrays, not netCDF-4 strings that
+    ParaView's readers fail to read as numbers, and carry no CF ``axis``; ``spatial_axes=False`` leaves the
+    spatial coordinates without one (ParaView's CF reader reads X and Y as longitude and latitude)."""
+    o = orbit()
+    extra = xr.DataArray(
+        np.zeros((o.sizes["t"], 2)), dims=("t", "feature"), coords={"t": o.t, "feature": ["mean", "d_t"]}
+    )
+    p = write_field(tmp_path / "o.nc", {"psi": o, "extrapolation": extra})
+    with netCDF4.Dataset(p) as nc:
+        for name in ("component", "feature"):
+            assert nc[name].dtype == np.dtype("S1") and "axis" not in nc[name].ncattrs()
+        assert nc["t"].getncattr("axis") == "T"
+    back = read_field(p, components=["x", "y"])
+    np.testing.assert_array_equal(back.values, o.values)
+    with xr.open_dataset(p) as ds:
+        assert ds["feature"].values.tolist() == ["mean", "d_t"]
+        assert float(ds["extrapolation"].sel(feature="d_t")[0]) == 0.0
+    w = wave()
+    p = write_field(tmp_path / "w.nc", {"psi": w.assign_coords(x=w.x.assign_attrs(axis="X"))}, spatial_axes=False)
+    with netCDF4.Dataset(p) as nc:
+        assert "axis" not in nc["x"].ncattrs() and nc["t"].getncattr("axis") == "T"
+
+
 def test_history_is_appended(tmp_path: Path) -> None:
     ds = xr.Dataset({"psi": wave()}, attrs={"history": "2020-01-01: made"})
     p = write_field(tmp_path / "f.nc", ds, history="served")

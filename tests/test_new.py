@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from latticedft.cli._templates import TEMPLATES
+from latticedft.io.figures import task_figure
 
 from case_helpers import leftovers, run_cli, snapshot
 
@@ -39,6 +40,9 @@ def test_new_then_run(tmp_path: Path, capsys, like: str) -> None:
         assert summary["tasks"][name]["complete"]
         assert summary["tasks"][name]["slices"] == task["slices"]
         assert (res / f"{name}.nc").is_file() and (res / f"{name}.png").is_file() and (res / f"{name}.pvd").is_file()
+        # every template draws the drift of a conserved quantity (an invariant or the energy)
+        fig = task_figure(res / f"{name}.nc")
+        assert [ax for ax in fig.axes if "conserved" in ax.get_title()], like
     assert (res / "model.pt").is_file() and leftovers(case) == []
 
 

@@ -294,3 +294,34 @@ def test_a_completed_part_file_is_the_file_written_whole(tmp_path, appended):
         assert b["psi"].encoding["chunksizes"] == (1, 9)  # the part file's variable, completed in place
         a.attrs.pop("history"), b.attrs.pop("history")
         xr.testing.assert_identical(a.load(), b.load())
+
+
+def test_part_file_of_a_vector_field_completes_to_the_task_file(tmp_path) -> None:
+    """String labels (``component``) are a character array in the part file, as in the task file it becomes:
+    readable while it grows, and the completed file holds the labels, the kept slices and no spatial axis."""
+    import netCDF4
+
+    from latticedft._part_file import PartFile
+    from latticedft._results import write_task
+
+    t, x = np.arange(9) * 0.1, np.arange(5) * 0.25
+    psi = xr.DataArray(
+        np.random.default_rng(0).random((9, 5, 2)),
+        dims=("t", "x", "component"),
+        coords={"t": t, "x": ("x", x, {"axis": "X"}), "component": ["u", "v"]},
+        name="psi",
+    )
+    kept = [0, 4, 8]
+    part = PartFile(tmp_path, "task", "psi", psi, 4)
+    for i in kept:
+        part(i, psi.values[i])
+    with xr.open_dataset(part.path) as ds:
+        assert ds["component"].values.tolist() == ["u", "v"]
+    part.close()
+    pred = psi.isel(t=kept).assign_coords(slice=("t", kept))
+    path = write_task(tmp_path, "task", "psi", pred, None, None, attrs={}, history="test", part=part.path)
+    with xr.open_dataset(path) as ds:
+        assert ds["component"].values.tolist() == ["u", "v"] and "axis" not in ds["x"].attrs
+        np.testing.assert_array_equal(ds["psi"].values, pred.values)
+    with netCDF4.Dataset(path) as nc:
+        assert nc["component"].dtype == np.dtype("S1")

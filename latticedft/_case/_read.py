@@ -416,8 +416,8 @@ def _export_config(ctx: _Ctx, ex: dict[str, Any]) -> ExportConfig:
     return ExportConfig(formats=tuple(formats), max_frames=ex["max_frames"])
 
 
-def load_invariant(spec: str, root: Path) -> Callable[[Any], Any]:
-    """Import ``module:function`` (modules in the case folder are found too)."""
+def load_invariant(spec: str, root: Path, what: str = "invariant") -> Callable[..., Any]:
+    """Import ``module:function`` (modules in the case folder are found too); errors name the key ``what``."""
     module, _, name = spec.partition(":")
     added = str(root.resolve())
     sys.path.insert(0, added)
@@ -425,7 +425,7 @@ def load_invariant(spec: str, root: Path) -> Callable[[Any], Any]:
         mod = importlib.import_module(module)
     except Exception as exc:
         raise ConfigError(
-            f"invariant {spec!r}: cannot import module {module!r} ({type(exc).__name__}: "
+            f"{what} {spec!r}: cannot import module {module!r} ({type(exc).__name__}: "
             f"{' '.join(str(exc).split())[:120]})"
         ) from None
     finally:
@@ -433,5 +433,5 @@ def load_invariant(spec: str, root: Path) -> Callable[[Any], Any]:
             sys.path.remove(added)
     fn = getattr(mod, name, None)
     if not callable(fn):
-        raise ConfigError(f"invariant {spec!r}: module {module!r} has no function {name!r}")
+        raise ConfigError(f"{what} {spec!r}: module {module!r} has no function {name!r}")
     return fn

@@ -239,10 +239,12 @@ def write_task(
     if steps is not None:
         all_attrs["latticedft_steps"] = int(steps)
     target = folder / f"{name}.nc"
+    # spatial_axes=False: no CF axis X, Y, Z on the spatial coordinates, which ParaView's netCDF CF reader would
+    # read as longitude and latitude (and wrap the field onto a sphere)
     with _writing(target):
         if part is not None:
             return _complete_part(part, target, variable, fields, all_attrs, history)
-        return write_field(target, fields, attrs=all_attrs, history=history)
+        return write_field(target, fields, attrs=all_attrs, history=history, spatial_axes=False)
 
 
 def _complete_part(
@@ -254,7 +256,7 @@ def _complete_part(
     history: str,
 ) -> Path:
     """``target`` made from ``part`` (holding ``variable``'s kept slices) and the other ``fields``."""
-    ds, encoding = prepared_dataset(fields, attrs, history, where=str(target))
+    ds, encoding = prepared_dataset(fields, attrs, history, where=str(target), spatial_axes=False)
     return complete_part(part, target, ds, encoding, variable)
 
 
@@ -288,8 +290,15 @@ def _baseline_errors(
     }
 
 
-def write_field(path: Path, fields: Mapping[str, xr.DataArray], *, attrs: Mapping[str, Any], history: str) -> Path:
-    return _write_field(path, fields, attrs=dict(attrs), history=history)
+def write_field(
+    path: Path,
+    fields: Mapping[str, xr.DataArray],
+    *,
+    attrs: Mapping[str, Any],
+    history: str,
+    spatial_axes: bool = True,
+) -> Path:
+    return _write_field(path, fields, attrs=dict(attrs), history=history, spatial_axes=spatial_axes)
 
 
 def read_task(path: Path, variable: str) -> tuple[xr.DataArray, xr.DataArray | None, xr.DataArray | None]:

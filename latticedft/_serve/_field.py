@@ -16,6 +16,7 @@ from .._errors import InputError, ServeError
 from .._lattice import LatticeField, gather_cells
 from .._models import AbstractLagrangian
 from ._affine import _affine_prefix
+from ._edges import known_slices
 from ._newton import _newton_slice
 from ._options import ServeOptions
 from ._range import assess
@@ -24,17 +25,18 @@ from ._slices import _site_label, _SliceSystem
 from ._sweep import _sweep_slice
 
 
-def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int) -> torch.Tensor:
-    """``(steps, *spatial, m)`` values: the first two slices and the boundary (known) sites, NaN elsewhere."""
+def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int, boundary_value: Any = None) -> torch.Tensor:
+    """``(steps, *spatial, m)`` values: the first two slices and the boundary (known) sites, NaN elsewhere; the
+    boundary sites of slices beyond ``f``'s from ``boundary_value`` when given."""
     nt_given = f.shape[0]
     m = f.ncomp
     missing = missing_edges(f.boundary, f.dims, nt_given, steps)
-    if missing:
+    if missing and boundary_value is None:
         axis, kind = missing
         raise InputError(
             f"init: holds {nt_given} time slices but the {kind.title} boundary along "
             f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
-            "fewer slices, or a periodic boundary"
+            "fewer slices, a boundary_value, or a periodic boundary"
         )
     psi = torch.full((steps, *f.shape[1:], m), math.nan, dtype=torch.float64)
     psi[:2] = f.values[:2]
@@ -43,7 +45,8 @@ def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int) -> torch.Ten
     flat = psi.reshape(steps, sys.nsite, m)
     if known.any():
         kidx = torch.from_numpy(np.nonzero(known)[0])
-        flat[:, kidx] = f.values[:steps].reshape(-1, sys.nsite, m)[:, kidx]
+        known_values = known_slices(f, lambda a, b: f.values[a:b], nt_given, boundary_value, 0, steps)
+        flat[:, kidx] = known_values.reshape(-1, sys.nsite, m)[:, kidx]
     return psi
 
 
@@ -96,11 +99,18 @@ class _FieldRun:
     """One n-D field being served: its slice system, values, iteration counters and progress bar."""
 
     def __init__(
-        self, model: AbstractLagrangian, f: LatticeField, steps: int, mode: str, progress: bool | None, solver: str
+        self,
+        model: AbstractLagrangian,
+        f: LatticeField,
+        steps: int,
+        mode: str,
+        progress: bool | None,
+        solver: str,
+        boundary_value: Any = None,
     ):
         self.model, self.f, self.steps, self.mode = model, f, steps, mode
         self.sys = _SliceSystem(model, f)
-        self.psi = _initial_values(f, self.sys, steps)
+        self.psi = _initial_values(f, self.sys, steps, boundary_value)
         self.flat = self.psi.reshape(steps, self.sys.nsite, f.ncomp)  # (steps, site, m): a view of psi
         self.unk = torch.from_numpy(np.nonzero(self.sys.interior)[0])
         self.vol = math.prod(model.spacing)
@@ -195,7 +205,7 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options
     """Serve one n-D field: the affine recurrence first where allowed, then Newton (or the sweep) slice by slice;
     ``options.solver`` solves Newton's steps (``_solvers.SOLVERS``)."""
     mode, rtol, max_newton = options.mode, options.rtol, options.max_newton
-    run = _FieldRun(model, f, steps, mode, options.progress, options.solver)
+    run = _FieldRun(model, f, steps, mode, options.progress, options.solver, options.boundary_value)
     if mode == "newton" and options.affine and steps > 2:
         run.serve_affine(rtol)
     g_prev = CellDerivatives(model, run.cells_at(run.start - 1)).grad

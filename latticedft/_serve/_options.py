@@ -11,7 +11,7 @@ row of the docs' table.
 >>> opts.max_newton, opts.cadence.thins, opts.cadence.kept(10).tolist()
 (30, True, [0, 4, 8, 9])
 >>> sorted(ServeOptions.case_keys())
-['box', 'every', 'max_newton', 'mode', 'rtol', 'solver']
+['boundary_value', 'box', 'every', 'max_newton', 'mode', 'rtol', 'solver']
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -73,6 +74,18 @@ def boolean(v: Any) -> bool:
     if not isinstance(v, bool):
         raise OptionTypeError("true or false")
     return v
+
+
+def number_or_function(v: Any) -> float | str:
+    """A finite TOML number, or a ``"module:function"`` string."""
+    if _is_number(v):
+        return float(v)
+    if isinstance(v, str) and _FUNCTION.fullmatch(v):
+        return v
+    raise OptionTypeError('a number or "module:function", e.g. 0.0 or "mycase_edges:left_drive"')
+
+
+_FUNCTION = re.compile(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*")
 
 
 def choice(*names: str) -> TomlCheck:
@@ -165,6 +178,12 @@ class ServeOptions:
         Progress bar; ``None`` shows it only on a terminal.
     device : "cpu", "cuda", "cuda:N" or "auto", optional
         Where the model is evaluated (default the CPU).
+    boundary_value : float, function or "module:function", optional
+        n-D only: the Dirichlet strips on the slices beyond those ``init`` holds, a number or a function
+        ``value(t, *coords)`` of the slice's time and the spatial coordinates (arrays on the lattice, in the
+        field's dim order) returning the field's values there (the strips are taken from them), so that a
+        field served past the end of its data needs no file of boundary values. Default: none, the strips
+        must be in ``init`` on every slice served.
 
     The fields given a TOML check (:func:`option`) are also ``[[serve]]`` keys of ``case.toml``.
     """
@@ -178,6 +197,7 @@ class ServeOptions:
     affine: bool = option(True)
     progress: bool | None = option(None)
     device: str | None = option(None)
+    boundary_value: float | str | Callable[..., Any] | None = option(None, number_or_function)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -197,6 +217,11 @@ class ServeOptions:
         if self.progress is not None and not isinstance(self.progress, bool):
             raise InputError.at("progress", f"expected True, False or None, got {self.progress!r}")
         Cadence(self.every)  # checks ``every``
+        value = self.boundary_value
+        if not (value is None or callable(value) or _is_number(value) or isinstance(value, str)):
+            raise InputError.at(
+                "boundary_value", f"expected a number, a function value(t, *coords) or None, got {value!r}"
+            )
 
     @property
     def cadence(self) -> Cadence:

@@ -39,6 +39,7 @@ from .._layout import validate_field
 from .._models import AbstractLagrangian
 from .._options import option
 from ._affine import _AffineSlices, _slice_residuals
+from ._edges import known_slices
 from ._field import slice_error, solve_and_tally
 from ._options import Cadence, ServeOptions, kept_slices
 from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
@@ -131,14 +132,15 @@ class _Stream:
         self.on_slice = on_slice
         self.on_block = getattr(on_slice, "on_block", None)
         self.every = every = options.every
-        nt = f.shape[0] if source is None else source.nt
+        self.nt = nt = f.shape[0] if source is None else source.nt
+        self.boundary_value = options.boundary_value
         missing = missing_edges(f.boundary, f.dims, nt, steps)
-        if missing:
+        if missing and self.boundary_value is None:
             axis, kind = missing
             raise InputError(
                 f"init: holds {nt} time slices but the {kind.title} boundary along "
                 f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
-                "fewer slices, or a periodic boundary"
+                "fewer slices, a boundary_value, or a periodic boundary"
             )
         self.sys = sys_ = _SliceSystem(model, f)
         m = f.ncomp
@@ -178,7 +180,8 @@ class _Stream:
             return
         m = self.f.ncomp
         lo = self.base + 2
-        known = self.f.values[lo : lo + n_new] if self.source is None else self.source(lo, lo + n_new)
+        data = self.source if self.source is not None else lambda a, b: self.f.values[a:b]
+        known = known_slices(self.f, data, self.nt, self.boundary_value, lo, lo + n_new)
         for p in range(2, n_new + 2):
             self.flat[p, self.kidx] = known[p - 2].reshape(self.sys.nsite, m)[self.kidx]
 

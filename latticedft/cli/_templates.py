@@ -152,6 +152,7 @@ ridge = "auto"                  # Tikhonov weight picked by the held-out residua
 name = "test"                   # the task: results/test.nc, test.pvd, test.png
 from = "data/test.nc"           # an unseen trajectory: its first two points start the prediction
 slices = 51                     # time slices served, the two initial ones included: 50 steps
+charges = ["energy"]            # the learned L_d's discrete energy over t: its drift is drawn in test.png
 
 [run]
 threads = 1                     # torch threads (one is fastest for small cases and on shared machines)
@@ -197,6 +198,7 @@ name = "test"                   # the task: results/test.nc, test.pvd, test.png
 from = "data/test.nc"           # an unseen launch: its first two positions start the orbit
 slices = 301                    # time slices served, the two initial ones included: 300 steps
 box = 10.0                      # an orbit that leaves |x|, |y| <= 10 stops there (complete)
+charges = ["rotation-xy", "energy"]   # angular momentum and energy over t: their drift is drawn in test.png
 
 [run]
 threads = 1                     # torch threads (one is fastest for small cases and on shared machines)

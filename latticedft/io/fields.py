@@ -199,17 +199,44 @@ def _package_version() -> str:
         return "unknown"
 
 
-def _default_axes(ds: xr.Dataset) -> None:
-    """Add CF ``axis`` attributes (T, X, Y, Z) to lattice coordinates lacking one."""
+def _numeric(values: Any) -> bool:
+    """Whether ``values`` are integers or floats (not booleans, strings or objects)."""
+    return np.asarray(values).dtype.kind in "iuf"
+
+
+def _default_axes(ds: xr.Dataset, spatial_axes: bool) -> None:
+    """Give the numeric lattice coordinates CF ``axis`` attributes: T to time, X, Y, Z to the spatial dims
+    lacking one (without ``spatial_axes``, the spatial dims' ``axis`` is dropped). A coordinate of labels
+    (``feature``, ``component``) gets none: CF reserves X, Y, Z, T for the axes of space and time."""
     for var in ds.data_vars.values():
-        dims = lattice_dims(var)
+        dims = [d for d in lattice_dims(var) if d in ds.coords and _numeric(ds.coords[d].values)]
         if not dims or len(dims) > 4:
             continue
         names = dict(zip(reversed(dims[1:]), ("X", "Y", "Z")))
         names[dims[0]] = "T"
         for dim, axis in names.items():
-            if dim in ds.coords and "axis" not in ds.coords[dim].attrs:
-                ds.coords[dim].attrs["axis"] = axis
+            attrs = ds.coords[dim].attrs
+            if axis != "T" and not spatial_axes:
+                attrs.pop("axis", None)
+            elif "axis" not in attrs:
+                attrs["axis"] = axis
+
+
+def _encoding(ds: xr.Dataset, compress: bool) -> dict[str, dict[str, Any]]:
+    """Per variable: zlib for numeric data variables; no ``_FillValue`` on coordinates, and coordinates of
+    strings as CF character arrays (``NC_CHAR`` with a ``string<n>`` dim) rather than netCDF-4 strings, which
+    readers that take every coordinate for numbers (ParaView's netCDF readers) cannot read."""
+    encoding: dict[str, dict[str, Any]] = {}
+    for name, var in ds.data_vars.items():
+        enc: dict[str, Any] = {}
+        if compress and (np.issubdtype(var.dtype, np.number)):
+            enc.update(zlib=True, complevel=4, shuffle=True)
+        encoding[str(name)] = enc
+    for name, coord in ds.coords.items():
+        encoding[str(name)] = {"_FillValue": None}
+        if coord.dtype.kind in "OUS" and coord.size and all(isinstance(v, str) for v in coord.values.ravel()):
+            encoding[str(name)]["dtype"] = "S1"
+    return encoding
 
 
 def prepared_dataset(
@@ -218,10 +245,11 @@ def prepared_dataset(
     history: str | None,
     compress: bool = True,
     where: str = "fields",
+    spatial_axes: bool = True,
 ) -> tuple[xr.Dataset, dict[str, dict[str, Any]]]:
     """The Dataset :func:`write_field` writes, with its encoding: the fields aligned, the global attributes
-    (``Conventions``, ``source``, ``history``), CF axes and netCDF-safe attributes; ``where`` names the target
-    in errors."""
+    (``Conventions``, ``source``, ``history``), CF axes (see ``spatial_axes`` of :func:`write_field`) and
+    netCDF-safe attributes; ``where`` names the target in errors."""
     if isinstance(fields, xr.Dataset):
         ds = fields.copy(deep=False)
     else:
@@ -259,21 +287,12 @@ def prepared_dataset(
         line = f"{stamp}: {_one_line(history, 10_000)}"
         old = ds.attrs.get("history")
         ds.attrs["history"] = f"{old}\n{line}" if old not in (None, "") else line
-    _default_axes(ds)
+    _default_axes(ds, spatial_axes)
     ds.attrs = _safe_attrs(ds.attrs)
     for name in ds.variables:
         ds[name].attrs = _safe_attrs(ds[name].attrs)
 
-    encoding: dict[str, dict[str, Any]] = {}
-    for name, var in ds.data_vars.items():
-        enc: dict[str, Any] = {}
-        if compress and (np.issubdtype(var.dtype, np.number)):
-            enc.update(zlib=True, complevel=4, shuffle=True)
-        encoding[str(name)] = enc
-    for name in ds.coords:
-        encoding[str(name)] = {"_FillValue": None}
-
-    return ds, encoding
+    return ds, _encoding(ds, compress)
 
 
 def write_field(
@@ -283,6 +302,7 @@ def write_field(
     attrs: Mapping[str, Any] | None = None,
     history: str | None = None,
     compress: bool = True,
+    spatial_axes: bool = True,
 ) -> Path:
     """Write fields to a CF-style netCDF file, atomically.
 
@@ -301,6 +321,12 @@ def write_field(
         attribute of the input (Dataset attrs, or ``attrs["history"]``).
     compress
         zlib-compress the data variables.
+    spatial_axes
+        Give the spatial lattice coordinates CF ``axis`` attributes X, Y, Z
+        (where missing). False drops them (one given is dropped too):
+        ParaView's netCDF CF reader takes axis X and Y for longitude and
+        latitude and wraps such a field onto a sphere. The time coordinate
+        gets ``axis = "T"`` either way.
 
     Returns
     -------
@@ -310,8 +336,9 @@ def write_field(
     Notes
     -----
     Sets ``Conventions = "CF-1.8"``, ``source`` (unless given), CF ``axis``
-    on lattice coordinates lacking one, and ``_FillValue: None`` on
-    coordinates. The file is written to a temporary file in the same folder
+    on numeric lattice coordinates lacking one (see ``spatial_axes``), and
+    ``_FillValue: None`` on coordinates; a coordinate of strings (e.g.
+    ``component``) is written as a CF character array. The file is written to a temporary file in the same folder
     and renamed over ``path``; on any error the temporary file is removed and
     an existing ``path`` is left untouched.
 
@@ -335,7 +362,7 @@ def write_field(
     if not folder.is_dir():
         raise InputError(f"{target}: folder {folder} does not exist; expected an existing folder")
 
-    ds, encoding = prepared_dataset(fields, attrs, history, compress, str(target))
+    ds, encoding = prepared_dataset(fields, attrs, history, compress, str(target), spatial_axes)
 
     tmp = folder / f".{target.name}.{uuid.uuid4().hex[:12]}.tmp"
     try:

@@ -169,12 +169,21 @@ def _title(view, text):
     shown.FontSize = 16
 
 
-def _chart(xtitle, ytitle, title=""):
+def _chart(xtitle, ytitle, title, x_range):
+    """A line chart; its x axis a little wider than ``x_range`` (the last tick label is otherwise cut off at
+    the view's edge)."""
     view = CreateView("XYChartView")
     view.BottomAxisTitle = xtitle
     view.LeftAxisTitle = ytitle
     view.ChartTitle = title
     view.LegendLocation = "TopRight"
+    # ParaView 5.11's default chart font (Arial) draws the tick labels doubled and clipped in offscreen
+    # renderings; Times does not
+    view.LeftAxisLabelFontFamily = view.BottomAxisLabelFontFamily = "Times"
+    lo, hi = x_range
+    pad = 0.03 * (hi - lo) if hi > lo else 0.5
+    view.BottomAxisUseCustomRange = 1
+    view.BottomAxisRangeMinimum, view.BottomAxisRangeMaximum = lo - pad, hi + pad
     return view
 
 
@@ -258,7 +267,7 @@ def lattice_views(args):
     arrays = [a for a in (var, var + "_ref") if a in frames.PointData.keys()]
     when = "{{}} = {{:.4g}}".format(TASK["t_dim"], t) if t is not None else ""
     if n_space == 1:
-        chart = _chart(TASK["x_label"], TASK["label"], "{{}}: {{}}".format(TASK["name"], when))
+        chart = _chart(TASK["x_label"], TASK["label"], "{{}}: {{}}".format(TASK["name"], when), b[:2])
         along = Calculator(Input=frames)  # the frame's x as an array: the chart's x axis
         along.Function = "coordsX"
         along.ResultArrayName = "x_coordinate"
@@ -287,7 +296,8 @@ def lattice_views(args):
         line = PlotOverLine(Input=frames)
     line.Point1 = [b[0], mid[1], mid[2]]
     line.Point2 = [b[1], mid[1], mid[2]]
-    chart = _chart(TASK["x_label"], TASK["label"], "{{}}: along x through the middle, {{}}".format(TASK["name"], when))
+    where = "{{}}: along x through the middle, {{}}".format(TASK["name"], when)
+    chart = _chart(TASK["x_label"], TASK["label"], where, b[:2])
     _lines(Show(line, chart), arrays, "Points_X")
     return render, chart
 
@@ -315,7 +325,7 @@ def series_views(args):
         _title(render, "{{}}: the orbit coloured by time; reference in grey".format(TASK["name"]))
         render.ResetCamera()
         return (render,)
-    chart = _chart(TASK["t_label"], TASK["label"], TASK["name"])
+    chart = _chart(TASK["t_label"], TASK["label"], TASK["name"], curve.PointData["time"].GetRange())
     arrays = [a for a in (var, var + "_ref") if a in curve.PointData.keys()]
     _lines(Show(curve, chart), arrays, "time")
     return (chart,)

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import textwrap
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import xarray as xr
 
 from latticedft._errors import InputError
-from latticedft.io._labels import coord_label as _label
-from latticedft.io._labels import quantity_label
+from latticedft.io._labels import coord_label, quantity_label
 from latticedft.io._labels import units_text as _units_text
 from latticedft.io.fields import COMPONENT_DIM, lattice_dims
 
@@ -27,12 +26,27 @@ _MAX_MARKERS = 200  # markers drawn per 1D curve; more points are thinned
 DRIFT_SERIES = ("energy", "invariant")
 
 
+def _label(da: xr.DataArray, dim: str) -> str:
+    """Axis label of a coordinate, in the units ``_coord`` draws it in."""
+    return coord_label(da, dim, scaled=True)
+
+
 def _quantity(da: xr.DataArray, variable: str, suffix: str = "") -> str:
     return quantity_label(da, variable, suffix, width=42)
 
 
-def _error_label(variable: str, units: Any, what: str = "") -> str:
-    return f"{what}|{variable} - {variable}_ref|{_units_text(units)}".strip()
+def _set_ylabel(ax: Axes, text: str | Sequence[str]) -> None:
+    """``text`` as the y label of ``ax``, in lines no longer than the axes is high (a longer label is cut off
+    at the figure's edge): at most 6 points a character of a 10-point label. A string breaks at any space, a
+    sequence only between its parts (``["error", "|psi - psi_ref|", "[au]"]``)."""
+    width = max(16, int(ax.bbox.height / ax.figure.dpi * 72 / 6.0))
+    lines: list[str] = []
+    for part in text.split() if isinstance(text, str) else text:
+        if lines and len(lines[-1]) + 1 + len(part) <= width:
+            lines[-1] += " " + part
+        else:
+            lines.append(part)
+    ax.set_ylabel("\n".join(lines))
 
 
 def _common(pred: xr.DataArray, ref: xr.DataArray) -> tuple[xr.DataArray, xr.DataArray]:
@@ -121,9 +135,9 @@ def _plot_series(
             if COMPONENT_DIM in pred.coords
             else [str(k) for k in range(len(comps))]
         )
-        ylabels = [_quantity(pred, var, f"_{lab}") for lab in labels]
+        ylabels = [quantity_label(pred, var, f"_{lab}") for lab in labels]
     else:
-        comps, ylabels = [pred], [_quantity(pred, var)]
+        comps, ylabels = [pred], [quantity_label(pred, var)]
     axes = sf.subplots(len(comps), 1, sharex=True, squeeze=False)[:, 0]
     for k, ax in enumerate(axes):
         for j, tr in enumerate(train):
@@ -150,7 +164,7 @@ def _plot_series(
                 label="reference",
             )
         ax.plot(t, comps[k].values, "o", color="tab:red", ms=3.5, markevery=_markevery(t.size), label="prediction")
-        ax.set_ylabel(ylabels[k])
+        _set_ylabel(ax, ylabels[k])
         _mark_unserved(ax, span, vertical=False)
         ax.legend(loc="best", fontsize="small")
     axes[-1].set_xlabel(_label(pred, tdim))
@@ -209,7 +223,8 @@ def _plot_spacetime(
         sf.colorbar(im, ax=ax, label=cb_label)
         ax.set_title(name)
         ax.set_xlabel(_label(pred, xdim))
-        _mark_unserved(ax, span, vertical=True)
+        if name != "reference":  # "not served" is said of the served field (and its error), not of the reference
+            _mark_unserved(ax, span, vertical=True)
     axes[0].set_ylabel(_label(pred, tdim))
 
 
@@ -309,7 +324,7 @@ def _plot_errors(
     if not np.isfinite(_positive(worst)).any():
         ax.text(0.5, 0.5, "error exactly zero", transform=ax.transAxes, ha="center")
     ax.set_xlabel(_label(pred, tdim))
-    ax.set_ylabel(f"error {_error_label(var, units)}")
+    _set_ylabel(ax, ["error", f"|{var} - {var}_ref|", *_units_text(units).split()])
     ax.set_title("error against the reference, per slice")
     _decade(ax)
     _mark_unserved(ax, span, vertical=False)
@@ -360,9 +375,8 @@ def _plot_drift(
         t = _coord(q, tdim) if tdim in q.dims else np.arange(values.size, dtype=np.float64)
         ax.semilogy(t, drift, "-", lw=1.3, color=f"C{k % 10}", label=textwrap.shorten(label, 60, placeholder="..."))
     ax.set_xlabel(_label(pred, tdim))
-    ax.set_ylabel(
-        "relative drift |Q(t) - Q(0)| / |Q(0)|" if not absolute or len(absolute) < len(series) else "|Q(t) - Q(0)|"
-    )
+    relative = not absolute or len(absolute) < len(series)
+    _set_ylabel(ax, ["relative drift", "|Q(t) - Q(0)| / |Q(0)|"] if relative else ["|Q(t) - Q(0)|"])
     ax.set_title("conserved quantities: drift from the first slice")
     _decade(ax)
     _mark_unserved(ax, span, vertical=False)

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import xarray as xr
 
+from latticedft.io._labels import unit_scale
 from latticedft.io.fields import lattice_dims
 
 if TYPE_CHECKING:  # matplotlib is imported when a figure is drawn
@@ -23,8 +24,11 @@ _RED = "#b00000"
 
 
 def _coord(da: xr.DataArray, dim: str) -> np.ndarray:
+    """The values of ``dim`` to draw: a coordinate in a scaled unit (``"58.14 days"``) in the plain unit
+    (days: the axis label says ``[days]``, not ``[58.14 days]``); the indices without a coordinate."""
     if dim in da.coords:
-        return np.asarray(da.coords[dim].values, dtype=np.float64)
+        factor = unit_scale(da.coords[dim].attrs.get("units"))[0]
+        return np.asarray(da.coords[dim].values, dtype=np.float64) * factor
     return np.arange(da.sizes[dim], dtype=np.float64)
 
 
