@@ -134,7 +134,7 @@ def test_a_serve_key_is_one_field_of_the_serving_options(tmp_path, monkeypatch):
     import latticedft._serve
     from latticedft import ConfigError
     from latticedft._case import _schema, load_case
-    from latticedft._pipeline import check_case, serve_task, train_model
+    from latticedft._run import check_case, serve_task, train_model
     from latticedft._serve._options import ServeOptions, choice, option
 
     from case_helpers import tiny_wave

@@ -16,8 +16,8 @@ from tqdm.std import tqdm  # not tqdm.auto: no ipywidgets warning in Jupyter (la
 
 from .._case import Case
 from .._errors import InputError
-from .._pipeline import CaseData, TaskOutcome, serve_task, train_model
 from .._results import config_attrs, export_task, read_summary, read_task, write_model, write_summary, write_task
+from .._run import CaseData, TaskOutcome, serve_task, train_model
 from ..io.exporters import remove_exports
 from ._common import INCOMPLETE, OK, command_line
 

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from ._options import option
+from .._options import option
 
 __all__ = ["TaskMeter", "compare_blocks"]
 

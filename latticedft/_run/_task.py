@@ -20,15 +20,15 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from ._boundary import missing_edges
-from ._case import Case, ServeTask, load_invariant
-from ._case_charges import check_charges, drift_text, task_charges
-from ._contract import AbstractLagrangian
-from ._errors import ConfigError, InputError, LatticeDFTError, ServeError
-from ._lattice import as_lattice_field
-from ._layout import component_labels, field_spacing, lattice_dims
-from ._part_file import PartFile
-from .io.fields import read_field
+from .._boundary import missing_edges
+from .._case import Case, ServeTask, load_invariant
+from .._contract import AbstractLagrangian
+from .._errors import ConfigError, InputError, LatticeDFTError, ServeError
+from .._lattice import as_lattice_field
+from .._layout import component_labels, field_spacing, lattice_dims
+from .._part_file import PartFile
+from ..io.fields import read_field
+from ._charges import check_charges, drift_text, task_charges
 
 __all__ = ["CaseData", "TaskData", "TaskOutcome", "check_case", "train_model", "serve_task"]
 
@@ -218,7 +218,7 @@ def _check_task(
 
 def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
     """Build the model of ``[model]`` and learn it from the training fields."""
-    from ._learn import learn
+    from .._learn import learn
 
     model = case.model.build(len(data.dims))
     try:
@@ -264,8 +264,8 @@ def _select_and_learn(case: Case, data: CaseData, model: AbstractLagrangian) -> 
     """``[model] select``: score the candidates by serving held-out data (table to the log); the chosen model,
     learned on all the data. With ``[train] ensemble`` the candidates are scored as single models and the chosen
     one is then learned as the ensemble's member 0 (its report keeps the selection table and warnings)."""
-    from ._learn import learn
-    from ._select import select
+    from .._learn import learn
+    from .._select import select
 
     learn_kw = dict(case.train.learn)
     ens = {k: learn_kw.pop(k) for k in ("ensemble", "ensemble_seed") if k in learn_kw}
@@ -344,7 +344,7 @@ class TaskOutcome:
 def _start(model: AbstractLagrangian, td: TaskData) -> tuple[xr.DataArray, str]:
     """The task's initial data and how they were taken (``[[serve]] start``): ``denoised`` asks for it, ``auto``
     denoises when training corrected noisy data."""
-    from ._learn._noise import DENOISE_SLICES, denoised_start
+    from .._learn._noise import DENOISE_SLICES, denoised_start
 
     noise = (model.report_.noise if model.report_ is not None else None) or {}
     if td.task.start == "data" or (td.task.start == "auto" and noise.get("method", "none") == "none"):
@@ -415,7 +415,7 @@ class _Served:
 def _serve(model: Any, td: TaskData, device: str, part: Callable[[int, np.ndarray], Any] | None) -> _Served:
     """Serve ``td`` with the task's options; with an output cadence, a meter measures every slice as it is
     served and hands each kept slice to ``part``."""
-    from ._serve import serve
+    from .._serve import serve
 
     t = td.task
     t0 = time.perf_counter()
@@ -423,7 +423,7 @@ def _serve(model: Any, td: TaskData, device: str, part: Callable[[int, np.ndarra
     options = t.options.replace(progress=None, device=device)
     meter = None
     if t.cadence.thins:  # errors and the invariant measured on every slice as it is served
-        from ._task_stream import TaskMeter
+        from ._meter import TaskMeter
 
         meter = TaskMeter(td.reference, td.invariant, part)
     init, start = _start(model, td)
@@ -445,8 +445,8 @@ def _serve(model: Any, td: TaskData, device: str, part: Callable[[int, np.ndarra
 def _record(served: _Served, td: TaskData) -> dict[str, Any]:
     """The task's record for summary.json, in its order: the result's numbers, then the errors against the
     reference and the baseline's, and an ensemble's calibration."""
-    from ._serve import calibration
-    from ._serve._ensemble import calibration_warning
+    from .._serve import calibration
+    from .._serve._ensemble import calibration_warning
 
     t, result, pred = td.task, served.result, served.result.field
     rec: dict[str, Any] = result.to_dict()
@@ -473,7 +473,7 @@ def _record(served: _Served, td: TaskData) -> dict[str, Any]:
 
 def _errors(served: _Served, td: TaskData, rec: dict[str, Any]) -> None:
     """The errors against the task's reference, and the baseline's, into ``rec``."""
-    from ._serve import compare
+    from .._serve import compare
 
     assert td.reference is not None
     t, pred, meter = td.task, served.result.field, served.meter
@@ -486,7 +486,7 @@ def _errors(served: _Served, td: TaskData, rec: dict[str, Any]) -> None:
         b = compare(td.baseline, td.reference)
         b_same = compare(td.baseline.isel({pred.dims[0]: slice(0, cmp["slices"])}), td.reference)
     else:  # block by block: the files stay on disk
-        from ._task_stream import compare_blocks
+        from ._meter import compare_blocks
 
         b, b_same = (
             compare_blocks(td.baseline, td.reference),

@@ -20,14 +20,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import xarray as xr
 
-from ._contract import AbstractLagrangian, GaugeName
-from ._errors import ConfigError, LatticeDFTError
-from ._lattice import LatticeField, as_lattice_field
-from ._noether import noether_charges, symmetries
-from ._noether._group import Symmetry, standard_symmetries
+from .._contract import AbstractLagrangian, GaugeName
+from .._errors import ConfigError, LatticeDFTError
+from .._lattice import LatticeField, as_lattice_field
+from .._noether import noether_charges, symmetries
+from .._noether._group import Symmetry, standard_symmetries
 
 if TYPE_CHECKING:
-    from ._pipeline import TaskData
+    from ._task import TaskData
 
 __all__ = ["AUTO", "ENERGY", "charge_names", "charge_variable", "check_charges", "drift_text", "task_charges"]
 

@@ -23,10 +23,10 @@ import os
 from pathlib import Path
 from typing import Any
 
-from ._case import CASE_FILE, Case
-from ._errors import ConfigError
-from ._models import MODELS
-from .io.exporters import TEMPORARY_NAME_EXTRA, export_file_names
+from .._case import CASE_FILE, Case
+from .._errors import ConfigError
+from .._models import MODELS
+from ..io.exporters import TEMPORARY_NAME_EXTRA, export_file_names
 
 __all__ = [
     "available_memory",
