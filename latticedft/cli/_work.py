@@ -97,10 +97,10 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: AbstractLagrangi
             },
             part=out.part,  # the kept slices, written as they were served: completed into <task>.nc
         )
-        out.record["file"] = path.name
+        out.record.file = path.name
         log.debug("wrote %s", path.name)
-        out.record["exports"] = export_one(folder, case, out.name, data, previous.get(out.name, ()), owners)
-        tasks[out.name] = out.record
+        out.record.exports = export_one(folder, case, out.name, data, previous.get(out.name, ()), owners)
+        tasks[out.name] = out.record.to_dict()
     return tasks
 
 
