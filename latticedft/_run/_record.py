@@ -59,7 +59,7 @@ class TaskRecord:
     mode: str
     solver: str
     device: str
-    slice_solver: str
+    slice_solver: str | None
     extrapolation: dict[str, Any] | None
     warnings: list[str]
     every: int
