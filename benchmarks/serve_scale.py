@@ -77,7 +77,7 @@ def case_probe(n: int, slices: int, every: int, whole: bool) -> dict[str, Any]:
     import tempfile
     import textwrap
 
-    import latticedft._pipeline as pipeline
+    import latticedft._run._data as pipeline
     from latticedft import systems
     from latticedft.cli import main
     from latticedft.io.fields import read_field, write_field

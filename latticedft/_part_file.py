@@ -3,7 +3,7 @@
 A task with ``every > 1`` appends each kept slice to a hidden netCDF file in the staging folder (an
 unlimited time dim, one slice a chunk, synced after each slice), so that a run killed while serving leaves
 the slices served so far in a readable file (until the next run clears the killed run's staging folder).
-The case pipeline creates the file (:func:`latticedft._pipeline.serve_task`); when the task is done,
+The case pipeline creates the file (:func:`latticedft._run.serve_task`); when the task is done,
 :func:`complete_part` adds the task's other variables and attributes to it (the same variables and
 attributes as a ``<task>.nc`` written whole, as for ``every = 1``) and renames it to ``<task>.nc``: each
 kept slice is written once.

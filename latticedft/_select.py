@@ -202,6 +202,39 @@ def select(
         The candidate table and the choice; ``report.model`` is the chosen candidate learned on all the data
         (its ``report_.selection`` holds :meth:`SelectionReport.to_dict`).
     """
+    _check_arguments(model, candidates, hold_out, factor, keep_below)
+    items = list(data) if isinstance(data, (list, tuple)) else [data]
+    if not all(isinstance(d, xr.DataArray) for d in items):
+        raise InputError.at("data", "expected a DataArray or a list of DataArrays (time first)")
+    n = as_fields(items, boundary)[0].ndim  # checks the fields (one lattice, one layout)
+    fields: list[xr.DataArray] = [d.load() for d in items]
+    ridge = learn_kwargs.pop("ridge", 0.0)
+    changes = auto_candidates(model, n, ridge) if candidates == "auto" else list(candidates)
+    specs = _candidates(model, changes, ridge)
+    held = _split(fields, hold_out)
+    rows = [{**row, **_trial(fresh, r, held, fields, boundary, learn_kwargs)} for fresh, r, row in specs]
+    chosen, reason, warnings = _choose(rows, factor, keep_below)
+    chosen_model = copy.deepcopy(specs[chosen][0])
+    report = learn(chosen_model, fields, boundary=boundary, ridge=specs[chosen][1], progress=False, **learn_kwargs)
+    sel = SelectionReport(
+        rows=rows,
+        chosen=chosen,
+        reason=reason,
+        hold_out=float(hold_out),
+        factor=float(factor),
+        warnings=warnings,
+        keep_below=float(keep_below),
+    )
+    report.selection = sel.to_dict()
+    report.warnings.extend(warnings)
+    sel.model = chosen_model
+    return sel
+
+
+def _check_arguments(
+    model: AbstractLagrangian, candidates: Any, hold_out: float, factor: float, keep_below: float
+) -> None:
+    """Refuse a bad argument of :func:`select` (an ``InputError`` naming it)."""
     if not isinstance(model, AbstractLagrangian):
         raise InputError.at("model", f"expected a latticedft model, got {type(model).__name__}")
     if not (isinstance(hold_out, (int, float)) and not isinstance(hold_out, bool) and 0 < hold_out < 1):
@@ -212,14 +245,14 @@ def select(
         raise InputError.at("keep_below", f"expected a number >= 0, got {keep_below!r}")
     if isinstance(candidates, str) and candidates != "auto":
         raise InputError.at("candidates", f"expected 'auto' or a list of candidates, got {candidates!r}")
-    items = list(data) if isinstance(data, (list, tuple)) else [data]
-    if not all(isinstance(d, xr.DataArray) for d in items):
-        raise InputError.at("data", "expected a DataArray or a list of DataArrays (time first)")
-    n = as_fields(items, boundary)[0].ndim  # checks the fields (one lattice, one layout)
-    fields: list[xr.DataArray] = [d.load() for d in items]
-    ridge = learn_kwargs.pop("ridge", 0.0)
-    changes = auto_candidates(model, n, ridge) if candidates == "auto" else list(candidates)
-    specs: list[tuple[str, AbstractLagrangian, Any, dict[str, Any]]] = []  # label, fresh model, ridge, row
+
+
+def _candidates(
+    model: AbstractLagrangian, changes: Sequence[object], ridge: Any
+) -> list[tuple[AbstractLagrangian, Any, dict[str, Any]]]:
+    """The candidates, the hand-set model first, once each: ``(fresh model, ridge, table row)``; ``changes``
+    are option tables or models (anything else is refused)."""
+    specs: list[tuple[AbstractLagrangian, Any, dict[str, Any]]] = []
     seen: set[str] = set()
     for change in [{}, *changes]:
         if isinstance(change, AbstractLagrangian):
@@ -235,73 +268,61 @@ def select(
         if key in seen:
             continue
         seen.add(key)
-        specs.append((label, fresh, r, {"label": label, "kind": kind, "options": options, "ridge": r}))
-    held = _split(fields, hold_out)
-    rows = []
-    for _, fresh, r, row in specs:
-        trial = copy.deepcopy(fresh)
-        t0 = time.perf_counter()
-        n_parameters = None
-        try:
-            learn(trial, held, boundary=boundary, ridge=r, progress=False, **{**learn_kwargs, "symmetries": False})
-            n_parameters = trial.n_parameters()
-            score, status = _score(trial, fields, boundary), "ok"
-            if not math.isfinite(score):
-                status = "served field not finite"
-        except ServeError as exc:
-            score, status = math.inf, f"serve stopped: {_short(exc)}"
-        except LatticeDFTError as exc:
-            score, status = math.inf, f"{type(exc).__name__}: {_short(exc)}"
-        rows.append(
-            {
-                **row,
-                "score": score,
-                "status": status,
-                "n_parameters": n_parameters,
-                "wall_time": time.perf_counter() - t0,
-            }
-        )
+        specs.append((fresh, r, {"label": label, "kind": kind, "options": options, "ridge": r}))
+    return specs
+
+
+def _trial(
+    fresh: AbstractLagrangian,
+    ridge: Any,
+    held: list[xr.DataArray],
+    fields: list[xr.DataArray],
+    boundary: BoundaryKinds | None,
+    learn_kwargs: dict[str, Any],
+) -> dict[str, Any]:
+    """One candidate learned on the ``held`` parts and scored on the whole ``fields``: its row's measurements."""
+    trial = copy.deepcopy(fresh)
+    t0 = time.perf_counter()
+    n_parameters = None
+    try:
+        learn(trial, held, boundary=boundary, ridge=ridge, progress=False, **{**learn_kwargs, "symmetries": False})
+        n_parameters = trial.n_parameters()
+        score, status = _score(trial, fields, boundary), "ok"
+        if not math.isfinite(score):
+            status = "served field not finite"
+    except ServeError as exc:
+        score, status = math.inf, f"serve stopped: {_short(exc)}"
+    except LatticeDFTError as exc:
+        score, status = math.inf, f"{type(exc).__name__}: {_short(exc)}"
+    return {"score": score, "status": status, "n_parameters": n_parameters, "wall_time": time.perf_counter() - t0}
+
+
+def _choose(rows: list[dict[str, Any]], factor: float, keep_below: float) -> tuple[int, str, list[str]]:
+    """``(chosen row, reason, warnings)``: the best candidate is the one with the fewest parameters among
+    those within ``factor`` of the lowest score; it replaces the hand-set model (row 0) only when ``factor``
+    times better and the hand-set score is above ``keep_below``."""
     scores = [r["score"] for r in rows]
     lowest = min(scores)
-    # among the candidates within the factor of the lowest score, the one with the fewest parameters
     near = [i for i, sc in enumerate(scores) if math.isfinite(sc) and sc <= factor * lowest]
     best = min(near, key=lambda i: (rows[i]["n_parameters"], scores[i])) if near else int(np.argmin(scores))
-    warnings = []
     if not math.isfinite(scores[best]):
-        chosen = 0
-        reason = "every candidate failed; kept the hand-set model"
-        warnings.append(
+        warning = (
             f"model selection: every one of {len(rows)} candidates failed to serve the held-out data "
             "(their reasons are in the candidate table); kept the hand-set model, which may not serve"
         )
-    elif best != 0 and scores[0] <= keep_below:
-        chosen = 0
-        reason = (
+        return 0, "every candidate failed; kept the hand-set model", [warning]
+    if best != 0 and scores[0] <= keep_below:
+        return (
+            0,
             f"the hand-set model scored {scores[0]:.3e}, at or below keep_below = {keep_below:g}: kept "
-            f"({rows[best]['label']} scored {scores[best]:.3e})"
+            f"({rows[best]['label']} scored {scores[best]:.3e})",
+            [],
         )
-    elif best == 0 or not scores[best] * factor < scores[0]:
-        chosen = 0
+    if best == 0 or not scores[best] * factor < scores[0]:
         reason = (
             f"the hand-set model scored {scores[0]:.3e}; no candidate was {factor:g}x better"
             if best != 0
             else f"the hand-set model scored best ({scores[0]:.3e})"
         )
-    else:
-        chosen = best
-        reason = f"{rows[best]['label']} scored {scores[best]:.3e} against the hand-set model's {scores[0]:.3e}"
-    chosen_model = copy.deepcopy(specs[chosen][1])
-    report = learn(chosen_model, fields, boundary=boundary, ridge=specs[chosen][2], progress=False, **learn_kwargs)
-    sel = SelectionReport(
-        rows=rows,
-        chosen=chosen,
-        reason=reason,
-        hold_out=float(hold_out),
-        factor=float(factor),
-        warnings=warnings,
-        keep_below=float(keep_below),
-    )
-    report.selection = sel.to_dict()
-    report.warnings.extend(warnings)
-    sel.model = chosen_model
-    return sel
+        return 0, reason, []
+    return best, f"{rows[best]['label']} scored {scores[best]:.3e} against the hand-set model's {scores[0]:.3e}", []

@@ -197,7 +197,7 @@ def test_a_new_kind_is_one_registry_entry(monkeypatch: pytest.MonkeyPatch) -> No
 
 def test_strips_checked_by_the_case_run(tmp_path) -> None:
     from latticedft._case import load_case
-    from latticedft._pipeline import check_case
+    from latticedft._run import check_case
 
     from case_helpers import tiny_wave
 

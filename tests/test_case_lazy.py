@@ -125,8 +125,8 @@ def test_a_case_task_with_every_reads_its_files_block_by_block(tmp_path, capsys,
 
 def test_the_memory_check_counts_the_kept_slices(tmp_path):
     from latticedft._case import load_case
-    from latticedft._guards import check_task_memory
-    from latticedft._pipeline import check_case
+    from latticedft._run import check_case
+    from latticedft._run._guards import check_task_memory
 
     from case_helpers import tiny_wave
 

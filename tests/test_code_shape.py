@@ -14,9 +14,7 @@ PACKAGE = REPO / "latticedft"
 MAX_BODY_LINES = 80
 
 #: (file, function) still over the limit: split by other steps of the same change; the list must end empty.
-TOO_LONG: set[tuple[str, str]] = {
-    ("_select.py", "select"),
-}
+TOO_LONG: set[tuple[str, str]] = set()
 
 
 def _body_lines(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> int:

@@ -260,8 +260,8 @@ def test_members_take_member_0s_ridge() -> None:
 
 
 def test_memory_check_counts_the_members(tmp_path: Path) -> None:
-    from latticedft._guards import check_task_memory
-    from latticedft._pipeline import check_case
+    from latticedft._run import check_case
+    from latticedft._run._guards import check_task_memory
 
     case = tiny_wave(tmp_path)
     plain = load_case(case)

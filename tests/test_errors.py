@@ -151,7 +151,7 @@ def test_errors_carry_their_key():
 )
 def test_case_errors_readdress_the_boundary_key(tmp_path, edit, key, text):
     from latticedft._case import load_case
-    from latticedft._pipeline import check_case
+    from latticedft._run import check_case
 
     from case_helpers import tiny_wave
 
@@ -181,7 +181,7 @@ def test_case_errors_readdress_the_boundary_key(tmp_path, edit, key, text):
 )
 def test_case_errors_readdress_learn_keys(tmp_path, option, key, text):
     from latticedft._case import load_case
-    from latticedft._pipeline import check_case, train_model
+    from latticedft._run import check_case, train_model
 
     from case_helpers import tiny_wave
 

@@ -131,10 +131,10 @@ def test_a_serve_key_is_one_field_of_the_serving_options(tmp_path, monkeypatch):
 
     import pytest
 
-    import latticedft._serve
+    import latticedft._run._task
     from latticedft import ConfigError
     from latticedft._case import _schema, load_case
-    from latticedft._pipeline import check_case, serve_task, train_model
+    from latticedft._run import check_case, serve_task, train_model
     from latticedft._serve._options import ServeOptions, choice, option
 
     from case_helpers import tiny_wave
@@ -160,13 +160,13 @@ def test_a_serve_key_is_one_field_of_the_serving_options(tmp_path, monkeypatch):
         load_case(case, ["serve.test.flavor=spicy"])
 
     seen: list[ServeOptions] = []
-    real = latticedft._serve.serve
+    real = latticedft._run._task.serve
 
     def spy(*args, **kwargs):
         seen.append(kwargs["options"])
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(latticedft._serve, "serve", spy)  # the pipeline's serving call
+    monkeypatch.setattr(latticedft._run._task, "serve", spy)  # the pipeline's serving call
     data = check_case(c)
     model, _ = train_model(c, data)
     out = serve_task(model, data.tasks[0])

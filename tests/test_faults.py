@@ -27,8 +27,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from latticedft._guards import case_inputs
 from latticedft._results import ResultsError, check_destination
+from latticedft._run._guards import case_inputs
 
 REPO = Path(__file__).resolve().parents[1]
 WAVE = REPO / "cases" / "wave"

@@ -156,10 +156,6 @@ DEFERRED_MODULES: dict[tuple[str, str], str] = {
     ("latticedft._results._files", "latticedft._modelfile"): "torch, only when a model file is read or written",
     ("latticedft._models._ensemble", "latticedft._models"): "the registry MODELS leaves the package's __init__ "
     "with the model contract (registered factories), a step of the same change",
-    ("latticedft._pipeline", "latticedft._learn"): "moved by the run package step",
-    ("latticedft._pipeline", "latticedft._select"): "moved by the run package step",
-    ("latticedft._pipeline", "latticedft._serve"): "moved by the run package step",
-    ("latticedft._pipeline", "latticedft._task_stream"): "moved by the run package step",
 }
 
 #: Import cycles left for now, as sets of modules, and why.

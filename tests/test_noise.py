@@ -13,7 +13,7 @@ import latticedft as ldft
 from latticedft import ConfigError, InputError, systems
 from latticedft._case import load_case
 from latticedft._learn._noise import DENOISE_SLICES, SECOND_DIFFERENCE_WARN, denoised_start
-from latticedft._pipeline import _start
+from latticedft._run._task import _start
 from latticedft.io import write_field
 
 from case_helpers import run_cli, tiny_wave, write_toml

@@ -14,9 +14,10 @@ import xarray as xr
 import latticedft as ldft
 from latticedft import io, systems
 from latticedft._learn._report import POOR_FIT_REL_RES
+from latticedft._run import RELATIVE_ERROR_LIMIT
 from latticedft._serve._range import EXTRAPOLATION_TOL
 
-from case_helpers import WAVE, oscillator_case, run_cli
+from case_helpers import WAVE, oscillator_case, run_cli, tiny_wave, write_toml
 from helpers import oscillator_data, series, wave_field
 
 REPO = Path(__file__).resolve().parents[1]
@@ -114,6 +115,9 @@ def test_cli_gauge_none_on_the_wave_case_stops_with_exit_3(tmp_path, capsys):
     warnings = json.loads(attrs["latticedft_warnings"])
     assert isinstance(warnings, list) and any(w.startswith("degenerate fit") for w in warnings)
     assert "degenerate fit" in (out / "run.log").read_text()
+    assert "verdict: unusable: the learned L_d has no usable kinetic term" in err  # after the training line
+    assert "task test: verdict: stopped: the learned L_d cannot step the field there" in err
+    assert "the first 2 of 401 slices are written; next: " in err
 
 
 # -- 2. a poor fit warns loudly ---------------------------------------------------------------------------------
@@ -143,6 +147,46 @@ def test_cli_poor_fit_warns_on_stderr_in_the_log_and_the_summary(tmp_path, capsy
         warnings = json.loads(_attrs(out / f"{name}.nc")["latticedft_warnings"])
         assert any(w.startswith("poor fit") for w in warnings)  # the model's warnings travel with every task
         assert task["file"] == f"{name}.nc"
+
+
+# -- 2b. complete is not accurate: a field far from its reference warns -------------------------------------------
+
+
+def test_a_complete_task_far_from_its_reference_warns(tmp_path, capsys):
+    case = tiny_wave(tmp_path)
+    test = io.read_field(case / "data" / "test.nc")
+    io.write_field(case / "data" / "flipped.nc", {"psi": -test})  # a reference the served field cannot match
+    toml = (
+        (case / "case.toml")
+        .read_text()
+        .replace('from = "data/test.nc"', 'from = "data/test.nc"\nreference = "data/flipped.nc"')
+    )
+    write_toml(case, toml)
+    out = tmp_path / "out"
+    code, _, err = run_cli(capsys, "run", case, "--out", out, *NO_EXPORT)
+    summary = json.loads((out / "summary.json").read_text())
+    task = summary["tasks"]["test"]
+    assert code == 0 and task["complete"] is True  # complete: the solver converged on every slice
+    assert task["relative_error"] > RELATIVE_ERROR_LIMIT and task["relative_error"] == pytest.approx(2.0, rel=0.05)
+    keys = list(task)
+    assert keys[keys.index("compared_slices") + 1] == "relative_error"  # beside the errors it divides
+    warning = next(w for w in task["warnings"] if w.startswith("inaccurate: "))
+    assert "times the reference's largest magnitude" in warning and "next: " in warning
+    assert f"task test: {warning}" in summary["warnings"]
+    assert f"latticedft: warning: task test: {warning}" in err
+    assert warning in (out / "run.log").read_text()
+    assert warning in json.loads(_attrs(out / "test.nc")["latticedft_warnings"])
+
+
+def test_an_accurate_task_records_its_relative_error_and_no_warning(tmp_path, capsys):
+    case, out = tiny_wave(tmp_path), tmp_path / "out"
+    code, _, err = run_cli(capsys, "run", case, "--out", out, *NO_EXPORT)
+    task = json.loads((out / "summary.json").read_text())["tasks"]["test"]
+    assert code == 0 and task["reference"] == "test.nc" and 0 < task["relative_error"] < RELATIVE_ERROR_LIMIT
+    size = float(np.abs(io.read_field(case / "data" / "test.nc").values).max())  # the reference is its from file
+    assert task["relative_error"] == pytest.approx(task["max_error"] / size, rel=1e-12)
+    assert not [w for w in task["warnings"] if w.startswith("inaccurate")] and "inaccurate" not in err
+    assert "verdict: good: the data obey the learned equations" in err
 
 
 # -- 3. serving outside the training range is reported ----------------------------------------------------------

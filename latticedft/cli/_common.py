@@ -2,7 +2,7 @@
 
 Staging and publishing the results folder is :func:`latticedft._results.staged_results`, inside
 :func:`latticedft._results.hold_results` (the lock); the checks made before anything is written are
-:mod:`latticedft._guards`.
+:mod:`latticedft._run._guards`.
 """
 
 from __future__ import annotations
@@ -115,8 +115,8 @@ def results_dir(args: argparse.Namespace, case: Case) -> Path:
     """The results folder (``--out`` or ``CASE/results``), checked: not a file, not the case folder or a folder
     holding it, not one of the case's inputs, nor holding or inside one. A symlinked results folder is
     followed: the real path is returned."""
-    from .._guards import case_inputs
     from .._results import check_destination
+    from .._run import case_inputs
 
     out = getattr(args, "out", None)
     dest = Path(out) if out else case.results
@@ -126,8 +126,7 @@ def results_dir(args: argparse.Namespace, case: Case) -> Path:
 def checked_data(case: Case, dest: Path, *, train: bool = True, serve: bool = True) -> Any:
     """Read and check every field of the case, then the limits (file names, model size, memory) of the stages
     the command runs (``train``, ``serve``); nothing is written."""
-    from .._guards import check_before_writing
-    from .._pipeline import check_case
+    from .._run import check_before_writing, check_case
 
     data = check_case(case)
     check_before_writing(case, data, dest, train=train, serve=serve)

@@ -16,8 +16,8 @@ from tqdm.std import tqdm  # not tqdm.auto: no ipywidgets warning in Jupyter (la
 
 from .._case import Case
 from .._errors import InputError
-from .._pipeline import CaseData, TaskOutcome, serve_task, train_model
 from .._results import config_attrs, export_task, read_summary, read_task, write_model, write_summary, write_task
+from .._run import CaseData, TaskOutcome, serve_task, train_model
 from ..io.exporters import remove_exports
 from ._common import INCOMPLETE, OK, command_line
 
@@ -97,10 +97,10 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: AbstractLagrangi
             },
             part=out.part,  # the kept slices, written as they were served: completed into <task>.nc
         )
-        out.record["file"] = path.name
+        out.record.file = path.name
         log.debug("wrote %s", path.name)
-        out.record["exports"] = export_one(folder, case, out.name, data, previous.get(out.name, ()), owners)
-        tasks[out.name] = out.record
+        out.record.exports = export_one(folder, case, out.name, data, previous.get(out.name, ()), owners)
+        tasks[out.name] = out.record.to_dict()
     return tasks
 
 

@@ -175,7 +175,7 @@ def leave() -> None:
 
 def train_only(case: Case) -> int:
     """A helper rank's whole work: read the case, take part in training, write nothing."""
-    from .._pipeline import check_case, train_model
+    from .._run import check_case, train_model
     from ._common import run_device, set_threads
 
     set_threads(case)

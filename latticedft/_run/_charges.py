@@ -15,19 +15,18 @@ from __future__ import annotations
 
 import difflib
 import logging
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import xarray as xr
 
-from ._contract import AbstractLagrangian, GaugeName
-from ._errors import ConfigError, LatticeDFTError
-from ._lattice import LatticeField, as_lattice_field
-from ._noether import noether_charges, symmetries
-from ._noether._group import Symmetry, standard_symmetries
-
-if TYPE_CHECKING:
-    from ._pipeline import TaskData
+from .._case import ServeTask
+from .._contract import AbstractLagrangian, GaugeName
+from .._errors import ConfigError, LatticeDFTError
+from .._lattice import LatticeField, as_lattice_field
+from .._noether import noether_charges, symmetries
+from .._noether._group import Symmetry, standard_symmetries
+from ._record import TaskRecord
 
 __all__ = ["AUTO", "ENERGY", "charge_names", "charge_variable", "check_charges", "drift_text", "task_charges"]
 
@@ -147,11 +146,11 @@ def _served(pred: xr.DataArray, slices: int) -> xr.DataArray:
 
 
 def _auto(
-    model: AbstractLagrangian, served: xr.DataArray, f: LatticeField, boundary: Any, rec: dict[str, Any]
+    model: AbstractLagrangian, served: xr.DataArray, f: LatticeField, boundary: Any, rec: TaskRecord
 ) -> list[str]:
     """The continuous built-in symmetries that ``ldft.symmetries`` finds exact on the served field."""
     reports = symmetries(model, served, [s.name for s in _continuous(f)], boundary=boundary)
-    rec["charges_auto"] = [
+    rec.charges_auto = [
         {"name": r.name, "residual": r.residual, "residual_equations": r.residual_equations, "verdict": r.verdict}
         for r in reports
     ]
@@ -160,16 +159,15 @@ def _auto(
     return found
 
 
-def task_charges(model: AbstractLagrangian, td: TaskData, pred: xr.DataArray, rec: dict[str, Any]) -> xr.Dataset | None:
+def task_charges(model: AbstractLagrangian, t: ServeTask, pred: xr.DataArray, rec: TaskRecord) -> xr.Dataset | None:
     """The task's charges along the solved slices of ``pred``, on ``pred``'s time coordinate (NaN at ``t_0``:
-    a charge belongs to a slab and is given at its later slice); their drifts go to ``rec["charges"]``.
+    a charge belongs to a slab and is given at its later slice); their drifts go to ``rec.charges``.
 
     Nothing when the task lists no charges or fewer than two slices were solved; a failure is logged as a
-    warning and recorded (``rec["charges_error"]``), not raised, so the served field is still written.
+    warning and recorded (``rec.charges_error``), not raised, so the served field is still written.
     """
-    t = td.task
     names = list(t.charges)
-    slices = int(rec.get("slices") or 0)
+    slices = int(rec.slices or 0)
     if not names or slices < 2:
         return None
     served = _served(pred, slices)
@@ -180,12 +178,12 @@ def task_charges(model: AbstractLagrangian, td: TaskData, pred: xr.DataArray, re
             names = [n for n in names if n != AUTO]
             names += [n for n in found if n not in names]
         if not names:
-            rec["charges"] = {}
+            rec.charges = {}
             return None
         ds = noether_charges(model, served, names, boundary=t.boundary)
     except LatticeDFTError as exc:
         log.warning("task %s: charges not measured (%s)", t.name, exc)
-        rec["charges_error"] = str(exc)
+        rec.charges_error = str(exc)
         return None
     syms = {s.name: s for s in _continuous(f)}
     gauge = model.gauge
@@ -217,13 +215,13 @@ def task_charges(model: AbstractLagrangian, td: TaskData, pred: xr.DataArray, re
             "scale": attrs["scale"],
             "first": float(series.values[0]),
         }
-    rec["charges"] = record
+    rec.charges = record
     return xr.Dataset(out)
 
 
-def drift_text(rec: dict[str, Any]) -> str:
+def drift_text(rec: TaskRecord) -> str:
     """``", drift rotation-xy 1.1e-12, energy 2.4e-02"``: the task line's part (empty without charges)."""
-    charges = rec.get("charges") or {}
+    charges = rec.charges or {}
     if not charges:
-        return ", charges: none exact (auto)" if "charges_auto" in rec and "charges" in rec else ""
+        return ", charges: none exact (auto)" if rec.charges_auto is not None and rec.charges is not None else ""
     return ", drift " + ", ".join(f"{n} {c['relative_drift']:.1e}" for n, c in charges.items())

@@ -21,12 +21,12 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
-from typing import Any
 
-from ._case import CASE_FILE, Case
-from ._errors import ConfigError
-from ._models import MODELS
-from .io.exporters import TEMPORARY_NAME_EXTRA, export_file_names
+from .._case import CASE_FILE, Case
+from .._errors import ConfigError
+from .._models import MODELS
+from ..io.exporters import TEMPORARY_NAME_EXTRA, export_file_names
+from ._data import CaseData
 
 __all__ = [
     "available_memory",
@@ -86,7 +86,7 @@ def name_max(folder: str | os.PathLike[str]) -> int:
         return 255
 
 
-def check_file_names(case: Case, data: Any, dest: Path) -> None:
+def check_file_names(case: Case, data: CaseData, dest: Path) -> None:
     """Refuse a task name whose longest file (export formats of every kind, temporary names included) or a
     results folder whose staging folder would not fit the file system's limit on file names."""
     limit = name_max(dest.parent)
@@ -144,7 +144,7 @@ def available_memory() -> int | None:
     return avail
 
 
-def _parameter_lower_bound(case: Case, data: Any) -> tuple[int, str] | None:
+def _parameter_lower_bound(case: Case, data: CaseData) -> tuple[int, str] | None:
     """(a lower bound of the parameter count, the key that sets it) of the case's model, or None: its kind's
     :meth:`~latticedft.AbstractLagrangian.parameter_lower_bound`."""
     kind = MODELS.get(case.model.kind)
@@ -171,7 +171,7 @@ def training_bytes(count: int, linear: bool, m: int) -> tuple[int, str]:
     return need, "for the exact solve's least-squares triangle and one chunk of its rows"
 
 
-def check_model_size(case: Case, data: Any, available: int | None = None) -> None:
+def check_model_size(case: Case, data: CaseData, available: int | None = None) -> None:
     """Refuse a model whose training cannot fit in the memory: its parameters with their gradients, and for a
     model learned exactly the least-squares triangle and one chunk of rows (:func:`training_bytes`)."""
     found = _parameter_lower_bound(case, data)
@@ -192,7 +192,7 @@ def check_model_size(case: Case, data: Any, available: int | None = None) -> Non
         )
 
 
-def check_task_memory(case: Case, data: Any, available: int | None = None) -> None:
+def check_task_memory(case: Case, data: CaseData, available: int | None = None) -> None:
     """Refuse a task whose served field, with its reference, error and write copy, exceeds the memory."""
     available = available_memory() if available is None else available
     if available is None:
@@ -221,7 +221,7 @@ def check_task_memory(case: Case, data: Any, available: int | None = None) -> No
             )
 
 
-def check_before_writing(case: Case, data: Any, dest: Path, *, train: bool = True, serve: bool = True) -> None:
+def check_before_writing(case: Case, data: CaseData, dest: Path, *, train: bool = True, serve: bool = True) -> None:
     """The checks of the stages a command runs: file names always, the model's size before training, each
     task's memory before serving."""
     check_file_names(case, data, dest)

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from ._options import option
+from .._options import option
 
 __all__ = ["TaskMeter", "compare_blocks"]
 
@@ -59,6 +59,8 @@ class TaskMeter:
         self.sum_sq = 0.0
         self.count = 0
         self.compared = 0
+        #: the reference's largest magnitude on the compared slices (the scale of the relative error)
+        self.reference_max = 0.0
         self.values: dict[int, float] = {}  # invariant per slice
         self.tail: xr.DataArray | None = None  # the last two slices: margin of the next window
         self.t: dict[int, float] = {}
@@ -82,9 +84,11 @@ class TaskMeter:
             hi = min(start + n, ref.sizes[ref.dims[0]])
             if hi > start:
                 part = ref.isel({ref.dims[0]: slice(start, hi)}).values  # read from its file when opened lazily
-                d = np.abs(np.asarray(block.values[: hi - start]) - np.asarray(part, dtype=np.float64))
+                part = np.asarray(part, dtype=np.float64)
+                d = np.abs(np.asarray(block.values[: hi - start]) - part)
                 if d.size:
                     self.max_error = max(self.max_error, float(d.max()))
+                    self.reference_max = max(self.reference_max, float(np.abs(part).max()))
                 self.sum_sq += float(np.sum(d**2))
                 self.count += d.size
                 self.compared = hi
