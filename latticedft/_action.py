@@ -10,7 +10,6 @@ from __future__ import annotations
 import math
 import weakref
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 import torch
@@ -72,7 +71,8 @@ def _action(
 ) -> torch.Tensor:
     """:func:`action` without the argument checks (the engine's own calls)."""
     cells = gather_cells(psi, model.stencil, periodic, batch)
-    return math.prod(spacing) * model(cells).sum()
+    density: torch.Tensor = model(cells)
+    return math.prod(spacing) * density.sum()
 
 
 def _check_model(model: AbstractLagrangian) -> None:
@@ -147,7 +147,10 @@ def cell_derivatives(
 
 #: Per model, its numpy closed forms (:meth:`AbstractLagrangian.numpy_derivatives`) per tuple of pairs, with the
 #: parameters and buffers they were built from (rebuilt when one is replaced or changed in place).
-_NUMPY_FORMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_NumpyFormsCache = dict[tuple[tuple[int, int], ...], NumpyForms | None]
+_NUMPY_FORMS: weakref.WeakKeyDictionary[AbstractLagrangian, tuple[list[tuple[torch.Tensor, int]], _NumpyFormsCache]] = (
+    weakref.WeakKeyDictionary()
+)
 
 
 def numpy_closed_forms(
@@ -166,7 +169,7 @@ def numpy_closed_forms(
     forms = _NUMPY_FORMS.get(model)
     key = [(t, t._version) for t in state]
     if forms is None or len(forms[0]) != len(key) or any(a is not b or u != v for (a, u), (b, v) in zip(forms[0], key)):
-        built: dict[tuple[tuple[int, int], ...], Any] = {}
+        built: _NumpyFormsCache = {}
         forms = (key, built)
         _NUMPY_FORMS[model] = forms
     pairs = tuple(pairs)

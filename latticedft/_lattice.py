@@ -8,7 +8,7 @@ The field layout (dims, spacing, the ``periodic`` attribute, components) is
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -170,7 +170,7 @@ def _coordinate_bytes(v: xr.Variable) -> bytes:
     return values.tobytes()
 
 
-def _layout_key(data: xr.DataArray) -> tuple | None:
+def _layout_key(data: xr.DataArray) -> tuple[Any, ...] | None:
     """What :func:`as_lattice_field`'s checks read of ``data`` apart from its values (dims, shape, dtype,
     name, every coordinate's values and ``periodic`` attribute), or None when it cannot be keyed."""
     try:
@@ -214,7 +214,7 @@ def as_lattice_fields(
     item laid out as one already checked (the same dims, shape, dtype, name, coordinates and their
     ``periodic`` attributes) is not checked again, only its values; it gets that one's lattice description
     around its own values and attributes. The same fields, and the same first error, as one by one."""
-    seen: dict[tuple, LatticeField] = {}
+    seen: dict[tuple[Any, ...], LatticeField] = {}
     out = []
     for data, src in zip(items, sources, strict=True):
         key = _layout_key(data) if type(data) is xr.DataArray else None
@@ -229,7 +229,7 @@ def as_lattice_fields(
 
 
 #: A DataArray's dims, name, coordinate variables and indexes (:func:`dataarray_parts`).
-DataArrayParts = tuple[tuple, Any, dict, dict]
+DataArrayParts = tuple[tuple[Hashable, ...], Hashable, dict[Hashable, xr.Variable], dict[Hashable, xr.Index]]
 
 
 def dataarray_parts(template: xr.DataArray) -> DataArrayParts:
@@ -239,7 +239,10 @@ def dataarray_parts(template: xr.DataArray) -> DataArrayParts:
 
 
 def like_dataarray(
-    parts: DataArrayParts, values: np.ndarray, attrs: dict[str, Any], coord_attrs: dict[str, dict] | None = None
+    parts: DataArrayParts,
+    values: np.ndarray,
+    attrs: dict[str, Any],
+    coord_attrs: dict[str, dict[str, Any]] | None = None,
 ) -> xr.DataArray:
     """A DataArray with the dims, name, coordinates and indexes of a template (:func:`dataarray_parts`)
     around ``values`` (of its shape) and ``attrs``, built without xarray's checks (the template passed them):
@@ -259,7 +262,7 @@ def like_dataarray(
 def to_dataarrays(fields: Sequence[LatticeField]) -> list[xr.DataArray]:
     """:meth:`LatticeField.to_dataarray` of every field: the first of each lattice (dims, coordinates,
     components, name) is built by it, the others around its coordinates (:func:`like_dataarray`)."""
-    templates: dict[tuple, DataArrayParts] = {}
+    templates: dict[tuple[Any, ...], DataArrayParts] = {}
     out = []
     for f in fields:
         nt = int(f.values.shape[0])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +46,7 @@ def model_record(model: AbstractLagrangian, gauge: str | None = None) -> dict[st
     }
 
 
-def save_model(model: AbstractLagrangian, path: str | os.PathLike, *, gauge: str | None = None) -> Path:
+def save_model(model: AbstractLagrangian, path: str | os.PathLike[str], *, gauge: str | None = None) -> Path:
     """Write ``model`` to ``path`` (atomically: a temporary file, then a rename); the folder must exist."""
     if not isinstance(path, (str, os.PathLike)):
         raise InputError.at("path", f"expected a file path, got {type(path).__name__}")
@@ -86,7 +87,7 @@ def _head(path: Path) -> bytes:
         return f.read(64)
 
 
-def load_model(path: str | os.PathLike) -> AbstractLagrangian:
+def load_model(path: str | os.PathLike[str]) -> AbstractLagrangian:
     """Read a model file written by :func:`save_model`; never unpickles arbitrary objects.
 
     >>> load_model("no-such-file.pt")
@@ -122,7 +123,7 @@ def load_model(path: str | os.PathLike) -> AbstractLagrangian:
             f"{path}: format version {rec.get('format_version')!r}; this latticedft reads version {FORMAT_VERSION}"
         )
     kind = rec.get("kind")
-    kinds: dict[str, Any] = {**MODELS, EnsembleLagrangian.kind: EnsembleLagrangian}
+    kinds: dict[str, Callable[..., AbstractLagrangian]] = {**MODELS, EnsembleLagrangian.kind: EnsembleLagrangian}
     if kind not in kinds:
         raise ModelFileError(f"{path}: unknown model kind {kind!r}; expected one of {sorted(kinds)}")
     try:

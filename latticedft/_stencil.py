@@ -6,6 +6,7 @@ import itertools
 from collections.abc import Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 from ._errors import InputError
 
@@ -47,7 +48,7 @@ class Stencil:
         if arr[:, 0].min() != 0 or arr[:, 0].max() != 1:
             raise InputError(f"stencil: time offsets (first entries) must be 0 or 1, got {tuples}")
         self.offsets: tuple[tuple[int, ...], ...] = tuple(tuples)
-        self._arr = arr.astype(np.int64)
+        self._arr: npt.NDArray[np.int64] = arr.astype(np.int64)
 
     # -- constructors -----------------------------------------------------------------
     @classmethod
@@ -63,7 +64,7 @@ class Stencil:
 
     # -- properties -------------------------------------------------------------------
     @property
-    def array(self) -> np.ndarray:
+    def array(self) -> npt.NDArray[np.int64]:
         return self._arr.copy()
 
     @property
@@ -74,18 +75,20 @@ class Stencil:
     @property
     def ndim(self) -> int:
         """Lattice dimension ``n``."""
-        return self._arr.shape[1]
+        return int(self._arr.shape[1])
 
     @property
-    def lo(self) -> np.ndarray:
-        return self._arr.min(axis=0)
+    def lo(self) -> npt.NDArray[np.int64]:
+        lo: npt.NDArray[np.int64] = self._arr.min(axis=0)
+        return lo
 
     @property
-    def hi(self) -> np.ndarray:
-        return self._arr.max(axis=0)
+    def hi(self) -> npt.NDArray[np.int64]:
+        hi: npt.NDArray[np.int64] = self._arr.max(axis=0)
+        return hi
 
     @property
-    def width(self) -> np.ndarray:
+    def width(self) -> npt.NDArray[np.int64]:
         """Extent ``max - min`` of the offsets along each axis."""
         return self.hi - self.lo
 

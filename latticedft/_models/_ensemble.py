@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import copy
 import functools
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -17,6 +17,9 @@ from . import _polynumpy
 from ._polynomial import PolynomialLagrangian
 
 __all__ = ["EnsembleLagrangian", "stacked"]
+
+#: Parameters or buffers by name, as ``torch.func`` takes and stacks them.
+_State = dict[str, torch.Tensor]
 
 
 class EnsembleLagrangian(AbstractLagrangian):
@@ -95,7 +98,8 @@ class EnsembleLagrangian(AbstractLagrangian):
             self.member(k).bind(self.n, self.m, self.spacing, self.components)
 
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
-        return self.member(0)(cells)
+        density: torch.Tensor = self.member(0)(cells)
+        return density
 
     def fast_derivatives(
         self, cells: torch.Tensor, pairs: list[tuple[int, int]]
@@ -168,21 +172,22 @@ class _Stacked(AbstractLagrangian):
         if batched is not None:  # one vectorised call for every member
             params, buffers, call = batched
             per = cells.unflatten(-1, (len(self.parts), m)).movedim(-2, 0)  # (members, ..., K, m)
-            return torch.func.vmap(call)(params, buffers, per).sum(0)
+            per_member: torch.Tensor = torch.func.vmap(call)(params, buffers, per)
+            return per_member.sum(0)
         total = torch.zeros(cells.shape[:-2], dtype=cells.dtype, device=cells.device)
         for k, part in enumerate(self.parts):
             total = total + part(cells[..., k * m : (k + 1) * m])
         return total
 
     @functools.cached_property
-    def _batched(self) -> tuple[dict, dict, Any] | None:
+    def _batched(self) -> tuple[_State, _State, Callable[[_State, _State, torch.Tensor], torch.Tensor]] | None:
         """The members' parameters and buffers stacked along a leading axis and a function of one member's
         slice, when the members are neural networks of one structure (their ``L_d`` is then evaluated by one
         ``torch.func.vmap`` call instead of one call per member); ``None`` otherwise. Built once: the stacked
         model is made for one serving run, after learning."""
         parts = self._members()
 
-        def shape(p: AbstractLagrangian) -> tuple:  # the structure; the initial seed does not change it
+        def shape(p: AbstractLagrangian) -> tuple[Any, ...]:  # the structure; the initial seed does not change it
             opts = p.options()
             return (type(p), sorted((k, repr(v)) for k, v in opts.items() if k != "seed"), sorted(p.state_dict()))
 
@@ -193,8 +198,9 @@ class _Stacked(AbstractLagrangian):
         params = {k: v.detach() for k, v in params.items()}
         base = copy.deepcopy(parts[0]).to("meta")
 
-        def call(p: dict, b: dict, x: torch.Tensor) -> torch.Tensor:
-            return torch.func.functional_call(base, (p, b), (x,))
+        def call(p: _State, b: _State, x: torch.Tensor) -> torch.Tensor:
+            density: torch.Tensor = torch.func.functional_call(base, (p, b), (x,))
+            return density
 
         return params, buffers, call
 
@@ -271,7 +277,7 @@ def stacked(ens: EnsembleLagrangian, components: tuple[str, ...]) -> AbstractLag
     """The learned members of ``ens`` as one model on ``len(ens) * m`` components labelled ``components``."""
     parts = [ens.member(k) for k in range(len(ens))]
     flag = all(p.constant_mixed_hessian for p in parts)
-    cls = type("_Stacked", (_Stacked,), {"constant_mixed_hessian": flag})
+    cls = cast(type[_Stacked], type("_Stacked", (_Stacked,), {"constant_mixed_hessian": flag}))
     model = cls(parts)
     model.bind(ens.n, len(ens) * ens.m, ens.spacing, components)
     return model

@@ -5,7 +5,7 @@ from __future__ import annotations
 import itertools
 import re
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -26,7 +26,7 @@ _NAMED = re.compile(r"^(poly):(\d+)$|^(trig):(\d+)(?::([0-9.eE+-]+))?$")
 def _parse(entry: Any) -> tuple[str, int, float] | FeatureFunction:
     """``"poly:K"`` -> ("poly", K, 1), ``"trig:K[:w]"`` -> ("trig", K, w); a callable is kept as it is."""
     if callable(entry):
-        return entry
+        return cast(FeatureFunction, entry)  # a user's callable, taken as the contract above says
     match = _NAMED.match(entry) if isinstance(entry, str) else None
     if match is None:
         raise InputError.at(

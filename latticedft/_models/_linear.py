@@ -131,7 +131,8 @@ class LinearLagrangian(AbstractLagrangian):
         """``y -> d features(y) / d y . t``, to be differentiated once more."""
 
         def along(y: torch.Tensor) -> torch.Tensor:
-            return torch.func.jvp(self.features, (y,), (t,))[1]
+            derivative: torch.Tensor = torch.func.jvp(self.features, (y,), (t,))[1]
+            return derivative
 
         return along
 

@@ -284,7 +284,8 @@ class MLPLagrangian(AbstractLagrangian):
         self.out_scale.fill_(float(kinetic) if kinetic > 0 else 1.0)
 
     def _net(self, x: torch.Tensor) -> torch.Tensor:
-        return self.out_scale * self.net((x - self.in_center) / self.in_scale).squeeze(-1)
+        y: torch.Tensor = self.net((x - self.in_center) / self.in_scale)
+        return self.out_scale * y.squeeze(-1)
 
     def _formula(self) -> list[str]:
         """Lines of :meth:`describe` that write ``L_d`` out."""

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Iterable, Mapping, Sequence
-from typing import Any
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any, Literal, overload
 
 import numpy as np
 import torch
 
+from .._contract import NumpyForms
 from .._errors import InputError
 from .._options import option
 from .._stencil import Stencil
@@ -271,7 +272,7 @@ class PolynomialLagrangian(LinearLagrangian):
     def _pair_matrix(self, aff: dict[str, Any], a: int, b: int) -> torch.Tensor:
         """``(npairs, m m)``: the block ``d^2/dx_a dx_b`` (flattened) from the second derivatives in ``z``
         listed once per unordered pair ``v <= w`` (the order of :func:`_pairs`)."""
-        mat = aff["pairs"].get((a, b))
+        mat: torch.Tensor | None = aff["pairs"].get((a, b))
         if mat is None:
             rows = aff["W"].unflatten(0, (-1, self.m))  # (K, m, V): dz/dx_a
             full = torch.einsum("iv,jw->vwij", rows[a], rows[b])  # block[i, j] = sum_vw full[v, w, i, j] H[v, w]
@@ -282,7 +283,8 @@ class PolynomialLagrangian(LinearLagrangian):
         return mat
 
     def _scaled(self, cells: torch.Tensor, aff: dict[str, Any]) -> torch.Tensor:
-        return (cells.detach().flatten(-2) @ aff["P"] - self.center) / self.halfwidth  # (..., V)
+        z: torch.Tensor = (cells.detach().flatten(-2) @ aff["P"] - self.center) / self.halfwidth  # (..., V)
+        return z
 
     def _factors(self, z: torch.Tensor, order: int) -> list[torch.Tensor]:
         """Per variable and term, the basis factor and its first ``order`` derivatives in the scaled
@@ -343,7 +345,9 @@ class PolynomialLagrangian(LinearLagrangian):
                     out.append(dd if others is None else dd * others)
         return torch.stack(out, dim=-2)
 
-    def _by_chunks(self, z: torch.Tensor, per_cell: int, fn) -> list[torch.Tensor]:
+    def _by_chunks(
+        self, z: torch.Tensor, per_cell: int, fn: Callable[[torch.Tensor], Sequence[torch.Tensor]]
+    ) -> list[torch.Tensor]:
         """``fn`` on the cells of ``z``, in chunks (of the flattened cells) that bound the intermediates."""
         size = max(1, option("poly_chunk_elements") // max(per_cell, 1))
         if z.numel() <= size * z.shape[-1]:
@@ -352,7 +356,19 @@ class PolynomialLagrangian(LinearLagrangian):
         parts = [fn(zf[s : s + size]) for s in range(0, zf.shape[0], size)]
         return [torch.cat(p).reshape(*z.shape[:-1], *p[0].shape[1:]) for p in zip(*parts)]
 
-    def feature_derivatives(self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool = True):
+    @overload
+    def feature_derivatives(
+        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: Literal[True] = True
+    ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]]: ...
+
+    @overload
+    def feature_derivatives(
+        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool
+    ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]: ...
+
+    def feature_derivatives(
+        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool = True
+    ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]:
         """Closed-form derivatives of every basis function (see :meth:`LinearLagrangian.feature_derivatives`).
 
         The chain rule of :meth:`fast_derivatives`, term by term instead of summed with ``coef``.
@@ -379,7 +395,9 @@ class PolynomialLagrangian(LinearLagrangian):
             blocks = {pr: o.reshape(*lead, m, m, c) for pr, o in zip(pairs, outs)}
         return d, blocks
 
-    def fast_derivatives(self, cells: torch.Tensor, pairs: list[tuple[int, int]]):
+    def fast_derivatives(
+        self, cells: torch.Tensor, pairs: list[tuple[int, int]]
+    ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]]:
         """Closed-form ``dL/dx`` and Hessian blocks (no autograd): what serving needs, several times faster."""
         k, m = cells.shape[-2], cells.shape[-1]
         with torch.no_grad():
@@ -396,7 +414,7 @@ class PolynomialLagrangian(LinearLagrangian):
             blocks = {(a, b): (s[..., nvar:] @ self._pair_matrix(aff, a, b)).unflatten(-1, (m, m)) for a, b in pairs}
         return grad, blocks
 
-    def numpy_derivatives(self, pairs: Sequence[tuple[int, int]]):
+    def numpy_derivatives(self, pairs: Sequence[tuple[int, int]]) -> NumpyForms | None:
         """The closed forms of :meth:`fast_derivatives` in numpy, with fused basis tables (see ``_polynumpy``)."""
         self._require_bound()
         return _polynumpy.numpy_derivatives(self, pairs)

@@ -42,7 +42,7 @@ def fused_factor_matrix(coefficients: np.ndarray, exponents: np.ndarray, order: 
     return np.stack([coefficients[:, cols[:, v].reshape(-1)] for v in range(exponents.shape[1])])
 
 
-def _products(val: np.ndarray) -> tuple[list, list]:
+def _products(val: np.ndarray) -> tuple[list[np.ndarray | None], list[np.ndarray | None]]:
     """Prefix and suffix products of the factors ``val`` ``(V, B, C)`` (``None`` for an empty product)."""
     nvar = val.shape[0]
     pre: list[np.ndarray | None] = [None] * nvar
@@ -120,7 +120,9 @@ _MANY_CELLS = 256
 _MANY_CHUNK = 2048
 
 
-def _many_cells(g_chain: np.ndarray, widths: Sequence[int], w: np.ndarray, shift: np.ndarray):
+def _many_cells(
+    g_chain: np.ndarray, widths: Sequence[int], w: np.ndarray, shift: np.ndarray
+) -> Callable[[np.ndarray], np.ndarray]:
     """``flat (B, K m) -> (B, cols)``: ``monomials @ g_chain`` for many cells, cells along the last axis (every
     product runs over a long contiguous row).
 
@@ -247,7 +249,8 @@ def side_by_side(forms: Sequence[NumpyDerivatives], m: int, npairs: int) -> Nump
 def _diagonal(blocks: np.ndarray) -> np.ndarray:
     """``(N, B, m, m)`` -> ``(B, N m, N m)``, the ``N`` blocks on the diagonal."""
     n, b, m, _ = blocks.shape
-    return np.einsum("nbij,nl->bnilj", blocks, np.eye(n)).reshape(b, n * m, n * m)
+    diagonal: np.ndarray = np.einsum("nbij,nl->bnilj", blocks, np.eye(n))
+    return diagonal.reshape(b, n * m, n * m)
 
 
 def numpy_derivatives(model: PolynomialLagrangian, pairs: Sequence[tuple[int, int]]) -> NumpyDerivatives | None:
