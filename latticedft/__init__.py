@@ -63,6 +63,7 @@ _PUBLIC: dict[str, str] = {
     "symmetries": "._noether",
     "SelectionReport": "._select",
     "select": "._select",
+    "ServeOptions": "._serve",
     "ServeResult": "._serve",
     "calibration": "._serve",
     "compare": "._serve",
@@ -144,6 +145,7 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._options import set_options as set_options
     from ._select import SelectionReport as SelectionReport
     from ._select import select as select
+    from ._serve import ServeOptions as ServeOptions
     from ._serve import ServeResult as ServeResult
     from ._serve import calibration as calibration
     from ._serve import compare as compare

@@ -26,7 +26,6 @@ from typing import Any
 from ._case import CASE_FILE, Case
 from ._errors import ConfigError
 from ._models import MODELS
-from ._serve._stream import kept_slices
 from .io.exporters import TEMPORARY_NAME_EXTRA, export_file_names
 
 __all__ = [
@@ -179,7 +178,7 @@ def check_task_memory(case: Case, data: Any, available: int | None = None) -> No
         return
     for td in data.tasks:
         t = td.task
-        held = td.slices if t.every == 1 else len(kept_slices(td.slices, t.every))  # every > 1: the kept ones
+        held = t.cadence.kept_count(td.slices)  # with an output cadence: the kept slices
         values = held * math.prod(int(s) for s in td.init.shape[1:])
         covered = td.reference is not None and td.reference.shape[0] >= td.slices  # then _ref and _err are written
         copies = 4 if covered else 2
@@ -191,7 +190,7 @@ def check_task_memory(case: Case, data: Any, available: int | None = None) -> No
             key = f"{t.label}.{name}" if t.slices is not None else f"{t.label}.from"
             raise ConfigError(
                 f"{_where(case, f'serve.{t.name}.{name}')}: {key}: task {t.name!r} needs about "
-                f"{_bytes(need)} of memory ({held} {'kept ' if t.every > 1 else ''}slices of {values // held} "
+                f"{_bytes(need)} of memory ({held} {'kept ' if t.cadence.thins else ''}slices of {values // held} "
                 "values, 8 bytes "
                 f"each, {copies} copies: the served field"
                 + (", its reference, its error" if covered else "")

@@ -27,6 +27,7 @@ from ._contract import AbstractLagrangian
 from ._errors import ConfigError, InputError, LatticeDFTError, ServeError
 from ._lattice import as_lattice_field
 from ._layout import component_labels, field_spacing, lattice_dims
+from ._part_file import PartFile
 from .io.fields import read_field
 
 __all__ = ["CaseData", "TaskData", "TaskOutcome", "check_case", "train_model", "serve_task"]
@@ -72,11 +73,11 @@ class CaseData:
             t = td.task
             lines.append(
                 f"serve {t.name}: from {_rel(t.source, case.root)} {dict(td.init.sizes)}, "
-                f"{td.slices} slices, boundary {t.boundary or 'from file/dirichlet'}, mode {t.mode}"
+                f"{td.slices} slices, boundary {t.boundary or 'from file/dirichlet'}, mode {t.options.mode}"
                 + (", reference" if td.reference is not None else ", no reference")
                 + (", baseline" if td.baseline is not None else "")
                 + (f", charges {list(t.charges)}" if t.charges else "")
-                + (f", every {t.every}" if t.every > 1 else "")
+                + t.cadence.describe()
                 + (f" (warning: {t.label}.steps is deprecated: write {t.label}.slices)" if t.deprecated_steps else "")
             )
         return lines
@@ -139,7 +140,7 @@ def check_case(case: Case) -> CaseData:
 def _check_task(
     case: Case, t: ServeTask, dims: tuple[str, ...], spacing: tuple[float, ...], comps: tuple[str, ...] | None
 ) -> TaskData:
-    lazy = t.every > 1 and len(dims) > 1  # served slice by slice: the files are read where they are needed
+    lazy = t.cadence.thins and len(dims) > 1  # served slice by slice: the files are read where they are needed
     init = _read(t.source, case, comps, lazy)
     if lattice_dims(init) != dims:
         raise InputError(
@@ -163,13 +164,13 @@ def _check_task(
             raise _as_case_error(exc, f"{t.label}.boundary") from None
         raise
     check_charges(t.charges, f, f"{t.label}.charges")
-    if t.every > 1 and t.charges:
+    if t.cadence.thins and t.charges:
         raise ConfigError(
             f"case.toml: {t.label}.every: the Noether charges ({t.label}.charges) are measured on the whole "
             "served field; give every = 1 or no charges",
             key=f"{t.label}.every",
         )
-    if t.every > 1 and case.train.learn.get("ensemble"):
+    if t.cadence.thins and case.train.learn.get("ensemble"):
         raise ConfigError(
             f"case.toml: {t.label}.every: an ensemble (train.ensemble) is served whole, every member on every "
             "slice; give every = 1 or no ensemble",
@@ -184,7 +185,7 @@ def _check_task(
             "or fewer slices",
             key=key,
         )
-    if t.box is not None and len(dims) != 1:
+    if t.options.box is not None and len(dims) != 1:
         raise ConfigError(f"case.toml: {t.label}.box: stopping at a box is for 1D trajectories only")
     ref: xr.DataArray | None
     if t.reference is not None:
@@ -309,6 +310,8 @@ class TaskOutcome:
     #: An ensemble served: the mean and standard deviation over its members (None for a single model)
     mean: xr.DataArray | None = None
     std: xr.DataArray | None = None
+    #: A task with an output cadence served into a staging folder: the part file holding its kept slices
+    part: Path | None = None
 
     def spread(self, variable: str) -> dict[str, xr.DataArray]:
         """``{"<variable>_mean": ..., "<variable>_std": ...}`` for an ensemble, else empty."""
@@ -353,22 +356,15 @@ def _start(model: AbstractLagrangian, td: TaskData) -> tuple[xr.DataArray, str]:
 
 
 def serve_task(
-    model: AbstractLagrangian,
-    td: TaskData,
-    on_kept: Callable[[int, np.ndarray], Any] | None = None,
-    device: str = "cpu",
+    model: AbstractLagrangian, td: TaskData, device: str = "cpu", *, stage: Path | None = None, variable: str = "psi"
 ) -> TaskOutcome:
     """Serve one task (the model evaluated on ``device``); a Newton failure gives an incomplete outcome (with a
     warning), not an exception.
 
-    With ``every > 1``, ``on_kept(index, values)`` sees each kept slice as it is served.
-
-    Kept in one piece (~80 lines): it is the task's record, built field by field in the order of
-    summary.json; the checks and measurements it records are helpers of their own.
+    A task with an output cadence (``[[serve]] every > 1``) served into a staging folder ``stage`` appends
+    each kept slice, as it is served, to the part file ``stage/.<task>.nc.part`` (the field as ``variable``):
+    the outcome's ``part`` names it, and ``write_task`` completes it into ``<task>.nc``.
     """
-    from ._serve import calibration, compare, serve
-    from ._serve._ensemble import calibration_warning
-
     t = td.task
     if t.deprecated_steps:
         log.warning(
@@ -377,112 +373,20 @@ def serve_task(
             t.label,
             t.label,
         )
-    log.info("serving %s: %d slices from %s (%s)", t.name, td.slices, t.source.name, t.mode)
-    t0 = time.perf_counter()
-    stopped = ""
-    kwargs = t.serve_kwargs()
-    meter = None
-    if t.every > 1:  # errors and the invariant measured on every slice as it is served
-        from ._task_stream import TaskMeter
-
-        meter = kwargs["on_slice"] = TaskMeter(td.reference, td.invariant, on_kept)
-    init, start = _start(model, td)
+    log.info("serving %s: %d slices from %s (%s)", t.name, td.slices, t.source.name, t.options.mode)
+    part = None
+    if stage is not None and t.cadence.thins:
+        part = PartFile(stage, t.name, variable, td.init, t.cadence.every)
     try:
-        result = serve(model, init, progress=None, device=device, **kwargs)
-    except ServeError as err:
-        result = err.result
-        if isinstance(result, list):  # pragma: no cover - a single init gives one result
-            result = result[0]
-        log.warning("task %s stopped at %s; %d of %d slices written", t.name, err, result.slices, td.slices)
-        stopped = str(err)  # the reason with its slice, site and residual
-    wall = time.perf_counter() - t0
-    pred = result.field
-    log.debug("task %s served on %s", t.name, result.device)
-    if meter is not None:
-        meter.finish()
-    rec: dict[str, Any] = result.to_dict()
-    rec["every"] = t.every
-    rec["kept_slices"] = int(pred.sizes[pred.dims[0]])
-    rec["stop_reason"] = None if result.complete else stopped
-    for warning in result.warnings:  # the served field leaves the training range
-        log.warning("task %s: %s", t.name, warning)
-    rec["wall_time"] = wall
-    rec["requested_slices"] = td.slices
-    rec["from"] = t.source.name
-    rec["start"] = start
-    rec["reference"] = None
-    if td.reference is not None:
-        cmp = compare(pred, td.reference) if meter is None else meter.errors()
-        rec.update(max_error=cmp["max_error"], rms_error=cmp["rms_error"], compared_slices=cmp["slices"])
-        rec["reference"] = (t.reference or t.source).name
-        if td.baseline is not None:
-            if meter is None:
-                b = compare(td.baseline, td.reference)
-                b_same = compare(td.baseline.isel({pred.dims[0]: slice(0, cmp["slices"])}), td.reference)
-            else:  # block by block: the files stay on disk
-                from ._task_stream import compare_blocks
-
-                b, b_same = (
-                    compare_blocks(td.baseline, td.reference),
-                    compare_blocks(td.baseline, td.reference, int(cmp["slices"])),
-                )
-            rec["baseline"] = {
-                "file": t.baseline.name if t.baseline else None,
-                "max_error": b["max_error"],
-                "rms_error": b["rms_error"],
-                "slices": b["slices"],
-                "max_error_same_slices": b_same["max_error"],
-                "rms_error_same_slices": b_same["rms_error"],
-            }
-    if result.std is not None and td.reference is not None:  # an ensemble: is its spread an honest error bar?
-        rec["calibration"] = calibration(pred, result.std, td.reference)
-        bad = calibration_warning(rec["calibration"])
-        if bad:
-            rec["warnings"].append(bad)
-            log.warning("task %s: %s", t.name, bad)
-    inv = None
-    if td.invariant is not None:
-        try:
-            if meter is not None and meter.error is not None:
-                raise meter.error
-            inv = td.invariant(pred) if meter is None else meter.invariant_series(str(pred.dims[0]))
-            values = np.asarray(inv, dtype=np.float64)
-            if not isinstance(inv, xr.DataArray) or inv.dims != (pred.dims[0],):
-                raise TypeError(f"expected a DataArray over {pred.dims[0]!r}, got {type(inv).__name__}")
-        except Exception as exc:
-            raise InputError(
-                f"{t.label}.invariant {t.invariant!r}: failed on the served field "
-                f"({type(exc).__name__}: {' '.join(str(exc).split())[:120]})"
-            ) from None
-        finite = values[np.isfinite(values)]
-        if finite.size and finite[0] != 0:
-            rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0])) / abs(finite[0]))
-        else:
-            rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0]))) if finite.size else None
-        rec["invariant"] = t.invariant
-        if meter is not None:  # the file holds the kept slices
-            inv = _kept(inv, pred)
+        served = _serve(model, td, device, part)
+    finally:
+        if part is not None:
+            part.close()
+    result, pred = served.result, served.result.field
+    rec = _record(served, td)
+    inv = _invariant(served, td, rec)
     charges = task_charges(model, td, pred, rec)
-    how = (
-        f"{result.newton_iterations} Newton iterations"
-        if result.solver != "affine"
-        else f"affine recurrence (quadratic L_d, {result.newton_iterations} linear solves)"
-    )
-    msg = (
-        f"task {t.name}: {'complete' if result.complete else 'INCOMPLETE'}, {result.slices} slices, {how}, {wall:.2f} s"
-    )
-    if t.every > 1:
-        msg += f", every {t.every}: {rec['kept_slices']} slices kept"
-    if "max_error" in rec:
-        msg += f", max error {rec['max_error']:.3e}, rms {rec['rms_error']:.3e}"
-    if "baseline" in rec:
-        msg += f" (baseline max {rec['baseline']['max_error_same_slices']:.3e})"
-    if "invariant_drift" in rec and rec["invariant_drift"] is not None:
-        msg += f", invariant drift {rec['invariant_drift']:.2e}"
-    if "calibration" in rec and rec["calibration"]["slices"]:
-        cal = rec["calibration"]
-        msg += f", within 2/3 std {cal['within_2std']:.0%}/{cal['within_3std']:.0%}"
-    log.info("%s", msg + drift_text(rec))
+    log.info("%s", _message(served, t, rec) + drift_text(rec))
     return TaskOutcome(
         name=t.name,
         field=pred,
@@ -493,7 +397,161 @@ def serve_task(
         extrapolation=_kept(result.extrapolation, pred),
         mean=result.mean,
         std=result.std,
+        part=part.path if part is not None else None,
     )
+
+
+@dataclass
+class _Served:
+    """A task's serving run: its result, wall time, stop message, how it started and its meter (a cadence)."""
+
+    result: Any
+    wall: float
+    stopped: str
+    start: str
+    meter: Any
+
+
+def _serve(model: Any, td: TaskData, device: str, part: Callable[[int, np.ndarray], Any] | None) -> _Served:
+    """Serve ``td`` with the task's options; with an output cadence, a meter measures every slice as it is
+    served and hands each kept slice to ``part``."""
+    from ._serve import serve
+
+    t = td.task
+    t0 = time.perf_counter()
+    stopped = ""
+    options = t.options.replace(progress=None, device=device)
+    meter = None
+    if t.cadence.thins:  # errors and the invariant measured on every slice as it is served
+        from ._task_stream import TaskMeter
+
+        meter = TaskMeter(td.reference, td.invariant, part)
+    init, start = _start(model, td)
+    try:
+        result = serve(model, init, slices=t.slices, boundary=t.boundary, options=options, on_slice=meter)
+    except ServeError as err:
+        result = err.result
+        if isinstance(result, list):  # pragma: no cover - a single init gives one result
+            result = result[0]
+        log.warning("task %s stopped at %s; %d of %d slices written", t.name, err, result.slices, td.slices)
+        stopped = str(err)  # the reason with its slice, site and residual
+    wall = time.perf_counter() - t0
+    log.debug("task %s served on %s", t.name, result.device)
+    if meter is not None:
+        meter.finish()
+    return _Served(result=result, wall=wall, stopped=stopped, start=start, meter=meter)
+
+
+def _record(served: _Served, td: TaskData) -> dict[str, Any]:
+    """The task's record for summary.json, in its order: the result's numbers, then the errors against the
+    reference and the baseline's, and an ensemble's calibration."""
+    from ._serve import calibration
+    from ._serve._ensemble import calibration_warning
+
+    t, result, pred = td.task, served.result, served.result.field
+    rec: dict[str, Any] = result.to_dict()
+    rec["every"] = t.cadence.every
+    rec["kept_slices"] = int(pred.sizes[pred.dims[0]])
+    rec["stop_reason"] = None if result.complete else served.stopped
+    for warning in result.warnings:  # the served field leaves the training range
+        log.warning("task %s: %s", t.name, warning)
+    rec["wall_time"] = served.wall
+    rec["requested_slices"] = td.slices
+    rec["from"] = t.source.name
+    rec["start"] = served.start
+    rec["reference"] = None
+    if td.reference is not None:
+        _errors(served, td, rec)
+    if result.std is not None and td.reference is not None:  # an ensemble: is its spread an honest error bar?
+        rec["calibration"] = calibration(pred, result.std, td.reference)
+        bad = calibration_warning(rec["calibration"])
+        if bad:
+            rec["warnings"].append(bad)
+            log.warning("task %s: %s", t.name, bad)
+    return rec
+
+
+def _errors(served: _Served, td: TaskData, rec: dict[str, Any]) -> None:
+    """The errors against the task's reference, and the baseline's, into ``rec``."""
+    from ._serve import compare
+
+    assert td.reference is not None
+    t, pred, meter = td.task, served.result.field, served.meter
+    cmp = compare(pred, td.reference) if meter is None else meter.errors()
+    rec.update(max_error=cmp["max_error"], rms_error=cmp["rms_error"], compared_slices=cmp["slices"])
+    rec["reference"] = (t.reference or t.source).name
+    if td.baseline is None:
+        return
+    if meter is None:
+        b = compare(td.baseline, td.reference)
+        b_same = compare(td.baseline.isel({pred.dims[0]: slice(0, cmp["slices"])}), td.reference)
+    else:  # block by block: the files stay on disk
+        from ._task_stream import compare_blocks
+
+        b, b_same = (
+            compare_blocks(td.baseline, td.reference),
+            compare_blocks(td.baseline, td.reference, int(cmp["slices"])),
+        )
+    rec["baseline"] = {
+        "file": t.baseline.name if t.baseline else None,
+        "max_error": b["max_error"],
+        "rms_error": b["rms_error"],
+        "slices": b["slices"],
+        "max_error_same_slices": b_same["max_error"],
+        "rms_error_same_slices": b_same["rms_error"],
+    }
+
+
+def _invariant(served: _Served, td: TaskData, rec: dict[str, Any]) -> xr.DataArray | None:
+    """The task's invariant over the served field (on the kept slices) and its drift into ``rec``."""
+    t, pred, meter = td.task, served.result.field, served.meter
+    if td.invariant is None:
+        return None
+    try:
+        if meter is not None and meter.error is not None:
+            raise meter.error
+        inv = td.invariant(pred) if meter is None else meter.invariant_series(str(pred.dims[0]))
+        values = np.asarray(inv, dtype=np.float64)
+        if not isinstance(inv, xr.DataArray) or inv.dims != (pred.dims[0],):
+            raise TypeError(f"expected a DataArray over {pred.dims[0]!r}, got {type(inv).__name__}")
+    except Exception as exc:
+        raise InputError(
+            f"{t.label}.invariant {t.invariant!r}: failed on the served field "
+            f"({type(exc).__name__}: {' '.join(str(exc).split())[:120]})"
+        ) from None
+    finite = values[np.isfinite(values)]
+    if finite.size and finite[0] != 0:
+        rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0])) / abs(finite[0]))
+    else:
+        rec["invariant_drift"] = float(np.max(np.abs(finite - finite[0]))) if finite.size else None
+    rec["invariant"] = t.invariant
+    return _kept(inv, pred) if meter is not None else inv  # the file holds the kept slices
+
+
+def _message(served: _Served, t: ServeTask, rec: dict[str, Any]) -> str:
+    """The task's log line (without the charges' drifts)."""
+    result = served.result
+    how = (
+        f"{result.newton_iterations} Newton iterations"
+        if result.solver != "affine"
+        else f"affine recurrence (quadratic L_d, {result.newton_iterations} linear solves)"
+    )
+    msg = (
+        f"task {t.name}: {'complete' if result.complete else 'INCOMPLETE'}, {result.slices} slices, {how}, "
+        f"{served.wall:.2f} s"
+    )
+    if t.cadence.thins:
+        msg += f"{t.cadence.describe()}: {rec['kept_slices']} slices kept"
+    if "max_error" in rec:
+        msg += f", max error {rec['max_error']:.3e}, rms {rec['rms_error']:.3e}"
+    if "baseline" in rec:
+        msg += f" (baseline max {rec['baseline']['max_error_same_slices']:.3e})"
+    if "invariant_drift" in rec and rec["invariant_drift"] is not None:
+        msg += f", invariant drift {rec['invariant_drift']:.2e}"
+    if "calibration" in rec and rec["calibration"]["slices"]:
+        cal = rec["calibration"]
+        msg += f", within 2/3 std {cal['within_2std']:.0%}/{cal['within_3std']:.0%}"
+    return msg
 
 
 def _kept(series: xr.DataArray | None, pred: xr.DataArray) -> xr.DataArray | None:

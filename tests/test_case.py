@@ -35,8 +35,8 @@ def test_defaults_and_paths(case: Path) -> None:
     c = load_case(case)
     assert c.field.variable == "psi" and c.model.kind == "polynomial" and c.model.options == {"orders": [2, 0]}
     assert c.train.data == (case / "data" / "train.nc",)
-    assert c.serve[0].source == case / "data" / "test.nc" and c.serve[0].mode == "newton"
-    assert c.serve[0].rtol == 1e-10 and c.serve[0].slices is None
+    assert c.serve[0].source == case / "data" / "test.nc" and c.serve[0].options.mode == "newton"
+    assert c.serve[0].options.rtol == 1e-10 and c.serve[0].slices is None
     assert c.export.paraview and c.export.figures and c.export.max_frames == 4
     assert c.run.threads == 1 and c.results == case / "results"
 
@@ -140,7 +140,7 @@ def test_model_options_follow_the_class(case: Path) -> None:
 def test_overrides(case: Path) -> None:
     c = load_case(case, ["model.orders=[3, 1]", "train.max_time=10", "serve.test.mode=sweep", "export.figures=false"])
     assert c.model.options["orders"] == [3, 1] and c.train.learn["max_time"] == 10.0
-    assert c.serve[0].mode == "sweep" and not c.export.figures
+    assert c.serve[0].options.mode == "sweep" and not c.export.figures
     assert c.overrides == ("model.orders=[3, 1]", "train.max_time=10", "serve.test.mode=sweep", "export.figures=false")
     assert _error(case, ["serve.tset.slices=3"]).startswith(
         "--set serve.tset.slices: no serving task named 'tset'; did you mean 'test'?"

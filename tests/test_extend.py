@@ -1,9 +1,17 @@
 """What an extension costs, counted by adding a throwaway one.
 
-A model kind is one file plus one registry line: the class below (in a package it would be its own module)
-and ``MODELS[kind] = TheClass``. Nothing else in the package names it, yet a case selects it, validates its
-options, checks its size against the memory, tries its ``select = "auto"`` candidates, trains it, and writes and
-reads its model file.
+Each section adds one kind of extension the way docs/design.md ("Extending latticedft") says to, inside a
+test, and checks that it works end to end:
+
+- a model kind is one file plus one registry line: the class below (in a package it would be its own module)
+  and ``MODELS[kind] = TheClass``. Nothing else in the package names it, yet a case selects it, validates its
+  options, checks its size against the memory, tries its ``select = "auto"`` candidates, trains it, and writes
+  and reads its model file;
+- a boundary kind is one class and its line in ``KINDS``, both in ``latticedft/_boundary.py``;
+- an export format is one module and its lines in ``latticedft/io/exporters.py``;
+- a ``[[serve]]`` key is one field of the serving options.
+
+:class:`_Recipe` records the package's files a recipe touches, so each count is asserted, not just claimed.
 """
 
 from __future__ import annotations
@@ -223,3 +231,55 @@ def test_an_export_format_is_one_module_and_its_registry_lines(tmp_path, capsys,
     assert code == 0, err
     assert not (out / "test.csv").exists() and (out / "test.png").is_file()
     assert "test.csv" in exporters.export_file_names("test", 30)  # the file-name checks know its files
+
+
+# ---------------------------------------------------------------------------------------------------------
+# A [[serve]] key: one field of the serving options (plus its row in docs/case-toml.md's table).
+# ---------------------------------------------------------------------------------------------------------
+
+
+def test_a_serve_key_is_one_field_of_the_serving_options(tmp_path, monkeypatch):
+    from dataclasses import dataclass
+
+    import pytest
+
+    import latticedft._serve
+    from latticedft import ConfigError
+    from latticedft._case import _schema, load_case
+    from latticedft._pipeline import check_case, serve_task, train_model
+    from latticedft._serve._options import ServeOptions, choice, option
+
+    from case_helpers import tiny_wave
+
+    @dataclass(frozen=True)
+    class FlavouredOptions(ServeOptions):
+        """The serving options with one more ``[[serve]]`` key: all that a new key needs in the code."""
+
+        flavour: str = option("plain", choice("plain", "spicy"))
+
+    case = tiny_wave(tmp_path)
+    with pytest.raises(ConfigError, match=r"serve\[0\]\.flavour: unknown key"):
+        load_case(case, ["serve.test.flavour=spicy"])  # not a key before it is a field
+
+    monkeypatch.setattr(_schema, "SERVE_OPTIONS", FlavouredOptions)
+    assert load_case(case).serve[0].options.flavour == "plain"  # the field's default
+    c = load_case(case, ["serve.test.flavour=spicy"])
+    assert c.serve[0].options.flavour == "spicy" and c.serve[0].options.rtol == 1e-10
+    with pytest.raises(ConfigError) as bad:
+        load_case(case, ["serve.test.flavour=mild"])
+    assert str(bad.value) == "--set: serve[0].flavour: expected 'plain' or 'spicy', got 'mild'"
+    with pytest.raises(ConfigError, match=r"serve\[0\]\.flavor: unknown key; did you mean 'flavour'\?"):
+        load_case(case, ["serve.test.flavor=spicy"])
+
+    seen: list[ServeOptions] = []
+    real = latticedft._serve.serve
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["options"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(latticedft._serve, "serve", spy)  # the pipeline's serving call
+    data = check_case(c)
+    model, _ = train_model(c, data)
+    out = serve_task(model, data.tasks[0])
+    assert out.complete and [type(o) for o in seen] == [FlavouredOptions] and seen[0].flavour == "spicy"

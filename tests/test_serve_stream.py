@@ -266,3 +266,31 @@ def test_a_killed_cadenced_run_leaves_a_readable_part_file(tmp_path):
 def test_a_finished_cadenced_run_leaves_no_part_file(tmp_path, capsys):
     run_wave_every(tmp_path, capsys, 5)
     assert not list(tmp_path.rglob("*.part"))
+
+
+@pytest.mark.parametrize("appended", [4, 3, 0])
+def test_a_completed_part_file_is_the_file_written_whole(tmp_path, appended):
+    """The part file completed into ``<task>.nc`` holds what ``write_task`` writes whole, bit for bit: with
+    every kept slice appended, without the last one (a task stopped between two kept slices), or none."""
+    from latticedft import systems
+    from latticedft._part_file import PartFile
+    from latticedft._results import write_task
+
+    template = systems.wave_string([(1, 1.0)], nx=9, nt=12)
+    idx = np.array([0, 3, 6, 8])
+    pred = template.isel(t=idx).assign_coords(slice=("t", idx, {"long_name": "time slice index"}))
+    pred.attrs = {**pred.attrs, "latticedft_every": 3, "source": "served"}
+    ref = template.isel(t=slice(0, 9))
+    inv = xr.DataArray(np.arange(4.0), dims="t", coords={"t": pred["t"].values}, name="invariant")
+    kw = dict(attrs={"latticedft_task": "test", "latticedft_complete": "false"}, history="h", steps=12)
+    whole = write_task(tmp_path, "whole", "psi", pred, ref, inv, **kw)
+    part = PartFile(tmp_path, "test", "psi", template, 3)
+    for k in range(appended):
+        part(int(idx[k]), template.values[idx[k]])
+    part.close()
+    done = write_task(tmp_path, "test", "psi", pred, ref, inv, part=part.path, **kw)
+    assert done == tmp_path / "test.nc" and not part.path.exists()
+    with xr.open_dataset(whole, decode_times=False) as a, xr.open_dataset(done, decode_times=False) as b:
+        assert b["psi"].encoding["chunksizes"] == (1, 9)  # the part file's variable, completed in place
+        a.attrs.pop("history"), b.attrs.pop("history")
+        xr.testing.assert_identical(a.load(), b.load())

@@ -127,9 +127,9 @@ def test_invalid_solver_is_refused(bad):
 
 def test_case_toml_solver_key(tmp_path: Path):
     case = tiny_wave(tmp_path)
-    assert load_case(case).serve[0].solver == "auto"
+    assert load_case(case).serve[0].options.solver == "auto"
     c = load_case(case, ["serve.test.solver=krylov"])
-    assert c.serve[0].solver == "krylov" and c.serve[0].serve_kwargs()["solver"] == "krylov"
+    assert c.serve[0].options.solver == "krylov"
     with pytest.raises(ConfigError) as info:
         load_case(case, ["serve.test.solver=gmres"])
     msg = str(info.value)

@@ -16,7 +16,9 @@ from typing import Any
 
 from .._errors import ConfigError, LatticeDFTError
 from .._models import MODELS
+from .._serve import ServeOptions
 from ..io.exporters import DEFAULT_FORMATS, EXPORTERS, known_format
+from . import _schema
 from ._checks import _Bad, t_ridge, t_stencil, t_str
 from ._schema import (
     _REQUIRED,
@@ -349,7 +351,7 @@ def _serve_task(ctx: _Ctx, entry: Any, i: int, root: Path, names: set[str]) -> S
     label = f"serve[{i}]"
     if not isinstance(entry, dict):
         raise ctx.error(label, f"expected a table, got {_describe(entry)}")
-    s = _table(ctx, entry, label, SCHEMA["serve"], label=label)
+    s = _table(ctx, entry, label, _schema.serve_schema(), label=label)
     if s["name"] in names:
         raise ctx.error(f"{label}.name", f"duplicate task name {s['name']!r}")
     names.add(s["name"])
@@ -367,10 +369,7 @@ def _serve_task(ctx: _Ctx, entry: Any, i: int, root: Path, names: set[str]) -> S
         source=_resolve(ctx, root, f"{label}.from", s["from"]),
         slices=slices,
         boundary=s["boundary"],
-        mode=s["mode"],
-        box=s["box"],
-        rtol=s["rtol"],
-        max_newton=s["max_newton"],
+        options=_serve_options(ctx, s, label),
         reference=_resolve(ctx, root, f"{label}.reference", s["reference"]) if s["reference"] else None,
         baseline=_resolve(ctx, root, f"{label}.baseline", s["baseline"]) if s["baseline"] else None,
         invariant=s["invariant"],
@@ -378,9 +377,16 @@ def _serve_task(ctx: _Ctx, entry: Any, i: int, root: Path, names: set[str]) -> S
         start=s["start"],
         label=label,
         deprecated_steps=slices_key == "steps",
-        solver=s["solver"],
-        every=s["every"],
     )
+
+
+def _serve_options(ctx: _Ctx, s: dict[str, Any], label: str) -> ServeOptions:
+    """The serving options of a checked ``[[serve]]`` entry ``s`` (its keys that are fields of ServeOptions)."""
+    options = _schema.SERVE_OPTIONS
+    try:
+        return options(**{key: s[key] for key in options.case_keys()})
+    except LatticeDFTError as exc:  # the options' own checks, beyond the types
+        raise ctx.error(f"{label}.{exc.key}" if exc.key else label, exc.problem) from None
 
 
 def _known_format(ctx: _Ctx, fmt: str) -> bool:

@@ -11,7 +11,7 @@ from .._errors import ConfigError, LatticeDFTError
 from .._learn import GAUGES, OPTIMIZERS
 from .._modeloptions import OptionTypeError
 from .._models import MODELS, AbstractLagrangian
-from .._serve import MODES, SOLVERS
+from .._serve import Cadence, ServeOptions
 from .._stencil import Stencil
 from ._checks import (
     _Bad,
@@ -31,7 +31,6 @@ from ._checks import (
     t_str,
     t_str_list,
     t_threads,
-    t_unit_float,
 )
 
 CASE_FILE = "case.toml"
@@ -71,17 +70,12 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "slices": (t_pos_int, None),
         "steps": (t_pos_int, None),  # deprecated alias of slices (the same count)
         "boundary": (t_boundary, None),
-        "mode": (t_choice(*MODES), "newton"),
-        "box": (t_pos_float, None),
-        "rtol": (t_unit_float, 1e-10),
-        "max_newton": (t_pos_int, 30),
         "reference": (t_str, None),
         "baseline": (t_str, None),
         "invariant": (t_invariant, None),
         "charges": (t_str_list, None),
-        "solver": (t_choice(*SOLVERS), "auto"),
-        "every": (t_pos_int, 1),  # output cadence: keep every k-th slice (and the last)
         "start": (t_choice("auto", "data", "denoised"), "auto"),
+        # then the serving options: the fields of ServeOptions that are case keys (serve_schema)
     },
     "run": {
         "threads": (t_threads, None),
@@ -109,14 +103,8 @@ DEFAULT_THREADS = 1
 _SLICES_ALIASES = ("slices", "steps")
 
 
-def model_options(kind: str) -> dict[str, Any]:
-    """The constructor options of ``MODELS[kind]`` with their defaults (``stencil`` excluded)."""
-    return MODELS[kind].option_defaults()
-
-
-def model_option_check(kind: str, option: str) -> Callable[[Any], Any]:
-    """The type check of a ``[model]`` option, from the annotation of the model class's constructor."""
-    check = MODELS[kind].option_checks().get(option, t_any)
+def _toml_check(check: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    """A check that raises :class:`OptionTypeError` as one that raises ``_Bad`` (the case reader's)."""
 
     def run(value: Any) -> Any:
         try:
@@ -125,6 +113,33 @@ def model_option_check(kind: str, option: str) -> Callable[[Any], Any]:
             raise _Bad(bad.expected) from None
 
     return run
+
+
+#: The options class of ``[[serve]]`` tasks: its fields with a TOML check are keys of ``[[serve]]``.
+SERVE_OPTIONS: type[ServeOptions] = ServeOptions
+
+#: The keys of a ``[[serve]]`` table that describe the task rather than how it is served.
+_TASK_KEYS = dict(SCHEMA["serve"])
+
+
+def serve_schema() -> dict[str, tuple[Callable[[Any], Any], Any]]:
+    """The keys of a ``[[serve]]`` table: the task's, then the serving options (key -> (check, default)) from
+    the fields of :data:`SERVE_OPTIONS` (:meth:`ServeOptions.case_keys`)."""
+    options = {key: (_toml_check(check), default) for key, (check, default) in SERVE_OPTIONS.case_keys().items()}
+    return {**_TASK_KEYS, **options}
+
+
+SCHEMA["serve"] = serve_schema()
+
+
+def model_options(kind: str) -> dict[str, Any]:
+    """The constructor options of ``MODELS[kind]`` with their defaults (``stencil`` excluded)."""
+    return MODELS[kind].option_defaults()
+
+
+def model_option_check(kind: str, option: str) -> Callable[[Any], Any]:
+    """The type check of a ``[model]`` option, from the annotation of the model class's constructor."""
+    return _toml_check(MODELS[kind].option_checks().get(option, t_any))
 
 
 @dataclass(frozen=True)
@@ -187,10 +202,8 @@ class ServeTask:
     source: Path
     slices: int | None = None
     boundary: str | dict[str, str] | None = None
-    mode: str = "newton"
-    box: float | None = None
-    rtol: float = 1e-10
-    max_newton: int = 30
+    #: the serving options (``serve(..., options=...)``): the case's keys, the others their defaults
+    options: ServeOptions = field(default_factory=ServeOptions)
     reference: Path | None = None
     baseline: Path | None = None
     invariant: str | None = None
@@ -199,25 +212,14 @@ class ServeTask:
     label: str = "serve[0]"
     #: True when the file (or ``--set``) gave the deprecated key ``steps`` instead of ``slices``.
     deprecated_steps: bool = False
-    #: the linear solver of n-D slice-Newton's steps (``serve(..., solver=...)``)
-    solver: str = "auto"
-    #: Output cadence: the task's file keeps every ``every``-th slice and the last (``serve(every=...)``).
-    every: int = 1
     #: Initial slices: ``data`` as read, ``denoised`` by the learned DEL, ``auto`` denoised when training
     #: corrected noisy data.
     start: str = "auto"
 
-    def serve_kwargs(self) -> dict[str, Any]:
-        return {
-            "slices": self.slices,
-            "boundary": self.boundary,
-            "mode": self.mode,
-            "box": self.box,
-            "rtol": self.rtol,
-            "max_newton": self.max_newton,
-            "solver": self.solver,
-            "every": self.every,
-        }
+    @property
+    def cadence(self) -> Cadence:
+        """The output cadence: the task's file keeps the slices it keeps (``[[serve]] every``)."""
+        return self.options.cadence
 
 
 @dataclass(frozen=True)

@@ -17,8 +17,9 @@ import xarray as xr
 from .. import __version__
 from .._atomic import write_text_atomic
 from .._errors import InputError, ModelFileError
+from .._part_file import complete_part
 from ..io.exporters import ExportTask, export_formats
-from ..io.fields import read_field
+from ..io.fields import prepared_dataset, read_field
 from ..io.fields import write_field as _write_field
 from ._safety import _show, _signals_deferred, _writing, log
 
@@ -191,6 +192,7 @@ def write_task(
     steps: int | None = None,
     charges: xr.Dataset | None = None,
     extra: Mapping[str, xr.DataArray] | None = None,
+    part: Path | None = None,
 ) -> Path:
     """``<name>.nc``: the served field, ``<var>_ref`` and ``<var>_err`` when a reference covers it, the
     ``invariant`` and the task's ``charges`` (``charge_<name>(t)``, ``energy(t)``) when given, and the
@@ -202,6 +204,10 @@ def write_task(
     (NaN where the baseline holds no slice), so that the figures of a later
     ``export`` need the file alone. ``steps`` (the slices the task asked for)
     is written as the global attribute ``latticedft_steps``.
+
+    ``part``: the part file that holds the served field's kept slices already (a task with an output
+    cadence, :mod:`latticedft._part_file`); it is completed into ``<name>.nc`` (the same variables and
+    attributes), so that the field is not written twice.
     """
     pred = pred.rename(variable).copy(deep=False)  # its own attributes: the caller's field is not changed
     quantity = str(pred.attrs.get("long_name") or variable)
@@ -232,8 +238,24 @@ def write_task(
     all_attrs = dict(attrs)
     if steps is not None:
         all_attrs["latticedft_steps"] = int(steps)
-    with _writing(folder / f"{name}.nc"):
-        return write_field(folder / f"{name}.nc", fields, attrs=all_attrs, history=history)
+    target = folder / f"{name}.nc"
+    with _writing(target):
+        if part is not None:
+            return _complete_part(part, target, variable, fields, all_attrs, history)
+        return write_field(target, fields, attrs=all_attrs, history=history)
+
+
+def _complete_part(
+    part: Path,
+    target: Path,
+    variable: str,
+    fields: Mapping[str, xr.DataArray],
+    attrs: Mapping[str, Any],
+    history: str,
+) -> Path:
+    """``target`` made from ``part`` (holding ``variable``'s kept slices) and the other ``fields``."""
+    ds, encoding = prepared_dataset(fields, attrs, history, where=str(target))
+    return complete_part(part, target, ds, encoding, variable)
 
 
 def _baseline_errors(

@@ -8,7 +8,8 @@ the paper's site-by-site sweep (Qin 2020, Sec. 2, Steps 1-5), kept as a
 reference. In 1D a slice is one site and a batch of trajectories is stepped
 together.
 
-One module per concept: ``_result`` (the result record and metrics),
+One module per concept: ``_options`` (the serving options and the output cadence, as values),
+``_result`` (the result record and metrics),
 ``_slices`` (one slice as a system of equations), ``_affine`` (the affine
 recurrence of a quadratic ``L_d``), ``_newton`` (slice-Newton), ``_solvers`` (the linear
 solve of a Newton step: site-wise, Krylov or LU), ``_sweep``
@@ -19,8 +20,8 @@ same 1D loop in numpy, for models with numpy closed forms) and ``_field``
 
 from __future__ import annotations
 
-import functools
 import warnings
+from dataclasses import dataclass
 from typing import Any, overload
 
 import torch
@@ -37,13 +38,23 @@ from .._models import AbstractLagrangian, EnsembleLagrangian
 from ._ensemble import calibration, serve_ensemble
 from ._field import _serve_field
 from ._onedim import _serve_batch
+from ._options import MODES, Cadence, ServeOptions
 from ._result import ServeResult, compare, error_vs_time, invariant_vs_time
 from ._solvers import SOLVERS
-from ._stream import SliceCallback, SliceSource, _serve_stream, check_every, lazy_field, thin_result
+from ._stream import SliceCallback, SliceSource, _serve_stream, lazy_field, thin_result
 
-__all__ = ["MODES", "SOLVERS", "ServeResult", "calibration", "compare", "error_vs_time", "invariant_vs_time", "serve"]
-
-MODES = ("newton", "sweep")
+__all__ = [
+    "MODES",
+    "SOLVERS",
+    "Cadence",
+    "ServeOptions",
+    "ServeResult",
+    "calibration",
+    "compare",
+    "error_vs_time",
+    "invariant_vs_time",
+    "serve",
+]
 
 
 def _prepare_model(model: AbstractLagrangian, f: LatticeField) -> None:
@@ -99,17 +110,10 @@ def serve(
     *,
     slices: int | None = None,
     boundary: BoundaryKinds | None = None,
-    mode: str = "newton",
-    rtol: float = 1e-10,
-    max_newton: int = 30,
-    box: float | None = None,
-    affine: bool = True,
-    progress: bool | None = None,
-    steps: int | None = None,
-    device: str | None = None,
-    solver: str = "auto",
-    every: int = 1,
+    options: ServeOptions | None = None,
     on_slice: SliceCallback | None = None,
+    steps: int | None = None,
+    **keywords: Any,
 ) -> ServeResult: ...
 
 
@@ -120,38 +124,23 @@ def serve(
     *,
     slices: int | None = None,
     boundary: BoundaryKinds | None = None,
-    mode: str = "newton",
-    rtol: float = 1e-10,
-    max_newton: int = 30,
-    box: float | None = None,
-    affine: bool = True,
-    progress: bool | None = None,
-    steps: int | None = None,
-    device: str | None = None,
-    solver: str = "auto",
-    every: int = 1,
+    options: ServeOptions | None = None,
     on_slice: SliceCallback | None = None,
+    steps: int | None = None,
+    **keywords: Any,
 ) -> list[ServeResult]: ...
 
 
-# long only by its numpydoc docstring (the body is ~30 lines)
 def serve(
     model: AbstractLagrangian,
     init: xr.DataArray | list[xr.DataArray] | tuple[xr.DataArray, ...],
     *,
     slices: int | None = None,
     boundary: BoundaryKinds | None = None,
-    mode: str = "newton",
-    rtol: float = 1e-10,
-    max_newton: int = 30,
-    box: float | None = None,
-    affine: bool = True,
-    progress: bool | None = None,
-    steps: int | None = None,
-    device: str | None = None,
-    solver: str = "auto",
-    every: int = 1,
+    options: ServeOptions | None = None,
     on_slice: SliceCallback | None = None,
+    steps: int | None = None,
+    **keywords: Any,
 ) -> ServeResult | list[ServeResult]:
     """Predict a field from its first two time slices (and boundary strips) with the learned ``L_d``.
 
@@ -173,57 +162,58 @@ def serve(
     boundary : "dirichlet", "periodic" or dict axis -> kind, optional
         Per spatial axis; default from the coordinates' ``periodic`` attribute,
         else Dirichlet.
-    mode : "newton" or "sweep"
-        Whole-slice Newton (fast) or the paper's site-by-site sweep (reference).
-    rtol : float
-        Newton stops when the residual is below ``rtol`` times the size of the
-        kinetic terms.
-    box : float, optional
-        1D only: a trajectory stops (completed) once ``|psi| > box``.
-    affine : bool
-        n-D ``mode="newton"`` only. When the DEL is affine in the field (a
-        quadratic ``L_d`` such as the wave or Klein-Gordon ``L_d``: detected
-        from the model's Hessian and gradient at random states), serve the
-        affine recurrence ``P psi_{i-1} + C psi_i + N psi_{i+1} + c = 0`` with
-        ``N`` factorised once: one sparse solve per slice instead of Newton's
-        autograd passes. The served field is then checked against the model's
-        own DEL (the same residual test as Newton's); from the first slice that
-        fails it, Newton takes over. ``False``: always Newton.
-    progress : bool, optional
-        Progress bar; ``None`` shows it only on a terminal.
-    steps : int, optional
-        Deprecated alias of ``slices`` (the same count; a ``FutureWarning``).
-    device : "cpu", "cuda", "cuda:N" or "auto", optional
-        Where the model is evaluated (``L_d``, its gradients and Hessian
-        blocks on the cells of each slice): default the CPU; ``"auto"`` is
-        CUDA when available. The slice's linear algebra stays on the CPU.
-        CUDA where none is available falls back to the CPU with one
-        :class:`DeviceWarning`. ``result.device`` names the device used.
-    solver : "auto", "sitewise", "krylov" or "lu"
-        n-D ``mode="newton"`` only: the linear solve of each Newton step.
-        ``"sitewise"`` inverts the Jacobian's per-site ``m x m`` diagonal
-        blocks (exact when each unknown site appears in one equation, as for
-        the first-order stencil with an ``L_d`` whose spatial differences do
-        not mix with the time difference; off-diagonal blocks up to 1e-6 of
-        the diagonal make it a quasi-Newton iteration, larger ones stop the
-        slice with a ``ServeError`` saying so); ``"krylov"`` runs GMRES
-        preconditioned by those blocks;
-        ``"lu"`` factorises the sparse Jacobian. ``"auto"`` measures the
-        off-diagonal blocks of each fresh Jacobian: site-wise when they
-        vanish, else LU in 1+1D and Krylov in more dimensions. Newton's
-        convergence test is the same for all. ``ServeResult.slice_solver``
-        says which one served.
-    every : int
-        Output cadence: keep only the time slices ``0, every, 2 every, ...``
-        and the last one. For ``every > 1`` an n-D field is served through a
-        rolling window of a few slices (memory bounded in the number of
-        slices); the result's field holds the kept slices with their ``t``
-        values, a coordinate ``slice(t)`` (the slice index) and the attribute
-        ``latticedft_every``; its ``extrapolation`` covers every slice. The
-        kept slices equal those of ``every=1``. ``1`` (default): every slice.
+    options : ServeOptions, optional
+        The serving options as one value; keywords given beside it replace its fields.
+    mode, rtol, max_newton, box, affine, progress, device, solver, every
+        The fields of :class:`ServeOptions`, as keywords (defaults there):
+
+        - ``mode``: ``"newton"`` (whole-slice Newton, fast) or ``"sweep"``
+          (the paper's site-by-site sweep, reference).
+        - ``rtol`` (``1e-10``): Newton stops when the residual is below
+          ``rtol`` times the size of the kinetic terms; ``max_newton``
+          (``30``): Newton iterations per slice.
+        - ``box``: 1D only, a trajectory stops (completed) once ``|psi| > box``.
+        - ``affine`` (``True``): n-D ``mode="newton"`` only. When the DEL is
+          affine in the field (a quadratic ``L_d`` such as the wave or
+          Klein-Gordon ``L_d``: detected from the model's Hessian and gradient
+          at random states), serve the affine recurrence
+          ``P psi_{i-1} + C psi_i + N psi_{i+1} + c = 0`` with ``N``
+          factorised once: one sparse solve per slice instead of Newton's
+          autograd passes. The served field is then checked against the
+          model's own DEL (the same residual test as Newton's); from the first
+          slice that fails it, Newton takes over. ``False``: always Newton.
+        - ``progress``: progress bar; ``None`` shows it only on a terminal.
+        - ``device``: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"auto"``,
+          where the model is evaluated (``L_d``, its gradients and Hessian
+          blocks on the cells of each slice): default the CPU; ``"auto"`` is
+          CUDA when available. The slice's linear algebra stays on the CPU.
+          CUDA where none is available falls back to the CPU with one
+          :class:`DeviceWarning`. ``result.device`` names the device used.
+        - ``solver``: ``"auto"``, ``"sitewise"``, ``"krylov"`` or ``"lu"``,
+          n-D ``mode="newton"`` only: the linear solve of each Newton step.
+          ``"sitewise"`` inverts the Jacobian's per-site ``m x m`` diagonal
+          blocks (exact when each unknown site appears in one equation, as for
+          the first-order stencil with an ``L_d`` whose spatial differences do
+          not mix with the time difference; off-diagonal blocks up to 1e-6 of
+          the diagonal make it a quasi-Newton iteration, larger ones stop the
+          slice with a ``ServeError`` saying so); ``"krylov"`` runs GMRES
+          preconditioned by those blocks; ``"lu"`` factorises the sparse
+          Jacobian. ``"auto"`` measures the off-diagonal blocks of each fresh
+          Jacobian: site-wise when they vanish, else LU in 1+1D and Krylov in
+          more dimensions. Newton's convergence test is the same for all.
+          ``ServeResult.slice_solver`` says which one served.
+        - ``every`` (``1``): output cadence, keep only the time slices
+          ``0, every, 2 every, ...`` and the last one. For ``every > 1`` an
+          n-D field is served through a rolling window of a few slices (memory
+          bounded in the number of slices); the result's field holds the kept
+          slices with their ``t`` values, a coordinate ``slice(t)`` (the slice
+          index) and the attribute ``latticedft_every``; its ``extrapolation``
+          covers every slice. The kept slices equal those of ``every=1``.
     on_slice : callable, optional
         ``on_slice(index, values)``, called with each kept slice (its index and
         a NumPy array in the field's layout without time) as it is served.
+    steps : int, optional
+        Deprecated alias of ``slices`` (the same count; a ``FutureWarning``).
 
     Returns
     -------
@@ -247,130 +237,106 @@ def serve(
     >>> out.complete, out.field.sizes["t"]
     (True, 64)
     """
-    if steps is not None:
-        if slices is not None:
-            raise InputError.at("steps", "give slices only (steps is its deprecated alias)")
-        warnings.warn(
-            "serve(slices=...) is deprecated: use slices=... (the same count: time slices served, "
-            "the two initial ones included)",
-            FutureWarning,
-            stacklevel=2,
-        )
-        slices = steps
-    if mode not in MODES:
-        raise InputError(f"mode: expected one of {list(MODES)}, got {mode!r}")
-    if not (isinstance(rtol, float) and 0 < rtol < 1):
-        raise InputError(f"rtol: expected a float in (0, 1), got {rtol!r}")
-    if box is not None and not (isinstance(box, (int, float)) and not isinstance(box, bool) and box > 0):
-        raise InputError(f"box: expected a positive number, got {box!r}")
-    if not isinstance(max_newton, int) or isinstance(max_newton, bool) or max_newton < 1:
-        raise InputError.at(
-            "max_newton", f"expected a positive integer (Newton iterations per slice), got {max_newton!r}"
-        )
-    if solver not in SOLVERS:
-        raise InputError.at("solver", f"expected one of {list(SOLVERS)}, got {solver!r}")
-    if not isinstance(affine, bool):
-        raise InputError.at("affine", f"expected True or False, got {affine!r}")
-    if progress is not None and not isinstance(progress, bool):
-        raise InputError.at("progress", f"expected True, False or None, got {progress!r}")
-    where = resolve_device(device)
-    every = check_every(every)
+    slices = _deprecated_steps(slices, steps)
+    opts = ServeOptions.from_keywords(options, **keywords)
+    where = resolve_device(opts.device)
     if on_slice is not None and not callable(on_slice):
         raise InputError.at("on_slice", f"expected a function on_slice(index, values), got {type(on_slice).__name__}")
+    batch = isinstance(init, (list, tuple))
+    fs, sources = _fields(init, boundary, opts.cadence.streams(on_slice))
+    _prepare_model(model, fs[0])
+    for k, f in enumerate(fs):
+        _check_model_lattice(model, f, "init" if not batch else f"init[{k}]")
+    plan = _Plan(batch=batch, slices=slices, options=opts, where=where, on_slice=on_slice, sources=sources)
+    if isinstance(model, EnsembleLagrangian):
+        if opts.cadence.streams(on_slice):
+            raise InputError.at(
+                "every", "an ensemble is served whole (every member on every slice): give every=1 and no on_slice"
+            )
+        out = serve_ensemble(model, fs, plan.run, batch)
+    else:
+        out = plan.run(model, fs)
+    return out if batch else out[0]
+
+
+def _deprecated_steps(slices: int | None, steps: int | None) -> int | None:
+    """``slices``, or its deprecated alias ``steps`` (with a FutureWarning)."""
+    if steps is None:
+        return slices
+    if slices is not None:
+        raise InputError.at("steps", "give slices only (steps is its deprecated alias)")
+    warnings.warn(
+        "serve(slices=...) is deprecated: use slices=... (the same count: time slices served, "
+        "the two initial ones included)",
+        FutureWarning,
+        stacklevel=3,
+    )
+    return steps
+
+
+def _fields(
+    init: xr.DataArray | list[xr.DataArray] | tuple[xr.DataArray, ...], boundary: BoundaryKinds | None, streams: bool
+) -> tuple[list[LatticeField], list[SliceSource | None]]:
+    """The checked fields of ``init`` and, for an n-D field left in its file and served through a rolling
+    window (``streams``), the source its later slices are read from."""
     batch = isinstance(init, (list, tuple))
     items = list(init) if isinstance(init, (list, tuple)) else [init]
     if not items:
         raise InputError("init: no initial fields given")
     sources: list[SliceSource | None] = [None] * len(items)
-    if not batch and (every > 1 or on_slice is not None) and _in_file(items[0]):  # read slice by slice
+    if not batch and streams and _in_file(items[0]):  # read slice by slice
         head, sources[0] = lazy_field(items[0], "init", boundary)
-        fs = [head]
-    else:
-        names = [f"init[{k}]" for k in range(len(items))] if batch else ["init"]
-        fs = as_lattice_fields(items, names, boundary=boundary, min_slices=2)  # one pass over a batch
-    _prepare_model(model, fs[0])
-    for k, f in enumerate(fs):
-        _check_model_lattice(model, f, "init" if not batch else f"init[{k}]")
-    run = functools.partial(
-        _run,
-        batch=batch,
-        slices=slices,
-        mode=mode,
-        rtol=rtol,
-        max_newton=max_newton,
-        box=box,
-        affine=affine,
-        progress=progress,
-        solver=solver,
-        where=where,
-        every=every,
-        on_slice=on_slice,
-        sources=sources,
-    )
-    if isinstance(model, EnsembleLagrangian):
-        if every > 1 or on_slice is not None:
-            raise InputError.at(
-                "every", "an ensemble is served whole (every member on every slice): give every=1 and no on_slice"
-            )
-        out = serve_ensemble(model, fs, run, batch)
-    else:
-        out = run(model, fs)
-    return out if batch else out[0]
+        return [head], sources
+    names = [f"init[{k}]" for k in range(len(items))] if batch else ["init"]
+    return as_lattice_fields(items, names, boundary=boundary, min_slices=2), sources  # one pass over a batch
 
 
-def _run(
-    model: AbstractLagrangian,
-    fs: list[LatticeField],
-    *,
-    batch: bool,
-    slices: int | None,
-    mode: str,
-    rtol: float,
-    max_newton: int,
-    box: float | None,
-    affine: bool,
-    progress: bool | None,
-    solver: str,
-    where: torch.device,
-    every: int,
-    on_slice: SliceCallback | None,
-    sources: list[SliceSource | None] | None = None,
-) -> list[ServeResult]:
-    """Serve the checked fields ``fs`` with ``model``; a ServeError (``result`` a list for a ``batch``) when
-    one stops."""
-    n = fs[0].ndim
-    if n == 1:
-        with on_device(model, where):
-            results = _serve_batch(model, fs, [_slices(slices, f) for f in fs], mode, rtol, max_newton, box, progress)
+@dataclass(frozen=True)
+class _Plan:
+    """What a serving run needs besides the model and the fields: the checked options and where to run."""
+
+    batch: bool
+    slices: int | None
+    options: ServeOptions
+    where: torch.device
+    on_slice: SliceCallback | None
+    sources: list[SliceSource | None]
+
+    def run(self, model: AbstractLagrangian, fs: list[LatticeField]) -> list[ServeResult]:
+        """Serve the checked fields ``fs`` with ``model``; a ServeError (``result`` a list for a ``batch``)
+        when one stops."""
+        if fs[0].ndim == 1:
+            return self._run_1d(model, fs)
+        if self.options.box is not None:
+            raise InputError("box: stopping when leaving a box is for 1D trajectories only")
+        out: list[ServeResult] = []
+        for f, src in zip(fs, self.sources if len(self.sources) == len(fs) else [None] * len(fs)):
+            try:
+                n_f = _slices(self.slices, f) if self.slices is not None or src is None else src.nt
+                with on_device(model, self.where):
+                    if self.options.cadence.streams(self.on_slice):
+                        out.append(_serve_stream(model, f, n_f, self.options, self.on_slice, src))
+                    else:
+                        out.append(_serve_field(model, f, n_f, self.options))
+            except ServeError as err:
+                if isinstance(err.result, ServeResult):
+                    _served_attrs([err.result], model)
+                    _served_on([err.result], self.where)
+                raise
+        _served_attrs(out, model)
+        _served_on(out, self.where)
+        return out
+
+    def _run_1d(self, model: AbstractLagrangian, fs: list[LatticeField]) -> list[ServeResult]:
+        """A batch of 1D trajectories, stepped together (thinned to the kept slices afterwards)."""
+        with on_device(model, self.where):
+            results = _serve_batch(model, fs, [_slices(self.slices, f) for f in fs], self.options)
         _served_attrs(results, model)
-        _served_on(results, where)
-        if every > 1 or on_slice is not None:
-            results = [thin_result(r, every, on_slice) for r in results]
+        _served_on(results, self.where)
+        if self.options.cadence.streams(self.on_slice):
+            results = [thin_result(r, self.options.cadence, self.on_slice) for r in results]
         failed = [(r, r.fail_at) for r in results if r.fail_at is not None]  # the members not complete
         if failed:
             first, (at_slice, res) = failed[0]
-            raise ServeError(first.reason, result=results if batch else first, slice=at_slice, residual=res)
+            raise ServeError(first.reason, result=results if self.batch else first, slice=at_slice, residual=res)
         return results
-    if box is not None:
-        raise InputError("box: stopping when leaving a box is for 1D trajectories only")
-    out: list[ServeResult] = []
-    for f, src in zip(fs, sources or [None] * len(fs)):
-        try:
-            n_f = _slices(slices, f) if slices is not None or src is None else src.nt
-            with on_device(model, where):
-                if every == 1 and on_slice is None:
-                    out.append(_serve_field(model, f, n_f, mode, rtol, max_newton, progress, bool(affine), solver))
-                else:
-                    out.append(
-                        _serve_stream(
-                            model, f, n_f, mode, rtol, max_newton, progress, affine, every, on_slice, solver, src
-                        )
-                    )
-        except ServeError as err:
-            if isinstance(err.result, ServeResult):
-                _served_attrs([err.result], model)
-                _served_on([err.result], where)
-            raise
-    _served_attrs(out, model)
-    _served_on(out, where)
-    return out

@@ -17,6 +17,7 @@ from .._lattice import LatticeField, gather_cells
 from .._models import AbstractLagrangian
 from ._affine import _affine_prefix
 from ._newton import _newton_slice
+from ._options import ServeOptions
 from ._range import assess
 from ._result import ServeResult, _bar
 from ._slices import _site_label, _SliceSystem
@@ -190,21 +191,12 @@ def _site_text(f: LatticeField, site: tuple[int, ...]) -> str:
     return f"index {idx}" + (f" ({coords})" if coords else "")
 
 
-def _serve_field(
-    model: AbstractLagrangian,
-    f: LatticeField,
-    steps: int,
-    mode: str,
-    rtol: float,
-    max_newton: int,
-    progress: bool | None,
-    affine: bool = True,
-    solver: str = "auto",
-) -> ServeResult:
+def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options: ServeOptions) -> ServeResult:
     """Serve one n-D field: the affine recurrence first where allowed, then Newton (or the sweep) slice by slice;
-    ``solver`` solves Newton's steps (``_solvers.SOLVERS``)."""
-    run = _FieldRun(model, f, steps, mode, progress, solver)
-    if mode == "newton" and affine and steps > 2:
+    ``options.solver`` solves Newton's steps (``_solvers.SOLVERS``)."""
+    mode, rtol, max_newton = options.mode, options.rtol, options.max_newton
+    run = _FieldRun(model, f, steps, mode, options.progress, options.solver)
+    if mode == "newton" and options.affine and steps > 2:
         run.serve_affine(rtol)
     g_prev = CellDerivatives(model, run.cells_at(run.start - 1)).grad
     for i in range(run.start, steps - 1):

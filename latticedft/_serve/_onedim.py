@@ -9,6 +9,7 @@ from .._lattice import LatticeField
 from .._models import AbstractLagrangian
 from ._batch import _Batch
 from ._fast1d import numpy_derivatives_of, serve_fast
+from ._options import ServeOptions
 from ._result import ServeResult, _bar
 
 
@@ -16,11 +17,7 @@ def _serve_batch(
     model: AbstractLagrangian,
     fs: list[LatticeField],
     steps: list[int],
-    mode: str,
-    rtol: float,
-    max_newton: int,
-    box: float | None,
-    progress: bool | None,
+    options: ServeOptions,
 ) -> list[ServeResult]:
     """Step a batch of 1D trajectories together; a member that fails or leaves the box retires alone.
 
@@ -28,6 +25,8 @@ def _serve_batch(
     time (in 1D the site-by-site sweep is that same Newton on the one site). A model with numpy closed forms
     (:meth:`LinearLagrangian.numpy_derivatives`) runs the same loop in numpy (``_fast1d``).
     """
+    mode, rtol, max_newton, box = options.mode, options.rtol, options.max_newton, options.box
+    progress = options.progress
     derivatives = numpy_derivatives_of(model)
     if derivatives is not None:
         return serve_fast(model, fs, steps, mode, rtol, max_newton, box, progress, derivatives)

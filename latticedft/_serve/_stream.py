@@ -40,36 +40,18 @@ from .._models import AbstractLagrangian
 from .._options import option
 from ._affine import _AffineSlices, _slice_residuals
 from ._field import slice_error, solve_and_tally
+from ._options import Cadence, ServeOptions, kept_slices
 from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
 from ._result import ServeResult, _bar
 from ._slices import _SliceSystem, is_singular
 
-__all__ = ["kept_slices", "check_every", "thin_result", "SliceSource", "lazy_field"]
+__all__ = ["kept_slices", "thin_result", "SliceSource", "lazy_field"]
 
 _MIN_CHUNK = 4
 #: Memory handed back to the system (``malloc_trim``) after this many bytes of slices served.
 _TRIM_BYTES = 128 * 2**20
 
 SliceCallback = Callable[[int, np.ndarray], Any]
-
-
-def check_every(every: Any) -> int:
-    """``every`` checked: an integer >= 1."""
-    if not isinstance(every, int) or isinstance(every, bool) or every < 1:
-        raise InputError.at("every", f"expected an integer >= 1 (keep every k-th time slice), got {every!r}")
-    return every
-
-
-def kept_slices(slices: int, every: int) -> np.ndarray:
-    """The slices kept of ``slices`` served: ``0, every, 2 every, ...`` and the last one.
-
-    >>> kept_slices(10, 4).tolist()
-    [0, 4, 8, 9]
-    """
-    idx = np.arange(0, slices, every, dtype=np.int64)
-    if slices and idx[-1] != slices - 1:
-        idx = np.append(idx, slices - 1)
-    return idx
 
 
 def _trim() -> None:
@@ -88,7 +70,7 @@ def _with_slice_coord(da: xr.DataArray, idx: np.ndarray, every: int) -> xr.DataA
     return da
 
 
-def thin_result(result: ServeResult, every: int, on_slice: SliceCallback | None) -> ServeResult:
+def thin_result(result: ServeResult, cadence: Cadence, on_slice: SliceCallback | None) -> ServeResult:
     """A whole-field result thinned to its kept slices (1D serving, where the whole field is small)."""
     da = result.field
     tdim = da.dims[0]
@@ -96,11 +78,11 @@ def thin_result(result: ServeResult, every: int, on_slice: SliceCallback | None)
     block = getattr(on_slice, "on_block", None)
     if block is not None:
         block(0, da)
-    idx = kept_slices(n, every)
+    idx = cadence.kept(n)
     if on_slice is not None:
         for k in idx:
             on_slice(int(k), np.asarray(da.values[k]))
-    result.field = _with_slice_coord(da.isel({tdim: idx}), idx, every)
+    result.field = _with_slice_coord(da.isel({tdim: idx}), idx, cadence.every)
     return result
 
 
@@ -140,18 +122,15 @@ class _Stream:
         model: AbstractLagrangian,
         f: LatticeField,
         steps: int,
-        mode: str,
-        every: int,
+        options: ServeOptions,
         on_slice: SliceCallback | None,
-        progress: bool | None,
-        solver: str = "auto",
         source: SliceSource | None = None,
     ):
-        self.model, self.f, self.steps, self.mode = model, f, steps, mode
+        self.model, self.f, self.steps, self.mode = model, f, steps, options.mode
         self.source = source  # the input's slices left in its file (then ``f`` holds the first two)
         self.on_slice = on_slice
         self.on_block = getattr(on_slice, "on_block", None)
-        self.every = every
+        self.every = every = options.every
         nt = f.shape[0] if source is None else source.nt
         missing = missing_edges(f.boundary, f.dims, nt, steps)
         if missing:
@@ -173,7 +152,7 @@ class _Stream:
         self.kidx = torch.from_numpy(np.nonzero(known)[0]) if known.any() else None
         self.unk = torch.from_numpy(np.nonzero(sys_.interior)[0])
         self.vol = math.prod(model.spacing)
-        self.kept = kept_slices(steps, every)
+        self.kept = options.cadence.kept(steps)
         self.kept_values = np.empty((len(self.kept), *f.shape[1:], m))
         self.nkept = 0
         rng = model.trained_range()
@@ -186,9 +165,9 @@ class _Stream:
         self.t0 = time.perf_counter()
         self.total_it, self.max_it, self.worst = 0, 0, 0.0
         self.affine_slices = 0
-        self.cache: dict[str, Any] = {"solver": solver}
+        self.cache: dict[str, Any] = {"solver": options.solver}
         self.before: torch.Tensor | None = None  # the slice before buffer position 0 (Newton's predictor)
-        self.bar = _bar(steps - 2, f"serve ({mode}, every {every})", progress)
+        self.bar = _bar(steps - 2, f"serve ({self.mode}, every {every})", options.progress)
         self.buf[:2] = f.values[:2]
 
     # -- the window ------------------------------------------------------------------------------------------
@@ -347,20 +326,15 @@ def _serve_stream(
     model: AbstractLagrangian,
     f: LatticeField,
     steps: int,
-    mode: str,
-    rtol: float,
-    max_newton: int,
-    progress: bool | None,
-    affine: bool,
-    every: int,
+    options: ServeOptions,
     on_slice: SliceCallback | None,
-    solver: str = "auto",
     source: SliceSource | None = None,
 ) -> ServeResult:
-    """Serve one n-D field through a rolling window, keeping every ``every``-th slice and the last (the
-    input's later slices read from ``source`` when ``f`` holds its first two only)."""
-    run = _Stream(model, f, steps, mode, every, on_slice, progress, solver, source)
-    setup = run.affine_setup() if mode == "newton" and affine and steps > 2 else None
+    """Serve one n-D field through a rolling window, keeping the slices of ``options.cadence`` (the input's
+    later slices read from ``source`` when ``f`` holds its first two only)."""
+    mode, rtol, max_newton = options.mode, options.rtol, options.max_newton
+    run = _Stream(model, f, steps, options, on_slice, source)
+    setup = run.affine_setup() if mode == "newton" and options.affine and steps > 2 else None
     on_affine = setup is not None
     g_prev: Any = None if on_affine else CellDerivatives(model, run.cells_at(0)).grad
     run.emit(1)

@@ -18,7 +18,6 @@ from .._case import Case
 from .._errors import InputError
 from .._pipeline import CaseData, TaskOutcome, serve_task, train_model
 from .._results import config_attrs, export_task, read_summary, read_task, write_model, write_summary, write_task
-from .._results._part import PartFile
 from ..io.exporters import remove_exports
 from ._common import INCOMPLETE, OK, command_line
 
@@ -79,14 +78,7 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: AbstractLagrangi
     model_warnings = model_warnings_of(model, folder)
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
-        part = (
-            PartFile(folder, td.task.name, case.field.variable, td.init, td.task.every) if td.task.every > 1 else None
-        )
-        try:
-            out: TaskOutcome = serve_task(model, td, part, case.run.device)
-        finally:
-            if part is not None:
-                part.close()
+        out: TaskOutcome = serve_task(model, td, case.run.device, stage=folder, variable=case.field.variable)
         path = write_task(
             folder,
             out.name,
@@ -103,9 +95,8 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: AbstractLagrangi
                 **({"extrapolation": out.extrapolation} if out.extrapolation is not None else {}),
                 **out.spread(case.field.variable),
             },
+            part=out.part,  # the kept slices, written as they were served: completed into <task>.nc
         )
-        if part is not None:
-            part.remove()  # the whole file holds the kept slices now
         out.record["file"] = path.name
         log.debug("wrote %s", path.name)
         out.record["exports"] = export_one(folder, case, out.name, data, previous.get(out.name, ()), owners)

@@ -31,7 +31,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
     print(f"  model: {case.model.kind}({opts})" + (f", stencil {case.model.stencil}" if case.model.stencil else ""))
     print(f"  train: {', '.join(case.train.patterns)} -> {len(case.train.data)} file(s)")
     for t in case.serve:
-        print(f"  serve {t.name}: from {t.source.name}, slices {t.slices or 'all'}, mode {t.mode}")
+        print(f"  serve {t.name}: from {t.source.name}, slices {t.slices or 'all'}, mode {t.options.mode}")
     if case.overrides:
         print(f"  overrides: {', '.join(case.overrides)}")
     dest = results_dir(args, case)

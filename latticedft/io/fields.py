@@ -212,6 +212,70 @@ def _default_axes(ds: xr.Dataset) -> None:
                 ds.coords[dim].attrs["axis"] = axis
 
 
+def prepared_dataset(
+    fields: Mapping[str, xr.DataArray] | xr.Dataset,
+    attrs: Mapping[str, Any] | None,
+    history: str | None,
+    compress: bool = True,
+    where: str = "fields",
+) -> tuple[xr.Dataset, dict[str, dict[str, Any]]]:
+    """The Dataset :func:`write_field` writes, with its encoding: the fields aligned, the global attributes
+    (``Conventions``, ``source``, ``history``), CF axes and netCDF-safe attributes; ``where`` names the target
+    in errors."""
+    if isinstance(fields, xr.Dataset):
+        ds = fields.copy(deep=False)
+    else:
+        if not fields:
+            raise InputError(f"{where}: no fields to write; expected at least one DataArray")
+        if not isinstance(fields, Mapping):
+            raise InputError.at(
+                "fields", f"expected a mapping name -> DataArray or a Dataset, got {type(fields).__name__}"
+            )
+        arrays = {str(k): v for k, v in fields.items()}
+        bad = [k for k, v in arrays.items() if not isinstance(v, xr.DataArray)]
+        if bad:
+            raise InputError.at(
+                "fields", f"{bad[0]!r}: expected an xarray.DataArray, got {type(arrays[bad[0]]).__name__}"
+            )
+        try:
+            aligned = xr.align(*arrays.values(), join="exact")
+        except ValueError as exc:
+            raise InputError(
+                f"{where}: fields {list(arrays)} do not share coordinates ({_one_line(exc, 120)})"
+            ) from None
+        ds = xr.Dataset(dict(zip(arrays, aligned)))
+    ds = ds.drop_encoding()
+
+    # Attributes: copy so that the caller's objects are not modified.
+    ds.attrs = dict(ds.attrs)
+    for name in ds.variables:
+        ds[name].attrs = dict(ds[name].attrs)
+    if attrs:
+        ds.attrs.update(attrs)
+    ds.attrs["Conventions"] = "CF-1.8"
+    ds.attrs.setdefault("source", f"latticedft {_package_version()}")
+    if history:
+        stamp = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+        line = f"{stamp}: {_one_line(history, 10_000)}"
+        old = ds.attrs.get("history")
+        ds.attrs["history"] = f"{old}\n{line}" if old not in (None, "") else line
+    _default_axes(ds)
+    ds.attrs = _safe_attrs(ds.attrs)
+    for name in ds.variables:
+        ds[name].attrs = _safe_attrs(ds[name].attrs)
+
+    encoding: dict[str, dict[str, Any]] = {}
+    for name, var in ds.data_vars.items():
+        enc: dict[str, Any] = {}
+        if compress and (np.issubdtype(var.dtype, np.number)):
+            enc.update(zlib=True, complevel=4, shuffle=True)
+        encoding[str(name)] = enc
+    for name in ds.coords:
+        encoding[str(name)] = {"_FillValue": None}
+
+    return ds, encoding
+
+
 def write_field(
     path: str | os.PathLike[str],
     fields: Mapping[str, xr.DataArray] | xr.Dataset,
@@ -271,56 +335,7 @@ def write_field(
     if not folder.is_dir():
         raise InputError(f"{target}: folder {folder} does not exist; expected an existing folder")
 
-    if isinstance(fields, xr.Dataset):
-        ds = fields.copy(deep=False)
-    else:
-        if not fields:
-            raise InputError(f"{target}: no fields to write; expected at least one DataArray")
-        if not isinstance(fields, Mapping):
-            raise InputError.at(
-                "fields", f"expected a mapping name -> DataArray or a Dataset, got {type(fields).__name__}"
-            )
-        arrays = {str(k): v for k, v in fields.items()}
-        bad = [k for k, v in arrays.items() if not isinstance(v, xr.DataArray)]
-        if bad:
-            raise InputError.at(
-                "fields", f"{bad[0]!r}: expected an xarray.DataArray, got {type(arrays[bad[0]]).__name__}"
-            )
-        try:
-            aligned = xr.align(*arrays.values(), join="exact")
-        except ValueError as exc:
-            raise InputError(
-                f"{target}: fields {list(arrays)} do not share coordinates ({_one_line(exc, 120)})"
-            ) from None
-        ds = xr.Dataset(dict(zip(arrays, aligned)))
-    ds = ds.drop_encoding()
-
-    # Attributes: copy so that the caller's objects are not modified.
-    ds.attrs = dict(ds.attrs)
-    for name in ds.variables:
-        ds[name].attrs = dict(ds[name].attrs)
-    if attrs:
-        ds.attrs.update(attrs)
-    ds.attrs["Conventions"] = "CF-1.8"
-    ds.attrs.setdefault("source", f"latticedft {_package_version()}")
-    if history:
-        stamp = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-        line = f"{stamp}: {_one_line(history, 10_000)}"
-        old = ds.attrs.get("history")
-        ds.attrs["history"] = f"{old}\n{line}" if old not in (None, "") else line
-    _default_axes(ds)
-    ds.attrs = _safe_attrs(ds.attrs)
-    for name in ds.variables:
-        ds[name].attrs = _safe_attrs(ds[name].attrs)
-
-    encoding: dict[str, dict[str, Any]] = {}
-    for name, var in ds.data_vars.items():
-        enc: dict[str, Any] = {}
-        if compress and (np.issubdtype(var.dtype, np.number)):
-            enc.update(zlib=True, complevel=4, shuffle=True)
-        encoding[str(name)] = enc
-    for name in ds.coords:
-        encoding[str(name)] = {"_FillValue": None}
+    ds, encoding = prepared_dataset(fields, attrs, history, compress, str(target))
 
     tmp = folder / f".{target.name}.{uuid.uuid4().hex[:12]}.tmp"
     try:
