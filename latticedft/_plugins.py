@@ -67,7 +67,7 @@ def describe(obj: object) -> str:
     if isinstance(obj, type) or callable(obj):
         what = "class" if isinstance(obj, type) else type(obj).__name__
         return f"the {what} {getattr(obj, '__module__', '?')}.{getattr(obj, '__qualname__', repr(obj))}"
-    return f"a {type(obj).__name__}"
+    return f"an object of type {type(obj).__name__}"
 
 
 def _entry_point(name: str, group: str) -> EntryPoint | None:

@@ -156,6 +156,16 @@ def test_a_broken_plugin_is_a_one_line_error_naming_the_key(demo, tmp_path, key,
     assert str(bad.value).startswith(message) and "\n" not in str(bad.value) and bad.value.key == key
 
 
+def test_an_unknown_name_is_matched_against_the_installed_plugins_too(demo, tmp_path):
+    with pytest.raises(ldft.ConfigError) as bad:
+        load_case(_case(tmp_path, "demo-wel", "demo-table"))
+    assert "unknown model kind 'demo-wel'; did you mean 'demo-well'?" in str(bad.value)
+    assert "'demo-broken', 'demo-well', 'demo-wrong', 'features', 'mlp', 'polynomial'" in str(bad.value)
+    assert "demo-well" not in MODELS._kinds  # named in the message, not loaded
+    with pytest.raises(ldft.ConfigError, match="unknown format 'demo-tabel'; did you mean 'demo-table'"):
+        load_case(_case(tmp_path / "2", "demo-well", "demo-tabel"))
+
+
 def test_plugins_are_looked_up_only_for_names_latticedft_does_not_hold(demo, tmp_path, monkeypatch):
     def refuse(**_: object) -> None:
         raise AssertionError("entry points scanned")

@@ -17,7 +17,7 @@ from typing import Any
 from .._errors import ConfigError, LatticeDFTError
 from .._models import MODELS
 from .._serve import ServeOptions
-from ..io.exporters import DEFAULT_FORMATS, EXPORTERS, known_format
+from ..io.exporters import DEFAULT_FORMATS, format_names, known_format
 from . import _schema
 from ._checks import _Bad, t_ridge, t_stencil, t_str
 from ._schema import (
@@ -248,7 +248,7 @@ def _select_config(ctx: _Ctx, value: Any, kind: str) -> str | tuple[dict[str, An
         where = f"model.select[{i}]"
         ckind = ctx.check(f"{where}.kind", t_str, cand.get("kind", kind))
         if not _known_kind(ctx, f"{where}.kind", ckind):
-            raise ctx.error(f"{where}.kind", f"unknown model kind {ckind!r}{_closest(ckind, sorted(MODELS))}")
+            raise ctx.error(f"{where}.kind", f"unknown model kind {ckind!r}{_closest(ckind, MODELS.names())}")
         valid = model_options(ckind)
         checked: dict[str, Any] = {"kind": ckind} if "kind" in cand else {}
         for key, v in cand.items():
@@ -281,7 +281,7 @@ def _model_config(ctx: _Ctx, raw: dict[str, Any]) -> ModelConfig:
     if not _known_kind(ctx, "model.kind", kind):
         raise ctx.error(
             "model.kind",
-            f"unknown model kind {kind!r}{_closest(kind, sorted(MODELS))} (expected one of {sorted(MODELS)})",
+            f"unknown model kind {kind!r}{_closest(kind, MODELS.names())} (expected one of {MODELS.names()})",
         )
     valid = model_options(kind)
     options: dict[str, Any] = {}
@@ -409,7 +409,7 @@ def _export_config(ctx: _Ctx, ex: dict[str, Any]) -> ExportConfig:
         if not _known_format(ctx, fmt):
             raise ctx.error(
                 "export.formats",
-                f"unknown format {fmt!r}{_closest(fmt, list(EXPORTERS))} (formats: {', '.join(EXPORTERS)})",
+                f"unknown format {fmt!r}{_closest(fmt, format_names())} (formats: {', '.join(format_names())})",
             )
         if fmt in formats[:i]:
             raise ctx.error("export.formats", f"format {fmt!r} listed twice")

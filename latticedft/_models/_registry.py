@@ -25,7 +25,7 @@ from typing import Any, Protocol
 
 from .._contract import AbstractLagrangian
 from .._errors import InputError
-from .._plugins import MODEL_GROUP, describe, load
+from .._plugins import MODEL_GROUP, describe, entry_point_names, load
 
 __all__ = ["KindClass", "ModelKind", "ModelRegistry", "MODELS"]
 
@@ -102,6 +102,11 @@ class ModelRegistry(MutableMapping[str, ModelKind]):
             raise InputError.at("model.kind", f"{name!r} gives {describe(found)}; {_EXPECTED}")
         self._kinds[name] = entry
         return entry
+
+    def names(self) -> list[str]:
+        """The kinds a case may name without an import path: those registered and the entry points of the
+        installed packages (none loaded), sorted; for messages about an unknown kind."""
+        return sorted({*self._kinds, *entry_point_names(MODEL_GROUP)})
 
     def name_of(self, model: AbstractLagrangian) -> str:
         """The name under which this registry builds ``model``'s kind: its ``kind``, unless the registry holds

@@ -46,7 +46,7 @@ from typing import Any, ClassVar
 import xarray as xr
 
 from latticedft._errors import InputError
-from latticedft._plugins import EXPORTER_GROUP, describe, load
+from latticedft._plugins import EXPORTER_GROUP, describe, entry_point_names, load
 
 __all__ = [
     "EXPORTERS",
@@ -59,6 +59,7 @@ __all__ = [
     "remove_exports",
     "export_file_names",
     "known_format",
+    "format_names",
     "TEMPORARY_NAME_EXTRA",
 ]
 
@@ -184,6 +185,12 @@ def known_format(name: str) -> bool:
     """True when ``name`` is an export format: one of :data:`EXPORTERS`, or one another package gives (loaded
     now; a one-line InputError when it fails to load)."""
     return name in EXPORTERS or _plugin(name) is not None
+
+
+def format_names() -> list[str]:
+    """The formats a case may name without an import path: :data:`EXPORTERS`, then those of other packages
+    (loaded, or entry points not loaded yet); for messages about an unknown format."""
+    return list(dict.fromkeys([*EXPORTERS, *_PLUGINS, *entry_point_names(EXPORTER_GROUP)]))
 
 
 def get_exporter(name: str) -> Exporter:
