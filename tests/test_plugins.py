@@ -176,3 +176,13 @@ def test_plugins_are_looked_up_only_for_names_latticedft_does_not_hold(demo, tmp
     assert load_case(case).model.kind == "polynomial"
     with pytest.raises(AssertionError, match="entry points scanned"):
         MODELS["demo-well"]
+
+
+def test_a_model_file_records_the_name_its_kind_was_found_by(demo):
+    class Unregistered(ldft.PolynomialLagrangian):
+        kind = "unregistered-polynomial"
+
+    assert MODELS.name_of(ldft.PolynomialLagrangian()) == "polynomial"
+    assert MODELS.name_of(Unregistered()) == "unregistered-polynomial"  # never recorded as its base's kind
+    by_path = MODELS["latticedft_demo.models:DemoWell"]()
+    assert by_path.kind == "demo-well" and MODELS.name_of(by_path) == "latticedft_demo.models:DemoWell"

@@ -110,15 +110,12 @@ class ModelRegistry(MutableMapping[str, ModelKind]):
 
     def name_of(self, model: AbstractLagrangian) -> str:
         """The name under which this registry builds ``model``'s kind: its ``kind``, unless the registry holds
-        the class under another name only (a kind from an import path); what model files record."""
+        its very class under another name only (a kind from an import path); what model files record. A
+        subclass of a registered class keeps its own ``kind``: it is never recorded as its base's."""
         if model.kind in self._kinds:
             return model.kind
-        classes = [(name, e.model_class) for name, e in self._kinds.items() if isinstance(e.model_class, type)]
-        for name, cls in classes:
-            if type(model) is cls:
-                return name
-        for name, cls in classes:
-            if isinstance(model, cls):
+        for name, entry in self._kinds.items():
+            if entry.model_class is type(model):
                 return name
         return model.kind
 
