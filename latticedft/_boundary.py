@@ -1,7 +1,7 @@
 """Boundary kinds of the lattice axes: the one owner of every rule that depends on how an axis ends.
 
 Each lattice axis has a kind. The time axis is ``"open"`` (served slice by
-slice, nothing wraps); a spatial axis is one of :data:`BOUNDARY_KINDS`:
+slice, nothing wraps); a spatial axis is one of :func:`boundary_kinds`:
 
 ``"dirichlet"`` (the default)
     The axis has edges. A cell lies wholly inside the lattice, so axis ``k``
@@ -24,7 +24,9 @@ argument and ``case.toml`` key, the leapfrog scheme -- asks this module.
 A new kind is one subclass of :class:`BoundaryKind` registered in
 :data:`KINDS`: the generic :meth:`BoundaryKind.take` and
 :meth:`BoundaryKind.shifted` follow from its :meth:`~BoundaryKind.cells`,
-:meth:`~BoundaryKind.sites` and :meth:`~BoundaryKind.interior`.
+:meth:`~BoundaryKind.sites` and :meth:`~BoundaryKind.interior`, and every
+vocabulary (the ``boundary`` argument, ``case.toml``, the messages) is read
+from :data:`KINDS` when it is used, never copied.
 
 >>> parse_boundary({"x": "periodic"}, ("t", "y", "x"), "init")
 ('open', 'dirichlet', 'periodic')
@@ -46,7 +48,7 @@ from ._errors import InputError
 __all__ = [
     "BoundaryKind",
     "KINDS",
-    "BOUNDARY_KINDS",
+    "boundary_kinds",
     "DEFAULT_KIND",
     "TIME_KIND",
     "BoundaryKinds",
@@ -170,8 +172,18 @@ KINDS: dict[str, BoundaryKind] = {
     "periodic": _Periodic(),
     "open": _Edged("open", "open", given_edges=False, selectable=False),
 }
-#: The kinds a spatial axis may have (the vocabulary of ``boundary=`` and of ``case.toml``).
-BOUNDARY_KINDS: tuple[str, ...] = tuple(name for name, k in KINDS.items() if k.selectable)
+
+
+def boundary_kinds() -> tuple[str, ...]:
+    """The kinds a spatial axis may have (the vocabulary of ``boundary=`` and of ``case.toml``), read from
+    :data:`KINDS` now.
+
+    >>> boundary_kinds()
+    ('dirichlet', 'periodic')
+    """
+    return tuple(name for name, k in KINDS.items() if k.selectable)
+
+
 #: The kind of a spatial axis that neither the ``boundary`` argument nor the file makes periodic.
 DEFAULT_KIND = "dirichlet"
 #: The kind of the time axis.
@@ -180,7 +192,7 @@ TIME_KIND = "open"
 
 def kinds_text(sep: str = " or ") -> str:
     """The selectable kinds for a message: ``'dirichlet' or 'periodic'``."""
-    return sep.join(repr(k) for k in BOUNDARY_KINDS)
+    return sep.join(repr(k) for k in boundary_kinds())
 
 
 def kind(entry: str | bool | BoundaryKind) -> BoundaryKind:
@@ -198,7 +210,7 @@ def kind(entry: str | bool | BoundaryKind) -> BoundaryKind:
 
 def spatial_kind(name: Any, key: str = "boundary") -> BoundaryKind:
     """The selectable kind named ``name`` (one-line :class:`InputError` about ``key`` otherwise)."""
-    if not isinstance(name, str) or name not in BOUNDARY_KINDS:
+    if not isinstance(name, str) or name not in boundary_kinds():
         raise InputError.at(key, f"expected {kinds_text()}, got {name!r}")
     return KINDS[name]
 
@@ -229,8 +241,8 @@ def parse_boundary(boundary: BoundaryKinds, dims: Sequence[str], source: str) ->
     else:
         raise InputError.at("boundary", f"expected {kinds_text(', ')} or a table axis -> kind, got {boundary!r}")
     for d, k in names.items():
-        if k not in BOUNDARY_KINDS:
-            raise InputError.at("boundary", f"axis {d!r} has kind {k!r}; expected one of {list(BOUNDARY_KINDS)}")
+        if k not in boundary_kinds():
+            raise InputError.at("boundary", f"axis {d!r} has kind {k!r}; expected one of {list(boundary_kinds())}")
     return (TIME_KIND, *(names[d] for d in spatial))
 
 

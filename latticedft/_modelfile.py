@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from ._contract import DEFAULT_GAUGE, parse_gauge
-from ._errors import InputError, ModelFileError
-from ._models import MODELS, AbstractLagrangian, EnsembleLagrangian
+from ._errors import InputError, LatticeDFTError, ModelFileError
+from ._models import MODELS, AbstractLagrangian, EnsembleLagrangian, ModelKind
+from ._plugins import MODEL_GROUP
 from ._stencil import Stencil
 
 __all__ = ["save_model", "load_model", "FORMAT_VERSION", "model_record"]
@@ -35,7 +35,7 @@ def model_record(model: AbstractLagrangian, gauge: str | None = None) -> dict[st
     return {
         "format": "latticedft-model",
         "format_version": FORMAT_VERSION,
-        "kind": model.kind,
+        "kind": MODELS.name_of(model),
         "options": model.options(),
         "stencil": model.stencil.to_list(),
         "gauge": (parse_gauge(gauge) if gauge is not None else model.gauge or DEFAULT_GAUGE).value,
@@ -87,6 +87,24 @@ def _head(path: Path) -> bytes:
         return f.read(64)
 
 
+def _kind(path: Path, kind: Any) -> ModelKind | type[EnsembleLagrangian]:
+    """What builds a model of ``kind`` (a name a model file records); a one-line ModelFileError when no
+    kind of that name is registered, given by an import path or by an installed package's entry point."""
+    if kind == EnsembleLagrangian.kind:
+        return EnsembleLagrangian
+    try:
+        if isinstance(kind, str):
+            return MODELS[kind]
+    except KeyError:
+        pass
+    except LatticeDFTError as exc:
+        raise ModelFileError(f"{path}: model kind {kind!r}: {exc.problem}") from None
+    raise ModelFileError(
+        f"{path}: unknown model kind {kind!r}; expected one of {sorted([*MODELS, EnsembleLagrangian.kind])}, "
+        f"an import path 'module:Class' or an entry point of group {MODEL_GROUP!r} (is its package installed?)"
+    )
+
+
 def load_model(path: str | os.PathLike[str]) -> AbstractLagrangian:
     """Read a model file written by :func:`save_model`; never unpickles arbitrary objects.
 
@@ -122,12 +140,12 @@ def load_model(path: str | os.PathLike[str]) -> AbstractLagrangian:
         raise ModelFileError(
             f"{path}: format version {rec.get('format_version')!r}; this latticedft reads version {FORMAT_VERSION}"
         )
-    kind = rec.get("kind")
-    kinds: dict[str, Callable[..., AbstractLagrangian]] = {**MODELS, EnsembleLagrangian.kind: EnsembleLagrangian}
-    if kind not in kinds:
-        raise ModelFileError(f"{path}: unknown model kind {kind!r}; expected one of {sorted(kinds)}")
+    build = _kind(path, rec.get("kind"))
+    options = rec.get("options")
+    if build is EnsembleLagrangian and isinstance(options, dict) and isinstance(options.get("model"), dict):
+        _kind(path, options["model"].get("kind"))  # the members' kind
     try:
-        model = kinds[kind](**rec["options"], stencil=Stencil(rec["stencil"]))
+        model = build(**rec["options"], stencil=Stencil(rec["stencil"]))
         comps = tuple(rec["components"]) if rec.get("components") else None
         model.bind(int(rec["n"]), int(rec["m"]), tuple(rec["spacing"]), comps)
         state = rec["state_dict"]

@@ -99,10 +99,11 @@ def _spec(model: AbstractLagrangian, change: Mapping[str, Any], ridge: Any) -> t
     defaults)."""
     change = dict(change)
     new_ridge = change.pop("ridge", ridge)
-    kind = change.pop("kind", model.kind)
+    own = MODELS.name_of(model)
+    kind = change.pop("kind", own)
     if kind not in MODELS:
         raise InputError.at("candidates", f"unknown model kind {kind!r} (expected one of {sorted(MODELS)})")
-    options = {**(model.options() if kind == model.kind else {}), **change}
+    options = {**(model.options() if kind == own else {}), **change}
     if options.get("preset") is not None:  # a preset (an MLP's) fills the rest; keep only what was set
         options = {k: v for k, v in options.items() if k == "preset" or k in change}
     return kind, options, new_ridge

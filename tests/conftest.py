@@ -25,3 +25,7 @@ def _seed():
     torch.manual_seed(0)
     np.random.seed(0)
     yield
+
+
+#: A package that extends latticedft through entry points, put on sys.path by the tests that use it only.
+collect_ignore = ["plugins"]

@@ -1,12 +1,17 @@
 """What an extension costs, counted by adding a throwaway one.
 
-Each section adds one kind of extension the way docs/design.md says to, inside a test, and checks that it
-works end to end.
+Each section adds one kind of extension the way docs/design.md ("Extending latticedft") says to, inside a
+test, and checks that it works end to end:
 
-A model kind is one file plus one registry line: the class below (in a package it would be its own module)
-and ``MODELS[kind] = TheClass``. Nothing else in the package names it, yet a case selects it, validates its
-options, checks its size against the memory, tries its ``select = "auto"`` candidates, trains it, and writes and
-reads its model file.
+- a model kind is one file plus one registry line: the class below (in a package it would be its own module)
+  and ``MODELS[kind] = TheClass``. Nothing else in the package names it, yet a case selects it, validates its
+  options, checks its size against the memory, tries its ``select = "auto"`` candidates, trains it, and writes
+  and reads its model file;
+- a boundary kind is one class and its line in ``KINDS``, both in ``latticedft/_boundary.py``;
+- an export format is one module and its lines in ``latticedft/io/exporters.py``;
+- a ``[[serve]]`` key is one field of the serving options.
+
+:class:`_Recipe` records the package's files a recipe touches, so each count is asserted, not just claimed.
 """
 
 from __future__ import annotations
@@ -14,17 +19,21 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
+import numpy as np
 import pytest
 import torch
 
 import latticedft as ldft
-from latticedft import systems
+from latticedft import _boundary, systems
+from latticedft._boundary import BoundaryKind
 from latticedft._case import load_case
-from latticedft.io import write_field
+from latticedft.io import exporters, write_field
+from latticedft.io.exporters import Exporter, ExportTask
 
-from case_helpers import run_cli, write_toml
+from case_helpers import REPO, run_cli, tiny_wave, write_toml
 
 NO_EXPORT = ["--set", "export.figures=false", "--set", "export.paraview=false", "--set", "run.threads=1", "-q"]
 
@@ -119,6 +128,109 @@ def test_a_model_kind_is_one_class_and_one_registry_line(even_well, tmp_path, ca
     assert back.gauge == "unit-mass" and back.n_terms == 1 + back.degree
     again = ldft.load_model(ldft.save_model(back, tmp_path / "again.pt"))
     assert all(torch.equal(a, b) for a, b in zip(again.state_dict().values(), back.state_dict().values()))
+
+
+# -- what a recipe changes --------------------------------------------------------------------------------------
+class _Recipe:
+    """The package's files an extension changes, as a test adds it: the files its code goes into, and the module
+    of each registry it adds a line to (the line added for the test's duration)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self._monkeypatch = monkeypatch
+        self.files: set[str] = set()
+
+    def code_in(self, path: str) -> None:
+        """The extension's code goes into ``path`` (relative to the repository; here it sits in the test)."""
+        self.files.add(path)
+
+    def registry_line(self, module: ModuleType, registry: str, key: str, value: object) -> None:
+        """``module.registry[key] = value``: one line in the module that owns the registry."""
+        self._monkeypatch.setitem(getattr(module, registry), key, value)
+        self.files.add(Path(str(module.__file__)).resolve().relative_to(REPO).as_posix())
+
+
+# -- a boundary kind: its class and its line in KINDS, both in latticedft/_boundary.py ---------------------------
+class Clamped(BoundaryKind):
+    """An axis whose edge sites hold data, by the generic index rules alone (the Dirichlet kind's twin)."""
+
+    name, title, given_edges = "clamped", "clamped", True
+
+    def cells(self, n: int, width: int) -> int:
+        return n - width
+
+    def sites(self, index: np.ndarray, n: int) -> np.ndarray:
+        return index
+
+    def interior(self, n: int, width: int) -> slice:
+        return slice(width, n - width)
+
+
+def test_a_boundary_kind_is_one_class_and_one_registry_line(tmp_path, capsys, monkeypatch):
+    case = tiny_wave(tmp_path)
+    with pytest.raises(ldft.ConfigError, match="serve\\[0\\].boundary: expected 'dirichlet' or 'periodic'"):
+        load_case(case, ["serve.test.boundary=clamped"])  # not a kind before it is registered
+
+    recipe = _Recipe(monkeypatch)
+    recipe.code_in("latticedft/_boundary.py")  # the class
+    recipe.registry_line(_boundary, "KINDS", "clamped", Clamped())
+    assert recipe.files == {"latticedft/_boundary.py"}  # one file of code (target: 2), plus its docs row
+
+    with pytest.raises(ldft.ConfigError, match="expected 'dirichlet' or 'periodic' or 'clamped'"):
+        load_case(case, ["serve.test.boundary=clamp"])  # every vocabulary is read from the registry
+    code, _, err = run_cli(
+        capsys, "check", case, "--set", "serve.test.boundary=clamped", "--set", "serve.test.slices=50"
+    )
+    assert code == 1 and "50 slices need the clamped strips along 'x'" in err  # its edges are data
+
+    fields = {}
+    for kind in ("clamped", "dirichlet"):
+        out = tmp_path / kind
+        code, _, err = run_cli(capsys, "run", case, "--out", out, "--set", f"serve.test.boundary={kind}", *NO_EXPORT)
+        assert code == 0, err
+        fields[kind] = ldft.io.read_field(out / "test.nc")
+    assert np.array_equal(fields["clamped"].values, fields["dirichlet"].values)  # the generic rules serve it
+
+    u0 = np.sin(np.pi * np.linspace(0.0, 1.0, 9))
+    clamped = systems.leapfrog(u0, u0, 6, 0.05, 1 / 8, boundary="clamped")
+    assert np.array_equal(clamped, systems.leapfrog(u0, u0, 6, 0.05, 1 / 8, boundary="dirichlet"))
+
+
+# -- an export format: its module (latticedft/io/<format>.py) and its lines in latticedft/io/exporters.py --------
+class CsvExporter(Exporter):
+    """``<task>.csv``: the served field, one row per time slice."""
+
+    name = "csv"
+    summary = "the served field as comma-separated values, one row per slice"
+
+    def write(self, task: ExportTask) -> list[Path]:
+        path = task.folder / f"{task.name}.csv"
+        values = np.asarray(task.field.values, dtype=float)
+        np.savetxt(path, values.reshape(values.shape[0], -1), delimiter=",")
+        return [path]
+
+
+def test_an_export_format_is_one_module_and_its_registry_lines(tmp_path, capsys, monkeypatch):
+    case = tiny_wave(tmp_path)
+    recipe = _Recipe(monkeypatch)
+    recipe.code_in("latticedft/io/csv.py")  # the exporter
+    recipe.registry_line(exporters, "EXPORTERS", "csv", f"{__name__}:{CsvExporter.__qualname__}")
+    recipe.registry_line(exporters, "EXPORT_FILES", "csv", ("{name}.csv",))
+    assert recipe.files == {"latticedft/io/csv.py", "latticedft/io/exporters.py"}  # two files (target: 2)
+
+    code, _, err = run_cli(capsys, "check", case, "--set", 'export.formats=["cvs"]')
+    assert code == 1 and "export.formats: unknown format 'cvs'; did you mean 'csv'?" in err
+    out = tmp_path / "out"
+    code, _, err = run_cli(capsys, "run", case, "--out", out, "--set", 'export.formats=["csv"]', "-q")
+    assert code == 0, err
+    served = ldft.io.read_field(out / "test.nc")
+    assert np.array_equal(np.loadtxt(out / "test.csv", delimiter=",", ndmin=2), served.values.reshape(30, -1))
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["tasks"]["test"]["exports"] == ["test.csv"]  # recorded, so a later export replaces exactly it
+
+    code, _, err = run_cli(capsys, "export", case, "--out", out, "--set", 'export.formats=["figures"]')
+    assert code == 0, err
+    assert not (out / "test.csv").exists() and (out / "test.png").is_file()
+    assert "test.csv" in exporters.export_file_names("test", 30)  # the file-name checks know its files
 
 
 # ---------------------------------------------------------------------------------------------------------

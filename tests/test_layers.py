@@ -154,15 +154,10 @@ DEFERRED_MODULES: dict[tuple[str, str], str] = {
     ("latticedft.io", "latticedft.io.figures"): "a public attribute loaded on first use: matplotlib",
     ("latticedft.io", "latticedft.io.xdmf"): "a public attribute loaded on first use: meshio and h5py",
     ("latticedft._results._files", "latticedft._modelfile"): "torch, only when a model file is read or written",
-    ("latticedft._models._ensemble", "latticedft._models"): "the registry MODELS leaves the package's __init__ "
-    "with the model contract (registered factories), a step of the same change",
 }
 
 #: Import cycles left for now, as sets of modules, and why.
-CYCLES_ALLOWED: dict[frozenset[str], str] = {
-    frozenset({"latticedft._models", "latticedft._models._ensemble"}): "the registry MODELS leaves the package's "
-    "__init__ with the model contract (registered factories), a step of the same change",
-}
+CYCLES_ALLOWED: dict[frozenset[str], str] = {}
 
 
 def _matches(name: str, entry: str) -> bool:

@@ -22,7 +22,7 @@ case.toml: model.kind: unknown model kind 'polynomal'; did you mean 'polynomial'
 
 from __future__ import annotations
 
-from .._boundary import BOUNDARY_KINDS as BOUNDARY_KINDS
+from .._boundary import boundary_kinds as boundary_kinds
 from ._read import load_case as load_case
 from ._read import load_invariant as load_invariant
 from ._read import parse_override as parse_override

@@ -8,7 +8,7 @@ import re
 from collections.abc import Callable
 from typing import Any
 
-from .._boundary import BOUNDARY_KINDS, kinds_text
+from .._boundary import boundary_kinds, kinds_text
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 _DEVICE_RE = re.compile(r"^(cpu|auto|cuda(:\d+)?)$")
@@ -122,16 +122,16 @@ def t_choice(*choices: str) -> Callable[[Any], str]:
 
 
 def t_boundary(v: Any) -> str | dict[str, str]:
-    """A boundary kind of :data:`latticedft._boundary.BOUNDARY_KINDS`, or a table axis -> kind (the axes are
+    """A boundary kind of :func:`latticedft._boundary.boundary_kinds`, or a table axis -> kind (the axes are
     checked against the data when they are read)."""
     if isinstance(v, str):
-        if v not in BOUNDARY_KINDS:
+        if v not in boundary_kinds():
             raise _Bad(f"{kinds_text()}, or a table axis -> kind")
         return v
     if isinstance(v, dict):
         for axis, kind in v.items():
-            if kind not in BOUNDARY_KINDS:
-                raise _Bad(f"a table axis -> kind with kinds {list(BOUNDARY_KINDS)} (axis {axis!r} has {kind!r})")
+            if kind not in boundary_kinds():
+                raise _Bad(f"a table axis -> kind with kinds {list(boundary_kinds())} (axis {axis!r} has {kind!r})")
         return {str(k): str(kind) for k, kind in v.items()}
     raise _Bad(f"{kinds_text()}, or a table axis -> kind")
 

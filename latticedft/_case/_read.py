@@ -17,7 +17,7 @@ from typing import Any
 from .._errors import ConfigError, LatticeDFTError
 from .._models import MODELS
 from .._serve import ServeOptions
-from ..io.exporters import DEFAULT_FORMATS, EXPORTERS
+from ..io.exporters import DEFAULT_FORMATS, format_names, known_format
 from . import _schema
 from ._checks import _Bad, t_ridge, t_stencil, t_str
 from ._schema import (
@@ -225,6 +225,15 @@ def _validate(raw: dict[str, Any], root: Path, file: Path, overrides: tuple[str,
     )
 
 
+def _known_kind(ctx: _Ctx, key: str, kind: str) -> bool:
+    """True when ``kind`` is a registered model kind, or one another package gives (an import path or an entry
+    point, loaded now); a kind that fails to load is an error about ``key``."""
+    try:
+        return kind in MODELS
+    except LatticeDFTError as exc:
+        raise ctx.error(key, exc.problem) from None
+
+
 def _select_config(ctx: _Ctx, value: Any, kind: str) -> str | tuple[dict[str, Any], ...]:
     """``[model] select``: ``"auto"`` or a list of candidate tables (a ``kind``, ``ridge`` and model options)."""
     if value == "auto":
@@ -238,8 +247,8 @@ def _select_config(ctx: _Ctx, value: Any, kind: str) -> str | tuple[dict[str, An
     for i, cand in enumerate(value):
         where = f"model.select[{i}]"
         ckind = ctx.check(f"{where}.kind", t_str, cand.get("kind", kind))
-        if ckind not in MODELS:
-            raise ctx.error(f"{where}.kind", f"unknown model kind {ckind!r}{_closest(ckind, sorted(MODELS))}")
+        if not _known_kind(ctx, f"{where}.kind", ckind):
+            raise ctx.error(f"{where}.kind", f"unknown model kind {ckind!r}{_closest(ckind, MODELS.names())}")
         valid = model_options(ckind)
         checked: dict[str, Any] = {"kind": ckind} if "kind" in cand else {}
         for key, v in cand.items():
@@ -269,10 +278,10 @@ def _model_config(ctx: _Ctx, raw: dict[str, Any]) -> ModelConfig:
     if not isinstance(mraw, dict):
         raise ctx.error("model", f"expected a table [model], got {_describe(mraw)}")
     kind = ctx.check("model.kind", t_str, mraw.get("kind", "polynomial"))
-    if kind not in MODELS:
+    if not _known_kind(ctx, "model.kind", kind):
         raise ctx.error(
             "model.kind",
-            f"unknown model kind {kind!r}{_closest(kind, sorted(MODELS))} (expected one of {sorted(MODELS)})",
+            f"unknown model kind {kind!r}{_closest(kind, MODELS.names())} (expected one of {MODELS.names()})",
         )
     valid = model_options(kind)
     options: dict[str, Any] = {}
@@ -380,6 +389,14 @@ def _serve_options(ctx: _Ctx, s: dict[str, Any], label: str) -> ServeOptions:
         raise ctx.error(f"{label}.{exc.key}" if exc.key else label, exc.problem) from None
 
 
+def _known_format(ctx: _Ctx, fmt: str) -> bool:
+    """True when ``fmt`` is an export format (see :func:`latticedft.io.exporters.known_format`)."""
+    try:
+        return known_format(fmt)
+    except LatticeDFTError as exc:
+        raise ctx.error("export.formats", exc.problem) from None
+
+
 def _export_config(ctx: _Ctx, ex: dict[str, Any]) -> ExportConfig:
     """``formats`` checked against the registry; the aliases ``paraview``/``figures`` add or remove their format.
 
@@ -389,10 +406,10 @@ def _export_config(ctx: _Ctx, ex: dict[str, Any]) -> ExportConfig:
     given = ex["formats"] is not None
     formats = list(ex["formats"]) if given else list(DEFAULT_FORMATS)
     for i, fmt in enumerate(formats):
-        if fmt not in EXPORTERS:
+        if not _known_format(ctx, fmt):
             raise ctx.error(
                 "export.formats",
-                f"unknown format {fmt!r}{_closest(fmt, list(EXPORTERS))} (formats: {', '.join(EXPORTERS)})",
+                f"unknown format {fmt!r}{_closest(fmt, format_names())} (formats: {', '.join(format_names())})",
             )
         if fmt in formats[:i]:
             raise ctx.error("export.formats", f"format {fmt!r} listed twice")

@@ -2,6 +2,8 @@
 
 A new model kind is one class (a subclass of :class:`AbstractLagrangian`, or of :class:`LinearLagrangian`
 when ``L_d`` is linear in its parameters) plus one line in :data:`MODELS` (``MODELS[kind] = TheClass``).
+A kind from another package needs no line: ``[model] kind = "mypkg.models:MyLagrangian"`` or the name of
+its entry point in group ``latticedft.models`` (see :mod:`latticedft._plugins`).
 """
 
 from __future__ import annotations
@@ -19,10 +21,8 @@ from ._mlp import (
     mlp_lagrangian,
 )
 from ._polynomial import PolynomialLagrangian
-from ._registry import ModelKind, ModelRegistry
+from ._registry import MODELS, ModelKind, ModelRegistry
 
-#: ``[model] kind = ...`` in case.toml and model files name these kinds (the key is the models' ``kind``).
-MODELS = ModelRegistry()
 MODELS["polynomial"] = PolynomialLagrangian
 MODELS["mlp"] = ModelKind("mlp", mlp_lagrangian, MLPLagrangian)  # the form option picks the class
 MODELS["features"] = FeatureLagrangian

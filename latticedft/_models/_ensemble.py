@@ -15,6 +15,7 @@ from .._errors import InputError
 from .._stencil import Stencil
 from . import _polynumpy
 from ._polynomial import PolynomialLagrangian
+from ._registry import MODELS
 
 __all__ = ["EnsembleLagrangian", "stacked"]
 
@@ -111,7 +112,11 @@ class EnsembleLagrangian(AbstractLagrangian):
 
     def options(self) -> dict[str, Any]:
         base = self.member(0)
-        return {"model": {"kind": base.kind, "options": base.options()}, "members": len(self), "seed": self.seed}
+        return {
+            "model": {"kind": MODELS.name_of(base), "options": base.options()},
+            "members": len(self),
+            "seed": self.seed,
+        }
 
     def load_state_dict(self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False) -> Any:
         """As ``torch.nn.Module.load_state_dict``, the members' training ranges (buffers made when learned)
@@ -133,8 +138,6 @@ class EnsembleLagrangian(AbstractLagrangian):
 
 def _rebuilt(spec: Mapping[str, Any], stencil: Stencil | None) -> AbstractLagrangian:
     """The member model a model file describes: ``{"kind": ..., "options": {...}}``."""
-    from . import MODELS
-
     kind = spec.get("kind")
     if not isinstance(kind, str) or kind not in MODELS or not isinstance(spec.get("options"), Mapping):
         raise InputError.at("model", f"expected {{'kind': one of {sorted(MODELS)}, 'options': {{...}}}}, got {spec!r}")

@@ -5,6 +5,11 @@ the class whose constructor declares those options and whose class methods answe
 model exists (the option checks and defaults, the memory check's parameter bound). A class is its own factory;
 the ``mlp`` kind's factory picks one of two classes by the ``form`` option.
 
+A name the registry does not hold may come from another package (:mod:`latticedft._plugins`): an import
+path ``"mypkg.models:MyLagrangian"`` or the name of an entry point of group ``latticedft.models``. The
+registry loads it on first use, keeps it under that name, and model files record that name
+(:meth:`ModelRegistry.name_of`), so :func:`latticedft.load_model` finds the kind again.
+
 >>> registry = ModelRegistry()
 >>> from latticedft import PolynomialLagrangian
 >>> registry["polynomial"] = PolynomialLagrangian  # a class: its own factory
@@ -15,12 +20,14 @@ the ``mlp`` kind's factory picks one of two classes by the ``form`` option.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping, MutableMapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 from .._contract import AbstractLagrangian
+from .._errors import InputError
+from .._plugins import MODEL_GROUP, describe, entry_point_names, load
 
-__all__ = ["KindClass", "ModelKind", "ModelRegistry"]
+__all__ = ["KindClass", "ModelKind", "ModelRegistry", "MODELS"]
 
 
 class KindClass(Protocol):
@@ -75,16 +82,45 @@ class ModelRegistry(MutableMapping[str, ModelKind]):
         self._kinds: dict[str, ModelKind] = {}
 
     def __getitem__(self, name: str) -> ModelKind:
-        return self._kinds[name]
+        """The kind ``name``: registered, else loaded from another package (``KeyError`` when none has it;
+        a one-line :class:`InputError` about ``model.kind`` when loading it fails)."""
+        entry = self._kinds.get(name)
+        if entry is None:
+            entry = self._plugin(name)
+        return entry
 
     def __setitem__(self, name: str, entry: ModelKind | type[AbstractLagrangian]) -> None:
-        if not isinstance(entry, ModelKind):
-            if not (isinstance(entry, type) and issubclass(entry, AbstractLagrangian)):
-                raise TypeError(
-                    f"MODELS[{name!r}]: expected a subclass of latticedft.AbstractLagrangian, got {entry!r}"
-                )
-            entry = ModelKind(name, entry, entry)
+        checked = _entry(name, entry)
+        if checked is None:
+            raise TypeError(f"MODELS[{name!r}]: {_EXPECTED}, got {entry!r}")
+        self._kinds[name] = checked
+
+    def _plugin(self, name: str) -> ModelKind:
+        """The kind ``name`` from an import path or an entry point, kept under ``name``; ``KeyError`` if none."""
+        found = load(name, MODEL_GROUP, "model.kind") if isinstance(name, str) else None
+        if found is None:
+            raise KeyError(name)
+        entry = _entry(name, found)
+        if entry is None:
+            raise InputError.at("model.kind", f"{name!r} gives {describe(found)}; {_EXPECTED}")
         self._kinds[name] = entry
+        return entry
+
+    def names(self) -> list[str]:
+        """The kinds a case may name without an import path: those registered and the entry points of the
+        installed packages (none loaded), sorted; for messages about an unknown kind."""
+        return sorted({*self._kinds, *entry_point_names(MODEL_GROUP)})
+
+    def name_of(self, model: AbstractLagrangian) -> str:
+        """The name under which this registry builds ``model``'s kind: its ``kind``, unless the registry holds
+        its very class under another name only (a kind from an import path); what model files record. A
+        subclass of a registered class keeps its own ``kind``: it is never recorded as its base's."""
+        if model.kind in self._kinds:
+            return model.kind
+        for name, entry in self._kinds.items():
+            if entry.model_class is type(model):
+                return name
+        return model.kind
 
     def __delitem__(self, name: str) -> None:
         del self._kinds[name]
@@ -97,3 +133,21 @@ class ModelRegistry(MutableMapping[str, ModelKind]):
 
     def __repr__(self) -> str:
         return f"ModelRegistry({sorted(self._kinds)})"
+
+
+def _entry(name: str, entry: object) -> ModelKind | None:
+    """``entry`` as the registry's entry ``name``: a :class:`ModelKind` (renamed), or a model class as its own
+    factory; ``None`` for anything else."""
+    if isinstance(entry, ModelKind):
+        return entry if entry.name == name else replace(entry, name=name)
+    if isinstance(entry, type) and issubclass(entry, AbstractLagrangian):
+        return ModelKind(name, entry, entry)
+    return None
+
+
+_EXPECTED = "expected a subclass of latticedft.AbstractLagrangian or a latticedft.ModelKind"
+
+
+#: ``[model] kind = ...`` in case.toml and model files name these kinds (the key is the models' ``kind``);
+#: :mod:`latticedft._models` registers the kinds latticedft holds.
+MODELS = ModelRegistry()

@@ -22,6 +22,11 @@ plus its line in :data:`EXPORTERS` and the names of its files in :data:`EXPORT_F
 (``latticedft check`` checks with them that every file of a task fits the file system's limit on
 file names, whichever format a later ``export`` picks).
 
+A format from another package needs no line here: ``formats = ["mypkg.export:MyExporter"]`` (an import
+path) or the name of an entry point of group ``latticedft.exporters`` (:mod:`latticedft._plugins`) names
+its :class:`Exporter` subclass, which lists the names of its files in :attr:`Exporter.files`. It is
+loaded when a case names it, and kept under that name.
+
 >>> sorted(EXPORTERS)
 ['figures', 'paraview', 'xdmf']
 >>> get_exporter("xdmf").name
@@ -41,6 +46,7 @@ from typing import Any, ClassVar
 import xarray as xr
 
 from latticedft._errors import InputError
+from latticedft._plugins import EXPORTER_GROUP, describe, entry_point_names, load
 
 __all__ = [
     "EXPORTERS",
@@ -52,6 +58,8 @@ __all__ = [
     "export_formats",
     "remove_exports",
     "export_file_names",
+    "known_format",
+    "format_names",
     "TEMPORARY_NAME_EXTRA",
 ]
 
@@ -141,6 +149,9 @@ class Exporter:
 
     name: ClassVar[str] = ""
     summary: ClassVar[str] = ""
+    #: The names of the files it may write, as in :data:`EXPORT_FILES` (which holds those of latticedft's own
+    #: formats, so that checking names imports none of them): read for a format from another package.
+    files: ClassVar[tuple[str, ...]] = ()
 
     def write(self, task: ExportTask) -> list[Path]:
         """Write the files of ``task`` into ``task.folder``; return exactly the files written."""
@@ -150,10 +161,45 @@ class Exporter:
         return f"<exporter {self.name!r}>"
 
 
+#: The formats from other packages loaded so far: name (as a case names it) -> :class:`Exporter` subclass.
+_PLUGINS: dict[str, type[Exporter]] = {}
+
+
+def _plugin(name: str) -> type[Exporter] | None:
+    """The exporter class another package gives for ``name`` (loaded now, then kept), or None when none does;
+    a one-line InputError about ``export.formats`` when it fails to load or is no Exporter subclass."""
+    if name not in _PLUGINS:
+        found = load(name, EXPORTER_GROUP, "export.formats")
+        if found is None:
+            return None
+        if not (isinstance(found, type) and issubclass(found, Exporter)):
+            raise InputError.at(
+                "export.formats",
+                f"{name!r} gives {describe(found)}; expected a subclass of latticedft.io.exporters.Exporter",
+            )
+        _PLUGINS[name] = found
+    return _PLUGINS[name]
+
+
+def known_format(name: str) -> bool:
+    """True when ``name`` is an export format: one of :data:`EXPORTERS`, or one another package gives (loaded
+    now; a one-line InputError when it fails to load)."""
+    return name in EXPORTERS or _plugin(name) is not None
+
+
+def format_names() -> list[str]:
+    """The formats a case may name without an import path: :data:`EXPORTERS`, then those of other packages
+    (loaded, or entry points not loaded yet); for messages about an unknown format."""
+    return list(dict.fromkeys([*EXPORTERS, *_PLUGINS, *entry_point_names(EXPORTER_GROUP)]))
+
+
 def get_exporter(name: str) -> Exporter:
     """The exporter of format ``name`` (its module is imported now)."""
     if name not in EXPORTERS:
-        raise InputError(f"unknown export format {name!r} (formats: {', '.join(EXPORTERS)})")
+        plugin = _plugin(name)
+        if plugin is None:
+            raise InputError(f"unknown export format {name!r} (formats: {', '.join(EXPORTERS)})")
+        return plugin()
     module, _, cls = EXPORTERS[name].partition(":")
     exporter = getattr(importlib.import_module(module), cls)()
     if exporter.name != name:  # pragma: no cover - a registry line that names the wrong class
@@ -172,9 +218,17 @@ def export_formats(task: ExportTask, formats: Sequence[str]) -> list[Path]:
     return written
 
 
+def _patterns(fmt: str) -> tuple[str, ...]:
+    """The file names format ``fmt`` may write (see :data:`EXPORT_FILES`)."""
+    if fmt in EXPORT_FILES:
+        return EXPORT_FILES[fmt]
+    cls = _plugin(fmt)
+    return cls.files if cls is not None else ()
+
+
 def export_file_names(name: str, slices: int, formats: Iterable[str] | None = None) -> list[str]:
-    """The names of every file the formats (default: every registered one) may write for task ``name`` of
-    ``slices`` time slices.
+    """The names of every file the formats (default: every registered one, and those loaded from other
+    packages) may write for task ``name`` of ``slices`` time slices.
 
     >>> export_file_names("test", 401, ["paraview"])[:2]
     ['test.pvd', 'test_0400.vtr']
@@ -182,9 +236,9 @@ def export_file_names(name: str, slices: int, formats: Iterable[str] | None = No
     last = max(int(slices), 1) - 1
     frame = f"{last:0{max(4, len(str(last)))}d}"  # the longest frame name: the last slice's
     names: list[str] = []
-    for fmt in EXPORTERS if formats is None else formats:
+    for fmt in [*EXPORTERS, *_PLUGINS] if formats is None else formats:
         names += [
-            p.format(name=name, frame=frame) for p in EXPORT_FILES[fmt] if p.format(name=name, frame=frame) not in names
+            p.format(name=name, frame=frame) for p in _patterns(fmt) if p.format(name=name, frame=frame) not in names
         ]
     return names
 

@@ -25,7 +25,7 @@ import numpy as np
 import xarray as xr
 from numpy.typing import ArrayLike, NDArray
 
-from latticedft._boundary import BOUNDARY_KINDS, KINDS, BoundaryKind, spatial_kind
+from latticedft._boundary import KINDS, BoundaryKind, boundary_kinds, spatial_kind
 from latticedft._errors import InputError
 from latticedft._layout import PERIODIC_ATTR, periodic_attr
 from latticedft.systems._fields import (
@@ -155,7 +155,7 @@ def _leapfrog_args(
     bvals = None
     if boundary_values is not None:
         if not kind.given_edges:
-            framed = " or ".join(f"boundary={k!r}" for k in BOUNDARY_KINDS if KINDS[k].given_edges)
+            framed = " or ".join(f"boundary={k!r}" for k in boundary_kinds() if KINDS[k].given_edges)
             raise InputError.at("boundary_values", f"only used with {framed}")
         bvals = _as_real_array(boundary_values, "boundary_values")
         if bvals.shape != (steps + 1, *u0.shape):
