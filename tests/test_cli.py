@@ -336,3 +336,26 @@ def test_unknown_model_kind_suggests(tmp_path: Path, capsys) -> None:
     assert code == 1
     _one_line_error(err, "model.kind", "did you mean 'polynomial'")
     shutil.rmtree(case)
+
+
+def test_strict_turns_warnings_into_status_4(tmp_path: Path, capsys) -> None:
+    """cases/wave warns (its test wave leaves the training range): 0 as usual, 4 with --strict or
+    [run] strict = true, the results published either way and marked."""
+    import shutil
+
+    case = tmp_path / "wave"
+    shutil.copytree(
+        Path(__file__).resolve().parents[1] / "cases" / "wave", case, ignore=shutil.ignore_patterns("results*")
+    )
+    text = (case / "case.toml").read_text().replace("[export]\n", "[export]\nformats = []\n", 1)
+    (case / "case.toml").write_text(text)
+    code, _, err = run_cli(capsys, "run", case, "-q")
+    assert code == 0 and "extrapolation" in err
+    assert json.loads((case / "results" / "summary.json").read_text())["strict"] is False
+    code, _, err = run_cli(capsys, "run", case, "-q", "--overwrite", "--strict")
+    summary = json.loads((case / "results" / "summary.json").read_text())
+    assert code == 4 and summary["exit_status"] == 4 and summary["strict"] is True and summary["warnings"]
+    assert "strict: 1 warning(s)" in err and "exit status 4" in err
+    (case / "case.toml").write_text(text + "\n[run]\nstrict = true\n")
+    code, _, _ = run_cli(capsys, "serve", case, "-q")
+    assert code == 4 and json.loads((case / "results" / "summary.json").read_text())["exit_status"] == 4

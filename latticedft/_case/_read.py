@@ -210,7 +210,7 @@ def _validate(raw: dict[str, Any], root: Path, file: Path, overrides: tuple[str,
     train_cfg = _train_config(ctx, raw, root)
     tasks = _serve_tasks(ctx, raw, root)
     rn = _table(ctx, raw, "run", SCHEMA["run"])
-    run_cfg = RunConfig(threads=rn["threads"] or DEFAULT_THREADS, device=rn["device"])
+    run_cfg = RunConfig(threads=rn["threads"] or DEFAULT_THREADS, device=rn["device"], strict=rn["strict"])
     export_cfg = _export_config(ctx, _table(ctx, raw, "export", SCHEMA["export"]))
     return Case(
         root=root,

@@ -80,6 +80,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
     "run": {
         "threads": (t_threads, None),
         "device": (t_device, "cpu"),
+        "strict": (t_bool, False),
     },
     "export": {
         "formats": (t_str_list, None),  # None: latticedft.io.exporters.DEFAULT_FORMATS
@@ -231,6 +232,8 @@ class RunConfig:
     #: where training and serving evaluate the model (``learn``/``serve``'s ``device``); the command line
     #: replaces a CUDA request it cannot honour by ``"cpu"`` (one warning)
     device: str = "cpu"
+    #: warnings (a poor or degenerate fit, extrapolation, an inaccurate task ...) make the exit status 4
+    strict: bool = False
 
 
 @dataclass(frozen=True)

@@ -46,7 +46,8 @@ SUBCOMMANDS = {
 EXIT_STATUSES = (
     "exit status: 0 every stage and task completed; 1 bad input (one line names the key or file; nothing "
     "written); 2 a usage error (an unknown command or option); 3 a serving task stopped part-way (its "
-    "partial field is written); 130 interrupted (Ctrl-C, SIGINT) and 143 terminated (SIGTERM): nothing "
+    "partial field is written); 4 with --strict ([run] strict): a warning (poor fit, extrapolation, an "
+    "inaccurate task ...), results published; 130 interrupted (Ctrl-C, SIGINT) and 143 terminated (SIGTERM): nothing "
     "published."
 )
 

@@ -31,7 +31,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("latticedft")
 
 #: exit statuses (SIGINT: 130, SIGTERM: 143, as a shell reports a process stopped by the signal)
-OK, BAD_INPUT, INCOMPLETE, INTERRUPTED, TERMINATED = 0, 1, 3, 130, 143
+OK, BAD_INPUT, INCOMPLETE, WARNED, INTERRUPTED, TERMINATED = 0, 1, 3, 4, 130, 143
 
 
 class Terminated(BaseException):
@@ -94,6 +94,12 @@ def command_line(argv: list[str]) -> str:
 
 def add_device_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument(
+        "--strict",
+        action="store_true",
+        help="any warning (a poor or degenerate fit, extrapolation, an inaccurate task ...) makes the exit "
+        "status 4, the results still published; the same as --set run.strict=true",
+    )
+    p.add_argument(
         "--device",
         metavar="DEVICE",
         help="where the model computes: cpu, cuda, cuda:N or auto (cuda when available); the same as "
@@ -106,6 +112,8 @@ def open_case(args: argparse.Namespace) -> Case:
 
     device = getattr(args, "device", None)
     extra = [f"run.device={json.dumps(device)}"] if device is not None else []
+    if getattr(args, "strict", False):
+        extra.append("run.strict=true")
     case = load_case(args.case, [*args.overrides, *extra])
     log.debug("case %s, overrides %s", case.root, list(case.overrides))
     return case

@@ -19,7 +19,7 @@ from .._errors import InputError
 from .._results import config_attrs, export_task, read_summary, read_task, write_model, write_summary, write_task
 from .._run import CaseData, TaskOutcome, serve_task, train_model
 from ..io.exporters import remove_exports
-from ._common import INCOMPLETE, OK, command_line
+from ._common import INCOMPLETE, OK, WARNED, command_line
 
 if TYPE_CHECKING:
     from .._contract import AbstractLagrangian
@@ -146,19 +146,27 @@ def export_one(
     return files
 
 
-def finish(folder: Path, summary: dict[str, Any]) -> int:
+def finish(folder: Path, summary: dict[str, Any], *, strict: bool = False) -> int:
     """Write ``summary.json`` with the exit status and every warning of the stage (``warnings``: the
-    training's, then each task's as ``"task <name>: ..."``); returns the exit status."""
+    training's, then each task's as ``"task <name>: ..."``); returns the exit status: 3 when a task stopped
+    part-way, else with ``strict`` 4 when there is any warning, else 0."""
     incomplete = [n for n, t in summary.get("tasks", {}).items() if not t.get("complete")]
-    status = INCOMPLETE if incomplete else OK
     train = summary.get("train")
     summary["warnings"] = [
         *((train.get("warnings") or []) if isinstance(train, dict) else []),
         *(f"task {n}: {w}" for n, t in summary.get("tasks", {}).items() for w in t.get("warnings") or []),
     ]
+    status = INCOMPLETE if incomplete else (WARNED if strict and summary["warnings"] else OK)
     summary["incomplete_tasks"] = incomplete
+    summary["strict"] = strict
     summary["exit_status"] = status
     write_summary(folder, summary)
     if incomplete:
         log.warning("incomplete task(s): %s (partial fields written); exit status %d", ", ".join(incomplete), status)
+    elif status == WARNED:
+        log.warning(
+            "strict: %d warning(s), see above; exit status %d (the results are published)",
+            len(summary["warnings"]),
+            status,
+        )
     return status

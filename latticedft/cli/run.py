@@ -55,7 +55,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
             tasks = serve_into(folder, case, data, model, argv)
             summary = summary_head(case, argv, "run")
             summary.update(train=train, tasks=tasks, wall_time=time.perf_counter() - t0)
-            status = finish(folder, summary)
+            status = finish(folder, summary, strict=case.run.strict)
             log.debug("all stages done in %.1f s; publishing %s", time.perf_counter() - t0, dest)
     log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)  # once published, never before
     return status

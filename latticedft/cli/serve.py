@@ -50,6 +50,6 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
             tasks = serve_into(folder, case, data, model, argv)
             summary = summary_head(case, argv, "serve")
             summary.update(train=old.get("train"), tasks=tasks, wall_time=time.perf_counter() - t0)
-            status = finish(folder, summary)
+            status = finish(folder, summary, strict=case.run.strict)
     log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
     return status

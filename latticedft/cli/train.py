@@ -53,6 +53,6 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
             _workers.leave()  # the other ranks are done: writing the results is rank 0's alone
             summary = summary_head(case, argv, "train")
             summary.update(train=train, tasks={}, wall_time=time.perf_counter() - t0)
-            status = finish(folder, summary)
+            status = finish(folder, summary, strict=case.run.strict)
     log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
     return status
