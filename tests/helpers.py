@@ -49,3 +49,30 @@ def leapfrog_of(field: xr.DataArray, c: float = 1.0, boundary: str = "dirichlet"
     dt = float(field[field.dims[0]][1] - field[field.dims[0]][0])
     kw = {"boundary_values": v} if boundary == "dirichlet" else {}
     return np.asarray(systems.leapfrog(v[0], v[1], v.shape[0] - 1, dt, spacing, c=c, boundary=boundary, **kw))
+
+
+def on_a_terminal(argv: list[str], env: dict[str, str], columns: int = 100) -> tuple[int, str]:
+    """Run ``argv`` with its stderr on a pseudo-terminal ``columns`` wide (a new one is 0 wide: progress bars
+    would draw nothing); its exit status and what it wrote there. Unix only."""
+    import fcntl
+    import os
+    import struct
+    import subprocess
+    import termios
+
+    master, slave = os.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, columns, 0, 0))
+    proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=slave, env=env)
+    os.close(slave)
+    chunks = []
+    while True:
+        try:
+            data = os.read(master, 4096)
+        except OSError:  # the child closed the terminal
+            break
+        if not data:
+            break
+        chunks.append(data)
+    proc.wait(timeout=300)
+    os.close(master)
+    return proc.returncode, b"".join(chunks).decode()

@@ -70,29 +70,9 @@ def _loaded_full(code: str) -> set[str]:
 
 @pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs a pseudo-terminal")
 def test_first_line_at_once_on_a_terminal(tmp_path: Path) -> None:
-    import pty  # noqa: F401  (Unix only)
+    from helpers import on_a_terminal
 
-    master, slave = os.openpty()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "latticedft", "check", str(tmp_path / "missing")],
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
-        stderr=slave,
-        env=ENV,
-    )
-    os.close(slave)
-    chunks = []
-    while True:
-        try:
-            data = os.read(master, 4096)
-        except OSError:  # the child closed the terminal
-            break
-        if not data:
-            break
-        chunks.append(data)
-    proc.wait(timeout=300)
-    os.close(master)
-    text = b"".join(chunks).decode()
-    assert proc.returncode == 1
+    code, text = on_a_terminal([sys.executable, "-m", "latticedft", "check", str(tmp_path / "missing")], ENV)
+    assert code == 1
     assert text.startswith("latticedft: loading torch and xarray ...\r\x1b[K"), text
     assert text.split("\x1b[K", 1)[1].strip().startswith("latticedft: error:")  # the one error line after it

@@ -57,29 +57,10 @@ def test_the_progress_bar_shows_on_a_terminal_and_not_in_a_pipe() -> None:
         ldft.serve(model, systems.oscillator_sin(-0.6))
         """
     )
-    import fcntl
-    import struct
-    import termios
+    from helpers import on_a_terminal
 
-    master, slave = os.openpty()
-    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))  # a new pty is 0 columns wide
-    proc = subprocess.Popen(
-        [sys.executable, "-c", script], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=slave, env=ENV
-    )
-    os.close(slave)
-    chunks = []
-    while True:
-        try:
-            data = os.read(master, 4096)
-        except OSError:  # the child closed the terminal
-            break
-        if not data:
-            break
-        chunks.append(data)
-    proc.wait(timeout=300)
-    os.close(master)
-    tty = b"".join(chunks).decode()
-    assert proc.returncode == 0, tty
+    code, tty = on_a_terminal([sys.executable, "-c", script], ENV)
+    assert code == 0, tty
     assert "serve (newton" in tty and "/49 [" in tty and "\r" in tty, tty  # drawn in place, then cleared
     piped = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=ENV, timeout=300)
     assert piped.returncode == 0 and piped.stderr == "", piped.stderr

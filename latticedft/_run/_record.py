@@ -11,6 +11,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from .._serve._result import RUN_KEYS
+
 __all__ = ["RELATIVE_ERROR_LIMIT", "SERVED_KEYS", "TaskRecord", "accuracy_warning"]
 
 #: A complete task whose relative error exceeds this is warned about: off by more than half the reference's
@@ -19,22 +21,7 @@ __all__ = ["RELATIVE_ERROR_LIMIT", "SERVED_KEYS", "TaskRecord", "accuracy_warnin
 RELATIVE_ERROR_LIMIT = 0.5
 
 #: The keys of :meth:`latticedft.ServeResult.to_dict` a task record starts with, in their order.
-SERVED_KEYS = (
-    "complete",
-    "reason",
-    "slices",
-    "newton_iterations",
-    "max_newton_iterations",
-    "wall_time",
-    "sites_per_second",
-    "max_residual",
-    "mode",
-    "solver",
-    "device",
-    "slice_solver",
-    "extrapolation",
-    "warnings",
-)
+SERVED_KEYS = (*RUN_KEYS, "extrapolation", "warnings")
 
 
 @dataclass

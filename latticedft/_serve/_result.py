@@ -14,6 +14,23 @@ from .._errors import InputError
 from .._progress import progress_bar
 from ._range import extrapolation_summary
 
+#: The figures of a serving run that :meth:`ServeResult.to_dict` starts with, in their order (then the
+#: extrapolation summary and the warnings).
+RUN_KEYS = (
+    "complete",
+    "reason",
+    "slices",
+    "newton_iterations",
+    "max_newton_iterations",
+    "wall_time",
+    "sites_per_second",
+    "max_residual",
+    "mode",
+    "solver",
+    "device",
+    "slice_solver",
+)
+
 
 @dataclass
 class ServeResult:
@@ -60,23 +77,7 @@ class ServeResult:
 
     def to_dict(self) -> dict[str, Any]:
         """The numbers of the result (not the field): what ``summary.json`` records of a task."""
-        out = {
-            k: getattr(self, k)
-            for k in (
-                "complete",
-                "reason",
-                "slices",
-                "newton_iterations",
-                "max_newton_iterations",
-                "wall_time",
-                "sites_per_second",
-                "max_residual",
-                "mode",
-                "solver",
-                "device",
-                "slice_solver",
-            )
-        }
+        out = {k: getattr(self, k) for k in RUN_KEYS}
         out["extrapolation"] = self.extrapolation_summary()
         out["warnings"] = list(self.warnings)
         if self.members is not None:
