@@ -72,7 +72,9 @@ def main(argv: list[str] | None = None) -> int:
         help=f"run only these benchmarks (repeat or comma-separate): {', '.join(mods)}",
     )
     p.add_argument("--out", type=Path, help="folder for results.json, results.md and figures")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1; the machine is shared)")
+    p.add_argument(
+        "--threads", type=int, default=1, help="threads of torch and BLAS/OpenMP (default 1; the machine is shared)"
+    )
     p.add_argument(
         "--profile",
         action="store_true",
@@ -95,10 +97,10 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [n for n in only if n not in mods]
     if unknown:
         p.error(f"unknown benchmark {unknown[0]!r}; choose from {', '.join(mods)}")
-    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    import torch
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))  # for the probes' fresh processes
+    import latticedft
 
-    torch.set_num_threads(args.threads)
+    latticedft.limit_threads(args.threads)  # torch and every BLAS/OpenMP pool of this process
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
     cfg = Config(

@@ -1,6 +1,6 @@
 """Torch threads under load: each solver with 1 and 2 threads, on an idle machine and beside a busy process.
 
-    python -m benchmarks.threads [--quick] [--repeat N] [--threads 1,2]
+    python -m benchmarks.threads [--quick] [--repeat N] [--only NAMES] [--policy]
 
 For every thread count and load (``idle``: nothing added; ``busy``: one extra ``python -c "while True: pass"``
 process, started before and killed after), a fresh Python (``OMP_NUM_THREADS`` and ``torch.set_num_threads``
@@ -12,6 +12,12 @@ the default of ``[run] threads`` was chosen (docs/performance.md, *Threads under
 Workloads (small and large lattices): the affine recurrence, slice-Newton and the site-by-site sweep of
 1+1D serving (the wave ``L_d``), a batch of 1D Kepler orbits, the exact polynomial solve, L-BFGS training
 of a neural ``L_d`` (double backward), and the ``cases/wave`` case's own serving task.
+
+``--policy`` compares the two thread policies instead, one thread each, idle and busy: ``torch`` bounds only
+torch's pool (``torch.set_num_threads(1)``, no ``OMP_NUM_THREADS``: numpy's BLAS keeps a thread per core, as
+before ``[run] threads`` went through ``latticedft.limit_threads``) and ``all`` bounds torch and every
+BLAS/OpenMP pool (``latticedft.limit_threads(1)``). It gives wall and CPU seconds (``time.process_time``,
+all the process's threads) per call, and the ratios torch/all.
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ WORKLOADS = {
     "batch1d-large": "1D Kepler-Verlet, 32 orbits x 100",
     "exact-small": "exact solve, polynomial (4, 8), 3 oscillator fields",
     "exact-large": "exact solve, polynomial (2, 2), membrane 33 x 33 x 41",
+    "exact-dense": "exact solve, polynomial (2, 12) time-symmetric, membrane 33 x 33 x 41",
     "lbfgs-small": "L-BFGS, kinetic-potential MLP [10, 10], 4 KG fields, 20 its",
     "lbfgs-large": "L-BFGS, kinetic-potential MLP [32, 32], 16 KG fields, 20 its",
     "wave-case": "cases/wave: learn (polynomial (2, 2)) and serve test (41 x 401)",
@@ -78,9 +85,11 @@ def _workload(name: str) -> Any:
     if name == "exact-small":
         data = [systems.oscillator_sin(a, n=51) for a in (0.4, 0.8, 1.2)]
         return lambda: ldft.learn(ldft.PolynomialLagrangian(orders=(4, 8)), data)
-    if name == "exact-large":
+    if name in ("exact-large", "exact-dense"):
         data = systems.wave_membrane([(1, 1, 1.0), (2, 1, 0.4)], nx=33, ny=33, nt=41)
-        return lambda: ldft.learn(ldft.PolynomialLagrangian(orders=(2, 2)), data)
+        dense = name == "exact-dense"
+        orders = (2, 12) if dense else (2, 2)
+        return lambda: ldft.learn(ldft.PolynomialLagrangian(orders=orders, time_symmetric=dense), data)
     if name.startswith("lbfgs"):
         small = name.endswith("small")
         data = systems.klein_gordon_training_set(n=4 if small else 16, steps=20, seed=0)
@@ -123,6 +132,79 @@ def _seconds_per_call(fn: Any) -> float:
     return best
 
 
+def _wall_and_cpu_per_call(fn: Any) -> list[float]:
+    """Wall and CPU seconds of one call of ``fn``: the batch of least wall time of three, after a warm-up."""
+    t0 = time.perf_counter()
+    fn()
+    reps = max(1, int(MIN_BATCH_S / max(time.perf_counter() - t0, 1e-6)))
+    best = [float("inf"), float("inf")]
+    for _ in range(3):
+        t0, c0 = time.perf_counter(), time.process_time()
+        for _ in range(reps):
+            fn()
+        wall, cpu = (time.perf_counter() - t0) / reps, (time.process_time() - c0) / reps
+        best = min(best, [wall, cpu])
+    return best
+
+
+def policy_child(policy: str, names: list[str]) -> dict[str, list[float]]:
+    """In the measuring process: wall and CPU seconds per call of each workload under ``policy``."""
+    import torch
+
+    import latticedft as ldft
+
+    if policy == "all":
+        ldft.limit_threads(1)
+    else:
+        torch.set_num_threads(1)
+    return {name: _wall_and_cpu_per_call(_workload(name)) for name in names}
+
+
+def _measure_policy(policy: str, busy: bool, names: list[str]) -> dict[str, list[float]]:
+    drop = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+    env = {k: v for k, v in os.environ.items() if k not in drop} | {"PYTHONPATH": str(ROOT)}
+    load = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "benchmarks.threads", "--policy-child", policy, ",".join(names)],
+            cwd=ROOT,
+            env=env,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+    finally:
+        if load is not None:
+            load.kill()
+            load.wait()
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _print_table(cols: list[str], rows: list[list[str]]) -> None:
+    widths = [max(len(str(x)) for x in col) for col in zip(cols, *rows)]
+    for j, row in enumerate([cols, *rows]):
+        print("  ".join(str(c).ljust(w) if k == 0 else str(c).rjust(w) for k, (c, w) in enumerate(zip(row, widths))))
+        if j == 0:
+            print("  ".join("-" * w for w in widths))
+
+
+def policy_table(names: list[str]) -> None:
+    """Wall and CPU seconds per call with torch's threads bounded alone and with every pool bounded."""
+    t0 = time.perf_counter()
+    got = {(pol, busy): _measure_policy(pol, busy, names) for busy in (False, True) for pol in ("torch", "all")}
+    for busy in (False, True):
+        load = "busy" if busy else "idle"
+        cols = ["workload", "torch wall", "all wall", "wall torch/all", "torch CPU", "all CPU", "CPU torch/all"]
+        rows = []
+        for n in names:
+            (tw, tc), (aw, ac) = got["torch", busy][n], got["all", busy][n]
+            rows.append(
+                [WORKLOADS[n], f"{tw:.3f}", f"{aw:.3f}", f"{tw / aw:.2f}", f"{tc:.3f}", f"{ac:.3f}", f"{tc / ac:.2f}"]
+            )
+        print(f"\n== thread policy, {load}: seconds per call, one thread ({time.perf_counter() - t0:.0f} s so far)")
+        _print_table(cols, rows)
+
+
 def child(threads: int, names: list[str]) -> dict[str, float]:
     """In the measuring process: seconds per call of each workload."""
     import torch
@@ -162,16 +244,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help=f"only the small workloads {', '.join(QUICK)}")
     p.add_argument("--repeat", type=int, default=1, help="runs of the whole table (default 1)")
     p.add_argument("--only", default="", help="comma-separated workloads (default: all)")
+    p.add_argument("--policy", action="store_true", help="torch's threads bounded alone vs every pool bounded")
     p.add_argument("--child", nargs=2, metavar=("THREADS", "NAMES"), help=argparse.SUPPRESS)
+    p.add_argument("--policy-child", nargs=2, metavar=("POLICY", "NAMES"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
         print(json.dumps(child(int(args.child[0]), args.child[1].split(","))))
+        return 0
+    if args.policy_child:
+        print(json.dumps(policy_child(args.policy_child[0], args.policy_child[1].split(","))))
         return 0
     names = [n for n in args.only.split(",") if n] or (list(QUICK) if args.quick else list(WORKLOADS))
     unknown = [n for n in names if n not in WORKLOADS]
     if unknown:
         p.error(f"unknown workloads {unknown}; choose from {', '.join(WORKLOADS)}")
     print(f"cores: {os.cpu_count()}; before: {_uptime()}", flush=True)
+    if args.policy:
+        for _ in range(args.repeat):
+            policy_table(names)
+            print(f"after: {_uptime()}", flush=True)
+        return 0
     for r in range(args.repeat):
         t0 = time.perf_counter()
         got = {(k, busy): _measure(k, busy, names) for busy in (False, True) for k in (1, 2)}
@@ -182,14 +274,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(
                 [WORKLOADS[n], f"{i1:.3f}", f"{i2:.3f}", f"{i2 / i1:.2f}", f"{b1:.3f}", f"{b2:.3f}", f"{b2 / b1:.2f}"]
             )
-        widths = [max(len(str(x)) for x in col) for col in zip(cols, *rows)]
         print(f"\n== run {r + 1} of {args.repeat}: seconds per call ({time.perf_counter() - t0:.0f} s)")
-        for j, row in enumerate([cols, *rows]):
-            print(
-                "  ".join(str(c).ljust(w) if k == 0 else str(c).rjust(w) for k, (c, w) in enumerate(zip(row, widths)))
-            )
-            if j == 0:
-                print("  ".join("-" * w for w in widths))
+        _print_table(cols, rows)
         print(f"after: {_uptime()}", flush=True)
     return 0
 

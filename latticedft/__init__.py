@@ -51,6 +51,7 @@ _PUBLIC: dict[str, str] = {
     "PolynomialLagrangian": "._models",
     "get_options": "._options",
     "set_options": "._options",
+    "limit_threads": "._threads",
     "DiscoveryReport": "._noether",
     "Symmetry": "._noether",
     "SymmetryReport": "._noether",
@@ -153,5 +154,6 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._serve import invariant_vs_time as invariant_vs_time
     from ._serve import serve as serve
     from ._stencil import Stencil as Stencil
+    from ._threads import limit_threads as limit_threads
 
     __version__: str

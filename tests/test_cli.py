@@ -151,7 +151,7 @@ def test_version_and_verbosity(tmp_path: Path, capsys) -> None:
     assert code == 0 and out.strip() == f"latticedft {latticedft.__version__}"
     case = tiny_wave(tmp_path)
     _, _, err_v = run_cli(capsys, "train", case, "-v")
-    assert "torch threads: 1" in err_v  # DEBUG reaches stderr with -v
+    assert "torch and BLAS/OpenMP threads: 1" in err_v  # DEBUG reaches stderr with -v
     _, _, err_q = run_cli(capsys, "train", case, "-q", "--overwrite")
     assert err_q == ""
 

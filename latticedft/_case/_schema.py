@@ -225,8 +225,8 @@ class ServeTask:
 
 @dataclass(frozen=True)
 class RunConfig:
-    """``[run]``: torch threads (default 1: measured fastest for the cases and far safer on a shared machine;
-    ``python -m benchmarks.threads``, docs/performance.md)."""
+    """``[run]``: threads of torch and the BLAS/OpenMP pools (default 1: measured fastest for the cases and far
+    safer on a shared machine; ``python -m benchmarks.threads``, docs/performance.md)."""
 
     threads: int
     #: where training and serving evaluate the model (``learn``/``serve``'s ``device``); the command line

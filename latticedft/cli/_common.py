@@ -217,10 +217,11 @@ def _show(p: Path) -> str:
 
 
 def set_threads(case: Case) -> None:
-    import torch
+    """Bound torch's threads and the BLAS/OpenMP pools to ``[run] threads`` for the rest of the run."""
+    from .._threads import limit_threads
 
-    torch.set_num_threads(case.run.threads)
-    log.debug("torch threads: %d", case.run.threads)
+    limit_threads(case.run.threads)
+    log.debug("torch and BLAS/OpenMP threads: %d", case.run.threads)
 
 
 def run_device(case: Case) -> Case:

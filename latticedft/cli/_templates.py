@@ -110,7 +110,7 @@ boundary = "dirichlet"          # the ends are held at the values of data/test.n
 invariant = "latticedft.systems:wave_energy"   # an energy over t; its drift goes to results/summary.json
 
 [run]
-threads = 1                     # torch threads (one is fastest for small cases and on shared machines)
+threads = 1                     # torch and BLAS threads (one is fastest for small cases and shared machines)
 
 [export]
 formats = ["paraview", "figures"]   # per task: a ParaView time series and a PNG ([]: none; "xdmf": large runs)
@@ -155,7 +155,7 @@ slices = 51                     # time slices served, the two initial ones inclu
 charges = ["energy"]            # the learned L_d's discrete energy over t: its drift is drawn in test.png
 
 [run]
-threads = 1                     # torch threads (one is fastest for small cases and on shared machines)
+threads = 1                     # torch and BLAS threads (one is fastest for small cases and shared machines)
 
 [export]
 formats = ["paraview", "figures"]   # per task: a ParaView time series and a PNG ([]: none)
@@ -201,7 +201,7 @@ box = 10.0                      # an orbit that leaves |x|, |y| <= 10 stops ther
 charges = ["rotation-xy", "energy"]   # angular momentum and energy over t: their drift is drawn in test.png
 
 [run]
-threads = 1                     # torch threads (one is fastest for small cases and on shared machines)
+threads = 1                     # torch and BLAS threads (one is fastest for small cases and shared machines)
 
 [export]
 formats = ["paraview", "figures"]   # per task: ParaView polylines and a PNG ([]: none)
@@ -247,7 +247,7 @@ boundary = "dirichlet"          # the frame is held at the values of data/test.n
 invariant = "latticedft.systems:wave_energy"   # an energy over t; its drift goes to results/summary.json
 
 [run]
-threads = 1                     # torch threads (one is fastest for small cases and on shared machines)
+threads = 1                     # torch and BLAS threads (one is fastest for small cases and shared machines)
 
 [export]
 formats = ["paraview", "figures"]   # per task: a ParaView time series and a PNG ([]: none; "xdmf": large runs)
