@@ -121,6 +121,22 @@ def best_time(fn: Callable[[], Any], repeat: int = 3) -> tuple[float, Any]:
     return best, out
 
 
+def best_times(fn: Callable[[], Any], repeat: int = 3) -> tuple[float, float, Any]:
+    """Wall and CPU seconds (``time.process_time``: every thread of the process) of the call of least wall
+    time among ``repeat``, and the last result."""
+    best, out = (float("inf"), float("inf")), None
+    for _ in range(repeat):
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = fn()
+        best = min(best, (time.perf_counter() - t0, time.process_time() - c0))
+    return best[0], best[1], out
+
+
+def load_average() -> str:
+    """The 1, 5 and 15 minute load averages, as ``uptime`` prints them."""
+    return ", ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
 def cpu_model() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -210,3 +226,29 @@ def in_subprocess(probe: str, threads: int, inline: bool = False, **kwargs: Any)
         if line.startswith("@@"):
             return json.loads(line[2:])
     raise RuntimeError(f"probe {probe} failed (exit {proc.returncode}): {proc.stderr.strip()[-2000:]}")
+
+
+def run_alone(run: Callable[[Config], Table], doc: str | None, argv: list[str] | None = None) -> int:
+    """``python -m benchmarks.<module> [--quick] [--threads N]``: the module's default table, printed alone.
+
+    The threads are bounded as by the runner (torch and every BLAS/OpenMP pool, ``latticedft.limit_threads``);
+    the load average before and after is printed beside the table, whose times are absolute.
+    """
+    import argparse
+
+    import latticedft
+
+    p = argparse.ArgumentParser(description=(doc or "").strip().split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="tiny sizes: checks that it runs (seconds)")
+    p.add_argument("--threads", type=int, default=1, help="threads of torch and BLAS (default 1)")
+    args = p.parse_args(argv)
+    latticedft.limit_threads(args.threads)
+    print(f"# load average before: {load_average()}", flush=True)
+    t0 = time.perf_counter()
+    table = run(Config(quick=args.quick, threads=args.threads))
+    table.seconds = time.perf_counter() - t0
+    print(text(table))
+    for c in table.checks:
+        print(f"  [{'met' if c.met else 'NOT met'}] {c.target}: {c.measured}")
+    print(f"# load average after: {load_average()}", flush=True)
+    return 0

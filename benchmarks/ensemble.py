@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
 import latticedft as ldft
@@ -96,3 +98,9 @@ def run(cfg: Config) -> Table:
         )
     )
     return table
+
+
+if __name__ == "__main__":
+    from ._common import run_alone
+
+    sys.exit(run_alone(run, __doc__))

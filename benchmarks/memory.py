@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 from ._common import Config, Table, in_subprocess
 
 NAME = "memory"
@@ -59,3 +61,9 @@ def run(cfg: Config) -> Table:
         "training tasks run a capped number of L-BFGS iterations.",
     ]
     return table
+
+
+if __name__ == "__main__":
+    from ._common import run_alone
+
+    sys.exit(run_alone(run, __doc__))

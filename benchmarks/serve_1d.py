@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 
 import numpy as np
@@ -98,3 +99,9 @@ def run(cfg: Config) -> Table:
         Check(">= 1e4x the root-per-step baseline per trajectory-step, batched", f"{ratio:.3g}x", ratio >= 1e4)
     )
     return table
+
+
+if __name__ == "__main__":
+    from ._common import run_alone
+
+    sys.exit(run_alone(run, __doc__))

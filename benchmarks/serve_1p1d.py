@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 
 import numpy as np
@@ -123,3 +124,9 @@ def run(cfg: Config) -> Table:
         ),
     ]
     return table
+
+
+if __name__ == "__main__":
+    from ._common import run_alone
+
+    sys.exit(run_alone(run, __doc__))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 from ._common import Config, Table, in_subprocess
 
 NAME = "serve-2+1d"
@@ -67,3 +69,9 @@ def run(cfg: Config) -> Table:
         "`latticedft.systems.leapfrog` (numpy), one run.",
     ]
     return table
+
+
+if __name__ == "__main__":
+    from ._common import run_alone
+
+    sys.exit(run_alone(run, __doc__))

@@ -4,6 +4,7 @@ hand-written vectorised numpy Störmer–Verlet (scale items 4-5)."""
 from __future__ import annotations
 
 import math
+import sys
 import time
 from unittest import mock
 
@@ -118,3 +119,9 @@ def run(cfg: Config) -> Table:
         )
     )
     return table
+
+
+if __name__ == "__main__":
+    from ._common import run_alone
+
+    sys.exit(run_alone(run, __doc__))

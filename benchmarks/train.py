@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import latticedft as ldft
 from latticedft import systems
 
@@ -112,3 +114,9 @@ def run(cfg: Config) -> Table:
         )
     )
     return table
+
+
+if __name__ == "__main__":
+    from ._common import run_alone
+
+    sys.exit(run_alone(run, __doc__))

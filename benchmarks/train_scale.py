@@ -4,6 +4,7 @@ vs streamed (chunks of sites), and streamed from field files read lazily."""
 from __future__ import annotations
 
 import shutil
+import sys
 import tempfile
 
 import numpy as np
@@ -122,3 +123,9 @@ def run(cfg: Config) -> Table:
         )
     )
     return table
+
+
+if __name__ == "__main__":
+    from ._common import run_alone
+
+    sys.exit(run_alone(run, __doc__))

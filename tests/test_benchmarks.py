@@ -69,6 +69,45 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
     assert (tmp_path / "fidelity_energy.png").stat().st_size > 0
 
 
+#: every benchmark module of the runner, each runnable alone (``python -m benchmarks.<module> --quick``)
+ALONE = [
+    "serve_1p1d",
+    "serve_2p1d",
+    "serve_1d",
+    "train",
+    "fidelity",
+    "memory",
+    "noether",
+    "train_scale",
+    "serve_nd",
+    "serve_fast1d",
+    "ensemble",
+    "serve_scale",
+]
+
+
+def test_every_runner_module_is_listed_here():
+    from benchmarks.run import BENCHMARKS
+
+    assert ALONE == BENCHMARKS
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("module", ALONE)
+def test_each_module_runs_alone_and_prints_its_table(module):
+    proc = subprocess.run(
+        [sys.executable, "-m", f"benchmarks.{module}", "--quick"],
+        cwd=ROOT,
+        env=dict(os.environ, OMP_NUM_THREADS="1"),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "== " in proc.stdout or "### " in proc.stdout, proc.stdout[-3000:]
+
+
 def test_unknown_benchmark_is_refused():
     proc = subprocess.run(
         [sys.executable, "-m", "benchmarks", "--only", "nope"],
