@@ -163,10 +163,16 @@ def policy_child(policy: str, names: list[str]) -> dict[str, list[float]]:
 def _measure_policy(policy: str, busy: bool, names: list[str]) -> dict[str, list[float]]:
     drop = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
     env = {k: v for k, v in os.environ.items() if k not in drop} | {"PYTHONPATH": str(ROOT)}
+    return _in_a_child(["--policy-child", policy, ",".join(names)], env, busy)
+
+
+def _in_a_child(args: list[str], env: dict[str, str], busy: bool) -> Any:
+    """``python -m benchmarks.threads ARGS`` in a fresh process (beside one busy process when ``busy``); the
+    JSON of its last line."""
     load = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
     try:
         proc = subprocess.run(
-            [sys.executable, "-m", "benchmarks.threads", "--policy-child", policy, ",".join(names)],
+            [sys.executable, "-m", "benchmarks.threads", *args],
             cwd=ROOT,
             env=env,
             capture_output=True,
@@ -215,21 +221,7 @@ def child(threads: int, names: list[str]) -> dict[str, float]:
 
 def _measure(threads: int, busy: bool, names: list[str]) -> dict[str, float]:
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads), PYTHONPATH=str(ROOT))
-    load = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
-    try:
-        proc = subprocess.run(
-            [sys.executable, "-m", "benchmarks.threads", "--child", str(threads), ",".join(names)],
-            cwd=ROOT,
-            env=env,
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-    finally:
-        if load is not None:
-            load.kill()
-            load.wait()
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return _in_a_child(["--child", str(threads), ",".join(names)], env, busy)
 
 
 def _uptime() -> str:
