@@ -88,12 +88,6 @@ def t_nonneg_float(v: Any) -> float:
     return float(v)
 
 
-def t_unit_float(v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 1:
-        raise _Bad("a number between 0 and 1 (exclusive)")
-    return float(v)
-
-
 def t_ridge(v: Any) -> float | str:
     if v == "auto":
         return "auto"

@@ -69,13 +69,6 @@ def unit_number(v: Any) -> float:
     return float(v)
 
 
-def boolean(v: Any) -> bool:
-    """A TOML ``true`` or ``false``."""
-    if not isinstance(v, bool):
-        raise OptionTypeError("true or false")
-    return v
-
-
 def number_or_function(v: Any) -> float | str:
     """A finite TOML number, or a ``"module:function"`` string."""
     if _is_number(v):
