@@ -224,41 +224,42 @@ def held_by_another(dest: str | os.PathLike[str]) -> bool:
     if str(parent) in _held or not parent.is_dir():
         return False
     try:
-        import fcntl
-    except ImportError:  # pragma: no cover - not POSIX: no lock
-        return False
-    try:
-        fd = os.open(parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
-    except OSError:
-        return False
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fd = _flocked(parent)
     except BlockingIOError:
         return True
     except OSError:
         return False
-    finally:
-        os.close(fd)  # releases a lock taken here
+    if fd >= 0:
+        os.close(fd)  # releases the lock taken to look
     return False
 
 
 def _lock(parent: Path) -> int:
     try:
-        import fcntl
-    except ImportError:  # pragma: no cover - not POSIX: no lock
-        return -1
-    try:
-        fd = os.open(parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
-    except OSError as exc:
-        raise ResultsError(f"cannot open the folder {_show(parent)}: {exc.strerror or exc}") from None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return _flocked(parent)
     except BlockingIOError:
-        os.close(fd)
         raise ResultsError(
             f"another latticedft run holds {_show(parent)}; wait for it to finish (one run per "
             "results folder at a time) and run again"
         ) from None
+    except OSError as exc:
+        raise ResultsError(f"cannot open the folder {_show(parent)}: {exc.strerror or exc}") from None
+
+
+def _flocked(parent: Path) -> int:
+    """A descriptor of the folder ``parent`` holding its non-blocking exclusive ``flock`` (-1 where the system
+    has no flock; unlocked on a file system without flock). BlockingIOError when another process holds the
+    lock; OSError when the folder cannot be opened."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no lock
+        return -1
+    fd = os.open(parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise
     except OSError as exc:  # a file system without flock (some network file systems): go on unlocked
         log.debug("no lock on %s (%s)", parent, exc)
     return fd
