@@ -15,9 +15,17 @@ without reading the text.
 
 from __future__ import annotations
 
+import os
 from typing import Any, Self
 
-__all__ = ["LatticeDFTError", "InputError", "ConfigError", "ServeError", "ModelFileError"]
+__all__ = ["LatticeDFTError", "InputError", "ConfigError", "ServeError", "ModelFileError", "not_a_regular_file"]
+
+
+def not_a_regular_file(path: str | os.PathLike[str]) -> str:
+    """What stands at ``path``, which exists but is not a regular file, for a message: "a folder" or "not a
+    regular file (a device, a pipe or a socket)", with " (a link to TARGET)" when ``path`` is a link."""
+    what = "a folder" if os.path.isdir(path) else "not a regular file (a device, a pipe or a socket)"
+    return what + (f" (a link to {os.readlink(path)})" if os.path.islink(path) else "")
 
 
 class LatticeDFTError(Exception):

@@ -10,7 +10,7 @@ from typing import Any
 import torch
 
 from ._contract import DEFAULT_GAUGE, parse_gauge
-from ._errors import InputError, LatticeDFTError, ModelFileError
+from ._errors import InputError, LatticeDFTError, ModelFileError, not_a_regular_file
 from ._models import MODELS, AbstractLagrangian, EnsembleLagrangian, ModelKind
 from ._plugins import MODEL_GROUP
 from ._stencil import Stencil
@@ -77,9 +77,7 @@ def not_a_file(path: Path) -> str:
         return "model file not found"
     if os.path.islink(path) and not path.exists():
         return f"a link to {os.readlink(path)}, which does not exist"
-    what = "a folder" if path.is_dir() else "not a regular file (a device, a pipe or a socket)"
-    link = f" (a link to {os.readlink(path)})" if os.path.islink(path) else ""
-    return f"is {what}{link}; expected a model file"
+    return f"is {not_a_regular_file(path)}; expected a model file"
 
 
 def _head(path: Path) -> bytes:

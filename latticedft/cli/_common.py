@@ -19,7 +19,7 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .._errors import ConfigError, InputError
+from .._errors import ConfigError, InputError, not_a_regular_file
 from ._terminal import TqdmHandler
 
 if TYPE_CHECKING:
@@ -203,9 +203,9 @@ def require_results(dest: Path, what: str) -> None:
     if path.is_file():
         return
     if os.path.lexists(path) and (path.exists() or not os.path.islink(path)):
-        kind = "a folder" if path.is_dir() else "not a regular file (a device, a pipe or a socket)"
-        link = f" (a link to {os.readlink(path)})" if os.path.islink(path) else ""
-        raise InputError(f"{_show(dest)}/{what}: is {kind}{link}; run `latticedft run` (or `train`) to write it again")
+        raise InputError(
+            f"{_show(dest)}/{what}: is {not_a_regular_file(path)}; run `latticedft run` (or `train`) to write it again"
+        )
     raise InputError(f"{_show(dest)}/{what}: not found; run `latticedft run` (or `train`) first")
 
 
