@@ -25,6 +25,7 @@ import torch
 from ._errors import InputError
 from ._modeloptions import option_checks_of
 from ._stencil import Stencil
+from ._symbolic import SymbolicLd
 
 __all__ = ["AbstractLagrangian", "DEFAULT_GAUGE", "GaugeName", "NumpyForms", "parse_gauge"]
 
@@ -241,6 +242,20 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
         """Numpy closed forms ``fn(cells (B, K, m)) -> (dL/dx, [blocks per pair])`` for ``pairs``, or ``None``
         (the default): asked only when :attr:`numpy_ready` is true, and served on the CPU in double precision."""
         return None
+
+    def symbolic(self) -> SymbolicLd | None:
+        """This ``L_d`` in closed form (:class:`latticedft._symbolic.SymbolicLd`), or ``None`` (the default):
+        models known in closed form override it; printing, ``to_sympy`` and the compiled kernels read it."""
+        return None
+
+    def to_sympy(self) -> Any:
+        """``L_d`` of one cell as a sympy expression in the stencil values ``u{point}_{component}``.
+
+        Raises ``InputError`` for a model with no closed form (an MLP)."""
+        form = self.symbolic()
+        if form is None:
+            raise InputError.at("model", f"{type(self).__name__} (kind {self.kind!r}) has no closed form")
+        return form.expr
 
     # -- capabilities read by learning, serving and the case pipeline -------------------------------------
     @property
