@@ -7,6 +7,7 @@ stencil (docs/mathematics.md, sections 1 and 9).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import torch
 
@@ -32,23 +33,32 @@ def wave(c: float = 1.0) -> AnalyticLagrangian:
     return AnalyticLagrangian(fn, name=f"wave, c = {c:g}")
 
 
-def verlet(potential: Callable[[torch.Tensor], torch.Tensor], mass: float = 1.0) -> AnalyticLagrangian:
+def verlet(
+    potential: Callable[[torch.Tensor], torch.Tensor],
+    mass: float = 1.0,
+    *,
+    symbolic_potential: Callable[[Any], Any] | None = None,
+) -> AnalyticLagrangian:
     """``L_d = m |q_{i+1} - q_i|^2 / (2 h^2) - (V(q_i) + V(q_{i+1})) / 2``: serves Störmer–Verlet.
 
     ``potential`` maps positions ``(..., m)`` (or a scalar field's values) to
     the potential energy; it is called on ``(..., m)`` tensors and summed over
-    a trailing singleton if it returns one.
+    a trailing singleton if it returns one. ``symbolic_potential``, the same
+    potential written with sympy functions, gives the closed form where
+    ``potential`` calls torch (arithmetic alone is traced through ``potential``).
     """
 
-    def pot(q: torch.Tensor) -> torch.Tensor:
-        v = potential(q[..., 0] if q.shape[-1] == 1 else q)
-        return v
+    def with_potential(v: Callable[[Any], Any]) -> Callable[[Any, tuple[float, ...]], Any]:
+        def fn(cells: Any, h: tuple[float, ...]) -> Any:
+            q0, q1 = cells[..., 0, :], cells[..., 1, :]
+            pot0 = v(q0[..., 0] if q0.shape[-1] == 1 else q0)
+            pot1 = v(q1[..., 0] if q1.shape[-1] == 1 else q1)
+            return 0.5 * mass * (((q1 - q0) / h[0]) ** 2).sum(-1) - 0.5 * (pot0 + pot1)
 
-    def fn(cells: torch.Tensor, h: tuple[float, ...]) -> torch.Tensor:
-        q0, q1 = cells[..., 0, :], cells[..., 1, :]
-        return 0.5 * mass * (((q1 - q0) / h[0]) ** 2).sum(-1) - 0.5 * (pot(q0) + pot(q1))
+        return fn
 
-    return AnalyticLagrangian(fn, name="Störmer–Verlet")
+    closed = with_potential(symbolic_potential) if symbolic_potential is not None else None
+    return AnalyticLagrangian(with_potential(potential), name="Störmer–Verlet", closed_form=closed)
 
 
 def klein_gordon(mass: float = 1.0) -> AnalyticLagrangian:
@@ -70,4 +80,10 @@ def klein_gordon(mass: float = 1.0) -> AnalyticLagrangian:
 
 def kepler(gm: float = 1.0) -> AnalyticLagrangian:
     """Störmer–Verlet for the Kepler problem, ``V(q) = -gm / |q|``."""
-    return verlet(lambda q: -gm / torch.sqrt((q * q).sum(-1)))
+
+    def symbolic_potential(q: Any) -> Any:
+        import sympy
+
+        return -gm / sympy.sqrt((q * q).sum(-1))
+
+    return verlet(lambda q: -gm / torch.sqrt((q * q).sum(-1)), symbolic_potential=symbolic_potential)

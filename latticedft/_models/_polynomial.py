@@ -14,6 +14,7 @@ from .._contract import NumpyForms
 from .._errors import InputError
 from .._options import option
 from .._stencil import Stencil
+from .._symbolic import SymbolicLd, cell_symbols
 from . import _polynumpy
 from ._linear import LinearLagrangian
 from ._polybasis import _VANDERMONDE_MAX_DEGREE, _coefficient_matrix_f64, _pairs
@@ -418,6 +419,38 @@ class PolynomialLagrangian(LinearLagrangian):
         """The closed forms of :meth:`fast_derivatives` in numpy, with fused basis tables (see ``_polynumpy``)."""
         self._require_bound()
         return _polynumpy.numpy_derivatives(self, pairs)
+
+    def symbolic(self) -> SymbolicLd | None:
+        """``L_d = sum_c coef_c prod_v B_{e_vc}(z_v)`` in closed form, with ``z_v = (variable_v - center_v) /
+        halfwidth_v`` written out in the stencil values (the basis polynomials ``B_k`` exact, the learned
+        numbers as the doubles they are): the model's own scaling folded in. ``None`` until bound."""
+        if not self.bound:
+            return None
+        import sympy
+
+        m, k = self.m, self.stencil.size
+        sym = cell_symbols(k, m)
+        proj = self.proj.detach().cpu().double().numpy()
+        center = self.center.detach().cpu().numpy()
+        half = self.halfwidth.detach().cpu().numpy()
+        z = sympy.Symbol("z")
+        basis = [
+            sympy.Poly(sympy.legendre(e, z) if self.basis == "legendre" else z**e, z)
+            for e in range(int(max(self.orders)) + 1)
+        ]
+        scaled = []
+        for p in range(proj.shape[0]):
+            for i in range(m):
+                v = p * m + i
+                lin = sympy.Add(*[sympy.Float(float(proj[p, a])) * sym[a][i] for a in range(k) if proj[p, a] != 0])
+                scaled.append((lin - sympy.Float(float(center[v]))) / sympy.Float(float(half[v])))
+        factor = [[basis[e].as_expr().subs(z, zv) for e in range(len(basis))] for zv in scaled]
+        terms = []
+        for a, exps in zip(self.coef.detach().cpu().numpy(), self.exponents.cpu().numpy()):
+            if a != 0.0:
+                terms.append(sympy.Float(float(a)) * sympy.Mul(*[factor[v][int(e)] for v, e in enumerate(exps) if e]))
+        spacing = tuple(float(h) for h in self.spacing)
+        return SymbolicLd(sympy.Add(*terms), tuple(tuple(o) for o in self.stencil.offsets), m, spacing)
 
     # -- description -------------------------------------------------------------------------------------
     def _variable_names(self) -> list[str]:
