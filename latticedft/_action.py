@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import weakref
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -17,7 +18,9 @@ import xarray as xr
 
 from ._contract import AbstractLagrangian, NumpyForms
 from ._errors import InputError
+from ._kernel import CompiledForms, compile_forms
 from ._lattice import AxisBoundaries, LatticeField, as_lattice_field, gather_cells, interior_slices
+from ._options import option
 from ._stencil import Stencil
 
 __all__ = [
@@ -27,6 +30,7 @@ __all__ = [
     "cell_derivatives",
     "CellDerivatives",
     "numpy_closed_forms",
+    "compiled_closed_forms",
     "second_time_difference",
 ]
 
@@ -178,13 +182,54 @@ def numpy_closed_forms(
     return forms[1][pairs]
 
 
+def serving_pairs(stencil: Stencil) -> list[tuple[int, int]]:
+    """The stencil pairs whose blocks serving needs: every point on a cell's first slice with every point on
+    its second (the mixed Hessian blocks of a slice's Jacobian)."""
+    now = [a for a, o in enumerate(stencil.offsets) if o[0] == 0]
+    nxt = [a for a, o in enumerate(stencil.offsets) if o[0] == 1]
+    return [(a, b) for a in now for b in nxt]
+
+
+#: Per model, its compiled kernels (:func:`compiled_closed_forms`) with the state they were built from.
+_COMPILED: weakref.WeakKeyDictionary[AbstractLagrangian, tuple[list[Any], CompiledForms | None]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def compiled_closed_forms(model: AbstractLagrangian, cells: torch.Tensor) -> CompiledForms | None:
+    """The model's compiled gradient and :func:`serving_pairs` blocks (:mod:`latticedft._kernel`), or ``None``:
+    for a model without numpy closed forms whose ``symbolic()`` compiles, with ``cells`` on the CPU in double
+    precision, while the ``compiled_kernels`` option is on. Built once per model state and lattice."""
+    if not option("compiled_kernels") or model.numpy_ready or cells.device.type != "cpu":
+        return None
+    if cells.dtype != torch.float64 or not model.bound:
+        return None
+    state = [*model.parameters(), *model.buffers()]
+    key: list[Any] = [tuple(model.spacing), model.stencil.offsets, model.m] + [(t, t._version) for t in state]
+    known = _COMPILED.get(model)
+    if known is not None and len(known[0]) == len(key) and all(_same(a, b) for a, b in zip(known[0], key)):
+        return known[1]
+    form = model.symbolic()
+    built = None if form is None else compile_forms(form, serving_pairs(model.stencil), type(model).__name__)
+    _COMPILED[model] = (key, built)
+    return built
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Whether two entries of a compiled-kernel key agree (a tensor by identity and version)."""
+    if isinstance(a, tuple) and len(a) == 2 and isinstance(a[0], torch.Tensor):
+        return isinstance(b, tuple) and a[0] is b[0] and a[1] == b[1]
+    return bool(a == b)
+
+
 class CellDerivatives:
     """Per-cell gradient now, Hessian blocks on demand (serving skips them while a cached Jacobian serves).
 
     The gradient is taken without a graph; only when blocks are asked for is
     it taken again with one (one extra pass, saved on every slice that needs
     no fresh Jacobian). A model's numpy closed forms serve when it has them
-    (:func:`numpy_closed_forms`), then its torch ones, then autograd.
+    (:func:`numpy_closed_forms`), then its compiled kernel (:func:`compiled_closed_forms`), then its torch
+    closed forms, then autograd.
     """
 
     def __init__(self, model: AbstractLagrangian, cells: torch.Tensor):
@@ -193,8 +238,12 @@ class CellDerivatives:
         fn = numpy_closed_forms(model, self.cells, ())
         self._numpy = fn is not None
         self._closed = False
+        self._compiled = None if fn is not None else compiled_closed_forms(model, self.cells)
         if fn is not None:
             self.grad = torch.from_numpy(fn(self._flat())[0].reshape(self.cells.shape))
+            return
+        if self._compiled is not None:
+            self.grad = torch.from_numpy(self._compiled.grad(self._flat()).reshape(self.cells.shape))
             return
         closed = model.fast_derivatives(self.cells, [])
         self._closed = closed is not None  # the model's closed forms serve the blocks too
@@ -215,6 +264,10 @@ class CellDerivatives:
         if self._numpy and (fn := numpy_closed_forms(self.model, self.cells, pairs)) is not None:
             lead, m = self.cells.shape[:-2], self.cells.shape[-1]
             out = fn(self._flat())[1]
+            return {p: torch.from_numpy(b.reshape(*lead, m, m)) for p, b in zip(pairs, out)}
+        if self._compiled is not None and list(pairs) == serving_pairs(self.model.stencil):
+            lead, m = self.cells.shape[:-2], self.cells.shape[-1]
+            out = self._compiled.both(self._flat())[1]
             return {p: torch.from_numpy(b.reshape(*lead, m, m)) for p, b in zip(pairs, out)}
         if self._closed and (closed := self.model.fast_derivatives(self.cells, pairs)) is not None:
             return closed[1]

@@ -81,6 +81,12 @@ OPTIONS: dict[str, _Knob] = {
     "folded_chunk": _Knob(
         1 << 21, _positive_int, _POSITIVE, "monomial values per chunk of cells in the folded numpy forms"
     ),
+    "compiled_kernels": _Knob(
+        True,
+        lambda v: isinstance(v, bool),
+        "True or False",
+        "serve a closed-form L_d without numpy closed forms by its compiled DEL kernel (numba; False: torch/autograd)",
+    ),
     "learn_linear_budget": _Knob(
         2**21,
         _positive_int,

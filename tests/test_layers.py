@@ -143,6 +143,7 @@ DEFERRED_PACKAGES: dict[str, str] = {
     "netCDF4": "part files: written through the netCDF4 library itself only when a task is served with a cadence",
     "tqdm": "progress bars: tqdm.notebook needs ipywidgets and serves only in a notebook; tqdm.std with the first bar",
     "sympy": "about half a second to import: only closed-form L_d (printing, to_sympy, compiled kernels) needs it",
+    "numba": "compiled DEL kernels: a second to import and seconds to compile, only when a closed-form L_d is served",
     "fcntl": "POSIX only: where it is missing, the results folder is not locked",
 }
 

@@ -15,8 +15,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 import xarray as xr
 
+from .._action import compiled_closed_forms, serving_pairs
 from .._contract import NumpyForms
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
@@ -30,14 +32,19 @@ __all__ = ["numpy_derivatives_of", "FastBatch", "serve_fast"]
 
 def numpy_derivatives_of(model: AbstractLagrangian) -> NumpyForms | None:
     """The model's numpy closed forms for the pair ``(anchor, forward)`` of a 1D first-order stencil, or
-    ``None`` (then the torch loop serves): also for a model whose parameters are not on the CPU."""
-    if not model.numpy_ready:
-        return None
+    ``None`` (then the torch loop serves): also for a model whose parameters are not on the CPU. A model
+    without numpy closed forms whose closed form compiles serves by its compiled kernel
+    (:func:`latticedft._action.compiled_closed_forms`)."""
     if any(t.device.type != "cpu" for t in model.parameters()):  # a model moved to an accelerator stays there
         return None
     st = model.stencil
     if st.ndim != 1 or st.size != 2:
         return None
+    if not model.numpy_ready:
+        if serving_pairs(st) != [(st.anchor, st.forward)]:
+            return None
+        compiled = compiled_closed_forms(model, torch.zeros(0, dtype=torch.float64))
+        return None if compiled is None else compiled.both
     return model.numpy_derivatives([(st.anchor, st.forward)])
 
 

@@ -1,0 +1,151 @@
+"""Compiled DEL kernels: derivatives and served fields equal today's paths; fallback and cache."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+import sympy
+import torch
+
+import latticedft as ldft
+from latticedft import lagrangians, systems
+from latticedft._action import cell_derivatives, compiled_closed_forms, serving_pairs
+from latticedft._kernel import _LOADED, BUILDS, compile_forms
+from latticedft._symbolic import SymbolicLd, cell_symbols
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _kernel_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    mp = pytest.MonkeyPatch()
+    mp.setenv("LATTICEDFT_KERNEL_CACHE", str(tmp_path_factory.mktemp("kernels")))
+    yield
+    mp.undo()
+
+
+def sine_gordon() -> ldft.AnalyticLagrangian:
+    """The sine-Gordon L_d on the first-order stencil, with its closed form for the trace."""
+
+    def fn(c: torch.Tensor, h: tuple[float, ...]) -> torch.Tensor:
+        u = c[..., 0, 0]
+        out = 0.5 * ((c[..., 1, 0] - u) / h[0]) ** 2 - (1 - torch.cos(u))
+        for k in range(1, len(h)):
+            out = out - 0.5 * ((c[..., k + 1, 0] - u) / h[k]) ** 2
+        return out
+
+    def closed(c: np.ndarray, h: tuple[float, ...]) -> object:
+        u = c[0, 0]
+        out = 0.5 * ((c[1, 0] - u) / h[0]) ** 2 - (1 - sympy.cos(u))
+        for k in range(1, len(h)):
+            out = out - 0.5 * ((c[k + 1, 0] - u) / h[k]) ** 2
+        return out
+
+    return ldft.AnalyticLagrangian(fn, name="sine-Gordon", closed_form=closed)
+
+
+def _field(ndim: int, n: int, m: int = 1) -> object:
+    """Two slices of a smooth periodic field at rest (0+1D: a point at 0.8 moving slowly)."""
+    if ndim == 0:
+        u0 = 0.8 + 0.1 * np.arange(m)
+        vals = np.stack([u0, u0 + 0.01])
+        return systems.make_field(
+            vals if m > 1 else vals[:, 0],
+            ("t",),
+            spacing=0.05,
+            components=[f"q{c}" for c in range(m)] if m > 1 else None,
+        )
+    x = np.arange(n) / n
+    u = np.ones([n] * ndim)
+    for k in range(ndim):
+        shape = [1] * ndim
+        shape[k] = n
+        u = u * np.sin(2 * np.pi * x + k).reshape(shape)
+    dims = ("t", *"zyx"[3 - ndim :])
+    attrs = {d: {"periodic": "true", "period": n * 0.1} for d in dims[1:]}
+    return systems.make_field(np.stack([0.8 * u, 0.8 * u]), dims, spacing=(0.04, *[0.1] * ndim), coord_attrs=attrs)
+
+
+@pytest.mark.parametrize("ndim", [1, 2, 3])
+def test_compiled_derivatives_equal_autograd(ndim: int) -> None:
+    model = sine_gordon()
+    model.bind(ndim + 1, 1, (0.04, *[0.1] * ndim))
+    cells = torch.from_numpy(np.random.default_rng(ndim).uniform(-2, 2, (300, model.stencil.size, 1)))
+    compiled = compiled_closed_forms(model, cells)
+    assert compiled is not None
+    pairs = serving_pairs(model.stencil)
+    g0, b0 = cell_derivatives(model, cells, pairs)
+    g1, b1 = compiled.both(cells.numpy())
+    assert np.abs(g1 - g0.numpy()).max() <= 1e-12 * float(g0.abs().max())
+    for p, b in zip(pairs, b1):
+        assert np.abs(b - b0[p].numpy()).max() <= 1e-12 * max(1.0, float(b0[p].abs().max()))
+    assert np.array_equal(compiled.grad(cells.numpy()), g1)
+
+
+def _served(model: ldft.AbstractLagrangian, init: object, slices: int, compiled: bool) -> np.ndarray:
+    with ldft.set_options(compiled_kernels=compiled):
+        return np.asarray(ldft.serve(model, init, slices=slices, progress=False).field.values)
+
+
+@pytest.mark.parametrize(
+    ("name", "make", "ndim", "m"),
+    [
+        ("harmonic Verlet 0+1D", lambda: lagrangians.verlet(lambda q: 0.5 * q**2), 0, 1),
+        ("Kepler 0+1D", lambda: lagrangians.kepler(), 0, 2),
+        ("sine-Gordon 1+1D", sine_gordon, 1, 1),
+        ("Klein-Gordon 1+1D", lambda: lagrangians.klein_gordon(1.2), 1, 1),
+        ("sine-Gordon 2+1D", sine_gordon, 2, 1),
+    ],
+)
+def test_served_analytic_fields_equal_todays(name: str, make, ndim: int, m: int) -> None:
+    init = _field(ndim, 16, m)
+    model = make()
+    fast = _served(model, init, 40, True)
+    assert compiled_closed_forms(model, torch.zeros(0, dtype=torch.float64)) is not None, name
+    slow = _served(make(), init, 40, False)
+    assert np.abs(fast - slow).max() <= 1e-12 * max(1.0, float(np.abs(slow).max())), name
+
+
+@pytest.mark.parametrize("ndim", [0, 1, 2])
+def test_linear_models_keep_their_numpy_forms(ndim: int) -> None:
+    """Polynomial and feature models serve by their numpy closed forms either way: fields equal to the bit."""
+    init = _field(ndim, 8)
+    data = ldft.serve(sine_gordon(), init, slices=12, progress=False).field
+    models = [ldft.PolynomialLagrangian(orders=(2, 4), time_symmetric=True)]
+    if ndim == 0:
+        models.append(ldft.FeatureLagrangian(["poly:4"]))
+    for model in models:
+        ldft.learn(model, data, progress=False)
+        assert compiled_closed_forms(model, torch.zeros(0, dtype=torch.float64)) is None
+        assert np.array_equal(_served(model, init, 12, True), _served(model, init, 12, False))
+
+
+def test_a_model_without_closed_form_falls_back() -> None:
+    model = ldft.AnalyticLagrangian(
+        lambda c, h: 0.5 * ((c[..., 1, 0] - c[..., 0, 0]) / h[0]) ** 2 - torch.cos(c[..., 0, 0])
+    )
+    init = _field(0, 0)
+    assert np.array_equal(_served(model, init, 20, True), _served(model, init, 20, False))
+    assert compiled_closed_forms(model, torch.zeros(0, dtype=torch.float64)) is None
+
+
+def test_a_form_the_printer_cannot_take_is_reported_once(caplog: pytest.LogCaptureFixture) -> None:
+    (u0,), (u1,) = cell_symbols(2, 1)
+    form = SymbolicLd(sympy.Function("mystery")(u0) + (u1 - u0) ** 2, ((0,), (1,)), 1, (0.1,))
+    with caplog.at_level(logging.INFO, logger="latticedft"):
+        assert compile_forms(form, [(0, 1)]) is None
+        assert compile_forms(form, [(0, 1)]) is None
+    assert sum("compiled DEL kernel unavailable" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_kernel_is_built_once_then_loaded_from_the_cache() -> None:
+    (u0,), (u1,) = cell_symbols(2, 1)
+    form = SymbolicLd((u1 - u0) ** 2 / 2 - sympy.Rational(3, 7) * u0**4, ((0,), (1,)), 1, (0.1,))
+    first = compile_forms(form, [(0, 1)])
+    assert first is not None and BUILDS[-1][2] == "built"
+    _LOADED.clear()  # as a new process would
+    again = compile_forms(form, [(0, 1)])
+    assert again is not None and BUILDS[-1][2] == "cached"
+    cells = np.random.default_rng(0).standard_normal((5, 2, 1))
+    assert np.array_equal(first.both(cells)[0], again.both(cells)[0])
