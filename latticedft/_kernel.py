@@ -46,7 +46,7 @@ _LOADED: dict[str, Any] = {}
 _FAILED: set[str] = set()
 
 #: Bumped whenever the generated code changes, so that stale cached kernels are not reused.
-_VERSION = 2
+_VERSION = 5
 
 
 def cache_dir() -> Path:
@@ -82,12 +82,21 @@ class CompiledForms:
         _kernel(self.module, "both", cells.shape[0])(cells, out, blocks)
         return out, list(blocks)
 
+    @property
+    def block_diagonal(self) -> bool:
+        """Whether the kernels hold ``slice_newton`` (a scalar ``L_d`` with a block-diagonal slice Jacobian)."""
+        return bool(self.module.BLOCK_DIAGONAL)
+
+    def slice_newton(self, sites: int) -> Callable[..., None]:
+        """The slice Newton kernel for ``sites`` unknown sites (parallel or serial as the gradient's)."""
+        return _kernel(self.module, "slice_newton", sites, suffix="")
+
 
 #: Cells per thread below which the serial kernel runs (starting threads costs more than it saves).
 PARALLEL_MIN_CELLS = 65536
 
 
-def _kernel(module: Any, name: str, cells: int) -> Callable[..., None]:
+def _kernel(module: Any, name: str, cells: int, suffix: str = "_kernel") -> Callable[..., None]:
     """The parallel kernel ``name`` with as many threads as torch has (which :func:`latticedft.limit_threads`
     bounds with the BLAS pools), or the serial one for one thread or few cells."""
     import numba
@@ -97,9 +106,9 @@ def _kernel(module: Any, name: str, cells: int) -> Callable[..., None]:
         torch.get_num_threads(), int(getattr(numba.config, "NUMBA_NUM_THREADS", 1)), cells // PARALLEL_MIN_CELLS
     )
     if threads <= 1:
-        return getattr(module, f"{name}_kernel_serial")  # type: ignore[no-any-return]
+        return getattr(module, f"{name}{suffix}_serial")  # type: ignore[no-any-return]
     numba.set_num_threads(threads)
-    return getattr(module, f"{name}_kernel")  # type: ignore[no-any-return]
+    return getattr(module, f"{name}{suffix}")  # type: ignore[no-any-return]
 
 
 def _printed(exprs: Sequence[Any]) -> tuple[list[str], list[str]]:
@@ -159,7 +168,153 @@ def _source(form: SymbolicLd, pairs: Sequence[tuple[int, int]]) -> str:
                 "",
                 "",
             ]
-    return "\n".join(text)
+    return "\n".join(text + _slice_newton_source(form, grads, pairs, second))
+
+
+def _diagonal_pairs(form: SymbolicLd, pairs: Sequence[tuple[int, int]], second: Sequence[Any]) -> list[tuple[int, int]]:
+    """The pairs whose two points sit on the same site (the diagonal blocks of a slice Jacobian), or ``[]``
+    unless every other pair's block vanishes identically (then each unknown's equation involves that unknown
+    alone: the slice Jacobian is block diagonal whatever the field)."""
+    mm = form.m * form.m
+    diag = []
+    for q, (a, b) in enumerate(pairs):
+        if form.offsets[a][1:] == form.offsets[b][1:]:
+            diag.append((a, b))
+        elif any(e != 0 for e in second[q * mm : (q + 1) * mm]):
+            return []
+    return diag
+
+
+def _slice_newton_source(
+    form: SymbolicLd, grads: Sequence[Any], pairs: Sequence[tuple[int, int]], second: Sequence[Any]
+) -> list[str]:
+    """``slice_newton`` (and ``slice_newton_serial``): Newton's method on every unknown site of a slice at
+    once, for a scalar ``L_d`` whose slice Jacobian is block diagonal (:func:`_diagonal_pairs`); nothing
+    (``BLOCK_DIAGONAL = False``) otherwise.
+
+    Per equation site ``y``: the residual is the cells' gradients at the stencil points that sit on ``y``
+    (the cells anchored on slice ``i - 1`` once, those anchored on ``i`` at every iteration), each cell's
+    values read from the slices through ``site_of`` and ``cell_at`` inside the loop; the Jacobian is the sum of
+    the diagonal pairs' second derivatives. It stops where the residual is below ``tol``, one evaluation
+    after a step below ``step_tol``; ``its[q]`` is the evaluations made, ``-1`` for a Jacobian below ``smin``
+    in size, ``-2`` for no convergence in ``maxit`` evaluations (or a residual that is not a number)."""
+    k = len(form.offsets)
+    diag = _diagonal_pairs(form, pairs, second) if form.m == 1 else []
+    if not diag:
+        return ["BLOCK_DIAGONAL = False", ""]
+    args = ", ".join(str(s) for s in form.flat_symbols())
+    text = ["BLOCK_DIAGONAL = True", ""]
+    nxt = [a for a in range(k) if form.offsets[a][0] == 1]
+    now = [a for a in range(k) if form.offsets[a][0] == 0]
+    unknowns = {s for a in nxt for s in form.symbols[a]}
+    functions = [(f"g{a}", grads[a]) for a in range(k)]
+    moving = []  # the points whose gradient the unknown moves: split into the part it moves and the rest
+    for a in now:
+        fixed, varying = _split(grads[a], unknowns)
+        if varying != 0:
+            moving.append(a)
+            functions += [(f"g{a}_fixed", fixed), (f"g{a}_varying", varying)]
+    hessians = {(a, b): second[pairs.index((a, b))] for a, b in diag if a in moving}
+    functions += [(f"h{a}_{b}", e) for (a, b), e in hessians.items()]
+    for name, expr in functions:
+        lines, (value,) = _printed([expr])
+        text += ["@numba.njit(cache=True, error_model='numpy', nogil=True)", f"def {name}({args}):"]
+        text += [f"    {line}" for line in lines] + [f"    return {value}", "", ""]
+    constant = {pair for pair, e in hessians.items() if not e.free_symbols & unknowns}
+    body = _newton_body(form, list(hessians), nxt, now, moving, constant)
+    for suffix, parallel, loop in (("", "True", "numba.prange"), ("_serial", "False", "range")):
+        text += [
+            f"@numba.njit(parallel={parallel}, cache=True, error_model='numpy', nogil=True)",
+            f"def slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, rows, vol, tol, step_tol, smin, maxit,"
+            " res, its):",
+            f"    for q in {loop}(rows.shape[0]):",
+            *body,
+            "",
+            "",
+        ]
+    return text + _predictor_source()
+
+
+def _split(expr: Any, unknowns: set[Any]) -> tuple[Any, Any]:
+    """``(fixed, varying)``: the terms of the sum ``expr`` free of the ``unknowns``, and the others."""
+    import sympy
+
+    terms = expr.args if expr.is_Add else (expr,)
+    fixed = [t for t in terms if not t.free_symbols & unknowns]
+    return sympy.Add(*fixed), sympy.Add(*[t for t in terms if t.free_symbols & unknowns])
+
+
+def _newton_body(
+    form: SymbolicLd,
+    diag: list[tuple[int, int]],
+    nxt: list[int],
+    now: list[int],
+    moving: list[int],
+    constant: set[tuple[int, int]],
+) -> list[str]:
+    """The loop body of ``slice_newton`` for site ``rows[q]``: once, the part of its residual (and of its
+    Jacobian: the ``constant`` diagonal pairs) the unknown does not move (the cells anchored on the slice
+    before; the gradients of the cells anchored on this slice at the points not ``moving``, and the fixed
+    terms of those ``moving``); then Newton's iterations on the rest."""
+    k = len(form.offsets)
+
+    def term(a: int, fn: str, anchored_before: bool) -> list[str]:
+        low, high = ("prev", "cur") if anchored_before else ("cur", "nxt")
+        args = ", ".join(f"{high if form.offsets[p][0] else low}[site_of[{p}, c], 0]" for p in range(k))
+        return [f"c = cell_at[{a}, y]", "if c >= 0:", f"    {fn}({args})"]
+
+    body = ["y = rows[q]", "fixed = 0.0", "jac0 = 0.0"]
+    for a in nxt:
+        body += term(a, f"fixed += g{a}", True)
+    for a in now:
+        body += term(a, f"fixed += g{a}_fixed" if a in moving else f"fixed += g{a}", False)
+    body += [line for a, b in diag if (a, b) in constant for line in term(a, f"jac0 += h{a}_{b}", False)]
+    body += ["it = 0", "small = False", "r = 0.0", "while True:", "    r = fixed", "    jac = jac0"]
+    for a in moving:
+        body += ["    " + line for line in term(a, f"r += g{a}_varying", False)]
+        pairs = [(a, b) for aa, b in diag if aa == a and (a, b) not in constant]
+        body += ["    " + line for a_, b in pairs for line in term(a_, f"jac += h{a_}_{b}", False)]
+    body += [
+        "    r *= vol",
+        "    jac *= vol",
+        "    it += 1",
+        "    if not (abs(r) > tol) or small:",
+        "        break",
+        "    if it >= maxit or r != r:",
+        "        it = -2",
+        "        break",
+        "    if not (abs(jac) > smin):",
+        "        it = -1",
+        "        break",
+        "    step = -r / jac",
+        "    nxt[y, 0] += step",
+        "    small = abs(step) <= step_tol",
+        "res[q] = abs(r) if r == r else math.inf",
+        "its[q] = it",
+    ]
+    return ["        " + line for line in body]
+
+
+def _predictor_source() -> list[str]:
+    """``predict``: slice-Newton's predictor on the unknown sites (``2 psi_i - psi_{i-1}``, plus
+    ``psi_i - 2 psi_{i-1} + psi_{i-2}`` where ``older``, slice ``i - 2``, is given), in the order of
+    ``_field.solve_and_tally``; returns the scale of a Newton step (``_slices._scale``)."""
+    return [
+        "@numba.njit(cache=True, error_model='numpy', nogil=True)",
+        "def predict(prev, cur, nxt, older, rows):",
+        "    top = 1e-300",
+        "    for s in range(prev.shape[0]):",
+        "        top = max(top, abs(prev[s, 0]), abs(cur[s, 0]))",
+        "    for q in range(rows.shape[0]):",
+        "        y = rows[q]",
+        "        v = 2.0 * cur[y, 0] - prev[y, 0]",
+        "        if older.shape[0]:",
+        "            v += cur[y, 0] - 2.0 * prev[y, 0] + older[y, 0]",
+        "        nxt[y, 0] = v",
+        "        top = max(top, abs(v))",
+        "    return top",
+        "",
+    ]
 
 
 def _key(form: SymbolicLd, pairs: Sequence[tuple[int, int]]) -> str:
@@ -227,4 +382,10 @@ def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tupl
     cell = np.zeros((1, k, m))
     mod.grad_kernel_serial(cell, np.empty_like(cell))  # the parallel kernels compile on first use
     mod.both_kernel_serial(cell, np.empty_like(cell), np.empty((len(pairs), 1, m, m)))
+    if mod.BLOCK_DIAGONAL:
+        one, none = np.zeros((1, 1)), np.zeros(0, dtype=np.int64)
+        idx = np.zeros((k, 1), dtype=np.int64)
+        mod.slice_newton_serial(one, one, one, idx, idx, none, 1.0, 1.0, 1.0, 1.0, 1, np.zeros(0), none.copy())
+        mod.predict(one, one, one, one, none)
+        mod.predict(one, one, one, np.zeros((0, 1)), none)
     return mod, how

@@ -149,3 +149,79 @@ def test_a_kernel_is_built_once_then_loaded_from_the_cache() -> None:
     assert again is not None and BUILDS[-1][2] == "cached"
     cells = np.random.default_rng(0).standard_normal((5, 2, 1))
     assert np.array_equal(first.both(cells)[0], again.both(cells)[0])
+
+
+def _dirichlet(ndim: int, n: int) -> object:
+    """Two slices of a smooth field with Dirichlet ends (no periodic attribute)."""
+    x = (np.arange(n) + 0.5) / n
+    u = np.ones([n] * ndim)
+    for k in range(ndim):
+        shape = [1] * ndim
+        shape[k] = n
+        u = u * np.sin(np.pi * x + 0.3 * k).reshape(shape)
+    return systems.make_field(np.stack([0.8 * u, 0.8 * u]), ("t", *"zyx"[3 - ndim :]), spacing=(0.04, *[0.1] * ndim))
+
+
+@pytest.mark.parametrize(
+    ("name", "init", "keywords"),
+    [
+        ("periodic 1+1D", lambda: _field(1, 24), {}),
+        ("periodic 3+1D", lambda: _field(3, 6), {}),
+        ("Dirichlet 2+1D", lambda: _dirichlet(2, 8), {"boundary_value": 0.0}),
+        ("periodic 2+1D, streamed", lambda: _field(2, 8), {"every": 3}),
+    ],
+)
+def test_the_compiled_slice_newton_serves_todays_fields(
+    name: str, init, keywords: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from latticedft._serve import _fused
+
+    calls = []
+    solve = _fused.FusedSlices.solve
+    monkeypatch.setattr(_fused.FusedSlices, "solve", lambda self, *a: calls.append(1) or solve(self, *a))
+    field = init()
+    with ldft.set_options(compiled_kernels=True):
+        fast = ldft.serve(sine_gordon(), field, slices=30, progress=False, **keywords)
+    assert len(calls) >= 20, name  # the first Newton slice chooses the solver; the compiled kernel serves the rest
+    with ldft.set_options(compiled_kernels=False):
+        slow = ldft.serve(sine_gordon(), field, slices=30, progress=False, **keywords)
+    a, b = np.asarray(fast.field.values), np.asarray(slow.field.values)
+    assert np.abs(a - b).max() <= 1e-12 * max(1.0, float(np.abs(b).max())), name
+    assert fast.slice_solver == slow.slice_solver == "sitewise"
+
+
+def test_a_coupled_l_d_has_no_compiled_slice_newton() -> None:
+    """A time difference mixed with a spatial one couples neighbouring unknowns: slice-Newton's Krylov steps."""
+
+    def fn(c: torch.Tensor, h: tuple[float, ...]) -> torch.Tensor:
+        dt, dx = (c[..., 1, 0] - c[..., 0, 0]) / h[0], (c[..., 2, 0] - c[..., 0, 0]) / h[1]
+        return 0.5 * dt**2 - 0.5 * dx**2 + 0.2 * dt * dx - 0.5 * c[..., 0, 0] ** 2
+
+    model = ldft.AnalyticLagrangian(fn)
+    model.bind(2, 1, (0.04, 0.1))
+    compiled = compiled_closed_forms(model, torch.zeros(0, dtype=torch.float64))
+    assert compiled is not None and not compiled.block_diagonal
+    init = _field(1, 16)
+    fast = _served(model, init, 20, True)
+    slow = _served(fn_model := ldft.AnalyticLagrangian(fn), init, 20, False)
+    assert fn_model is not None
+    assert np.abs(fast - slow).max() <= 1e-12 * max(1.0, float(np.abs(slow).max()))
+
+
+def test_a_slice_the_kernel_cannot_finish_goes_back_to_slice_newton(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A site the kernel cannot finish (here: every slice refused) hands the slice to slice-Newton, which starts
+    from the predictor afresh: the same field."""
+    from latticedft._serve import _fused
+
+    solve = _fused.FusedSlices.solve
+
+    def refused(self: _fused.FusedSlices, *args: object) -> None:
+        solve(self, *args)  # leaves the unknowns moved: slice-Newton must overwrite them
+        return None
+
+    init = _field(2, 8)
+    with ldft.set_options(compiled_kernels=False):
+        slow = np.asarray(ldft.serve(sine_gordon(), init, slices=20, progress=False).field.values)
+    monkeypatch.setattr(_fused.FusedSlices, "solve", refused)
+    fast = _served(sine_gordon(), init, 20, True)
+    assert np.abs(fast - slow).max() <= 1e-12 * max(1.0, float(np.abs(slow).max()))

@@ -17,6 +17,7 @@ from .._lattice import LatticeField, gather_cells
 from .._models import AbstractLagrangian
 from ._affine import _affine_prefix
 from ._edges import known_slices
+from ._fused import FusedSlices, fused_slices
 from ._newton import _newton_slice
 from ._options import ServeOptions
 from ._range import assess
@@ -66,33 +67,61 @@ def slice_error(
 
 
 def solve_and_tally(
-    run: Any, psi: torch.Tensor, i: int, g_prev: torch.Tensor, rtol: float, max_newton: int, older: Any
-) -> torch.Tensor:
+    run: Any, psi: torch.Tensor, i: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int, older: Any
+) -> torch.Tensor | None:
     """Solve the equations of slice ``i`` of ``run`` (a whole-field or a windowed run: ``psi``/``run.flat`` its
     slices) for slice ``i + 1``; the iterations are counted on ``run``, a failure raised by ``run.fail``.
 
     The predictor on the unknown sites is ``2 psi_i - psi_{i-1}`` plus, for Newton with ``older`` (slice
-    ``i - 2`` on those sites), the previous slice's correction to its own such predictor
+    ``i - 2``), the previous slice's correction to its own such predictor
     (``3 psi_i - 3 psi_{i-1} + psi_{i-2}``: the next term of the extrapolation).
+
+    Where the compiled slice Newton serves (:func:`_fused_of`) it solves the slice and ``None`` is returned
+    for the gradients (``g_prev``: the cells anchored at ``i - 1``; ``None`` has them evaluated afresh).
     """
     flat, unk = run.flat, run.unk
+    fused = _fused_of(run) if run.mode == "newton" else None
+    done = None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, run.cache)
+    if done is not None:  # the compiled slice Newton: no per-cell gradients are carried to the next slice
+        _tallied(run, *done)
+        return None
     flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
     if run.mode == "newton" and older is not None:
-        flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + older
+        flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + older[unk]
     if run.mode == "newton":
+        if g_prev is None:
+            g_prev = CellDerivatives(run.model, run.cells_at(i - 1)).grad
         it, res, g_prev, err = _newton_slice(
             run.model, run.sys, psi, flat, unk, i, g_prev, run.vol, rtol, max_newton, run.cells_at, run.cache
         )
     else:
         it, res, g_prev, err = _sweep_slice(run.model, run.sys, psi, flat, i, run.vol, rtol, max_newton, run.f)
+    if err is not None:
+        _tallied(run, it, res)
+        msg, row, rval = err
+        raise run.fail(i, msg, row, rval)
+    _tallied(run, it, res)
+    return g_prev
+
+
+def _tallied(run: Any, it: int, res: float) -> None:
+    """Count a solved slice's iterations and residual on ``run`` (and its progress bar)."""
     run.total_it += it
     run.max_it = max(run.max_it, it)
     run.worst = max(run.worst, res)
-    if err is not None:
-        msg, row, rval = err
-        raise run.fail(i, msg, row, rval)
     run.bar.update(1)
-    return g_prev
+
+
+def _fused_of(run: Any) -> FusedSlices | None:
+    """The compiled slice Newton of ``run`` (:mod:`._fused`) once slice-Newton has chosen the site-wise solver
+    (and only that one) for it; ``None`` before, or where the model or lattice has none."""
+    cache = run.cache
+    if "fused" not in cache:
+        if cache.get("used") != ["sitewise"] or "dmax" not in cache or "mscale" not in cache:
+            return None
+        cache["fused"] = fused_slices(run.model, run.sys, run.flat)
+    fused: FusedSlices | None = cache["fused"]
+    return fused
 
 
 class _FieldRun:
@@ -147,9 +176,9 @@ class _FieldRun:
             return "newton"
         return "affine" if self.start >= self.steps - 1 else "affine+newton"
 
-    def solve_slice(self, i: int, g_prev: torch.Tensor, rtol: float, max_newton: int) -> torch.Tensor:
+    def solve_slice(self, i: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int) -> torch.Tensor | None:
         """Solve slice ``i``'s equations for slice ``i + 1``; returns the gradients of the cells anchored at ``i``."""
-        older = self.flat[i - 2, self.unk] if i >= 2 else None
+        older = self.flat[i - 2] if i >= 2 else None
         return solve_and_tally(self, self.psi, i, g_prev, rtol, max_newton, older)
 
     def _result(
@@ -208,7 +237,7 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options
     run = _FieldRun(model, f, steps, mode, options.progress, options.solver, options.boundary_value)
     if mode == "newton" and options.affine and steps > 2:
         run.serve_affine(rtol)
-    g_prev = CellDerivatives(model, run.cells_at(run.start - 1)).grad
+    g_prev: torch.Tensor | None = CellDerivatives(model, run.cells_at(run.start - 1)).grad
     for i in range(run.start, steps - 1):
         g_prev = run.solve_slice(i, g_prev, rtol, max_newton)
     return run.finish()

@@ -252,11 +252,11 @@ class _Stream:
             self.worst = max(self.worst, float(res[:k].max()))
         return k
 
-    def solve(self, p: int, g_prev: torch.Tensor, rtol: float, max_newton: int) -> torch.Tensor:
+    def solve(self, p: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int) -> torch.Tensor | None:
         """Solve the equations of buffer position ``p`` for position ``p + 1`` (as ``_FieldRun.solve_slice``)."""
         older = None
         if self.base + p >= 2:  # slice p - 2 of the whole field: in the window, or the one before it
-            older = self.flat[p - 2, self.unk] if p >= 2 else self.before[self.unk]  # type: ignore[index]
+            older = self.flat[p - 2] if p >= 2 else self.before
         return solve_and_tally(self, self.buf, p, g_prev, rtol, max_newton, older)
 
     # -- the result ------------------------------------------------------------------------------------------

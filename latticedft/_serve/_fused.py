@@ -1,0 +1,94 @@
+"""Slice-Newton in one compiled kernel: every unknown site of a slice solved at once, the stencil gathered and
+the residual and Jacobian formed inside the loop over the sites (``latticedft._kernel``, ``slice_newton``).
+
+It serves a scalar closed-form ``L_d`` whose slice Jacobian is block diagonal by its form (each unknown's
+equation involves that unknown alone: the first-order stencil with an ``L_d`` whose time difference does not
+mix with the spatial ones, as wave, Klein-Gordon, sine-Gordon), once the first Newton slice has chosen the
+site-wise solver. Each site iterates Newton's method until its residual is below the slice's tolerance (the
+same ``rtol`` times the size of the kinetic terms as slice-Newton's), or one evaluation after a step below
+``rtol`` times the values. A slice it cannot finish (a singular Jacobian, no convergence) is handed back, its
+predictor restored, to slice-Newton, which reports the failure as usual.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from .._action import compiled_closed_forms
+from .._kernel import CompiledForms
+from ._slices import SINGULAR_RTOL, _SliceSystem
+
+__all__ = ["FusedSlices", "fused_slices"]
+
+
+class FusedSlices:
+    """The compiled slice Newton of one served field: its kernels and the index maps they read."""
+
+    def __init__(self, compiled: CompiledForms, sys: _SliceSystem, site_of: np.ndarray, cell_at: np.ndarray):
+        self.compiled = compiled
+        self.site_of = site_of  # (K, cells): the site of each stencil point of each cell
+        self.cell_at = cell_at  # (K, sites): the cell whose stencil point sits on the site (-1: none)
+        self.rows = np.ascontiguousarray(np.nonzero(sys.interior)[0], dtype=np.int64)
+        self.res = np.empty(self.rows.size)
+        self.its = np.empty(self.rows.size, dtype=np.int64)
+
+    def solve(
+        self,
+        flat: torch.Tensor,
+        i: int,
+        older: torch.Tensor | None,
+        vol: float,
+        rtol: float,
+        max_newton: int,
+        cache: dict,
+    ) -> tuple[int, float] | None:
+        """Solve slice ``i``'s equations for slice ``i + 1`` of ``flat`` (``(slices, sites, 1)``) in place, from
+        slice-Newton's predictor (with ``older``, slice ``i - 2``, where given): ``(evaluations, residual)``
+        (the most of any site), or ``None`` where a site failed (slice-Newton then starts afresh)."""
+        prev, cur, nxt = (flat[j].numpy() for j in (i - 1, i, i + 1))
+        old = older.numpy() if older is not None else np.zeros((0, 1))
+        scale = float(self.compiled.module.predict(prev, cur, nxt, old, self.rows))
+        tol = rtol * vol * cache["dmax"] * scale
+        smin = SINGULAR_RTOL * cache["mscale"] * vol
+        kernel = self.compiled.slice_newton(self.rows.size)
+        kernel(
+            prev,
+            cur,
+            nxt,
+            self.site_of,
+            self.cell_at,
+            self.rows,
+            vol,
+            tol,
+            rtol * scale,
+            smin,
+            max_newton,
+            self.res,
+            self.its,
+        )
+        if not self.rows.size:
+            return 1, 0.0
+        if int(self.its.min()) < 0:
+            return None
+        return int(self.its.max()), float(self.res.max())
+
+
+def fused_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FusedSlices | None:
+    """The compiled slice Newton for ``model`` on ``sys``, or ``None``: for a model whose compiled kernels
+    hold it (scalar, block-diagonal slice Jacobian by its form) on a lattice where every stencil point of a
+    cell sits on a distinct site per cell and the values are on the CPU in double precision."""
+    if flat.dtype != torch.float64 or flat.device.type != "cpu" or sys.m != 1 or not flat.is_contiguous():
+        return None
+    compiled = compiled_closed_forms(model, flat[:0])
+    if compiled is None or not compiled.block_diagonal:
+        return None
+    site_of = np.ascontiguousarray(np.stack(sys.site_of), dtype=np.int64)
+    cell_at = -np.ones((site_of.shape[0], sys.nsite), dtype=np.int64)
+    for a, sites in enumerate(site_of):
+        if sites.size and int(np.bincount(sites, minlength=sys.nsite).max()) > 1:  # two cells' points on one site
+            return None
+        cell_at[a, sites] = np.arange(sites.size)
+    return FusedSlices(compiled, sys, site_of, cell_at)
