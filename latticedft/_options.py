@@ -87,6 +87,12 @@ OPTIONS: dict[str, _Knob] = {
         "True or False",
         "serve a closed-form L_d without numpy closed forms by its compiled DEL kernel (numba; False: torch/autograd)",
     ),
+    "affine_check_every": _Knob(
+        1,
+        _positive_int,
+        _POSITIVE,
+        "slices between the DEL checks of the affine recurrence's slices (1: every slice; k: every k-th and the last)",
+    ),
     "learn_linear_budget": _Knob(
         2**21,
         _positive_int,

@@ -38,7 +38,7 @@ from .._lattice import LatticeField, as_lattice_field, gather_cells
 from .._layout import validate_field
 from .._models import AbstractLagrangian
 from .._options import option
-from ._affine import _AffineSlices, _slice_residuals
+from ._affine import _AffineSlices, _slice_residuals, passing_prefix
 from ._edges import known_slices
 from ._field import slice_error, solve_and_tally
 from ._options import Cadence, ServeOptions, kept_slices
@@ -246,10 +246,9 @@ class _Stream:
         res = _slice_residuals(self.model, self.f, self.buf[:w], 1, n_new + 1)
         absmax = np.array([np.abs(row).max() for row in v])
         scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), absmax[2:]).clip(1e-300)
-        good = np.isfinite(res) & (res <= rtol * self.vol * op.dmax * scl)
-        k = int(np.argmin(good)) if not good.all() else n_new
+        k = passing_prefix(res, rtol * self.vol * op.dmax * scl)
         if k:
-            self.worst = max(self.worst, float(res[:k].max()))
+            self.worst = max(self.worst, float(np.nanmax(res[:k], initial=0.0)))
         return k
 
     def solve(self, p: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int) -> torch.Tensor | None:
