@@ -5,7 +5,10 @@ Serving needs, on every cell of a slice, the gradient ``dL/dx`` and the mixed He
 (:meth:`AbstractLagrangian.symbolic`) these are differentiated once by sympy, their common subexpressions
 shared (``sympy.cse``), and printed as one loop over the cells, parallel (``numba.prange``): each cell's
 values are read inside the loop and every intermediate is a scalar, so there is no Python per cell and no
-array per term. Two entry points are generated, the gradient alone and the gradient with the blocks.
+array per term. Two entry points are generated, the gradient alone and the gradient with the blocks, each
+parallel and serial. For a scalar ``L_d`` whose slice Jacobian is block diagonal by its form, the module also
+holds ``slice_newton``: Newton's method on every unknown site of a slice in one loop, the stencil read
+through the cell maps inside it (``latticedft._serve._fused`` drives it), and ``predict``, its predictor.
 
 The generated source is written once to the kernel cache folder (``LATTICEDFT_KERNEL_CACHE``, default
 ``~/.cache/latticedft/kernels``) under the hash of what it computes, and numba caches its machine code
