@@ -202,3 +202,72 @@ def test_a_checkpointed_run_interrupted_by_sigterm_keeps_its_stage(tmp_path):
     plain = _latticedft("run", case, "-q", *FAST, *WAVE_SETS)  # without --resume: starts afresh
     assert plain.returncode == 0, plain.stderr
     assert not list(case.glob("results.tmp-*"))
+
+
+class _Keeper:
+    """An ``on_slice`` with a ``checkpointer``: keeps the kept slices and the states saved; ``load`` gives
+    back ``resume_from`` (a state, with the kept slices up to it) or None."""
+
+    def __init__(self, resume_from: dict | None = None):
+        self.kept: list[np.ndarray] = []
+        self.saved: list[bytes] = []
+        self.resume_from = resume_from
+        self.checkpointer = self
+
+    def __call__(self, index: int, values: np.ndarray) -> None:
+        self.kept.append(np.array(values))
+
+    def save(self, state: dict) -> None:
+        import pickle
+
+        self.saved.append(pickle.dumps({**state, "kept_values": np.stack(self.kept[: state["nkept"]])}))
+
+    def load(self) -> dict | None:
+        return self.resume_from
+
+
+def test_a_2p1d_newton_stream_resumed_from_a_state_equals_the_whole_run():
+    """In-process, 2+1D periodic, a nonlinear ``L_d`` served by slice-Newton (not the affine path): the run
+    resumed from its second checkpoint gives the kept slices, counters and extrapolation of the whole run."""
+    import pickle
+
+    import torch
+
+    import latticedft as ldft
+    from latticedft._models import AnalyticLagrangian
+
+    def fn(cells: torch.Tensor, h: tuple[float, ...]) -> torch.Tensor:
+        u0, u1 = cells[..., 0, 0], cells[..., 1, 0]
+        out = 0.5 * ((u1 - u0) / h[0]) ** 2 - (1 - torch.cos(0.5 * (u0 + u1)))
+        for k in range(1, len(h)):
+            out = out - 0.5 * ((cells[..., k + 1, 0] - u0) / h[k]) ** 2
+        return out
+
+    x = np.arange(12) / 12
+    y = np.arange(10) / 10
+    base = np.sin(2 * np.pi * x)[:, None] * np.cos(2 * np.pi * y)[None, :]
+    t = np.array([0.0, 0.02])
+    init = xr.DataArray(
+        np.stack([base, 1.01 * base]), dims=("t", "x", "y"), coords={"t": t, "x": x, "y": y}, name="psi"
+    )
+    opts = {"slices": 70, "boundary": "periodic", "every": 6, "checkpoint": 9, "affine": False}
+    model = AnalyticLagrangian(fn, name="sine-Gordon-like")
+    first = _Keeper()
+    whole = ldft.serve(model, init, on_slice=first, **opts)
+    assert whole.solver == "newton" and len(first.saved) >= 3
+    state = pickle.loads(first.saved[1])
+    again = _Keeper(state)
+    resumed = ldft.serve(model, init, on_slice=again, **opts)
+    xr.testing.assert_identical(whole.field, resumed.field)
+    for key in ("newton_iterations", "max_newton_iterations", "max_residual", "solver", "slice_solver"):
+        assert getattr(whole, key) == getattr(resumed, key), key
+    later = [pickle.loads(b) for b in first.saved[2:]], [pickle.loads(b) for b in again.saved]
+    assert len(later[0]) == len(later[1]) >= 1
+    for a, b in zip(*later):  # the later checkpoints too, bit for bit
+        assert (a["base"], a["nkept"], a["counters"], a["on_affine"]) == (
+            b["base"],
+            b["nkept"],
+            b["counters"],
+            b["on_affine"],
+        )
+        assert torch.equal(a["head"], b["head"]) and torch.equal(a["before"], b["before"])
