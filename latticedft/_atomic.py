@@ -9,7 +9,7 @@ import signal
 import uuid
 from pathlib import Path
 
-__all__ = ["FAULT_ENV", "FAULT_POINTS", "fault", "fault_flag", "write_text_atomic"]
+__all__ = ["FAULT_ENV", "FAULT_POINTS", "fault", "fault_flag", "write_bytes_atomic", "write_text_atomic"]
 
 FAULT_ENV = "LATTICEDFT_FAULT"
 
@@ -18,9 +18,9 @@ FAULT_ENV = "LATTICEDFT_FAULT"
 #: held), ``stage`` (the staging folder exists), ``write`` (each model, task or JSON file written into it),
 #: ``after-stage`` (the stage's work is done, not yet published), ``mid-publish`` (between the two renames of
 #: the fallback, or after the swap before the old results are deleted), ``slice`` (each kept slice appended
-#: to a task's part file, ``[[serve]] every``), ``exit`` (the command's outcome is said, the process is about
-#: to exit).
-FAULT_POINTS = ("loading", "lock", "stage", "write", "after-stage", "mid-publish", "slice", "exit")
+#: to a task's part file, ``[[serve]] every``), ``checkpoint`` (each checkpoint of a task written, ``[[serve]]
+#: checkpoint``), ``exit`` (the command's outcome is said, the process is about to exit).
+FAULT_POINTS = ("loading", "lock", "stage", "write", "after-stage", "mid-publish", "slice", "checkpoint", "exit")
 
 
 def fault(point: str, path: Path | None = None) -> None:
@@ -57,6 +57,23 @@ def write_text_atomic(target: Path, text: str) -> Path:
     tmp = target.parent / f".{target.name}.{uuid.uuid4().hex[:12]}.tmp"
     try:
         tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return target
+
+
+def write_bytes_atomic(target: Path, data: bytes) -> Path:
+    """Write ``data`` to ``target`` as :func:`write_text_atomic` writes text, the temporary file synced to disk
+    before the rename (a checkpoint survives a crash of the machine too). Returns ``target``."""
+    target = Path(target)
+    tmp = target.parent / f".{target.name}.{uuid.uuid4().hex[:12]}.tmp"
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
         os.replace(tmp, target)
     except BaseException:
         tmp.unlink(missing_ok=True)

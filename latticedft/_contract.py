@@ -96,6 +96,10 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
     #: True for models without learned parameters (a formula in the spacings): serving binds them to the
     #: lattice it is given instead of checking that lattice against the one they were learned on.
     rebinds_to_any_lattice: ClassVar[bool] = False
+    #: True when :meth:`prepare` merges what every process of a process group saw (``latticedft._collective``):
+    #: training in several processes then reads each process's share of the cells for it; otherwise every
+    #: process reads every cell. A subclass that overrides ``prepare`` states it again.
+    prepare_merges_processes: ClassVar[bool] = False
     #: The methods that evaluate ``L_d`` or its features on cells, or return one of its buffers: on a device
     #: other than the CPU they run on the model's device and answer on the caller's (``latticedft._device``).
     bridged: ClassVar[tuple[str, ...]] = ("forward", "fast_derivatives", "mean_and_differences", "trained_range")

@@ -88,6 +88,32 @@ class PartFile:
         self.ds.setncatts({"latticedft_every": int(every), "latticedft_complete": "false"})
         self.n = 0
 
+    @classmethod
+    def reopen(cls, folder: Path, name: str, variable: str, template: xr.DataArray, rows: int) -> PartFile:
+        """The part file a killed run left, opened to append after its first ``rows`` slices (the slices it
+        holds beyond them are written again, with the same values). OSError when it cannot be read, ValueError
+        when it holds fewer slices."""
+        import netCDF4
+
+        self = cls.__new__(cls)
+        self.path, self.variable = part_path(folder, name), variable
+        self.ds = netCDF4.Dataset(self.path, "a")
+        tdim = str(template.dims[0])
+        t = np.asarray(template[tdim].values, dtype=np.float64)
+        self.t0, self.dt = float(t[0]), float(t[1] - t[0])
+        self.tvar, self.svar, self.var = (self.ds.variables[k] for k in (tdim, "slice", variable))
+        held = self.ds.dimensions[tdim].size
+        if held < rows:
+            self.close()
+            raise ValueError(f"holds {held} slices, the checkpoint {rows}")
+        self.n = rows
+        return self
+
+    def rows(self) -> np.ndarray:
+        """The slices appended so far (the first :attr:`n`), as written."""
+        self.var.set_auto_mask(False)
+        return np.asarray(self.var[: self.n], dtype=np.float64)
+
     def __call__(self, index: int, values: np.ndarray) -> None:
         """Append slice ``index`` and flush it to disk."""
         self.var[self.n] = values

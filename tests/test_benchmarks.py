@@ -60,6 +60,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "serve-fast1d",
         "ensemble",
         "serve_scale",
+        "serve-dist",
     ]
     assert not results["failed"]
     assert all(b["rows"] for b in results["benchmarks"])
@@ -83,6 +84,7 @@ ALONE = [
     "serve_fast1d",
     "ensemble",
     "serve_scale",
+    "serve_dist",
 ]
 
 

@@ -20,6 +20,9 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
+from .._collective import group_device, reduce
+from .._collective import is_parallel as is_parallel
+from .._collective import world as world
 from .._device import backend_for_device, resolve_device
 
 __all__ = [
@@ -34,31 +37,8 @@ __all__ = [
 ]
 
 
-def world() -> tuple[int, int]:
-    """(rank, number of processes) of the initialised process group; ``(0, 1)`` without one."""
-    if dist.is_available() and dist.is_initialized():
-        return dist.get_rank(), dist.get_world_size()
-    return 0, 1
-
-
-def is_parallel() -> bool:
-    """True when training is shared by more than one process."""
-    return world()[1] > 1
-
-
-def _device() -> torch.device:
-    if dist.get_backend() == "nccl":
-        return torch.device("cuda", torch.cuda.current_device())
-    return torch.device("cpu")
-
-
 def _reduce(t: torch.Tensor, op: dist.ReduceOp.RedOpType) -> torch.Tensor:
-    if not is_parallel():
-        return t
-    dev = _device()
-    buf = t.detach().to(dev, torch.float64).clone()
-    dist.all_reduce(buf, op=op)
-    return buf.to(t.device, t.dtype)
+    return reduce(t, op)
 
 
 def all_sum(t: torch.Tensor) -> torch.Tensor:
@@ -80,7 +60,7 @@ def all_gather(a: np.ndarray) -> list[np.ndarray]:
     """Every process's array of one common shape, in rank order (``[a]`` without a process group)."""
     if not is_parallel():
         return [a]
-    dev = _device()
+    dev = group_device()
     t = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64)).to(dev)
     out = [torch.empty_like(t) for _ in range(world()[1])]
     dist.all_gather(out, t)

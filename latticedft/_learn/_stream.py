@@ -16,6 +16,7 @@ from typing import Any, overload
 import torch
 
 from .._action import del_residual, mixed_hessian, second_time_difference
+from .._collective import merged_max, merged_min
 from .._errors import InputError
 from .._lattice import BoundaryKinds, LatticeField, gather_cells
 from .._models import AbstractLagrangian, LinearLagrangian
@@ -108,13 +109,16 @@ class TrainingData:
                 self.chunks = [[p] for c in pieces(self.sources, model.stencil, 0) for p in c]
             else:
                 self.chunks = pieces(self.sources, model.stencil, chunk)
-            # the input scaling needs every cell: each process reads them all (min/max only, no derivatives)
+            # the input scaling and the training range of each stencil feature (min/max, merged chunk by chunk):
+            # each process reads its share of the cells and the extremes are merged over the processes (a
+            # model whose ``prepare`` does not merge them gets every cell in every process)
             w = int(model.stencil.width[0])
-            own = [p for c in self.chunks for p in c if min(p.t1, self.sources[p.source].nt - w) > p.t0]
-            # the same for the training range of each stencil feature (min/max merge chunk by chunk); every
-            # process reads every cell, so all hold the same ranges without a reduction
+            share = self.my_chunks() if model.prepare_merges_processes else self.chunks
+            own = [p for c in share for p in c if min(p.t1, self.sources[p.source].nt - w) > p.t0]
             model.prepare(_Cells(self, own, model.stencil))
             model.record_feature_range(_Cells(self, own, model.stencil))
+            if model.prepare_merges_processes:
+                _merge_range(model, bool(own))
             nsites = sum(s.n_sites(model.stencil) for s in self.sources)
         if nsites == 0:
             raise InputError("data: no interior site carries a DEL equation (lattices too small for the stencil)")
@@ -150,6 +154,16 @@ class TrainingData:
         if symmetries:
             out["symmetries"] = symmetry_reports(model, self.fields, None)
         return out
+
+
+def _merge_range(model: AbstractLagrangian, saw: bool) -> None:
+    """The training range of ``model`` merged over the processes (``saw``: this process read cells)."""
+    rng = model.trained_range() if saw else None
+    shape = (model.n + 1, model.m)
+    lo = merged_min(None if rng is None else rng[0], shape)
+    hi = merged_max(None if rng is None else rng[1], shape)
+    if lo is not None and hi is not None:
+        model.set_feature_range(torch.stack([lo, hi]))
 
 
 def training_data(data: Any, boundary: BoundaryKinds | None, chunk_sites: int | None) -> TrainingData:

@@ -10,6 +10,7 @@ from typing import Any, cast
 import numpy as np
 import torch
 
+from .._collective import merged_max, merged_min
 from .._errors import InputError
 from .._stencil import Stencil
 from ._linear import LinearLagrangian
@@ -87,6 +88,8 @@ class FeatureLagrangian(LinearLagrangian):
     >>> FeatureLagrangian(["trig:1"], differences=2).options()["features"]
     ['trig:1']
     """
+
+    prepare_merges_processes = True
 
     kind = "features"
     #: Buffers set by :meth:`_build`: difference exponents per monomial ``(D, n m)``; the mean's scaling.
@@ -168,6 +171,8 @@ class FeatureLagrangian(LinearLagrangian):
             lo = zlo if lo is None else torch.minimum(lo, zlo)
             hi = zhi if hi is None else torch.maximum(hi, zhi)
             amax = zabs if amax is None else torch.maximum(amax, zabs)
+        size = ((self.n + 1) * m,)  # several processes: each read its share of the cells
+        lo, hi, amax = merged_min(lo, size), merged_max(hi, size), merged_max(amax, size)
         if lo is None or hi is None or amax is None:
             return
         half = (hi[:m] - lo[:m]) / 2

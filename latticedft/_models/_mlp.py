@@ -13,6 +13,7 @@ from typing import Any, ClassVar, NamedTuple, Self, cast
 
 import torch
 
+from .._collective import merged_max, merged_min
 from .._contract import AbstractLagrangian
 from .._errors import InputError
 from .._stencil import Stencil
@@ -133,6 +134,8 @@ class MLPLagrangian(AbstractLagrangian):
     >>> type(MLPLagrangian(form="kinetic-potential")).__name__
     'KineticPotentialMLPLagrangian'
     """
+
+    prepare_merges_processes = True
 
     kind = "mlp"
     #: The ``form`` option this class implements (set by the two forms).
@@ -275,6 +278,8 @@ class MLPLagrangian(AbstractLagrangian):
             lo = xlo if lo is None else torch.minimum(lo, xlo)
             hi = xhi if hi is None else torch.maximum(hi, xhi)
             g0max = g0 if g0max is None else torch.maximum(g0max, g0)
+        size = (self.in_center.numel(),)  # several processes: each read its share of the cells
+        lo, hi, g0max = merged_min(lo, size), merged_max(hi, size), merged_max(g0max, ())
         if lo is None or hi is None or g0max is None:
             return
         half = (hi - lo) / 2

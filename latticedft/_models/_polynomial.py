@@ -10,6 +10,7 @@ from typing import Any, Literal, overload
 import numpy as np
 import torch
 
+from .._collective import merged_max, merged_min
 from .._contract import NumpyForms
 from .._errors import InputError
 from .._options import option
@@ -77,6 +78,8 @@ class PolynomialLagrangian(LinearLagrangian):
     >>> PolynomialLagrangian(orders=(4, 8)).options()["orders"]
     [4, 8]
     """
+
+    prepare_merges_processes = True
 
     kind = "polynomial"
     #: Buffers set by :meth:`_build`: per term, the exponent of each variable ``(C, V)``; the scaling of the
@@ -181,6 +184,8 @@ class PolynomialLagrangian(LinearLagrangian):
             lo = zlo if lo is None else torch.minimum(lo, zlo)
             hi = zhi if hi is None else torch.maximum(hi, zhi)
             amax = zabs if amax is None else torch.maximum(amax, zabs)
+        size = (self.center.numel(),)  # several processes: each read its share of the cells
+        lo, hi, amax = merged_min(lo, size), merged_max(hi, size), merged_max(amax, size)
         if lo is None or hi is None or amax is None:
             return
         center = (hi + lo) / 2

@@ -118,9 +118,10 @@ def leftovers(dest: str | os.PathLike[str]) -> list[Path]:
     return sorted(p for p in dest.parent.iterdir() if pattern.match(p.name))
 
 
-def _recover(dest: Path) -> None:
-    """With the lock held: put parked results back when ``dest`` is missing, delete dead staging folders."""
-    left = leftovers(dest)
+def _recover(dest: Path, keep: str | None = None) -> None:
+    """With the lock held: put parked results back when ``dest`` is missing, delete dead staging folders (but
+    those holding a file named ``keep``: a checkpointed run to resume)."""
+    left = [p for p in leftovers(dest) if keep is None or not (p / keep).is_file()]
     if not left:
         return
     parked = [p for p in left if ".tmp-old-" in p.name and p.is_dir()]
@@ -179,14 +180,15 @@ def _make_parents(folder: Path) -> list[Path]:
 
 
 @contextmanager
-def hold_results(dest: str | os.PathLike[str]) -> Iterator[Path]:
+def hold_results(dest: str | os.PathLike[str], keep: str | None = None) -> Iterator[Path]:
     """Hold the results folder ``dest`` for one command: the lock, then recovery from killed runs.
 
     Takes a non-blocking ``flock`` on ``dest``'s parent folder (a folder file descriptor: nothing is
     created beside the results) and keeps it until the block ends; another process holding it gives a
     :class:`ResultsError` ("another latticedft run holds ..."). Then staging folders left by killed runs are
     removed and, when ``dest`` is missing, results parked by an interrupted publishing step are put back (one
-    warning). Yields the real path of ``dest``. Re-entrant within a process.
+    warning); with ``keep``, staging folders holding a file of that name are left for the command to take up
+    (:func:`staged_results`'s ``adopt``). Yields the real path of ``dest``. Re-entrant within a process.
     """
     dest = Path(os.path.realpath(dest))
     parent = dest.parent
@@ -204,7 +206,7 @@ def hold_results(dest: str | os.PathLike[str]) -> Iterator[Path]:
     _held[key] = [fd, 1]
     try:
         _fault("lock", dest)
-        _recover(dest)
+        _recover(dest, keep)
         yield dest
     finally:
         del _held[key]
@@ -269,15 +271,18 @@ class Staging:
     """A temporary folder beside ``dest`` that replaces ``dest`` on :meth:`publish`.
 
     ``copy_existing=True`` starts from a copy of an existing ``dest`` (stages
-    that update results: ``serve``, ``export``). Use it through
+    that update results: ``serve``, ``export``); ``adopt`` takes up the
+    staging folder of a killed run instead (``--resume``). Use it through
     :func:`staged_results`.
     """
 
-    def __init__(self, dest: Path, *, copy_existing: bool = False):
+    def __init__(self, dest: Path, *, copy_existing: bool = False, adopt: Path | None = None):
         self.dest = Path(dest)
         self.dest.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = self.dest.parent / f"{self.dest.name}.tmp-{uuid.uuid4().hex[:10]}"
+        self.tmp = adopt or self.dest.parent / f"{self.dest.name}.tmp-{uuid.uuid4().hex[:10]}"
         self.published = False
+        if adopt is not None:  # a killed run's staging folder, taken up again (``--resume``)
+            return
         try:
             if copy_existing and self.dest.is_dir():
                 shutil.copytree(self.dest, self.tmp, symlinks=True)
@@ -380,7 +385,13 @@ def _earlier_results(folder: Path) -> bool:
 
 @contextmanager
 def staged_results(
-    dest: str | os.PathLike[str], *, copy_existing: bool = False, run_log: bool = True, replace_foreign: bool = True
+    dest: str | os.PathLike[str],
+    *,
+    copy_existing: bool = False,
+    run_log: bool = True,
+    replace_foreign: bool = True,
+    adopt: Path | None = None,
+    keep: str | None = None,
 ) -> Iterator[Path]:
     """Write a stage's results into a temporary folder; publish it as ``dest`` when the block succeeds.
 
@@ -397,9 +408,14 @@ def staged_results(
     that latticedft did not write (no marker file :data:`MARKER`): the command line never
     deletes a folder of files it did not write. An :class:`OSError` (disk full,
     a read-only folder) becomes a one-line :class:`ResultsError` naming the path.
+    ``adopt`` (a staging folder of ``dest`` that a killed run left) is taken
+    up instead of a new one: ``run.log`` goes on, and the folder is published
+    or, when the block fails, deleted as a new one would be; but a stage
+    holding a file named ``keep`` (a checkpointed run's journal) is left for
+    ``--resume`` when the command is interrupted (SIGINT, SIGTERM).
     """
     with hold_results(dest) as real:
-        if not replace_foreign and not copy_existing and real.is_dir() and not _is_results_folder(real):
+        if not replace_foreign and not copy_existing and not adopt and real.is_dir() and not _is_results_folder(real):
             raise ResultsError(
                 f"{_show(dest)}: holds files that latticedft did not write (no {MARKER}); "
                 "refusing to replace it: choose another --out or remove the folder"
@@ -407,7 +423,7 @@ def staged_results(
         staging: Staging | None = None
         handler: _RunLog | None = None
         try:
-            staging = Staging(real, copy_existing=copy_existing)
+            staging = Staging(real, copy_existing=copy_existing, adopt=adopt)
             _fault("stage", staging.tmp)
             if run_log:
                 handler = _RunLog(staging.tmp / RUN_LOG, encoding="utf-8")
@@ -423,11 +439,26 @@ def staged_results(
             staging.publish()
         except OSError as exc:
             raise ResultsError(_os_error_line(exc, staging.tmp if staging else None, real)) from None
+        except (KeyboardInterrupt, SystemExit) as exc:
+            staging = _kept_for_resume(staging, keep, exc)
+            raise
+        except BaseException as exc:  # the command line's Terminated (SIGTERM)
+            staging = _kept_for_resume(staging, keep, exc if not isinstance(exc, Exception) else None)
+            raise
         finally:
             with contextlib.suppress(OSError):  # the stage failed already; its log goes with it
                 _close(handler)
             if staging is not None:
                 staging.discard()
+
+
+def _kept_for_resume(staging: Staging | None, keep: str | None, exc: BaseException | None) -> Staging | None:
+    """None (nothing to discard) when the interrupted stage ``staging`` holds the file ``keep``: it is left for
+    ``--resume``, with a warning; else ``staging``."""
+    if staging is None or keep is None or exc is None or not (staging.tmp / keep).is_file():
+        return staging
+    log.warning("interrupted: the checkpoints are kept in %s; `--resume` continues the run", _show(staging.tmp))
+    return None
 
 
 class _RunLog(logging.FileHandler):

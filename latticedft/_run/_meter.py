@@ -67,6 +67,20 @@ class TaskMeter:
         self.attrs: dict[str, Any] = {}
         #: the invariant's failure (it is raised by the pipeline after serving, as for a whole field)
         self.error: Exception | None = None
+        #: where the window's checkpoints go (``[[serve]] checkpoint``; see ``_serve._checkpoint``)
+        self.checkpointer: Any = None
+
+    #: What :meth:`state` holds: the figures measured so far (a checkpoint of the task).
+    STATE = ("max_error", "sum_sq", "count", "compared", "reference_max", "values", "tail", "t", "attrs", "error")
+
+    def state(self) -> dict[str, Any]:
+        """The figures measured so far, to be put back by :meth:`restore` (a resumed task)."""
+        return {k: getattr(self, k) for k in self.STATE}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Go on from the figures of :meth:`state`."""
+        for k in self.STATE:
+            setattr(self, k, state[k])
 
     def __call__(self, index: int, values: np.ndarray) -> None:
         """A kept slice: handed on to ``on_kept`` (the blocks carry every slice for the measurements)."""

@@ -28,6 +28,7 @@ from ._charges import drift_text, task_charges
 from ._data import TaskData
 from ._meter import TaskMeter, compare_blocks
 from ._record import TaskRecord, accuracy_warning
+from ._resume import TaskCheckpoint, open_part
 
 __all__ = ["TaskOutcome", "serve_task"]
 
@@ -94,14 +95,21 @@ def _start(model: AbstractLagrangian, td: TaskData) -> tuple[xr.DataArray, str]:
 
 
 def serve_task(
-    model: AbstractLagrangian, td: TaskData, device: str = "cpu", *, stage: Path | None = None, variable: str = "psi"
+    model: AbstractLagrangian,
+    td: TaskData,
+    device: str = "cpu",
+    *,
+    stage: Path | None = None,
+    variable: str = "psi",
+    resume: bool = False,
 ) -> TaskOutcome:
     """Serve one task (the model evaluated on ``device``); a Newton failure gives an incomplete outcome (with a
     warning), not an exception.
 
     A task with an output cadence (``[[serve]] every > 1``) served into a staging folder ``stage`` appends
     each kept slice, as it is served, to the part file ``stage/.<task>.nc.part`` (the field as ``variable``):
-    the outcome's ``part`` names it, and ``write_task`` completes it into ``<task>.nc``.
+    the outcome's ``part`` names it, and ``write_task`` completes it into ``<task>.nc``. So does a task with
+    checkpoints (``[[serve]] checkpoint``), which with ``resume`` goes on from its checkpoint in ``stage``.
     """
     t = td.task
     if t.deprecated_steps:
@@ -112,11 +120,11 @@ def serve_task(
             t.label,
         )
     log.info("serving %s: %d slices from %s (%s)", t.name, td.slices, t.source.name, t.options.mode)
-    part = None
-    if stage is not None and t.cadence.thins:
-        part = PartFile(stage, t.name, variable, td.init, t.cadence.every)
+    part, resumed = None, False
+    if stage is not None and (t.cadence.thins or t.options.checkpoint):
+        part, resumed = open_part(stage, t.name, variable, td.init, t.cadence.every, resume)
     try:
-        served = _serve(model, td, device, part)
+        served = _serve(model, td, device, part, resumed)
     finally:
         if part is not None:
             part.close()
@@ -149,16 +157,18 @@ class _Served:
 
 
 # -- serve ----------------------------------------------------------------------------------------------------
-def _serve(model: AbstractLagrangian, td: TaskData, device: str, part: PartFile | None) -> _Served:
-    """Serve ``td`` with the task's options; with an output cadence, a meter measures every slice as it is
-    served and hands each kept slice to ``part``."""
+def _serve(model: AbstractLagrangian, td: TaskData, device: str, part: PartFile | None, resumed: bool) -> _Served:
+    """Serve ``td`` with the task's options; with an output cadence (or checkpoints), a meter measures every
+    slice as it is served and hands each kept slice to ``part`` (and each checkpoint to its ``checkpointer``)."""
     t = td.task
     t0 = time.perf_counter()
     stopped = ""
     options = t.options.replace(progress=None, device=device)
     meter = None
-    if t.cadence.thins:  # errors and the invariant measured on every slice as it is served
+    if t.cadence.thins or t.options.checkpoint:  # errors and the invariant measured on every slice as served
         meter = TaskMeter(td.reference, td.invariant, part)
+        if part is not None and t.options.checkpoint:
+            meter.checkpointer = TaskCheckpoint(part, meter, t.name, resumed)
     init, start = _start(model, td)
     try:
         result = serve(model, init, slices=t.slices, boundary=t.boundary, options=options, on_slice=meter)

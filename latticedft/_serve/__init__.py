@@ -250,6 +250,8 @@ def serve(
         _check_model_lattice(model, f, "init" if not batch else f"init[{k}]")
     plan = _Plan(batch=batch, slices=slices, options=opts, where=where, on_slice=on_slice, sources=sources)
     if isinstance(model, EnsembleLagrangian):
+        if opts.checkpoint is not None:
+            raise InputError.at("checkpoint", "an ensemble is served whole, without checkpoints: remove checkpoint")
         if opts.cadence.streams(on_slice):
             raise InputError.at(
                 "every", "an ensemble is served whole (every member on every slice): give every=1 and no on_slice"
@@ -344,6 +346,8 @@ class _Plan:
 
     def _run_1d(self, model: AbstractLagrangian, fs: list[LatticeField]) -> list[ServeResult]:
         """A batch of 1D trajectories, stepped together (thinned to the kept slices afterwards)."""
+        if self.options.checkpoint is not None:
+            raise InputError.at("checkpoint", "a 1D field is served whole, without checkpoints: remove checkpoint")
         with on_device(model, self.where):
             results = _serve_batch(model, fs, [_slices(self.slices, f) for f in fs], self.options)
         _served_attrs(results, model)

@@ -69,6 +69,8 @@ def _newton_slice(
                     if cache["singular"]:
                         return it, res, ev.grad, (*cache["singular"], res)
                 cache["solve"], name = factor_step(sys, blocks, vol, cache.get("solver", "auto"), rtol * rscale)
+                if cache.get("keep_factored"):  # a checkpoint rebuilds the factorisation from them
+                    cache["factored"] = (blocks, rtol * rscale)
                 used = cache.setdefault("used", [])
                 if name not in used:
                     used.append(name)

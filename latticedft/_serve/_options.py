@@ -11,7 +11,7 @@ row of the docs' table.
 >>> opts.max_newton, opts.cadence.thins, opts.cadence.kept(10).tolist()
 (30, True, [0, 4, 8, 9])
 >>> sorted(ServeOptions.case_keys())
-['boundary_value', 'box', 'every', 'max_newton', 'mode', 'rtol', 'solver']
+['boundary_value', 'box', 'checkpoint', 'every', 'max_newton', 'mode', 'rtol', 'solver']
 """
 
 from __future__ import annotations
@@ -177,6 +177,10 @@ class ServeOptions:
         field's dim order) returning the field's values there (the strips are taken from them), so that a
         field served past the end of its data needs no file of boundary values. Default: none, the strips
         must be in ``init`` on every slice served.
+    checkpoint : int, optional
+        n-D only: the rolling window (``every > 1`` or ``on_slice``) holds at most this many new slices, and
+        after every ``checkpoint`` slices served its state is handed to the ``checkpointer`` of ``on_slice``
+        when it has one (the case pipeline's resumable tasks, ``[[serve]] checkpoint``). Default: none.
 
     The fields given a TOML check (:func:`option`) are also ``[[serve]]`` keys of ``case.toml``.
     """
@@ -191,6 +195,7 @@ class ServeOptions:
     progress: bool | None = option(None)
     device: str | None = option(None)
     boundary_value: float | str | Callable[..., Any] | None = option(None, number_or_function)
+    checkpoint: int | None = option(None, positive_int)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -210,6 +215,10 @@ class ServeOptions:
         if self.progress is not None and not isinstance(self.progress, bool):
             raise InputError.at("progress", f"expected True, False or None, got {self.progress!r}")
         Cadence(self.every)  # checks ``every``
+        if self.checkpoint is not None and (not _is_int(self.checkpoint) or self.checkpoint < 1):
+            raise InputError.at(
+                "checkpoint", f"expected a positive integer (slices between checkpoints), got {self.checkpoint!r}"
+            )
         value = self.boundary_value
         if not (value is None or callable(value) or _is_number(value) or isinstance(value, str)):
             raise InputError.at(

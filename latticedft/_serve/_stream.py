@@ -39,6 +39,7 @@ from .._layout import validate_field
 from .._models import AbstractLagrangian
 from .._options import option
 from ._affine import _AffineSlices, _slice_residuals, passing_prefix
+from ._checkpoint import keep_factored, restore_stream, stream_state
 from ._edges import known_slices
 from ._field import slice_error, solve_and_tally
 from ._options import Cadence, ServeOptions, kept_slices
@@ -146,7 +147,7 @@ class _Stream:
         m = f.ncomp
         slice_bytes = sys_.nsite * m * 8
         self.chunk = max(_MIN_CHUNK, option("serve_window_bytes") // max(slice_bytes, 1))
-        self.chunk = max(1, min(self.chunk, steps - 2))
+        self.chunk = max(1, min(self.chunk, steps - 2, options.checkpoint or steps))
         self.buf = torch.full((self.chunk + 2, *f.shape[1:], m), math.nan, dtype=torch.float64)
         self.flat = self.buf.reshape(self.chunk + 2, sys_.nsite, m)
         known = np.ones(sys_.nsite, dtype=bool)
@@ -338,6 +339,12 @@ def _serve_stream(
     run = _Stream(model, f, steps, options, on_slice, source)
     setup = run.affine_setup() if mode == "newton" and options.affine and steps > 2 else None
     on_affine = setup is not None
+    saver = getattr(on_slice, "checkpointer", None) if options.checkpoint else None
+    if saver is not None:
+        keep_factored(run.cache)
+        state = saver.load()
+        on_affine = restore_stream(run, state) if state is not None else on_affine
+    saved = run.base
     g_prev: Any = None if on_affine else CellDerivatives(model, run.cells_at(0)).grad
     run.emit(1)
     while run.base + 2 < steps:
@@ -364,6 +371,9 @@ def _serve_stream(
         run.before = run.flat[n_new - 1].clone()
         run.buf[:2] = run.buf[n_new : n_new + 2].clone()
         run.base += n_new
+        if saver is not None and run.base - saved >= (options.checkpoint or 0):
+            saver.save(stream_state(run, on_affine))
+            saved = run.base
     run.bar.close()
     wall = time.perf_counter() - run.t0
     solved = (steps - 2) * run.sys.n

@@ -16,13 +16,23 @@ from tqdm.std import tqdm  # not tqdm.auto: no ipywidgets warning in Jupyter (la
 
 from .._case import Case
 from .._errors import InputError
-from .._results import config_attrs, export_task, read_summary, read_task, write_model, write_summary, write_task
+from .._results import (
+    config_attrs,
+    export_task,
+    json_safe,
+    read_summary,
+    read_task,
+    write_model,
+    write_summary,
+    write_task,
+)
 from .._run import CaseData, TaskOutcome, serve_task, train_model
 from ..io.exporters import remove_exports
 from ._common import INCOMPLETE, OK, WARNED, command_line
 
 if TYPE_CHECKING:
     from .._contract import AbstractLagrangian
+    from .._run._resume import Journal
 
 log = logging.getLogger("latticedft")
 
@@ -69,8 +79,21 @@ def model_warnings_of(model: AbstractLagrangian, folder: Path) -> list[str]:
     return [str(w) for w in found] if isinstance(found, list) else []
 
 
-def serve_into(folder: Path, case: Case, data: CaseData, model: AbstractLagrangian, argv: list[str]) -> dict[str, Any]:
-    """Serve every task into ``<task>.nc`` and export it; returns the summary's tasks section."""
+def serve_into(
+    folder: Path,
+    case: Case,
+    data: CaseData,
+    model: AbstractLagrangian,
+    argv: list[str],
+    *,
+    journal: Journal | None = None,
+    resume: bool = False,
+) -> dict[str, Any]:
+    """Serve every task into ``<task>.nc`` and export it; returns the summary's tasks section.
+
+    With a ``journal`` (tasks that write checkpoints) each task done is recorded in it; with ``resume`` the
+    tasks it records as done are skipped and the task it was serving goes on from its checkpoint.
+    """
     tasks: dict[str, Any] = {}
     attrs = config_attrs(case.raw, case.overrides, command_line(argv))
     history = command_line(argv) + (f" (overrides: {', '.join(case.overrides)})" if case.overrides else "")
@@ -78,7 +101,13 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: AbstractLagrangi
     model_warnings = model_warnings_of(model, folder)
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
-        out: TaskOutcome = serve_task(model, td, case.run.device, stage=folder, variable=case.field.variable)
+        if resume and journal is not None and td.task.name in journal.done:  # served before the run stopped
+            tasks[td.task.name] = journal.done[td.task.name]
+            owners.update({f: td.task.name for f in tasks[td.task.name].get("exports") or []})
+            continue
+        out: TaskOutcome = serve_task(
+            model, td, case.run.device, stage=folder, variable=case.field.variable, resume=resume
+        )
         path = write_task(
             folder,
             out.name,
@@ -101,6 +130,10 @@ def serve_into(folder: Path, case: Case, data: CaseData, model: AbstractLagrangi
         log.debug("wrote %s", path.name)
         out.record.exports = export_one(folder, case, out.name, data, previous.get(out.name, ()), owners)
         tasks[out.name] = out.record.to_dict()
+        if journal is not None:
+            journal.task_done(out.name, json_safe(tasks[out.name]))
+    if journal is not None:
+        journal.close()
     return tasks
 
 

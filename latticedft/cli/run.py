@@ -6,8 +6,9 @@ import argparse
 import logging
 import time
 
-from . import _workers
+from . import _resume, _workers
 from ._common import (
+    OK,
     add_case_arguments,
     add_device_argument,
     checked_data,
@@ -27,12 +28,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_case_arguments(p, overwrite=True)
     add_device_argument(p)
     _workers.add_argument(p)
+    _resume.add_argument(p)
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
+    if args.resume:  # the model is in the killed run's stage: no training, rank 0 alone serves on
+        return OK if _workers.is_helper() else _resume.resumed_run(args, argv)
     if (status := _workers.supervise(args, argv)) is not None:
         return status
     from .._results import hold_results, staged_results
+    from .._run._resume import RESUME_FILE
     from ._work import finish, serve_into, train_into
 
     t0 = time.perf_counter()
@@ -46,13 +51,14 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
         data = checked_data(case, dest)
         _workers.join(case.run.device)
         log.info("checked %s: %d training field(s), %d serving task(s)", case.name, len(data.train), len(data.tasks))
-        with staged_results(dest, replace_foreign=False) as folder:
+        with staged_results(dest, replace_foreign=False, keep=RESUME_FILE) as folder:
             case = run_device(case)  # in run.log too
             for line in data.summary_lines(case):
                 log.debug("%s", line)
             model, train = train_into(folder, case, data, argv)
             _workers.leave()  # the other ranks are done: serving and writing are rank 0's alone
-            tasks = serve_into(folder, case, data, model, argv)
+            journal = _resume.journal_for(folder, "run", case, folder / "model.pt", False, train)
+            tasks = serve_into(folder, case, data, model, argv, journal=journal)
             summary = summary_head(case, argv, "run")
             summary.update(train=train, tasks=tasks, wall_time=time.perf_counter() - t0)
             status = finish(folder, summary, strict=case.run.strict)

@@ -6,6 +6,7 @@ import argparse
 import logging
 import time
 
+from . import _resume
 from ._common import (
     add_case_arguments,
     add_device_argument,
@@ -27,27 +28,31 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="serve every task with an existing results/model.pt", description=__doc__)
     add_case_arguments(p)
     add_device_argument(p)
+    _resume.add_argument(p)
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
     from .._results import hold_results, load_verified_model, read_summary, staged_results
+    from .._run._resume import RESUME_FILE
     from ._work import finish, serve_into
 
     t0 = time.perf_counter()
     case = open_case(args)
     refuse_learning_overrides(case, "serve")
     dest = results_dir(args, case)
-    with hold_results(dest):
+    with hold_results(dest, keep=RESUME_FILE if args.resume else None):
         require_results(dest, "model.pt")
         model = load_verified_model(dest)
         refuse_changed_learning(case, dest, "serve")
         old = read_summary(dest) or {}
         set_threads(case)
         data = checked_data(case, dest, train=False)
-        with staged_results(dest, copy_existing=True) as folder:
+        stage = _resume.checkpointed_stage(dest, "serve", case, dest / "model.pt") if args.resume else None
+        with staged_results(dest, copy_existing=True, adopt=stage, keep=RESUME_FILE) as folder:
             case = run_device(case)  # in run.log too
             log.debug("serving with %s", dest / "model.pt")
-            tasks = serve_into(folder, case, data, model, argv)
+            journal = _resume.journal_for(folder, "serve", case, dest / "model.pt", args.resume)
+            tasks = serve_into(folder, case, data, model, argv, journal=journal, resume=args.resume)
             summary = summary_head(case, argv, "serve")
             summary.update(train=old.get("train"), tasks=tasks, wall_time=time.perf_counter() - t0)
             status = finish(folder, summary, strict=case.run.strict)

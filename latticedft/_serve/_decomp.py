@@ -1,0 +1,245 @@
+"""Serving one field split into slabs over the processes of a :mod:`torch.distributed` group.
+
+The lattice is split along its outer spatial axis (the first after time) into one slab a process
+(:func:`plan_slabs`). Each process holds its slab and ``halo`` planes of each neighbour's (the stencil's reach
+along that axis), reads only that part of the initial field, and serves it by the affine recurrence, one
+slice at a time: the slab's new slice is solved with the halo planes as known sites, then each process sends
+its edge planes to its neighbours (the halo exchange, once a slice). The recurrence's check against the
+model's own DEL is the one-process test made global: the largest residual and the largest value of each
+slice are all-reduced. The kept slices are gathered to rank 0, which returns the field; the others return
+None.
+
+What is split: a DEL that is affine and explicit (the recurrence's matrix ``N`` on the new slice is
+diagonal, as for the first-order stencil with the wave, Klein-Gordon and other quadratic ``L_d``: each new
+value depends on its own equation only). A DEL that is not affine (slice-Newton), or whose ``N`` couples
+neighbouring unknowns (LU, Krylov), is refused in one line naming the alternative: one process.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import xarray as xr
+
+from .._boundary import BoundaryKinds
+from .._collective import group_device, world
+from .._errors import InputError, ServeError
+from .._lattice import LatticeField, as_lattice_field
+from .._layout import lattice_dims
+from .._learn import check_model_lattice
+from .._models import AbstractLagrangian
+from ._affine import _AffineSlices, _slice_residuals
+from ._edges import known_slices
+from ._options import kept_slices
+from ._slices import _SliceSystem
+
+__all__ = ["Slab", "plan_slabs", "serve_slabs"]
+
+
+@dataclass(frozen=True)
+class Slab:
+    """Planes ``lo .. hi - 1`` of the outer spatial axis (of ``n``), held with ``halo`` planes each side."""
+
+    lo: int
+    hi: int
+    n: int
+    halo: int
+    periodic: bool
+
+    @property
+    def local(self) -> np.ndarray:
+        """The global planes this process holds, in order (its halo included; wrapped when periodic)."""
+        if self.periodic:
+            return np.arange(self.lo - self.halo, self.hi + self.halo) % self.n
+        return np.arange(max(self.lo - self.halo, 0), min(self.hi + self.halo, self.n))
+
+    @property
+    def own(self) -> slice:
+        """The slab's own planes among :attr:`local`."""
+        start = self.lo - self.halo if self.periodic else max(self.lo - self.halo, 0)
+        return slice(self.lo - start, self.hi - start)
+
+
+def plan_slabs(n: int, processes: int, halo: int, periodic: bool, axis: str = "x") -> list[Slab]:
+    """``processes`` slabs of the ``n`` planes of ``axis`` (as equal as can be); one-line InputErrors naming
+    ``--workers`` when there are more processes than planes or a slab is thinner than the halo."""
+    if processes > n:
+        raise InputError.at(
+            "--workers",
+            f"{processes} processes for the {n} planes of the outer axis {axis!r}: at most {n} (one plane each)",
+        )
+    bounds = [n * r // processes for r in range(processes + 1)]
+    thinnest = min(b - a for a, b in zip(bounds[:-1], bounds[1:]))
+    if processes > 1 and thinnest < halo:
+        raise InputError.at(
+            "--workers",
+            f"the halo of {halo} planes is wider than a slab of {thinnest} planes of {axis!r}; "
+            f"use at most {n // halo} processes",
+        )
+    return [Slab(a, b, n, halo, periodic) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def _halo_width(model: AbstractLagrangian) -> int:
+    """The stencil's reach along the outer spatial axis: a site's equation sees this many planes each side."""
+    offsets = np.asarray(model.stencil.offsets)[:, 1]
+    return int(offsets.max() - offsets.min())
+
+
+def _local_field(init: xr.DataArray, slab: Slab, boundary: dict[str, str]) -> LatticeField:
+    """The slab's part of ``init`` (only it is read), its outer axis Dirichlet (the halo planes are known)."""
+    dims = lattice_dims(init)
+    axis = dims[1]
+    part = init.isel({axis: slab.local})
+    coord = np.asarray(init[axis].values, dtype=np.float64)
+    step = float(coord[1] - coord[0])
+    start = slab.lo - slab.halo if slab.periodic else max(slab.lo - slab.halo, 0)
+    part = part.assign_coords({axis: coord[0] + step * np.arange(start, start + len(slab.local))})
+    part[axis].attrs = {k: v for k, v in init[axis].attrs.items() if k != "periodic"}
+    return as_lattice_field(part.compute(), source="init", boundary={**boundary, axis: "dirichlet"}, min_slices=2)
+
+
+def _all_max(value: float) -> float:
+    """The largest ``value`` over the processes."""
+    if world()[1] == 1:
+        return value
+    t = torch.tensor([value], dtype=torch.float64, device=group_device())
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return float(t[0])
+
+
+def _exchange(v: np.ndarray, slab: Slab, rank: int, size: int) -> None:
+    """Send the slab's edge planes of the slice ``v`` (``(nsite * m,)``) to its neighbours; receive theirs
+    into its halo planes."""
+    w, own = slab.halo, slab.own
+    planes = v.reshape(len(slab.local), -1)
+    if size == 1:  # periodic in one process: its own edge planes
+        planes[own.start - w : own.start] = planes[own.stop - w : own.stop]
+        planes[own.stop : own.stop + w] = planes[own.start : own.start + w]
+        return
+    left = (rank - 1) % size if (slab.periodic or rank > 0) else None
+    right = (rank + 1) % size if (slab.periodic or rank < size - 1) else None
+    dev = group_device()
+    ops, got = [], []
+    # tag 0: planes going left, tag 1: going right (two ranks, periodic: both neighbours are the same rank)
+    for peer, send, recv, out_tag in (
+        (left, slice(own.start, own.start + w), slice(own.start - w, own.start), 0),
+        (right, slice(own.stop - w, own.stop), slice(own.stop, own.stop + w), 1),
+    ):
+        if peer is None:
+            continue
+        ops.append(dist.P2POp(dist.isend, torch.from_numpy(planes[send].copy()).to(dev), peer, tag=out_tag))
+        buf = torch.empty((w, planes.shape[1]), dtype=torch.float64, device=dev)
+        ops.append(dist.P2POp(dist.irecv, buf, peer, tag=1 - out_tag))
+        got.append((recv, buf))
+    for req in dist.batch_isend_irecv(ops):
+        req.wait()
+    for where, buf in got:
+        planes[where] = buf.cpu().numpy()
+
+
+def _recurrence(model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem) -> _AffineSlices:
+    """The affine recurrence of the slab, refused in one line when it cannot be split."""
+    scale = _all_max(float(f.values[:2].abs().max())) or 1.0
+    probe = _AffineSlices.probe(model, sys.st, f.ncomp, scale)
+    alternative = "serve it in one process (without --workers)"
+    if probe is None:
+        raise InputError.at(
+            "--workers", f"the learned DEL is not affine: slice-Newton is not split across processes yet; {alternative}"
+        )
+    op = _AffineSlices(sys, probe[0], probe[1])
+    if op.nk.nnz or getattr(op.solve, "__name__", "") != "<lambda>":  # not the diagonal solve of _affine
+        raise InputError.at(
+            "--workers",
+            "the DEL couples neighbouring sites of the new slice (the slice solve is LU, not site by site), "
+            f"which is not split across processes; {alternative}",
+        )
+    return op
+
+
+def serve_slabs(
+    model: AbstractLagrangian,
+    init: xr.DataArray,
+    slices: int,
+    *,
+    boundary: BoundaryKinds | None = None,
+    every: int = 1,
+    rtol: float = 1e-10,
+) -> xr.DataArray | None:
+    """Serve ``init`` (every slice held for Dirichlet strips; a periodic field needs two) over the processes of
+    the group, one slab each; rank 0 gets the kept slices ``0, every, ...`` and the last, the others None."""
+    rank, size = world()
+    dims = lattice_dims(init)
+    kinds = _kinds(model, init, dims, boundary)
+    axis = dims[1]
+    slab = plan_slabs(init.sizes[axis], size, _halo_width(model), kinds[axis] == "periodic", axis)[rank]
+    data = any(k != "periodic" for k in kinds.values())  # Dirichlet strips: every slice of the slab is read
+    f = _local_field(init.isel({dims[0]: slice(0, min(init.sizes[dims[0]], slices) if data else 2)}), slab, kinds)
+    sys = _SliceSystem(model, f)
+    op = _recurrence(model, f, sys)
+    m, vol = f.ncomp, math.prod(model.spacing)
+    window = np.full((3, sys.nsite * m), np.nan)
+    window[:2] = f.values[:2].reshape(2, -1).numpy()
+    kept_at = kept_slices(slices, every)
+    kept = [window[k].copy() for k in range(2) if k in kept_at]
+    known = None if sys.interior.all() else np.repeat(~sys.interior, m)
+    for i in range(1, slices - 1):
+        if known is not None:  # the Dirichlet strips (the halo planes: placeholders until the exchange)
+            nxt = known_slices(f, lambda a, b: f.values[a:b], f.shape[0], None, i + 1, i + 2) if data else None
+            window[2, known] = 0.0 if nxt is None else np.asarray(nxt).reshape(-1)[known]
+        op.run(window, 1, 2)
+        _exchange(window[2], slab, rank, size)
+        _check(model, f, window, vol, op.dmax, rtol, i)
+        if i + 1 in kept_at:
+            kept.append(window[2].copy())
+        window[:2] = window[1:]
+    return _gathered(init, f, slab, kept, kept_at, rank)
+
+
+def _kinds(
+    model: AbstractLagrangian, init: xr.DataArray, dims: tuple[str, ...], boundary: BoundaryKinds | None
+) -> dict[str, str]:
+    """The boundary kind of every spatial axis (``boundary``, else the coordinates' ``periodic`` attribute),
+    read from the first two slices, on which ``model`` is checked (an analytic model bound to the lattice)."""
+    f = as_lattice_field(init.isel({dims[0]: slice(0, 2)}).compute(), source="init", boundary=boundary, min_slices=2)
+    if model.rebinds_to_any_lattice:
+        model.bind(f.ndim, f.ncomp, f.spacing, f.components)
+    check_model_lattice(model, f, "init")
+    return {d: ("periodic" if p else "dirichlet") for d, p in zip(dims[1:], f.periodic[1:])}
+
+
+def _check(
+    model: AbstractLagrangian, f: LatticeField, window: np.ndarray, vol: float, dmax: float, rtol: float, i: int
+) -> None:
+    """The one-process test of the recurrence against the model's DEL, on slice ``i``'s equations, global."""
+    psi = torch.from_numpy(window.reshape(3, *f.shape[1:], f.ncomp))
+    res = _all_max(float(_slice_residuals(model, f, psi, 1, 2)[0]))
+    scl = _all_max(float(np.abs(window).max()))
+    if not (math.isfinite(res) and res <= rtol * vol * dmax * max(scl, 1e-300)):
+        raise ServeError(
+            f"slice {i + 1}: the affine recurrence fails the DEL test (residual {res:.3e}); split serving has no "
+            "slice-Newton to take over: serve in one process",
+            slice=i + 1,
+            residual=res,
+        )
+
+
+def _gathered(
+    init: xr.DataArray, f: LatticeField, slab: Slab, kept: list[np.ndarray], kept_at: np.ndarray, rank: int
+) -> xr.DataArray | None:
+    """The kept slices of every slab, gathered to rank 0 as one field."""
+    own = np.stack(kept).reshape(len(kept), len(slab.local), -1)[:, slab.own]
+    parts: list[Any] = [own] if world()[1] == 1 else [None] * world()[1]
+    if world()[1] > 1:
+        dist.gather_object(own, parts if rank == 0 else None, dst=0)
+    if rank != 0:
+        return None
+    values = np.concatenate(parts, axis=1).reshape(len(kept), init.sizes[lattice_dims(init)[1]], *f.shape[2:], f.ncomp)
+    tdim = lattice_dims(init)[0]
+    t = np.asarray(init[tdim].values[:2], dtype=np.float64)
+    out = init.isel({tdim: [0] * len(kept)}).copy(data=values if f.components is not None else values[..., 0])
+    return out.assign_coords({tdim: t[0] + (t[1] - t[0]) * kept_at.astype(np.float64), "slice": (tdim, kept_at)})

@@ -1,0 +1,101 @@
+"""Training in several processes reads each process's share of the data only, the input scaling included.
+
+Two processes on the loopback (gloo) learn a polynomial and an MLP from fields read chunk by chunk: the
+pieces each reads are disjoint and together those one process reads; the scaling and the training range
+(minima and maxima, merged over the processes) equal the one-process ones bit for bit, and the model equals
+it to round-off.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+_WORKER = """
+import sys, json, torch
+torch.set_num_threads(1)
+import torch.distributed as dist
+import latticedft as ldft
+from latticedft import systems
+from latticedft._learn import _dist
+from latticedft._learn._source import Piece
+_dist.init_from_env()
+seen = []
+_read = Piece.read
+def counted(self, *args):
+    seen.append([self.source, self.t0, self.t1])
+    return _read(self, *args)
+Piece.read = counted
+fields = [systems.wave_string([(k, 0.5 / k), (k + 1, 0.1, 0.3 * k)], nx=24, nt=40) for k in range(1, 5)]
+out = {}
+m = ldft.PolynomialLagrangian((2, 4))
+ldft.learn(m, fields, chunk_sites=200, ridge=0.0)
+out["poly"] = [m.coef.tolist(), m.center.tolist(), m.halfwidth.tolist(), m.trained_range().tolist()]
+out["poly_read"] = sorted(seen)
+seen.clear()
+data = systems.klein_gordon_training_set(n=4, steps=10, seed=0)
+m = ldft.MLPLagrangian(hidden=[6], activation="tanh", form="free", seed=0)
+ldft.learn(m, data, optimizer="lbfgs", max_iter=4, chunk_sites=150, boundary="periodic")
+params = torch.cat([p.detach().reshape(-1) for p in m.parameters()]).tolist()
+out["mlp"] = [params, m.in_center.tolist(), m.in_scale.tolist(), float(m.out_scale), m.trained_range().tolist()]
+out["mlp_read"] = sorted(set(map(tuple, seen)))
+json.dump(out, open(sys.argv[1], "w"))
+if dist.is_initialized():
+    dist.barrier()
+    dist.destroy_process_group()
+"""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300))
+
+
+@pytest.mark.slow
+def test_each_process_reads_its_share_and_learns_what_one_learns(tmp_path: Path) -> None:
+    script = tmp_path / "worker.py"
+    script.write_text(_WORKER)
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
+    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
+        env.pop(k, None)
+    one = subprocess.run([sys.executable, str(script), str(tmp_path / "one.json")], env=env, timeout=600)
+    assert one.returncode == 0
+    port = str(_free_port())
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(script), str(tmp_path / f"two_{r}.json")],
+            env=dict(env, MASTER_ADDR="127.0.0.1", MASTER_PORT=port, WORLD_SIZE="2", RANK=str(r), LOCAL_RANK=str(r)),
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for r in range(2)
+    ]
+    errors = [p.communicate(timeout=600)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], "\n".join(e[-3000:] for e in errors)
+    ref = json.loads((tmp_path / "one.json").read_text())
+    ranks = [json.loads((tmp_path / f"two_{r}.json").read_text()) for r in range(2)]
+    for kind in ("poly", "mlp"):
+        reads = [{tuple(p) for p in r[f"{kind}_read"]} for r in ranks]
+        assert reads[0] and reads[1] and not reads[0] & reads[1]  # each its share, no piece read twice
+        assert reads[0] | reads[1] == {tuple(p) for p in ref[f"{kind}_read"]}
+        assert ranks[0][kind] == ranks[1][kind]  # every process ends with the same model, bit for bit
+    coef, *scaling = ranks[0]["poly"]
+    assert scaling == ref["poly"][1:]  # minima and maxima: merged exactly
+    assert _rel(np.array(coef), np.array(ref["poly"][0])) < 1e-10
+    params, *scaling = ranks[0]["mlp"]
+    assert scaling == ref["mlp"][1:]
+    assert _rel(np.array(params), np.array(ref["mlp"][0])) < 1e-8
