@@ -45,6 +45,7 @@ _PUBLIC: dict[str, str] = {
     "AnalyticLagrangian": "._models",
     "EnsembleLagrangian": "._models",
     "FeatureLagrangian": "._models",
+    "SparseLagrangian": "._models",
     "LinearLagrangian": "._models",
     "MLPLagrangian": "._models",
     "ModelKind": "._models",
@@ -132,6 +133,7 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._models import MLPLagrangian as MLPLagrangian
     from ._models import ModelKind as ModelKind
     from ._models import PolynomialLagrangian as PolynomialLagrangian
+    from ._models import SparseLagrangian as SparseLagrangian
     from ._noether import DiscoveryReport as DiscoveryReport
     from ._noether import Symmetry as Symmetry
     from ._noether import SymmetryReport as SymmetryReport

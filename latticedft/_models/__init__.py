@@ -22,10 +22,12 @@ from ._mlp import (
 )
 from ._polynomial import PolynomialLagrangian
 from ._registry import MODELS, ModelKind, ModelRegistry
+from ._sparse import SparseLagrangian
 
 MODELS["polynomial"] = PolynomialLagrangian
 MODELS["mlp"] = ModelKind("mlp", mlp_lagrangian, MLPLagrangian)  # the form option picks the class
 MODELS["features"] = FeatureLagrangian
+MODELS["sparse"] = SparseLagrangian
 
 __all__ = [
     "AbstractLagrangian",
@@ -37,6 +39,7 @@ __all__ = [
     "LinearLagrangian",
     "MLPLagrangian",
     "PolynomialLagrangian",
+    "SparseLagrangian",
     "MODELS",
     "ModelKind",
     "ModelRegistry",
