@@ -21,16 +21,24 @@ __all__ = ["SparseLagrangian", "default_library", "THRESHOLDS"]
 THRESHOLDS = (0.1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 0.0)
 
 
-def default_library(n: int, m: int) -> str:
-    """``library = "auto"``: the library tried on a lattice of ``n`` axes and ``m`` components.
+def default_library(n: int, m: int, corrections: bool = False) -> str:
+    """``library = "auto"``: the library tried on a lattice of ``n`` axes and ``m`` components; with
+    ``corrections``, for a scalar field, also the products that carry the lattice's ``O(h^2)`` corrections
+    to a continuum Lagrangian (a squared kinetic term, kinetic times on-site functions, the second harmonic).
 
     >>> default_library(2, 1)
     'kinetic + gradient + poly:4 + trig:1'
+    >>> default_library(1, 1, corrections=True)
+    'kinetic + poly:4 + trig:1 + trig:2 + kinetic*kinetic + kinetic*poly:2 + kinetic*trig:1'
     >>> default_library(1, 2)
     'kinetic + poly:2 + norm:-1 + log + cross'
     """
     if m == 1:
-        return "kinetic" + (" + gradient" if n > 1 else "") + " + poly:4 + trig:1"
+        base = "kinetic" + (" + gradient" if n > 1 else "") + " + poly:4 + trig:1"
+        if corrections:
+            base += " + trig:2 + kinetic*kinetic + kinetic*poly:2 + kinetic*trig:1"
+            base += " + gradient*gradient + kinetic*gradient" if n > 1 else ""
+        return base
     return "kinetic + poly:2 + norm:-1 + log" + (" + cross" if m == 2 else "")
 
 
