@@ -215,9 +215,9 @@ def select(
     data : DataArray or a list of them
         The training fields (as for :func:`latticedft.learn`), each with at least 4 time slices.
     candidates : "auto" or list
-        ``"auto"`` (the sparse libraries first, see :func:`auto_candidates`), or a list whose items are option changes of the hand-set
-        model (``{"orders": [2, 2]}``, ``{"kind": "features", "features": ["trig:1"]}``, ``{"ridge": "auto"}``)
-        or unlearned models.
+        ``"auto"`` (the sparse libraries first, see :func:`auto_candidates`), or a list whose items are option
+        changes of the hand-set model (``{"orders": [2, 2]}``, ``{"kind": "features", "features": ["trig:1"]}``,
+        ``{"ridge": "auto"}``) or unlearned models.
     hold_out : float
         Fraction of every field's slices held out, in (0, 1).
     factor : float
