@@ -35,3 +35,29 @@ def test_select_takes_progress_and_chooses_the_sparse_pendulum():
     sel = ldft.select(ldft.PolynomialLagrangian((2, 2)), data, cands, progress=False)
     assert sel.chosen == 1 and isinstance(sel.model, ldft.SparseLagrangian)
     assert set(sel.model.report_.sparse["kept"]) == {"Dtq**2", "cos(q)"}
+
+
+def test_a_sparse_case_prints_its_equation(tmp_path, capsys):
+    import json
+
+    import xarray as xr
+
+    import latticedft.cli
+
+    (tmp_path / "data").mkdir()
+    for a in (2.0, 2.6):
+        pendulum(a, 40).to_netcdf(tmp_path / "data" / f"train_{a}.nc")
+    pendulum(2.9, 20).to_netcdf(tmp_path / "data" / "test.nc")
+    (tmp_path / "case.toml").write_text(
+        '[field]\nvariable = "psi"\n\n[model]\nkind = "sparse"\nlibrary = "kinetic + poly:2 + trig:1"\nbags = 4\n\n'
+        '[train]\ndata = ["data/train_*.nc"]\n\n[[serve]]\nname = "test"\nfrom = "data/test.nc"\n'
+    )
+    assert latticedft.cli.main(["run", str(tmp_path), "-q"]) == 0
+    record = json.loads((tmp_path / "results" / "model.json").read_text())
+    assert record["training"]["sparse"]["kept"] == ["Dtq**2", "cos(q)"]
+    assert "cos" in record["training"]["sparse"]["equation"]["latex"]
+    with xr.open_dataset(tmp_path / "results" / "test.nc") as ds:
+        assert ds.attrs["latticedft_L_d"].startswith("L_d = ") and "*cos(q)" in ds.attrs["latticedft_L_d"]
+    capsys.readouterr()
+    assert latticedft.cli.main(["info", str(tmp_path)]) == 0
+    assert "DEL: " in capsys.readouterr().out

@@ -193,7 +193,8 @@ class SparseLagrangian(LinearLagrangian):
         return "\n".join(lines)
 
     def sparse_summary(self) -> dict[str, Any]:
-        """The terms, their coefficients and inclusion probabilities, and the threshold (for reports)."""
+        """The terms, their coefficients and inclusion probabilities, the threshold, and the equation with its DEL
+        (:meth:`equation_text`): what the learning report (model.json, summary.json) holds."""
         coef = self.coef.detach().tolist()
         return {
             "threshold": float(self.threshold_used),
@@ -202,6 +203,7 @@ class SparseLagrangian(LinearLagrangian):
                 for c, t in enumerate(self.terms)
             ],
             "kept": [self.terms[c].name for c in self._kept()],
+            "equation": self.equation_text() if self._kept() else {},
         }
 
 
