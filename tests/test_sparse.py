@@ -106,9 +106,11 @@ def test_model_option_errors_name_the_key():
     assert info.value.key == "library"
 
 
-def test_a_term_undefined_on_the_data_is_named():
-    # a straight line through the origin: one cell's mean is q = 0, where |q|^-1 and log|q| are undefined
-    x = np.arange(-10, 10) + 0.5
+@pytest.mark.parametrize(("at", "shift"), [("anchor", 0.0), ("mean", 0.5)])
+def test_a_term_undefined_on_the_data_is_named(at, shift):
+    # a straight line through the origin: one site (anchor) or one cell's mean is q = 0, where |q|^-1 and
+    # log|q| are undefined
+    x = np.arange(-10, 10) + shift
     q = xr.DataArray(
         np.stack([x, 0 * x], 1),
         dims=("t", "component"),
@@ -117,7 +119,7 @@ def test_a_term_undefined_on_the_data_is_named():
     )
     for term in ("norm:-1", "log"):
         with pytest.raises(ldft.InputError, match="not finite on the training data") as info:
-            ldft.learn(ldft.SparseLagrangian(f"kinetic + {term}", bags=0), q, progress=False)
+            ldft.learn(ldft.SparseLagrangian(f"kinetic + {term}", bags=0, at=at), q, progress=False)
         assert info.value.key == "library"
 
 
@@ -179,6 +181,7 @@ def test_symbolic_matches_the_model_to_round_off():
     data = [klein_gordon_string(0.8, nx=11, nt=12)]
     for model in (
         ldft.SparseLagrangian("kinetic + gradient + poly:4 + trig:1", threshold=0.0, bags=0),
+        ldft.SparseLagrangian("kinetic + gradient + poly:2*gradient + exp + trig:1", threshold=0.0, at="mean"),
         ldft.FeatureLagrangian(["poly:3", "trig:1"], differences=2),
     ):
         ldft.learn(model, data, progress=False)

@@ -4,13 +4,13 @@ inside the gauge-fixed exact solve, and printed as an equation."""
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Literal
 
 import torch
 
 from .._errors import InputError
 from .._stencil import Stencil
-from .._symbolic import SymbolicLd, del_equations
+from .._symbolic import SymbolicLd, cell_symbols, del_equations
 from ._library import Library, Term, axis_name, cell_variables, readable_variables, term_forms, term_values
 from ._linear import LinearLagrangian
 
@@ -45,7 +45,8 @@ def default_library(n: int, m: int, corrections: bool = False) -> str:
 class SparseLagrangian(LinearLagrangian):
     """``L_d = sum_c coef_c T_c(q, D q)``: a few terms ``T_c`` of a library, the rest exactly zero.
 
-    The terms are functions of the stencil mean ``q`` and the discrete derivatives ``D_k q = (psi[x + e_k] -
+    The terms are functions of the field ``q`` at the cell's anchor site (or the stencil mean) and of the
+    discrete derivatives ``D_k q = (psi[x + e_k] -
     psi[x]) / h_k`` (see :mod:`latticedft._models._library` for the library's shorthands and objects).
     :func:`latticedft.learn` solves the gauge-fixed least-squares problem with sequential thresholding: fit,
     drop every term whose share of the residual is below ``threshold``, refit, until the support holds.
@@ -62,6 +63,10 @@ class SparseLagrangian(LinearLagrangian):
         Relative share below which a term is dropped (``0``: the dense fit), or ``"auto"``.
     bags : int
         Resampled fits for the inclusion probabilities (``0``: none).
+    at : "anchor" or "mean"
+        Where the on-site functions of the field are evaluated: at the cell's anchor site (the default:
+        ``L_d = |D_t q|^2 / 2 - V(q[x])`` is the leapfrog's own ``L_d``) or at the stencil mean (a midpoint
+        rule, as :class:`FeatureLagrangian`).
     stencil : Stencil, optional
         Default: the first-order stencil.
     """
@@ -78,6 +83,7 @@ class SparseLagrangian(LinearLagrangian):
         *,
         threshold: float | str = "auto",
         bags: int = 20,
+        at: Literal["mean", "anchor"] = "anchor",
         stencil: Stencil | None = None,
     ):
         super().__init__(stencil)
@@ -88,6 +94,9 @@ class SparseLagrangian(LinearLagrangian):
             raise InputError.at("threshold", f"expected a number in [0, 1) or 'auto', got {threshold!r}")
         if not isinstance(bags, int) or isinstance(bags, bool) or bags < 0:
             raise InputError.at("bags", f"expected an integer >= 0, got {bags!r}")
+        if at not in ("mean", "anchor"):
+            raise InputError.at("at", f"expected 'mean' or 'anchor', got {at!r}")
+        self.at = at
         self.threshold: float | str = threshold if threshold == "auto" else float(threshold)
         self.bags = bags
         self.terms: list[Term] = []
@@ -98,7 +107,7 @@ class SparseLagrangian(LinearLagrangian):
 
     def options(self) -> dict[str, Any]:
         lib = "auto" if self.library is None else " + ".join(self.library.labels)
-        return {"library": lib, "threshold": self.threshold, "bags": self.bags}
+        return {"library": lib, "threshold": self.threshold, "bags": self.bags, "at": self.at}
 
     def auto_candidates(self, n: int, ridge: Any = 0.0) -> list[dict[str, Any]]:
         """The other thresholds (chosen by held-out serving)."""
@@ -128,7 +137,10 @@ class SparseLagrangian(LinearLagrangian):
         return nonzero or (self.n_terms if self.bound else 0)
 
     def features(self, cells: torch.Tensor) -> torch.Tensor:
-        return term_values(self.terms, self.mean_and_differences(cells), self.spacing)
+        z = self.mean_and_differences(cells)
+        if self.at == "anchor":  # the on-site functions see the anchor's value, not the stencil mean
+            z = torch.cat([cells[..., self.stencil.anchor : self.stencil.anchor + 1, :], z[..., 1:, :]], -2)
+        return term_values(self.terms, z, self.spacing)
 
     # -- the equation ------------------------------------------------------------------------------------
     def _kept(self) -> list[int]:
@@ -138,6 +150,8 @@ class SparseLagrangian(LinearLagrangian):
         """``L_d`` in the cell symbols (None when a user term has no sympy form)."""
         self._require_bound()
         q, d = cell_variables(self.proj, self.spacing, self.m)
+        if self.at == "anchor":
+            q = list(cell_symbols(self.stencil.size, self.m)[self.stencil.anchor])
         return _sum_form(self, q, d)
 
     def equation(self) -> Any:
@@ -163,7 +177,7 @@ class SparseLagrangian(LinearLagrangian):
             "L_d": str(expr),
             "latex": sympy.latex(expr, symbol_names=names),
             "del": [f"{sympy.sstr(e)} = 0" for e in dels],
-            "where": "q = mean of the stencil values, D<axis>q = (q[x + e_axis] - q[x]) / h_axis",
+            "where": f"q = {_AT[self.at]}, D<axis>q = (q[x + e_axis] - q[x]) / h_axis",
         }
 
     def describe(self, max_terms: int | None = 12) -> str:
@@ -205,6 +219,9 @@ class SparseLagrangian(LinearLagrangian):
             "kept": [self.terms[c].name for c in self._kept()],
             "equation": self.equation_text() if self._kept() else {},
         }
+
+
+_AT = {"anchor": "the value at the anchor site x", "mean": "the mean of the stencil values"}
 
 
 def _clip(text: str, width: int = 400) -> str:
