@@ -219,3 +219,40 @@ def test_a_user_function_is_a_term_but_not_saveable(tmp_path):
     assert model.symbolic() is None
     with pytest.raises(ldft.ModelFileError, match="Python functions"):
         ldft.save_model(model, tmp_path / "m.pt")
+
+
+def sine_gordon_2d(amplitude: float, n: int = 10, nt: int = 16, h: float = 0.5, dt: float = 0.2) -> xr.DataArray:
+    """psi_tt = psi_xx + psi_yy - sin psi on a periodic n x n lattice, by the leapfrog at the sampled step."""
+    x = np.arange(n) * h
+    xx, yy = np.meshgrid(x, x, indexing="ij")
+    psi = amplitude * np.cos(2 * np.pi * xx / (n * h)) * np.sin(2 * np.pi * yy / (n * h)) + 0.3
+    frames = [psi, psi]
+    for _ in range(nt - 2):
+        p = frames[-1]
+        lap = sum(np.roll(p, s, a) for s in (1, -1) for a in (0, 1)) - 4 * p
+        frames.append(2 * p - frames[-2] + dt**2 * (lap / h**2 - np.sin(p)))
+    coords = {"t": np.arange(nt) * dt, "x": x, "y": x}
+    da = xr.DataArray(np.array(frames), dims=("t", "x", "y"), coords=coords, name="psi")
+    for axis in ("x", "y"):
+        da[axis].attrs["periodic"] = 1
+    return da
+
+
+def test_sine_gordon_2d_is_exact_when_the_data_obey_the_leapfrog():
+    model = ldft.SparseLagrangian("kinetic + gradient + poly:2 + trig:1")
+    report = ldft.learn(model, [sine_gordon_2d(0.8), sine_gordon_2d(1.5)], progress=False)
+    terms = kept(model)
+    assert set(terms) == {"Dtq**2", "Dxq**2", "Dyq**2", "cos(q)"}
+    assert report.rel_res < 1e-10
+    for name, value in (("Dxq**2", -0.5), ("Dyq**2", -0.5), ("cos(q)", 1.0)):
+        assert terms[name] == pytest.approx(value, rel=1e-9)
+
+
+def test_sine_gordon_breather_1d():
+    data = [systems.sine_gordon_breather(w, nx=81, nt=40, xlim=(-10.0, 10.0), dt=0.1) for w in (0.5, 0.8)]
+    model = ldft.SparseLagrangian("kinetic + gradient + poly:2 + trig:1", threshold=1e-2)
+    ldft.learn(model, data, progress=False)
+    terms = kept(model)
+    assert set(terms) == {"Dtq**2", "Dxq**2", "cos(q)"}
+    assert -2 * terms["Dxq**2"] == pytest.approx(1.0, rel=1e-2)
+    assert terms["cos(q)"] == pytest.approx(1.0, rel=1e-2)
