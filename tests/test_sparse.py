@@ -256,3 +256,42 @@ def test_sine_gordon_breather_1d():
     assert set(terms) == {"Dtq**2", "Dxq**2", "cos(q)"}
     assert -2 * terms["Dxq**2"] == pytest.approx(1.0, rel=1e-2)
     assert terms["cos(q)"] == pytest.approx(1.0, rel=1e-2)
+
+
+@pytest.mark.parametrize(("sigma", "rel"), [(1e-3, 2e-3), (1e-2, 5e-2)])
+def test_noisy_pendulum_terms_with_noise_auto(sigma, rel):
+    rng = np.random.default_rng(1)
+    noisy = [p + sigma * 2.6 * rng.standard_normal(p.shape) for p in (pendulum(2.0, 120), pendulum(2.6, 120))]
+    model = ldft.SparseLagrangian("kinetic + poly:2 + trig:1")
+    report = ldft.learn(model, noisy, noise="auto", progress=False)
+    assert report.noise["method"] != "none"
+    terms = kept(model)
+    assert set(terms) == {"Dtq**2", "cos(q)"}
+    assert terms["cos(q)"] / (2 * terms["Dtq**2"]) == pytest.approx(1.0, rel=rel)
+
+
+def double_pendulum(y0, n: int = 150, dt: float = 0.05) -> xr.DataArray:
+    """Two unit masses on unit rods, g = 1: L = q1'^2 + q2'^2/2 + q1' q2' cos(q1 - q2) + 2 cos q1 + cos q2."""
+
+    def rhs(y):
+        t1, t2, w1, w2 = y
+        d = t1 - t2
+        den = 3 - np.cos(2 * d)
+        a1 = (-3 * np.sin(t1) - np.sin(t1 - 2 * t2) - 2 * np.sin(d) * (w2**2 + w1**2 * np.cos(d))) / den
+        a2 = 2 * np.sin(d) * (2 * w1**2 + 2 * np.cos(t1) + w2**2 * np.cos(d)) / den
+        return [w1, w2, a1, a2]
+
+    y = _ode(rhs, y0, n, dt)
+    coords = {"t": np.arange(n) * dt, "component": ["a", "b"]}
+    return xr.DataArray(y[:2].T, dims=("t", "component"), coords=coords, name="theta")
+
+
+def test_double_pendulum_with_the_trace_gauge():
+    data = [double_pendulum([0.8, -0.5, 0.0, 0.0]), double_pendulum([0.3, 1.0, 0.5, 0.0])]
+    model = ldft.SparseLagrangian("velocities + cosdiff*velocities + trig:1")
+    ldft.learn(model, data, gauge="trace", progress=False)  # unequal masses: unit-mass cannot hold
+    terms = kept(model)
+    assert set(terms) == {"Dtq1**2", "Dtq2**2", "cos(q1-q2)*Dtq1*Dtq2", "cos(q1)", "cos(q2)"}
+    a = terms["Dtq1**2"]
+    for name, ratio in (("Dtq2**2", 0.5), ("cos(q1-q2)*Dtq1*Dtq2", 1.0), ("cos(q1)", 2.0), ("cos(q2)", 1.0)):
+        assert terms[name] / a == pytest.approx(ratio, rel=1e-2)
