@@ -8,7 +8,7 @@ new solutions by solving those equations slice by slice — a variational
 
 >>> import latticedft as ldft
 >>> sorted(ldft.MODELS)
-['features', 'mlp', 'polynomial']
+['features', 'mlp', 'polynomial', 'sparse']
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ _PUBLIC: dict[str, str] = {
     "EnsembleLagrangian": "._models",
     "FeatureLagrangian": "._models",
     "SparseLagrangian": "._models",
+    "Library": "._models",
     "LinearLagrangian": "._models",
     "MLPLagrangian": "._models",
     "ModelKind": "._models",
@@ -129,6 +130,7 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._models import AnalyticLagrangian as AnalyticLagrangian
     from ._models import EnsembleLagrangian as EnsembleLagrangian
     from ._models import FeatureLagrangian as FeatureLagrangian
+    from ._models import Library as Library
     from ._models import LinearLagrangian as LinearLagrangian
     from ._models import MLPLagrangian as MLPLagrangian
     from ._models import ModelKind as ModelKind

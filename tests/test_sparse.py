@@ -9,9 +9,8 @@ import xarray as xr
 from scipy.integrate import solve_ivp
 
 import latticedft as ldft
-from latticedft import systems
+from latticedft import Library, systems
 from latticedft._lattice import gather_cells
-from latticedft._models._library import Library, function
 
 
 def _ode(rhs, y0, n: int, dt: float) -> np.ndarray:
@@ -212,7 +211,7 @@ def test_model_file_round_trip(tmp_path):
 
 
 def test_a_user_function_is_a_term_but_not_saveable(tmp_path):
-    lib = Library.parse("kinetic") + function(lambda q: 1 - torch.cos(q[..., 0]), "1-cos(q)")
+    lib = Library.parse("kinetic") + Library.function(lambda q: 1 - torch.cos(q[..., 0]), "1-cos(q)")
     model = ldft.SparseLagrangian(lib)
     ldft.learn(model, [pendulum(2.0), pendulum(2.6)], progress=False)
     assert set(kept(model)) == {"Dtq**2", "1-cos(q)"}

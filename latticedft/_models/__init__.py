@@ -12,6 +12,7 @@ from .._contract import AbstractLagrangian
 from ._analytic import AnalyticLagrangian
 from ._ensemble import EnsembleLagrangian
 from ._features import FeatureLagrangian
+from ._library import Library
 from ._linear import LinearLagrangian
 from ._mlp import (
     PRESETS,
@@ -36,6 +37,7 @@ __all__ = [
     "FeatureLagrangian",
     "FreeMLPLagrangian",
     "KineticPotentialMLPLagrangian",
+    "Library",
     "LinearLagrangian",
     "MLPLagrangian",
     "PolynomialLagrangian",

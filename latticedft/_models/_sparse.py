@@ -11,8 +11,9 @@ import torch
 from .._errors import InputError
 from .._stencil import Stencil
 from .._symbolic import SymbolicLd, cell_symbols, del_equations
-from ._library import Library, Term, axis_name, cell_variables, readable_variables, term_forms, term_values
+from ._library import Library, cell_variables, readable_variables
 from ._linear import LinearLagrangian
+from ._terms import Term, axis_name, term_forms, term_values
 
 __all__ = ["SparseLagrangian", "default_library", "THRESHOLDS"]
 
