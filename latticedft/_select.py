@@ -42,6 +42,10 @@ FACTOR = 2.0
 KEEP_BELOW = 1e-6
 #: ... but never when a candidate scores this many times lower: a hand-set model beaten so far is not kept.
 BEATEN = 100.0
+#: A sparse candidate (``kind = "sparse"``) within this factor of the lowest score is preferred to a denser one:
+#: held-out slices of the training fields cannot show that a few symbolic terms extrapolate and a dense fit
+#: of the same orbit does not (docs/sparse.md: Kepler from one orbit).
+SPARSE_FACTOR = 100.0
 #: The thresholds of the sparse candidates ``"auto"`` tries first (with the default library of the lattice).
 SPARSE_THRESHOLDS: tuple[float | str, ...] = (1e-1, 1e-2, "auto")
 
@@ -203,7 +207,8 @@ def select(
     field's time slices, then serves each whole field from its first two slices (and, on Dirichlet axes,
     its boundary strips). Its score is the largest served error over the field's largest magnitude, worst
     field first; a fit that fails, a serve that stops or a non-finite field scores ``inf``. The best
-    candidate is the one with the fewest parameters among those within ``factor`` of the lowest score; it
+    candidate is the one with the fewest parameters among those within ``factor`` of the lowest score (a sparse
+    candidate, the fewest terms, within :data:`SPARSE_FACTOR` of it first); it
     replaces the hand-set model only when its score is ``factor`` times smaller than the hand-set one's and the
     hand-set score is above ``keep_below`` (or :data:`BEATEN` times the candidate's); when every candidate fails
     the hand-set model is kept with a warning.
@@ -334,12 +339,20 @@ def _trial(
 
 def _choose(rows: list[dict[str, Any]], factor: float, keep_below: float) -> tuple[int, str, list[str]]:
     """``(chosen row, reason, warnings)``: the best candidate is the one with the fewest parameters among
-    those within ``factor`` of the lowest score; it replaces the hand-set model (row 0) only when ``factor``
+    those within ``factor`` of the lowest score, or the sparse one with the fewest terms among the sparse
+    candidates within :data:`SPARSE_FACTOR` of it; it replaces the hand-set model (row 0) only when ``factor``
     times better and the hand-set score is above ``keep_below``."""
     scores = [r["score"] for r in rows]
     lowest = min(scores)
     near = [i for i, sc in enumerate(scores) if math.isfinite(sc) and sc <= factor * lowest]
     best = min(near, key=lambda i: (rows[i]["n_parameters"], scores[i])) if near else int(np.argmin(scores))
+    sparse = [
+        i
+        for i, sc in enumerate(scores)
+        if i > 0 and rows[i].get("kind") == "sparse" and math.isfinite(sc) and sc <= SPARSE_FACTOR * lowest
+    ]
+    if sparse and best not in sparse:  # a few symbolic terms near the lowest score: they extrapolate
+        best = min(sparse, key=lambda i: (rows[i]["n_parameters"], scores[i]))
     if not math.isfinite(scores[best]):
         warning = (
             f"model selection: every one of {len(rows)} candidates failed to serve the held-out data "

@@ -77,7 +77,7 @@ def test_library_union_products_and_shorthands():
 @pytest.mark.parametrize(
     ("spec", "n", "m", "words"),
     [
-        ("", 1, 1, "empty"),
+        ("", 1, 1, "is empty"),
         ([], 1, 1, "is empty"),
         ("kinetic + + poly:2", 1, 1, "empty term"),
         ("wobble", 1, 1, "unknown term 'wobble'"),

@@ -22,6 +22,18 @@ def test_a_hand_set_model_beaten_100x_is_not_kept_below_keep_below():
     assert _choose(_rows(1e-3, math.inf), factor=2.0, keep_below=1e-6)[0] == 0
 
 
+def test_a_sparse_candidate_near_the_lowest_score_comes_first():
+    rows = [
+        {"score": math.inf, "n_parameters": 45, "label": "hand-set", "kind": "polynomial"},
+        {"score": 8e-7, "n_parameters": 36, "label": "orders", "kind": "polynomial"},
+        {"score": 2e-5, "n_parameters": 7, "label": "sparse", "kind": "sparse"},
+        {"score": 2e-3, "n_parameters": 2, "label": "sparser", "kind": "sparse"},
+    ]
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 2
+    rows[2]["score"] = 1e-3  # beyond SPARSE_FACTOR: the dense one
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
+
+
 def test_auto_tries_the_sparse_libraries_first():
     cands = auto_candidates(ldft.PolynomialLagrangian((4, 8)), n=2, m=1)
     assert cands[: len(sparse_candidates(2, 1))] == sparse_candidates(2, 1)

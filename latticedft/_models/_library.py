@@ -45,6 +45,8 @@ class Library:
             out = spec
         elif isinstance(spec, Family):
             out = cls([spec])
+        elif isinstance(spec, str) and not spec.strip():
+            out = cls([])
         elif isinstance(spec, str):
             out = cls([f for part in _split(spec, "+") for f in _parse_product(part).families])
         elif isinstance(spec, (list, tuple)):
