@@ -8,7 +8,7 @@ new solutions by solving those equations slice by slice — a variational
 
 >>> import latticedft as ldft
 >>> sorted(ldft.MODELS)
-['features', 'mlp', 'polynomial']
+['features', 'mlp', 'polynomial', 'sparse']
 """
 
 from __future__ import annotations
@@ -45,6 +45,8 @@ _PUBLIC: dict[str, str] = {
     "AnalyticLagrangian": "._models",
     "EnsembleLagrangian": "._models",
     "FeatureLagrangian": "._models",
+    "SparseLagrangian": "._models",
+    "Library": "._models",
     "LinearLagrangian": "._models",
     "MLPLagrangian": "._models",
     "ModelKind": "._models",
@@ -128,10 +130,12 @@ if TYPE_CHECKING:  # the names for type checkers and editors
     from ._models import AnalyticLagrangian as AnalyticLagrangian
     from ._models import EnsembleLagrangian as EnsembleLagrangian
     from ._models import FeatureLagrangian as FeatureLagrangian
+    from ._models import Library as Library
     from ._models import LinearLagrangian as LinearLagrangian
     from ._models import MLPLagrangian as MLPLagrangian
     from ._models import ModelKind as ModelKind
     from ._models import PolynomialLagrangian as PolynomialLagrangian
+    from ._models import SparseLagrangian as SparseLagrangian
     from ._noether import DiscoveryReport as DiscoveryReport
     from ._noether import Symmetry as Symmetry
     from ._noether import SymmetryReport as SymmetryReport

@@ -19,9 +19,19 @@ from ._learn import learn
 from ._learn._data import as_fields
 from ._learn._noise import denoised_start
 from ._models import MODELS, AbstractLagrangian
+from ._models._sparse import default_library
 from ._serve import serve
 
-__all__ = ["SelectionReport", "select", "auto_candidates", "HOLD_OUT", "FACTOR", "KEEP_BELOW"]
+__all__ = [
+    "SelectionReport",
+    "select",
+    "auto_candidates",
+    "sparse_candidates",
+    "HOLD_OUT",
+    "FACTOR",
+    "KEEP_BELOW",
+    "BEATEN",
+]
 
 #: The fraction of every training field's slices that no candidate learns from (its served error is the score).
 HOLD_OUT = 0.3
@@ -30,6 +40,14 @@ FACTOR = 2.0
 #: The hand-set model is kept when its score is at or below this: it serves the held-out slices to this relative
 #: error, and a lower score there no longer predicts a lower error elsewhere (docs/selection.md).
 KEEP_BELOW = 1e-6
+#: ... but never when a candidate scores this many times lower: a hand-set model beaten so far is not kept.
+BEATEN = 100.0
+#: A sparse candidate (``kind = "sparse"``) within this factor of the lowest score is preferred to a denser one:
+#: held-out slices of the training fields cannot show that a few symbolic terms extrapolate and a dense fit
+#: of the same orbit does not (docs/sparse.md: Kepler from one orbit).
+SPARSE_FACTOR = 100.0
+#: The thresholds of the sparse candidates ``"auto"`` tries first (with the default library of the lattice).
+SPARSE_THRESHOLDS: tuple[float | str, ...] = (1e-1, 1e-2, "auto")
 
 
 @dataclass
@@ -84,14 +102,31 @@ def _label(change: Mapping[str, Any] | AbstractLagrangian) -> str:
     return ", ".join(f"{k}={v!r}" for k, v in change.items()) or "hand-set"
 
 
-def auto_candidates(model: AbstractLagrangian, n: int, ridge: Any = 0.0) -> list[dict[str, Any]]:
-    """The candidates of ``"auto"`` for a hand-set model on an ``n``-dimensional lattice, as option changes: its
+def sparse_candidates(n: int, m: int) -> list[dict[str, Any]]:
+    """The sparse candidates ``"auto"`` tries first on a lattice of ``n`` axes and ``m`` components: the default
+    library of :class:`latticedft.SparseLagrangian` at each threshold of :data:`SPARSE_THRESHOLDS`, then for a
+    scalar field the library with its lattice corrections (``threshold = "auto"``).
+
+    >>> sparse_candidates(1, 1)[0]
+    {'kind': 'sparse', 'library': 'kinetic + poly:4 + trig:1', 'threshold': 0.1}
+    """
+    out: list[dict[str, Any]] = [
+        {"kind": "sparse", "library": default_library(n, m), "threshold": t} for t in SPARSE_THRESHOLDS
+    ]
+    if m == 1:
+        out.append({"kind": "sparse", "library": default_library(n, m, corrections=True), "threshold": "auto"})
+    return out
+
+
+def auto_candidates(model: AbstractLagrangian, n: int, ridge: Any = 0.0, m: int | None = None) -> list[dict[str, Any]]:
+    """The candidates of ``"auto"`` for a hand-set model on an ``n``-dimensional lattice, as option changes: the
+    sparse libraries first (:func:`sparse_candidates`, when the field's components ``m`` are given), then the
     kind's own (:meth:`AbstractLagrangian.auto_candidates`). Polynomial: other orders, time symmetry and input
     scaling flipped, ``ridge="auto"``, and on a 1D lattice feature libraries (``kind = "features"``); feature
-    library: differences 2 and 4, then the same; MLP (and any kind with a ``scale`` option): input scaling
-    flipped.
+    library: differences 2 and 4, then the same; sparse: other thresholds; MLP (and any kind with a ``scale``
+    option): input scaling flipped.
     """
-    return model.auto_candidates(n, ridge)
+    return (sparse_candidates(n, m) if m is not None else []) + model.auto_candidates(n, ridge)
 
 
 def _spec(model: AbstractLagrangian, change: Mapping[str, Any], ridge: Any) -> tuple[str, dict[str, Any], Any]:
@@ -172,9 +207,11 @@ def select(
     field's time slices, then serves each whole field from its first two slices (and, on Dirichlet axes,
     its boundary strips). Its score is the largest served error over the field's largest magnitude, worst
     field first; a fit that fails, a serve that stops or a non-finite field scores ``inf``. The best
-    candidate is the one with the fewest parameters among those within ``factor`` of the lowest score; it
+    candidate is the one with the fewest parameters among those within ``factor`` of the lowest score (a sparse
+    candidate, the fewest terms, within :data:`SPARSE_FACTOR` of it first); it
     replaces the hand-set model only when its score is ``factor`` times smaller than the hand-set one's and the
-    hand-set score is above ``keep_below``; when every candidate fails the hand-set model is kept with a warning.
+    hand-set score is above ``keep_below`` (or :data:`BEATEN` times the candidate's); when every candidate fails
+    the hand-set model is kept with a warning.
 
     Parameters
     ----------
@@ -183,16 +220,17 @@ def select(
     data : DataArray or a list of them
         The training fields (as for :func:`latticedft.learn`), each with at least 4 time slices.
     candidates : "auto" or list
-        ``"auto"`` (see :func:`auto_candidates`), or a list whose items are option changes of the hand-set
-        model (``{"orders": [2, 2]}``, ``{"kind": "features", "features": ["trig:1"]}``, ``{"ridge": "auto"}``)
-        or unlearned models.
+        ``"auto"`` (the sparse libraries first, see :func:`auto_candidates`), or a list whose items are option
+        changes of the hand-set model (``{"orders": [2, 2]}``, ``{"kind": "features", "features": ["trig:1"]}``,
+        ``{"ridge": "auto"}``) or unlearned models.
     hold_out : float
         Fraction of every field's slices held out, in (0, 1).
     factor : float
         How much better (>= 1) a candidate must score to replace the hand-set model.
     keep_below : float
-        A hand-set score at or below this (>= 0) keeps the hand-set model whatever the other scores: held-out
-        slices served to this relative error no longer rank models by their error on other data (0: off).
+        A hand-set score at or below this (>= 0) keeps the hand-set model unless a candidate scores
+        :data:`BEATEN` times lower: held-out slices served to this relative error no longer rank models by
+        their error on other data (0: off).
     boundary, **learn_kwargs
         Passed to :func:`latticedft.learn` (and ``boundary`` to :func:`latticedft.serve`); ``symmetries``
         only to the final fit.
@@ -207,10 +245,11 @@ def select(
     items = list(data) if isinstance(data, (list, tuple)) else [data]
     if not all(isinstance(d, xr.DataArray) for d in items):
         raise InputError.at("data", "expected a DataArray or a list of DataArrays (time first)")
-    n = as_fields(items, boundary)[0].ndim  # checks the fields (one lattice, one layout)
+    first = as_fields(items, boundary)[0]  # checks the fields (one lattice, one layout)
     fields: list[xr.DataArray] = [d.load() for d in items]
     ridge = learn_kwargs.pop("ridge", 0.0)
-    changes = auto_candidates(model, n, ridge) if candidates == "auto" else list(candidates)
+    learn_kwargs.pop("progress", None)  # every fit here runs without a progress bar
+    changes = auto_candidates(model, first.ndim, ridge, first.ncomp) if candidates == "auto" else list(candidates)
     specs = _candidates(model, changes, ridge)
     held = _split(fields, hold_out)
     rows = [{**row, **_trial(fresh, r, held, fields, boundary, learn_kwargs)} for fresh, r, row in specs]
@@ -300,19 +339,27 @@ def _trial(
 
 def _choose(rows: list[dict[str, Any]], factor: float, keep_below: float) -> tuple[int, str, list[str]]:
     """``(chosen row, reason, warnings)``: the best candidate is the one with the fewest parameters among
-    those within ``factor`` of the lowest score; it replaces the hand-set model (row 0) only when ``factor``
+    those within ``factor`` of the lowest score, or the sparse one with the fewest terms among the sparse
+    candidates within :data:`SPARSE_FACTOR` of it; it replaces the hand-set model (row 0) only when ``factor``
     times better and the hand-set score is above ``keep_below``."""
     scores = [r["score"] for r in rows]
     lowest = min(scores)
     near = [i for i, sc in enumerate(scores) if math.isfinite(sc) and sc <= factor * lowest]
     best = min(near, key=lambda i: (rows[i]["n_parameters"], scores[i])) if near else int(np.argmin(scores))
+    sparse = [
+        i
+        for i, sc in enumerate(scores)
+        if i > 0 and rows[i].get("kind") == "sparse" and math.isfinite(sc) and sc <= SPARSE_FACTOR * lowest
+    ]
+    if sparse and best not in sparse:  # a few symbolic terms near the lowest score: they extrapolate
+        best = min(sparse, key=lambda i: (rows[i]["n_parameters"], scores[i]))
     if not math.isfinite(scores[best]):
         warning = (
             f"model selection: every one of {len(rows)} candidates failed to serve the held-out data "
             "(their reasons are in the candidate table); kept the hand-set model, which may not serve"
         )
         return 0, "every candidate failed; kept the hand-set model", [warning]
-    if best != 0 and scores[0] <= keep_below:
+    if best != 0 and scores[0] <= keep_below and not scores[best] * BEATEN <= scores[0]:
         return (
             0,
             f"the hand-set model scored {scores[0]:.3e}, at or below keep_below = {keep_below:g}: kept "

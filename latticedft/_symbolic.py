@@ -73,3 +73,36 @@ class SymbolicLd:
 
         subs = {s: float(cells[p][c]) for p, row in enumerate(self.symbols) for c, s in enumerate(row)}
         return float(sympy.N(self.expr.subs(subs)))
+
+
+def del_equations(form: SymbolicLd, site_name: Any = None) -> list[Any]:
+    """The discrete Euler-Lagrange equations ``L_d`` implies at a site ``x``, one expression per component
+    (each ``= 0``): the sum over stencil points ``p`` of ``d L_d / d u_p`` on the cell anchored at
+    ``x - offsets[p]``. The field at site ``x + s`` is the symbol ``site_name(s, component)`` (default
+    ``"v[s]_c"``).
+
+    >>> import sympy
+    >>> u = cell_symbols(2, 1)
+    >>> form = SymbolicLd((u[1][0] - u[0][0]) ** 2 / 2, ((0,), (1,)), 1, (1.0,))
+    >>> del_equations(form)
+    [-v[-1]_0 + 2*v[0]_0 - v[1]_0]
+    """
+    import sympy
+
+    def name(shift: tuple[int, ...], c: int) -> str:
+        return site_name(shift, c) if site_name is not None else f"v[{','.join(str(s) for s in shift)}]_{c}"
+
+    syms = form.symbols
+    offsets = [tuple(o) for o in form.offsets]
+    out = []
+    for c in range(form.m):
+        total = sympy.Integer(0)
+        for p, op in enumerate(offsets):
+            subs = {
+                syms[q][j]: sympy.Symbol(name(tuple(a - b for a, b in zip(oq, op)), j), real=True)
+                for q, oq in enumerate(offsets)
+                for j in range(form.m)
+            }
+            total += sympy.diff(form.expr, syms[p][c]).xreplace(subs)
+        out.append(total)
+    return out

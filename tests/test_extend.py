@@ -119,9 +119,15 @@ def test_a_model_kind_is_one_class_and_one_registry_line(even_well, tmp_path, ca
     code, _, err = run_cli(capsys, "run", case, "--out", out, *NO_EXPORT)
     assert code == 0, err
     record = json.loads((out / "model.json").read_text())
-    assert record["kind"] == even_well.kind and record["gauge"] == "unit-mass"
     labels = [row["label"] for row in record["training"]["selection"]["candidates"]]
-    assert labels == ["hand-set", "degree=2", "degree=3"]  # its own "auto" candidates were tried
+    assert labels[0] == "hand-set" and labels[-2:] == ["degree=2", "degree=3"]  # its own "auto" candidates too
+    assert all("kind='sparse'" in label for label in labels[1:-2])  # after the sparse libraries
+
+    (case / "case.toml").write_text(text.replace('select = "auto"', ""))  # the hand-set kind alone
+    code, _, err = run_cli(capsys, "run", case, "--out", out, "--overwrite", *NO_EXPORT)
+    assert code == 0, err
+    record = json.loads((out / "model.json").read_text())
+    assert record["kind"] == even_well.kind and record["gauge"] == "unit-mass"
 
     back = ldft.load_model(out / "model.pt")  # the model file round-trips
     assert type(back) is even_well and back.options() == {"degree": record["options"]["degree"]}

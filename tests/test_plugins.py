@@ -115,7 +115,8 @@ def test_a_missing_plugin_kind_is_refused_in_one_line(tmp_path, capsys, monkeypa
     with pytest.raises(ldft.ModelFileError) as refused:
         ldft.load_model(path)
     assert str(refused.value) == (
-        f"{path}: unknown model kind 'demo-well'; expected one of ['ensemble', 'features', 'mlp', 'polynomial'], "
+        f"{path}: unknown model kind 'demo-well'; expected one of "
+        "['ensemble', 'features', 'mlp', 'polynomial', 'sparse'], "
         "an import path 'module:Class' or an entry point of group 'latticedft.models' (is its package installed?)"
     )
 

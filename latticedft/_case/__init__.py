@@ -17,7 +17,7 @@ and returns a frozen :class:`Case`. Every problem raises
 ... except ConfigError as exc:
 ...     print(exc)  # doctest: +NORMALIZE_WHITESPACE
 case.toml: model.kind: unknown model kind 'polynomal'; did you mean 'polynomial'?
-(expected one of ['features', 'mlp', 'polynomial'])
+(expected one of ['features', 'mlp', 'polynomial', 'sparse'])
 """
 
 from __future__ import annotations

@@ -15,13 +15,14 @@ from .._contract import GaugeName
 from .._device import device_label, on_device, resolve_device
 from .._errors import InputError
 from .._lattice import BoundaryKinds, LatticeField
-from .._models import AbstractLagrangian, EnsembleLagrangian, LinearLagrangian
+from .._models import AbstractLagrangian, EnsembleLagrangian, LinearLagrangian, SparseLagrangian
 from ._ensemble import learn_ensemble
 from ._exact import learn_exact
 from ._gauge import AUTO, Gauge, gauge_named
 from ._neural import Training, learn_neural
 from ._noise import NOISE_MODES, learn_noisy
 from ._report import LearnReport, fit_warnings
+from ._sparse import learn_sparse
 from ._stream import TrainingData, training_data
 
 __all__ = ["learn"]
@@ -313,7 +314,12 @@ def _fit(
     initial = None
     validation: dict[str, float] = {}
     used_ridge = 0.0
-    if settings.optimizer == "exact" and isinstance(model, LinearLagrangian):  # _checked refuses 'exact' for others
+    if isinstance(model, SparseLagrangian) and settings.optimizer == "exact":  # few columns: rows held in memory
+        used_ridge, validation = learn_sparse(model, fields.fields, fix, ridge, nsites)
+        iterations, reason = 1, "sparse exact solve"
+        wall = time.perf_counter() - t0
+        diag = fields.diagnose(model, fix.name, symmetries)
+    elif settings.optimizer == "exact" and isinstance(model, LinearLagrangian):  # _checked refuses 'exact' for others
         used_ridge, validation = learn_exact(model, fields, fix, ridge, nsites)
         iterations, reason = 1, "exact solve"
         wall = time.perf_counter() - t0
@@ -346,6 +352,7 @@ def _fit(
         hessian_max_sv=diag["hessian_max_sv"],
         degenerate=degenerate,
         warnings=warnings,
+        sparse=model.sparse_summary() if isinstance(model, SparseLagrangian) else None,
     )
 
 

@@ -85,6 +85,9 @@ class LearnReport:
     ensemble: dict[str, Any] | None = None
     #: ``select``: the candidate table and the choice (see ``latticedft.select``), else None.
     selection: dict[str, Any] | None = None
+    #: A sparse model (``kind = "sparse"``): the threshold used, every term's coefficient and inclusion
+    #: probability over the bagged fits, and the terms kept; else None.
+    sparse: dict[str, Any] | None = None
 
     def summary_line(self) -> str:
         auto = f", gauge {self.gauge} (auto: {self.gauge_choice})" if self.gauge_requested == "auto" else ""
@@ -114,6 +117,8 @@ class LearnReport:
             del d["selection"]
         if self.noise is None:
             del d["noise"]
+        if self.sparse is None:
+            del d["sparse"]
         return d
 
 

@@ -12,6 +12,7 @@ from .._contract import AbstractLagrangian
 from ._analytic import AnalyticLagrangian
 from ._ensemble import EnsembleLagrangian
 from ._features import FeatureLagrangian
+from ._library import Library
 from ._linear import LinearLagrangian
 from ._mlp import (
     PRESETS,
@@ -22,10 +23,12 @@ from ._mlp import (
 )
 from ._polynomial import PolynomialLagrangian
 from ._registry import MODELS, ModelKind, ModelRegistry
+from ._sparse import SparseLagrangian
 
 MODELS["polynomial"] = PolynomialLagrangian
 MODELS["mlp"] = ModelKind("mlp", mlp_lagrangian, MLPLagrangian)  # the form option picks the class
 MODELS["features"] = FeatureLagrangian
+MODELS["sparse"] = SparseLagrangian
 
 __all__ = [
     "AbstractLagrangian",
@@ -34,9 +37,11 @@ __all__ = [
     "FeatureLagrangian",
     "FreeMLPLagrangian",
     "KineticPotentialMLPLagrangian",
+    "Library",
     "LinearLagrangian",
     "MLPLagrangian",
     "PolynomialLagrangian",
+    "SparseLagrangian",
     "MODELS",
     "ModelKind",
     "ModelRegistry",

@@ -13,6 +13,8 @@ import torch
 from .._collective import merged_max, merged_min
 from .._errors import InputError
 from .._stencil import Stencil
+from .._symbolic import SymbolicLd
+from ._library import cell_variables
 from ._linear import LinearLagrangian
 
 __all__ = ["FeatureLagrangian", "FeatureFunction"]
@@ -239,6 +241,48 @@ class FeatureLagrangian(LinearLagrangian):
         dm = self._difference_monomials(g)
         return (mf[..., :, None] * dm[..., None, :]).reshape(*mf.shape[:-1], -1)
 
+    def symbolic(self) -> SymbolicLd | None:
+        """``L_d`` in the cell symbols, its scaling folded in (None when the library holds a Python function)."""
+        import sympy
+
+        self._require_bound()
+        if self.has_functions:
+            return None
+        q, g = cell_variables(self.proj, (1.0,) * self.n, self.m)
+        mf = self._mean_forms(q)
+        scaled = [
+            g[k][i] / sympy.Float(float(self.dscale[k * self.m + i])) for k in range(self.n) for i in range(self.m)
+        ]
+        coef = self.coef.detach().tolist()
+        terms = []
+        for f, base in enumerate(mf):
+            for e, exps in enumerate(self.dexp.tolist()):
+                a = coef[f * len(self.dexp) + e]
+                if a != 0.0:
+                    terms.append(sympy.Float(a) * base * sympy.Mul(*[x**k for x, k in zip(scaled, exps) if k]))
+        expr = sympy.Add(*terms)
+        return SymbolicLd(expr, tuple(tuple(o) for o in self.stencil.to_list()), self.m, self.spacing)
+
+    def _mean_forms(self, mean: list[Any]) -> list[Any]:
+        """The mean features of :meth:`_mean_features` as sympy expressions of the unscaled mean."""
+        import sympy
+
+        cols: list[Any] = [sympy.Integer(1)]
+        for entry in self.library:
+            assert not callable(entry)
+            if entry[0] == "poly":
+                z = [(x - float(c)) / float(h) for x, c, h in zip(mean, self.center.tolist(), self.halfwidth.tolist())]
+                tables = [_legendre_forms(zi, entry[1]) for zi in z]
+                for e in itertools.product(range(entry[1] + 1), repeat=len(mean)):
+                    if 0 < sum(e) <= entry[1]:
+                        cols.append(sympy.Mul(*[tables[i][k] for i, k in enumerate(e) if k]))
+            else:
+                _, k, w = entry
+                for x in mean:
+                    for j in range(1, k + 1):
+                        cols += [sympy.sin(j * w * x), sympy.cos(j * w * x)]
+        return cols
+
     def describe(self, max_terms: int | None = 12) -> str:
         head = super().describe(max_terms)
         lib = ", ".join(self.feature_names)
@@ -247,6 +291,14 @@ class FeatureLagrangian(LinearLagrangian):
             + (", even in the time difference" if self.time_symmetric else "")
             + (f" ({self.n_terms} terms)" if self.bound else "")
         )
+
+
+def _legendre_forms(z: Any, deg: int) -> list[Any]:
+    """``[P_0(z), ..., P_deg(z)]`` of a sympy expression, by the same recurrence as :func:`_legendre`."""
+    out = [z**0, z]
+    for k in range(1, deg):
+        out.append(((2 * k + 1) * z * out[k] - k * out[k - 1]) / (k + 1))
+    return out[: deg + 1]
 
 
 def _legendre(z: torch.Tensor, deg: int) -> list[torch.Tensor]:

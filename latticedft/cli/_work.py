@@ -16,6 +16,7 @@ from tqdm.std import tqdm  # not tqdm.auto: no ipywidgets warning in Jupyter (la
 
 from .._case import Case
 from .._errors import InputError
+from .._models import SparseLagrangian
 from .._results import (
     config_attrs,
     export_task,
@@ -79,6 +80,14 @@ def model_warnings_of(model: AbstractLagrangian, folder: Path) -> list[str]:
     return [str(w) for w in found] if isinstance(found, list) else []
 
 
+def equation_attrs(model: AbstractLagrangian) -> dict[str, str]:
+    """``latticedft_L_d``: the learned ``L_d`` in plain text, for a task file of a sparse model (else none)."""
+    if not isinstance(model, SparseLagrangian):
+        return {}
+    text = model.equation_text()
+    return {"latticedft_L_d": f"L_d = {text['L_d']}"} if text else {}
+
+
 def serve_into(
     folder: Path,
     case: Case,
@@ -99,6 +108,7 @@ def serve_into(
     history = command_line(argv) + (f" (overrides: {', '.join(case.overrides)})" if case.overrides else "")
     previous = recorded_exports(folder)
     model_warnings = model_warnings_of(model, folder)
+    attrs.update(equation_attrs(model))
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
         if resume and journal is not None and td.task.name in journal.done:  # served before the run stopped

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import textwrap
 import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -140,8 +141,11 @@ def _build(
         _plot_errors(time_axes.pop(0), pred, err, series, span, spread)
     if drift:
         _plot_drift(time_axes.pop(0), pred, drift, span)
-    if title:
-        fig.suptitle(title + (f" ({pred.name or 'psi'}{suffix} shown)" if suffix else ""), fontsize="large")
+    equation = str((attrs or {}).get("latticedft_L_d", ""))
+    if title or equation:
+        head = (title or "") + (f" ({pred.name or 'psi'}{suffix} shown)" if suffix and title else "")
+        lines = ([head] if head else []) + textwrap.wrap(equation, 110)
+        fig.suptitle("\n".join(lines), fontsize="large")
     return fig
 
 

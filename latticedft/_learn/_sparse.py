@@ -1,0 +1,169 @@
+"""The sparse fit of a :class:`SparseLagrangian`: sequential thresholding inside the gauge-fixed exact solve.
+
+The DEL residual matrix ``R`` (rows: equations on interior sites, columns: the library's terms) of every
+training field is cut into contiguous time blocks, each reduced to its triangular factor (``|R_b x| =
+|T_b x|``). Sequential thresholding (STLSQ) fits ``coef`` under the gauge, drops every term whose share
+``|coef_c| |R e_c|`` of the largest is below the threshold, and refits on the terms left until the support
+holds. ``threshold = "auto"`` scores each threshold by the residual of every held-out block (the others fit);
+bagged fits on blocks drawn with replacement give each term an inclusion probability.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .._errors import InputError
+from .._lattice import LatticeField
+from .._models import SparseLagrangian
+from .._models._sparse import THRESHOLDS
+from ._exact import _constrained_lstsq, _qr_r, gauge_matrix, residual_matrix
+from ._gauge import Gauge
+
+__all__ = ["learn_sparse", "stlsq", "BLOCKS", "SLACK"]
+
+#: The training rows are cut into about this many time blocks (for the held-out threshold and the bagging).
+BLOCKS = 8
+#: ``threshold = "auto"`` keeps the sparsest support whose held-out residual is within this factor of the best.
+SLACK = 2.0
+
+_Gauge = tuple[np.ndarray, np.ndarray] | None
+
+
+def _finite_columns(model: SparseLagrangian, rs: list[np.ndarray]) -> None:
+    """Refuse a term whose DEL rows are not finite on the training data, or spike above 1e8 times their median
+    magnitude (a singularity met to round-off), with one line naming ``library``."""
+    for r in rs:
+        bad = [c for c in range(r.shape[1]) if _spiked(r[:, c])]
+        if bad:
+            names = [model.terms[c].name for c in bad]
+            raise InputError.at(
+                "library",
+                f"term {', '.join(names)} is not finite on the training data (a log of 0 or a negative power "
+                "at q = 0?); remove it from the library",
+            )
+
+
+def _spiked(col: np.ndarray) -> bool:
+    if not np.isfinite(col).all():
+        return True
+    mags = np.abs(col[col != 0])
+    return bool(mags.size and mags.max() > 1e8 * float(np.median(mags)))
+
+
+def _blocks(rs: list[np.ndarray], c: int) -> list[np.ndarray]:
+    """Each field's rows cut into contiguous time blocks (about :data:`BLOCKS` in all), each as its factor."""
+    per = max(1, round(BLOCKS / len(rs)))
+    out = []
+    for r in rs:
+        k = max(1, min(per, r.shape[0] // max(c, 1)))
+        out += [_qr_r(b) for b in np.array_split(r, k) if b.shape[0]]
+    return out
+
+
+def _stack(factors: list[np.ndarray]) -> np.ndarray:
+    return factors[0] if len(factors) == 1 else _qr_r(np.vstack(factors))
+
+
+def _columns(g: _Gauge, keep: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+    return (None, None) if g is None else (g[0][:, keep], g[1])
+
+
+def _feasible(g: tuple[np.ndarray, np.ndarray], keep: np.ndarray) -> bool:
+    """True when the terms ``keep`` can satisfy the gauge rows ``G coef = g`` (to round-off)."""
+    if not keep.any():
+        return False
+    a = g[0][:, keep]
+    x, *_ = np.linalg.lstsq(a, g[1], rcond=None)
+    return bool(np.linalg.norm(a @ x - g[1]) <= 1e-9 * max(float(np.linalg.norm(g[1])), 1e-300))
+
+
+def _gauge_safe(keep: np.ndarray, weight: np.ndarray, g: _Gauge) -> np.ndarray:
+    """``keep`` with the gauge's terms added back, largest first, until the gauge can be met."""
+    if g is None:
+        return keep
+    keep = keep.copy()
+    for c in np.argsort(-weight):
+        if _feasible(g, keep):
+            break
+        if not keep[c] and np.any(g[0][:, c] != 0):
+            keep[c] = True
+    return keep
+
+
+def stlsq(t: np.ndarray, g: _Gauge, threshold: float, ridge: float) -> np.ndarray:
+    """Sequential thresholding on the rows ``t`` under the gauge ``g``: the coefficients, zero off the support."""
+    c = t.shape[1]
+    norms = np.sqrt((t**2).sum(0))
+    active = _gauge_safe(np.ones(c, dtype=bool), norms, g)
+    theta = np.zeros(c)
+    for _ in range(c + 1):
+        theta = np.zeros(c)
+        gm, gv = _columns(g, active)
+        theta[active] = _constrained_lstsq(t[:, active], gm, gv, ridge)
+        weight = np.abs(theta) * norms
+        keep = active & (weight > threshold * weight.max()) if weight.max() > 0 else active
+        keep = _gauge_safe(keep, weight, g)
+        if (keep == active).all():
+            break
+        active = keep
+    return theta
+
+
+def _pick(blocks: list[np.ndarray], g: _Gauge, ridge: float) -> tuple[float, dict[str, float]]:
+    """The threshold of :data:`THRESHOLDS` with the sparsest support held out within :data:`SLACK` of the best."""
+    folds = [(_stack([b for j, b in enumerate(blocks) if j != i]), blocks[i]) for i in range(len(blocks))]
+    if len(blocks) < 2:
+        return 0.0, {}
+    scores: dict[str, float] = {}
+    sizes: dict[float, int] = {}
+    full = _stack(blocks)
+    for thr in THRESHOLDS:
+        errs = [float(np.sum((val @ stlsq(train, g, thr, ridge)) ** 2)) for train, val in folds]
+        scores[f"{thr:g}"] = math.sqrt(sum(errs))
+        sizes[thr] = int(np.count_nonzero(stlsq(full, g, thr, ridge)))
+    best = min(scores.values())
+    ok = [t for t in THRESHOLDS if scores[f"{t:g}"] <= SLACK * best]
+    return min(ok, key=lambda t: (sizes[t], -t)), scores
+
+
+def _bagged(blocks: list[np.ndarray], g: _Gauge, threshold: float, ridge: float, bags: int) -> np.ndarray:
+    """Each term's share of ``bags`` fits on blocks drawn with replacement (NaN without bags or blocks)."""
+    c = blocks[0].shape[1]
+    if bags == 0 or len(blocks) < 2:
+        return np.full(c, math.nan)
+    rng = np.random.default_rng(0)
+    counts = np.zeros(c)
+    for _ in range(bags):
+        pick = rng.integers(0, len(blocks), len(blocks))
+        try:
+            counts += stlsq(_stack([blocks[i] for i in pick]), g, threshold, ridge) != 0
+        except (InputError, np.linalg.LinAlgError):
+            continue
+    return counts / bags
+
+
+def learn_sparse(
+    model: SparseLagrangian, fields: list[LatticeField], gauge: Gauge, ridge: float | str, nsites: int
+) -> tuple[float, dict[str, float]]:
+    """Fit ``model.coef`` in place (``ridge="auto"`` counts as 0); returns the ridge used and the held-out
+    score of every threshold tried (empty for a given threshold)."""
+    lam = 0.0 if ridge == "auto" else float(ridge)
+    rs = [residual_matrix(model, f) / math.sqrt(nsites) for f in fields]
+    _finite_columns(model, rs)
+    g = gauge_matrix(model, fields, gauge)
+    blocks = _blocks(rs, model.n_terms)
+    validation: dict[str, float] = {}
+    if model.threshold == "auto":
+        threshold, validation = _pick(blocks, g, lam)
+    else:
+        threshold = float(model.threshold)
+    theta = stlsq(_stack(blocks), g, threshold, lam)
+    inclusion = _bagged(blocks, g, threshold, lam, model.bags)
+    with torch.no_grad():
+        model.coef.copy_(torch.from_numpy(theta))
+        model.inclusion.copy_(torch.from_numpy(inclusion))
+        model.threshold_used.fill_(threshold)
+    return lam, {f"threshold {k}": v for k, v in validation.items()}

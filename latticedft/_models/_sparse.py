@@ -1,0 +1,252 @@
+"""A sparse ``L_d``: a few terms of a library (:mod:`latticedft._models._library`), found by sparse regression
+inside the gauge-fixed exact solve, and printed as an equation."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+import torch
+
+from .._errors import InputError
+from .._stencil import Stencil
+from .._symbolic import SymbolicLd, cell_symbols, del_equations
+from ._library import Library, cell_variables, readable_variables
+from ._linear import LinearLagrangian
+from ._terms import Term, axis_name, term_forms, term_values
+
+__all__ = ["SparseLagrangian", "default_library", "THRESHOLDS"]
+
+#: The thresholds tried by ``threshold = "auto"`` (a term is dropped when its share of the DEL residual's
+#: largest column, ``|coef_c| |R e_c|``, is below the threshold), largest first.
+THRESHOLDS = (0.1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 0.0)
+
+
+def default_library(n: int, m: int, corrections: bool = False) -> str:
+    """``library = "auto"``: the library tried on a lattice of ``n`` axes and ``m`` components; with
+    ``corrections``, for a scalar field, also the products that carry the lattice's ``O(h^2)`` corrections
+    to a continuum Lagrangian (a squared kinetic term, kinetic times on-site functions, the second harmonic).
+
+    >>> default_library(2, 1)
+    'kinetic + gradient + poly:4 + trig:1'
+    >>> default_library(1, 1, corrections=True)
+    'kinetic + poly:4 + trig:1 + trig:2 + kinetic*kinetic + kinetic*poly:2 + kinetic*trig:1'
+    >>> default_library(1, 2)
+    'kinetic + poly:2 + norm:-1 + log + cross'
+    """
+    if m == 1:
+        base = "kinetic" + (" + gradient" if n > 1 else "") + " + poly:4 + trig:1"
+        if corrections:
+            base += " + trig:2 + kinetic*kinetic + kinetic*poly:2 + kinetic*trig:1"
+            base += " + gradient*gradient + kinetic*gradient" if n > 1 else ""
+        return base
+    return "kinetic + poly:2 + norm:-1 + log" + (" + cross" if m == 2 else "")
+
+
+class SparseLagrangian(LinearLagrangian):
+    """``L_d = sum_c coef_c T_c(q, D q)``: a few terms ``T_c`` of a library, the rest exactly zero.
+
+    The terms are functions of the field ``q`` at the cell's anchor site (or the stencil mean) and of the
+    discrete derivatives ``D_k q = (psi[x + e_k] -
+    psi[x]) / h_k`` (see :mod:`latticedft._models._library` for the library's shorthands and objects).
+    :func:`latticedft.learn` solves the gauge-fixed least-squares problem with sequential thresholding: fit,
+    drop every term whose share of the residual is below ``threshold``, refit, until the support holds.
+    ``threshold = "auto"`` tries :data:`THRESHOLDS` and keeps the sparsest support whose held-out residual
+    is within a factor 2 of the best; ``select = "auto"`` then chooses among thresholds by held-out serving.
+    ``bags`` refits on resampled time blocks of the data give each term an inclusion probability.
+
+    Parameters
+    ----------
+    library : str, Library or list, default "auto"
+        The terms (a shorthand string such as ``"kinetic + gradient + poly:4 + trig:1"``, a
+        :class:`Library`, or a list of either); ``"auto"``: :func:`default_library` of the lattice.
+    threshold : float or "auto"
+        Relative share below which a term is dropped (``0``: the dense fit), or ``"auto"``.
+    bags : int
+        Resampled fits for the inclusion probabilities (``0``: none).
+    at : "anchor" or "mean"
+        Where the on-site functions of the field are evaluated: at the cell's anchor site (the default:
+        ``L_d = |D_t q|^2 / 2 - V(q[x])`` is the leapfrog's own ``L_d``) or at the stencil mean (a midpoint
+        rule, as :class:`FeatureLagrangian`).
+    stencil : Stencil, optional
+        Default: the first-order stencil.
+    """
+
+    kind = "sparse"
+    #: Buffers set by :meth:`_build`: each term's inclusion probability over the bagged fits (NaN before), and
+    #: the threshold the fit used.
+    inclusion: torch.Tensor
+    threshold_used: torch.Tensor
+
+    def __init__(
+        self,
+        library: Any = "auto",
+        *,
+        threshold: float | str = "auto",
+        bags: int = 20,
+        at: Literal["mean", "anchor"] = "anchor",
+        stencil: Stencil | None = None,
+    ):
+        super().__init__(stencil)
+        self.library = None if isinstance(library, str) and library == "auto" else Library.parse(library)
+        if not (threshold == "auto" or (isinstance(threshold, (int, float)) and not isinstance(threshold, bool))):
+            raise InputError.at("threshold", f"expected a number in [0, 1) or 'auto', got {threshold!r}")
+        if threshold != "auto" and not (0 <= float(threshold) < 1):
+            raise InputError.at("threshold", f"expected a number in [0, 1) or 'auto', got {threshold!r}")
+        if not isinstance(bags, int) or isinstance(bags, bool) or bags < 0:
+            raise InputError.at("bags", f"expected an integer >= 0, got {bags!r}")
+        if at not in ("mean", "anchor"):
+            raise InputError.at("at", f"expected 'mean' or 'anchor', got {at!r}")
+        self.at = at
+        self.threshold: float | str = threshold if threshold == "auto" else float(threshold)
+        self.bags = bags
+        self.terms: list[Term] = []
+
+    @property
+    def has_functions(self) -> bool:
+        return self.library is not None and not self.library.saveable
+
+    def options(self) -> dict[str, Any]:
+        lib = "auto" if self.library is None else " + ".join(self.library.labels)
+        return {"library": lib, "threshold": self.threshold, "bags": self.bags, "at": self.at}
+
+    def auto_candidates(self, n: int, ridge: Any = 0.0) -> list[dict[str, Any]]:
+        """The other thresholds (chosen by held-out serving)."""
+        return [{"threshold": t} for t in THRESHOLDS if t != self.threshold]
+
+    # -- structure ---------------------------------------------------------------------------------------
+    def _build(self) -> None:
+        library = self.library or Library.parse(default_library(self.n, self.m))
+        self.terms = library.expand(self.n, self.m)
+        self.register_buffer("inclusion", torch.full((len(self.terms),), math.nan, dtype=torch.float64))
+        self.register_buffer("threshold_used", torch.tensor(math.nan, dtype=torch.float64))
+        super()._build()
+
+    @property
+    def n_terms(self) -> int:
+        return len(self.terms)
+
+    @property
+    def term_names(self) -> list[str]:
+        """The library's terms on the bound lattice, in the order of ``coef``."""
+        self._require_bound()
+        return [t.name for t in self.terms]
+
+    def n_parameters(self) -> int:
+        """The terms kept (nonzero coefficients); every term before learning."""
+        nonzero = int((self.coef != 0).sum()) if self.bound else 0
+        return nonzero or (self.n_terms if self.bound else 0)
+
+    def features(self, cells: torch.Tensor) -> torch.Tensor:
+        z = self.mean_and_differences(cells)
+        if self.at == "anchor":  # the on-site functions see the anchor's value, not the stencil mean
+            z = torch.cat([cells[..., self.stencil.anchor : self.stencil.anchor + 1, :], z[..., 1:, :]], -2)
+        return term_values(self.terms, z, self.spacing)
+
+    # -- the equation ------------------------------------------------------------------------------------
+    def _kept(self) -> list[int]:
+        return [c for c, a in enumerate(self.coef.detach().tolist()) if a != 0.0]
+
+    def symbolic(self) -> SymbolicLd | None:
+        """``L_d`` in the cell symbols (None when a user term has no sympy form)."""
+        self._require_bound()
+        q, d = cell_variables(self.proj, self.spacing, self.m)
+        if self.at == "anchor":
+            q = list(cell_symbols(self.stencil.size, self.m)[self.stencil.anchor])
+        return _sum_form(self, q, d)
+
+    def equation(self) -> Any:
+        """``L_d`` as a sympy expression in the readable symbols ``q`` (``q1``, ...) and ``Dtq``, ``Dxq`` ...
+        (None when a user term has no sympy form)."""
+        self._require_bound()
+        q, d, _ = readable_variables(self.n, self.m)
+        form = _sum_form(self, q, d)
+        return None if form is None else form.expr
+
+    def equation_text(self) -> dict[str, Any]:
+        """``L_d`` and the DEL it implies in plain text and LaTeX (what describe, model.json and figures show)."""
+        import sympy
+
+        expr = self.equation()
+        if expr is None:
+            return {}
+        _, _, names = readable_variables(self.n, self.m)
+        form = self.symbolic()
+        assert form is not None
+        dels = del_equations(form, lambda shift, c: _site_name(shift, c, self.m))
+        return {
+            "L_d": str(expr),
+            "latex": sympy.latex(expr, symbol_names=names),
+            "del": [f"{sympy.sstr(e)} = 0" for e in dels],
+            "where": f"q = {_AT[self.at]}, D<axis>q = (q[x + e_axis] - q[x]) / h_axis",
+        }
+
+    def describe(self, max_terms: int | None = 12) -> str:
+        head = super().describe(max_terms)
+        lib = "auto" if self.library is None else " + ".join(self.library.labels)
+        lines = [
+            head,
+            f"  library: {lib} ({self.n_terms} terms on this lattice)" if self.bound else f"  library: {lib}",
+        ]
+        if not self.bound:
+            return "\n".join(lines)
+        coef = self.coef.detach().tolist()
+        kept = self._kept()
+        shown = kept if max_terms is None else kept[:max_terms]
+        lines.append(f"  L_d = sum of {len(kept)} terms (threshold {float(self.threshold_used):.3g}):")
+        for c in shown:
+            p = float(self.inclusion[c])
+            note = "" if math.isnan(p) else f"   (inclusion {p:.2f})"
+            lines.append(f"      {coef[c]:+.10g} {self.terms[c].name}{note}")
+        if len(kept) > len(shown):
+            lines.append(f"      ... {len(kept) - len(shown)} more terms (model.describe(max_terms=None))")
+        text = self.equation_text() if kept else {}
+        if text:
+            lines += [f"  L_d = {text['L_d']}", f"  LaTeX: {text['latex']}"]
+            lines += [f"  DEL: {_clip(e)}" for e in text["del"]]
+            lines.append(f"  where {text['where']}")
+        return "\n".join(lines)
+
+    def sparse_summary(self) -> dict[str, Any]:
+        """The terms, their coefficients and inclusion probabilities, the threshold, and the equation with its DEL
+        (:meth:`equation_text`): what the learning report (model.json, summary.json) holds."""
+        coef = self.coef.detach().tolist()
+        return {
+            "threshold": float(self.threshold_used),
+            "terms": [
+                {"term": t.name, "coef": coef[c], "inclusion": _finite(float(self.inclusion[c]))}
+                for c, t in enumerate(self.terms)
+            ],
+            "kept": [self.terms[c].name for c in self._kept()],
+            "equation": self.equation_text() if self._kept() else {},
+        }
+
+
+_AT = {"anchor": "the value at the anchor site x", "mean": "the mean of the stencil values"}
+
+
+def _clip(text: str, width: int = 400) -> str:
+    """``text`` cut to ``width`` characters (a long DEL: ``equation_text()`` holds it whole)."""
+    return text if len(text) <= width else text[: width - 40] + f" ... ({len(text)} characters in all)"
+
+
+def _finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+def _sum_form(model: SparseLagrangian, q: list[Any], d: list[list[Any]]) -> SymbolicLd | None:
+    import sympy
+
+    kept = model._kept()
+    forms = term_forms([model.terms[c] for c in kept], q, d)
+    if forms is None:
+        return None
+    coef = model.coef.detach().tolist()
+    expr = sum((sympy.Float(coef[c]) * f for c, f in zip(kept, forms)), sympy.Integer(0))
+    return SymbolicLd(expr, tuple(tuple(o) for o in model.stencil.to_list()), model.m, model.spacing)
+
+
+def _site_name(shift: tuple[int, ...], c: int, m: int) -> str:
+    """``q[t+1]``, ``q1[t,x-1]``: the field at a site shifted from the DEL's site."""
+    parts = [axis_name(k) + (f"{s:+d}" if s else "") for k, s in enumerate(shift)]
+    return f"{'q' if m == 1 else f'q{c + 1}'}[{','.join(parts)}]"

@@ -1,0 +1,296 @@
+"""Sparse, symbolic L_d: term libraries, the sparse fit, the equation it prints, model files, bad inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import xarray as xr
+from scipy.integrate import solve_ivp
+
+import latticedft as ldft
+from latticedft import Library, systems
+from latticedft._lattice import gather_cells
+
+
+def _ode(rhs, y0, n: int, dt: float) -> np.ndarray:
+    t = np.arange(n) * dt
+    sol = solve_ivp(lambda _, y: rhs(y), (0, t[-1]), y0, t_eval=t, rtol=1e-12, atol=1e-12, method="DOP853")
+    return sol.y
+
+
+def pendulum(a: float, n: int = 80, dt: float = 0.1) -> xr.DataArray:
+    q = _ode(lambda y: [y[1], -np.sin(y[0])], [a, 0.0], n, dt)[0]
+    return xr.DataArray(q, dims="t", coords={"t": np.arange(n) * dt}, name="psi")
+
+
+def kepler_one_orbit(gm: float = 0.40038, n: int = 51, dt: float = 0.1, q0=(1.0, 0.0), v0=(0.0, 0.6)):
+    def rhs(y):
+        r3 = np.hypot(y[0], y[1]) ** 3
+        return [y[2], y[3], -gm * y[0] / r3, -gm * y[1] / r3]
+
+    y = _ode(rhs, [*q0, *v0], n, dt)
+    t = np.arange(n) * dt
+    return xr.DataArray(y[:2].T, dims=("t", "component"), coords={"t": t, "component": ["x", "y"]}, name="q")
+
+
+def klein_gordon_string(amplitude: float, nx: int = 41, nt: int = 60, lam: float = 0.3) -> xr.DataArray:
+    """psi_tt = psi_xx - psi - lam psi^3 with fixed ends, by leapfrog at a fine step, sampled."""
+    dx, dt, sub = 0.1, 0.05, 10
+    x = np.arange(nx) * dx
+    psi = amplitude * np.sin(np.pi * x / x[-1])
+    h = dt / sub
+    prev = psi.copy()
+    frames = [psi.copy()]
+    for i in range((nt - 1) * sub):
+        lap = np.zeros_like(psi)
+        lap[1:-1] = (psi[2:] - 2 * psi[1:-1] + psi[:-2]) / dx**2
+        acc = lap - psi - lam * psi**3
+        acc[[0, -1]] = 0.0
+        new = psi + h * (psi - prev) / h + h**2 * acc if i else psi + 0.5 * h**2 * acc
+        prev, psi = psi, new
+        if (i + 1) % sub == 0:
+            frames.append(psi.copy())
+    return xr.DataArray(
+        np.array(frames),
+        dims=("t", "x"),
+        coords={"t": np.arange(nt) * dt, "x": x},
+        name="psi",
+    )
+
+
+def kept(model: ldft.SparseLagrangian) -> dict[str, float]:
+    return {name: c for name, c in zip(model.term_names, model.coef.tolist()) if c != 0.0}
+
+
+# -- libraries ---------------------------------------------------------------------------------------------
+def test_library_union_products_and_shorthands():
+    lib = Library.parse("kinetic") + Library.parse("poly:2") * "kinetic" + "trig:1"
+    assert [t.name for t in lib.expand(1, 1)] == ["Dtq**2", "q*Dtq**2", "q**2*Dtq**2", "sin(q)", "cos(q)"]
+    assert Library.parse("kinetic + poly:2*kinetic + trig:1").labels == lib.labels
+    names = [t.name for t in Library.parse("kinetic + norm:-1,2 + log + cross + cosdiff*velocities").expand(1, 2)]
+    assert names[:5] == ["(Dtq1**2+Dtq2**2)", "|q|**-1", "|q|**2", "log|q|", "(q1*Dtq2-q2*Dtq1)"]
+    assert "cos(q1-q2)*Dtq1*Dtq2" in names
+    assert [t.name for t in Library.parse("gradient").expand(3, 1)] == ["Dxq**2", "Dyq**2"]
+
+
+@pytest.mark.parametrize(
+    ("spec", "n", "m", "words"),
+    [
+        ("", 1, 1, "is empty"),
+        ([], 1, 1, "is empty"),
+        ("kinetic + + poly:2", 1, 1, "empty term"),
+        ("wobble", 1, 1, "unknown term 'wobble'"),
+        ("norm:-1", 1, 1, "needs a vector field"),
+        ("cross", 1, 3, "needs a field of 2 components"),
+        ("gradient", 1, 1, "needs a space axis"),
+        ("norm:0", 1, 2, "power 0"),
+    ],
+)
+def test_library_bad_inputs_name_the_key(spec, n, m, words):
+    with pytest.raises(ldft.InputError, match=words) as info:
+        Library.parse(spec).expand(n, m)
+    assert info.value.key == "library" and "\n" not in str(info.value)
+
+
+def test_model_option_errors_name_the_key():
+    with pytest.raises(ldft.InputError) as info:
+        ldft.SparseLagrangian("kinetic", threshold=2.0)
+    assert info.value.key == "threshold"
+    with pytest.raises(ldft.InputError) as info:
+        ldft.SparseLagrangian("kinetic", bags=-1)
+    assert info.value.key == "bags"
+    with pytest.raises(ldft.InputError) as info:  # a vector term on a scalar field, found when learning binds
+        ldft.learn(ldft.SparseLagrangian("kinetic + norm:-1"), pendulum(1.0, 20), progress=False)
+    assert info.value.key == "library"
+
+
+@pytest.mark.parametrize(("at", "shift"), [("anchor", 0.0), ("mean", 0.5)])
+def test_a_term_undefined_on_the_data_is_named(at, shift):
+    # a straight line through the origin: one site (anchor) or one cell's mean is q = 0, where |q|^-1 and
+    # log|q| are undefined
+    x = np.arange(-10, 10) + shift
+    q = xr.DataArray(
+        np.stack([x, 0 * x], 1),
+        dims=("t", "component"),
+        coords={"t": np.arange(20) * 0.1, "component": ["x", "y"]},
+        name="q",
+    )
+    for term in ("norm:-1", "log"):
+        with pytest.raises(ldft.InputError, match="not finite on the training data") as info:
+            ldft.learn(ldft.SparseLagrangian(f"kinetic + {term}", bags=0, at=at), q, progress=False)
+        assert info.value.key == "library"
+
+
+# -- recovery ----------------------------------------------------------------------------------------------
+def test_pendulum_terms_are_found_and_serve_beyond_the_training_range():
+    model = ldft.SparseLagrangian("kinetic + poly:2 + trig:1")
+    ldft.learn(model, [pendulum(2.0), pendulum(2.6)], progress=False)
+    terms = kept(model)
+    assert set(terms) == {"Dtq**2", "cos(q)"}
+    assert terms["cos(q)"] / (2 * terms["Dtq**2"]) == pytest.approx(1.0, rel=1e-3)
+    assert model.inclusion.tolist()[model.term_names.index("cos(q)")] == 1.0
+    assert model.report_.sparse["kept"] == ["Dtq**2", "cos(q)"]
+    test = pendulum(2.9, 60)
+    served = ldft.serve(model, test, progress=False).field.values
+    assert np.max(np.abs(served - test.values)) < 0.05
+
+
+def test_kepler_from_one_orbit():
+    # the default vector library; "auto" would keep small terms that absorb the midpoint rule's O(h^2) error
+    model = ldft.SparseLagrangian(threshold=1e-2)
+    ldft.learn(model, kepler_one_orbit(), progress=False)
+    terms = kept(model)
+    assert set(terms) == {"(Dtq1**2+Dtq2**2)", "|q|**-1"}
+    assert terms["|q|**-1"] / (2 * terms["(Dtq1**2+Dtq2**2)"]) == pytest.approx(0.40038, rel=2e-3)
+
+
+def test_charged_particle_magnetic_term():
+    # one circle is also an isotropic oscillator about its centre: two orbits of other centres tell them apart
+    q = [
+        systems.charged_particle(q0=(0.0, 0.0), v0=(1.0, 0.5), B=0.8, n=60, dt=0.1),
+        systems.charged_particle(q0=(1.0, -1.0), v0=(-0.3, 0.8), B=0.8, n=60, dt=0.1),
+    ]
+    model = ldft.SparseLagrangian("kinetic + poly:2 + cross")
+    ldft.learn(model, q, progress=False)
+    terms = kept(model)
+    assert set(terms) == {"(Dtq1**2+Dtq2**2)", "(q1*Dtq2-q2*Dtq1)"}
+    assert terms["(q1*Dtq2-q2*Dtq1)"] / (2 * terms["(Dtq1**2+Dtq2**2)"]) == pytest.approx(0.4, rel=1e-2)
+
+
+def test_nonlinear_klein_gordon_string():
+    data = [klein_gordon_string(a) for a in (0.6, 1.1)]
+    model = ldft.SparseLagrangian("kinetic + gradient + poly:4")
+    ldft.learn(model, data, progress=False)
+    terms = kept(model)
+    assert set(terms) == {"Dtq**2", "Dxq**2", "q**2", "q**4"}
+    k = 2 * terms["Dtq**2"]
+    assert -2 * terms["Dxq**2"] / k == pytest.approx(1.0, rel=2e-2)
+    assert -2 * terms["q**2"] / k == pytest.approx(1.0, rel=2e-2)
+    assert -4 * terms["q**4"] / k == pytest.approx(0.3, rel=2e-2)
+
+
+# -- the equation ------------------------------------------------------------------------------------------
+def _cells(model, field):
+    lf = ldft.as_lattice_field(field)
+    return gather_cells(torch.as_tensor(lf.values), model.stencil, lf.boundary).reshape(-1, model.stencil.size, model.m)
+
+
+def test_symbolic_matches_the_model_to_round_off():
+    data = [klein_gordon_string(0.8, nx=11, nt=12)]
+    for model in (
+        ldft.SparseLagrangian("kinetic + gradient + poly:4 + trig:1", threshold=0.0, bags=0),
+        ldft.SparseLagrangian("kinetic + gradient + poly:2*gradient + exp + trig:1", threshold=0.0, at="mean"),
+        ldft.FeatureLagrangian(["poly:3", "trig:1"], differences=2),
+    ):
+        ldft.learn(model, data, progress=False)
+        form = model.symbolic()
+        cells = _cells(model, data[0])[:7]
+        expected = model(cells).detach().numpy()
+        got = [form.evaluate(c.tolist()) for c in cells]
+        np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-10 * np.abs(expected).max())
+
+
+def test_print_shows_the_equation_and_the_del():
+    model = ldft.SparseLagrangian("kinetic + trig:1", bags=4)
+    ldft.learn(model, [pendulum(2.0), pendulum(2.6)], progress=False)
+    text = str(model)
+    assert "L_d = 0.5" in text and "cos(q)" in text and "LaTeX:" in text and "DEL:" in text
+    assert "q[t+1]" in text and "inclusion 1.00" in text
+    assert model.equation_text()["latex"].startswith("0.5")
+
+
+def test_model_file_round_trip(tmp_path):
+    model = ldft.SparseLagrangian("kinetic + trig:1")
+    ldft.learn(model, [pendulum(2.0), pendulum(2.6)], progress=False)
+    path = ldft.save_model(model, tmp_path / "m.pt")
+    back = ldft.load_model(path)
+    assert isinstance(back, ldft.SparseLagrangian) and back.options() == model.options()
+    assert torch.equal(back.coef, model.coef) and torch.equal(back.inclusion, model.inclusion)
+    assert str(back.to_sympy()) == str(model.to_sympy())
+
+
+def test_a_user_function_is_a_term_but_not_saveable(tmp_path):
+    lib = Library.parse("kinetic") + Library.function(lambda q: 1 - torch.cos(q[..., 0]), "1-cos(q)")
+    model = ldft.SparseLagrangian(lib)
+    ldft.learn(model, [pendulum(2.0), pendulum(2.6)], progress=False)
+    assert set(kept(model)) == {"Dtq**2", "1-cos(q)"}
+    assert model.symbolic() is None
+    with pytest.raises(ldft.ModelFileError, match="Python functions"):
+        ldft.save_model(model, tmp_path / "m.pt")
+
+
+def sine_gordon_2d(amplitude: float, n: int = 10, nt: int = 16, h: float = 0.5, dt: float = 0.2) -> xr.DataArray:
+    """psi_tt = psi_xx + psi_yy - sin psi on a periodic n x n lattice, by the leapfrog at the sampled step."""
+    x = np.arange(n) * h
+    xx, yy = np.meshgrid(x, x, indexing="ij")
+    psi = amplitude * np.cos(2 * np.pi * xx / (n * h)) * np.sin(2 * np.pi * yy / (n * h)) + 0.3
+    frames = [psi, psi]
+    for _ in range(nt - 2):
+        p = frames[-1]
+        lap = sum(np.roll(p, s, a) for s in (1, -1) for a in (0, 1)) - 4 * p
+        frames.append(2 * p - frames[-2] + dt**2 * (lap / h**2 - np.sin(p)))
+    coords = {"t": np.arange(nt) * dt, "x": x, "y": x}
+    da = xr.DataArray(np.array(frames), dims=("t", "x", "y"), coords=coords, name="psi")
+    for axis in ("x", "y"):
+        da[axis].attrs["periodic"] = 1
+    return da
+
+
+def test_sine_gordon_2d_is_exact_when_the_data_obey_the_leapfrog():
+    model = ldft.SparseLagrangian("kinetic + gradient + poly:2 + trig:1")
+    report = ldft.learn(model, [sine_gordon_2d(0.8), sine_gordon_2d(1.5)], progress=False)
+    terms = kept(model)
+    assert set(terms) == {"Dtq**2", "Dxq**2", "Dyq**2", "cos(q)"}
+    assert report.rel_res < 1e-10
+    for name, value in (("Dxq**2", -0.5), ("Dyq**2", -0.5), ("cos(q)", 1.0)):
+        assert terms[name] == pytest.approx(value, rel=1e-9)
+
+
+def test_sine_gordon_breather_1d():
+    data = [systems.sine_gordon_breather(w, nx=81, nt=40, xlim=(-10.0, 10.0), dt=0.1) for w in (0.5, 0.8)]
+    model = ldft.SparseLagrangian("kinetic + gradient + poly:2 + trig:1", threshold=1e-2)
+    ldft.learn(model, data, progress=False)
+    terms = kept(model)
+    assert set(terms) == {"Dtq**2", "Dxq**2", "cos(q)"}
+    assert -2 * terms["Dxq**2"] == pytest.approx(1.0, rel=1e-2)
+    assert terms["cos(q)"] == pytest.approx(1.0, rel=1e-2)
+
+
+@pytest.mark.parametrize(("sigma", "rel"), [(1e-3, 2e-3), (1e-2, 5e-2)])
+def test_noisy_pendulum_terms_with_noise_auto(sigma, rel):
+    rng = np.random.default_rng(1)
+    noisy = [p + sigma * 2.6 * rng.standard_normal(p.shape) for p in (pendulum(2.0, 120), pendulum(2.6, 120))]
+    model = ldft.SparseLagrangian("kinetic + poly:2 + trig:1")
+    report = ldft.learn(model, noisy, noise="auto", progress=False)
+    assert report.noise["method"] != "none"
+    terms = kept(model)
+    assert set(terms) == {"Dtq**2", "cos(q)"}
+    assert terms["cos(q)"] / (2 * terms["Dtq**2"]) == pytest.approx(1.0, rel=rel)
+
+
+def double_pendulum(y0, n: int = 150, dt: float = 0.05) -> xr.DataArray:
+    """Two unit masses on unit rods, g = 1: L = q1'^2 + q2'^2/2 + q1' q2' cos(q1 - q2) + 2 cos q1 + cos q2."""
+
+    def rhs(y):
+        t1, t2, w1, w2 = y
+        d = t1 - t2
+        den = 3 - np.cos(2 * d)
+        a1 = (-3 * np.sin(t1) - np.sin(t1 - 2 * t2) - 2 * np.sin(d) * (w2**2 + w1**2 * np.cos(d))) / den
+        a2 = 2 * np.sin(d) * (2 * w1**2 + 2 * np.cos(t1) + w2**2 * np.cos(d)) / den
+        return [w1, w2, a1, a2]
+
+    y = _ode(rhs, y0, n, dt)
+    coords = {"t": np.arange(n) * dt, "component": ["a", "b"]}
+    return xr.DataArray(y[:2].T, dims=("t", "component"), coords=coords, name="theta")
+
+
+def test_double_pendulum_with_the_trace_gauge():
+    data = [double_pendulum([0.8, -0.5, 0.0, 0.0]), double_pendulum([0.3, 1.0, 0.5, 0.0])]
+    model = ldft.SparseLagrangian("velocities + cosdiff*velocities + trig:1")
+    ldft.learn(model, data, gauge="trace", progress=False)  # unequal masses: unit-mass cannot hold
+    terms = kept(model)
+    assert set(terms) == {"Dtq1**2", "Dtq2**2", "cos(q1-q2)*Dtq1*Dtq2", "cos(q1)", "cos(q2)"}
+    a = terms["Dtq1**2"]
+    for name, ratio in (("Dtq2**2", 0.5), ("cos(q1-q2)*Dtq1*Dtq2", 1.0), ("cos(q1)", 2.0), ("cos(q2)", 1.0)):
+        assert terms[name] / a == pytest.approx(ratio, rel=1e-2)

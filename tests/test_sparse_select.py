@@ -1,0 +1,75 @@
+"""Selection with sparse candidates: tried first, a hand-set model beaten 100x is not kept, ``progress`` passes."""
+
+from __future__ import annotations
+
+import math
+
+from test_sparse import pendulum
+
+import latticedft as ldft
+from latticedft._select import BEATEN, _choose, auto_candidates, sparse_candidates
+
+
+def _rows(*scores: float) -> list[dict]:
+    return [{"score": s, "n_parameters": 10 - i, "label": f"c{i}"} for i, s in enumerate(scores)]
+
+
+def test_a_hand_set_model_beaten_100x_is_not_kept_below_keep_below():
+    chosen, reason, _ = _choose(_rows(1e-7, 1e-7 / (2 * BEATEN)), factor=2.0, keep_below=1e-6)
+    assert chosen == 1 and "c1 scored" in reason
+    chosen, reason, _ = _choose(_rows(1e-7, 1e-8), factor=2.0, keep_below=1e-6)  # only 10x: kept
+    assert chosen == 0 and "keep_below" in reason
+    assert _choose(_rows(1e-3, math.inf), factor=2.0, keep_below=1e-6)[0] == 0
+
+
+def test_a_sparse_candidate_near_the_lowest_score_comes_first():
+    rows = [
+        {"score": math.inf, "n_parameters": 45, "label": "hand-set", "kind": "polynomial"},
+        {"score": 8e-7, "n_parameters": 36, "label": "orders", "kind": "polynomial"},
+        {"score": 2e-5, "n_parameters": 7, "label": "sparse", "kind": "sparse"},
+        {"score": 2e-3, "n_parameters": 2, "label": "sparser", "kind": "sparse"},
+    ]
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 2
+    rows[2]["score"] = 1e-3  # beyond SPARSE_FACTOR: the dense one
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
+
+
+def test_auto_tries_the_sparse_libraries_first():
+    cands = auto_candidates(ldft.PolynomialLagrangian((4, 8)), n=2, m=1)
+    assert cands[: len(sparse_candidates(2, 1))] == sparse_candidates(2, 1)
+    assert all(c["kind"] == "sparse" for c in sparse_candidates(1, 2))
+    assert {c["threshold"] for c in ldft.SparseLagrangian().auto_candidates(1)} >= {0.1, 0.0}
+
+
+def test_select_takes_progress_and_chooses_the_sparse_pendulum():
+    data = [pendulum(2.0, 40), pendulum(2.6, 40)]
+    cands = sparse_candidates(1, 1)[:1]
+    sel = ldft.select(ldft.PolynomialLagrangian((2, 2)), data, cands, progress=False)
+    assert sel.chosen == 1 and isinstance(sel.model, ldft.SparseLagrangian)
+    assert set(sel.model.report_.sparse["kept"]) == {"Dtq**2", "cos(q)"}
+
+
+def test_a_sparse_case_prints_its_equation(tmp_path, capsys):
+    import json
+
+    import xarray as xr
+
+    import latticedft.cli
+
+    (tmp_path / "data").mkdir()
+    for a in (2.0, 2.6):
+        pendulum(a, 40).to_netcdf(tmp_path / "data" / f"train_{a}.nc")
+    pendulum(2.9, 20).to_netcdf(tmp_path / "data" / "test.nc")
+    (tmp_path / "case.toml").write_text(
+        '[field]\nvariable = "psi"\n\n[model]\nkind = "sparse"\nlibrary = "kinetic + poly:2 + trig:1"\nbags = 4\n\n'
+        '[train]\ndata = ["data/train_*.nc"]\n\n[[serve]]\nname = "test"\nfrom = "data/test.nc"\n'
+    )
+    assert latticedft.cli.main(["run", str(tmp_path), "-q"]) == 0
+    record = json.loads((tmp_path / "results" / "model.json").read_text())
+    assert record["training"]["sparse"]["kept"] == ["Dtq**2", "cos(q)"]
+    assert "cos" in record["training"]["sparse"]["equation"]["latex"]
+    with xr.open_dataset(tmp_path / "results" / "test.nc") as ds:
+        assert ds.attrs["latticedft_L_d"].startswith("L_d = ") and "*cos(q)" in ds.attrs["latticedft_L_d"]
+    capsys.readouterr()
+    assert latticedft.cli.main(["info", str(tmp_path)]) == 0
+    assert "DEL: " in capsys.readouterr().out
