@@ -42,6 +42,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "n-D serving",
         "1D serving in numpy",
         "Ensemble serving",
+        "Discovery",
         "Targets",
     ):
         assert f"== {title}" in out, f"table {title!r} missing from:\n{out}"
@@ -60,6 +61,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "serve-fast1d",
         "ensemble",
         "serve_scale",
+        "discovery",
     ]
     assert not results["failed"]
     assert all(b["rows"] for b in results["benchmarks"])
@@ -83,6 +85,7 @@ ALONE = [
     "serve_fast1d",
     "ensemble",
     "serve_scale",
+    "discovery",
 ]
 
 
