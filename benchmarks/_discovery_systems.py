@@ -40,14 +40,19 @@ Accel = Callable[[np.ndarray, np.ndarray], np.ndarray]
 @dataclass
 class OdeSpec:
     """A system of ``m`` degrees of freedom: ``L(q, v)`` in sympy (symbols ``q0..``, ``v0..``) and its
-    acceleration ``a(q, v)`` (numpy, derived from ``L``)."""
+    acceleration (numpy, derived from ``L``): ``accel(q, v)`` free, ``forced(q, v, f)`` with generalised forces
+    ``f`` on the right of the Euler-Lagrange equations."""
 
     lagrangian: Any
     q: tuple[Any, ...]
     v: tuple[Any, ...]
-    accel: Accel
+    forced: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
     velocity_dependent: bool
     accel_exprs: tuple[Any, ...]
+
+    def accel(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """The free acceleration."""
+        return self.forced(q, v, np.zeros(len(self.q)))
 
 
 @dataclass
@@ -72,6 +77,8 @@ class System:
     ode: OdeSpec | None = None
     test_state: tuple[np.ndarray, np.ndarray] | None = None
     train_states: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    #: the key of :data:`SYSTEMS` it was built from
+    key: str = ""
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -80,25 +87,28 @@ class System:
 
 
 def ode_spec(m: int, lagrangian: Callable[[tuple[Any, ...], tuple[Any, ...]], Any]) -> OdeSpec:
-    """The spec of ``L = lagrangian(q, v)``: its Euler-Lagrange equations solved for the accelerations."""
+    """The spec of ``L = lagrangian(q, v)``: its Euler-Lagrange equations ``d/dt dL/dv - dL/dq = f`` solved
+    for the accelerations."""
     q = sympy.symbols(f"q0:{m}", real=True)
     v = sympy.symbols(f"v0:{m}", real=True)
     a = sympy.symbols(f"a0:{m}", real=True)
+    f = sympy.symbols(f"f0:{m}", real=True)
     L = lagrangian(q, v)
     eqs = []
     for i in range(m):
         p = sympy.diff(L, v[i])
         dpdt = sum(sympy.diff(p, q[j]) * v[j] + sympy.diff(p, v[j]) * a[j] for j in range(m))
-        eqs.append(sympy.expand(dpdt - sympy.diff(L, q[i])))
+        eqs.append(sympy.expand(dpdt - sympy.diff(L, q[i]) - f[i]))
     sol = sympy.solve(eqs, a, dict=True)[0]
     exprs = tuple(sympy.simplify(sol[a[i]]) for i in range(m))
-    fn = sympy.lambdify([q, v], list(exprs), "numpy")
+    fn = sympy.lambdify([q, v, f], list(exprs), "numpy")
     depends = any(e.has(*v) for e in exprs)
 
-    def accel(qv: np.ndarray, vv: np.ndarray) -> np.ndarray:
-        return np.array(fn(tuple(qv), tuple(vv)), dtype=float).reshape(m)
+    def forced(qv: np.ndarray, vv: np.ndarray, fv: np.ndarray) -> np.ndarray:
+        return np.array(fn(tuple(qv), tuple(vv), tuple(fv)), dtype=float).reshape(m)
 
-    return OdeSpec(L, q, v, accel, depends, exprs)
+    free = tuple(e.subs({s: 0 for s in f}) for e in exprs)
+    return OdeSpec(L, q, v, forced, depends, free)
 
 
 def ode_ld(spec: OdeSpec, h: float) -> SymbolicLd:
@@ -472,6 +482,19 @@ SYSTEMS: dict[str, Callable[[bool], System]] = {
 }
 
 
+def max_errors(pred: np.ndarray, ref: np.ndarray, slices: int, at: tuple[int, ...] = ()) -> list[float]:
+    """Largest error over ``slices`` slices, then after each step count in ``at``; ``inf`` past a stop or a
+    non-finite value."""
+    pred = np.asarray(pred, dtype=float)[:slices]
+    n = len(pred)
+    err = np.abs(pred.reshape(n, -1) - ref[:n].reshape(n, -1)).max(axis=1) if n else np.zeros(0)
+    good = len(err) if np.isfinite(err).all() else int(np.argmax(~np.isfinite(err)))
+    err = np.concatenate([err[:good], np.full(slices - good, np.inf)])
+    return [float(err.max())] + [float(err[: k + 1].max()) for k in at]
+
+
 def build(name: str, quick: bool = False) -> System:
     """The system ``name`` (a key of :data:`SYSTEMS`)."""
-    return SYSTEMS[name](quick)
+    system = SYSTEMS[name](quick)
+    system.key = name
+    return system

@@ -5,7 +5,9 @@ Euler-Lagrange (DEL) equation, so they are compared there. :func:`del_equations`
 a :class:`~latticedft._symbolic.SymbolicLd` in the values of the site's neighbours (``v{offset}_{component}``);
 :func:`normalised_terms` expands it into terms and divides each component's equation by the coefficient of the
 linear term in the next time slice's value of that component (the gauge normalisation: unit mass);
-:func:`coefficient_error` compares the terms of two forms.
+:func:`coefficient_error` compares the terms of two forms. The peers' continuous models are compared the same
+way through their equations of motion: :func:`euler_lagrange_terms` (a Lagrangian ``L(q, v)``) and
+:func:`acceleration_terms` (``q'' = f(q, q')``), each normalised so that the acceleration's coefficient is 1.
 """
 
 from __future__ import annotations
@@ -17,7 +19,15 @@ import sympy
 
 from latticedft._symbolic import SymbolicLd
 
-__all__ = ["del_equations", "normalised_terms", "coefficient_error", "neighbour"]
+__all__ = [
+    "del_equations",
+    "normalised_terms",
+    "coefficient_error",
+    "neighbour",
+    "term_error",
+    "euler_lagrange_terms",
+    "acceleration_terms",
+]
 
 
 def neighbour(offset: tuple[int, ...], component: int) -> Any:
@@ -56,31 +66,56 @@ def normalised_terms(form: SymbolicLd) -> list[dict[Any, float]]:
     that component scaled to 1. A component with no such term gives an empty dictionary."""
     n = len(form.offsets[0])
     future = tuple(1 if k == 0 else 0 for k in range(n))
-    out: list[dict[Any, float]] = []
-    for c, eq in enumerate(del_equations(form)):
-        terms = sympy.expand(_rational_powers(eq), deep=False).as_coefficients_dict()
-        lead = terms.get(neighbour(future, c), 0)
-        if lead == 0:
-            out.append({})
-            continue
-        out.append({t: float(v / lead) for t, v in terms.items() if v != 0})
-    return out
+    return [_normalised(eq, neighbour(future, c)) for c, eq in enumerate(del_equations(form))]
 
 
-def coefficient_error(learned: SymbolicLd, true: SymbolicLd) -> tuple[float, int, int]:
-    """``(max relative coefficient error, terms of the learned DEL, terms of the true DEL)``.
-
-    Each true term's error is relative to its own coefficient; a term the true DEL lacks counts with its
-    coefficient relative to the smallest true one. ``inf`` when a component cannot be normalised.
-    """
-    got, want = normalised_terms(learned), normalised_terms(true)
-    worst, n_got, n_want = 0.0, 0, 0
-    for g, w in zip(got, want):
+def term_error(got: list[dict[Any, float]], want: list[dict[Any, float]]) -> tuple[float, int, int]:
+    """``(max relative coefficient error, terms got, terms wanted)`` of normalised equations, component by
+    component. Each wanted term's error is relative to its own coefficient; a term not wanted counts with its
+    coefficient relative to the smallest wanted one. ``inf`` when a component could not be normalised."""
+    worst, n_got, n_want = 0.0, sum(len(x) for x in got), sum(len(x) for x in want)
+    for g, w in zip(got, want, strict=True):
         if not g or not w:
-            return math.inf, sum(len(x) for x in got), sum(len(x) for x in want)
-        n_got, n_want = n_got + len(g), n_want + len(w)
+            return math.inf, n_got, n_want
         smallest = min(abs(v) for v in w.values())
         for term in set(g) | set(w):
             scale = abs(w[term]) if term in w else smallest
             worst = max(worst, abs(g.get(term, 0.0) - w.get(term, 0.0)) / scale)
     return worst, n_got, n_want
+
+
+def coefficient_error(learned: SymbolicLd, true: SymbolicLd) -> tuple[float, int, int]:
+    """:func:`term_error` of the normalised DEL equations of two closed-form ``L_d``."""
+    return term_error(normalised_terms(learned), normalised_terms(true))
+
+
+def expanded_terms(expr: Any) -> dict[Any, Any]:
+    """``expr`` expanded into a sum of terms, ``{term: coefficient}``; powers with a non-integer exponent
+    (``(x^2 + y^2)^(-3/2)``) are kept whole."""
+    expr = _rational_powers(sympy.sympify(expr).evalf())
+    whole = {p: sympy.Dummy() for p in expr.atoms(sympy.Pow) if not p.exp.is_Integer}
+    terms = sympy.expand(expr.xreplace(whole)).as_coefficients_dict()
+    back = {d: p for p, d in whole.items()}
+    return {t.xreplace(back): c for t, c in terms.items()}
+
+
+def _normalised(eq: Any, lead: Any) -> dict[Any, float]:
+    terms = expanded_terms(eq)
+    scale = terms.get(lead, 0)
+    return {t: float(v / scale) for t, v in terms.items() if v != 0} if scale != 0 else {}
+
+
+def euler_lagrange_terms(L: Any, q: Any, v: Any, a: Any) -> list[dict[Any, float]]:
+    """The terms of ``d/dt dL/dv_i - dL/dq_i`` (symbols ``q``, ``v``, ``a``), each scaled so that the
+    coefficient of ``a_i`` is 1."""
+    out = []
+    for i in range(len(q)):
+        p = sympy.diff(L, v[i])
+        eq = sum(sympy.diff(p, q[j]) * v[j] + sympy.diff(p, v[j]) * a[j] for j in range(len(q))) - sympy.diff(L, q[i])
+        out.append(_normalised(eq, a[i]))
+    return out
+
+
+def acceleration_terms(rhs: list[Any], a: Any) -> list[dict[Any, float]]:
+    """The terms of ``a_i - rhs_i`` (``q'' = rhs``), the coefficient of ``a_i`` 1."""
+    return [_normalised(a[i] - r, a[i]) for i, r in enumerate(rhs)]

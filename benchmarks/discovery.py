@@ -44,6 +44,7 @@ from latticedft._stencil import Stencil
 
 from . import _discovery_systems as systems_mod
 from ._common import Config, Table, load_average, text
+from ._discovery_peers import peer_rows, rows_for, xl_own_rows
 from ._terms import coefficient_error
 
 NAME = "discovery"
@@ -67,15 +68,6 @@ COLUMNS = [
 def lattice_dims(field: xr.DataArray) -> int:
     """Lattice dimensions of a field (time included, the component axis not)."""
     return sum(1 for d in field.dims if d != "component")
-
-
-def errors(pred: np.ndarray, ref: np.ndarray, slices: int, at: tuple[int, ...]) -> list[float]:
-    """Largest error over ``slices`` slices, then after each step count in ``at``; ``inf`` past a stop."""
-    err = np.abs(pred[:slices] - ref[: len(pred[:slices])]).reshape(len(pred[:slices]), -1).max(axis=1)
-    if len(err) < slices or not np.isfinite(err).all():
-        good = len(err) if np.isfinite(err).all() else int(np.argmax(~np.isfinite(err)))
-        err = np.concatenate([err[:good], np.full(slices - good, np.inf)])
-    return [float(err.max())] + [float(err[: k + 1].max()) for k in at]
 
 
 def served(model: Any, system: systems_mod.System) -> np.ndarray:
@@ -110,33 +102,10 @@ def latticedft_rows(system: systems_mod.System) -> list[list[Any]]:
     rep = ldft.select(hand, system.train, "auto", boundary=system.boundary)
     row = rep.rows[rep.chosen]
     label = row["label"] if row["label"] != "hand-set" else f"hand-set {hand.kind}{tuple(hand.options()['orders'])}"
-    pred = served(rep.model, system)
-    ref = np.asarray(system.test.values, dtype=float)
-    mine = errors(pred, ref, system.slices, system.at)
-    base = errors(system.leapfrog(system.test, system.slices), ref, system.slices, system.at)
     terms, coef = recovery(rep.model, system)
     fit = _fit_time(row["kind"], row["options"], row["ridge"], system, n)
     dense = _fit_time("polynomial", {}, 0.0, system, n)
-    rows = []
-    horizons = [("", 0)] + [(f" ({k} steps)", i + 1) for i, k in enumerate(system.at)]
-    for suffix, i in horizons[1:] if system.at else horizons:
-        ratio = mine[i] / base[i] if base[i] > 0 else np.inf
-        rows.append(
-            [
-                system.name + suffix,
-                system.range_note,
-                label,
-                terms,
-                coef,
-                mine[i],
-                base[i],
-                ratio,
-                fit,
-                dense,
-                fit / dense,
-            ]
-        )
-    return rows
+    return rows_for(system, label, terms, coef, served(rep.model, system), fit, dense)
 
 
 def run(cfg: Config, names: tuple[str, ...] | None = None, peers: bool | None = None) -> Table:
@@ -150,11 +119,11 @@ def run(cfg: Config, names: tuple[str, ...] | None = None, peers: bool | None = 
         system = systems_mod.build(name, cfg.quick)
         table.rows += latticedft_rows(system)
         if peers and system.ode is not None:
-            from ._discovery_peers import peer_rows
-
             table.rows += peer_rows(system)
         last = table.rows[-1]
         print(f"  {name}: {last[2]}, served {last[5]:.3g}, leapfrog {last[6]:.3g}", flush=True)
+    if peers:
+        table.rows += xl_own_rows()
     table.notes += [
         "served / leapfrog: largest error over the test's slices, both from its first two slices (and boundary "
         "strips); ratio <= 1 is the target. Kepler: after 50 and after 200 steps.",
