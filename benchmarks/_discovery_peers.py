@@ -33,7 +33,7 @@ import sympy
 from scipy.integrate import solve_ivp
 
 from ._discovery_systems import OdeSpec, System, max_errors, ode_spec
-from ._terms import acceleration_terms, euler_lagrange_terms, term_error
+from ._terms import acceleration_terms, euler_lagrange_terms, term_error, terms_cell
 
 NOT_INSTALLED = "not installed"
 
@@ -177,7 +177,7 @@ def pysindy_rows(system: System, spec: OdeSpec) -> list[list]:
     q, v, a = _symbols(m)
     want = euler_lagrange_terms(spec.lagrangian.xreplace(dict(zip(spec.q + spec.v, q + v))), q, v, a)
     err, n_got, n_want = term_error(_sindy_terms(model, m), want)
-    return rows_for(system, "PySINDy (poly 3 + Fourier 1, STLSQ 0.1)", f"{n_got}/{n_want}", err, pred, fit, None)
+    return rows_for(system, "PySINDy (poly 3 + Fourier 1, STLSQ 0.1)", terms_cell(n_got, n_want), err, pred, fit, None)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -273,7 +273,7 @@ def xl_rows(system: System, spec: OdeSpec) -> list[list]:
     qs, vs, a_s = _symbols(m)
     want = euler_lagrange_terms(spec.lagrangian.xreplace(dict(zip(spec.q + spec.v, qs + vs))), qs, vs, a_s)
     err, n_got, n_want = term_error(xl_lagrangian_terms(sol, lag, S), want)
-    return rows_for(system, label, f"{n_got}/{n_want}", err, pred, fit, None)
+    return rows_for(system, label, terms_cell(n_got, n_want), err, pred, fit, None)
 
 
 def peer_rows(system: System) -> list[list]:
@@ -384,7 +384,7 @@ def xl_own_row(name: str, spec: OdeSpec, noise: float, seed: int = 1) -> list:
         system,
         "driven; new start and force, 10 s",
         label,
-        f"{n_got}/{n_want}",
+        terms_cell(n_got, n_want),
         err,
         served,
         None,

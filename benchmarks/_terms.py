@@ -27,7 +27,12 @@ __all__ = [
     "term_error",
     "euler_lagrange_terms",
     "acceleration_terms",
+    "terms_cell",
 ]
+
+
+#: Terms whose normalised coefficient is below this fraction of the largest are round-off, not terms.
+ROUND_OFF = 1e-13
 
 
 def neighbour(offset: tuple[int, ...], component: int) -> Any:
@@ -69,6 +74,11 @@ def normalised_terms(form: SymbolicLd) -> list[dict[Any, float]]:
     return [_normalised(eq, neighbour(future, c)) for c, eq in enumerate(del_equations(form))]
 
 
+def terms_cell(n_got: int, n_want: int) -> str:
+    """The table cell of a comparison: ``got/wanted`` terms, or why the equation could not be normalised."""
+    return f"{n_got}/{n_want}" if n_got else "no mass term"
+
+
 def term_error(got: list[dict[Any, float]], want: list[dict[Any, float]]) -> tuple[float, int, int]:
     """``(max relative coefficient error, terms got, terms wanted)`` of normalised equations, component by
     component. Each wanted term's error is relative to its own coefficient; a term not wanted counts with its
@@ -102,7 +112,11 @@ def expanded_terms(expr: Any) -> dict[Any, Any]:
 def _normalised(eq: Any, lead: Any) -> dict[Any, float]:
     terms = expanded_terms(eq)
     scale = terms.get(lead, 0)
-    return {t: float(v / scale) for t, v in terms.items() if v != 0} if scale != 0 else {}
+    if scale == 0:
+        return {}
+    out = {t: float(v / scale) for t, v in terms.items()}
+    largest = max(abs(v) for v in out.values())
+    return {t: v for t, v in out.items() if abs(v) > ROUND_OFF * largest}
 
 
 def euler_lagrange_terms(L: Any, q: Any, v: Any, a: Any) -> list[dict[Any, float]]:

@@ -45,7 +45,7 @@ from latticedft._stencil import Stencil
 from . import _discovery_systems as systems_mod
 from ._common import Config, Table, load_average, text
 from ._discovery_peers import peer_rows, rows_for, xl_own_rows
-from ._terms import coefficient_error
+from ._terms import coefficient_error, terms_cell
 
 NAME = "discovery"
 TITLE = 'Discovery: select = "auto" on known systems, served beyond the training range'
@@ -81,11 +81,14 @@ def served(model: Any, system: systems_mod.System) -> np.ndarray:
 
 def recovery(model: Any, system: systems_mod.System) -> tuple[str, Any]:
     """``(terms, coefficient error)`` of a chosen model against the true ``L_d``."""
-    form = model.symbolic() if hasattr(model, "symbolic") else None
+    try:
+        form = model.symbolic() if hasattr(model, "symbolic") else None
+    except ldft.LatticeDFTError as exc:
+        return f"n/a: {type(exc).__name__}: {' '.join(str(exc).split())[:60]}", "n/a"
     if form is None:
         return "n/a: no closed form", "n/a"
     err, n_got, n_want = coefficient_error(form, system.true_ld)
-    return f"{n_got}/{n_want}", err
+    return terms_cell(n_got, n_want), err
 
 
 def _fit_time(kind: str, options: dict[str, Any], ridge: Any, system: systems_mod.System, n: int) -> float:
