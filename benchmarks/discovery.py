@@ -43,7 +43,7 @@ from latticedft._case._schema import ModelConfig
 from latticedft._stencil import Stencil
 
 from . import _discovery_systems as systems_mod
-from ._common import Config, Table, load_average, text
+from ._common import Check, Config, Table, load_average, text
 from ._discovery_peers import peer_rows, rows_for, xl_own_rows
 from ._terms import coefficient_error, terms_cell
 
@@ -111,6 +111,32 @@ def latticedft_rows(system: systems_mod.System) -> list[list[Any]]:
     return rows_for(system, label, terms, coef, served(rep.model, system), fit, dense)
 
 
+def targets(rows: list[list[Any]]) -> list[Check]:
+    """The targets, over latticedft's rows: served beyond the training at or below the true leapfrog, the
+    true terms to 1e-3 where the chosen model has a closed form, the fit within 3x the dense solve."""
+    col = {c: i for i, c in enumerate(COLUMNS)}
+    ratios = [r[col["ratio"]] for r in rows]
+    closed = [r[col["coef. error"]] for r in rows if isinstance(r[col["coef. error"]], float)]
+    costs = [r[col["cost"]] for r in rows]
+    return [
+        Check(
+            "served error at or below the true leapfrog's (ratio <= 1), every system",
+            f"{sum(x <= 1 for x in ratios)} of {len(ratios)} rows; worst ratio {max(ratios):.3g}",
+            all(x <= 1 for x in ratios),
+        ),
+        Check(
+            "true terms recovered to 1e-3 relative, every system",
+            f"{sum(e <= 1e-3 for e in closed)} of {len(rows)} rows (closed form in {len(closed)})",
+            len(closed) == len(rows) and all(e <= 1e-3 for e in closed),
+        ),
+        Check(
+            "fit at most 3x the dense exact solve of the default model",
+            f"worst {max(costs):.3g}x",
+            max(costs) <= 3,
+        ),
+    ]
+
+
 def run(cfg: Config, names: tuple[str, ...] | None = None, peers: bool | None = None) -> Table:
     """The table for ``names`` (default: every system; :data:`QUICK` when quick), with the peers' rows unless
     quick (or ``peers`` says otherwise)."""
@@ -118,15 +144,18 @@ def run(cfg: Config, names: tuple[str, ...] | None = None, peers: bool | None = 
     peers = (not cfg.quick) if peers is None else peers
     table = Table(NAME, TITLE, list(COLUMNS))
     table.notes.append(f"load average (uptime) at the start: {load_average()}")
+    mine: list[list[Any]] = []
     for name in names:
         system = systems_mod.build(name, cfg.quick)
-        table.rows += latticedft_rows(system)
+        mine += latticedft_rows(system)
+        table.rows += mine[-len(system.at or (0,)) :]
         if peers and system.ode is not None:
             table.rows += peer_rows(system)
         last = table.rows[-1]
         print(f"  {name}: {last[2]}, served {last[5]:.3g}, leapfrog {last[6]:.3g}", flush=True)
     if peers:
         table.rows += xl_own_rows()
+    table.checks += targets(mine)
     table.notes += [
         "served / leapfrog: largest error over the test's slices, both from its first two slices (and boundary "
         "strips); ratio <= 1 is the target. Kepler: after 50 and after 200 steps.",
@@ -161,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
     table = run(Config(quick=args.quick, threads=args.threads), names or None, peers)
     table.seconds = time.perf_counter() - t0
     print(text(table))
+    for c in table.checks:
+        print(f"  [{'met' if c.met else 'NOT met'}] {c.target}: {c.measured}")
     print(f"# load average (uptime) after: {load_average()}", flush=True)
     return 0
 

@@ -99,3 +99,4 @@ def test_quick_table_on_one_system():
     assert row["cost"] == pytest.approx(row["fit (s)"] / row["dense (s)"])
     assert row["terms"] == "n/a: no closed form" or "/" in row["terms"]
     assert any("load average" in n for n in table.notes)
+    assert len(table.checks) == 3 and all(isinstance(c.met, bool) for c in table.checks)
