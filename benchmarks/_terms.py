@@ -82,11 +82,12 @@ def terms_cell(n_got: int, n_want: int) -> str:
 def term_error(got: list[dict[Any, float]], want: list[dict[Any, float]]) -> tuple[float, int, int]:
     """``(max relative coefficient error, terms got, terms wanted)`` of normalised equations, component by
     component. Each wanted term's error is relative to its own coefficient; a term not wanted counts with its
-    coefficient relative to the smallest wanted one. ``inf`` when a component could not be normalised."""
+    coefficient relative to the smallest wanted one. ``(inf, 0, terms wanted)`` when a component could not be
+    normalised."""
     worst, n_got, n_want = 0.0, sum(len(x) for x in got), sum(len(x) for x in want)
     for g, w in zip(got, want, strict=True):
         if not g or not w:
-            return math.inf, n_got, n_want
+            return math.inf, 0, n_want
         smallest = min(abs(v) for v in w.values())
         for term in set(g) | set(w):
             scale = abs(w[term]) if term in w else smallest

@@ -53,6 +53,19 @@ def test_term_recovery_of_a_hand_made_pendulum_form():
     assert discovery.recovery(_Closed(None), system) == ("n/a: no closed form", "n/a")
 
 
+def test_term_recovery_of_a_hand_made_kepler_form_with_float_powers():
+    """A closed form written as a model might print it (float exponents, the cell scaled by h) matches."""
+    system = systems.build("kepler", quick=True)
+    (x0, y0), (x1, y1) = cell_symbols(2, 2)
+    h, gm = 0.1, systems.KEPLER_GM
+    kinetic = ((x1 - x0) ** 2 + (y1 - y0) ** 2) / (2.0 * h)
+    potential = 0.5 * h * gm * ((x0**2 + y0**2) ** -0.5 + (x1**2 + y1**2) ** -0.5)
+    form = SymbolicLd(2.5 * (kinetic + potential), ((0,), (1,)), 2, (h,))
+    err, n_got, n_want = coefficient_error(form, system.true_ld)
+    assert (n_got, n_want) == (8, 8) and err < 1e-12
+    assert discovery.recovery(_Closed(SymbolicLd(kinetic, ((0,), (1,)), 2, (h,))), system)[0] == "6/8"
+
+
 def test_true_forms_of_every_system_agree_with_themselves_and_keep_unit_mass():
     for name in systems.SYSTEMS:
         true = systems.build(name, quick=True).true_ld
