@@ -104,6 +104,7 @@ def latticedft_rows(system: systems_mod.System) -> list[list[Any]]:
     hand = ModelConfig(select="auto").build(n)  # what a case with select = "auto" and no other model key builds
     rep = ldft.select(hand, system.train, "auto", boundary=system.boundary)
     row = rep.rows[rep.chosen]
+    print(f"  {system.key}: selection: {rep.reason}", flush=True)
     label = row["label"] if row["label"] != "hand-set" else f"hand-set {hand.kind}{tuple(hand.options()['orders'])}"
     terms, coef = recovery(rep.model, system)
     fit = _fit_time(row["kind"], row["options"], row["ridge"], system, n)
