@@ -105,7 +105,8 @@ def latticedft_rows(system: systems_mod.System) -> list[list[Any]]:
     rep = ldft.select(hand, system.train, "auto", boundary=system.boundary)
     row = rep.rows[rep.chosen]
     print(f"  {system.key}: selection: {rep.reason}", flush=True)
-    label = row["label"] if row["label"] != "hand-set" else f"hand-set {hand.kind}{tuple(hand.options()['orders'])}"
+    orders = hand.options().get("orders")
+    label = row["label"] if row["label"] != "hand-set" else f"hand-set {hand.kind}{tuple(orders) if orders else ''}"
     terms, coef = recovery(rep.model, system)
     fit = _fit_time(row["kind"], row["options"], row["ridge"], system, n)
     dense = _fit_time("polynomial", {}, 0.0, system, n)
