@@ -113,3 +113,18 @@ def test_quick_table_on_one_system():
     assert row["terms"] == "n/a: no closed form" or "/" in row["terms"]
     assert any("load average" in n for n in table.notes)
     assert len(table.checks) == 3 and all(isinstance(c.met, bool) for c in table.checks)
+
+
+def test_peer_rows_say_not_installed_when_the_peers_are_missing(monkeypatch):
+    """Without the ``bench`` extra the peers' rows say so and the benchmark goes on."""
+    import sys
+
+    from benchmarks import _discovery_peers as peers
+
+    monkeypatch.setitem(sys.modules, "pysindy", None)  # ``import pysindy`` raises ImportError
+    monkeypatch.setitem(sys.modules, "xlsindy", None)
+    system = systems.build("pendulum", quick=True)
+    rows = peers.peer_rows(system)
+    assert [r[2] for r in rows] == ["PySINDy: not installed", "py-xl-sindy: not installed"]
+    assert all(r[5] == math.inf for r in rows)  # no prediction
+    assert peers.xl_own_rows()[0][2] == "py-xl-sindy: not installed"
