@@ -38,6 +38,7 @@ BENCHMARKS = [
     "ensemble",  # the cost of an ensemble's error bar
     "serve_scale",  # peak memory of serving with an output cadence
     "serve_dist",  # serving split into slabs over processes
+    "discovery",  # select = "auto" on known systems against the true leapfrog
 ]
 
 

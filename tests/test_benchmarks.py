@@ -42,6 +42,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "n-D serving",
         "1D serving in numpy",
         "Ensemble serving",
+        "Discovery",
         "Targets",
     ):
         assert f"== {title}" in out, f"table {title!r} missing from:\n{out}"
@@ -61,6 +62,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "ensemble",
         "serve_scale",
         "serve-dist",
+        "discovery",
     ]
     assert not results["failed"]
     assert all(b["rows"] for b in results["benchmarks"])
@@ -85,6 +87,7 @@ ALONE = [
     "ensemble",
     "serve_scale",
     "serve_dist",
+    "discovery",
 ]
 
 

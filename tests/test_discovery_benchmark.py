@@ -1,0 +1,130 @@
+"""The discovery benchmark: its table, the leapfrog baseline of the true equations and the term comparison.
+
+No timing is asserted.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import sympy
+
+from benchmarks import _discovery_systems as systems
+from benchmarks import discovery
+from benchmarks._common import Config
+from benchmarks._terms import coefficient_error, normalised_terms
+from latticedft._symbolic import SymbolicLd, cell_symbols
+
+
+def _pendulum_ld(h: float, mass: float = 1.0, gravity: float = 1.0, extra: object = 0) -> SymbolicLd:
+    """A hand-made closed form of the pendulum's trapezoid ``L_d``, scaled, with optional extra terms."""
+    (u0,), (u1,) = cell_symbols(2, 1)
+    expr = mass * (u1 - u0) ** 2 / (2 * h * h) + gravity * (sympy.cos(u0) + sympy.cos(u1)) / 2 + extra
+    return SymbolicLd(expr, ((0,), (1,)), 1, (h,))
+
+
+@dataclass
+class _Closed:
+    """A stand-in for a model with a closed form (``symbolic()`` in the symbols ``u{p}_{c}``)."""
+
+    form: SymbolicLd | None
+
+    def symbolic(self) -> SymbolicLd | None:
+        return self.form
+
+
+def test_term_recovery_of_a_hand_made_pendulum_form():
+    system = systems.build("pendulum", quick=True)
+    (u0,), (u1,) = cell_symbols(2, 1)
+    gauge = 0.3 * (sympy.sin(u1) - sympy.sin(u0)) + 7  # a total difference and a constant change nothing
+    same = _pendulum_ld(0.1, mass=3.7, gravity=3.7, extra=3.7 * gauge)
+    assert discovery.recovery(_Closed(same), system)[0] == "4/4"
+    assert discovery.recovery(_Closed(same), system)[1] < 1e-12
+    off = _pendulum_ld(0.1, gravity=1.01)  # the sin term 1 % off
+    assert coefficient_error(off, system.true_ld)[0] == pytest.approx(0.01, rel=1e-9)
+    spurious = _pendulum_ld(0.1, extra=1e-3 * u0**4)  # u^3 in the DEL, relative to the smallest true term
+    err, n_got, n_want = coefficient_error(spurious, system.true_ld)
+    assert (n_got, n_want) == (5, 4)
+    smallest = min(abs(v) for v in normalised_terms(system.true_ld)[0].values())
+    assert err == pytest.approx(4e-3 * 0.01 / smallest, rel=1e-9)
+    assert discovery.recovery(_Closed(None), system) == ("n/a: no closed form", "n/a")
+
+
+def test_term_recovery_of_a_hand_made_kepler_form_with_float_powers():
+    """A closed form written as a model might print it (float exponents, the cell scaled by h) matches."""
+    system = systems.build("kepler", quick=True)
+    (x0, y0), (x1, y1) = cell_symbols(2, 2)
+    h, gm = 0.1, systems.KEPLER_GM
+    kinetic = ((x1 - x0) ** 2 + (y1 - y0) ** 2) / (2.0 * h)
+    potential = 0.5 * h * gm * ((x0**2 + y0**2) ** -0.5 + (x1**2 + y1**2) ** -0.5)
+    form = SymbolicLd(2.5 * (kinetic + potential), ((0,), (1,)), 2, (h,))
+    err, n_got, n_want = coefficient_error(form, system.true_ld)
+    assert (n_got, n_want) == (8, 8) and err < 1e-12
+    assert discovery.recovery(_Closed(SymbolicLd(kinetic, ((0,), (1,)), 2, (h,))), system)[0] == "6/8"
+
+
+def test_true_forms_of_every_system_agree_with_themselves_and_keep_unit_mass():
+    for name in systems.SYSTEMS:
+        true = systems.build(name, quick=True).true_ld
+        assert coefficient_error(true, true)[0] == 0.0
+        for terms in normalised_terms(true):
+            assert terms, name  # each component has a linear term in its next value
+
+
+@pytest.mark.parametrize("name", ["pendulum", "charged-particle", "double-pendulum"])
+def test_true_leapfrog_converges_at_second_order(name):
+    """Halving the step divides the leapfrog's error over a fixed time by about four (second order): the
+    explicit scheme (pendulum) and the fixed-point solve of a velocity-dependent force (the others)."""
+    spec = systems.build(name, quick=True).ode
+    assert spec is not None
+    q0, v0 = ([2.0], [0.0]) if name == "pendulum" else ((0.5, -0.3), (0.2, 0.1))
+    errs = []
+    for h in (0.1, 0.05, 0.025):
+        n = int(round(4.0 / h)) + 1
+        exact = np.asarray(systems.ode_field(spec, q0, v0, n, h).values).reshape(n, -1)
+        lf = systems.ode_leapfrog(spec.accel, spec.velocity_dependent, exact[0], exact[1], n, h)
+        errs.append(np.abs(lf - exact).max())
+    assert spec.velocity_dependent == (name != "pendulum")
+    for coarse, fine in zip(errs, errs[1:]):
+        assert 3.3 < coarse / fine < 4.7, errs
+
+
+def test_field_leapfrog_reproduces_the_lattice_equation():
+    """The field data are the lattice equation stepped ten times finer: its leapfrog at the data's step stays
+    close to them over 40 slices."""
+    system = systems.build("sine-gordon-1d", quick=True)
+    ref = np.asarray(system.test.values)
+    err = np.abs(system.leapfrog(system.test, 40) - ref[:40]).max()
+    assert 0 < err < 1e-2
+
+
+def test_quick_table_on_one_system():
+    table = discovery.run(Config(quick=True), ("pendulum",), peers=False)
+    assert table.columns == discovery.COLUMNS
+    assert len(table.rows) == 1
+    row = dict(zip(table.columns, table.rows[0]))
+    assert row["system"] == "pendulum"
+    assert row["leapfrog"] == pytest.approx(1.67e-3, rel=0.05)  # the true leapfrog at h = 0.1, 150 steps
+    assert math.isfinite(row["served"]) and row["ratio"] == pytest.approx(row["served"] / row["leapfrog"])
+    assert row["cost"] == pytest.approx(row["fit (s)"] / row["dense (s)"])
+    assert row["terms"] == "n/a: no closed form" or "/" in row["terms"]
+    assert any("load average" in n for n in table.notes)
+    assert len(table.checks) == 3 and all(isinstance(c.met, bool) for c in table.checks)
+
+
+def test_peer_rows_say_not_installed_when_the_peers_are_missing(monkeypatch):
+    """Without the ``bench`` extra the peers' rows say so and the benchmark goes on."""
+    import sys
+
+    from benchmarks import _discovery_peers as peers
+
+    monkeypatch.setitem(sys.modules, "pysindy", None)  # ``import pysindy`` raises ImportError
+    monkeypatch.setitem(sys.modules, "xlsindy", None)
+    system = systems.build("pendulum", quick=True)
+    rows = peers.peer_rows(system)
+    assert [r[2] for r in rows] == ["PySINDy: not installed", "py-xl-sindy: not installed"]
+    assert all(r[5] == math.inf for r in rows)  # no prediction
+    assert peers.xl_own_rows()[0][2] == "py-xl-sindy: not installed"
