@@ -49,7 +49,7 @@ _LOADED: dict[str, Any] = {}
 _FAILED: set[str] = set()
 
 #: Bumped whenever the generated code changes, so that stale cached kernels are not reused.
-_VERSION = 5
+_VERSION = 7
 
 
 def cache_dir() -> Path:
@@ -89,6 +89,11 @@ class CompiledForms:
     def block_diagonal(self) -> bool:
         """Whether the kernels hold ``slice_newton`` (a scalar ``L_d`` with a block-diagonal slice Jacobian)."""
         return bool(self.module.BLOCK_DIAGONAL)
+
+    @property
+    def has_trajectory(self) -> bool:
+        """Whether the kernels hold ``trajectory`` (a scalar 0+1D ``L_d`` on the two-point stencil)."""
+        return bool(self.module.HAS_TRAJECTORY)
 
     def slice_newton(self, sites: int) -> Callable[..., None]:
         """The slice Newton kernel for ``sites`` unknown sites (parallel or serial as the gradient's)."""
@@ -171,7 +176,7 @@ def _source(form: SymbolicLd, pairs: Sequence[tuple[int, int]]) -> str:
                 "",
                 "",
             ]
-    return "\n".join(text + _slice_newton_source(form, grads, pairs, second))
+    return "\n".join(text + _slice_newton_source(form, grads, pairs, second) + _trajectory_source(form, grads))
 
 
 def _diagonal_pairs(form: SymbolicLd, pairs: Sequence[tuple[int, int]], second: Sequence[Any]) -> list[tuple[int, int]]:
@@ -320,6 +325,110 @@ def _predictor_source() -> list[str]:
     ]
 
 
+#: The 0+1D trajectory loop: ``_fast1d.FastBatch.step_one`` slice after slice, the same IEEE operations in
+#: the same order, around the model's own ``derivatives`` (``dL/dx`` at both points and the mixed block).
+_TRAJECTORY = """
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def trajectory(psi, start, stop, vol, rtol, maxit, box, srtol, fst, ist, fail):
+    gprev, mscale, worst = fst[0], fst[1], fst[2]
+    iters, most = ist[0], ist[1]
+    i = start
+    status = 0
+    while i < stop:
+        q_now = psi[i]
+        q_old = psi[i - 1]
+        u = 2 * q_now - q_old
+        mag = _fmax(_fmax(abs(q_now), abs(q_old)), abs(u))
+        rtol_mag = rtol * mag
+        rscale = math.nan
+        count, sing, prev, last, halved, small = 1, False, math.inf, 0.0, 0, -1
+        smin = math.inf
+        ok = False
+        rabs = math.nan
+        g1 = math.nan
+        it = 0
+        for it in range(1, maxit + 1):
+            g0, g1, block = derivatives(q_now, u)
+            jac = vol * block
+            r = vol * (g0 + gprev)
+            rabs = abs(r)
+            if it == 1:
+                rscale = rtol * (_fmax(abs(jac), 1e-300) * _fmax(mag, 1e-300))
+            sv = abs(jac)
+            if not math.isfinite(sv):
+                sv = 0.0 if sv != sv else 1.7976931348623157e308
+            mscale = _fmax(mscale, sv)
+            smin = _fmin(smin, sv)
+            sing = sing or not sv > srtol * mscale
+            ok = rabs <= rscale
+            if small >= 0:
+                ok = ok or (small == 1 and math.isfinite(rabs))
+            ok = ok and not sing
+            if it > 1 and not ok:
+                count += 1
+            if ok or it == maxit:
+                break
+            worse = not (ok or sing or rabs < prev) and halved < 12
+            step = -r / jac if jac != 0 else math.nan
+            sing = sing or (not worse and not math.isfinite(step))
+            if not (ok or sing or worse):
+                u = u + step
+                prev, last, halved = rabs, step, 0
+                small = 1 if abs(step) <= rtol_mag else 0
+                continue
+            if worse:
+                last = last / 2
+                u = u - last
+                halved += 1
+            small = 1 if worse and abs(last) <= rtol_mag else 0
+        iters += count
+        if not ok:
+            fail[0], fail[1], fail[2], fail[3], fail[4], fail[5] = u, rabs, 1.0 if sing else 0.0, smin, float(it), g1
+            status = 1
+            break
+        psi[i + 1] = u
+        gprev = g1
+        most = max(most, it)
+        worst = _fmax(worst, rabs)
+        i += 1
+        if box >= 0 and math.sqrt(u * u) > box:
+            status = 2
+            break
+    fst[0], fst[1], fst[2] = gprev, mscale, worst
+    ist[0], ist[1] = iters, most
+    return i, status
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def _fmax(a, b):
+    return a if a >= b or a != a else b
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def _fmin(a, b):
+    return a if a <= b or a != a else b
+"""
+
+
+def _trajectory_source(form: SymbolicLd, grads: Sequence[Any]) -> list[str]:
+    """``trajectory``: every slice of one 0+1D trajectory solved in one compiled loop (:data:`_TRAJECTORY`,
+    the predictor, Newton with backtracking, the conditioning, convergence and box tests of
+    ``_fast1d.FastBatch.step_one``), for a scalar ``L_d`` on the two-point stencil; nothing
+    (``HAS_TRAJECTORY = False``) otherwise. It stops at the first slice that fails or leaves the box."""
+    import sympy
+
+    if form.m != 1 or sorted(form.offsets) != [(0,), (1,)]:
+        return ["HAS_TRAJECTORY = False", ""]
+    a0, a1 = form.offsets.index((0,)), form.offsets.index((1,))
+    block = sympy.diff(grads[a0], form.symbols[a1][0])
+    lines, values = _printed([grads[a0], grads[a1], block])
+    text = ["HAS_TRAJECTORY = True", ""]
+    text += ["@numba.njit(cache=True, error_model='numpy', nogil=True)"]
+    text += [f"def derivatives({form.symbols[a0][0]}, {form.symbols[a1][0]}):"]
+    text += [f"    {line}" for line in lines] + [f"    return {values[0]}, {values[1]}, {values[2]}", ""]
+    return text + _TRAJECTORY.splitlines()
+
+
 def _key(form: SymbolicLd, pairs: Sequence[tuple[int, int]]) -> str:
     """The hash of what a kernel computes: the expression (its exact printed form), the cell shape, the pairs."""
     import sympy
@@ -391,4 +500,8 @@ def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tupl
         mod.slice_newton_serial(one, one, one, idx, idx, none, 1.0, 1.0, 1.0, 1.0, 1, np.zeros(0), none.copy())
         mod.predict(one, one, one, one, none)
         mod.predict(one, one, one, np.zeros((0, 1)), none)
+    if mod.HAS_TRAJECTORY:
+        mod.trajectory(
+            np.zeros(3), 1, 1, 1.0, 1.0, 1, -1.0, 1e-10, np.zeros(3), np.zeros(2, dtype=np.int64), np.zeros(6)
+        )
     return mod, how
