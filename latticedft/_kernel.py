@@ -49,7 +49,7 @@ _LOADED: dict[str, Any] = {}
 _FAILED: set[str] = set()
 
 #: Bumped whenever the generated code changes, so that stale cached kernels are not reused.
-_VERSION = 7
+_VERSION = 10
 
 
 def cache_dir() -> Path:
@@ -226,15 +226,20 @@ def _slice_newton_source(
     functions += [(f"h{a}_{b}", e) for (a, b), e in hessians.items()]
     for name, expr in functions:
         lines, (value,) = _printed([expr])
-        text += ["@numba.njit(cache=True, error_model='numpy', nogil=True)", f"def {name}({args}):"]
+        text += ["@numba.njit(cache=True, error_model='numpy', nogil=True, inline='always')", f"def {name}({args}):"]
         text += [f"    {line}" for line in lines] + [f"    return {value}", "", ""]
     constant = {pair for pair, e in hessians.items() if not e.free_symbols & unknowns}
-    body = _newton_body(form, list(hessians), nxt, now, moving, constant)
+    affine = all((a, b) in constant for a in moving for aa, b in diag if aa == a)
+    plain = _newton_body(form, list(hessians), nxt, now, moving, constant, True, affine)
+    mapped = _newton_body(form, list(hessians), nxt, now, moving, constant, False, affine)
+    body = ["        y = rows[q]", "        if plain[y]:", *["    " + x for x in plain], "        else:"]
+    body += ["    " + x for x in mapped]
+    text += [f"AFFINE = {affine}", ""]
     for suffix, parallel, loop in (("", "True", "numba.prange"), ("_serial", "False", "range")):
         text += [
             f"@numba.njit(parallel={parallel}, cache=True, error_model='numpy', nogil=True)",
-            f"def slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, rows, vol, tol, step_tol, smin, maxit,"
-            " res, its):",
+            f"def slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, plain, delta, rows, vol, tol, step_tol,"
+            " smin, maxit, res, its):",
             f"    for q in {loop}(rows.shape[0]):",
             *body,
             "",
@@ -259,19 +264,30 @@ def _newton_body(
     now: list[int],
     moving: list[int],
     constant: set[tuple[int, int]],
+    plain: bool,
+    affine: bool,
 ) -> list[str]:
-    """The loop body of ``slice_newton`` for site ``rows[q]``: once, the part of its residual (and of its
+    """The loop body of ``slice_newton`` for site ``y``: once, the part of its residual (and of its
     Jacobian: the ``constant`` diagonal pairs) the unknown does not move (the cells anchored on the slice
     before; the gradients of the cells anchored on this slice at the points not ``moving``, and the fixed
-    terms of those ``moving``); then Newton's iterations on the rest."""
+    terms of those ``moving``); then Newton's iterations on the rest.
+
+    ``plain``: the stencil is read at fixed offsets from ``y`` (``delta[a, p]``: from the site of point ``a``
+    to that of point ``p`` of one cell), for the sites where that is what the cell maps say (no wrap, every
+    cell present); otherwise through the maps. ``affine`` (the residual is affine in the unknown: every
+    Jacobian term constant): after the first step the residual is that of the linear update, not evaluated
+    afresh (the evaluation Newton would make, counted as such)."""
     k = len(form.offsets)
 
     def term(a: int, fn: str, anchored_before: bool) -> list[str]:
         low, high = ("prev", "cur") if anchored_before else ("cur", "nxt")
+        if plain:
+            args = ", ".join(f"{high if form.offsets[p][0] else low}[y + delta[{a}, {p}], 0]" for p in range(k))
+            return [f"{fn}({args})"]
         args = ", ".join(f"{high if form.offsets[p][0] else low}[site_of[{p}, c], 0]" for p in range(k))
         return [f"c = cell_at[{a}, y]", "if c >= 0:", f"    {fn}({args})"]
 
-    body = ["y = rows[q]", "fixed = 0.0", "jac0 = 0.0"]
+    body = ["fixed = 0.0", "jac0 = 0.0"]
     for a in nxt:
         body += term(a, f"fixed += g{a}", True)
     for a in now:
@@ -297,9 +313,10 @@ def _newton_body(
         "    step = -r / jac",
         "    nxt[y, 0] += step",
         "    small = abs(step) <= step_tol",
-        "res[q] = abs(r) if r == r else math.inf",
-        "its[q] = it",
     ]
+    if affine:
+        body += ["    r += jac * step", "    it += 1", "    break"]
+    body += ["res[q] = abs(r) if r == r else math.inf", "its[q] = it"]
     return ["        " + line for line in body]
 
 
@@ -313,11 +330,16 @@ def _predictor_source() -> list[str]:
         "    top = 1e-300",
         "    for s in range(prev.shape[0]):",
         "        top = max(top, abs(prev[s, 0]), abs(cur[s, 0]))",
+        "    if older.shape[0]:",
+        "        for q in range(rows.shape[0]):",
+        "            y = rows[q]",
+        "            v = (2.0 * cur[y, 0] - prev[y, 0]) + (cur[y, 0] - 2.0 * prev[y, 0] + older[y, 0])",
+        "            nxt[y, 0] = v",
+        "            top = max(top, abs(v))",
+        "        return top",
         "    for q in range(rows.shape[0]):",
         "        y = rows[q]",
         "        v = 2.0 * cur[y, 0] - prev[y, 0]",
-        "        if older.shape[0]:",
-        "            v += cur[y, 0] - 2.0 * prev[y, 0] + older[y, 0]",
         "        nxt[y, 0] = v",
         "        top = max(top, abs(v))",
         "    return top",
@@ -497,7 +519,24 @@ def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tupl
     if mod.BLOCK_DIAGONAL:
         one, none = np.zeros((1, 1)), np.zeros(0, dtype=np.int64)
         idx = np.zeros((k, 1), dtype=np.int64)
-        mod.slice_newton_serial(one, one, one, idx, idx, none, 1.0, 1.0, 1.0, 1.0, 1, np.zeros(0), none.copy())
+        flags = np.zeros(1, dtype=np.bool_)
+        mod.slice_newton_serial(
+            one,
+            one,
+            one,
+            idx,
+            idx,
+            flags,
+            np.zeros((k, k), dtype=np.int64),
+            none,
+            1.0,
+            1.0,
+            1.0,
+            1.0,
+            1,
+            np.zeros(0),
+            none.copy(),
+        )
         mod.predict(one, one, one, one, none)
         mod.predict(one, one, one, np.zeros((0, 1)), none)
     if mod.HAS_TRAJECTORY:
