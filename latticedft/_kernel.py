@@ -8,7 +8,10 @@ values are read inside the loop and every intermediate is a scalar, so there is 
 array per term. Two entry points are generated, the gradient alone and the gradient with the blocks, each
 parallel and serial. For a scalar ``L_d`` whose slice Jacobian is block diagonal by its form, the module also
 holds ``slice_newton``: Newton's method on every unknown site of a slice in one loop, the stencil read
-through the cell maps inside it (``latticedft._serve._fused`` drives it), and ``predict``, its predictor.
+inside it at fixed offsets from the site where the lattice allows, else through the cell maps
+(``latticedft._serve._fused`` drives it), and ``predict``, its predictor. For a scalar 0+1D ``L_d`` on the
+two-point stencil it holds ``trajectory``: every slice of one trajectory (predictor, Newton with
+backtracking, the conditioning, convergence and box tests) in one compiled loop (``latticedft._serve._fast1d``).
 
 The generated source is written once to the kernel cache folder (``LATTICEDFT_KERNEL_CACHE``, default
 ``~/.cache/latticedft/kernels``) under the hash of what it computes, and numba caches its machine code

@@ -184,7 +184,7 @@ def test_the_compiled_slice_newton_serves_todays_fields(
 
     calls = []
     solve = _fused.FusedSlices.solve
-    monkeypatch.setattr(_fused.FusedSlices, "solve", lambda self, *a: calls.append(1) or solve(self, *a))
+    monkeypatch.setattr(_fused.FusedSlices, "solve", lambda self, *a: calls.append(self.plain) or solve(self, *a))
     field = init()
     with ldft.set_options(compiled_kernels=True):
         fast = ldft.serve(sine_gordon(), field, slices=30, progress=False, **keywords)
@@ -194,6 +194,9 @@ def test_the_compiled_slice_newton_serves_todays_fields(
     a, b = np.asarray(fast.field.values), np.asarray(slow.field.values)
     assert np.abs(a - b).max() <= 1e-12 * max(1.0, float(np.abs(b).max())), name
     assert fast.slice_solver == slow.slice_solver == "sitewise"
+    assert fast.newton_iterations == slow.newton_iterations, name
+    plain = calls[0]  # the sites read at fixed offsets: all but those whose cells wrap or leave the lattice
+    assert plain.any() and not plain.all(), name
 
 
 def test_a_coupled_l_d_has_no_compiled_slice_newton() -> None:

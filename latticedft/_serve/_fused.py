@@ -106,13 +106,11 @@ def fixed_offsets(sys: _SliceSystem, site_of: np.ndarray, cell_at: np.ndarray) -
     strides = np.array([int(np.prod(sys.spatial[k + 1 :])) for k in range(len(sys.spatial))], dtype=np.int64)
     flat = offsets @ strides if strides.size else np.zeros(len(offsets), dtype=np.int64)
     delta = np.ascontiguousarray(flat[None, :] - flat[:, None])
-    k, nsite = site_of.shape[0], cell_at.shape[1]
-    y = np.arange(nsite)
-    plain = np.ones(nsite, dtype=np.bool_)
-    for a in range(k):
-        cells = cell_at[a]
+    unwrapped = np.ones(site_of.shape[1], dtype=np.bool_)  # per cell: its points at the offsets from point 0
+    for p in range(1, site_of.shape[0]):
+        unwrapped &= site_of[p] - site_of[0] == delta[0, p]
+    plain = np.ones(cell_at.shape[1], dtype=np.bool_)
+    for cells in cell_at:  # cell_at[a, y] has its point a on y: the others then sit at y + delta[a]
         plain &= cells >= 0
-        safe = np.where(cells >= 0, cells, 0)
-        for p in range(k):
-            plain &= site_of[p, safe] == y + delta[a, p]
+        plain &= unwrapped[np.where(cells >= 0, cells, 0)]
     return delta, plain
