@@ -23,6 +23,7 @@ from .._contract import NumpyForms
 from .._kernel import CompiledForms
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
+from .._options import option
 from ._batch import _Batch, failure_text
 from ._range import assess_batch
 from ._result import ServeResult, _bar
@@ -330,9 +331,12 @@ def serve_fast(
 
 def trajectory_kernel(model: AbstractLagrangian) -> CompiledForms | None:
     """The compiled kernels of a scalar 0+1D closed-form model whose module holds ``trajectory``
-    (:mod:`latticedft._kernel`), or ``None`` (the numpy loop serves): also for a model with numpy closed forms
-    (the polynomial), not for a stacked ensemble."""
+    (:mod:`latticedft._kernel`), or ``None`` (the numpy loop serves); for a model with numpy closed forms (the
+    polynomial) only where the ``compiled_numpy_models`` option asks (its first build takes seconds to a minute
+    per model, more than most trajectories take by the numpy loop); never for a stacked ensemble."""
     if model.n_members != 1 or any(t.device.type != "cpu" for t in model.parameters()):
+        return None
+    if model.numpy_ready and not option("compiled_numpy_models"):
         return None
     compiled = compiled_closed_forms(model, torch.zeros(0, dtype=torch.float64), numpy_too=True)
     return compiled if compiled is not None and compiled.has_trajectory else None
