@@ -196,11 +196,14 @@ _COMPILED: weakref.WeakKeyDictionary[AbstractLagrangian, tuple[list[Any], Compil
 )
 
 
-def compiled_closed_forms(model: AbstractLagrangian, cells: torch.Tensor) -> CompiledForms | None:
+def compiled_closed_forms(
+    model: AbstractLagrangian, cells: torch.Tensor, numpy_too: bool = False
+) -> CompiledForms | None:
     """The model's compiled gradient and :func:`serving_pairs` blocks (:mod:`latticedft._kernel`), or ``None``:
-    for a model without numpy closed forms whose ``symbolic()`` compiles, with ``cells`` on the CPU in double
-    precision, while the ``compiled_kernels`` option is on. Built once per model state and lattice."""
-    if not option("compiled_kernels") or model.numpy_ready or cells.device.type != "cpu":
+    for a model without numpy closed forms (with them too where ``numpy_too``) whose ``symbolic()`` compiles,
+    with ``cells`` on the CPU in double precision, while the ``compiled_kernels`` option is on. Built once per
+    model state and lattice."""
+    if not option("compiled_kernels") or (model.numpy_ready and not numpy_too) or cells.device.type != "cpu":
         return None
     if cells.dtype != torch.float64 or not model.bound:
         return None

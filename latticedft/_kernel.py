@@ -8,7 +8,10 @@ values are read inside the loop and every intermediate is a scalar, so there is 
 array per term. Two entry points are generated, the gradient alone and the gradient with the blocks, each
 parallel and serial. For a scalar ``L_d`` whose slice Jacobian is block diagonal by its form, the module also
 holds ``slice_newton``: Newton's method on every unknown site of a slice in one loop, the stencil read
-through the cell maps inside it (``latticedft._serve._fused`` drives it), and ``predict``, its predictor.
+inside it at fixed offsets from the site where the lattice allows, else through the cell maps
+(``latticedft._serve._fused`` drives it), and ``predict``, its predictor. For a scalar 0+1D ``L_d`` on the
+two-point stencil it holds ``trajectory``: every slice of one trajectory (predictor, Newton with
+backtracking, the conditioning, convergence and box tests) in one compiled loop (``latticedft._serve._fast1d``).
 
 The generated source is written once to the kernel cache folder (``LATTICEDFT_KERNEL_CACHE``, default
 ``~/.cache/latticedft/kernels``) under the hash of what it computes, and numba caches its machine code
@@ -49,7 +52,7 @@ _LOADED: dict[str, Any] = {}
 _FAILED: set[str] = set()
 
 #: Bumped whenever the generated code changes, so that stale cached kernels are not reused.
-_VERSION = 5
+_VERSION = 10
 
 
 def cache_dir() -> Path:
@@ -89,6 +92,11 @@ class CompiledForms:
     def block_diagonal(self) -> bool:
         """Whether the kernels hold ``slice_newton`` (a scalar ``L_d`` with a block-diagonal slice Jacobian)."""
         return bool(self.module.BLOCK_DIAGONAL)
+
+    @property
+    def has_trajectory(self) -> bool:
+        """Whether the kernels hold ``trajectory`` (a scalar 0+1D ``L_d`` on the two-point stencil)."""
+        return bool(self.module.HAS_TRAJECTORY)
 
     def slice_newton(self, sites: int) -> Callable[..., None]:
         """The slice Newton kernel for ``sites`` unknown sites (parallel or serial as the gradient's)."""
@@ -171,7 +179,7 @@ def _source(form: SymbolicLd, pairs: Sequence[tuple[int, int]]) -> str:
                 "",
                 "",
             ]
-    return "\n".join(text + _slice_newton_source(form, grads, pairs, second))
+    return "\n".join(text + _slice_newton_source(form, grads, pairs, second) + _trajectory_source(form, grads))
 
 
 def _diagonal_pairs(form: SymbolicLd, pairs: Sequence[tuple[int, int]], second: Sequence[Any]) -> list[tuple[int, int]]:
@@ -221,15 +229,20 @@ def _slice_newton_source(
     functions += [(f"h{a}_{b}", e) for (a, b), e in hessians.items()]
     for name, expr in functions:
         lines, (value,) = _printed([expr])
-        text += ["@numba.njit(cache=True, error_model='numpy', nogil=True)", f"def {name}({args}):"]
+        text += ["@numba.njit(cache=True, error_model='numpy', nogil=True, inline='always')", f"def {name}({args}):"]
         text += [f"    {line}" for line in lines] + [f"    return {value}", "", ""]
     constant = {pair for pair, e in hessians.items() if not e.free_symbols & unknowns}
-    body = _newton_body(form, list(hessians), nxt, now, moving, constant)
+    affine = all((a, b) in constant for a in moving for aa, b in diag if aa == a)
+    plain = _newton_body(form, list(hessians), nxt, now, moving, constant, True, affine)
+    mapped = _newton_body(form, list(hessians), nxt, now, moving, constant, False, affine)
+    body = ["        y = rows[q]", "        if plain[y]:", *["    " + x for x in plain], "        else:"]
+    body += ["    " + x for x in mapped]
+    text += [f"AFFINE = {affine}", ""]
     for suffix, parallel, loop in (("", "True", "numba.prange"), ("_serial", "False", "range")):
         text += [
             f"@numba.njit(parallel={parallel}, cache=True, error_model='numpy', nogil=True)",
-            f"def slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, rows, vol, tol, step_tol, smin, maxit,"
-            " res, its):",
+            f"def slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, plain, delta, rows, vol, tol, step_tol,"
+            " smin, maxit, res, its):",
             f"    for q in {loop}(rows.shape[0]):",
             *body,
             "",
@@ -254,19 +267,30 @@ def _newton_body(
     now: list[int],
     moving: list[int],
     constant: set[tuple[int, int]],
+    plain: bool,
+    affine: bool,
 ) -> list[str]:
-    """The loop body of ``slice_newton`` for site ``rows[q]``: once, the part of its residual (and of its
+    """The loop body of ``slice_newton`` for site ``y``: once, the part of its residual (and of its
     Jacobian: the ``constant`` diagonal pairs) the unknown does not move (the cells anchored on the slice
     before; the gradients of the cells anchored on this slice at the points not ``moving``, and the fixed
-    terms of those ``moving``); then Newton's iterations on the rest."""
+    terms of those ``moving``); then Newton's iterations on the rest.
+
+    ``plain``: the stencil is read at fixed offsets from ``y`` (``delta[a, p]``: from the site of point ``a``
+    to that of point ``p`` of one cell), for the sites where that is what the cell maps say (no wrap, every
+    cell present); otherwise through the maps. ``affine`` (the residual is affine in the unknown: every
+    Jacobian term constant): after the first step the residual is that of the linear update, not evaluated
+    afresh (the evaluation Newton would make, counted as such)."""
     k = len(form.offsets)
 
     def term(a: int, fn: str, anchored_before: bool) -> list[str]:
         low, high = ("prev", "cur") if anchored_before else ("cur", "nxt")
+        if plain:
+            args = ", ".join(f"{high if form.offsets[p][0] else low}[y + delta[{a}, {p}], 0]" for p in range(k))
+            return [f"{fn}({args})"]
         args = ", ".join(f"{high if form.offsets[p][0] else low}[site_of[{p}, c], 0]" for p in range(k))
         return [f"c = cell_at[{a}, y]", "if c >= 0:", f"    {fn}({args})"]
 
-    body = ["y = rows[q]", "fixed = 0.0", "jac0 = 0.0"]
+    body = ["fixed = 0.0", "jac0 = 0.0"]
     for a in nxt:
         body += term(a, f"fixed += g{a}", True)
     for a in now:
@@ -292,9 +316,10 @@ def _newton_body(
         "    step = -r / jac",
         "    nxt[y, 0] += step",
         "    small = abs(step) <= step_tol",
-        "res[q] = abs(r) if r == r else math.inf",
-        "its[q] = it",
     ]
+    if affine:
+        body += ["    r += jac * step", "    it += 1", "    break"]
+    body += ["res[q] = abs(r) if r == r else math.inf", "its[q] = it"]
     return ["        " + line for line in body]
 
 
@@ -308,16 +333,125 @@ def _predictor_source() -> list[str]:
         "    top = 1e-300",
         "    for s in range(prev.shape[0]):",
         "        top = max(top, abs(prev[s, 0]), abs(cur[s, 0]))",
+        "    if older.shape[0]:",
+        "        for q in range(rows.shape[0]):",
+        "            y = rows[q]",
+        "            v = (2.0 * cur[y, 0] - prev[y, 0]) + (cur[y, 0] - 2.0 * prev[y, 0] + older[y, 0])",
+        "            nxt[y, 0] = v",
+        "            top = max(top, abs(v))",
+        "        return top",
         "    for q in range(rows.shape[0]):",
         "        y = rows[q]",
         "        v = 2.0 * cur[y, 0] - prev[y, 0]",
-        "        if older.shape[0]:",
-        "            v += cur[y, 0] - 2.0 * prev[y, 0] + older[y, 0]",
         "        nxt[y, 0] = v",
         "        top = max(top, abs(v))",
         "    return top",
         "",
     ]
+
+
+#: The 0+1D trajectory loop: ``_fast1d.FastBatch.step_one`` slice after slice, the same IEEE operations in
+#: the same order, around the model's own ``derivatives`` (``dL/dx`` at both points and the mixed block).
+_TRAJECTORY = """
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def trajectory(psi, start, stop, vol, rtol, maxit, box, srtol, fst, ist, fail):
+    gprev, mscale, worst = fst[0], fst[1], fst[2]
+    iters, most = ist[0], ist[1]
+    i = start
+    status = 0
+    while i < stop:
+        q_now = psi[i]
+        q_old = psi[i - 1]
+        u = 2 * q_now - q_old
+        mag = _fmax(_fmax(abs(q_now), abs(q_old)), abs(u))
+        rtol_mag = rtol * mag
+        rscale = math.nan
+        count, sing, prev, last, halved, small = 1, False, math.inf, 0.0, 0, -1
+        smin = math.inf
+        ok = False
+        rabs = math.nan
+        g1 = math.nan
+        it = 0
+        for it in range(1, maxit + 1):
+            g0, g1, block = derivatives(q_now, u)
+            jac = vol * block
+            r = vol * (g0 + gprev)
+            rabs = abs(r)
+            if it == 1:
+                rscale = rtol * (_fmax(abs(jac), 1e-300) * _fmax(mag, 1e-300))
+            sv = abs(jac)
+            if not math.isfinite(sv):
+                sv = 0.0 if sv != sv else 1.7976931348623157e308
+            mscale = _fmax(mscale, sv)
+            smin = _fmin(smin, sv)
+            sing = sing or not sv > srtol * mscale
+            ok = rabs <= rscale
+            if small >= 0:
+                ok = ok or (small == 1 and math.isfinite(rabs))
+            ok = ok and not sing
+            if it > 1 and not ok:
+                count += 1
+            if ok or it == maxit:
+                break
+            worse = not (ok or sing or rabs < prev) and halved < 12
+            step = -r / jac if jac != 0 else math.nan
+            sing = sing or (not worse and not math.isfinite(step))
+            if not (ok or sing or worse):
+                u = u + step
+                prev, last, halved = rabs, step, 0
+                small = 1 if abs(step) <= rtol_mag else 0
+                continue
+            if worse:
+                last = last / 2
+                u = u - last
+                halved += 1
+            small = 1 if worse and abs(last) <= rtol_mag else 0
+        iters += count
+        if not ok:
+            fail[0], fail[1], fail[2], fail[3], fail[4], fail[5] = u, rabs, 1.0 if sing else 0.0, smin, float(it), g1
+            status = 1
+            break
+        psi[i + 1] = u
+        gprev = g1
+        most = max(most, it)
+        worst = _fmax(worst, rabs)
+        i += 1
+        if box >= 0 and math.sqrt(u * u) > box:
+            status = 2
+            break
+    fst[0], fst[1], fst[2] = gprev, mscale, worst
+    ist[0], ist[1] = iters, most
+    return i, status
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def _fmax(a, b):
+    return a if a >= b or a != a else b
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def _fmin(a, b):
+    return a if a <= b or a != a else b
+"""
+
+
+def _trajectory_source(form: SymbolicLd, grads: Sequence[Any]) -> list[str]:
+    """``trajectory``: every slice of one 0+1D trajectory solved in one compiled loop (:data:`_TRAJECTORY`,
+    the predictor, Newton with backtracking, the conditioning, convergence and box tests of
+    ``_fast1d.FastBatch.step_one``), for a scalar ``L_d`` on the two-point stencil; nothing
+    (``HAS_TRAJECTORY = False``) otherwise. It stops at the first slice that fails or leaves the box."""
+    import sympy
+
+    if form.m != 1 or sorted(form.offsets) != [(0,), (1,)]:
+        return ["HAS_TRAJECTORY = False", ""]
+    a0, a1 = form.offsets.index((0,)), form.offsets.index((1,))
+    block = sympy.diff(grads[a0], form.symbols[a1][0])
+    lines, values = _printed([grads[a0], grads[a1], block])
+    text = ["HAS_TRAJECTORY = True", ""]
+    text += ["@numba.njit(cache=True, error_model='numpy', nogil=True)"]
+    text += [f"def derivatives({form.symbols[a0][0]}, {form.symbols[a1][0]}):"]
+    text += [f"    {line}" for line in lines] + [f"    return {values[0]}, {values[1]}, {values[2]}", ""]
+    return text + _TRAJECTORY.splitlines()
 
 
 def _key(form: SymbolicLd, pairs: Sequence[tuple[int, int]]) -> str:
@@ -388,7 +522,28 @@ def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tupl
     if mod.BLOCK_DIAGONAL:
         one, none = np.zeros((1, 1)), np.zeros(0, dtype=np.int64)
         idx = np.zeros((k, 1), dtype=np.int64)
-        mod.slice_newton_serial(one, one, one, idx, idx, none, 1.0, 1.0, 1.0, 1.0, 1, np.zeros(0), none.copy())
+        flags = np.zeros(1, dtype=np.bool_)
+        mod.slice_newton_serial(
+            one,
+            one,
+            one,
+            idx,
+            idx,
+            flags,
+            np.zeros((k, k), dtype=np.int64),
+            none,
+            1.0,
+            1.0,
+            1.0,
+            1.0,
+            1,
+            np.zeros(0),
+            none.copy(),
+        )
         mod.predict(one, one, one, one, none)
         mod.predict(one, one, one, np.zeros((0, 1)), none)
+    if mod.HAS_TRAJECTORY:
+        mod.trajectory(
+            np.zeros(3), 1, 1, 1.0, 1.0, 1, -1.0, 1e-10, np.zeros(3), np.zeros(2, dtype=np.int64), np.zeros(6)
+        )
     return mod, how

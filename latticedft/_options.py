@@ -87,6 +87,12 @@ OPTIONS: dict[str, _Knob] = {
         "True or False",
         "serve a closed-form L_d without numpy closed forms by its compiled DEL kernel (numba; False: torch/autograd)",
     ),
+    "compiled_numpy_models": _Knob(
+        False,
+        lambda v: isinstance(v, bool),
+        "True or False",
+        "also compile an L_d with numpy closed forms (the polynomial) for one 0+1D trajectory (first build: seconds)",
+    ),
     "affine_check_every": _Knob(
         1,
         _positive_int,

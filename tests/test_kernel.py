@@ -14,6 +14,7 @@ import latticedft as ldft
 from latticedft import lagrangians, systems
 from latticedft._action import cell_derivatives, compiled_closed_forms, serving_pairs
 from latticedft._kernel import _LOADED, BUILDS, compile_forms
+from latticedft._serve._fast1d import trajectory_kernel
 from latticedft._symbolic import SymbolicLd, cell_symbols
 
 
@@ -109,7 +110,8 @@ def test_served_analytic_fields_equal_todays(name: str, make, ndim: int, m: int)
 
 @pytest.mark.parametrize("ndim", [0, 1, 2])
 def test_linear_models_keep_their_numpy_forms(ndim: int) -> None:
-    """Polynomial and feature models serve by their numpy closed forms either way: fields equal to the bit."""
+    """Polynomial and feature models serve by their numpy closed forms either way: fields equal to the bit
+    (unless ``compiled_numpy_models`` asks for the compiled 0+1D trajectory loop)."""
     init = _field(ndim, 8)
     data = ldft.serve(sine_gordon(), init, slices=12, progress=False).field
     models = [ldft.PolynomialLagrangian(orders=(2, 4), time_symmetric=True)]
@@ -178,7 +180,7 @@ def test_the_compiled_slice_newton_serves_todays_fields(
 
     calls = []
     solve = _fused.FusedSlices.solve
-    monkeypatch.setattr(_fused.FusedSlices, "solve", lambda self, *a: calls.append(1) or solve(self, *a))
+    monkeypatch.setattr(_fused.FusedSlices, "solve", lambda self, *a: calls.append(self.plain) or solve(self, *a))
     field = init()
     with ldft.set_options(compiled_kernels=True):
         fast = ldft.serve(sine_gordon(), field, slices=30, progress=False, **keywords)
@@ -188,6 +190,9 @@ def test_the_compiled_slice_newton_serves_todays_fields(
     a, b = np.asarray(fast.field.values), np.asarray(slow.field.values)
     assert np.abs(a - b).max() <= 1e-12 * max(1.0, float(np.abs(b).max())), name
     assert fast.slice_solver == slow.slice_solver == "sitewise"
+    assert fast.newton_iterations == slow.newton_iterations, name
+    plain = calls[0]  # the sites read at fixed offsets: all but those whose cells wrap or leave the lattice
+    assert plain.any() and not plain.all(), name
 
 
 def test_a_coupled_l_d_has_no_compiled_slice_newton() -> None:
@@ -225,3 +230,59 @@ def test_a_slice_the_kernel_cannot_finish_goes_back_to_slice_newton(monkeypatch:
     monkeypatch.setattr(_fused.FusedSlices, "solve", refused)
     fast = _served(sine_gordon(), init, 20, True)
     assert np.abs(fast - slow).max() <= 1e-12 * max(1.0, float(np.abs(slow).max()))
+
+
+def _oscillator() -> tuple[ldft.PolynomialLagrangian, object]:
+    """A polynomial oscillator learned from a quartic Verlet trajectory, and a start inside its range."""
+    truth = lagrangians.verlet(lambda q: 0.5 * q**2 + 0.25 * q**4)
+    init = _field(0, 0)
+    model = ldft.PolynomialLagrangian(orders=(2, 6))
+    ldft.learn(model, ldft.serve(truth, init, slices=80, progress=False).field, progress=False)
+    return model, init
+
+
+def _both(model: ldft.AbstractLagrangian, init: object, **kw: object) -> tuple[ldft.ServeResult, ldft.ServeResult]:
+    with ldft.set_options(compiled_kernels=True, compiled_numpy_models=True):
+        fast = ldft.serve(model, init, progress=False, **kw)  # type: ignore[arg-type]
+    with ldft.set_options(compiled_kernels=False):
+        slow = ldft.serve(model, init, progress=False, **kw)  # type: ignore[arg-type]
+    return fast, slow
+
+
+@pytest.mark.parametrize("which", ["polynomial", "Verlet"])
+def test_one_trajectory_is_served_by_its_compiled_loop(which: str) -> None:
+    model, init = _oscillator()
+    if which == "Verlet":
+        model = lagrangians.verlet(lambda q: 0.5 * q**2 + 0.25 * q**4)
+    fast, slow = _both(model, init, slices=60)
+    with ldft.set_options(compiled_numpy_models=True):
+        assert trajectory_kernel(model) is not None
+    assert (trajectory_kernel(model) is None) == (which == "polynomial")  # a polynomial asks for it
+    a, b = np.asarray(fast.field.values), np.asarray(slow.field.values)
+    assert np.abs(a - b).max() <= 1e-12 * float(np.abs(b).max())
+    assert fast.newton_iterations == slow.newton_iterations
+    assert fast.max_newton_iterations == slow.max_newton_iterations
+    assert fast.max_residual == pytest.approx(slow.max_residual, rel=1e-3, abs=1e-13)
+    assert (fast.extrapolation is None) == (slow.extrapolation is None) == (which == "Verlet")
+    if fast.extrapolation is not None and slow.extrapolation is not None:
+        assert np.allclose(fast.extrapolation.values, slow.extrapolation.values, rtol=1e-9, atol=1e-12)
+
+
+def test_the_compiled_loop_reports_a_failure_and_the_box_as_today() -> None:
+    model, init = _oscillator()
+    errors = []
+    for compiled in (True, False):
+        options = ldft.set_options(compiled_kernels=compiled, compiled_numpy_models=compiled)
+        with options, pytest.raises(ldft.ServeError) as err:
+            ldft.serve(model, init, slices=30, max_newton=1, progress=False)
+        errors.append(err.value)
+    fast, slow = errors
+    assert str(fast) == str(slow) and "slice 2" in str(fast) and "residual" in str(fast)
+    assert fast.slice == slow.slice and fast.residual == pytest.approx(slow.residual, rel=1e-9)
+    a, b = np.asarray(fast.result.field.values), np.asarray(slow.result.field.values)
+    assert np.array_equal(np.isnan(a), np.isnan(b)) and np.nanmax(np.abs(a - b)) <= 1e-12
+    fast_box, slow_box = _both(model, init, slices=60, box=0.805)
+    assert fast_box.reason == slow_box.reason and "left the box" in fast_box.reason
+    assert fast_box.slices == slow_box.slices
+    a, b = np.asarray(fast_box.field.values), np.asarray(slow_box.field.values)
+    assert np.array_equal(np.isnan(a), np.isnan(b)) and np.nanmax(np.abs(a - b)) <= 1e-12

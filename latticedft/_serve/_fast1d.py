@@ -20,8 +20,10 @@ import xarray as xr
 
 from .._action import compiled_closed_forms, serving_pairs
 from .._contract import NumpyForms
+from .._kernel import CompiledForms
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
+from .._options import option
 from ._batch import _Batch, failure_text
 from ._range import assess_batch
 from ._result import ServeResult, _bar
@@ -302,6 +304,12 @@ def serve_fast(
 ) -> list[ServeResult]:
     """``_serve_batch`` with the numpy Newton loop (``derivatives`` from :func:`numpy_derivatives_of`)."""
     batch = FastBatch(model, fs, steps, derivatives)
+    kernel = trajectory_kernel(model) if len(fs) == 1 and batch.m == 1 else None
+    if kernel is not None:  # one scalar trajectory: every slice in one compiled call
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            serve_trajectory(batch, kernel, rtol, max_newton, box)
+        _bar(batch.nmax - 2, f"serve ({mode}, 1 trajectory, compiled)", progress).close()
+        return batch.results(time.perf_counter() - batch.t0, mode)
     members = np.arange(len(fs))
     groups = [members] if mode == "newton" else [members[k : k + 1] for k in range(len(fs))]
     bar = _bar(batch.nmax - 2, f"serve ({mode}, {len(fs)} trajectories)", progress)
@@ -319,3 +327,41 @@ def serve_fast(
             bar.update(1)
     bar.close()
     return batch.results(time.perf_counter() - batch.t0, mode)
+
+
+def trajectory_kernel(model: AbstractLagrangian) -> CompiledForms | None:
+    """The compiled kernels of a scalar 0+1D closed-form model whose module holds ``trajectory``
+    (:mod:`latticedft._kernel`), or ``None`` (the numpy loop serves); for a model with numpy closed forms (the
+    polynomial) only where the ``compiled_numpy_models`` option asks (its first build takes seconds to a minute
+    per model, more than most trajectories take by the numpy loop); never for a stacked ensemble."""
+    if model.n_members != 1 or any(t.device.type != "cpu" for t in model.parameters()):
+        return None
+    if model.numpy_ready and not option("compiled_numpy_models"):
+        return None
+    compiled = compiled_closed_forms(model, torch.zeros(0, dtype=torch.float64), numpy_too=True)
+    return compiled if compiled is not None and compiled.has_trajectory else None
+
+
+def serve_trajectory(batch: FastBatch, kernel: CompiledForms, rtol: float, max_newton: int, box: float | None) -> None:
+    """Serve member 0 of ``batch`` (one scalar trajectory) by the compiled ``trajectory``: the slices of
+    :meth:`FastBatch.step_one` in one call; a slice that fails is stored and reported by :meth:`FastBatch.store`
+    (the step and residual; the slices solved before it kept), one that leaves the box retires the trajectory
+    as there."""
+    fst = np.array([batch.ngprev[0, 0], batch.nmscale[0], batch.nworst[0]])
+    ist = np.array([batch.niters[0], batch.nmax_iters[0]], dtype=np.int64)
+    fail = np.zeros(6)
+    psi = batch.npsi[0, :, 0]
+    stop = int(batch.nlength[0]) - 1
+    i, status = kernel.module.trajectory(
+        psi, 1, stop, batch.vol, rtol, max_newton, -1.0 if box is None else box, SINGULAR_RTOL, fst, ist, fail
+    )
+    batch.ngprev[0, 0], batch.nmscale[0], batch.nworst[0] = fst
+    batch.niters[0], batch.nmax_iters[0] = ist
+    if status == 1:
+        g = np.zeros((1, 2, 1))
+        g[0, batch.a1, 0] = fail[5]
+        one = np.zeros(1, dtype=bool)
+        step = _Step(np.array([0]), fail[None, :1], g, fail[1:2], one, fail[2:3] != 0, int(fail[4]), fail[3:4])
+        batch.store(int(i), step, max_newton, None)
+    elif status == 2:
+        batch.retire(0, int(i) + 1, f"left the box |psi| <= {box:g} at slice {int(i)}", False)

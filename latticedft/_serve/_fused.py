@@ -32,6 +32,7 @@ class FusedSlices:
         self.site_of = site_of  # (K, cells): the site of each stencil point of each cell
         self.cell_at = cell_at  # (K, sites): the cell whose stencil point sits on the site (-1: none)
         self.rows = np.ascontiguousarray(np.nonzero(sys.interior)[0], dtype=np.int64)
+        self.delta, self.plain = fixed_offsets(sys, site_of, cell_at)
         self.res = np.empty(self.rows.size)
         self.its = np.empty(self.rows.size, dtype=np.int64)
 
@@ -60,6 +61,8 @@ class FusedSlices:
             nxt,
             self.site_of,
             self.cell_at,
+            self.plain,
+            self.delta,
             self.rows,
             vol,
             tol,
@@ -92,3 +95,22 @@ def fused_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FusedSlic
             return None
         cell_at[a, sites] = np.arange(sites.size)
     return FusedSlices(compiled, sys, site_of, cell_at)
+
+
+def fixed_offsets(sys: _SliceSystem, site_of: np.ndarray, cell_at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(delta, plain)``: ``delta[a, p]``, the flat offset from the site of stencil point ``a`` of a cell to
+    that of its point ``p`` (row-major over the spatial axes); ``plain[y]``, whether at site ``y`` every cell
+    with a point on ``y`` exists and has each of its points at ``y + delta`` (no wrap, no boundary), so that
+    the kernel reads the stencil there without the cell maps."""
+    offsets = np.array([o[1:] for o in sys.st.offsets], dtype=np.int64).reshape(len(sys.st.offsets), -1)
+    strides = np.array([int(np.prod(sys.spatial[k + 1 :])) for k in range(len(sys.spatial))], dtype=np.int64)
+    flat = offsets @ strides if strides.size else np.zeros(len(offsets), dtype=np.int64)
+    delta = np.ascontiguousarray(flat[None, :] - flat[:, None])
+    unwrapped = np.ones(site_of.shape[1], dtype=np.bool_)  # per cell: its points at the offsets from point 0
+    for p in range(1, site_of.shape[0]):
+        unwrapped &= site_of[p] - site_of[0] == delta[0, p]
+    plain = np.ones(cell_at.shape[1], dtype=np.bool_)
+    for cells in cell_at:  # cell_at[a, y] has its point a on y: the others then sit at y + delta[a]
+        plain &= cells >= 0
+        plain &= unwrapped[np.where(cells >= 0, cells, 0)]
+    return delta, plain
