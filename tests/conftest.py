@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+
 import numpy as np
 import pytest
 import torch
@@ -10,6 +12,12 @@ import latticedft
 
 torch.set_default_dtype(torch.float64)
 torch.set_num_threads(1)
+
+# A suite started as a background job of a shell script inherits SIGINT ignored, and so would every command the
+# tests start: the tests that interrupt a command (tests/test_faults.py) would then see it finish instead. The
+# suite's own commands get Ctrl-C's usual behaviour back (an exec resets a handled signal to its default).
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(autouse=True)
