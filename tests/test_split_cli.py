@@ -1,10 +1,10 @@
 """``latticedft serve/run CASE --workers N``: each task that can be split is served in slabs over the processes.
 
 A small periodic 1+1D Klein-Gordon case (the affine recurrence of a learned quadratic ``L_d``): ``run
---workers 2`` and ``serve --workers 2`` give the task file one process gives with the same model, to 1e-12
-of the field's scale, and ``summary.json`` records the processes and the slabs. Bad input (more processes
-than planes of the outer axis, a halo wider than a slab) is refused in one line naming ``--workers``, and
-writes nothing.
+--workers 2``, ``serve --workers 2`` and ``serve`` under ``torchrun --nproc-per-node 2`` give the task file
+one process gives with the same model, to 1e-12 of the field's scale, and ``summary.json`` records the
+processes and the slabs. Bad input (more processes than planes of the outer axis, a halo wider than a slab)
+is refused in one line naming ``--workers``, and writes nothing.
 """
 
 from __future__ import annotations
@@ -62,13 +62,18 @@ def tiny_klein_gordon(tmp: Path, stencil: str = "") -> Path:
     )
 
 
-def _latticedft(*argv: object) -> subprocess.CompletedProcess[str]:
+def _python(*argv: object) -> subprocess.CompletedProcess[str]:
+    """``python ARGV`` in a subprocess that imports this checkout, outside any process group."""
     env = dict(os.environ, OMP_NUM_THREADS="1")
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])
     for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
         env.pop(k, None)
-    cmd = [sys.executable, "-m", "latticedft", *map(str, argv)]
+    cmd = [sys.executable, *map(str, argv)]
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, check=False)
+
+
+def _latticedft(*argv: object) -> subprocess.CompletedProcess[str]:
+    return _python("-m", "latticedft", *argv)
 
 
 def _same_task(a: Path, b: Path, name: str = "test") -> None:
@@ -117,6 +122,12 @@ def test_run_and_serve_with_two_workers_give_the_one_process_task_file(tmp_path:
     assert served.returncode == 0, served.stderr
     _split_recorded(tmp_path / "served")
     _same_task(tmp_path / "one", tmp_path / "served")
+    shutil.copytree(tmp_path / "one", tmp_path / "torchrun")
+    launcher = ["-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m", "latticedft"]
+    under = _python(*launcher, "serve", case, "--out", tmp_path / "torchrun")
+    assert under.returncode == 0, under.stderr[-2000:]
+    _split_recorded(tmp_path / "torchrun")
+    _same_task(tmp_path / "one", tmp_path / "torchrun")
 
 
 @pytest.mark.parametrize(
