@@ -151,3 +151,13 @@ def test_bad_split_is_refused_naming_workers_and_writes_nothing(tmp_path, capsys
         lines = err.strip().splitlines()
         assert len(lines) == 1 and "--workers" in lines[0] and problem in lines[0], err
         assert snapshot(case / "results") == before
+
+
+@pytest.mark.slow
+def test_train_with_two_workers_serves_nothing(tmp_path: Path) -> None:
+    """``train`` has no serving: its other rank leaves after training, though the case's task could be split."""
+    case = tiny_klein_gordon(tmp_path)
+    proc = _latticedft("train", case, "--workers", 2, "--out", tmp_path / "out")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "training in 2 processes" in proc.stderr and "split over" not in proc.stderr
+    assert not list((tmp_path / "out").glob("*.nc"))

@@ -192,8 +192,9 @@ def leave() -> None:
         dist.destroy_process_group()
 
 
-def train_only(case: Case) -> int:
-    """A helper rank's whole work: read the case, take part in training, write nothing."""
+def train_only(case: Case, serve: bool = True) -> int:
+    """A helper rank's work in ``train`` and (``serve``) ``run``: read the case, take part in training, then
+    serve its slab of each task that is split; write nothing."""
     from .._run import check_case, train_model
     from ._common import run_device, set_threads
 
@@ -202,7 +203,7 @@ def train_only(case: Case) -> int:
     data = check_case(case)
     join(case.run.device)
     model, _ = train_model(case, data)
-    splits = _splits(data, model)
+    splits = _splits(data, model) if serve else False
     if splits is None:
         return OK  # rank 0 says why
     if splits:
