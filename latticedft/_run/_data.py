@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -131,7 +132,8 @@ def check_case(case: Case) -> CaseData:
 def _check_task(
     case: Case, t: ServeTask, dims: tuple[str, ...], spacing: tuple[float, ...], comps: tuple[str, ...] | None
 ) -> TaskData:
-    lazy = t.cadence.thins and len(dims) > 1  # served slice by slice: the files are read where they are needed
+    # served slice by slice, or split over processes (each reads its slab): the files are read where needed
+    lazy = (t.cadence.thins or int(os.environ.get("WORLD_SIZE", "1") or 1) > 1) and len(dims) > 1
     init = _read(t.source, case, comps, lazy)
     if lattice_dims(init) != dims:
         raise InputError(

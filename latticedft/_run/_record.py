@@ -70,6 +70,8 @@ class TaskRecord:
     charges_error: str | None = None
     file: str | None = None
     exports: list[str] | None = None
+    #: served split over processes: ``processes``, ``axis`` and each process's ``slabs`` ``[lo, hi)``
+    decomposition: dict[str, Any] | None = None
 
     @classmethod
     def served(cls, result: dict[str, Any], **rest: Any) -> TaskRecord:
@@ -103,6 +105,7 @@ class TaskRecord:
         if self.invariant is not None:
             out.update(invariant_drift=self.invariant_drift, invariant=self.invariant)
         optional = {
+            "decomposition": self.decomposition,
             "charges_auto": self.charges_auto,
             "charges": self.charges,
             "charges_error": self.charges_error,

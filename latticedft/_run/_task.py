@@ -18,6 +18,7 @@ import numpy as np
 import xarray as xr
 
 from .._case import ServeTask
+from .._collective import is_parallel
 from .._contract import AbstractLagrangian
 from .._errors import InputError, ServeError
 from .._learn._noise import DENOISE_SLICES, denoised_start
@@ -29,6 +30,7 @@ from ._data import TaskData
 from ._meter import TaskMeter, compare_blocks
 from ._record import TaskRecord, accuracy_warning
 from ._resume import TaskCheckpoint, open_part
+from ._split import Split, serve_split
 
 __all__ = ["TaskOutcome", "serve_task"]
 
@@ -154,6 +156,8 @@ class _Served:
     stopped: str
     start: str
     meter: TaskMeter | None
+    #: the task served split over the processes of a group (None: in one process)
+    split: Split | None = None
 
 
 # -- serve ----------------------------------------------------------------------------------------------------
@@ -170,6 +174,9 @@ def _serve(model: AbstractLagrangian, td: TaskData, device: str, part: PartFile 
         if part is not None and t.options.checkpoint:
             meter.checkpointer = TaskCheckpoint(part, meter, t.name, resumed)
     init, start = _start(model, td)
+    split = serve_split(model, td, init) if is_parallel() else None
+    if split is not None and split.result is not None:
+        return _Served(split.result, time.perf_counter() - t0, "", start, None, split)
     try:
         result = serve(model, init, slices=t.slices, boundary=t.boundary, options=options, on_slice=meter)
     except ServeError as err:
@@ -182,7 +189,7 @@ def _serve(model: AbstractLagrangian, td: TaskData, device: str, part: PartFile 
     log.debug("task %s served on %s", t.name, result.device)
     if meter is not None:
         meter.finish()
-    return _Served(result=result, wall=wall, stopped=stopped, start=start, meter=meter)
+    return _Served(result=result, wall=wall, stopped=stopped, start=start, meter=meter, split=split)
 
 
 # -- measure --------------------------------------------------------------------------------------------------
@@ -210,6 +217,8 @@ def _record(served: _Served, td: TaskData) -> TaskRecord:
         start=served.start,
     )
     rec.wall_time = served.wall
+    if served.split is not None:
+        rec.decomposition = served.split.decomposition
     for warning in result.warnings:  # the served field leaves the training range
         log.warning("task %s: %s", t.name, warning)
     if td.reference is not None:
@@ -232,7 +241,9 @@ def _errors(served: _Served, td: TaskData, rec: TaskRecord) -> None:
     """The errors against the task's reference (and its largest magnitude there), and the baseline's."""
     assert td.reference is not None
     t, pred, meter = td.task, served.result.field, served.meter
-    if meter is None:
+    if served.split is not None and served.split.errors is not None:  # reduced over the processes' slabs
+        cmp, scale = served.split.errors
+    elif meter is None:
         cmp = compare(pred, td.reference)
         scale = float(np.max(np.abs(np.asarray(td.reference.values[: cmp["slices"]], dtype=np.float64))))
     else:
@@ -242,7 +253,9 @@ def _errors(served: _Served, td: TaskData, rec: TaskRecord) -> None:
     rec.reference = (t.reference or t.source).name
     if td.baseline is None:
         return
-    if meter is None:
+    if served.split is not None and served.split.baseline is not None:
+        b, b_same = served.split.baseline
+    elif meter is None:
         b = compare(td.baseline, td.reference)
         b_same = compare(td.baseline.isel({pred.dims[0]: slice(0, cmp["slices"])}), td.reference)
     else:  # block by block: the files stay on disk

@@ -18,6 +18,7 @@ neighbouring unknowns (LU, Krylov), is refused in one line naming the alternativ
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,7 +39,13 @@ from ._edges import known_slices
 from ._options import kept_slices
 from ._slices import _SliceSystem
 
-__all__ = ["Slab", "plan_slabs", "serve_slabs"]
+__all__ = ["ROUNDOFF", "Slab", "plan_slabs", "serve_slabs"]
+
+#: Entries of the cell Hessian at most this fraction of its largest are taken as zero: a learned quadratic
+#: ``L_d`` couples the new slice's neighbouring sites at round-off (1e-16 of the kinetic entries), which
+#: would make the split recurrence's solve LU; dropped, the field moves at round-off, and every slice is still
+#: checked against the model's own DEL.
+ROUNDOFF = 1e-12
 
 
 @dataclass(frozen=True)
@@ -151,7 +158,9 @@ def _recurrence(model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem) -
         raise InputError.at(
             "--workers", f"the learned DEL is not affine: slice-Newton is not split across processes yet; {alternative}"
         )
-    op = _AffineSlices(sys, probe[0], probe[1])
+    h = probe[0].copy()
+    h[np.abs(h) <= ROUNDOFF * np.abs(h).max()] = 0.0  # a learned L_d's round-off couplings: none
+    op = _AffineSlices(sys, h, probe[1])
     if op.nk.nnz or getattr(op.solve, "__name__", "") != "<lambda>":  # not the diagonal solve of _affine
         raise InputError.at(
             "--workers",
@@ -169,14 +178,22 @@ def serve_slabs(
     boundary: BoundaryKinds | None = None,
     every: int = 1,
     rtol: float = 1e-10,
+    on_slab: Callable[[int, Slab, np.ndarray], None] | None = None,
+    report: dict[str, Any] | None = None,
 ) -> xr.DataArray | None:
     """Serve ``init`` (every slice held for Dirichlet strips; a periodic field needs two) over the processes of
-    the group, one slab each; rank 0 gets the kept slices ``0, every, ...`` and the last, the others None."""
+    the group, one slab each; rank 0 gets the kept slices ``0, every, ...`` and the last, the others None.
+
+    ``on_slab(i, slab, values)``, in every process, sees each slice ``i`` served (the first two included) on
+    the process's own planes (``(planes, ..., components)``): the task's meters measure the slab there.
+    ``report``, when given, receives ``max_residual`` (the largest DEL residual of the recurrence's check),
+    ``processes`` and ``slabs`` (the planes ``[lo, hi)`` of each process along ``axis``)."""
     rank, size = world()
     dims = lattice_dims(init)
     kinds = _kinds(model, init, dims, boundary)
     axis = dims[1]
-    slab = plan_slabs(init.sizes[axis], size, _halo_width(model), kinds[axis] == "periodic", axis)[rank]
+    slabs = plan_slabs(init.sizes[axis], size, _halo_width(model), kinds[axis] == "periodic", axis)
+    slab = slabs[rank]
     data = any(k != "periodic" for k in kinds.values())  # Dirichlet strips: every slice of the slab is read
     f = _local_field(init.isel({dims[0]: slice(0, min(init.sizes[dims[0]], slices) if data else 2)}), slab, kinds)
     sys = _SliceSystem(model, f)
@@ -187,16 +204,24 @@ def serve_slabs(
     kept_at = kept_slices(slices, every)
     kept = [window[k].copy() for k in range(2) if k in kept_at]
     known = None if sys.interior.all() else np.repeat(~sys.interior, m)
+    shape = (len(slab.local), *f.shape[2:], m)
+    for k in range(2 if on_slab is not None else 0):
+        on_slab(k, slab, window[k].reshape(shape)[slab.own])  # type: ignore[misc]
+    worst = 0.0
     for i in range(1, slices - 1):
         if known is not None:  # the Dirichlet strips (the halo planes: placeholders until the exchange)
             nxt = known_slices(f, lambda a, b: f.values[a:b], f.shape[0], None, i + 1, i + 2) if data else None
             window[2, known] = 0.0 if nxt is None else np.asarray(nxt).reshape(-1)[known]
         op.run(window, 1, 2)
         _exchange(window[2], slab, rank, size)
-        _check(model, f, window, vol, op.dmax, rtol, i)
+        worst = max(worst, _check(model, f, window, vol, op.dmax, rtol, i))
+        if on_slab is not None:
+            on_slab(i + 1, slab, window[2].reshape(shape)[slab.own])
         if i + 1 in kept_at:
             kept.append(window[2].copy())
         window[:2] = window[1:]
+    if report is not None:
+        report.update(max_residual=worst, processes=size, axis=axis, slabs=[[s.lo, s.hi] for s in slabs])
     return _gathered(init, f, slab, kept, kept_at, rank)
 
 
@@ -214,8 +239,9 @@ def _kinds(
 
 def _check(
     model: AbstractLagrangian, f: LatticeField, window: np.ndarray, vol: float, dmax: float, rtol: float, i: int
-) -> None:
-    """The one-process test of the recurrence against the model's DEL, on slice ``i``'s equations, global."""
+) -> float:
+    """The one-process test of the recurrence against the model's DEL, on slice ``i``'s equations, global;
+    the slice's largest residual."""
     psi = torch.from_numpy(window.reshape(3, *f.shape[1:], f.ncomp))
     res = _all_max(float(_slice_residuals(model, f, psi, 1, 2)[0]))
     scl = _all_max(float(np.abs(window).max()))
@@ -226,6 +252,7 @@ def _check(
             slice=i + 1,
             residual=res,
         )
+    return res
 
 
 def _gathered(

@@ -1,11 +1,13 @@
-"""Training in several processes: ``--workers N`` on this machine, or the processes ``torchrun`` starts.
+"""Training and serving in several processes: ``--workers N`` on this machine, or the processes ``torchrun``
+starts.
 
-``latticedft train/run CASE --workers N`` starts N copies of the same command (ranks 0 .. N-1) that form
-a ``torch.distributed`` process group (gloo on the loopback ``127.0.0.1``), and waits for them. Under
+``latticedft train/serve/run CASE --workers N`` starts N copies of the same command (ranks 0 .. N-1) that
+form a ``torch.distributed`` process group (gloo on the loopback ``127.0.0.1``), and waits for them. Under
 ``torchrun`` the command is already one of the group's processes (``RANK``, ``WORLD_SIZE`` ... in the
 environment). Either way every rank reads the case and trains on its share of the chunks
-(:func:`latticedft.learn` combines the shares); rank 0 alone writes the results folder and serves the
-tasks, the other ranks write nothing and exit after training.
+(:func:`latticedft.learn` combines the shares), then serves its slab of each task that can be split
+(``latticedft._run._split``); rank 0 alone serves the other tasks and writes the results folder, the other
+ranks write nothing.
 """
 
 from __future__ import annotations
@@ -31,7 +33,17 @@ if TYPE_CHECKING:  # the CLI's help and usage errors load no engine (torch, xarr
 
 log = logging.getLogger("latticedft")
 
-__all__ = ["add_argument", "supervise", "is_helper", "join", "leave", "train_only"]
+__all__ = [
+    "add_argument",
+    "supervise",
+    "is_helper",
+    "join",
+    "leave",
+    "record_processes",
+    "serve_only",
+    "serve_share",
+    "train_only",
+]
 
 
 def add_argument(p: argparse.ArgumentParser) -> None:
@@ -40,8 +52,9 @@ def add_argument(p: argparse.ArgumentParser) -> None:
         type=int,
         default=1,
         metavar="N",
-        help="train in N local processes (data-parallel, torch.distributed over 127.0.0.1); rank 0 writes "
-        "the results. Under torchrun, leave it out: torchrun's processes are used",
+        help="train and serve in N local processes (torch.distributed over 127.0.0.1): training data-parallel, "
+        "each task that can be split served in slabs of its outer spatial axis, the others by rank 0 alone; "
+        "rank 0 writes the results. Under torchrun, leave it out: torchrun's processes are used",
     )
 
 
@@ -134,7 +147,7 @@ def _wait(procs: list[subprocess.Popen[bytes]], logs: list[Any]) -> int:
         return BAD_INPUT
 
 
-def join(device: str = "cpu") -> None:
+def join(device: str = "cpu", what: str = "training") -> None:
     """Join the process group described by the environment (a no-op in a single process); ``device`` is the
     training device (CUDA: NCCL, each rank on its own GPU)."""
     from .._device import DeviceWarning
@@ -145,8 +158,14 @@ def join(device: str = "cpu") -> None:
         joined = _dist.init_from_env(device=device)
     if joined:
         rank, size = _dist.world()
-        log.info("training in %d processes (this is rank %d, backend %s)", size, rank, _dist_backend())
+        log.info("%s in %d processes (this is rank %d, backend %s)", what, size, rank, _dist_backend())
         atexit.register(_leave)
+
+
+def record_processes(summary: dict[str, Any]) -> None:
+    """``processes`` in ``summary.json``: the number of processes of the command (left out for one)."""
+    if _rank_env()[1] > 1:
+        summary["processes"] = _rank_env()[1]
 
 
 def _dist_backend() -> str:
@@ -173,8 +192,9 @@ def leave() -> None:
         dist.destroy_process_group()
 
 
-def train_only(case: Case) -> int:
-    """A helper rank's whole work: read the case, take part in training, write nothing."""
+def train_only(case: Case, serve: bool = True) -> int:
+    """A helper rank's work in ``train`` and (``serve``) ``run``: read the case, take part in training, then
+    serve its slab of each task that is split; write nothing."""
     from .._run import check_case, train_model
     from ._common import run_device, set_threads
 
@@ -182,6 +202,47 @@ def train_only(case: Case) -> int:
     case = run_device(case)
     data = check_case(case)
     join(case.run.device)
-    train_model(case, data)
+    model, _ = train_model(case, data)
+    splits = _splits(data, model) if serve else False
+    if splits is None:
+        return OK  # rank 0 says why
+    if splits:
+        serve_share(model, data)
+    leave()
+    return OK
+
+
+def _splits(data: Any, model: Any) -> bool | None:
+    """Whether some task may be split; None when split serving is bad input (rank 0 says why in one line)."""
+    from .._run._split import check_split
+
+    try:
+        return check_split(data.tasks, model)
+    except InputError:
+        return None
+
+
+def serve_share(model: Any, data: Any) -> None:
+    """A helper rank's part of serving: its slab of every task that is split (rank 0 serves the others)."""
+    from .._run._split import serve_split
+
+    for td in data.tasks:
+        serve_split(model, td, td.init)
+
+
+def serve_only(case: Case, dest: Any) -> int:
+    """A helper rank's whole work in ``serve``: read the case and the model, serve its slab of every task that
+    is split, write nothing."""
+    from .._results import load_verified_model
+    from .._run import check_case
+    from ._common import set_threads
+
+    set_threads(case)
+    model = load_verified_model(dest)
+    data = check_case(case)
+    if not _splits(data, model):
+        return OK  # no task is split (rank 0 serves them), or bad input (rank 0 says why)
+    join("cpu", "serving")
+    serve_share(model, data)
     leave()
     return OK

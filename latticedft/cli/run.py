@@ -38,6 +38,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
         return status
     from .._results import hold_results, staged_results
     from .._run._resume import RESUME_FILE
+    from .._run._split import check_split
     from ._work import finish, serve_into, train_into
 
     t0 = time.perf_counter()
@@ -49,6 +50,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
         refuse_existing(dest, args)
         set_threads(case)
         data = checked_data(case, dest)
+        check_split(data.tasks)  # more processes than planes: refused before training
         _workers.join(case.run.device)
         log.info("checked %s: %d training field(s), %d serving task(s)", case.name, len(data.train), len(data.tasks))
         with staged_results(dest, replace_foreign=False, keep=RESUME_FILE) as folder:
@@ -56,12 +58,15 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
             for line in data.summary_lines(case):
                 log.debug("%s", line)
             model, train = train_into(folder, case, data, argv)
-            _workers.leave()  # the other ranks are done: serving and writing are rank 0's alone
+            if not check_split(data.tasks, model):  # a halo wider than a slab: the stage is discarded
+                _workers.leave()  # no task is split: the other ranks are done, serving is rank 0's alone
             journal = _resume.journal_for(folder, "run", case, folder / "model.pt", False, train)
             tasks = serve_into(folder, case, data, model, argv, journal=journal)
             summary = summary_head(case, argv, "run")
             summary.update(train=train, tasks=tasks, wall_time=time.perf_counter() - t0)
+            _workers.record_processes(summary)
             status = finish(folder, summary, strict=case.run.strict)
+            _workers.leave()  # the other ranks are done (if they are still in the group): writing is rank 0's
             log.debug("all stages done in %.1f s; publishing %s", time.perf_counter() - t0, dest)
     log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)  # once published, never before
     return status

@@ -40,7 +40,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
     t0 = time.perf_counter()
     case = open_case(args)
     if _workers.is_helper():
-        return _workers.train_only(case)
+        return _workers.train_only(case, serve=False)  # `train` serves nothing
     dest = results_dir(args, case)
     with hold_results(dest):
         refuse_existing(dest, args)

@@ -1,0 +1,212 @@
+"""A task served split into slabs over the processes of the group (``--workers N``, ``torchrun``).
+
+Every process takes part in each task that can be split (:func:`split_refusal` is None and the learned DEL
+is the explicit affine recurrence): :func:`serve_split` serves it with
+:func:`latticedft._serve._decomp.serve_slabs`, each process reading only its slab (with its halo planes) of
+``from``, and measuring the errors against its slab of ``reference`` and ``baseline``; the sums and maxima
+are reduced over the processes. Rank 0 gets the gathered field and the task's figures; it alone measures the
+invariant, the charges and the training range on the gathered field, and writes the results. A task that
+cannot be split is served by rank 0 alone (an info line says why).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import xarray as xr
+
+from .._collective import is_parallel, reduce, world
+from .._errors import InputError, ServeError
+from .._lattice import as_lattice_field
+from .._layout import lattice_dims
+from .._models import AbstractLagrangian
+from .._models._ensemble import EnsembleLagrangian
+from .._serve import ServeResult
+from .._serve._decomp import Slab, _halo_width, plan_slabs
+from .._serve._decomp import serve_slabs as _serve_slabs
+from .._serve._range import assess
+from ._data import TaskData
+
+__all__ = ["Split", "check_split", "serve_split", "split_refusal"]
+
+log = logging.getLogger("latticedft")
+
+
+def split_refusal(model: AbstractLagrangian | None, td: TaskData) -> str | None:
+    """Why ``td`` is served in one process when there are several (None: it is split; ``model`` None: the
+    task's settings only)."""
+    t, opts = td.task, td.task.options
+    reasons = (
+        (len(lattice_dims(td.init)) < 2, "a 1D trajectory has no spatial axis to split"),
+        (td.slices <= 2, "it serves no slice"),
+        (t.cadence.thins, "its output cadence (every > 1) is measured on every slice in one process"),
+        (bool(opts.checkpoint), "it writes checkpoints (checkpoint)"),
+        (opts.mode != "newton" or not opts.affine, "only the affine recurrence is split (mode, affine)"),
+        (opts.boundary_value is not None, "its boundary_value is a function of the whole lattice"),
+        (_denoised(model, td), "its start is denoised on the whole lattice"),
+        (isinstance(model, EnsembleLagrangian), "an ensemble is served whole"),
+    )
+    return next((why for cond, why in reasons if cond), None)
+
+
+def _denoised(model: AbstractLagrangian | None, td: TaskData) -> bool:
+    """True when the task starts from slices denoised by the learned DEL (``[[serve]] start``)."""
+    report = getattr(model, "report_", None)
+    noise = (report.noise if report is not None else None) or {}
+    return td.task.start == "denoised" or (td.task.start == "auto" and noise.get("method", "none") != "none")
+
+
+def check_split(tasks: list[TaskData], model: AbstractLagrangian | None = None) -> bool:
+    """The bad input of split serving, before anything is written: more processes than planes of the outer
+    axis, or (with ``model``) a halo wider than a slab; one line naming ``--workers``. True when some task
+    may be split (its settings allow it) over several processes."""
+    size = world()[1] if is_parallel() else _env_size()
+    split = [td for td in tasks if split_refusal(model, td) is None]
+    if size <= 1 or not split:
+        return False
+    for td in split:
+        axis = lattice_dims(td.init)[1]
+        halo = _halo_width(model) if model is not None else 0
+        try:
+            plan_slabs(td.init.sizes[axis], size, halo, False, axis)
+        except InputError as exc:
+            raise InputError.at("--workers", f"task {td.task.name!r}: {exc.problem}") from None
+    return True
+
+
+def _env_size() -> int:
+    """The number of processes the environment describes (``torchrun``'s, or ``--workers``')."""
+    return int(os.environ.get("WORLD_SIZE", "1") or 1)
+
+
+@dataclass
+class Split:
+    """A task served split: rank 0's result, errors and the decomposition (the other processes: None)."""
+
+    result: ServeResult | None
+    #: ``(compare dict, the reference's largest magnitude)`` over the compared slices; None without reference
+    errors: tuple[dict[str, float], float] | None
+    #: ``(all slices both hold, the served slices)`` of the baseline against the reference; None without one
+    baseline: tuple[dict[str, float], dict[str, float]] | None
+    decomposition: dict[str, Any] = field(default_factory=dict)
+
+
+class _SlabErrors:
+    """The errors of one process's slab against its slab of the reference, slice by slice (sums and maxima)."""
+
+    def __init__(self, ref: xr.DataArray | None):
+        self.ref = ref
+        self.worst, self.sum_sq, self.count, self.compared, self.ref_max = 0.0, 0.0, 0, 0, 0.0
+
+    def __call__(self, i: int, slab: Slab, own: np.ndarray) -> None:
+        ref = self.ref
+        if ref is None or i >= ref.sizes[ref.dims[0]]:
+            return
+        part = np.asarray(ref.isel({ref.dims[0]: i, ref.dims[1]: slice(slab.lo, slab.hi)}).values, np.float64)
+        d = np.abs(own.reshape(part.shape) - part)
+        self.worst = max(self.worst, float(d.max()))
+        self.ref_max = max(self.ref_max, float(np.abs(part).max()))
+        self.sum_sq += float(np.sum(d**2))
+        self.count += d.size
+        self.compared = i + 1
+
+    def reduced(self) -> tuple[dict[str, float], float]:
+        worst, ref_max, sum_sq, count = _reduce_errors(self.worst, self.ref_max, self.sum_sq, self.count)
+        rms = math.sqrt(sum_sq / count) if count else math.nan
+        return {"max_error": worst, "rms_error": rms, "slices": self.compared}, ref_max
+
+
+def _reduce_errors(worst: float, ref_max: float, sum_sq: float, count: float) -> tuple[float, float, float, float]:
+    """The maxima and sums over the processes."""
+    mx = reduce(torch.tensor([worst, ref_max], dtype=torch.float64), dist.ReduceOp.MAX)
+    sm = reduce(torch.tensor([sum_sq, float(count)], dtype=torch.float64), dist.ReduceOp.SUM)
+    return float(mx[0]), float(mx[1]), float(sm[0]), float(sm[1])
+
+
+def _baseline_errors(td: TaskData, slab: Slab, slices: int) -> dict[str, float]:
+    """The baseline against the reference over their first ``slices`` slices, on the slab, reduced."""
+    base, ref = td.baseline, td.reference
+    assert base is not None and ref is not None
+    worst, sum_sq, count = 0.0, 0.0, 0
+    for i in range(slices):
+        own = {ref.dims[1]: slice(slab.lo, slab.hi)}
+        d = np.asarray(base.isel({base.dims[0]: i, **own}).values, np.float64) - np.asarray(
+            ref.isel({ref.dims[0]: i, **own}).values, np.float64
+        )
+        worst, sum_sq, count = max(worst, float(np.abs(d).max())), sum_sq + float(np.sum(d**2)), count + d.size
+    worst, _, sum_sq, total = _reduce_errors(worst, 0.0, sum_sq, count)
+    return {"max_error": worst, "rms_error": math.sqrt(sum_sq / total) if total else math.nan, "slices": slices}
+
+
+def serve_split(model: AbstractLagrangian, td: TaskData, init: xr.DataArray) -> Split:
+    """Serve ``td`` over the processes (every process calls it); rank 0 gets its :class:`Split`, the others
+    one without result. A task served in one process instead (by rank 0: its ``result`` None in every
+    process) has the reason in its ``decomposition``."""
+    why = split_refusal(model, td)
+    if why is None:
+        t0 = time.perf_counter()
+        report: dict[str, Any] = {}
+        meter = _SlabErrors(td.reference)
+        try:
+            got = _serve_slabs(
+                model, init, td.slices, boundary=td.task.boundary, rtol=td.task.options.rtol, on_slab=meter,
+                report=report,
+            )  # fmt: skip
+        except (InputError, ServeError) as exc:  # the same in every process: the test is global
+            why = str(exc).removeprefix("--workers: ").split("; serve it in one process")[0]
+    if why is not None:
+        if world()[0] == 0:
+            log.info("task %s: served in one process, not split over %d: %s", td.task.name, world()[1], why)
+        return Split(result=None, errors=None, baseline=None, decomposition={"processes": 1, "reason": why})
+    errors = meter.reduced() if td.reference is not None else None
+    baseline = None
+    if td.baseline is not None and td.reference is not None:
+        slab = _own_slab(report, td)
+        n = min(td.baseline.sizes[td.baseline.dims[0]], td.reference.sizes[td.reference.dims[0]])
+        baseline = (_baseline_errors(td, slab, n), _baseline_errors(td, slab, min(n, meter.compared)))
+    decomposition = {k: report[k] for k in ("processes", "axis", "slabs")}
+    if world()[0] == 0:
+        slabs = " ".join(f"[{lo}, {hi})" for lo, hi in report["slabs"])
+        log.info("task %s: split over %d processes along %r, slabs %s", td.task.name, world()[1], report["axis"], slabs)
+    if got is None:
+        return Split(result=None, errors=None, baseline=None)
+    result = _result(model, td, got, report, time.perf_counter() - t0)
+    return Split(result=result, errors=errors, baseline=baseline, decomposition=decomposition)
+
+
+def _own_slab(report: dict[str, Any], td: TaskData) -> Slab:
+    lo, hi = report["slabs"][world()[0]]
+    return Slab(lo, hi, td.init.sizes[report["axis"]], 0, False)
+
+
+def _result(
+    model: AbstractLagrangian, td: TaskData, got: xr.DataArray, report: dict[str, Any], wall: float
+) -> ServeResult:
+    """Rank 0's result of the gathered field, as one process reports the affine recurrence."""
+    served = got.drop_vars("slice")
+    f = as_lattice_field(served, source="served", boundary=td.task.boundary, min_slices=2)
+    ext, warnings = assess(model, f)
+    solved = (td.slices - 2) * int(np.prod(f.shape[1:-1]))
+    return ServeResult(
+        field=f.to_dataarray(),
+        complete=True,
+        reason="complete",
+        slices=td.slices,
+        newton_iterations=td.slices - 2,
+        max_newton_iterations=1,
+        wall_time=wall,
+        sites_per_second=solved / wall if wall > 0 else math.inf,
+        max_residual=float(report["max_residual"]),
+        mode=td.task.options.mode,
+        solver="affine",
+        extrapolation=ext,
+        warnings=warnings,
+    )
