@@ -17,7 +17,7 @@ from tqdm.std import tqdm  # not tqdm.auto: no ipywidgets warning in Jupyter (la
 from .._case import Case
 from .._errors import InputError
 from .._results import config_attrs, export_task, read_summary, read_task, write_model, write_summary, write_task
-from .._run import CaseData, TaskOutcome, serve_task, train_model
+from .._run import CaseData, TaskOutcome, case_calibration, serve_task, train_model
 from ..io.exporters import remove_exports
 from ._common import INCOMPLETE, OK, WARNED, command_line
 
@@ -39,10 +39,17 @@ def train_into(folder: Path, case: Case, data: CaseData, argv: list[str]) -> tup
         ],
     }
     record = write_model(folder, model, report, meta)
+    log.info("wrote model.pt and model.json")
+    calibration, warnings = case_calibration(case, data, model, report)
+    for warning in warnings:  # too short for a held-out window, a failed noise-aware fit
+        log.warning("%s", warning)
+    for rep in {id(r): r for r in (report, getattr(model, "report_", None)) if r is not None}.values():
+        rep.warnings.extend(warnings)  # in summary.json and every task file (model.json is written)
     train = {k: v for k, v in report.to_dict().items() if k != "history"}
     train["model_kind"] = model.kind
     train["model_sha256"] = record["sha256"]
-    log.info("wrote model.pt and model.json")
+    if calibration is not None:
+        train["calibration"] = calibration
     return model, train
 
 
@@ -69,16 +76,34 @@ def model_warnings_of(model: AbstractLagrangian, folder: Path) -> list[str]:
     return [str(w) for w in found] if isinstance(found, list) else []
 
 
-def serve_into(folder: Path, case: Case, data: CaseData, model: AbstractLagrangian, argv: list[str]) -> dict[str, Any]:
-    """Serve every task into ``<task>.nc`` and export it; returns the summary's tasks section."""
+def calibration_of(folder: Path) -> dict[str, Any] | None:
+    """The calibration law of the model in ``folder`` (``train.calibration`` of its ``summary.json``), or None."""
+    train = (read_summary(folder) or {}).get("train") or {}
+    found = train.get("calibration") if isinstance(train, dict) else None
+    return found if isinstance(found, dict) else None
+
+
+def serve_into(
+    folder: Path,
+    case: Case,
+    data: CaseData,
+    model: AbstractLagrangian,
+    argv: list[str],
+    train: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Serve every task into ``<task>.nc`` and export it; returns the summary's tasks section. The error bars
+    are calibrated by ``train["calibration"]`` (``train`` None: that of the folder's ``summary.json``)."""
     tasks: dict[str, Any] = {}
     attrs = config_attrs(case.raw, case.overrides, command_line(argv))
     history = command_line(argv) + (f" (overrides: {', '.join(case.overrides)})" if case.overrides else "")
     previous = recorded_exports(folder)
     model_warnings = model_warnings_of(model, folder)
+    calibration = calibration_of(folder) if train is None else train.get("calibration")
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
-        out: TaskOutcome = serve_task(model, td, case.run.device, stage=folder, variable=case.field.variable)
+        out: TaskOutcome = serve_task(
+            model, td, case.run.device, stage=folder, variable=case.field.variable, calibration=calibration
+        )
         path = write_task(
             folder,
             out.name,

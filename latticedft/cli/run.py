@@ -52,7 +52,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
                 log.debug("%s", line)
             model, train = train_into(folder, case, data, argv)
             _workers.leave()  # the other ranks are done: serving and writing are rank 0's alone
-            tasks = serve_into(folder, case, data, model, argv)
+            tasks = serve_into(folder, case, data, model, argv, train)
             summary = summary_head(case, argv, "run")
             summary.update(train=train, tasks=tasks, wall_time=time.perf_counter() - t0)
             status = finish(folder, summary, strict=case.run.strict)
