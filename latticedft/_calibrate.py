@@ -12,7 +12,9 @@ halved, so that twice the estimate covers that share of them (a conformal scale)
 disagreement of the runner-up candidate with the chosen one, slice by slice, is a second error sample (the
 model class's term): the law is fitted to the larger of the two.
 
-:meth:`Calibration.estimate` gives a served task its error estimate per slice (``psi_err_est``);
+A served task's estimate per slice is the larger of the law and the trial's disagreement with the served
+field on the task itself (the trial, learned on less data, served from the same start: :func:`disagreement`).
+:meth:`Calibration.estimate` gives the law's part (``psi_err_est``);
 :meth:`Calibration.band` adds it to an ensemble's standard deviation (``psi_std``); :meth:`Calibration.warnings`
 names a task that runs longer than, or outside the value range of, the windows the law was measured on.
 """
@@ -38,7 +40,7 @@ from ._models import AbstractLagrangian
 from ._select import HOLD_OUT, _split
 from ._serve import serve
 
-__all__ = ["QUANTILE", "Calibration", "calibrate", "too_short", "slice_errors"]
+__all__ = ["QUANTILE", "Calibration", "calibrate", "disagreement", "too_short", "slice_errors"]
 
 #: Twice the calibrated estimate covers this share of the held-out slices' errors.
 QUANTILE = 0.95
@@ -141,6 +143,23 @@ def slice_errors(model: AbstractLagrangian, field: xr.DataArray, boundary: Bound
     return _rms(_served(model, field, boundary), np.asarray(field.values, dtype=np.float64))
 
 
+def disagreement(trial: AbstractLagrangian, init: xr.DataArray, field: xr.DataArray, **serve_kwargs: Any) -> np.ndarray:
+    """The RMS over the lattice, per slice of ``field`` (a served field, its ``slice`` coordinate when thinned),
+    of the difference between ``field`` and ``trial`` served from ``init`` with ``serve_kwargs`` (NaN where
+    the trial stopped)."""
+    try:
+        other = serve(trial, init, progress=False, **serve_kwargs).field
+    except ServeError as err:
+        other = (err.result[0] if isinstance(err.result, list) else err.result).field
+    tdim = field.dims[0]
+    mine = np.asarray(field.values, dtype=np.float64)
+    theirs = np.asarray(other.values, dtype=np.float64)
+    if "slice" in field.coords and "slice" not in other.coords:
+        k = np.asarray(field["slice"].values)
+        theirs = theirs[k[k < theirs.shape[0]]]
+    return _rms(theirs, mine, field.sizes[tdim])
+
+
 def _rms(pred: np.ndarray, ref: np.ndarray, nt: int | None = None) -> np.ndarray:
     """The RMS over the lattice of ``pred - ref`` per slice, ``nt`` slices (NaN past either's end)."""
     nt = ref.shape[0] if nt is None else nt
@@ -197,8 +216,9 @@ def calibrate(
     quantile: float = QUANTILE,
     folds: int = FOLDS,
     **learn_kwargs: Any,
-) -> tuple[Calibration, list[str]]:
-    """Measure a calibration law by held-out serving (see the module docstring): ``(law, warnings)``.
+) -> tuple[Calibration, list[str], AbstractLagrangian]:
+    """Measure a calibration law by held-out serving (see the module docstring): ``(law, warnings, trial)``,
+    ``trial`` the model of the first fold (learned on the first part of every field).
 
     ``fresh`` is the chosen model unlearned (its learn keywords ``learn_kwargs``); ``runner_up`` the runner-up
     candidate unlearned, its own learn keywords and its label (its disagreement is measured on the first fold);
@@ -210,11 +230,13 @@ def calibrate(
     fields = [f.load() for f in fields]
     samples: list[_Sample] = []
     warnings: list[str] = []
+    first: AbstractLagrangian | None = None
     with torch.random.fork_rng(devices=[]):
         state = np.random.get_state()
         try:
             for n, fold in enumerate(_folds(fields, hold_out, folds)):
                 trial = _trial(fresh, fold.train, boundary, learn_kwargs)
+                first = first or trial
                 found = _measure(trial, runner_up if n == 0 else None, fold, fields, boundary)
                 warnings = warnings or _noise_warnings(trial, [x.rel[x.held] for x in found])
                 samples += found
@@ -227,7 +249,8 @@ def calibrate(
     used = any(x.disagreement for x in samples)
     cal.runner_up = runner_up[2] if runner_up is not None and used else None
     cal.wall_time = time.perf_counter() - t0
-    return cal, warnings
+    assert first is not None
+    return cal, warnings, first
 
 
 @dataclass

@@ -36,20 +36,21 @@ def wanted(case: Case) -> bool:
 
 def case_calibration(
     case: Case, data: CaseData, model: AbstractLagrangian, report: Any
-) -> tuple[dict[str, Any] | None, list[str]]:
+) -> tuple[dict[str, Any] | None, list[str], AbstractLagrangian | None]:
     """Measure the case's calibration law by held-out serving after training: ``(law as a dict or None,
-    warnings)``. Training data too short for a held-out window give one warning and no law."""
+    warnings, the trial model)``. Training data too short for a held-out window give one warning and no law."""
     if not wanted(case):
-        return None, []
+        return None, [], None
     short = too_short(data.train)
     if short is not None:
-        return None, [short]
+        return None, [short], None
     fresh, kwargs, runner_up = _candidates(case, data, model, report)
     log.info("calibrating the error bar by held-out serving ...")
     try:
-        cal, warnings = calibrate(fresh, data.train, boundary=case.train.boundary, runner_up=runner_up, **kwargs)
+        cal, warnings, trial = calibrate(fresh, data.train, boundary=case.train.boundary, runner_up=runner_up, **kwargs)
     except LatticeDFTError as exc:
-        return None, [f"calibration: failed ({' '.join(str(exc).split())[:160]}): served without an error bar"]
+        text = " ".join(str(exc).split())[:160]
+        return None, [f"calibration: failed ({text}): served without an error bar"], None
     log.info(
         "calibration: err(k) = A * %.3g * k^%.2f on %d held-out slices (2 std covers %.0f %% of them; %.1f s)",
         cal.scale,
@@ -58,7 +59,7 @@ def case_calibration(
         100 * cal.coverage,
         cal.wall_time,
     )
-    return cal.to_dict(), warnings
+    return cal.to_dict(), warnings, trial
 
 
 def _candidates(
@@ -98,8 +99,11 @@ class TaskBand:
     warnings: list[str]
 
 
-def task_band(cal: dict[str, Any], field: xr.DataArray, std: xr.DataArray | None) -> TaskBand:
-    """The calibrated error bar of a served ``field`` (an ensemble's raw ``std`` beside it, or None)."""
+def task_band(
+    cal: dict[str, Any], field: xr.DataArray, std: xr.DataArray | None, other: np.ndarray | None = None
+) -> TaskBand:
+    """The calibrated error bar of a served ``field`` (an ensemble's raw ``std`` beside it, or None): the larger
+    of the law and ``other``, the trial model's disagreement with the field per slice (None without one)."""
     law = Calibration.from_dict(cal)
     tdim = field.dims[0]
     k = np.asarray(field["slice"].values if "slice" in field.coords else np.arange(field.sizes[tdim]))
@@ -107,6 +111,8 @@ def task_band(cal: dict[str, Any], field: xr.DataArray, std: xr.DataArray | None
     finite = np.abs(values[np.isfinite(values)])
     amplitude = float(finite.max()) if finite.size else math.nan
     est = law.estimate(k, amplitude)
+    if other is not None:
+        est = np.fmax(est, np.where(k >= 2, other, 0.0))
     err_est = xr.DataArray(est, dims=(tdim,), coords={tdim: field[tdim].values}, name="err_est")
     err_est.attrs = {
         "long_name": "calibrated error estimate (1 std, RMS over the lattice) from held-out serving",
@@ -120,6 +126,7 @@ def task_band(cal: dict[str, Any], field: xr.DataArray, std: xr.DataArray | None
     served = int(k.max()) + 1 if k.size else 0
     record = {
         "band": "ensemble and held-out error" if std is not None else "held-out error",
+        "terms": ["law", "trial disagreement"] if other is not None else ["law"],
         "mean": float(np.mean(est[k >= 2])) if (k >= 2).any() else None,
         "last": float(est[-1]) if est.size else None,
         "amplitude": amplitude,

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
+from .._calibrate import disagreement
 from .._case import ServeTask
 from .._contract import AbstractLagrangian
 from .._errors import InputError, ServeError
@@ -112,6 +113,7 @@ def serve_task(
     stage: Path | None = None,
     variable: str = "psi",
     calibration: dict[str, Any] | None = None,
+    trial: AbstractLagrangian | None = None,
 ) -> TaskOutcome:
     """Serve one task (the model evaluated on ``device``); a Newton failure gives an incomplete outcome (with a
     warning), not an exception.
@@ -119,7 +121,8 @@ def serve_task(
     A task with an output cadence (``[[serve]] every > 1``) served into a staging folder ``stage`` appends
     each kept slice, as it is served, to the part file ``stage/.<task>.nc.part`` (the field as ``variable``):
     the outcome's ``part`` names it, and ``write_task`` completes it into ``<task>.nc``. A ``calibration`` (the
-    law of ``[train] calibrate``) gives the outcome its calibrated error bar.
+    law of ``[train] calibrate``) gives the outcome its calibrated error bar; its ``trial`` model (learned on the
+    held-in part of the data) is served from the same start, and its disagreement enters the bar.
     """
     t = td.task
     if t.deprecated_steps:
@@ -138,7 +141,7 @@ def serve_task(
     finally:
         if part is not None:
             part.close()
-    band = task_band(calibration, served.result.field, served.result.std) if calibration else None
+    band = _band(calibration, trial, served, td) if calibration else None
     rec, inv, charges = _measure(model, served, td, band)
     _message(served, td, rec)
     result = served.result
@@ -167,6 +170,7 @@ class _Served:
     stopped: str
     start: str
     meter: TaskMeter | None
+    init: xr.DataArray | None = None
 
 
 # -- serve ----------------------------------------------------------------------------------------------------
@@ -193,7 +197,18 @@ def _serve(model: AbstractLagrangian, td: TaskData, device: str, part: PartFile 
     log.debug("task %s served on %s", t.name, result.device)
     if meter is not None:
         meter.finish()
-    return _Served(result=result, wall=wall, stopped=stopped, start=start, meter=meter)
+    return _Served(result=result, wall=wall, stopped=stopped, start=start, meter=meter, init=init)
+
+
+def _band(calibration: dict[str, Any], trial: AbstractLagrangian | None, served: _Served, td: TaskData) -> TaskBand:
+    """The task's calibrated error bar, with the trial model's disagreement when there is a trial."""
+    field, other = served.result.field, None
+    if trial is not None and served.init is not None:
+        options = td.task.options.replace(progress=None, device=served.result.device)
+        other = disagreement(
+            trial, served.init, field, slices=td.task.slices, boundary=td.task.boundary, options=options
+        )
+    return task_band(calibration, field, served.result.std, other)
 
 
 # -- measure --------------------------------------------------------------------------------------------------

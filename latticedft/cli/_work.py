@@ -16,6 +16,7 @@ from tqdm.std import tqdm  # not tqdm.auto: no ipywidgets warning in Jupyter (la
 
 from .._case import Case
 from .._errors import InputError
+from .._modelfile import load_model, save_model
 from .._results import config_attrs, export_task, read_summary, read_task, write_model, write_summary, write_task
 from .._run import CaseData, TaskOutcome, case_calibration, serve_task, train_model
 from ..io.exporters import remove_exports
@@ -25,6 +26,9 @@ if TYPE_CHECKING:
     from .._contract import AbstractLagrangian
 
 log = logging.getLogger("latticedft")
+
+#: The calibration's trial model, beside model.pt (``[train] calibrate``).
+TRIAL_FILE = "calibration.pt"
 
 
 def train_into(folder: Path, case: Case, data: CaseData, argv: list[str]) -> tuple[Any, dict[str, Any]]:
@@ -40,7 +44,9 @@ def train_into(folder: Path, case: Case, data: CaseData, argv: list[str]) -> tup
     }
     record = write_model(folder, model, report, meta)
     log.info("wrote model.pt and model.json")
-    calibration, warnings = case_calibration(case, data, model, report)
+    calibration, warnings, trial = case_calibration(case, data, model, report)
+    if trial is not None:  # the held-out trial model: its disagreement on each task enters the error bar
+        save_model(trial, folder / TRIAL_FILE)
     for warning in warnings:  # too short for a held-out window, a failed noise-aware fit
         log.warning("%s", warning)
     for rep in {id(r): r for r in (report, getattr(model, "report_", None)) if r is not None}.values():
@@ -83,6 +89,12 @@ def calibration_of(folder: Path) -> dict[str, Any] | None:
     return found if isinstance(found, dict) else None
 
 
+def trial_of(folder: Path, calibration: dict[str, Any] | None) -> AbstractLagrangian | None:
+    """The calibration's trial model in ``folder`` (``calibration.pt``), or None."""
+    path = folder / TRIAL_FILE
+    return load_model(path) if calibration is not None and path.is_file() else None
+
+
 def serve_into(
     folder: Path,
     case: Case,
@@ -99,10 +111,17 @@ def serve_into(
     previous = recorded_exports(folder)
     model_warnings = model_warnings_of(model, folder)
     calibration = calibration_of(folder) if train is None else train.get("calibration")
+    trial = trial_of(folder, calibration)
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
         out: TaskOutcome = serve_task(
-            model, td, case.run.device, stage=folder, variable=case.field.variable, calibration=calibration
+            model,
+            td,
+            case.run.device,
+            stage=folder,
+            variable=case.field.variable,
+            calibration=calibration,
+            trial=trial,
         )
         path = write_task(
             folder,
