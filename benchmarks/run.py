@@ -37,6 +37,7 @@ BENCHMARKS = [
     "serve_fast1d",  # 1D serving in numpy against Stormer-Verlet
     "ensemble",  # the cost of an ensemble's error bar
     "serve_scale",  # peak memory of serving with an output cadence
+    "calibration",  # calibrated error bars: coverage with and without an ensemble
 ]
 
 
