@@ -357,8 +357,9 @@ def _noise_warnings(trial: AbstractLagrangian, rel: list[np.ndarray]) -> list[st
         return []
     share = noise.get("second_difference_ratio")
     shown = f"{share:.2f}" if isinstance(share, float) else "not estimated"
+    served = f"to a relative error of {worst:.3g} (above {NOISE_FAILED:g}" if math.isfinite(worst) else "(it stopped"
     return [
         f"noise: the noise-aware fit failed its held-out check: learned on the first {100 * (1 - HOLD_OUT):.0f} % of "
-        f"every training field, it serves the rest to a relative error of {worst:.3g} (above {NOISE_FAILED:g}; the "
-        f"noise's share of the second differences is {shown}): the learned equations are unreliable"
+        f"every training field, it serves the rest {served}; the noise's share of the second differences is "
+        f"{shown}): the learned equations are unreliable"
     ]

@@ -85,7 +85,7 @@ def test_a_failed_noise_aware_fit_is_reported() -> None:
     assert len(bad) == 1 and "failed its held-out check" in bad[0] and "0.49" in bad[0]
     assert _noise_warnings(Trial(), [np.array([0.01, NOISE_FAILED / 2])]) == []  # type: ignore[arg-type]
     stopped = _noise_warnings(Trial(), [np.array([0.01, np.nan])])  # type: ignore[arg-type]
-    assert len(stopped) == 1 and "inf" in stopped[0]
+    assert len(stopped) == 1 and "(it stopped;" in stopped[0]
     Report.noise = {"method": "none"}
     assert _noise_warnings(Trial(), [np.array([0.5])]) == []  # type: ignore[arg-type]
 
