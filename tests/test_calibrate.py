@@ -157,3 +157,18 @@ def test_too_short_training_data_serve_without_a_band(tmp_path: Path, capsys) ->
     with xr.open_dataset(tmp_path / "r" / "test.nc") as ds:
         assert "psi_err_est" not in ds.data_vars
         assert any("too short" in w for w in json.loads(ds.attrs["latticedft_warnings"]))
+
+
+def test_serve_again_uses_the_recorded_law_and_trial(tmp_path: Path, capsys) -> None:
+    """``latticedft serve`` after a calibrated run: the law from summary.json, the trial from calibration.pt."""
+    case = tiny_wave(tmp_path)
+    toml = case / "case.toml"
+    toml.write_text(toml.read_text().replace('data = ["data/train.nc"]', 'data = ["data/train.nc"]\ncalibrate = true'))
+    out = tmp_path / "r"
+    assert run_cli(capsys, "run", case, "--out", out, "--set", "export.paraview=false")[0] == 0
+    with xr.open_dataset(out / "test.nc") as ds:
+        first = ds["psi_err_est"].load()
+    code, _, err = run_cli(capsys, "serve", case, "--out", out, "--set", "export.paraview=false")
+    assert code == 0, err
+    with xr.open_dataset(out / "test.nc") as ds:
+        xr.testing.assert_identical(ds["psi_err_est"], first)
