@@ -172,3 +172,19 @@ def test_serve_again_uses_the_recorded_law_and_trial(tmp_path: Path, capsys) -> 
     assert code == 0, err
     with xr.open_dataset(out / "test.nc") as ds:
         xr.testing.assert_identical(ds["psi_err_est"], first)
+
+
+def test_auto_calibrates_after_selection_with_the_runner_up(tmp_path: Path, capsys) -> None:
+    """``calibrate = "auto"`` is on with ``[model] select``; the runner-up candidate's label is recorded when its
+    score was within reach of the chosen one's."""
+    case = tiny_wave(tmp_path)
+    code, _, err = run_cli(
+        capsys, "run", case, "--out", tmp_path / "r", "--set", 'model.select="auto"', "--set", "export.paraview=false"
+    )
+    assert code == 0, err
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    law, sel = summary["train"]["calibration"], summary["train"]["selection"]
+    labels = [r["label"] for r in sel["candidates"]]
+    assert law["runner_up"] is None or (law["runner_up"] in labels and law["runner_up"] != sel["chosen_label"])
+    with xr.open_dataset(tmp_path / "r" / "test.nc") as ds:
+        assert "psi_err_est" in ds.data_vars
