@@ -134,7 +134,7 @@ def too_short(fields: Sequence[xr.DataArray], hold_out: float = HOLD_OUT) -> str
         nt = min(f.sizes[f.dims[0]] for f in fields)
         return (
             f"calibration: the training data are too short for a held-out window (a field of {nt} slices; at least "
-            "4 are needed): served without an error bar"
+            "4 are needed): served without a calibrated error bar (an ensemble's psi_std is its members' spread alone)"
         )
     return None
 

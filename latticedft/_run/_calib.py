@@ -50,7 +50,7 @@ def case_calibration(
         cal, warnings, trial = calibrate(fresh, data.train, boundary=case.train.boundary, runner_up=runner_up, **kwargs)
     except LatticeDFTError as exc:
         text = " ".join(str(exc).split())[:160]
-        return None, [f"calibration: failed ({text}): served without an error bar"], None
+        return None, [f"calibration: failed ({text}): served without a calibrated error bar"], None
     log.info(
         "calibration: err(k) = A * %.3g * k^%.2f on %d held-out slices (2 std covers %.0f %% of them; %.1f s)",
         cal.scale,
