@@ -55,8 +55,8 @@ RUNNER_UP_WITHIN = 10.0
 #: At 0.1 the double-well Duffing oscillator at sigma = 1e-2 (0.12 held out, 2.8e-2 served on its tests) warned.
 NOISE_FAILED = 0.5
 #: Folds of training fields (each one more trial fit). With 1, every field is split in time (the held-out windows
-#: of model selection). Leaving whole fields out (3 folds) overstated the error on unseen trajectories by 100 to
-#: 1000 times on cases/oscillator-sin (three training amplitudes: two do not pin the third down; docs/uncertainty.md).
+#: of model selection). Leaving whole fields out (3 folds) overstated the error on unseen trajectories by orders
+#: of magnitude on cases/oscillator-sin (three training amplitudes: two do not pin the third down).
 FOLDS = 1
 #: The growth exponent is kept in this interval (an error that shrinks with time is not extrapolated so).
 EXPONENT_RANGE = (0.0, 3.0)
