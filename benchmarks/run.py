@@ -39,6 +39,7 @@ BENCHMARKS = [
     "serve_scale",  # peak memory of serving with an output cadence
     "serve_dist",  # serving split into slabs over processes
     "discovery",  # select = "auto" on known systems against the true leapfrog
+    "calibration",  # calibrated error bars: coverage with and without an ensemble
 ]
 
 

@@ -5,7 +5,8 @@
     python docs/make_uncertainty.py --members 5         # another ensemble size
 
 Each case is copied into a scratch folder (its data made by its own make_data.py when the copy has none) and
-run with ``python -m latticedft run`` and its own case.toml plus ``--set train.ensemble=N`` (export: figures
+run with ``python -m latticedft run`` and its own case.toml plus ``--set train.ensemble=N`` and
+``--set train.calibrate=false`` (the members' own spread; export: figures
 only). Every task with a reference reports its ``calibration`` in ``summary.json``; this script prints them
 as the markdown table of docs/uncertainty.md, and draws the figure of one task (``oscillator-sin``, task
 ``test_m0.60``) as ``docs/uncertainty_band.png`` (70 dpi).
@@ -50,7 +51,8 @@ def measure(case: str, scratch: Path, members: int) -> dict:
     if not data.is_dir() or not any(data.glob("*.nc")):
         _run([sys.executable, "make_data.py"], copy)
     cmd = [sys.executable, "-m", "latticedft", "run", str(copy), "-q", "--overwrite"]
-    _run([*cmd, "--set", f"train.ensemble={members}", "--set", 'export.formats=["figures"]'], scratch)
+    sets = ["--set", f"train.ensemble={members}", "--set", "train.calibrate=false"]  # the members' own spread
+    _run([*cmd, *sets, "--set", 'export.formats=["figures"]'], scratch)
     return json.loads((copy / "results" / "summary.json").read_text())
 
 

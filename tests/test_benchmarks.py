@@ -43,6 +43,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "1D serving in numpy",
         "Ensemble serving",
         "Discovery",
+        "Calibrated error bars",
         "Targets",
     ):
         assert f"== {title}" in out, f"table {title!r} missing from:\n{out}"
@@ -63,6 +64,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "serve_scale",
         "serve-dist",
         "discovery",
+        "calibration",
     ]
     assert not results["failed"]
     assert all(b["rows"] for b in results["benchmarks"])
@@ -88,6 +90,7 @@ ALONE = [
     "serve_scale",
     "serve_dist",
     "discovery",
+    "calibration",
 ]
 
 
@@ -111,6 +114,24 @@ def test_each_module_runs_alone_and_prints_its_table(module):
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "== " in proc.stdout or "### " in proc.stdout, proc.stdout[-3000:]
+
+
+def test_calibration_quick_prints_one_row_with_its_columns_and_targets():
+    """``python -m benchmarks.calibration --quick``: one small case, the table's structure (no timing)."""
+    from benchmarks.calibration import Config, run
+
+    table = run(Config(quick=True))
+    assert table.columns[:6] == ["row", "noise", "tests", "slices", "coverage, single", "std/error, single"]
+    assert "cost" in table.columns and "coverage, ensemble" in table.columns
+    assert len(table.rows) == 1 and table.rows[0][0] == "oscillator-sin"
+    row = table.rows[0]
+    assert len(row) == len(table.columns), row
+    assert 0 <= row[4] <= 1 and row[5] > 0 and 0 <= row[6] <= 1
+    assert [c.target for c in table.checks] == [
+        "single: 2-sigma coverage 80-99 % and std/error 0.5-2",
+        "ensemble: 2-sigma coverage 80-99 % and std/error 0.5-2",
+        "cost of calibration <= 1.5x selection alone",
+    ]
 
 
 def test_unknown_benchmark_is_refused():

@@ -64,6 +64,12 @@ def t_ensemble(v: Any) -> int:
     return int(v)
 
 
+def t_calibrate(v: Any) -> bool | str:
+    if v != "auto" and not isinstance(v, bool):
+        raise _Bad('true, false or "auto"')
+    return v
+
+
 def t_nonneg_int(v: Any) -> int:
     if not _is_int(v) or v < 0:
         raise _Bad("an integer >= 0")

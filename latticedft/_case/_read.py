@@ -326,9 +326,13 @@ def _train_config(ctx: _Ctx, raw: dict[str, Any], root: Path) -> TrainConfig:
             files.append(_resolve(ctx, root, "train.data", pat))
     if not files:
         raise ctx.error("train.data", "expected at least one training file")
-    learn_kw = {k: v for k, v in tr.items() if k not in ("data", "boundary")}
+    learn_kw = {k: v for k, v in tr.items() if k not in ("data", "boundary", "calibrate")}
     return TrainConfig(
-        data=tuple(dict.fromkeys(files)), patterns=tuple(tr["data"]), boundary=tr["boundary"], learn=learn_kw
+        data=tuple(dict.fromkeys(files)),
+        patterns=tuple(tr["data"]),
+        boundary=tr["boundary"],
+        learn=learn_kw,
+        calibrate=tr["calibrate"],
     )
 
 

@@ -18,6 +18,7 @@ from ._checks import (
     t_any,
     t_bool,
     t_boundary,
+    t_calibrate,
     t_choice,
     t_device,
     t_ensemble,
@@ -63,6 +64,7 @@ SCHEMA: dict[str, dict[str, tuple[Callable[[Any], Any], Any]]] = {
         "ensemble_seed": (t_nonneg_int, 0),
         "noise": (t_choice("none", "auto", "correct"), "none"),
         "noise_sigma": (t_nonneg_float, None),
+        "calibrate": (t_calibrate, "auto"),
     },
     "serve": {
         "name": (t_name, _REQUIRED),
@@ -193,6 +195,8 @@ class TrainConfig:
     patterns: tuple[str, ...]
     boundary: str | dict[str, str] | None = None
     learn: dict[str, Any] = field(default_factory=dict)
+    #: ``calibrate``: error bars by held-out serving; ``"auto"``: with ``select``, ``ensemble`` or ``noise``.
+    calibrate: bool | str = "auto"
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,7 @@
 - ``_record``: what ``summary.json`` records of a task (:class:`TaskRecord`), and when its accuracy is warned of;
 - ``_guards``: the checks made before anything is written (file-name limits, memory, the case's inputs);
 - ``_charges``: the Noether charges of a task, checked against its lattice and measured along it;
+- ``_calib``: the error bar's calibration law measured after training, and a served task's calibrated band;
 - ``_meter``: a task's errors and invariant measured slice by slice as it is served with an output cadence.
 
 Each stage logs INFO lines (to stderr via the command line) and DEBUG details (to ``results/run.log``).
@@ -13,6 +14,7 @@ Each stage logs INFO lines (to stderr via the command line) and DEBUG details (t
 
 from __future__ import annotations
 
+from ._calib import case_calibration as case_calibration
 from ._data import CaseData as CaseData
 from ._data import TaskData as TaskData
 from ._data import check_case as check_case
@@ -30,6 +32,7 @@ __all__ = [
     "TaskData",
     "TaskOutcome",
     "TaskRecord",
+    "case_calibration",
     "case_inputs",
     "check_before_writing",
     "check_case",

@@ -62,6 +62,7 @@ class TaskRecord:
     compared_slices: int | None = None
     relative_error: float | None = None
     baseline: dict[str, Any] | None = None
+    error_estimate: dict[str, Any] | None = None
     calibration: dict[str, Any] | None = None
     invariant: str | None = None  # with ``invariant_drift`` (None when the invariant is zero or undefined)
     invariant_drift: float | None = None
@@ -100,7 +101,11 @@ class TaskRecord:
                 compared_slices=self.compared_slices,
                 relative_error=self.relative_error,
             )
-        optional: dict[str, Any] = {"baseline": self.baseline, "calibration": self.calibration}
+        optional: dict[str, Any] = {
+            "baseline": self.baseline,
+            "error_estimate": self.error_estimate,
+            "calibration": self.calibration,
+        }
         out.update({k: v for k, v in optional.items() if v is not None})
         if self.invariant is not None:
             out.update(invariant_drift=self.invariant_drift, invariant=self.invariant)

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
+from .._calibrate import disagreement
 from .._case import ServeTask
 from .._collective import is_parallel
 from .._contract import AbstractLagrangian
@@ -25,6 +26,7 @@ from .._learn._noise import DENOISE_SLICES, denoised_start
 from .._part_file import PartFile
 from .._serve import ServeResult, calibration, compare, serve
 from .._serve._ensemble import calibration_warning
+from ._calib import TaskBand, task_band
 from ._charges import drift_text, task_charges
 from ._data import TaskData
 from ._meter import TaskMeter, compare_blocks
@@ -55,12 +57,22 @@ class TaskOutcome:
     std: xr.DataArray | None = None
     #: A task with an output cadence served into a staging folder: the part file holding its kept slices
     part: Path | None = None
+    #: The calibrated error bar (None without a calibration): ``std`` above is then the calibrated one
+    band: TaskBand | None = None
+    #: An ensemble's standard deviation before calibration (None when not calibrated)
+    std_raw: xr.DataArray | None = None
 
     def spread(self, variable: str) -> dict[str, xr.DataArray]:
-        """``{"<variable>_mean": ..., "<variable>_std": ...}`` for an ensemble, else empty."""
-        if self.mean is None or self.std is None:
-            return {}
-        return {f"{variable}_mean": self.mean, f"{variable}_std": self.std}
+        """``{"<variable>_mean": ..., "<variable>_std": ...}`` for an ensemble (with ``<variable>_std_members``,
+        the members' own spread, when calibrated), and ``<variable>_err_est`` when calibrated."""
+        out = {}
+        if self.mean is not None and self.std is not None:
+            out = {f"{variable}_mean": self.mean, f"{variable}_std": self.std}
+            if self.std_raw is not None:
+                out[f"{variable}_std_members"] = self.std_raw
+        if self.band is not None:
+            out[f"{variable}_err_est"] = self.band.err_est.rename(f"{variable}_err_est")
+        return out
 
     @property
     def complete(self) -> bool:
@@ -104,6 +116,8 @@ def serve_task(
     stage: Path | None = None,
     variable: str = "psi",
     resume: bool = False,
+    calibration: dict[str, Any] | None = None,
+    trial: AbstractLagrangian | None = None,
 ) -> TaskOutcome:
     """Serve one task (the model evaluated on ``device``); a Newton failure gives an incomplete outcome (with a
     warning), not an exception.
@@ -111,7 +125,10 @@ def serve_task(
     A task with an output cadence (``[[serve]] every > 1``) served into a staging folder ``stage`` appends
     each kept slice, as it is served, to the part file ``stage/.<task>.nc.part`` (the field as ``variable``):
     the outcome's ``part`` names it, and ``write_task`` completes it into ``<task>.nc``. So does a task with
-    checkpoints (``[[serve]] checkpoint``), which with ``resume`` goes on from its checkpoint in ``stage``.
+    checkpoints (``[[serve]] checkpoint``), which with ``resume`` goes on from its checkpoint in ``stage``. A
+    ``calibration`` (the law of ``[train] calibrate``) gives the outcome its calibrated error bar; its ``trial``
+    model (learned on the held-in part of the data) is served from the same start, and its disagreement enters
+    the bar.
     """
     t = td.task
     if t.deprecated_steps:
@@ -130,7 +147,8 @@ def serve_task(
     finally:
         if part is not None:
             part.close()
-    rec, inv, charges = _measure(model, served, td)
+    band = _band(calibration, trial, served, td) if calibration else None
+    rec, inv, charges = _measure(model, served, td, band)
     _message(served, td, rec)
     result = served.result
     return TaskOutcome(
@@ -142,8 +160,10 @@ def serve_task(
         charges=charges,
         extrapolation=_kept(result.extrapolation, result.field),
         mean=result.mean,
-        std=result.std,
+        std=band.std if band is not None and band.std is not None else result.std,
         part=part.path if part is not None else None,
+        band=band,
+        std_raw=result.std if band is not None and band.std is not None else None,
     )
 
 
@@ -158,6 +178,7 @@ class _Served:
     meter: TaskMeter | None
     #: the task served split over the processes of a group (None: in one process)
     split: Split | None = None
+    init: xr.DataArray | None = None
 
 
 # -- serve ----------------------------------------------------------------------------------------------------
@@ -189,23 +210,34 @@ def _serve(model: AbstractLagrangian, td: TaskData, device: str, part: PartFile 
     log.debug("task %s served on %s", t.name, result.device)
     if meter is not None:
         meter.finish()
-    return _Served(result=result, wall=wall, stopped=stopped, start=start, meter=meter, split=split)
+    return _Served(result=result, wall=wall, stopped=stopped, start=start, meter=meter, split=split, init=init)
+
+
+def _band(calibration: dict[str, Any], trial: AbstractLagrangian | None, served: _Served, td: TaskData) -> TaskBand:
+    """The task's calibrated error bar, with the trial model's disagreement when there is a trial."""
+    field, other = served.result.field, None
+    if trial is not None and served.init is not None:
+        options = td.task.options.replace(progress=None, device=served.result.device)
+        other = disagreement(
+            trial, served.init, field, slices=td.task.slices, boundary=td.task.boundary, options=options
+        )
+    return task_band(calibration, field, served.result.std, other)
 
 
 # -- measure --------------------------------------------------------------------------------------------------
 def _measure(
-    model: AbstractLagrangian, served: _Served, td: TaskData
+    model: AbstractLagrangian, served: _Served, td: TaskData, band: TaskBand | None
 ) -> tuple[TaskRecord, xr.DataArray | None, xr.Dataset | None]:
     """The task's record, its invariant over the served field and its charges."""
-    rec = _record(served, td)
+    rec = _record(served, td, band)
     inv = _invariant(served, td, rec)
     charges = task_charges(model, td.task, served.result.field, rec)
     return rec, inv, charges
 
 
-def _record(served: _Served, td: TaskData) -> TaskRecord:
+def _record(served: _Served, td: TaskData, band: TaskBand | None) -> TaskRecord:
     """The task's record: the result's numbers, then the errors against the reference and the baseline's,
-    and an ensemble's calibration."""
+    and how well the error bar (an ensemble's spread, or the calibrated estimate) held."""
     t, result, pred = td.task, served.result, served.result.field
     rec = TaskRecord.served(
         result.to_dict(),
@@ -223,11 +255,23 @@ def _record(served: _Served, td: TaskData) -> TaskRecord:
         log.warning("task %s: %s", t.name, warning)
     if td.reference is not None:
         _errors(served, td, rec)
-    if result.std is not None and td.reference is not None:  # an ensemble: is its spread an honest error bar?
-        rec.calibration = calibration(pred, result.std, td.reference)
+    std = result.std if band is None else band.std if band.std is not None else _broadcast(band.err_est, pred)
+    if band is not None:
+        rec.error_estimate = band.record
+        for warning in band.warnings:  # the task runs longer than, or outside, the calibration's windows
+            _warn(rec, t, warning)
+    if std is not None and td.reference is not None:  # is the error bar honest?
+        rec.calibration = calibration(pred, std, td.reference)
         _warn(rec, t, calibration_warning(rec.calibration))
     _warn(rec, t, accuracy_warning(rec))  # complete is not accurate: a field far from its reference
     return rec
+
+
+def _broadcast(series: xr.DataArray, like: xr.DataArray) -> xr.DataArray:
+    """A series over time at every site of ``like`` (the estimate per slice as a per-site std)."""
+    shape = (-1,) + (1,) * (like.ndim - 1)
+    values = np.broadcast_to(np.asarray(series.values).reshape(shape), like.shape)
+    return like.copy(data=np.array(values))
 
 
 def _warn(rec: TaskRecord, t: ServeTask, warning: str | None) -> None:

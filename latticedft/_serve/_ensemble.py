@@ -171,7 +171,7 @@ def calibration_warning(cal: dict[str, Any]) -> str | None:
     if within is None or within >= CALIBRATION_MIN_WITHIN_2STD:
         return None
     return (
-        f"calibration: the error lies within 2 std of the ensemble on only {100 * within:.0f} % of the slices "
+        f"calibration: the error lies within 2 std of its error bar on only {100 * within:.0f} % of the slices "
         f"(expected >= {100 * CALIBRATION_MIN_WITHIN_2STD:.0f} %; std/error = {cal.get('std_over_error') or 0:.2g}): "
         "the band understates the error, which may be larger than it shows"
     )

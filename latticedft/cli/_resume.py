@@ -86,7 +86,7 @@ def resumed_run(args: argparse.Namespace, argv: list[str]) -> int:
             model = load_verified_model(folder)
             journal = journal_for(folder, "run", case, folder / "model.pt", True)
             assert journal is not None
-            tasks = serve_into(folder, case, data, model, argv, journal=journal, resume=True)
+            tasks = serve_into(folder, case, data, model, argv, journal.data["train"], journal=journal, resume=True)
             summary = summary_head(case, argv, "run")
             summary.update(train=journal.data["train"], tasks=tasks, wall_time=time.perf_counter() - t0)
             status = finish(folder, summary, strict=case.run.strict)

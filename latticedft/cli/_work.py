@@ -16,6 +16,7 @@ from tqdm.std import tqdm  # not tqdm.auto: no ipywidgets warning in Jupyter (la
 
 from .._case import Case
 from .._errors import InputError
+from .._modelfile import load_model, save_model
 from .._models import SparseLagrangian
 from .._results import (
     config_attrs,
@@ -27,7 +28,7 @@ from .._results import (
     write_summary,
     write_task,
 )
-from .._run import CaseData, TaskOutcome, serve_task, train_model
+from .._run import CaseData, TaskOutcome, case_calibration, serve_task, train_model
 from ..io.exporters import remove_exports
 from ._common import INCOMPLETE, OK, WARNED, command_line
 
@@ -36,6 +37,9 @@ if TYPE_CHECKING:
     from .._run._resume import Journal
 
 log = logging.getLogger("latticedft")
+
+#: The calibration's trial model, beside model.pt (``[train] calibrate``).
+TRIAL_FILE = "calibration.pt"
 
 
 def train_into(folder: Path, case: Case, data: CaseData, argv: list[str]) -> tuple[Any, dict[str, Any]]:
@@ -50,10 +54,19 @@ def train_into(folder: Path, case: Case, data: CaseData, argv: list[str]) -> tup
         ],
     }
     record = write_model(folder, model, report, meta)
+    log.info("wrote model.pt and model.json")
+    calibration, warnings, trial = case_calibration(case, data, model, report)
+    if trial is not None:  # the held-out trial model: its disagreement on each task enters the error bar
+        save_model(trial, folder / TRIAL_FILE)
+    for warning in warnings:  # too short for a held-out window, a failed noise-aware fit
+        log.warning("%s", warning)
+    for rep in {id(r): r for r in (report, getattr(model, "report_", None)) if r is not None}.values():
+        rep.warnings.extend(warnings)  # in summary.json and every task file (model.json is written)
     train = {k: v for k, v in report.to_dict().items() if k != "history"}
     train["model_kind"] = model.kind
     train["model_sha256"] = record["sha256"]
-    log.info("wrote model.pt and model.json")
+    if calibration is not None:
+        train["calibration"] = calibration
     return model, train
 
 
@@ -88,17 +101,32 @@ def equation_attrs(model: AbstractLagrangian) -> dict[str, str]:
     return {"latticedft_L_d": f"L_d = {text['L_d']}"} if text else {}
 
 
+def calibration_of(folder: Path) -> dict[str, Any] | None:
+    """The calibration law of the model in ``folder`` (``train.calibration`` of its ``summary.json``), or None."""
+    train = (read_summary(folder) or {}).get("train") or {}
+    found = train.get("calibration") if isinstance(train, dict) else None
+    return found if isinstance(found, dict) else None
+
+
+def trial_of(folder: Path, calibration: dict[str, Any] | None) -> AbstractLagrangian | None:
+    """The calibration's trial model in ``folder`` (``calibration.pt``), or None."""
+    path = folder / TRIAL_FILE
+    return load_model(path) if calibration is not None and path.is_file() else None
+
+
 def serve_into(
     folder: Path,
     case: Case,
     data: CaseData,
     model: AbstractLagrangian,
     argv: list[str],
+    train: dict[str, Any] | None = None,
     *,
     journal: Journal | None = None,
     resume: bool = False,
 ) -> dict[str, Any]:
-    """Serve every task into ``<task>.nc`` and export it; returns the summary's tasks section.
+    """Serve every task into ``<task>.nc`` and export it; returns the summary's tasks section. The error bars
+    are calibrated by ``train["calibration"]`` (``train`` None: that of the folder's ``summary.json``).
 
     With a ``journal`` (tasks that write checkpoints) each task done is recorded in it; with ``resume`` the
     tasks it records as done are skipped and the task it was serving goes on from its checkpoint.
@@ -109,6 +137,8 @@ def serve_into(
     previous = recorded_exports(folder)
     model_warnings = model_warnings_of(model, folder)
     attrs.update(equation_attrs(model))
+    calibration = calibration_of(folder) if train is None else train.get("calibration")
+    trial = trial_of(folder, calibration)
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
         if resume and journal is not None and td.task.name in journal.done:  # served before the run stopped
@@ -116,7 +146,14 @@ def serve_into(
             owners.update({f: td.task.name for f in tasks[td.task.name].get("exports") or []})
             continue
         out: TaskOutcome = serve_task(
-            model, td, case.run.device, stage=folder, variable=case.field.variable, resume=resume
+            model,
+            td,
+            case.run.device,
+            stage=folder,
+            variable=case.field.variable,
+            resume=resume,
+            calibration=calibration,
+            trial=trial,
         )
         path = write_task(
             folder,

@@ -61,7 +61,7 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
             if not check_split(data.tasks, model):  # a halo wider than a slab: the stage is discarded
                 _workers.leave()  # no task is split: the other ranks are done, serving is rank 0's alone
             journal = _resume.journal_for(folder, "run", case, folder / "model.pt", False, train)
-            tasks = serve_into(folder, case, data, model, argv, journal=journal)
+            tasks = serve_into(folder, case, data, model, argv, train, journal=journal)
             summary = summary_head(case, argv, "run")
             summary.update(train=train, tasks=tasks, wall_time=time.perf_counter() - t0)
             _workers.record_processes(summary)

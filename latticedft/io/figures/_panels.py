@@ -297,8 +297,12 @@ def _plot_errors(
     else:
         ax.semilogy(t, _positive(worst), "-", color="tab:red", lw=1.5, label="learned L_d: max")
         ax.semilogy(t, _positive(rms), "--", color="tab:red", lw=1.2, label="learned L_d: rms")
+    estimate = series.get(f"{var}_err_est")
     if spread is not None and spread.shape == pred.shape:
-        _plot_band(ax, t, np.asarray(spread.transpose(*pred.dims).values), rms)
+        calibrated = "calibrated" in str(spread.attrs.get("long_name", ""))
+        _plot_band(ax, t, np.asarray(spread.transpose(*pred.dims).values), rms, calibrated=calibrated)
+    elif estimate is not None and estimate.shape == (len(t),):
+        _plot_band(ax, t, np.asarray(estimate.values), rms, label="calibrated error estimate")
     base_max, base_rms = series.get("baseline_err_max"), series.get("baseline_err_rms")
     if one_site and base_max is not None:
         base_rms = None
@@ -332,9 +336,12 @@ def _plot_errors(
     ax.legend(loc="best", fontsize="small")
 
 
-def _plot_band(ax: Axes, t: np.ndarray, std: np.ndarray, rms_error: np.ndarray) -> None:
-    """An ensemble's error bar: 2 and 3 times the RMS over sites of its standard deviation, per slice (the
-    error it bounds is the RMS error over sites; docs/uncertainty.md)."""
+def _plot_band(
+    ax: Axes, t: np.ndarray, std: np.ndarray, rms_error: np.ndarray, *, calibrated: bool = False, label: str = ""
+) -> None:
+    """An error bar: 2 and 3 times the RMS over sites of an ensemble's standard deviation (or of a single
+    model's calibrated estimate, ``label``), per slice (the error it bounds is the RMS error over sites;
+    docs/uncertainty.md)."""
     flat = std.reshape(std.shape[0], -1)
     s = np.full(flat.shape[0], np.nan)
     some = np.isfinite(flat).any(axis=1)  # slices the members did not all reach have no spread
@@ -346,7 +353,8 @@ def _plot_band(ax: Axes, t: np.ndarray, std: np.ndarray, rms_error: np.ndarray) 
     floor = float(found.min()) / 10
     ax.fill_between(t, floor, np.where(np.isfinite(three), three, floor), color="tab:blue", alpha=0.12, lw=0)
     ax.fill_between(t, floor, np.where(np.isfinite(two), two, floor), color="tab:blue", alpha=0.25, lw=0)
-    ax.semilogy(t, two, "-", color="tab:blue", lw=1, label="ensemble: 2 std (3 std lighter), rms over sites")
+    what = label or ("ensemble (calibrated)" if calibrated else "ensemble")
+    ax.semilogy(t, two, "-", color="tab:blue", lw=1, label=f"{what}: 2 std (3 std lighter), rms over sites")
 
 
 def drift_series(series: Mapping[str, xr.DataArray]) -> dict[str, xr.DataArray]:

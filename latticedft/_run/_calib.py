@@ -1,0 +1,134 @@
+"""A case's error bars: the calibration law measured after training (``[train] calibrate``), and a served task's
+calibrated estimate (``<var>_err_est``, the calibrated ``<var>_std``) with the warnings of its extrapolation.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from .._calibrate import RUNNER_UP_WITHIN, Calibration, calibrate, too_short
+from .._case import Case
+from .._contract import AbstractLagrangian
+from .._errors import LatticeDFTError
+from .._select import _build
+from ._data import CaseData
+
+__all__ = ["TaskBand", "case_calibration", "task_band", "wanted"]
+
+log = logging.getLogger("latticedft")
+
+
+def wanted(case: Case) -> bool:
+    """Whether ``[train] calibrate`` asks for a calibration: ``true``, or ``"auto"`` with ``[model] select``,
+    ``[train] ensemble`` or a noise-aware fit (``noise`` other than ``"none"``)."""
+    flag = case.train.calibrate
+    if flag != "auto":
+        return bool(flag)
+    learn = case.train.learn
+    return case.model.select is not None or bool(learn.get("ensemble")) or learn.get("noise", "none") != "none"
+
+
+def case_calibration(
+    case: Case, data: CaseData, model: AbstractLagrangian, report: Any
+) -> tuple[dict[str, Any] | None, list[str], AbstractLagrangian | None]:
+    """Measure the case's calibration law by held-out serving after training: ``(law as a dict or None,
+    warnings, the trial model)``. Training data too short for a held-out window give one warning and no law."""
+    if not wanted(case):
+        return None, [], None
+    short = too_short(data.train)
+    if short is not None:
+        return None, [short], None
+    fresh, kwargs, runner_up = _candidates(case, data, model, report)
+    log.info("calibrating the error bar by held-out serving ...")
+    try:
+        cal, warnings, trial = calibrate(fresh, data.train, boundary=case.train.boundary, runner_up=runner_up, **kwargs)
+    except LatticeDFTError as exc:
+        text = " ".join(str(exc).split())[:160]
+        return None, [f"calibration: failed ({text}): served without a calibrated error bar"], None
+    log.info(
+        "calibration: err(k) = A * %.3g * k^%.2f on %d held-out slices (2 std covers %.0f %% of them; %.1f s)",
+        cal.scale,
+        cal.exponent,
+        cal.held_out_slices,
+        100 * cal.coverage,
+        cal.wall_time,
+    )
+    return cal.to_dict(), warnings, trial
+
+
+def _candidates(
+    case: Case, data: CaseData, model: AbstractLagrangian, report: Any
+) -> tuple[AbstractLagrangian, dict[str, Any], tuple[AbstractLagrangian, dict[str, Any], str] | None]:
+    """The chosen model unlearned with its learn keywords, and the runner-up of model selection (None without
+    selection, or when no other candidate scored within :data:`RUNNER_UP_WITHIN` of the chosen one)."""
+    kwargs = {k: v for k, v in case.train.learn.items() if k not in ("ensemble", "ensemble_seed")}
+    hand = case.model.build(len(data.dims))
+    sel = getattr(report, "selection", None)
+    if not sel:
+        return hand, kwargs, None
+    rows = sel["candidates"]
+    chosen = rows[sel["chosen"]]
+    fresh = _build(hand, chosen["kind"], dict(chosen["options"]))
+    best = chosen["score"]
+    others = [
+        r
+        for i, r in enumerate(rows)
+        if i != sel["chosen"] and r["score"] is not None and best is not None and r["score"] <= RUNNER_UP_WITHIN * best
+    ]
+    own = {**kwargs, "ridge": chosen["ridge"]}
+    if not others:
+        return fresh, own, None
+    r = min(others, key=lambda row: row["score"])
+    return fresh, own, (_build(hand, r["kind"], dict(r["options"])), {**kwargs, "ridge": r["ridge"]}, r["label"])
+
+
+@dataclass
+class TaskBand:
+    """A served task's calibrated error bar: ``err_est`` (per slice, RMS over the lattice), the calibrated
+    standard deviation of an ensemble (None for a single model) and the summary's ``error_estimate``."""
+
+    err_est: xr.DataArray
+    std: xr.DataArray | None
+    record: dict[str, Any]
+    warnings: list[str]
+
+
+def task_band(
+    cal: dict[str, Any], field: xr.DataArray, std: xr.DataArray | None, other: np.ndarray | None = None
+) -> TaskBand:
+    """The calibrated error bar of a served ``field`` (an ensemble's raw ``std`` beside it, or None): the larger
+    of the law and ``other``, the trial model's disagreement with the field per slice (None without one)."""
+    law = Calibration.from_dict(cal)
+    tdim = field.dims[0]
+    k = np.asarray(field["slice"].values if "slice" in field.coords else np.arange(field.sizes[tdim]))
+    values = np.asarray(field.values, dtype=np.float64)
+    finite = np.abs(values[np.isfinite(values)])
+    amplitude = float(finite.max()) if finite.size else math.nan
+    est = law.estimate(k, amplitude)
+    if other is not None:
+        est = np.fmax(est, np.where(k >= 2, other, 0.0))
+    err_est = xr.DataArray(est, dims=(tdim,), coords={tdim: field[tdim].values}, name="err_est")
+    err_est.attrs = {
+        "long_name": "calibrated error estimate (1 std, RMS over the lattice) from held-out serving",
+        "law": law.law,
+        "scale": law.scale,
+        "exponent": law.exponent,
+    }
+    if "units" in field.attrs:
+        err_est.attrs["units"] = field.attrs["units"]
+    calibrated = law.band(std, est) if std is not None else None
+    served = int(k.max()) + 1 if k.size else 0
+    record = {
+        "band": "ensemble and held-out error" if std is not None else "held-out error",
+        "terms": ["law", "trial disagreement"] if other is not None else ["law"],
+        "mean": float(np.mean(est[k >= 2])) if (k >= 2).any() else None,
+        "last": float(est[-1]) if est.size else None,
+        "amplitude": amplitude,
+    }
+    return TaskBand(err_est, calibrated, record, law.warnings(served, values))

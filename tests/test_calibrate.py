@@ -1,0 +1,190 @@
+"""Error bars calibrated by held-out serving: the law, its coverage, the task's band and its warnings."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import xarray as xr
+
+import latticedft as ldft
+from latticedft import systems
+from latticedft._calibrate import NOISE_FAILED, Calibration, _noise_warnings, calibrate, disagreement, too_short
+from latticedft.io import write_field
+
+from case_helpers import run_cli, tiny_wave, write_toml
+from helpers import oscillator_data
+
+
+def _law(**change: float) -> Calibration:
+    base = dict(scale=1e-3, exponent=1.0, quantile=0.95, windows=2, held_out_slices=10, slices=40)
+    base.update(low=-1.0, high=1.0, coverage=0.9, std_over_error=0.8, runner_up=None, wall_time=0.0)
+    base.update(change)
+    return Calibration(**base)  # type: ignore[arg-type]
+
+
+def test_coverage_on_a_small_synthetic_case() -> None:
+    """A quartic oscillator learned by a polynomial: the law is fitted on the held-out slices and twice it
+    covers the quantile's share of them; the random state is left as it was."""
+    _, data = oscillator_data(amplitudes=(0.4, 0.8, 1.2), steps=60)
+    expected = _after_seed(3), np.random.RandomState(3).rand()
+    torch.manual_seed(3)
+    np.random.seed(3)
+    cal, warnings, trial = calibrate(ldft.PolynomialLagrangian((2, 4)), data)
+    assert (torch.rand(1).item(), np.random.rand()) == expected
+    assert warnings == []
+    assert cal.windows == 3 and cal.slices == 60 and cal.held_out_slices == 3 * 18
+    assert cal.scale > 0 and 0 <= cal.exponent <= 3
+    assert 0.9 <= cal.coverage <= 1.0  # the 95 % quantile of the held-out targets: at least 95 % within 2 std
+    assert cal.low == pytest.approx(min(float(f.min()) for f in data))
+    est = cal.estimate(np.arange(60), 1.2)
+    assert est[0] == est[1] == 0 and np.all(np.diff(est[2:]) >= 0)
+    assert trial.report_ is not None  # the trial learned on the first 70 % of every field
+    d = disagreement(trial, data[0], data[0])
+    assert d.shape == (60,) and np.all(d[:2] == 0)
+
+
+def _after_seed(seed: int) -> float:
+    torch.manual_seed(seed)
+    return torch.rand(1).item()
+
+
+def test_the_law_round_trips_and_warns_beyond_its_windows() -> None:
+    law = _law()
+    assert Calibration.from_dict(json.loads(json.dumps(law.to_dict()))) == law
+    inside = np.linspace(-0.9, 0.9, 30)
+    assert law.warnings(40, inside) == []
+    longer, outside = law.warnings(41, inside), law.warnings(20, np.array([0.0, 1.5]))
+    assert len(longer) == 1 and "serves 41 slices" in longer[0] and "at most 40" in longer[0]
+    assert len(outside) == 1 and "outside the range" in outside[0]
+    std = xr.DataArray(np.full((3, 2), 3.0), dims=("t", "x"))
+    band = law.band(std, np.array([0.0, 4.0, 4.0]))
+    np.testing.assert_allclose(band.values, [[3, 3], [5, 5], [5, 5]])
+
+
+def test_too_short_data_say_so_in_one_line() -> None:
+    short = [systems.oscillator_sin(1.0, n=3)]
+    msg = too_short(short)
+    assert msg is not None and "\n" not in msg and "too short for a held-out window" in msg
+    assert too_short([systems.oscillator_sin(1.0, n=10)]) is None
+
+
+def test_a_failed_noise_aware_fit_is_reported() -> None:
+    """A noise-corrected trial that misses its held-out slices warns, whatever the second-difference share."""
+
+    class Report:
+        noise = {"method": "errors in variables", "second_difference_ratio": 0.49}
+
+    class Trial:
+        report_ = Report()
+
+    bad = _noise_warnings(Trial(), [np.array([0.01, 2 * NOISE_FAILED])])  # type: ignore[arg-type]
+    assert len(bad) == 1 and "failed its held-out check" in bad[0] and "0.49" in bad[0]
+    assert _noise_warnings(Trial(), [np.array([0.01, NOISE_FAILED / 2])]) == []  # type: ignore[arg-type]
+    stopped = _noise_warnings(Trial(), [np.array([0.01, np.nan])])  # type: ignore[arg-type]
+    assert len(stopped) == 1 and "(it stopped;" in stopped[0]
+    Report.noise = {"method": "none"}
+    assert _noise_warnings(Trial(), [np.array([0.5])]) == []  # type: ignore[arg-type]
+
+
+def test_a_calibrated_run_writes_the_estimate_and_its_coverage(tmp_path: Path, capsys) -> None:
+    """``[train] calibrate = true``: summary.json holds the law and its held-out coverage, each task its estimate
+    (``psi_err_est``) and how well it held; the figure is drawn; the served field is the uncalibrated run's."""
+    case = tiny_wave(tmp_path)
+    code, _, _ = run_cli(capsys, "run", case, "--out", tmp_path / "plain", "--set", "export.paraview=false")
+    assert code == 0
+    code, _, err = run_cli(
+        capsys,
+        "run",
+        case,
+        "--out",
+        tmp_path / "cal",
+        "--set",
+        "train.calibrate=true",
+        "--set",
+        "export.paraview=false",
+    )
+    assert code == 0, err
+    assert "calibration: err(k)" in err
+    summary = json.loads((tmp_path / "cal" / "summary.json").read_text())
+    law = summary["train"]["calibration"]
+    assert 0 <= law["coverage"] <= 1 and law["held_out_slices"] > 0
+    task = summary["tasks"]["test"]
+    assert task["error_estimate"]["band"] == "held-out error"
+    assert task["error_estimate"]["terms"] == ["law", "trial disagreement"]
+    assert set(task["calibration"]) >= {"within_2std", "std_over_error"}
+    with xr.open_dataset(tmp_path / "cal" / "test.nc") as ds, xr.open_dataset(tmp_path / "plain" / "test.nc") as p:
+        assert ds["psi_err_est"].dims == ("t",) and np.all(ds["psi_err_est"].values[2:] > 0)
+        xr.testing.assert_identical(ds["psi"], p["psi"])
+    assert (tmp_path / "cal" / "test.png").stat().st_size > 0
+    assert (tmp_path / "cal" / "calibration.pt").is_file()
+
+
+def test_too_short_training_data_serve_without_a_band(tmp_path: Path, capsys) -> None:
+    """Training fields of 3 slices: one warning line, no estimate; strict makes it exit status 4."""
+    case = tmp_path / "short"
+    (case / "data").mkdir(parents=True)
+    write_field(case / "data" / "train.nc", {"psi": systems.wave_string([(1, 1.0)], nx=13, nt=3)})
+    write_field(case / "data" / "test.nc", {"psi": systems.wave_string([(1, 0.5)], nx=13, nt=10)})
+    write_toml(
+        case,
+        """
+        [model]
+        kind = "polynomial"
+        orders = [2, 0]
+        [train]
+        data = ["data/train.nc"]
+        calibrate = true
+        [[serve]]
+        name = "test"
+        from = "data/test.nc"
+        [run]
+        threads = 1
+        [export]
+        paraview = false
+        """,
+    )
+    code, _, err = run_cli(capsys, "run", case, "--out", tmp_path / "r", "--strict")
+    assert code == 4, err
+    lines = [ln for ln in err.splitlines() if "too short for a held-out window" in ln]
+    assert len(lines) == 1
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert "calibration" not in summary["train"]
+    assert any("too short" in w for w in summary["warnings"])
+    with xr.open_dataset(tmp_path / "r" / "test.nc") as ds:
+        assert "psi_err_est" not in ds.data_vars
+        assert any("too short" in w for w in json.loads(ds.attrs["latticedft_warnings"]))
+
+
+def test_serve_again_uses_the_recorded_law_and_trial(tmp_path: Path, capsys) -> None:
+    """``latticedft serve`` after a calibrated run: the law from summary.json, the trial from calibration.pt."""
+    case = tiny_wave(tmp_path)
+    toml = case / "case.toml"
+    toml.write_text(toml.read_text().replace('data = ["data/train.nc"]', 'data = ["data/train.nc"]\ncalibrate = true'))
+    out = tmp_path / "r"
+    assert run_cli(capsys, "run", case, "--out", out, "--set", "export.paraview=false")[0] == 0
+    with xr.open_dataset(out / "test.nc") as ds:
+        first = ds["psi_err_est"].load()
+    code, _, err = run_cli(capsys, "serve", case, "--out", out, "--set", "export.paraview=false")
+    assert code == 0, err
+    with xr.open_dataset(out / "test.nc") as ds:
+        xr.testing.assert_identical(ds["psi_err_est"], first)
+
+
+def test_auto_calibrates_after_selection_with_the_runner_up(tmp_path: Path, capsys) -> None:
+    """``calibrate = "auto"`` is on with ``[model] select``; the runner-up candidate's label is recorded when its
+    score was within reach of the chosen one's."""
+    case = tiny_wave(tmp_path)
+    code, _, err = run_cli(
+        capsys, "run", case, "--out", tmp_path / "r", "--set", 'model.select="auto"', "--set", "export.paraview=false"
+    )
+    assert code == 0, err
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    law, sel = summary["train"]["calibration"], summary["train"]["selection"]
+    labels = [r["label"] for r in sel["candidates"]]
+    assert law["runner_up"] is None or (law["runner_up"] in labels and law["runner_up"] != sel["chosen_label"])
+    with xr.open_dataset(tmp_path / "r" / "test.nc") as ds:
+        assert "psi_err_est" in ds.data_vars
