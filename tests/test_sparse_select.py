@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 
-from test_sparse import pendulum
+import pytest
+from test_sparse import kepler_one_orbit, pendulum
 
 import latticedft as ldft
 from latticedft._select import BEATEN, _choose, auto_candidates, sparse_candidates
@@ -73,3 +74,30 @@ def test_a_sparse_case_prints_its_equation(tmp_path, capsys):
     capsys.readouterr()
     assert latticedft.cli.main(["info", str(tmp_path)]) == 0
     assert "DEL: " in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("vector", "library", "words"),
+    [
+        (False, "kinetic + norm:-1", "'norm:-1' needs a vector field"),
+        (False, "kinetic + cross", "'cross' needs a field of 2 components"),
+        (False, "kinetic + gradient", "'gradient' needs a space axis"),
+        (True, "kinetic + gradient + norm:-1", "'gradient' needs a space axis"),
+    ],
+)
+def test_check_refuses_a_library_that_does_not_fit_the_lattice(tmp_path, capsys, vector, library, words):
+    import latticedft.cli
+
+    (tmp_path / "data").mkdir()
+    field = kepler_one_orbit(n=12) if vector else pendulum(2.0, 12)
+    field.to_netcdf(tmp_path / "data" / "train.nc")
+    name = "q" if vector else "psi"
+    (tmp_path / "case.toml").write_text(
+        f'[field]\nvariable = "{name}"\n\n[model]\nkind = "sparse"\nlibrary = "{library}"\n\n'
+        '[train]\ndata = ["data/train.nc"]\n\n[[serve]]\nname = "train"\nfrom = "data/train.nc"\n'
+    )
+    capsys.readouterr()
+    assert latticedft.cli.main(["check", str(tmp_path)]) != 0
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "model.library: " in err and words in err
+    assert not (tmp_path / "results").exists()
