@@ -28,11 +28,13 @@ def test_a_sparse_candidate_near_the_lowest_score_comes_first():
         {"score": math.inf, "n_parameters": 45, "label": "hand-set", "kind": "polynomial"},
         {"score": 8e-7, "n_parameters": 36, "label": "orders", "kind": "polynomial"},
         {"score": 2e-5, "n_parameters": 7, "label": "sparse", "kind": "sparse"},
-        {"score": 2e-3, "n_parameters": 2, "label": "sparser", "kind": "sparse"},
+        {"score": 2e-2, "n_parameters": 2, "label": "sparser", "kind": "sparse"},
     ]
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 2
-    rows[2]["score"] = 1e-3  # beyond SPARSE_FACTOR: the dense one
+    rows[2]["score"] = 1e-2  # beyond SPARSE_FACTOR and SPARSE_FLOOR: the dense one
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
+    rows[3]["score"] = 1.6e-3  # below SPARSE_FLOOR (Kepler from one orbit: the true two terms)
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 3
 
 
 def test_auto_tries_the_sparse_libraries_first():
