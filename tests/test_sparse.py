@@ -294,3 +294,25 @@ def test_double_pendulum_with_the_trace_gauge():
     a = terms["Dtq1**2"]
     for name, ratio in (("Dtq2**2", 0.5), ("cos(q1-q2)*Dtq1*Dtq2", 1.0), ("cos(q1)", 2.0), ("cos(q2)", 1.0)):
         assert terms[name] / a == pytest.approx(ratio, rel=1e-2)
+
+
+# -- threshold = "auto" by held-out serving ----------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("library", "data", "true"),
+    [
+        ("auto", lambda: kepler_one_orbit(), {"(Dtq1**2+Dtq2**2)", "|q|**-1"}),
+        ("kinetic + trig:1", lambda: [pendulum(2.0), pendulum(2.6)], {"Dtq**2", "cos(q)"}),
+        (
+            "kinetic + gradient + poly:4",
+            lambda: [klein_gordon_string(a) for a in (0.6, 1.1)],
+            {"Dtq**2", "Dxq**2", "q**2", "q**4"},
+        ),
+    ],
+    ids=["kepler-one-orbit", "pendulum", "klein-gordon"],
+)
+def test_threshold_auto_finds_the_true_terms_alone_on_clean_data(library, data, true):
+    # held-out serving: extra terms absorbing the lattice's truncation error serve no better than SERVE_FLOOR
+    model = ldft.SparseLagrangian(library, bags=0)
+    report = ldft.learn(model, data(), progress=False)
+    assert set(kept(model)) == true
+    assert report.validation  # the served error of each support tried

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 
-from test_sparse import pendulum
+import pytest
+from test_sparse import kepler_one_orbit, pendulum
 
 import latticedft as ldft
 from latticedft._select import BEATEN, _choose, auto_candidates, sparse_candidates
@@ -27,11 +28,13 @@ def test_a_sparse_candidate_near_the_lowest_score_comes_first():
         {"score": math.inf, "n_parameters": 45, "label": "hand-set", "kind": "polynomial"},
         {"score": 8e-7, "n_parameters": 36, "label": "orders", "kind": "polynomial"},
         {"score": 2e-5, "n_parameters": 7, "label": "sparse", "kind": "sparse"},
-        {"score": 2e-3, "n_parameters": 2, "label": "sparser", "kind": "sparse"},
+        {"score": 2e-2, "n_parameters": 2, "label": "sparser", "kind": "sparse"},
     ]
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 2
-    rows[2]["score"] = 1e-3  # beyond SPARSE_FACTOR: the dense one
+    rows[2]["score"] = 1e-2  # beyond SPARSE_FACTOR and SPARSE_FLOOR: the dense one
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
+    rows[3]["score"] = 1.6e-3  # below SPARSE_FLOOR (Kepler from one orbit: the true two terms)
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 3
 
 
 def test_auto_tries_the_sparse_libraries_first():
@@ -73,3 +76,30 @@ def test_a_sparse_case_prints_its_equation(tmp_path, capsys):
     capsys.readouterr()
     assert latticedft.cli.main(["info", str(tmp_path)]) == 0
     assert "DEL: " in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("vector", "library", "words"),
+    [
+        (False, "kinetic + norm:-1", "'norm:-1' needs a vector field"),
+        (False, "kinetic + cross", "'cross' needs a field of 2 components"),
+        (False, "kinetic + gradient", "'gradient' needs a space axis"),
+        (True, "kinetic + gradient + norm:-1", "'gradient' needs a space axis"),
+    ],
+)
+def test_check_refuses_a_library_that_does_not_fit_the_lattice(tmp_path, capsys, vector, library, words):
+    import latticedft.cli
+
+    (tmp_path / "data").mkdir()
+    field = kepler_one_orbit(n=12) if vector else pendulum(2.0, 12)
+    field.to_netcdf(tmp_path / "data" / "train.nc")
+    name = "q" if vector else "psi"
+    (tmp_path / "case.toml").write_text(
+        f'[field]\nvariable = "{name}"\n\n[model]\nkind = "sparse"\nlibrary = "{library}"\n\n'
+        '[train]\ndata = ["data/train.nc"]\n\n[[serve]]\nname = "train"\nfrom = "data/train.nc"\n'
+    )
+    capsys.readouterr()
+    assert latticedft.cli.main(["check", str(tmp_path)]) != 0
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "model.library: " in err and words in err
+    assert not (tmp_path / "results").exists()

@@ -21,6 +21,7 @@ from .._case import Case, ServeTask, load_invariant
 from .._errors import ConfigError, InputError, LatticeDFTError
 from .._lattice import as_lattice_field
 from .._layout import component_labels, field_spacing, lattice_dims
+from .._models import SparseLagrangian
 from ..io.fields import read_field
 from ._charges import check_charges
 
@@ -96,6 +97,19 @@ def as_case_error(exc: LatticeDFTError, key: str) -> ConfigError:
     return ConfigError(f"case.toml: {key}: {exc.problem}", key=key, problem=exc.problem)
 
 
+def _check_library(case: Case, n: int, m: int) -> None:
+    """A sparse model's library expanded on the data's lattice (``n`` axes, ``m`` components), before any
+    training: a term that does not fit it is one line naming ``model.library``."""
+    if case.model.kind != SparseLagrangian.kind:
+        return
+    model = case.model.build(n)
+    if isinstance(model, SparseLagrangian) and model.library is not None:
+        try:
+            model.library.expand(n, m)
+        except InputError as exc:
+            raise as_case_error(exc, "model.library") from None
+
+
 def check_case(case: Case) -> CaseData:
     """Read and validate every field of the case (nothing is written)."""
     comps = case.field.components
@@ -125,6 +139,7 @@ def check_case(case: Case) -> CaseData:
         train.append(da)
     if comps is None and any(component_labels(d) is not None for d in train):  # pragma: no cover - caught above
         raise InputError("train.data: some files have components and some do not")
+    _check_library(case, len(dims), len(comps) if comps else 1)
     tasks = [_check_task(case, t, dims, spacing, comps) for t in case.serve]
     return CaseData(train=train, tasks=tasks, dims=dims, spacing=spacing, components=comps)
 
