@@ -24,6 +24,7 @@ from ._options import option
 from ._stencil import Stencil
 
 __all__ = [
+    "check_model_lattice",
     "action",
     "del_residual",
     "mixed_hessian",
@@ -77,6 +78,25 @@ def _action(
     cells = gather_cells(psi, model.stencil, periodic, batch)
     density: torch.Tensor = model(cells)
     return math.prod(spacing) * density.sum()
+
+
+def check_model_lattice(model: AbstractLagrangian, f: LatticeField, what: str) -> None:
+    """Refuse a field whose lattice (dims, components, spacing) is not the one the model is bound to."""
+    if model.has_stencil and model.stencil.ndim != f.ndim:
+        raise InputError(f"{what}: has {f.ndim} lattice dims but the model's stencil has {model.stencil.ndim}")
+    if model.bound:
+        if model.m != f.ncomp:
+            raise InputError(f"{what}: has {f.ncomp} component(s) but the model was learned with {model.m}")
+        if model.components and f.components and tuple(model.components) != tuple(f.components):
+            raise InputError(
+                f"{what}: component labels {list(f.components)} differ from the model's {list(model.components)}"
+            )
+        for k, (a, b) in enumerate(zip(f.spacing, model.spacing)):
+            if not math.isclose(a, b, rel_tol=1e-6):
+                raise InputError(
+                    f"{what}: spacing along {f.dims[k]!r} is {a:.6g} but the model was learned at "
+                    f"{b:.6g} (a discrete theory belongs to its lattice)"
+                )
 
 
 def _check_model(model: AbstractLagrangian) -> None:

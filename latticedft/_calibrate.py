@@ -35,9 +35,10 @@ import xarray as xr
 from ._errors import LatticeDFTError, ServeError
 from ._lattice import BoundaryKinds
 from ._learn import learn
+from ._learn._heldout import HOLD_OUT
+from ._learn._heldout import held_in as _split
 from ._learn._noise import denoised_start
 from ._models import AbstractLagrangian
-from ._select import HOLD_OUT, _split
 from ._serve import serve
 
 __all__ = ["QUANTILE", "Calibration", "calibrate", "disagreement", "too_short", "slice_errors"]

@@ -41,6 +41,7 @@ from ._options import option
 
 __all__ = [
     "COMPONENT_DIM",
+    "is_lazy",
     "PERIODIC_ATTR",
     "lattice_dims",
     "component_labels",
@@ -395,3 +396,8 @@ def validate_field(
             )
     field_periodic(da, source)
     return da
+
+
+def is_lazy(da: xr.DataArray) -> bool:
+    """True for a DataArray whose values are not in memory (dask-backed, or opened from a file unloaded)."""
+    return da.chunks is not None or not bool(getattr(da.variable, "_in_memory", True))

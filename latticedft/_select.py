@@ -17,11 +17,12 @@ from ._errors import InputError, LatticeDFTError, ServeError
 from ._lattice import BoundaryKinds
 from ._learn import learn
 from ._learn._data import as_fields
-from ._learn._noise import denoised_start
+from ._learn._heldout import HOLD_OUT
+from ._learn._heldout import held_in as _split
+from ._learn._heldout import held_out_score as _score
 from ._learn._sparse import SERVE_FLOOR
 from ._models import MODELS, AbstractLagrangian
 from ._models._sparse import default_library
-from ._serve import serve
 
 __all__ = [
     "SelectionReport",
@@ -35,7 +36,6 @@ __all__ = [
 ]
 
 #: The fraction of every training field's slices that no candidate learns from (its served error is the score).
-HOLD_OUT = 0.3
 #: A candidate replaces the hand-set model only when its score is below the hand-set score by this factor.
 FACTOR = 2.0
 #: The hand-set model is kept when its score is at or below this: it serves the held-out slices to this relative
@@ -157,37 +157,6 @@ def _build(model: AbstractLagrangian, kind: str, options: dict[str, Any]) -> Abs
         raise InputError.at("candidates", f"{kind} {options}: {exc}") from None
     except TypeError as exc:
         raise InputError.at("candidates", f"bad options for kind {kind!r} ({exc})") from None
-
-
-def _split(fields: list[xr.DataArray], hold_out: float) -> list[xr.DataArray]:
-    """The first ``1 - hold_out`` of every field's slices (at least 3, and at least one slice held out)."""
-    out = []
-    for i, f in enumerate(fields):
-        nt = f.sizes[f.dims[0]]
-        keep = max(3, int(round(nt * (1.0 - hold_out))))
-        if keep >= nt:
-            raise InputError.at(
-                "data", f"field {i} holds {nt} time slices; selection needs at least 4 (3 to learn from, 1 held out)"
-            )
-        out.append(f.isel({f.dims[0]: slice(0, keep)}))
-    return out
-
-
-def _score(model: AbstractLagrangian, fields: list[xr.DataArray], boundary: BoundaryKinds | None) -> float:
-    """The largest served error over the largest magnitude, field by field; ``ServeError`` when one stops.
-    A candidate whose training corrected noisy data serves from denoised initial slices, as a case's task
-    with ``start = "auto"`` would."""
-    noise = (model.report_.noise if model.report_ is not None else None) or {}
-    denoise = noise.get("method", "none") != "none"
-    worst = 0.0
-    for f in fields:
-        start = denoised_start(model, f) if denoise else f
-        result = serve(model, start, boundary=boundary, progress=False)
-        pred = np.asarray(result.field.values)
-        ref = np.asarray(f.values)[: pred.shape[0]]
-        err = float(np.max(np.abs(pred - ref))) / max(float(np.max(np.abs(ref))), np.finfo(float).tiny)
-        worst = max(worst, err if math.isfinite(err) else math.inf)
-    return worst
 
 
 def _short(exc: BaseException) -> str:

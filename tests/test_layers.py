@@ -156,16 +156,10 @@ DEFERRED_MODULES: dict[tuple[str, str], str] = {
     ("latticedft.io", "latticedft.io.figures"): "a public attribute loaded on first use: matplotlib",
     ("latticedft.io", "latticedft.io.xdmf"): "a public attribute loaded on first use: meshio and h5py",
     ("latticedft._results._files", "latticedft._modelfile"): "torch, only when a model file is read or written",
-    ("latticedft._learn._sparse", "latticedft._select"): "threshold = 'auto' of the sparse fit serves held-out "
-    "slices as selection does, and selection learns",
 }
 
 #: Import cycles left for now, as sets of modules, and why.
-CYCLES_ALLOWED: dict[frozenset[str], str] = {
-    frozenset(
-        ["latticedft._learn", "latticedft._learn._api", "latticedft._learn._sparse", "latticedft._select"]
-    ): "the sparse fit's threshold is chosen by held-out serving (a deferred import of selection's split and score)",
-}
+CYCLES_ALLOWED: dict[frozenset[str], str] = {}
 
 
 def _matches(name: str, entry: str) -> bool:

@@ -19,7 +19,5 @@ from ._gauge import GAUGES
 from ._noise import NoiseEstimate, denoise, estimate_noise
 from ._report import LearnReport, diagnose
 
-_check_model_lattice = check_model_lattice  # the name the server imports
-
 __all__ = ["learn", "LearnReport", "diagnose", "GAUGES", "OPTIMIZERS", "check_model_lattice"]
 __all__ += ["NoiseEstimate", "denoise", "estimate_noise"]

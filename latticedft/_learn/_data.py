@@ -10,7 +10,7 @@ import numpy as np
 import torch
 import xarray as xr
 
-from .._action import second_time_difference
+from .._action import check_model_lattice, second_time_difference
 from .._errors import InputError
 from .._lattice import BoundaryKinds, LatticeField, as_lattice_field, gather_cells, interior_slices
 from .._models import AbstractLagrangian
@@ -42,25 +42,6 @@ def as_fields(data: Any, boundary: BoundaryKinds | None) -> list[LatticeField]:
         fields.append(as_lattice_field(d, source=src, boundary=boundary))
     check_alike(fields)
     return fields
-
-
-def check_model_lattice(model: AbstractLagrangian, f: LatticeField, what: str) -> None:
-    """Refuse a field whose lattice (dims, components, spacing) is not the one the model is bound to."""
-    if model.has_stencil and model.stencil.ndim != f.ndim:
-        raise InputError(f"{what}: has {f.ndim} lattice dims but the model's stencil has {model.stencil.ndim}")
-    if model.bound:
-        if model.m != f.ncomp:
-            raise InputError(f"{what}: has {f.ncomp} component(s) but the model was learned with {model.m}")
-        if model.components and f.components and tuple(model.components) != tuple(f.components):
-            raise InputError(
-                f"{what}: component labels {list(f.components)} differ from the model's {list(model.components)}"
-            )
-        for k, (a, b) in enumerate(zip(f.spacing, model.spacing)):
-            if not math.isclose(a, b, rel_tol=1e-6):
-                raise InputError(
-                    f"{what}: spacing along {f.dims[k]!r} is {a:.6g} but the model was learned at "
-                    f"{b:.6g} (a discrete theory belongs to its lattice)"
-                )
 
 
 def n_sites(f: LatticeField, model: AbstractLagrangian) -> int:

@@ -26,7 +26,7 @@ import xarray as xr
 
 from .._errors import InputError
 from .._lattice import BoundaryKinds, LatticeField, as_lattice_field, interior_slices
-from .._layout import COMPONENT_DIM, check_coordinate, lattice_dims
+from .._layout import COMPONENT_DIM, check_coordinate, is_lazy, lattice_dims
 from .._stencil import Stencil
 
 __all__ = ["FieldSource", "Piece", "as_sources", "check_alike", "pieces", "is_lazy"]
@@ -83,11 +83,6 @@ class FieldSource:
         """Sites carrying a DEL equation."""
         inner = interior_slices(self.shape, stencil, self.lattice.boundary)
         return int(np.prod([len(range(*s.indices(n))) for s, n in zip(inner, self.shape)]))
-
-
-def is_lazy(da: xr.DataArray) -> bool:
-    """True for a DataArray whose values are not in memory (dask-backed, or opened from a file unloaded)."""
-    return da.chunks is not None or not bool(getattr(da.variable, "_in_memory", True))
 
 
 def _open(path: Path) -> xr.Dataset:

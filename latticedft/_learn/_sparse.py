@@ -25,6 +25,7 @@ from .._models import SparseLagrangian
 from .._models._sparse import THRESHOLDS
 from ._exact import _constrained_lstsq, _qr_r, gauge_matrix, residual_matrix
 from ._gauge import Gauge
+from ._heldout import HOLD_OUT, held_in, held_out_score
 
 __all__ = ["learn_sparse", "stlsq", "BLOCKS", "SLACK", "SERVE_SLACK", "SERVE_FLOOR"]
 
@@ -150,16 +151,15 @@ def _pick_served(
 ) -> tuple[float, dict[str, float]] | None:
     """The threshold chosen by held-out serving, and the served error of every support tried (None where no fit
     serves): each threshold of :data:`THRESHOLDS` fits the first part of every field
-    (:func:`latticedft._select._split`), and each support, the sparsest first, serves every field's held-out
-    tail from the tail's first two slices (:func:`latticedft._select._score`). The first served within
+    (:func:`latticedft._learn._heldout.held_in`), and each support, the sparsest first, serves every field's held-out
+    tail from the tail's first two slices (:func:`latticedft._learn._heldout.held_out_score`). The first served within
     :data:`SERVE_FLOOR` is taken; else the sparsest within :data:`SERVE_SLACK` of the best."""
-    from .._select import HOLD_OUT, _score, _split  # selection serves models: it sits above learning
 
     single = _unbatched(fields)
     whole = [f.to_dataarray() for f in single]
     boundary = dict(zip(single[0].dims[1:], single[0].boundary[1:])) or None
     try:
-        keep = [p.sizes[p.dims[0]] for p in _split(whole, HOLD_OUT)]
+        keep = [p.sizes[p.dims[0]] for p in held_in(whole, HOLD_OUT)]
     except InputError:  # too few slices to hold any out
         return None
     parts = [f.with_values(f.values[:k]) for f, k in zip(single, keep)]
@@ -173,7 +173,7 @@ def _pick_served(
         with torch.no_grad():
             model.coef.copy_(torch.from_numpy(theta))
         try:
-            scores[f"{thr:g}"] = _score(model, tails, boundary)
+            scores[f"{thr:g}"] = held_out_score(model, tails, boundary)
         except LatticeDFTError:
             scores[f"{thr:g}"] = math.inf
         if scores[f"{thr:g}"] <= SERVE_FLOOR:

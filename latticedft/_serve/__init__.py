@@ -28,13 +28,12 @@ from typing import Any, overload
 import torch
 import xarray as xr
 
+from .._action import check_model_lattice as _check_model_lattice
 from .._boundary import BoundaryKinds
 from .._device import device_label, on_device, resolve_device
 from .._errors import InputError, ServeError
 from .._lattice import LatticeField, as_lattice_fields
-from .._layout import lattice_dims
-from .._learn import check_model_lattice as _check_model_lattice
-from .._learn._source import is_lazy
+from .._layout import is_lazy, lattice_dims
 from .._models import AbstractLagrangian, EnsembleLagrangian
 from ._ensemble import calibration, serve_ensemble
 from ._field import _serve_field

@@ -27,12 +27,12 @@ import torch
 import torch.distributed as dist
 import xarray as xr
 
+from .._action import check_model_lattice
 from .._boundary import BoundaryKinds
 from .._collective import group_device, world
 from .._errors import InputError, ServeError
 from .._lattice import LatticeField, as_lattice_field
 from .._layout import lattice_dims
-from .._learn import check_model_lattice
 from .._models import AbstractLagrangian
 from ._affine import _AffineSlices, _slice_residuals
 from ._edges import known_slices
