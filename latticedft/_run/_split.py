@@ -1,12 +1,12 @@
 """A task served split into slabs over the processes of the group (``--workers N``, ``torchrun``).
 
 Every process takes part in each task that can be split (:func:`split_refusal` is None and the learned DEL
-is the explicit affine recurrence): :func:`serve_split` serves it with
-:func:`latticedft._serve._decomp.serve_slabs`, each process reading only its slab (with its halo planes) of
-``from``, and measuring the errors against its slab of ``reference`` and ``baseline``; the sums and maxima
-are reduced over the processes. Rank 0 gets the gathered field and the task's figures; it alone measures the
-invariant, the charges and the training range on the gathered field, and writes the results. A task that
-cannot be split is served by rank 0 alone (an info line says why).
+is the explicit affine recurrence, or nonlinear with a block-diagonal slice Jacobian: site-wise slice-Newton):
+:func:`serve_split` serves it with :func:`latticedft._serve._decomp.serve_slabs`, each process reading only
+its slab (with its halo planes) of ``from``, and measuring the errors against its slab of ``reference`` and
+``baseline``; the sums and maxima are reduced over the processes. Rank 0 gets the gathered field and the
+task's figures; it alone measures the invariant, the charges and the training range on the gathered field,
+and writes the results. A task that cannot be split is served by rank 0 alone (an info line says why).
 """
 
 from __future__ import annotations
@@ -49,7 +49,8 @@ def split_refusal(model: AbstractLagrangian | None, td: TaskData) -> str | None:
         (td.slices <= 2, "it serves no slice"),
         (t.cadence.thins, "its output cadence (every > 1) is measured on every slice in one process"),
         (bool(opts.checkpoint), "it writes checkpoints (checkpoint)"),
-        (opts.mode != "newton" or not opts.affine, "only the affine recurrence is split (mode, affine)"),
+        (opts.mode != "newton" or not opts.affine, "only the affine recurrence and slice-Newton split (mode, affine)"),
+        (opts.solver not in ("auto", "sitewise"), "only the site-wise slice solver is split (solver)"),
         (opts.boundary_value is not None, "its boundary_value is a function of the whole lattice"),
         (_denoised(model, td), "its start is denoised on the whole lattice"),
         (isinstance(model, EnsembleLagrangian), "an ensemble is served whole"),
@@ -157,8 +158,8 @@ def serve_split(model: AbstractLagrangian, td: TaskData, init: xr.DataArray) -> 
         meter = _SlabErrors(td.reference)
         try:
             got = _serve_slabs(
-                model, init, td.slices, boundary=td.task.boundary, rtol=td.task.options.rtol, on_slab=meter,
-                report=report,
+                model, init, td.slices, boundary=td.task.boundary, rtol=td.task.options.rtol,
+                max_newton=td.task.options.max_newton, on_slab=meter, report=report,
             )  # fmt: skip
         except (InputError, ServeError) as exc:  # the same in every process: the test is global
             why = str(exc).removeprefix("--workers: ").split("; serve it in one process")[0]
@@ -190,7 +191,7 @@ def _own_slab(report: dict[str, Any], td: TaskData) -> Slab:
 def _result(
     model: AbstractLagrangian, td: TaskData, got: xr.DataArray, report: dict[str, Any], wall: float
 ) -> ServeResult:
-    """Rank 0's result of the gathered field, as one process reports the affine recurrence."""
+    """Rank 0's result of the gathered field, as one process reports the affine recurrence or slice-Newton."""
     served = got.drop_vars("slice")
     f = as_lattice_field(served, source="served", boundary=td.task.boundary, min_slices=2)
     ext, warnings = assess(model, f)
@@ -200,13 +201,14 @@ def _result(
         complete=True,
         reason="complete",
         slices=td.slices,
-        newton_iterations=td.slices - 2,
-        max_newton_iterations=1,
+        newton_iterations=int(report["newton_iterations"]),
+        max_newton_iterations=int(report["max_newton"]),
         wall_time=wall,
         sites_per_second=solved / wall if wall > 0 else math.inf,
         max_residual=float(report["max_residual"]),
         mode=td.task.options.mode,
-        solver="affine",
+        solver=str(report["solver"]),
+        slice_solver="sitewise" if report["solver"] == "newton" else None,
         extrapolation=ext,
         warnings=warnings,
     )

@@ -11,8 +11,13 @@ None.
 
 What is split: a DEL that is affine and explicit (the recurrence's matrix ``N`` on the new slice is
 diagonal, as for the first-order stencil with the wave, Klein-Gordon and other quadratic ``L_d``: each new
-value depends on its own equation only). A DEL that is not affine (slice-Newton), or whose ``N`` couples
-neighbouring unknowns (LU, Krylov), is refused in one line naming the alternative: one process.
+value depends on its own equation only), and a nonlinear DEL whose slice Jacobian is block-diagonal (one
+stencil point at ``t + 1``, as sine-Gordon's): site-wise slice-Newton, the predictor of one process, the
+unknown slice's halo exchanged before each evaluation of its cells (once a Newton iteration) and every
+convergence test of :func:`._newton._newton_slice` all-reduced, so each process iterates as one process
+would. A DEL whose new slice couples neighbouring unknowns (LU, Krylov) is refused in one line naming the
+alternative: one process. A linear solve that fails in one process only (a singular block) is not made
+global: the others wait for it until the group's timeout.
 """
 
 from __future__ import annotations
@@ -27,15 +32,16 @@ import torch
 import torch.distributed as dist
 import xarray as xr
 
-from .._action import check_model_lattice
+from .._action import CellDerivatives, check_model_lattice
 from .._boundary import BoundaryKinds
 from .._collective import group_device, world
 from .._errors import InputError, ServeError
-from .._lattice import LatticeField, as_lattice_field
+from .._lattice import LatticeField, as_lattice_field, gather_cells
 from .._layout import lattice_dims
 from .._models import AbstractLagrangian
 from ._affine import _AffineSlices, _slice_residuals
 from ._edges import known_slices
+from ._newton import _newton_slice
 from ._options import kept_slices
 from ._slices import _SliceSystem
 
@@ -149,15 +155,13 @@ def _exchange(v: np.ndarray, slab: Slab, rank: int, size: int) -> None:
         planes[where] = buf.cpu().numpy()
 
 
-def _recurrence(model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem) -> _AffineSlices:
-    """The affine recurrence of the slab, refused in one line when it cannot be split."""
+def _recurrence(model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem) -> _AffineSlices | None:
+    """The affine recurrence of the slab (None: the DEL is not affine, slice-Newton serves), refused in one line
+    when its new slice's sites are coupled."""
     scale = _all_max(float(f.values[:2].abs().max())) or 1.0
     probe = _AffineSlices.probe(model, sys.st, f.ncomp, scale)
-    alternative = "serve it in one process (without --workers)"
     if probe is None:
-        raise InputError.at(
-            "--workers", f"the learned DEL is not affine: slice-Newton is not split across processes yet; {alternative}"
-        )
+        return None
     h = probe[0].copy()
     h[np.abs(h) <= ROUNDOFF * np.abs(h).max()] = 0.0  # a learned L_d's round-off couplings: none
     op = _AffineSlices(sys, h, probe[1])
@@ -165,9 +169,64 @@ def _recurrence(model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem) -
         raise InputError.at(
             "--workers",
             "the DEL couples neighbouring sites of the new slice (the slice solve is LU, not site by site), "
-            f"which is not split across processes; {alternative}",
+            "which is not split across processes; serve it in one process (without --workers)",
         )
     return op
+
+
+def _all_maxima(*values: float) -> tuple[float, ...]:
+    """Each value's largest over the processes (one all-reduce)."""
+    if world()[1] == 1:
+        return values
+    t = torch.tensor(values, dtype=torch.float64, device=group_device())
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return tuple(float(v) for v in t.cpu())
+
+
+class _SlabNewton:
+    """Site-wise slice-Newton on a slab: the window's rows ``0 .. 3`` hold slices ``i - 2 .. i + 1``; the halo
+    planes of the unknown slice are exchanged before each gather of its cells, and every convergence test is
+    all-reduced (so all processes iterate alike)."""
+
+    def __init__(self, model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem, window: np.ndarray, slab: Slab):
+        self.model, self.f, self.sys, self.window, self.slab = model, f, sys, window, slab
+        self.psi = torch.from_numpy(window).view(4, *f.shape[1:], f.ncomp)
+        self.flat = self.psi.view(4, sys.nsite, f.ncomp)
+        self.unk = torch.from_numpy(np.nonzero(sys.interior)[0])
+        self.vol = math.prod(model.spacing)
+        self.cache: dict[str, Any] = {"solver": "auto"}
+        self.g_prev: torch.Tensor | None = None
+        self.total_it, self.max_it = 0, 0
+
+    def cells_at(self, k: int) -> torch.Tensor:
+        """The cells anchored on window row ``k`` (the unknown slice's halo exchanged first)."""
+        if k == 2:
+            _exchange(self.window[3], self.slab, *world())
+        return gather_cells(self.psi[k : k + 2], self.model.stencil, self.f.boundary)
+
+    def step(self, i: int, rtol: float, max_newton: int) -> float:
+        """Solve slice ``i``'s equations for slice ``i + 1`` (row 3); its residual."""
+        flat, unk = self.flat, self.unk
+        flat[3, unk] = 2 * flat[2, unk] - flat[1, unk]
+        if i >= 2:  # the predictor of one process (``solve_and_tally``)
+            flat[3, unk] += flat[2, unk] - 2 * flat[1, unk] + flat[0, unk]
+        if self.g_prev is None:
+            self.g_prev = CellDerivatives(self.model, self.cells_at(1)).grad
+        it, res, self.g_prev, err = _newton_slice(
+            self.model, self.sys, self.psi, flat, unk, 2, self.g_prev, self.vol, rtol, max_newton, self.cells_at,
+            self.cache, _all_maxima,
+        )  # fmt: skip
+        if err is not None:
+            raise ServeError(f"slice {i + 1}: {err[0]} (split slice-Newton)", slice=i + 1, residual=err[2])
+        self.total_it, self.max_it = self.total_it + it, max(self.max_it, it)
+        used = self.cache.get("used", [])
+        if _all_maxima(float(used not in ([], ["sitewise"])))[0]:  # some slab's Jacobian is not block-diagonal
+            raise InputError.at(
+                "--workers",
+                "the DEL couples neighbouring sites of the new slice (slice-Newton's solve is not site by site), "
+                "which is not split across processes; serve it in one process (without --workers)",
+            )
+        return float(res)
 
 
 def serve_slabs(
@@ -178,6 +237,7 @@ def serve_slabs(
     boundary: BoundaryKinds | None = None,
     every: int = 1,
     rtol: float = 1e-10,
+    max_newton: int = 30,
     on_slab: Callable[[int, Slab, np.ndarray], None] | None = None,
     report: dict[str, Any] | None = None,
 ) -> xr.DataArray | None:
@@ -199,29 +259,36 @@ def serve_slabs(
     sys = _SliceSystem(model, f)
     op = _recurrence(model, f, sys)
     m, vol = f.ncomp, math.prod(model.spacing)
-    window = np.full((3, sys.nsite * m), np.nan)
-    window[:2] = f.values[:2].reshape(2, -1).numpy()
+    window = np.full((4, sys.nsite * m), np.nan)  # slices i - 2 .. i + 1
+    window[1:3] = f.values[:2].reshape(2, -1).numpy()
+    newton = _SlabNewton(model, f, sys, window, slab) if op is None else None
     kept_at = kept_slices(slices, every)
-    kept = [window[k].copy() for k in range(2) if k in kept_at]
+    kept = [window[k + 1].copy() for k in range(2) if k in kept_at]
     known = None if sys.interior.all() else np.repeat(~sys.interior, m)
     shape = (len(slab.local), *f.shape[2:], m)
     for k in range(2 if on_slab is not None else 0):
-        on_slab(k, slab, window[k].reshape(shape)[slab.own])  # type: ignore[misc]
+        on_slab(k, slab, window[k + 1].reshape(shape)[slab.own])  # type: ignore[misc]
     worst = 0.0
     for i in range(1, slices - 1):
         if known is not None:  # the Dirichlet strips (the halo planes: placeholders until the exchange)
             nxt = known_slices(f, lambda a, b: f.values[a:b], f.shape[0], None, i + 1, i + 2) if data else None
-            window[2, known] = 0.0 if nxt is None else np.asarray(nxt).reshape(-1)[known]
-        op.run(window, 1, 2)
-        _exchange(window[2], slab, rank, size)
-        worst = max(worst, _check(model, f, window, vol, op.dmax, rtol, i))
+            window[3, known] = 0.0 if nxt is None else np.asarray(nxt).reshape(-1)[known]
+        if newton is not None:
+            worst = max(worst, newton.step(i, rtol, max_newton))
+        else:
+            assert op is not None
+            op.run(window[1:], 1, 2)
+            _exchange(window[3], slab, rank, size)
+            worst = max(worst, _check(model, f, window[1:], vol, op.dmax, rtol, i))
         if on_slab is not None:
-            on_slab(i + 1, slab, window[2].reshape(shape)[slab.own])
+            on_slab(i + 1, slab, window[3].reshape(shape)[slab.own])
         if i + 1 in kept_at:
-            kept.append(window[2].copy())
-        window[:2] = window[1:]
+            kept.append(window[3].copy())
+        window[:3] = window[1:]
     if report is not None:
         report.update(max_residual=worst, processes=size, axis=axis, slabs=[[s.lo, s.hi] for s in slabs])
+        its = (slices - 2, 1) if newton is None else (newton.total_it, newton.max_it)
+        report.update(solver="affine" if newton is None else "newton", newton_iterations=its[0], max_newton=its[1])
     return _gathered(init, f, slab, kept, kept_at, rank)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -17,28 +18,53 @@ from ._solvers import SolverRefused, factor_step
 #: while each cuts the residual by at least this factor; otherwise the next step assembles a fresh Jacobian.
 CHORD_DROP = 1e-2
 
+#: ``allmax(*values)``: each value's largest over the processes serving one slice together (identity in one).
+AllMax = Callable[..., tuple[float, ...]]
 
-def _fresh_blocks(ev: CellDerivatives, sys: _SliceSystem, cache: dict[str, Any]) -> dict:
+
+def _local(*values: float) -> tuple[float, ...]:
+    """The values themselves: one process holds the whole slice."""
+    return values
+
+
+def _fresh_blocks(ev: CellDerivatives, sys: _SliceSystem, cache: dict[str, Any], allmax: AllMax = _local) -> dict:
     """Hessian blocks of the slice at the current state; records their diagonal size (the residual scale).
 
     Also checks the mixed Hessian's conditioning at every unknown site: ``cache["singular"]`` is
     ``(message, row)`` when its smallest singular value is singular relative to the largest met on this
-    field so far (``cache["mscale"]``), else None.
+    field so far (``cache["mscale"]``), else None. The sizes are the whole slice's (``allmax``).
     """
     blocks = ev.blocks(sys.pairs)
-    cache["dmax"] = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
     smin, smax, row = sys.site_singular_values(blocks)
+    dmax = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
+    cache["dmax"], low, smax = allmax(dmax, -smin, smax)
+    smin = -low
     cache["mscale"] = scale = max(cache.get("mscale", 0.0), smax)
     cache["singular"] = (singular_message(smin, scale), row) if is_singular(smin, scale) else None
     return blocks
 
 
 def _newton_slice(
-    model: AbstractLagrangian, sys: _SliceSystem, psi, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at, cache
+    model: AbstractLagrangian,
+    sys: _SliceSystem,
+    psi,
+    flat,
+    unk,
+    i,
+    g_prev,
+    vol,
+    rtol,
+    max_newton,
+    cells_at,
+    cache,
+    allmax: AllMax = _local,
 ):
     """Newton on one slice. Steps reuse the cached factorised Jacobian (chord steps, exact for quadratic
     ``L_d``) while each cuts the residual a hundredfold; fresh Hessian blocks are assembled only when one did not.
-    The linear solver is ``cache["solver"]`` (``_solvers.SOLVERS``; ``cache["used"]`` collects those chosen)."""
+    The linear solver is ``cache["solver"]`` (``_solvers.SOLVERS``; ``cache["used"]`` collects those chosen).
+
+    ``allmax`` makes every test that reads the whole slice (residual, sizes, singular values, the step) global
+    when the slice is split over processes (one part each in ``flat``): they then stop at the same iteration."""
     m = sys.m
     res = math.inf
     prev = math.inf
@@ -48,16 +74,16 @@ def _newton_slice(
     for it in range(1, max_newton + 1):
         ev = CellDerivatives(model, cells_at(i))
         r = sys.residual(g_prev, ev.grad, vol)
-        res = float(np.abs(r).max()) if r.size else 0.0
+        (res,) = allmax(float(np.abs(r).max()) if r.size else 0.0)
         if not math.isfinite(res):
             return it, res, ev.grad, ("residual is not finite", None, res)
         stale = "solve" in cache and (it == 1 or res <= CHORD_DROP * prev)
         prev = res
-        blocks = _fresh_blocks(ev, sys, cache) if "dmax" not in cache else None
+        blocks = _fresh_blocks(ev, sys, cache, allmax) if "dmax" not in cache else None
         if blocks is not None and cache["singular"]:
             return it, res, ev.grad, (*cache["singular"], res)
         if rscale is None:
-            rscale = vol * cache["dmax"] * _scale(flat, i, unk)
+            rscale = vol * cache["dmax"] * allmax(_scale(flat, i, unk))[0]
         if res <= rtol * rscale or small:
             # converged (or the last step was below rtol times the values: the residual stalls at round-off);
             # the cells anchored at slice i are evaluated at the solution: reuse them for slice i + 1
@@ -65,7 +91,7 @@ def _newton_slice(
         try:
             if not stale:
                 if blocks is None:
-                    blocks = _fresh_blocks(ev, sys, cache)
+                    blocks = _fresh_blocks(ev, sys, cache, allmax)
                     if cache["singular"]:
                         return it, res, ev.grad, (*cache["singular"], res)
                 cache["solve"], name = factor_step(sys, blocks, vol, cache.get("solver", "auto"), rtol * rscale)
@@ -81,7 +107,9 @@ def _newton_slice(
             cache.pop("solve", None)
             row = int(np.argmax(np.abs(r)))
             return it, res, ev.grad, (f"singular Jacobian (mixed Hessian) of the slice: {exc}", row, res)
-        if not np.all(np.isfinite(delta)):
+        finite = bool(np.all(np.isfinite(delta)))
+        bad, step = allmax(0.0 if finite else 1.0, float(np.abs(delta).max()) if finite and delta.size else 0.0)
+        if bad:
             cache.pop("solve", None)
             if stale:
                 continue
@@ -92,6 +120,6 @@ def _newton_slice(
                 ("Newton step is not finite (singular mixed Hessian?)", int(np.argmax(np.abs(r))), res),
             )
         flat[i + 1, unk] += torch.from_numpy(delta.reshape(-1, m))
-        small = not stale and float(np.abs(delta).max()) <= rtol * _scale(flat, i, unk)
+        small = not stale and step <= rtol * allmax(_scale(flat, i, unk))[0]
     worst: int | None = int(np.argmax(np.abs(r))) if r.size else None
     return max_newton, res, ev.grad, (f"Newton did not converge in {max_newton} iterations", worst, res)
