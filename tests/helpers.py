@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import socket
+
 import numpy as np
 import torch
 import xarray as xr
@@ -76,3 +78,10 @@ def on_a_terminal(argv: list[str], env: dict[str, str], columns: int = 100) -> t
     proc.wait(timeout=300)
     os.close(master)
     return proc.returncode, b"".join(chunks).decode()
+
+
+def free_port() -> int:
+    """A TCP port free on the loopback now (for a process group's rendezvous)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])

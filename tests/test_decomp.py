@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +18,8 @@ import latticedft as ldft
 from latticedft._errors import InputError
 from latticedft._models import AnalyticLagrangian
 from latticedft._serve._decomp import plan_slabs, serve_slabs
+
+from helpers import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -69,12 +70,6 @@ if dist.is_initialized():
     dist.barrier()
     dist.destroy_process_group()
 """
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _env() -> dict[str, str]:
@@ -140,7 +135,7 @@ def test_one_process_serves_the_field_of_serve() -> None:
 def test_two_processes_on_gloo_serve_the_one_process_field(tmp_path: Path) -> None:
     script = tmp_path / "worker.py"
     script.write_text(_WORKER)
-    port = str(_free_port())
+    port = str(free_port())
     procs = [
         subprocess.Popen(
             [sys.executable, str(script), str(tmp_path / "two.json")],
@@ -160,7 +155,7 @@ def test_a_two_node_torchrun_serves_the_one_process_field(tmp_path: Path) -> Non
     """Two invocations of ``torchrun --nnodes 2`` (one process each) meeting at 127.0.0.1, bounded in time."""
     script = tmp_path / "worker.py"
     script.write_text(_WORKER)
-    port = str(_free_port())
+    port = str(free_port())
     procs = [
         subprocess.Popen(
             [

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -26,6 +25,8 @@ from latticedft import systems
 from latticedft._errors import InputError
 from latticedft._lattice import gather_cells, interior_slices
 from latticedft._learn._source import as_sources, is_lazy, pieces
+
+from helpers import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -220,12 +221,6 @@ if dist.is_initialized():
 """
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.mark.slow
 def test_two_processes_on_the_loopback_learn_what_one_learns(tmp_path: Path) -> None:
     script = tmp_path / "worker.py"
@@ -235,7 +230,7 @@ def test_two_processes_on_the_loopback_learn_what_one_learns(tmp_path: Path) -> 
         env.pop(k, None)
     one = subprocess.run([sys.executable, str(script), str(tmp_path / "one.json")], env=env, timeout=600)
     assert one.returncode == 0
-    port = str(_free_port())
+    port = str(free_port())
     procs = [
         subprocess.Popen(
             [sys.executable, str(script), str(tmp_path / f"two_{r}.json")],

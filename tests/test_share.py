@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from helpers import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -55,12 +56,6 @@ if dist.is_initialized():
 """
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _rel(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300))
 
@@ -74,7 +69,7 @@ def test_each_process_reads_its_share_and_learns_what_one_learns(tmp_path: Path)
         env.pop(k, None)
     one = subprocess.run([sys.executable, str(script), str(tmp_path / "one.json")], env=env, timeout=600)
     assert one.returncode == 0
-    port = str(_free_port())
+    port = str(free_port())
     procs = [
         subprocess.Popen(
             [sys.executable, str(script), str(tmp_path / f"two_{r}.json")],
