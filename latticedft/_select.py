@@ -328,6 +328,7 @@ def _choose(rows: list[dict[str, Any]], factor: float, keep_below: float) -> tup
         and math.isfinite(sc)
         and sc <= max(SPARSE_FACTOR * lowest, SPARSE_FLOOR)
     ]
+    dense = best
     if sparse and best not in sparse:  # a few symbolic terms near the lowest score: they extrapolate
         best = min(sparse, key=lambda i: (rows[i]["n_parameters"], scores[i]))
     if not math.isfinite(scores[best]):
@@ -337,6 +338,13 @@ def _choose(rows: list[dict[str, Any]], factor: float, keep_below: float) -> tup
         )
         return 0, "every candidate failed; kept the hand-set model", [warning]
     if best != 0 and scores[0] <= keep_below and not scores[best] * BEATEN <= scores[0]:
+        if dense != 0 and scores[dense] * BEATEN <= scores[0]:  # never keep a hand-set model beaten 100x
+            return (
+                dense,
+                f"{rows[dense]['label']} scored {scores[dense]:.3e}, {BEATEN:g}x below the hand-set model's "
+                f"{scores[0]:.3e} (the sparse {rows[best]['label']} scored {scores[best]:.3e})",
+                [],
+            )
         return (
             0,
             f"the hand-set model scored {scores[0]:.3e}, at or below keep_below = {keep_below:g}: kept "

@@ -37,6 +37,18 @@ def test_a_sparse_candidate_near_the_lowest_score_comes_first():
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 3
 
 
+def test_a_sparse_preference_never_keeps_a_hand_set_model_beaten_100x():
+    rows = [  # the pendulum at 2.9 rad: the hand-set polynomial below keep_below, trig features 260x better
+        {"score": 7.0e-8, "n_parameters": 45, "label": "hand-set", "kind": "polynomial"},
+        {"score": 1.95e-3, "n_parameters": 3, "label": "sparse", "kind": "sparse"},
+        {"score": 2.7e-10, "n_parameters": 134, "label": "trig", "kind": "features"},
+    ]
+    chosen, reason, _ = _choose(rows, factor=2.0, keep_below=1e-6)
+    assert chosen == 2 and "100x below the hand-set" in reason
+    rows[2]["score"] = 7.0e-9  # only 10x better: the hand-set model is kept
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 0
+
+
 def test_auto_tries_the_sparse_libraries_first():
     cands = auto_candidates(ldft.PolynomialLagrangian((4, 8)), n=2, m=1)
     assert cands[: len(sparse_candidates(2, 1))] == sparse_candidates(2, 1)
