@@ -261,6 +261,11 @@ class AbstractLagrangian(torch.nn.Module, abc.ABC):
             raise InputError.at("model", f"{type(self).__name__} (kind {self.kind!r}) has no closed form")
         return form.expr
 
+    def equation_text(self) -> dict[str, Any]:
+        """``L_d`` and the DEL it implies as readable text (keys ``L_d``, ``latex``, ``del``, ``where``) for
+        models that print themselves as an equation (the sparse kind); ``{}`` (the default) for the others."""
+        return {}
+
     # -- capabilities read by learning, serving and the case pipeline -------------------------------------
     @property
     def has_functions(self) -> bool:

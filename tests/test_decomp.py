@@ -24,7 +24,7 @@ from helpers import free_port
 REPO = Path(__file__).resolve().parents[1]
 
 _WORKER = """
-import sys, json, numpy as np, torch, xarray as xr
+import os, sys, json, numpy as np, torch, xarray as xr
 torch.set_num_threads(1)
 import torch.distributed as dist
 import latticedft as ldft
@@ -65,10 +65,15 @@ for name, (model, init, slices, bnd, every) in cases.items():
     else:
         assert got is None
 if rank == 0:
-    json.dump(out, open(sys.argv[1], "w"))
+    with open(sys.argv[1], "w") as f:
+        json.dump(out, f)
 if dist.is_initialized():
     dist.barrier()
     dist.destroy_process_group()
+    # as the command line does (latticedft.cli._workers.end_process): no interpreter teardown after a group,
+    # where gloo's threads can abort a process that has done its work
+    sys.stdout.flush(); sys.stderr.flush()
+    os._exit(0)
 """
 
 

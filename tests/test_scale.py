@@ -196,7 +196,7 @@ def test_lazy_data_errors_name_the_file(tmp_path: Path) -> None:
 
 # -- several processes -----------------------------------------------------------------------------------------
 _WORKER = """
-import sys, json, numpy as np, torch
+import os, sys, json, numpy as np, torch
 torch.set_num_threads(1)
 import torch.distributed as dist
 import latticedft as ldft
@@ -214,10 +214,15 @@ data = systems.klein_gordon_training_set(n=4, steps=10, seed=0)
 m = ldft.MLPLagrangian(hidden=[6], activation="tanh", form="free", seed=0)
 rep = ldft.learn(m, data, optimizer="lbfgs", max_iter=8, chunk_sites=150, boundary="periodic")
 out["mlp"] = [torch.cat([p.detach().reshape(-1) for p in m.parameters()]).tolist(), rep.loss, rep.iterations]
-json.dump(out, open(sys.argv[1], "w"))
+with open(sys.argv[1], "w") as f:
+    json.dump(out, f)
 if dist.is_initialized():
     dist.barrier()
     dist.destroy_process_group()
+    # as the command line does (latticedft.cli._workers.end_process): no interpreter teardown after a group,
+    # where gloo's threads can abort a process that has done its work
+    sys.stdout.flush(); sys.stderr.flush()
+    os._exit(0)
 """
 
 

@@ -22,7 +22,7 @@ from helpers import free_port
 REPO = Path(__file__).resolve().parents[1]
 
 _WORKER = """
-import sys, json, torch
+import os, sys, json, torch
 torch.set_num_threads(1)
 import torch.distributed as dist
 import latticedft as ldft
@@ -49,10 +49,15 @@ ldft.learn(m, data, optimizer="lbfgs", max_iter=4, chunk_sites=150, boundary="pe
 params = torch.cat([p.detach().reshape(-1) for p in m.parameters()]).tolist()
 out["mlp"] = [params, m.in_center.tolist(), m.in_scale.tolist(), float(m.out_scale), m.trained_range().tolist()]
 out["mlp_read"] = sorted(set(map(tuple, seen)))
-json.dump(out, open(sys.argv[1], "w"))
+with open(sys.argv[1], "w") as f:
+    json.dump(out, f)
 if dist.is_initialized():
     dist.barrier()
     dist.destroy_process_group()
+    # as the command line does (latticedft.cli._workers.end_process): no interpreter teardown after a group,
+    # where gloo's threads can abort a process that has done its work
+    sys.stdout.flush(); sys.stderr.flush()
+    os._exit(0)
 """
 
 

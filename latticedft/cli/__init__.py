@@ -82,7 +82,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the exit status."""
+    """Run the command line; returns the exit status (the process's own command line, run in a process group,
+    ends the process here: :func:`latticedft.cli._workers.end_process`)."""
+    entry = argv is None  # the process's own command line: its outcome is final once main returns
+    status = _main(argv)
+    if entry:
+        from . import _workers
+
+        return _workers.end_process(status)
+    return status
+
+
+def _main(argv: list[str] | None) -> int:
+    """The command line's work and its exit status; errors, interrupts and signals answered as documented."""
     entry = argv is None  # the process's own command line: its outcome is final once main returns
     argv = list(sys.argv[1:] if argv is None else argv)
     previous = _on_sigterm()  # first of all: a signal while the engine loads is answered like any other

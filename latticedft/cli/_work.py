@@ -17,7 +17,6 @@ from tqdm.std import tqdm  # not tqdm.auto: no ipywidgets warning in Jupyter (la
 from .._case import Case
 from .._errors import InputError
 from .._modelfile import load_model, save_model
-from .._models import SparseLagrangian
 from .._results import (
     config_attrs,
     export_task,
@@ -94,9 +93,8 @@ def model_warnings_of(model: AbstractLagrangian, folder: Path) -> list[str]:
 
 
 def equation_attrs(model: AbstractLagrangian) -> dict[str, str]:
-    """``latticedft_L_d``: the learned ``L_d`` in plain text, for a task file of a sparse model (else none)."""
-    if not isinstance(model, SparseLagrangian):
-        return {}
+    """``latticedft_L_d``: the learned ``L_d`` in plain text, for a task file of a model that prints itself as an
+    equation (:meth:`~latticedft.AbstractLagrangian.equation_text`; else none)."""
     text = model.equation_text()
     return {"latticedft_L_d": f"L_d = {text['L_d']}"} if text else {}
 

@@ -35,6 +35,7 @@ log = logging.getLogger("latticedft")
 
 __all__ = [
     "add_argument",
+    "end_process",
     "supervise",
     "is_helper",
     "join",
@@ -147,6 +148,10 @@ def _wait(procs: list[subprocess.Popen[bytes]], logs: list[Any]) -> int:
         return BAD_INPUT
 
 
+#: True once this process joined a process group (it then ends with :func:`end_process`)
+_joined = False
+
+
 def join(device: str = "cpu", what: str = "training") -> None:
     """Join the process group described by the environment (a no-op in a single process); ``device`` is the
     training device (CUDA: NCCL, each rank on its own GPU)."""
@@ -157,6 +162,8 @@ def join(device: str = "cpu", what: str = "training") -> None:
         warnings.simplefilter("ignore", DeviceWarning)
         joined = _dist.init_from_env(device=device)
     if joined:
+        global _joined
+        _joined = True
         rank, size = _dist.world()
         log.info("%s in %d processes (this is rank %d, backend %s)", what, size, rank, _dist_backend())
         atexit.register(_leave)
@@ -190,6 +197,24 @@ def leave() -> None:
     if dist.is_available() and dist.is_initialized():
         dist.barrier()
         dist.destroy_process_group()
+
+
+def end_process(status: int) -> int:
+    """The exit status of a command; a process that was in a process group ends here at once.
+
+    Its work is written and its outcome said; what is left is the interpreter's own teardown, in which the
+    gloo backend's threads can still abort the process ("terminate called without an active exception",
+    SIGABRT) although its group was destroyed: a helper rank would then read as failed. So such a process
+    flushes its output and logs and leaves with ``os._exit`` (the group is left first, if it was not)."""
+    if not _joined:
+        return status
+    with contextlib.suppress(Exception):
+        _leave()
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(status)
 
 
 def train_only(case: Case, serve: bool = True) -> int:
