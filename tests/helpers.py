@@ -85,3 +85,53 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+#: The end of a process-group worker script (which imports os, sys and torch.distributed as dist): wait for all,
+#: leave the group, and end without the interpreter's teardown, as the command line does
+#: (``latticedft.cli._workers.end_process``: gloo's threads can abort a process there after its work is done).
+GROUP_END = """
+if dist.is_initialized():
+    dist.barrier()
+    dist.destroy_process_group()
+    sys.stdout.flush(); sys.stderr.flush()
+    os._exit(0)
+"""
+
+RANK_VARIABLES = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT")
+
+
+def group_env(repo) -> dict[str, str]:
+    """This environment for a worker: one thread, the repository importable, no process group of its own."""
+    import os
+
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(repo))
+    for k in RANK_VARIABLES:
+        env.pop(k, None)
+    return env
+
+
+def run_group(argv, n: int, env: dict[str, str], timeout: float = 600) -> list[str]:
+    """Run ``argv(rank)`` as the ``n`` ranks of a process group on the loopback (gloo); assert each exits 0 (the
+    failing ranks' stderr in the message) and return their stderr. ``timeout`` guards against a hang only."""
+    import subprocess
+
+    port = str(free_port())
+    procs = [
+        subprocess.Popen(
+            argv(r),
+            env=dict(env, MASTER_ADDR="127.0.0.1", MASTER_PORT=port, WORLD_SIZE=str(n), RANK=str(r), LOCAL_RANK=str(r)),
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for r in range(n)
+    ]
+    try:
+        errors = [p.communicate(timeout=timeout)[1] for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    assert [p.returncode for p in procs] == [0] * n, "\n".join(e[-3000:] for e in errors)
+    return errors

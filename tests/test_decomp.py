@@ -4,7 +4,6 @@ field of 2 processes (gloo on the loopback, and a two-node ``torchrun``) against
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -19,11 +18,12 @@ from latticedft._errors import InputError
 from latticedft._models import AnalyticLagrangian
 from latticedft._serve._decomp import plan_slabs, serve_slabs
 
-from helpers import free_port
+from helpers import GROUP_END, free_port, group_env, run_group
 
 REPO = Path(__file__).resolve().parents[1]
 
-_WORKER = """
+_WORKER = (
+    """
 import os, sys, json, numpy as np, torch, xarray as xr
 torch.set_num_threads(1)
 import torch.distributed as dist
@@ -67,21 +67,9 @@ for name, (model, init, slices, bnd, every) in cases.items():
 if rank == 0:
     with open(sys.argv[1], "w") as f:
         json.dump(out, f)
-if dist.is_initialized():
-    dist.barrier()
-    dist.destroy_process_group()
-    # as the command line does (latticedft.cli._workers.end_process): no interpreter teardown after a group,
-    # where gloo's threads can abort a process that has done its work
-    sys.stdout.flush(); sys.stderr.flush()
-    os._exit(0)
 """
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
-    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
-        env.pop(k, None)
-    return env
+    + GROUP_END
+)
 
 
 def _check(out: Path) -> None:
@@ -140,18 +128,7 @@ def test_one_process_serves_the_field_of_serve() -> None:
 def test_two_processes_on_gloo_serve_the_one_process_field(tmp_path: Path) -> None:
     script = tmp_path / "worker.py"
     script.write_text(_WORKER)
-    port = str(free_port())
-    procs = [
-        subprocess.Popen(
-            [sys.executable, str(script), str(tmp_path / "two.json")],
-            env=dict(_env(), MASTER_ADDR="127.0.0.1", MASTER_PORT=port, WORLD_SIZE="2", RANK=str(r), LOCAL_RANK=str(r)),
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for r in range(2)
-    ]
-    errors = [p.communicate(timeout=300)[1] for p in procs]
-    assert [p.returncode for p in procs] == [0, 0], "\n".join(e[-3000:] for e in errors)
+    run_group(lambda r: [sys.executable, str(script), str(tmp_path / "two.json")], 2, group_env(REPO))
     _check(tmp_path / "two.json")
 
 
@@ -168,7 +145,7 @@ def test_a_two_node_torchrun_serves_the_one_process_field(tmp_path: Path) -> Non
                 *["--node-rank", str(node), "--master-addr", "127.0.0.1", "--master-port", port],
                 *[str(script), str(tmp_path / "nodes.json")],
             ],
-            env=_env(),
+            env=group_env(REPO),
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,

@@ -9,7 +9,6 @@ fields. Two processes on the loopback (torch.distributed, gloo) learn what one p
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -26,7 +25,7 @@ from latticedft._errors import InputError
 from latticedft._lattice import gather_cells, interior_slices
 from latticedft._learn._source import as_sources, is_lazy, pieces
 
-from helpers import free_port
+from helpers import GROUP_END, group_env, run_group
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -195,7 +194,8 @@ def test_lazy_data_errors_name_the_file(tmp_path: Path) -> None:
 
 
 # -- several processes -----------------------------------------------------------------------------------------
-_WORKER = """
+_WORKER = (
+    """
 import os, sys, json, numpy as np, torch
 torch.set_num_threads(1)
 import torch.distributed as dist
@@ -216,37 +216,19 @@ rep = ldft.learn(m, data, optimizer="lbfgs", max_iter=8, chunk_sites=150, bounda
 out["mlp"] = [torch.cat([p.detach().reshape(-1) for p in m.parameters()]).tolist(), rep.loss, rep.iterations]
 with open(sys.argv[1], "w") as f:
     json.dump(out, f)
-if dist.is_initialized():
-    dist.barrier()
-    dist.destroy_process_group()
-    # as the command line does (latticedft.cli._workers.end_process): no interpreter teardown after a group,
-    # where gloo's threads can abort a process that has done its work
-    sys.stdout.flush(); sys.stderr.flush()
-    os._exit(0)
 """
+    + GROUP_END
+)
 
 
 @pytest.mark.slow
 def test_two_processes_on_the_loopback_learn_what_one_learns(tmp_path: Path) -> None:
     script = tmp_path / "worker.py"
     script.write_text(_WORKER)
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
-    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
-        env.pop(k, None)
+    env = group_env(REPO)
     one = subprocess.run([sys.executable, str(script), str(tmp_path / "one.json")], env=env, timeout=600)
     assert one.returncode == 0
-    port = str(free_port())
-    procs = [
-        subprocess.Popen(
-            [sys.executable, str(script), str(tmp_path / f"two_{r}.json")],
-            env=dict(env, MASTER_ADDR="127.0.0.1", MASTER_PORT=port, WORLD_SIZE="2", RANK=str(r), LOCAL_RANK=str(r)),
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for r in range(2)
-    ]
-    errors = [p.communicate(timeout=600)[1] for p in procs]
-    assert [p.returncode for p in procs] == [0, 0], "\n".join(e[-3000:] for e in errors)
+    run_group(lambda r: [sys.executable, str(script), str(tmp_path / f"two_{r}.json")], 2, env)
     ref = json.loads((tmp_path / "one.json").read_text())
     ranks = [json.loads((tmp_path / f"two_{r}.json").read_text()) for r in range(2)]
     assert ranks[0] == ranks[1]  # every process ends with the same model, bit for bit
@@ -268,9 +250,7 @@ def test_cli_workers_train_the_same_model(tmp_path: Path) -> None:
     (case / "case.toml").write_text(
         '[model]\nkind = "polynomial"\norders = [2, 4]\n\n[train]\ndata = ["data/train_*.nc"]\nchunk_sites = 300\n'
     )
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
-    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
-        env.pop(k, None)
+    env = group_env(REPO)
     runs = {}
     for workers in (1, 2):
         out = tmp_path / f"results_{workers}"

@@ -9,7 +9,6 @@ it to round-off.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,11 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import free_port
+from helpers import GROUP_END, group_env, run_group
 
 REPO = Path(__file__).resolve().parents[1]
 
-_WORKER = """
+_WORKER = (
+    """
 import os, sys, json, torch
 torch.set_num_threads(1)
 import torch.distributed as dist
@@ -51,14 +51,9 @@ out["mlp"] = [params, m.in_center.tolist(), m.in_scale.tolist(), float(m.out_sca
 out["mlp_read"] = sorted(set(map(tuple, seen)))
 with open(sys.argv[1], "w") as f:
     json.dump(out, f)
-if dist.is_initialized():
-    dist.barrier()
-    dist.destroy_process_group()
-    # as the command line does (latticedft.cli._workers.end_process): no interpreter teardown after a group,
-    # where gloo's threads can abort a process that has done its work
-    sys.stdout.flush(); sys.stderr.flush()
-    os._exit(0)
 """
+    + GROUP_END
+)
 
 
 def _rel(a: np.ndarray, b: np.ndarray) -> float:
@@ -69,23 +64,10 @@ def _rel(a: np.ndarray, b: np.ndarray) -> float:
 def test_each_process_reads_its_share_and_learns_what_one_learns(tmp_path: Path) -> None:
     script = tmp_path / "worker.py"
     script.write_text(_WORKER)
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
-    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
-        env.pop(k, None)
+    env = group_env(REPO)
     one = subprocess.run([sys.executable, str(script), str(tmp_path / "one.json")], env=env, timeout=600)
     assert one.returncode == 0
-    port = str(free_port())
-    procs = [
-        subprocess.Popen(
-            [sys.executable, str(script), str(tmp_path / f"two_{r}.json")],
-            env=dict(env, MASTER_ADDR="127.0.0.1", MASTER_PORT=port, WORLD_SIZE="2", RANK=str(r), LOCAL_RANK=str(r)),
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for r in range(2)
-    ]
-    errors = [p.communicate(timeout=600)[1] for p in procs]
-    assert [p.returncode for p in procs] == [0, 0], "\n".join(e[-3000:] for e in errors)
+    run_group(lambda r: [sys.executable, str(script), str(tmp_path / f"two_{r}.json")], 2, env)
     ref = json.loads((tmp_path / "one.json").read_text())
     ranks = [json.loads((tmp_path / f"two_{r}.json").read_text()) for r in range(2)]
     for kind in ("poly", "mlp"):

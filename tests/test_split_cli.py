@@ -24,6 +24,7 @@ from latticedft import systems
 from latticedft.io import write_field
 
 from case_helpers import run_cli, snapshot, write_toml
+from helpers import group_env
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -64,12 +65,10 @@ def tiny_klein_gordon(tmp: Path, stencil: str = "") -> Path:
 
 def _python(*argv: object) -> subprocess.CompletedProcess[str]:
     """``python ARGV`` in a subprocess that imports this checkout, outside any process group."""
-    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env = group_env(REPO)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])
-    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
-        env.pop(k, None)
     cmd = [sys.executable, *map(str, argv)]
-    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, check=False)
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, check=False)
 
 
 def _latticedft(*argv: object) -> subprocess.CompletedProcess[str]:
