@@ -85,3 +85,40 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def run_group(script, n: int, *args: str, timeout: float = 120.0, env=None) -> list[tuple[int, str, str]]:
+    """Run the Python file ``script`` as the ``n`` ranks of a process group on the loopback (``args`` after
+    it): each rank its own Python with one thread, ``RANK``, ``LOCAL_RANK``, ``WORLD_SIZE``, ``MASTER_ADDR``
+    and ``MASTER_PORT`` (a free port) set, this repository first on its path, ``env`` added. Every rank
+    still running after ``timeout`` seconds is killed and the test fails with the ranks' output; otherwise
+    each rank's ``(exit status, stdout, stderr)``."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import pytest
+
+    base = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
+        base.pop(k, None)
+    base.update(env or {}, MASTER_ADDR="127.0.0.1", MASTER_PORT=str(free_port()), WORLD_SIZE=str(n))
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(script), *args],
+            env=dict(base, RANK=str(r), LOCAL_RANK=str(r)),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for r in range(n)
+    ]
+    try:
+        outs = [p.communicate(timeout=timeout) for p in procs]
+    except subprocess.TimeoutExpired:
+        for p in procs:
+            p.kill()
+        tails = [f"rank {r}: {p.communicate()[1][-2000:]}" for r, p in enumerate(procs)]
+        pytest.fail(f"the group of {n} did not finish in {timeout} s\n" + "\n".join(tails))
+    return [(p.returncode, out, err) for p, (out, err) in zip(procs, outs)]

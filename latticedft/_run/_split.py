@@ -32,6 +32,7 @@ from .._models._ensemble import EnsembleLagrangian
 from .._serve import ServeResult
 from .._serve._decomp import Slab, _halo_width, plan_slabs
 from .._serve._decomp import serve_slabs as _serve_slabs
+from .._serve._flag import SlabError
 from .._serve._range import assess
 from ._data import TaskData
 
@@ -98,6 +99,8 @@ class Split:
     #: ``(all slices both hold, the served slices)`` of the baseline against the reference; None without one
     baseline: tuple[dict[str, float], dict[str, float]] | None
     decomposition: dict[str, Any] = field(default_factory=dict)
+    #: why the split serve stopped before its last slice (the result then holds what was served); "" when not
+    stopped: str = ""
 
 
 class _SlabErrors:
@@ -156,11 +159,17 @@ def serve_split(model: AbstractLagrangian, td: TaskData, init: xr.DataArray) -> 
         t0 = time.perf_counter()
         report: dict[str, Any] = {}
         meter = _SlabErrors(td.reference)
+        stopped = None
         try:
             got = _serve_slabs(
                 model, init, td.slices, boundary=td.task.boundary, rtol=td.task.options.rtol,
                 max_newton=td.task.options.max_newton, on_slab=meter, report=report,
             )  # fmt: skip
+        except SlabError as exc:  # the same in every process; rank 0 holds what was served before it
+            if report:
+                stopped, got = exc, exc.result
+            else:  # it stopped while setting up: nothing was served, rank 0 serves the task alone
+                why = str(exc)
         except (InputError, ServeError) as exc:  # the same in every process: the test is global
             why = str(exc).removeprefix("--workers: ").split("; serve it in one process")[0]
     if why is not None:
@@ -179,8 +188,11 @@ def serve_split(model: AbstractLagrangian, td: TaskData, init: xr.DataArray) -> 
         log.info("task %s: split over %d processes along %r, slabs %s", td.task.name, world()[1], report["axis"], slabs)
     if got is None:
         return Split(result=None, errors=None, baseline=None)
-    result = _result(model, td, got, report, time.perf_counter() - t0)
-    return Split(result=result, errors=errors, baseline=baseline, decomposition=decomposition)
+    result = _result(model, td, got, report, time.perf_counter() - t0, stopped)
+    if stopped is not None:
+        log.warning("task %s stopped at %s; %d of %d slices written", td.task.name, stopped, result.slices, td.slices)
+    text = "" if stopped is None else str(stopped)
+    return Split(result=result, errors=errors, baseline=baseline, decomposition=decomposition, stopped=text)
 
 
 def _own_slab(report: dict[str, Any], td: TaskData) -> Slab:
@@ -189,18 +201,25 @@ def _own_slab(report: dict[str, Any], td: TaskData) -> Slab:
 
 
 def _result(
-    model: AbstractLagrangian, td: TaskData, got: xr.DataArray, report: dict[str, Any], wall: float
+    model: AbstractLagrangian,
+    td: TaskData,
+    got: xr.DataArray,
+    report: dict[str, Any],
+    wall: float,
+    stopped: SlabError | None = None,
 ) -> ServeResult:
-    """Rank 0's result of the gathered field, as one process reports the affine recurrence or slice-Newton."""
+    """Rank 0's result of the gathered field, as one process reports the affine recurrence or slice-Newton
+    (``stopped``: the failure that ended it early, the field then holding the slices served before it)."""
+    slices = int(got["slice"].values[-1]) + 1
     served = got.drop_vars("slice")
     f = as_lattice_field(served, source="served", boundary=td.task.boundary, min_slices=2)
     ext, warnings = assess(model, f)
-    solved = (td.slices - 2) * int(np.prod(f.shape[1:-1]))
+    solved = (slices - 2) * int(np.prod(f.shape[1:-1]))
     return ServeResult(
         field=f.to_dataarray(),
-        complete=True,
-        reason="complete",
-        slices=td.slices,
+        complete=stopped is None,
+        reason="complete" if stopped is None else str(stopped),
+        slices=slices,
         newton_iterations=int(report["newton_iterations"]),
         max_newton_iterations=int(report["max_newton"]),
         wall_time=wall,
