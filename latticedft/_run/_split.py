@@ -1,7 +1,8 @@
 """A task served split into slabs over the processes of the group (``--workers N``, ``torchrun``).
 
 Every process takes part in each task that can be split (:func:`split_refusal` is None and the learned DEL
-is the explicit affine recurrence, or nonlinear with a block-diagonal slice Jacobian: site-wise slice-Newton):
+is the explicit affine recurrence, or nonlinear: slice-Newton, its step site-wise or by GMRES over the
+processes; ``solver = "lu"`` is refused by :func:`check_split`):
 :func:`serve_split` serves it with :func:`latticedft._serve._decomp.serve_slabs`, each process reading only
 its slab (with its halo planes) of ``from``, and measuring the errors against its slab of ``reference`` and
 ``baseline``; the sums and maxima are reduced over the processes. Rank 0 gets the gathered field and the
@@ -34,6 +35,7 @@ from .._serve._decomp import Slab, _halo_width, plan_slabs
 from .._serve._decomp import serve_slabs as _serve_slabs
 from .._serve._flag import SlabError
 from .._serve._range import assess
+from .._serve._slabkrylov import lu_refusal
 from ._data import TaskData
 
 __all__ = ["Split", "check_split", "serve_split", "split_refusal"]
@@ -51,7 +53,6 @@ def split_refusal(model: AbstractLagrangian | None, td: TaskData) -> str | None:
         (t.cadence.thins, "its output cadence (every > 1) is measured on every slice in one process"),
         (bool(opts.checkpoint), "it writes checkpoints (checkpoint)"),
         (opts.mode != "newton" or not opts.affine, "only the affine recurrence and slice-Newton split (mode, affine)"),
-        (opts.solver not in ("auto", "sitewise"), "only the site-wise slice solver is split (solver)"),
         (opts.boundary_value is not None, "its boundary_value is a function of the whole lattice"),
         (_denoised(model, td), "its start is denoised on the whole lattice"),
         (isinstance(model, EnsembleLagrangian), "an ensemble is served whole"),
@@ -68,13 +69,16 @@ def _denoised(model: AbstractLagrangian | None, td: TaskData) -> bool:
 
 def check_split(tasks: list[TaskData], model: AbstractLagrangian | None = None) -> bool:
     """The bad input of split serving, before anything is written: more processes than planes of the outer
-    axis, or (with ``model``) a halo wider than a slab; one line naming ``--workers``. True when some task
-    may be split (its settings allow it) over several processes."""
+    axis, or (with ``model``) a halo wider than a slab, in one line naming ``--workers``; ``solver = "lu"``
+    (not split), in one line naming the task's ``solver`` and the alternative. True when some task may be
+    split (its settings allow it) over several processes."""
     size = world()[1] if is_parallel() else _env_size()
     split = [td for td in tasks if split_refusal(model, td) is None]
     if size <= 1 or not split:
         return False
     for td in split:
+        if td.task.options.solver == "lu":
+            raise lu_refusal(f"{td.task.label}.solver")
         axis = lattice_dims(td.init)[1]
         halo = _halo_width(model) if model is not None else 0
         try:
@@ -163,7 +167,7 @@ def serve_split(model: AbstractLagrangian, td: TaskData, init: xr.DataArray) -> 
         try:
             got = _serve_slabs(
                 model, init, td.slices, boundary=td.task.boundary, rtol=td.task.options.rtol,
-                max_newton=td.task.options.max_newton, on_slab=meter, report=report,
+                max_newton=td.task.options.max_newton, on_slab=meter, report=report, solver=td.task.options.solver,
             )  # fmt: skip
         except SlabError as exc:  # the same in every process; rank 0 holds what was served before it
             if report:
@@ -227,7 +231,7 @@ def _result(
         max_residual=float(report["max_residual"]),
         mode=td.task.options.mode,
         solver=str(report["solver"]),
-        slice_solver="sitewise" if report["solver"] == "newton" else None,
+        slice_solver=report["slice_solver"],
         extrapolation=ext,
         warnings=warnings,
     )

@@ -11,15 +11,17 @@ None.
 
 What is split: a DEL that is affine and explicit (the recurrence's matrix ``N`` on the new slice is
 diagonal, as for the first-order stencil with the wave, Klein-Gordon and other quadratic ``L_d``: each new
-value depends on its own equation only), and a nonlinear DEL whose slice Jacobian is block-diagonal (one
-stencil point at ``t + 1``, as sine-Gordon's): site-wise slice-Newton, the predictor of one process, the
-unknown slice's halo exchanged before each evaluation of its cells (once a Newton iteration) and every
+value depends on its own equation only), and a nonlinear DEL by slice-Newton: the predictor of one process,
+the unknown slice's halo exchanged before each evaluation of its cells (once a Newton iteration) and every
 convergence test of :func:`._newton._newton_slice` all-reduced, so each process iterates as one process
-would. A DEL whose new slice couples neighbouring unknowns (LU, Krylov) is refused in one line naming the
-alternative: one process. A failure, of every process (slice-Newton not converging) or of one alone (an
-exception, a singular block of its part of the slice), stops them all with the same one-line error
-(:mod:`._flag`: an error flag travels with every all-reduce, and one comes before each exchange); rank 0
-keeps the slices served before it.
+would; its step site-wise where the slice Jacobian is block-diagonal (one stencil point at ``t + 1``, as
+sine-Gordon's on the first-order stencil), else by GMRES over the processes (:mod:`._slabkrylov`: global dot
+products, the Krylov vector's halo exchanged at each product). LU is not split (``solver = "lu"`` is refused
+in one line naming ``solver = "krylov"``), nor is an affine recurrence whose new slice couples neighbouring
+sites (refused in one line naming the alternative: one process). A failure, of every process (slice-Newton
+not converging) or of one alone (an exception, a singular block of its part of the slice), stops them all
+with the same one-line error (:mod:`._flag`: an error flag travels with every all-reduce, and one comes
+before each exchange); rank 0 keeps the slices served before it.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, NoReturn
 
 import numpy as np
@@ -46,6 +49,7 @@ from ._edges import known_slices
 from ._flag import Failure, Flag, SlabError
 from ._newton import _newton_slice
 from ._options import kept_slices
+from ._slabkrylov import SlabSolver, lu_refusal
 from ._slices import _site_label, _SliceSystem
 
 __all__ = ["ROUNDOFF", "Slab", "plan_slabs", "serve_slabs"]
@@ -183,6 +187,7 @@ class _SlabNewton:
         slab: Slab,
         flag: Flag,
         init: xr.DataArray,
+        solver: str,
     ):
         self.model, self.f, self.sys, self.window, self.slab = model, f, sys, window, slab
         self.flag, self.init = flag, init
@@ -190,7 +195,9 @@ class _SlabNewton:
         self.flat = self.psi.view(4, sys.nsite, f.ncomp)
         self.unk = torch.from_numpy(np.nonzero(sys.interior)[0])
         self.vol = math.prod(model.spacing)
-        self.cache: dict[str, Any] = {"solver": "auto"}
+        exchange = partial(_exchange, slab=slab, rank=world()[0], size=world()[1])
+        steps = SlabSolver(sys, f, slab.local, slab.own, slab.n, slab.periodic, exchange, flag.maxima)
+        self.cache: dict[str, Any] = {"solver": solver, "factor": steps.factor}
         self.g_prev: torch.Tensor | None = None
         self.total_it, self.max_it = 0, 0
 
@@ -217,13 +224,6 @@ class _SlabNewton:
         if err is not None:
             self.fail(i, err, self.sys.residual(g_prev, self.g_prev, self.vol))
         self.total_it, self.max_it = self.total_it + it, max(self.max_it, it)
-        used = self.cache.get("used", [])
-        if self.flag.maxima(float(used not in ([], ["sitewise"])))[0]:  # some slab's Jacobian is not block-diagonal
-            raise InputError.at(
-                "--workers",
-                "the DEL couples neighbouring sites of the new slice (slice-Newton's solve is not site by site), "
-                "which is not split across processes; serve it in one process (without --workers)",
-            )
         return float(res)
 
     def fail(self, i: int, err: tuple[str, int | None, float], r: np.ndarray) -> NoReturn:
@@ -263,6 +263,7 @@ def serve_slabs(
     max_newton: int = 30,
     on_slab: Callable[[int, Slab, np.ndarray], None] | None = None,
     report: dict[str, Any] | None = None,
+    solver: str = "auto",
 ) -> xr.DataArray | None:
     """Serve ``init`` (every slice held for Dirichlet strips; a periodic field needs two) over the processes of
     the group, one slab each; rank 0 gets the kept slices ``0, every, ...`` and the last, the others None.
@@ -270,7 +271,9 @@ def serve_slabs(
     ``on_slab(i, slab, values)``, in every process, sees each slice ``i`` served (the first two included) on
     the process's own planes (``(planes, ..., components)``): the task's meters measure the slab there.
     ``report``, when given, receives ``max_residual`` (the largest DEL residual of the recurrence's check),
-    ``processes`` and ``slabs`` (the planes ``[lo, hi)`` of each process along ``axis``).
+    ``processes`` and ``slabs`` (the planes ``[lo, hi)`` of each process along ``axis``), and the solvers.
+    ``solver`` is slice-Newton's linear solver (``"auto"``, ``"sitewise"`` or ``"krylov"``; ``"lu"`` is
+    refused).
 
     A failure in any process (slice-Newton not converging, or an exception of one process alone) stops every
     process with the same :class:`SlabError` (:mod:`._flag`), whose ``result`` on rank 0 is the field served
@@ -279,7 +282,9 @@ def serve_slabs(
     run: _SlabRun | None = None
     try:
         try:
-            run = _SlabRun(model, init, slices, boundary, every, flag)
+            if solver == "lu":
+                raise lu_refusal()
+            run = _SlabRun(model, init, slices, boundary, every, flag, solver)
             run.serve(rtol, max_newton, on_slab)
             flag.maxima()  # the gate before the gather: a process that failed after the last test says so
         except SlabError:
@@ -314,6 +319,7 @@ class _SlabRun:
         boundary: BoundaryKinds | None,
         every: int,
         flag: Flag,
+        solver: str = "auto",
     ):
         rank, size = world()
         dims = lattice_dims(init)
@@ -329,7 +335,7 @@ class _SlabRun:
         self.op = _recurrence(model, f, sys, flag)
         self.window = np.full((4, sys.nsite * f.ncomp), np.nan)  # slices i - 2 .. i + 1
         self.window[1:3] = f.values[:2].reshape(2, -1).numpy()
-        self.newton = _SlabNewton(model, f, sys, self.window, slab, flag, init) if self.op is None else None
+        self.newton = _SlabNewton(model, f, sys, self.window, slab, flag, init, solver) if self.op is None else None
         self.kept_at = kept_slices(slices, every)
         self.kept = [self.window[k + 1].copy() for k in range(2) if k in self.kept_at]
         self.known = None if sys.interior.all() else np.repeat(~sys.interior, f.ncomp)
@@ -379,6 +385,7 @@ class _SlabRun:
         newton = self.newton
         its = (self.done - 1, 1) if newton is None else (newton.total_it, newton.max_it)
         report.update(solver="affine" if newton is None else "newton", newton_iterations=its[0], max_newton=its[1])
+        report.update(slice_solver=None if newton is None else "+".join(newton.cache.get("used", [])) or None)
 
 
 def _kinds(
