@@ -264,6 +264,7 @@ def serve_slabs(
     on_slab: Callable[[int, Slab, np.ndarray], None] | None = None,
     report: dict[str, Any] | None = None,
     solver: str = "auto",
+    on_slice: Callable[[int, np.ndarray], None] | None = None,
 ) -> xr.DataArray | None:
     """Serve ``init`` (every slice held for Dirichlet strips; a periodic field needs two) over the processes of
     the group, one slab each; rank 0 gets the kept slices ``0, every, ...`` and the last, the others None.
@@ -273,7 +274,8 @@ def serve_slabs(
     ``report``, when given, receives ``max_residual`` (the largest DEL residual of the recurrence's check),
     ``processes`` and ``slabs`` (the planes ``[lo, hi)`` of each process along ``axis``), and the solvers.
     ``solver`` is slice-Newton's linear solver (``"auto"``, ``"sitewise"`` or ``"krylov"``; ``"lu"`` is
-    refused).
+    refused). ``on_slice(i, values)``, when given, sees on rank 0 every slice ``i`` whole (``(planes, ...,
+    components)``, gathered slice by slice: the measurements a process makes on whole slices).
 
     A failure in any process (slice-Newton not converging, or an exception of one process alone) stops every
     process with the same :class:`SlabError` (:mod:`._flag`), whose ``result`` on rank 0 is the field served
@@ -285,7 +287,7 @@ def serve_slabs(
             if solver == "lu":
                 raise lu_refusal()
             run = _SlabRun(model, init, slices, boundary, every, flag, solver)
-            run.serve(rtol, max_newton, on_slab)
+            run.serve(rtol, max_newton, on_slab, on_slice)
             flag.maxima()  # the gate before the gather: a process that failed after the last test says so
         except SlabError:
             raise
@@ -346,19 +348,40 @@ class _SlabRun:
         """Window row ``row`` on the slab's own planes, ``(planes, ..., components)``."""
         return self.window[row].reshape(self.shape)[self.slab.own]
 
-    def serve(self, rtol: float, max_newton: int, on_slab: Callable[[int, Slab, np.ndarray], None] | None) -> None:
-        """Serve every slice (``on_slab`` sees each on the slab's planes)."""
+    def serve(
+        self,
+        rtol: float,
+        max_newton: int,
+        on_slab: Callable[[int, Slab, np.ndarray], None] | None,
+        on_slice: Callable[[int, np.ndarray], None] | None = None,
+    ) -> None:
+        """Serve every slice (``on_slab`` sees each on the slab's planes, ``on_slice`` on rank 0 whole)."""
         window = self.window
-        for k in range(2 if on_slab is not None else 0):
-            on_slab(k, self.slab, self.own(k + 1))  # type: ignore[misc]
+        for k in range(2):
+            if on_slab is not None:
+                on_slab(k, self.slab, self.own(k + 1))
+            self.whole(k, k + 1, on_slice)
         for i in range(1, self.slices - 1):
             self.step(i, rtol, max_newton)
             if on_slab is not None:
                 on_slab(i + 1, self.slab, self.own(3))
+            self.whole(i + 1, 3, on_slice)
             if i + 1 in self.kept_at:
                 self.kept.append(window[3].copy())
             window[:3] = window[1:]
             self.done = i + 1
+
+    def whole(self, k: int, row: int, on_slice: Callable[[int, np.ndarray], None] | None) -> None:
+        """Slice ``k`` (window row ``row``) gathered whole to rank 0's ``on_slice`` (after a gate)."""
+        if on_slice is None:
+            return
+        self.flag.maxima()
+        parts: list[Any] = [self.own(row)]
+        if world()[1] > 1:
+            parts = [None] * world()[1]
+            dist.gather_object(self.own(row), parts if world()[0] == 0 else None, dst=0)
+        if world()[0] == 0:
+            on_slice(k, np.concatenate(parts, axis=0))
 
     def step(self, i: int, rtol: float, max_newton: int) -> None:
         """Solve slice ``i``'s equations for slice ``i + 1`` (window row 3), its halo planes exchanged."""
