@@ -221,9 +221,9 @@ class _SlabNewton:
             self.model, self.sys, self.psi, flat, unk, 2, g_prev, self.vol, rtol, max_newton, self.cells_at,
             self.cache, self.flag.maxima,
         )  # fmt: skip
+        self.total_it, self.max_it = self.total_it + it, max(self.max_it, it)
         if err is not None:
             self.fail(i, err, self.sys.residual(g_prev, self.g_prev, self.vol))
-        self.total_it, self.max_it = self.total_it + it, max(self.max_it, it)
         return float(res)
 
     def fail(self, i: int, err: tuple[str, int | None, float], r: np.ndarray) -> NoReturn:
