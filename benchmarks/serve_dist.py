@@ -1,16 +1,18 @@
 """Serving split into slabs over processes: the field, peak memory per process and time against one process.
 
-    python -m benchmarks.serve_dist [--quick] [--point N SLICES EVERY]
+    python -m benchmarks.serve_dist [--quick] [--point N SLICES EVERY] [--model kg|sg] [--full]
 
 A 3+1D periodic Klein-Gordon field (the discrete ``L_d`` of ``latticedft.lagrangians.klein_gordon``: affine
-and explicit, the DEL that ``latticedft._serve._decomp.serve_slabs`` splits; sine-Gordon's slice-Newton is
-not split yet) of ``N^3`` sites, served from two slices for ``SLICES`` slices with ``every = EVERY``: once by
+and explicit, the split recurrence of ``latticedft._serve._decomp.serve_slabs``), or with ``--model sg`` a
+sine-Gordon one (the same kinetic and gradient terms, ``1 - cos(u)`` for the potential: split site-wise
+slice-Newton), of ``N^3`` sites, served from two slices for ``SLICES`` slices with ``every = EVERY``: once by
 ``latticedft.serve`` in one process, then by ``serve_slabs`` in 2 and in 4 processes (gloo on the loopback,
 each process a fresh Python). Per run: the largest difference from the one-process field (relative), the
 peak resident memory of each process (``VmHWM`` reset before serving) and its growth over the memory before
-serving, and the wall time. The machine's load is printed beside the table by the runner. Default
-``N = 48, SLICES = 60, EVERY = 20``; the issue's size is ``--point 128 200 50`` (about 2 GiB and many
-minutes a run on one core); ``--quick``: 12^3 sites, 12 slices, 1 and 2 processes. Also ``python -m
+serving, and the wall time, with the load average (``os.getloadavg()``) before and after each run. Default
+``N = 48, SLICES = 60, EVERY = 20`` (Klein-Gordon); ``--full`` is the issue's size: sine-Gordon at
+``128^3`` sites, 200 slices, ``every = 50`` (``--model sg --point 128 200 50``: about 2 GiB and, on one
+core, tens of minutes a run); ``--quick``: 12^3 sites, 12 slices, 1 and 2 processes. Also ``python -m
 benchmarks --only serve-dist``.
 """
 
@@ -36,7 +38,26 @@ TITLE = "Serving split into slabs: 3+1D periodic Klein-Gordon, 1 / 2 / 4 process
 
 FULL = (48, 60, 20)
 QUICK = (12, 12, 4)
+#: the issue's size: sine-Gordon at 128^3 sites, 200 slices, every = 50
+ISSUE = (128, 200, 50)
 PROCESSES = (1, 2, 4)
+
+
+def _sine_gordon(cells: Any, h: tuple[float, ...]) -> Any:
+    """Sine-Gordon on the first-order stencil: ``(d_t u)^2 / 2 - |grad u|^2 / 2 - (1 - cos u)``."""
+    import torch
+
+    u0 = cells[..., 0, 0]
+    kin = 0.5 * ((cells[..., 1, 0] - u0) / h[0]) ** 2
+    grad = sum(0.5 * ((cells[..., a + 1, 0] - u0) / h[a]) ** 2 for a in range(1, len(h)))
+    return kin - grad - (1 - torch.cos(u0))
+
+
+def _model(name: str) -> Any:
+    import latticedft as ldft
+    from latticedft._models import AnalyticLagrangian
+
+    return ldft.lagrangians.klein_gordon(1.0) if name == "kg" else AnalyticLagrangian(_sine_gordon, name="sG")
 
 
 def _init(n: int) -> Any:
@@ -54,7 +75,7 @@ def _init(n: int) -> Any:
     return da
 
 
-def rank_probe(n: int, slices: int, every: int, out: str) -> dict[str, Any]:
+def rank_probe(n: int, slices: int, every: int, out: str, model: str = "kg") -> dict[str, Any]:
     """One process of a run (rank 0 saves the field to ``out``): its peak memory and wall time."""
     import torch
 
@@ -65,13 +86,13 @@ def rank_probe(n: int, slices: int, every: int, out: str) -> dict[str, Any]:
     torch.set_num_threads(1)
     parallel = _dist.init_from_env()
     init = _init(n)
-    model = ldft.lagrangians.klein_gordon(1.0)
+    lagrangian = _model(model)
     mem = PeakRSS()
     t0 = time.perf_counter()
     if parallel:
-        field = serve_slabs(model, init, slices, boundary="periodic", every=every)
+        field = serve_slabs(lagrangian, init, slices, boundary="periodic", every=every)
     else:
-        field = ldft.serve(model, init, slices=slices, boundary="periodic", every=every, progress=False).field
+        field = ldft.serve(lagrangian, init, slices=slices, boundary="periodic", every=every, progress=False).field
     seconds = time.perf_counter() - t0
     if field is not None:
         np.save(out, np.asarray(field.values))
@@ -89,14 +110,14 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _launch(processes: int, n: int, slices: int, every: int, out: Path) -> list[dict[str, Any]]:
+def _launch(processes: int, n: int, slices: int, every: int, out: Path, model: str = "kg") -> list[dict[str, Any]]:
     """``processes`` fresh Pythons forming one group; each one's answer, in rank order."""
     root = Path(__file__).resolve().parent.parent
     code = (
         "import json, sys; from benchmarks.serve_dist import rank_probe; "
         "print('@@' + json.dumps(rank_probe(**json.loads(sys.argv[1]))))"
     )
-    kw = json.dumps({"n": n, "slices": slices, "every": every, "out": str(out)})
+    kw = json.dumps({"n": n, "slices": slices, "every": every, "out": str(out), "model": model})
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONPATH=str(root))
     for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
         env.pop(k, None)
@@ -124,12 +145,13 @@ def _launch(processes: int, n: int, slices: int, every: int, out: Path) -> list[
     return answers
 
 
-def run(cfg: Config, point: tuple[int, int, int] | None = None) -> Table:
+def run(cfg: Config, point: tuple[int, int, int] | None = None, model: str = "kg") -> Table:
     n, slices, every = point or (QUICK if cfg.quick else FULL)
+    title = TITLE if model == "kg" else TITLE.replace("Klein-Gordon", "sine-Gordon (site-wise slice-Newton)")
     table = Table(
         NAME,
-        TITLE,
-        ["processes", "lattice", "slices", "max |diff| (rel.)", "wall (s)", "peak RSS (MiB)", "growth (MiB)"],
+        title,
+        ["processes", "lattice", "slices", "max |diff| (rel.)", "wall (s)", "peak RSS (MiB)", "growth (MiB)", "load"],
     )
     growth: dict[int, float] = {}
     diffs: dict[int, float] = {}
@@ -137,21 +159,30 @@ def run(cfg: Config, point: tuple[int, int, int] | None = None) -> Table:
         one = None
         for p in PROCESSES[:2] if cfg.quick and point is None else PROCESSES:
             out = Path(tmp) / f"field_{p}.npy"
-            answers = _launch(p, n, slices, every, out)
+            load = os.getloadavg()[0]
+            answers = _launch(p, n, slices, every, out, model)
             field = np.load(out)
             one = field if one is None else one
             diffs[p] = float(np.abs(field - one).max() / max(np.abs(one).max(), 1e-300))
             growth[p] = max(a["rss_peak"] - a["rss_before"] for a in answers)
             peak = max(a["rss_peak"] for a in answers)
             wall = max(a["seconds"] for a in answers)
-            table.rows.append([p, f"{n}^3", slices, diffs[p], wall, peak, growth[p]])
+            table.rows.append(
+                [p, f"{n}^3", slices, diffs[p], wall, peak, growth[p], f"{load:.1f}-{os.getloadavg()[0]:.1f}"]
+            )
     table.notes += [
         "1 process: latticedft.serve (the one-process path); 2 and 4: latticedft._serve._decomp.serve_slabs, "
         "slabs along z, one halo plane each side exchanged after every slice, kept slices gathered to rank 0.",
         "Peak RSS and growth: the largest over the processes (VmHWM reset before serving; the interpreter and "
         "torch, ~300-400 MiB, are in the peak, not in the growth). Wall: the slowest process. On a machine "
         "with fewer free cores than processes the time ratio measures the load, not the scaling.",
+        "Load: the 1-minute load average (os.getloadavg) before and after the run.",
     ]
+    if 2 in diffs:
+        for p in (2, 4) if 4 in growth else (2,):
+            table.notes.append(
+                f"time ratio {p} processes / 1: {table.rows[PROCESSES.index(p)][4] / table.rows[0][4]:.2f}"
+            )
     for p, target in ((2, 0.6), (4, 0.35)) if 4 in growth else ((2, 0.6),):
         table.checks.append(
             Check(f"{p} processes: the one-process field to 1e-12", f"{diffs[p]:.1e}", diffs[p] <= 1e-12)
@@ -172,9 +203,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="12^3 sites, 12 slices")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--point", nargs=3, type=int, metavar=("N", "SLICES", "EVERY"), help="e.g. 128 200 50")
+    parser.add_argument("--model", choices=("kg", "sg"), default="kg", help="Klein-Gordon or sine-Gordon")
+    parser.add_argument("--full", action="store_true", help="the issue's size: sine-Gordon, 128^3, 200, every 50")
     args = parser.parse_args(argv)
-    if args.point:
-        return run_alone(lambda cfg: run(cfg, tuple(args.point)), __doc__, ["--threads", str(args.threads)])
+    point, model = (ISSUE, "sg") if args.full else (args.point and tuple(args.point), args.model)
+    if point or model != "kg":
+        return run_alone(lambda cfg: run(cfg, point, model), __doc__, ["--threads", str(args.threads)])
     return run_alone(run, __doc__, argv)
 
 

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import os
 import socket
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -99,39 +103,53 @@ if dist.is_initialized():
 """
 
 RANK_VARIABLES = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT")
+REPO = Path(__file__).resolve().parents[1]
 
 
-def group_env(repo) -> dict[str, str]:
+def group_env(repo=REPO) -> dict[str, str]:
     """This environment for a worker: one thread, the repository importable, no process group of its own."""
-    import os
-
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(repo))
     for k in RANK_VARIABLES:
         env.pop(k, None)
     return env
 
 
-def run_group(argv, n: int, env: dict[str, str], timeout: float = 600) -> list[str]:
-    """Run ``argv(rank)`` as the ``n`` ranks of a process group on the loopback (gloo); assert each exits 0 (the
-    failing ranks' stderr in the message) and return their stderr. ``timeout`` guards against a hang only."""
-    import subprocess
+def start_group(argv, n: int, env: dict[str, str], timeout: float = 600.0) -> list[tuple[int, str, str]]:
+    """Run ``argv(rank)`` as the ``n`` ranks of a process group on the loopback (``RANK``, ``LOCAL_RANK``,
+    ``WORLD_SIZE``, ``MASTER_ADDR`` and ``MASTER_PORT``, a free port, added to ``env``); each rank's ``(exit
+    status, stdout, stderr)``. Ranks still running after ``timeout`` seconds (a guard against a hang, not a
+    measurement) are killed and the test fails with their output."""
+    import pytest
 
-    port = str(free_port())
+    base = dict(env, MASTER_ADDR="127.0.0.1", MASTER_PORT=str(free_port()), WORLD_SIZE=str(n))
     procs = [
         subprocess.Popen(
             argv(r),
-            env=dict(env, MASTER_ADDR="127.0.0.1", MASTER_PORT=port, WORLD_SIZE=str(n), RANK=str(r), LOCAL_RANK=str(r)),
+            env=dict(base, RANK=str(r), LOCAL_RANK=str(r)),
+            stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
         )
         for r in range(n)
     ]
     try:
-        errors = [p.communicate(timeout=timeout)[1] for p in procs]
-    finally:
+        outs = [p.communicate(timeout=timeout) for p in procs]
+    except subprocess.TimeoutExpired:
         for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.communicate()
-    assert [p.returncode for p in procs] == [0] * n, "\n".join(e[-3000:] for e in errors)
-    return errors
+            p.kill()
+        tails = [f"rank {r}: {p.communicate()[1][-2000:]}" for r, p in enumerate(procs)]
+        pytest.fail(f"the group of {n} did not finish in {timeout} s\n" + "\n".join(tails))
+    return [(p.returncode, out, err) for p, (out, err) in zip(procs, outs)]
+
+
+def run_ranks(script, n: int, *args: str, timeout: float = 600.0, env=None) -> list[tuple[int, str, str]]:
+    """The Python file ``script`` (``args`` after it) as the ``n`` ranks of a group (:func:`start_group`), in
+    :func:`group_env` with ``env`` added; each rank's ``(exit status, stdout, stderr)``."""
+    return start_group(lambda r: [sys.executable, str(script), *args], n, dict(group_env(), **(env or {})), timeout)
+
+
+def run_group(argv, n: int, env: dict[str, str], timeout: float = 600.0) -> list[str]:
+    """:func:`start_group`, asserting that every rank exits 0 (the ranks' stderr in the message); their stderr."""
+    ranks = start_group(argv, n, env, timeout)
+    assert [rc for rc, _, _ in ranks] == [0] * n, "\n".join(err[-3000:] for _, _, err in ranks)
+    return [err for _, _, err in ranks]

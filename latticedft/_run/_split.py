@@ -1,12 +1,16 @@
 """A task served split into slabs over the processes of the group (``--workers N``, ``torchrun``).
 
 Every process takes part in each task that can be split (:func:`split_refusal` is None and the learned DEL
-is the explicit affine recurrence, or nonlinear with a block-diagonal slice Jacobian: site-wise slice-Newton):
+is the explicit affine recurrence, or nonlinear: slice-Newton, its step site-wise or by GMRES over the
+processes; ``solver = "lu"`` is refused by :func:`check_split`):
 :func:`serve_split` serves it with :func:`latticedft._serve._decomp.serve_slabs`, each process reading only
 its slab (with its halo planes) of ``from``, and measuring the errors against its slab of ``reference`` and
 ``baseline``; the sums and maxima are reduced over the processes. Rank 0 gets the gathered field and the
 task's figures; it alone measures the invariant, the charges and the training range on the gathered field,
-and writes the results. A task that cannot be split is served by rank 0 alone (an info line says why).
+and writes the results. A task with an output cadence (``every > 1``) has rank 0 receive every slice whole,
+to measure the invariant and the training range on every slice and to append the kept slices to the task's
+part file, as one process does. A task that cannot be split is served by rank 0 alone (an info line says
+why).
 """
 
 from __future__ import annotations
@@ -29,11 +33,17 @@ from .._lattice import as_lattice_field
 from .._layout import lattice_dims
 from .._models import AbstractLagrangian
 from .._models._ensemble import EnsembleLagrangian
+from .._options import option
 from .._serve import ServeResult
 from .._serve._decomp import Slab, _halo_width, plan_slabs
 from .._serve._decomp import serve_slabs as _serve_slabs
-from .._serve._range import assess
+from .._serve._flag import SlabError
+from .._serve._options import kept_slices
+from .._serve._range import EXTRAPOLATION_TOL, _excess, assess, extrapolation_warning, feature_labels
+from .._serve._slabkrylov import lu_refusal
+from .._serve._stream import _with_slice_coord
 from ._data import TaskData
+from ._meter import TaskMeter
 
 __all__ = ["Split", "check_split", "serve_split", "split_refusal"]
 
@@ -43,14 +53,12 @@ log = logging.getLogger("latticedft")
 def split_refusal(model: AbstractLagrangian | None, td: TaskData) -> str | None:
     """Why ``td`` is served in one process when there are several (None: it is split; ``model`` None: the
     task's settings only)."""
-    t, opts = td.task, td.task.options
+    opts = td.task.options
     reasons = (
         (len(lattice_dims(td.init)) < 2, "a 1D trajectory has no spatial axis to split"),
         (td.slices <= 2, "it serves no slice"),
-        (t.cadence.thins, "its output cadence (every > 1) is measured on every slice in one process"),
         (bool(opts.checkpoint), "it writes checkpoints (checkpoint)"),
         (opts.mode != "newton" or not opts.affine, "only the affine recurrence and slice-Newton split (mode, affine)"),
-        (opts.solver not in ("auto", "sitewise"), "only the site-wise slice solver is split (solver)"),
         (opts.boundary_value is not None, "its boundary_value is a function of the whole lattice"),
         (_denoised(model, td), "its start is denoised on the whole lattice"),
         (isinstance(model, EnsembleLagrangian), "an ensemble is served whole"),
@@ -67,13 +75,16 @@ def _denoised(model: AbstractLagrangian | None, td: TaskData) -> bool:
 
 def check_split(tasks: list[TaskData], model: AbstractLagrangian | None = None) -> bool:
     """The bad input of split serving, before anything is written: more processes than planes of the outer
-    axis, or (with ``model``) a halo wider than a slab; one line naming ``--workers``. True when some task
-    may be split (its settings allow it) over several processes."""
+    axis, or (with ``model``) a halo wider than a slab, in one line naming ``--workers``; ``solver = "lu"``
+    (not split), in one line naming the task's ``solver`` and the alternative. True when some task may be
+    split (its settings allow it) over several processes."""
     size = world()[1] if is_parallel() else _env_size()
     split = [td for td in tasks if split_refusal(model, td) is None]
     if size <= 1 or not split:
         return False
     for td in split:
+        if td.task.options.solver == "lu":
+            raise lu_refusal(f"{td.task.label}.solver")
         axis = lattice_dims(td.init)[1]
         halo = _halo_width(model) if model is not None else 0
         try:
@@ -98,6 +109,79 @@ class Split:
     #: ``(all slices both hold, the served slices)`` of the baseline against the reference; None without one
     baseline: tuple[dict[str, float], dict[str, float]] | None
     decomposition: dict[str, Any] = field(default_factory=dict)
+    #: why the split serve stopped before its last slice (the result then holds what was served); "" when not
+    stopped: str = ""
+    #: a task with an output cadence: rank 0's invariant, measured on every slice (None otherwise)
+    meter: TaskMeter | None = None
+
+
+class _Whole:
+    """Rank 0's measurements of a task with an output cadence on every slice served, as one process makes
+    them: the invariant (a :class:`TaskMeter` without reference: the errors are measured on the slabs), the
+    excess over the training range per anchor slice (``_range._excess``), and each kept slice handed to
+    ``part``. The slices arrive whole (``serve_slabs(on_slice=...)``) and are measured in blocks."""
+
+    def __init__(self, model: AbstractLagrangian, td: TaskData, part: Any):
+        self.model, self.slices = model, td.slices
+        tdim = lattice_dims(td.init)[0]
+        two = td.init.isel({tdim: slice(0, 2)}).compute()
+        self.f = f = as_lattice_field(two, source="init", boundary=td.task.boundary, min_slices=2)
+        self.meter = TaskMeter(None, td.invariant, part)
+        self.kept = set(kept_slices(td.slices, td.task.cadence.every).tolist())
+        rng = model.trained_range()
+        self.rng = rng.to(torch.float64) if rng is not None and tuple(rng.shape[1:]) == (f.ndim + 1, f.ncomp) else None
+        self.per_anchor = np.zeros((td.slices - 1, self.rng[0].numel())) if self.rng is not None else None
+        self.size = max(1, option("task_block_bytes") // max(1, 8 * int(np.prod(f.shape[1:])) * f.ncomp))
+        self.block: list[np.ndarray] = []
+        self.start = 0
+        self.prev: torch.Tensor | None = None  # the last slice of the block before: its anchor's cells
+
+    def __call__(self, i: int, values: np.ndarray) -> None:
+        if i in self.kept:
+            self.meter(i, values if self.f.components is not None else values[..., 0])
+        self.block.append(values)
+        if len(self.block) >= self.size or i == self.slices - 1:
+            self.flush()
+
+    def flush(self) -> None:
+        """Measure the slices received since the last flush."""
+        if not self.block:
+            return
+        vals = torch.from_numpy(np.stack(self.block))
+        if self.per_anchor is not None and self.rng is not None:
+            span = vals if self.prev is None else torch.cat([self.prev[None], vals])
+            lo = self.start - (span.shape[0] - vals.shape[0])
+            if span.shape[0] >= 2:
+                self.per_anchor[lo : lo + span.shape[0] - 1] = _excess(self.model, self.rng, self.f, span)
+        t0 = float(self.f.coords[self.f.dims[0]][0] + self.f.spacing[0] * self.start)
+        self.meter.on_block(self.start, self.f.with_values(vals, t0=t0).to_dataarray())
+        self.prev, self.start, self.block = vals[-1], self.start + vals.shape[0], []
+
+    def field(self, got: xr.DataArray, every: int) -> xr.DataArray:
+        """The kept slices ``got`` (gathered, with their ``slice`` coordinate) as one process's result."""
+        idx = np.asarray(got["slice"].values, dtype=np.int64)
+        values = np.asarray(got.values, dtype=np.float64)
+        f, tdim = self.f, self.f.dims[0]
+        da = f.with_values(torch.from_numpy(values if f.components is not None else values[..., None])).to_dataarray()
+        t_all = f.coords[tdim][0] + f.spacing[0] * np.arange(int(idx[-1]) + 1, dtype=np.float64)
+        da = da.assign_coords({tdim: (tdim, t_all[idx], dict(da[tdim].attrs))})
+        return _with_slice_coord(da, idx, every)
+
+    def extrapolation(self, nt: int) -> xr.DataArray | None:
+        """The excess per slice over the ``nt`` slices served (as one process's ``ServeResult`` has it)."""
+        if self.per_anchor is None or nt < 2:
+            return None
+        per_slice = np.zeros((nt, self.per_anchor.shape[1]))
+        per_slice[:-1] = self.per_anchor[: nt - 1]
+        per_slice[1:] = np.maximum(per_slice[1:], self.per_anchor[: nt - 1])
+        f, tdim = self.f, self.f.dims[0]
+        t_all = f.coords[tdim][0] + f.spacing[0] * np.arange(nt, dtype=np.float64)
+        coords = {tdim: t_all, "feature": feature_labels(self.model, f.dims, f.components)}
+        attrs = {
+            "long_name": "excess of the stencil inputs beyond the training range, relative to its span",
+            "tolerance": EXTRAPOLATION_TOL,
+        }
+        return xr.DataArray(per_slice, dims=(tdim, "feature"), coords=coords, name="extrapolation", attrs=attrs)
 
 
 class _SlabErrors:
@@ -147,20 +231,29 @@ def _baseline_errors(td: TaskData, slab: Slab, slices: int) -> dict[str, float]:
     return {"max_error": worst, "rms_error": math.sqrt(sum_sq / total) if total else math.nan, "slices": slices}
 
 
-def serve_split(model: AbstractLagrangian, td: TaskData, init: xr.DataArray) -> Split:
+def serve_split(model: AbstractLagrangian, td: TaskData, init: xr.DataArray, part: Any = None) -> Split:
     """Serve ``td`` over the processes (every process calls it); rank 0 gets its :class:`Split`, the others
     one without result. A task served in one process instead (by rank 0: its ``result`` None in every
-    process) has the reason in its ``decomposition``."""
+    process) has the reason in its ``decomposition``. A task with an output cadence is measured on every
+    slice by rank 0 (:class:`_Whole`), which hands its kept slices to ``part`` (the task's part file)."""
     why = split_refusal(model, td)
     if why is None:
         t0 = time.perf_counter()
         report: dict[str, Any] = {}
         meter = _SlabErrors(td.reference)
+        whole = _Whole(model, td, part) if td.task.cadence.thins and world()[0] == 0 else None
+        stopped = None
         try:
             got = _serve_slabs(
                 model, init, td.slices, boundary=td.task.boundary, rtol=td.task.options.rtol,
-                max_newton=td.task.options.max_newton, on_slab=meter, report=report,
+                max_newton=td.task.options.max_newton, on_slab=meter, report=report, solver=td.task.options.solver,
+                every=td.task.cadence.every, on_slice=whole or (_ignore if td.task.cadence.thins else None),
             )  # fmt: skip
+        except SlabError as exc:  # the same in every process; rank 0 holds what was served before it
+            if report:
+                stopped, got = exc, exc.result
+            else:  # it stopped while setting up: nothing was served, rank 0 serves the task alone
+                why = str(exc)
         except (InputError, ServeError) as exc:  # the same in every process: the test is global
             why = str(exc).removeprefix("--workers: ").split("; serve it in one process")[0]
     if why is not None:
@@ -179,8 +272,19 @@ def serve_split(model: AbstractLagrangian, td: TaskData, init: xr.DataArray) -> 
         log.info("task %s: split over %d processes along %r, slabs %s", td.task.name, world()[1], report["axis"], slabs)
     if got is None:
         return Split(result=None, errors=None, baseline=None)
-    result = _result(model, td, got, report, time.perf_counter() - t0)
-    return Split(result=result, errors=errors, baseline=baseline, decomposition=decomposition)
+    if whole is not None:
+        whole.flush()
+        whole.meter.finish()
+    result = _result(model, td, got, report, time.perf_counter() - t0, stopped, whole)
+    if stopped is not None:
+        log.warning("task %s stopped at %s; %d of %d slices written", td.task.name, stopped, result.slices, td.slices)
+    text = "" if stopped is None else str(stopped)
+    meter_ = None if whole is None else whole.meter
+    return Split(result, errors, baseline, decomposition, stopped=text, meter=meter_)
+
+
+def _ignore(i: int, values: np.ndarray) -> None:
+    """The ``on_slice`` of the processes but rank 0 (they take part in the gather and see nothing)."""
 
 
 def _own_slab(report: dict[str, Any], td: TaskData) -> Slab:
@@ -189,18 +293,32 @@ def _own_slab(report: dict[str, Any], td: TaskData) -> Slab:
 
 
 def _result(
-    model: AbstractLagrangian, td: TaskData, got: xr.DataArray, report: dict[str, Any], wall: float
+    model: AbstractLagrangian,
+    td: TaskData,
+    got: xr.DataArray,
+    report: dict[str, Any],
+    wall: float,
+    stopped: SlabError | None = None,
+    whole: _Whole | None = None,
 ) -> ServeResult:
-    """Rank 0's result of the gathered field, as one process reports the affine recurrence or slice-Newton."""
-    served = got.drop_vars("slice")
-    f = as_lattice_field(served, source="served", boundary=td.task.boundary, min_slices=2)
-    ext, warnings = assess(model, f)
-    solved = (td.slices - 2) * int(np.prod(f.shape[1:-1]))
+    """Rank 0's result of the gathered field, as one process reports the affine recurrence or slice-Newton
+    (``stopped``: the failure that ended it early, the field then holding the slices served before it)."""
+    slices = int(got["slice"].values[-1]) + 1
+    if whole is None:
+        f = as_lattice_field(got.drop_vars("slice"), source="served", boundary=td.task.boundary, min_slices=2)
+        field = f.to_dataarray()
+        ext, warnings = assess(model, f)
+    else:  # the kept slices, as one process's stream gives them; measured on every slice
+        field = whole.field(got, td.task.cadence.every)
+        ext = whole.extrapolation(slices)
+        warning = extrapolation_warning(ext)
+        warnings = [warning] if warning else []
+    solved = (slices - 2) * int(np.prod(field.shape[1 : 1 + len(lattice_dims(got)) - 1]))
     return ServeResult(
-        field=f.to_dataarray(),
-        complete=True,
-        reason="complete",
-        slices=td.slices,
+        field=field,
+        complete=stopped is None,
+        reason="complete" if stopped is None else str(stopped),
+        slices=slices,
         newton_iterations=int(report["newton_iterations"]),
         max_newton_iterations=int(report["max_newton"]),
         wall_time=wall,
@@ -208,7 +326,7 @@ def _result(
         max_residual=float(report["max_residual"]),
         mode=td.task.options.mode,
         solver=str(report["solver"]),
-        slice_solver="sitewise" if report["solver"] == "newton" else None,
+        slice_solver=report["slice_solver"],
         extrapolation=ext,
         warnings=warnings,
     )

@@ -195,9 +195,9 @@ def _serve(model: AbstractLagrangian, td: TaskData, device: str, part: PartFile 
         if part is not None and t.options.checkpoint:
             meter.checkpointer = TaskCheckpoint(part, meter, t.name, resumed)
     init, start = _start(model, td)
-    split = serve_split(model, td, init) if is_parallel() else None
+    split = serve_split(model, td, init, part) if is_parallel() else None
     if split is not None and split.result is not None:
-        return _Served(split.result, time.perf_counter() - t0, "", start, None, split)
+        return _Served(split.result, time.perf_counter() - t0, split.stopped, start, split.meter, split)
     try:
         result = serve(model, init, slices=t.slices, boundary=t.boundary, options=options, on_slice=meter)
     except ServeError as err:

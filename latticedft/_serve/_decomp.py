@@ -11,13 +11,17 @@ None.
 
 What is split: a DEL that is affine and explicit (the recurrence's matrix ``N`` on the new slice is
 diagonal, as for the first-order stencil with the wave, Klein-Gordon and other quadratic ``L_d``: each new
-value depends on its own equation only), and a nonlinear DEL whose slice Jacobian is block-diagonal (one
-stencil point at ``t + 1``, as sine-Gordon's): site-wise slice-Newton, the predictor of one process, the
-unknown slice's halo exchanged before each evaluation of its cells (once a Newton iteration) and every
+value depends on its own equation only), and a nonlinear DEL by slice-Newton: the predictor of one process,
+the unknown slice's halo exchanged before each evaluation of its cells (once a Newton iteration) and every
 convergence test of :func:`._newton._newton_slice` all-reduced, so each process iterates as one process
-would. A DEL whose new slice couples neighbouring unknowns (LU, Krylov) is refused in one line naming the
-alternative: one process. A linear solve that fails in one process only (a singular block) is not made
-global: the others wait for it until the group's timeout.
+would; its step site-wise where the slice Jacobian is block-diagonal (one stencil point at ``t + 1``, as
+sine-Gordon's on the first-order stencil), else by GMRES over the processes (:mod:`._slabkrylov`: global dot
+products, the Krylov vector's halo exchanged at each product). LU is not split (``solver = "lu"`` is refused
+in one line naming ``solver = "krylov"``), nor is an affine recurrence whose new slice couples neighbouring
+sites (refused in one line naming the alternative: one process). A failure, of every process (slice-Newton
+not converging) or of one alone (an exception, a singular block of its part of the slice), stops them all
+with the same one-line error (:mod:`._flag`: an error flag travels with every all-reduce, and one comes
+before each exchange); rank 0 keeps the slices served before it.
 """
 
 from __future__ import annotations
@@ -25,7 +29,8 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from functools import partial
+from typing import Any, NoReturn
 
 import numpy as np
 import torch
@@ -41,9 +46,11 @@ from .._layout import lattice_dims
 from .._models import AbstractLagrangian
 from ._affine import _AffineSlices, _slice_residuals
 from ._edges import known_slices
+from ._flag import Failure, Flag, SlabError
 from ._newton import _newton_slice
 from ._options import kept_slices
-from ._slices import _SliceSystem
+from ._slabkrylov import SlabSolver, lu_refusal
+from ._slices import _site_label, _SliceSystem
 
 __all__ = ["ROUNDOFF", "Slab", "plan_slabs", "serve_slabs"]
 
@@ -116,15 +123,6 @@ def _local_field(init: xr.DataArray, slab: Slab, boundary: dict[str, str]) -> La
     return as_lattice_field(part.compute(), source="init", boundary={**boundary, axis: "dirichlet"}, min_slices=2)
 
 
-def _all_max(value: float) -> float:
-    """The largest ``value`` over the processes."""
-    if world()[1] == 1:
-        return value
-    t = torch.tensor([value], dtype=torch.float64, device=group_device())
-    dist.all_reduce(t, op=dist.ReduceOp.MAX)
-    return float(t[0])
-
-
 def _exchange(v: np.ndarray, slab: Slab, rank: int, size: int) -> None:
     """Send the slab's edge planes of the slice ``v`` (``(nsite * m,)``) to its neighbours; receive theirs
     into its halo planes."""
@@ -155,10 +153,10 @@ def _exchange(v: np.ndarray, slab: Slab, rank: int, size: int) -> None:
         planes[where] = buf.cpu().numpy()
 
 
-def _recurrence(model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem) -> _AffineSlices | None:
+def _recurrence(model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem, flag: Flag) -> _AffineSlices | None:
     """The affine recurrence of the slab (None: the DEL is not affine, slice-Newton serves), refused in one line
     when its new slice's sites are coupled."""
-    scale = _all_max(float(f.values[:2].abs().max())) or 1.0
+    scale = flag.maxima(float(f.values[:2].abs().max()))[0] or 1.0
     probe = _AffineSlices.probe(model, sys.st, f.ncomp, scale)
     if probe is None:
         return None
@@ -174,33 +172,39 @@ def _recurrence(model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem) -
     return op
 
 
-def _all_maxima(*values: float) -> tuple[float, ...]:
-    """Each value's largest over the processes (one all-reduce)."""
-    if world()[1] == 1:
-        return values
-    t = torch.tensor(values, dtype=torch.float64, device=group_device())
-    dist.all_reduce(t, op=dist.ReduceOp.MAX)
-    return tuple(float(v) for v in t.cpu())
-
-
 class _SlabNewton:
     """Site-wise slice-Newton on a slab: the window's rows ``0 .. 3`` hold slices ``i - 2 .. i + 1``; the halo
     planes of the unknown slice are exchanged before each gather of its cells, and every convergence test is
-    all-reduced (so all processes iterate alike)."""
+    all-reduced (so all processes iterate alike); a failure, of every process or of one, is told to all by
+    ``flag``, with the global site of the largest residual."""
 
-    def __init__(self, model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem, window: np.ndarray, slab: Slab):
+    def __init__(
+        self,
+        model: AbstractLagrangian,
+        f: LatticeField,
+        sys: _SliceSystem,
+        window: np.ndarray,
+        slab: Slab,
+        flag: Flag,
+        init: xr.DataArray,
+        solver: str,
+    ):
         self.model, self.f, self.sys, self.window, self.slab = model, f, sys, window, slab
+        self.flag, self.init = flag, init
         self.psi = torch.from_numpy(window).view(4, *f.shape[1:], f.ncomp)
         self.flat = self.psi.view(4, sys.nsite, f.ncomp)
         self.unk = torch.from_numpy(np.nonzero(sys.interior)[0])
         self.vol = math.prod(model.spacing)
-        self.cache: dict[str, Any] = {"solver": "auto"}
+        exchange = partial(_exchange, slab=slab, rank=world()[0], size=world()[1])
+        steps = SlabSolver(sys, f, slab.local, slab.own, slab.n, slab.periodic, exchange, flag.maxima)
+        self.cache: dict[str, Any] = {"solver": solver, "factor": steps.factor}
         self.g_prev: torch.Tensor | None = None
         self.total_it, self.max_it = 0, 0
 
     def cells_at(self, k: int) -> torch.Tensor:
         """The cells anchored on window row ``k`` (the unknown slice's halo exchanged first)."""
         if k == 2:
+            self.flag.maxima()  # the gate before the exchange
             _exchange(self.window[3], self.slab, *world())
         return gather_cells(self.psi[k : k + 2], self.model.stencil, self.f.boundary)
 
@@ -212,21 +216,40 @@ class _SlabNewton:
             flat[3, unk] += flat[2, unk] - 2 * flat[1, unk] + flat[0, unk]
         if self.g_prev is None:
             self.g_prev = CellDerivatives(self.model, self.cells_at(1)).grad
+        g_prev = self.g_prev
         it, res, self.g_prev, err = _newton_slice(
-            self.model, self.sys, self.psi, flat, unk, 2, self.g_prev, self.vol, rtol, max_newton, self.cells_at,
-            self.cache, _all_maxima,
+            self.model, self.sys, self.psi, flat, unk, 2, g_prev, self.vol, rtol, max_newton, self.cells_at,
+            self.cache, self.flag.maxima,
         )  # fmt: skip
-        if err is not None:
-            raise ServeError(f"slice {i + 1}: {err[0]} (split slice-Newton)", slice=i + 1, residual=err[2])
         self.total_it, self.max_it = self.total_it + it, max(self.max_it, it)
-        used = self.cache.get("used", [])
-        if _all_maxima(float(used not in ([], ["sitewise"])))[0]:  # some slab's Jacobian is not block-diagonal
-            raise InputError.at(
-                "--workers",
-                "the DEL couples neighbouring sites of the new slice (slice-Newton's solve is not site by site), "
-                "which is not split across processes; serve it in one process (without --workers)",
-            )
+        if err is not None:
+            self.fail(i, err, self.sys.residual(g_prev, self.g_prev, self.vol))
         return float(res)
+
+    def fail(self, i: int, err: tuple[str, int | None, float], r: np.ndarray) -> NoReturn:
+        """Tell every process that slice ``i``'s equations failed (``err``: the message, this process's row of
+        its worst residual ``r``, the residual); the one-process message, its site in the whole lattice."""
+        msg, row, res = err
+        site = None
+        if row is not None:
+            local = _site_label(self.f, self.sys, i, row)
+            start = self.slab.lo - self.slab.halo if self.slab.periodic else max(self.slab.lo - self.slab.halo, 0)
+            site = (i, (local[1] + start) % self.slab.n, *local[2:])
+        f, dims = self.f, lattice_dims(self.init)
+        text = (
+            f"slice {i + 1} (t = {float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0]):.6g}): {msg}"
+            + (f" in the DEL equation of site {_site_text(self.init, dims, site)}" if site else "")
+            + (f", residual {res:.3e}" if math.isfinite(res) else "")
+        )
+        weight = float(np.abs(r).max()) if r.size else 0.0
+        self.flag.fail(Failure(text, weight, slice=i + 1, site=site, residual=res))
+
+
+def _site_text(init: xr.DataArray, dims: tuple[str, ...], site: tuple[int, ...]) -> str:
+    """``index t=12, x=5 (x = 0.3125)``, as one process says it (``_field._site_text``), from ``init``'s axes."""
+    idx = ", ".join(f"{d}={i}" for d, i in zip(dims, site))
+    coords = ", ".join(f"{d} = {float(init[d].values[i]):.6g}" for d, i in zip(dims[1:], site[1:]) if d in init.coords)
+    return f"index {idx}" + (f" ({coords})" if coords else "")
 
 
 def serve_slabs(
@@ -240,6 +263,8 @@ def serve_slabs(
     max_newton: int = 30,
     on_slab: Callable[[int, Slab, np.ndarray], None] | None = None,
     report: dict[str, Any] | None = None,
+    solver: str = "auto",
+    on_slice: Callable[[int, np.ndarray], None] | None = None,
 ) -> xr.DataArray | None:
     """Serve ``init`` (every slice held for Dirichlet strips; a periodic field needs two) over the processes of
     the group, one slab each; rank 0 gets the kept slices ``0, every, ...`` and the last, the others None.
@@ -247,49 +272,143 @@ def serve_slabs(
     ``on_slab(i, slab, values)``, in every process, sees each slice ``i`` served (the first two included) on
     the process's own planes (``(planes, ..., components)``): the task's meters measure the slab there.
     ``report``, when given, receives ``max_residual`` (the largest DEL residual of the recurrence's check),
-    ``processes`` and ``slabs`` (the planes ``[lo, hi)`` of each process along ``axis``)."""
-    rank, size = world()
-    dims = lattice_dims(init)
-    kinds = _kinds(model, init, dims, boundary)
-    axis = dims[1]
-    slabs = plan_slabs(init.sizes[axis], size, _halo_width(model), kinds[axis] == "periodic", axis)
-    slab = slabs[rank]
-    data = any(k != "periodic" for k in kinds.values())  # Dirichlet strips: every slice of the slab is read
-    f = _local_field(init.isel({dims[0]: slice(0, min(init.sizes[dims[0]], slices) if data else 2)}), slab, kinds)
-    sys = _SliceSystem(model, f)
-    op = _recurrence(model, f, sys)
-    m, vol = f.ncomp, math.prod(model.spacing)
-    window = np.full((4, sys.nsite * m), np.nan)  # slices i - 2 .. i + 1
-    window[1:3] = f.values[:2].reshape(2, -1).numpy()
-    newton = _SlabNewton(model, f, sys, window, slab) if op is None else None
-    kept_at = kept_slices(slices, every)
-    kept = [window[k + 1].copy() for k in range(2) if k in kept_at]
-    known = None if sys.interior.all() else np.repeat(~sys.interior, m)
-    shape = (len(slab.local), *f.shape[2:], m)
-    for k in range(2 if on_slab is not None else 0):
-        on_slab(k, slab, window[k + 1].reshape(shape)[slab.own])  # type: ignore[misc]
-    worst = 0.0
-    for i in range(1, slices - 1):
-        if known is not None:  # the Dirichlet strips (the halo planes: placeholders until the exchange)
-            nxt = known_slices(f, lambda a, b: f.values[a:b], f.shape[0], None, i + 1, i + 2) if data else None
-            window[3, known] = 0.0 if nxt is None else np.asarray(nxt).reshape(-1)[known]
-        if newton is not None:
-            worst = max(worst, newton.step(i, rtol, max_newton))
-        else:
-            assert op is not None
-            op.run(window[1:], 1, 2)
-            _exchange(window[3], slab, rank, size)
-            worst = max(worst, _check(model, f, window[1:], vol, op.dmax, rtol, i))
-        if on_slab is not None:
-            on_slab(i + 1, slab, window[3].reshape(shape)[slab.own])
-        if i + 1 in kept_at:
-            kept.append(window[3].copy())
-        window[:3] = window[1:]
-    if report is not None:
-        report.update(max_residual=worst, processes=size, axis=axis, slabs=[[s.lo, s.hi] for s in slabs])
-        its = (slices - 2, 1) if newton is None else (newton.total_it, newton.max_it)
+    ``processes`` and ``slabs`` (the planes ``[lo, hi)`` of each process along ``axis``), and the solvers.
+    ``solver`` is slice-Newton's linear solver (``"auto"``, ``"sitewise"`` or ``"krylov"``; ``"lu"`` is
+    refused). ``on_slice(i, values)``, when given, sees on rank 0 every slice ``i`` whole (``(planes, ...,
+    components)``, gathered slice by slice: the measurements a process makes on whole slices).
+
+    A failure in any process (slice-Newton not converging, or an exception of one process alone) stops every
+    process with the same :class:`SlabError` (:mod:`._flag`), whose ``result`` on rank 0 is the field served
+    before it: the kept slices up to the last slice every process completed, and that slice."""
+    flag = Flag()
+    run: _SlabRun | None = None
+    try:
+        try:
+            if solver == "lu":
+                raise lu_refusal()
+            run = _SlabRun(model, init, slices, boundary, every, flag, solver)
+            run.serve(rtol, max_newton, on_slab, on_slice)
+            flag.maxima()  # the gate before the gather: a process that failed after the last test says so
+        except SlabError:
+            raise
+        except Exception as exc:
+            flag.fail(Failure.of(exc, _failure_text(exc, run), None if run is None else run.done + 1))
+    except SlabError as err:
+        if run is not None:
+            err.result = _partial(run)
+            run.tell(report)
+        raise
+    run.tell(report)
+    return _gathered(init, run.f, run.slab, run.kept, run.kept_at, world()[0])
+
+
+def _failure_text(exc: Exception, run: _SlabRun | None) -> str:
+    """One line for an exception of this process alone: the slice it was serving, the process, the error."""
+    first = (str(exc).strip().splitlines() or [""])[0]
+    where = "setting up" if run is None else f"slice {run.done + 1}"
+    return f"{where}: process {world()[0]} of {world()[1]} failed: {type(exc).__name__}: {first}".rstrip(": ")
+
+
+class _SlabRun:
+    """One process's part of a split serve: its slab of the field, the window of slices ``i - 2 .. i + 1``,
+    the kept slices, and the last slice it completed (``done``, in window row 2 between slices)."""
+
+    def __init__(
+        self,
+        model: AbstractLagrangian,
+        init: xr.DataArray,
+        slices: int,
+        boundary: BoundaryKinds | None,
+        every: int,
+        flag: Flag,
+        solver: str = "auto",
+    ):
+        rank, size = world()
+        dims = lattice_dims(init)
+        kinds = _kinds(model, init, dims, boundary)
+        self.axis = axis = dims[1]
+        self.slabs = plan_slabs(init.sizes[axis], size, _halo_width(model), kinds[axis] == "periodic", axis)
+        self.slab = slab = self.slabs[rank]
+        self.data = any(k != "periodic" for k in kinds.values())  # Dirichlet strips: every slice of the slab is read
+        nt = min(init.sizes[dims[0]], slices) if self.data else 2
+        self.f = f = _local_field(init.isel({dims[0]: slice(0, nt)}), slab, kinds)
+        self.model, self.init, self.slices, self.flag = model, init, slices, flag
+        self.sys = sys = _SliceSystem(model, f)
+        self.op = _recurrence(model, f, sys, flag)
+        self.window = np.full((4, sys.nsite * f.ncomp), np.nan)  # slices i - 2 .. i + 1
+        self.window[1:3] = f.values[:2].reshape(2, -1).numpy()
+        self.newton = _SlabNewton(model, f, sys, self.window, slab, flag, init, solver) if self.op is None else None
+        self.kept_at = kept_slices(slices, every)
+        self.kept = [self.window[k + 1].copy() for k in range(2) if k in self.kept_at]
+        self.known = None if sys.interior.all() else np.repeat(~sys.interior, f.ncomp)
+        self.shape = (len(slab.local), *f.shape[2:], f.ncomp)
+        self.done, self.worst = 1, 0.0
+
+    def own(self, row: int) -> np.ndarray:
+        """Window row ``row`` on the slab's own planes, ``(planes, ..., components)``."""
+        return self.window[row].reshape(self.shape)[self.slab.own]
+
+    def serve(
+        self,
+        rtol: float,
+        max_newton: int,
+        on_slab: Callable[[int, Slab, np.ndarray], None] | None,
+        on_slice: Callable[[int, np.ndarray], None] | None = None,
+    ) -> None:
+        """Serve every slice (``on_slab`` sees each on the slab's planes, ``on_slice`` on rank 0 whole)."""
+        window = self.window
+        for k in range(2):
+            if on_slab is not None:
+                on_slab(k, self.slab, self.own(k + 1))
+            self.whole(k, k + 1, on_slice)
+        for i in range(1, self.slices - 1):
+            self.step(i, rtol, max_newton)
+            if on_slab is not None:
+                on_slab(i + 1, self.slab, self.own(3))
+            self.whole(i + 1, 3, on_slice)
+            if i + 1 in self.kept_at:
+                self.kept.append(window[3].copy())
+            window[:3] = window[1:]
+            self.done = i + 1
+
+    def whole(self, k: int, row: int, on_slice: Callable[[int, np.ndarray], None] | None) -> None:
+        """Slice ``k`` (window row ``row``) gathered whole to rank 0's ``on_slice`` (after a gate)."""
+        if on_slice is None:
+            return
+        self.flag.maxima()
+        parts: list[Any] = [self.own(row)]
+        if world()[1] > 1:
+            parts = [None] * world()[1]
+            dist.gather_object(self.own(row), parts if world()[0] == 0 else None, dst=0)
+        if world()[0] == 0:
+            on_slice(k, np.concatenate(parts, axis=0))
+
+    def step(self, i: int, rtol: float, max_newton: int) -> None:
+        """Solve slice ``i``'s equations for slice ``i + 1`` (window row 3), its halo planes exchanged."""
+        f, window = self.f, self.window
+        if self.known is not None:  # the Dirichlet strips (the halo planes: placeholders until the exchange)
+            nxt = known_slices(f, lambda a, b: f.values[a:b], f.shape[0], None, i + 1, i + 2) if self.data else None
+            window[3, self.known] = 0.0 if nxt is None else np.asarray(nxt).reshape(-1)[self.known]
+        if self.newton is not None:
+            self.worst = max(self.worst, self.newton.step(i, rtol, max_newton))
+            return
+        assert self.op is not None
+        self.op.run(window[1:], 1, 2)
+        self.flag.maxima()  # the gate before the exchange
+        _exchange(window[3], self.slab, *world())
+        vol = math.prod(self.model.spacing)
+        self.worst = max(self.worst, _check(self.model, f, window[1:], vol, self.op.dmax, rtol, i, self.flag))
+
+    def tell(self, report: dict[str, Any] | None) -> None:
+        """Fill ``report`` (when given) with the decomposition and the solver's figures."""
+        if report is None:
+            return
+        slabs = [[s.lo, s.hi] for s in self.slabs]
+        report.update(max_residual=self.worst, processes=world()[1], axis=self.axis, slabs=slabs)
+        newton = self.newton
+        its = (self.done - 1, 1) if newton is None else (newton.total_it, newton.max_it)
         report.update(solver="affine" if newton is None else "newton", newton_iterations=its[0], max_newton=its[1])
-    return _gathered(init, f, slab, kept, kept_at, rank)
+        report.update(slice_solver=None if newton is None else "+".join(newton.cache.get("used", [])) or None)
 
 
 def _kinds(
@@ -305,13 +424,19 @@ def _kinds(
 
 
 def _check(
-    model: AbstractLagrangian, f: LatticeField, window: np.ndarray, vol: float, dmax: float, rtol: float, i: int
+    model: AbstractLagrangian,
+    f: LatticeField,
+    window: np.ndarray,
+    vol: float,
+    dmax: float,
+    rtol: float,
+    i: int,
+    flag: Flag,
 ) -> float:
     """The one-process test of the recurrence against the model's DEL, on slice ``i``'s equations, global;
     the slice's largest residual."""
     psi = torch.from_numpy(window.reshape(3, *f.shape[1:], f.ncomp))
-    res = _all_max(float(_slice_residuals(model, f, psi, 1, 2)[0]))
-    scl = _all_max(float(np.abs(window).max()))
+    res, scl = flag.maxima(float(_slice_residuals(model, f, psi, 1, 2)[0]), float(np.abs(window).max()))
     if not (math.isfinite(res) and res <= rtol * vol * dmax * max(scl, 1e-300)):
         raise ServeError(
             f"slice {i + 1}: the affine recurrence fails the DEL test (residual {res:.3e}); split serving has no "
@@ -332,8 +457,38 @@ def _gathered(
         dist.gather_object(own, parts if rank == 0 else None, dst=0)
     if rank != 0:
         return None
-    values = np.concatenate(parts, axis=1).reshape(len(kept), init.sizes[lattice_dims(init)[1]], *f.shape[2:], f.ncomp)
+    return _as_field(init, f, np.concatenate(parts, axis=1), kept_at)
+
+
+def _as_field(init: xr.DataArray, f: LatticeField, values: np.ndarray, idx: np.ndarray) -> xr.DataArray:
+    """The slices ``idx`` of the whole lattice (``values``: ``(len(idx), planes, ...)``) as a field like ``init``."""
+    values = values.reshape(len(idx), init.sizes[lattice_dims(init)[1]], *f.shape[2:], f.ncomp)
     tdim = lattice_dims(init)[0]
     t = np.asarray(init[tdim].values[:2], dtype=np.float64)
-    out = init.isel({tdim: [0] * len(kept)}).copy(data=values if f.components is not None else values[..., 0])
-    return out.assign_coords({tdim: t[0] + (t[1] - t[0]) * kept_at.astype(np.float64), "slice": (tdim, kept_at)})
+    out = init.isel({tdim: [0] * len(idx)}).copy(data=values if f.components is not None else values[..., 0])
+    return out.assign_coords({tdim: t[0] + (t[1] - t[0]) * idx.astype(np.float64), "slice": (tdim, idx)})
+
+
+def _partial(run: _SlabRun) -> xr.DataArray | None:
+    """Rank 0's field of a stopped split serve: the kept slices up to the last slice every process completed,
+    and that slice (the processes that failed later hold it in window row 1); the others get None."""
+    rows = len(run.slab.local)
+    kept = np.stack(run.kept).reshape(len(run.kept), rows, -1)[:, run.slab.own] if run.kept else None
+    last = run.window[1:3].reshape(2, rows, -1)[:, run.slab.own]
+    mine = (run.done, run.kept_at[: len(run.kept)].tolist(), kept, last)
+    parts: list[Any] = [mine]
+    if world()[1] > 1:
+        parts = [None] * world()[1]
+        dist.gather_object(mine, parts if world()[0] == 0 else None, dst=0)
+    if world()[0] != 0:
+        return None
+    done = min(p[0] for p in parts)
+    idx = [int(k) for k in run.kept_at if k <= done]
+    idx += [done] if idx[-1] != done else []
+
+    def planes(part: tuple[int, list[int], np.ndarray | None, np.ndarray], k: int) -> np.ndarray:
+        at, held, kept, last = part
+        return kept[held.index(k)] if k in held else last[1 - (at - k)]  # type: ignore[index]
+
+    values = np.stack([np.concatenate([planes(p, k) for p in parts], axis=0) for k in idx])
+    return _as_field(run.init, run.f, values, np.asarray(idx))

@@ -61,7 +61,8 @@ def _newton_slice(
 ):
     """Newton on one slice. Steps reuse the cached factorised Jacobian (chord steps, exact for quadratic
     ``L_d``) while each cuts the residual a hundredfold; fresh Hessian blocks are assembled only when one did not.
-    The linear solver is ``cache["solver"]`` (``_solvers.SOLVERS``; ``cache["used"]`` collects those chosen).
+    The linear solver is ``cache["solver"]`` (``_solvers.SOLVERS``; ``cache["used"]`` collects those chosen),
+    factorised by ``cache["factor"]`` when given (a split slice's), else ``_solvers.factor_step``.
 
     ``allmax`` makes every test that reads the whole slice (residual, sizes, singular values, the step) global
     when the slice is split over processes (one part each in ``flat``): they then stop at the same iteration."""
@@ -94,7 +95,8 @@ def _newton_slice(
                     blocks = _fresh_blocks(ev, sys, cache, allmax)
                     if cache["singular"]:
                         return it, res, ev.grad, (*cache["singular"], res)
-                cache["solve"], name = factor_step(sys, blocks, vol, cache.get("solver", "auto"), rtol * rscale)
+                factor = cache.get("factor", factor_step)  # a split slice: the processes' own
+                cache["solve"], name = factor(sys, blocks, vol, cache.get("solver", "auto"), rtol * rscale)
                 if cache.get("keep_factored"):  # a checkpoint rebuilds the factorisation from them
                     cache["factored"] = (blocks, rtol * rscale)
                 used = cache.setdefault("used", [])
