@@ -38,7 +38,7 @@ import numpy as np
 
 from ._symbolic import SymbolicLd
 
-__all__ = ["BUILDS", "CompiledForms", "cache_dir", "compile_forms"]
+__all__ = ["BUILDS", "CompiledForms", "cache_dir", "compile_forms", "folded_kernels"]
 
 log = logging.getLogger("latticedft")
 
@@ -546,4 +546,169 @@ def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tupl
         mod.trajectory(
             np.zeros(3), 1, 1, 1.0, 1.0, 1, -1.0, 1e-10, np.zeros(3), np.zeros(2, dtype=np.int64), np.zeros(6)
         )
+    return mod, how
+
+
+#: The folded polynomial's kernels (:func:`folded_kernels`): one module for every polynomial, whatever its
+#: orders, stencil, dimension and components, which it reads as data (the scaled variables ``z = x.flat @ w -
+#: shift``, the exponents of the monomials some derivative needs, the matrix from those monomials to the
+#: derivatives). Cells run along the innermost loops in chunks of ``_CHUNK``, as the numpy forms' cells-last
+#: evaluation, so that each product runs over a contiguous row that the compiler vectorises.
+_FOLDED = """
+import numba
+import numpy as np
+
+_CHUNK = 256
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def folded_cells(lo, hi, site_of, upper, w, shift, expo, gc, out):
+    k = site_of.shape[0]
+    m = lo.shape[1]
+    nvar = w.shape[1]
+    ncell = site_of.shape[1]
+    nmono = gc.shape[0]
+    cols = gc.shape[1]
+    wmax = 2
+    for t in range(nmono):
+        for v in range(nvar):
+            wmax = max(wmax, expo[t, v] + 1)
+    ch = _CHUNK
+    x = np.empty((k * m, ch))
+    pw = np.empty((nvar, wmax, ch))
+    acc = np.empty((cols, ch))
+    p = np.empty(ch)
+    for start in range(0, ncell, ch):
+        n = min(ch, ncell - start)
+        for a in range(k):
+            src = hi if upper[a] else lo
+            for j in range(n):
+                s = site_of[a, start + j]
+                for c in range(m):
+                    x[a * m + c, j] = src[s, c]
+        for v in range(nvar):
+            for j in range(n):
+                p[j] = 0.0
+            for r in range(k * m):
+                wr = w[r, v]
+                if wr != 0.0:
+                    for j in range(n):
+                        p[j] += x[r, j] * wr
+            for j in range(n):
+                pw[v, 0, j] = 1.0
+                pw[v, 1, j] = p[j] - shift[v]
+            for e in range(2, wmax):
+                for j in range(n):
+                    pw[v, e, j] = pw[v, e - 1, j] * pw[v, 1, j]
+        for c in range(cols):
+            for j in range(n):
+                acc[c, j] = 0.0
+        for t in range(nmono):
+            e0 = expo[t, 0]
+            for j in range(n):
+                p[j] = pw[0, e0, j]
+            for v in range(1, nvar):
+                e = expo[t, v]
+                if e:
+                    for j in range(n):
+                        p[j] *= pw[v, e, j]
+            for c in range(cols):
+                g = gc[t, c]
+                if g != 0.0:
+                    for j in range(n):
+                        acc[c, j] += g * p[j]
+        for j in range(n):
+            for c in range(cols):
+                out[start + j, c] = acc[c, j]
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def scatter(gprev, gcur, site_of, upper, rows, vol, el, r):
+    m = el.shape[1]
+    el[:] = 0.0
+    for a in range(site_of.shape[0]):
+        g = gprev if upper[a] else gcur
+        for n in range(site_of.shape[1]):
+            s = site_of[a, n]
+            for c in range(m):
+                el[s, c] += g[n, a * m + c]
+    for q in range(rows.shape[0]):
+        for c in range(m):
+            r[q * m + c] = vol * el[rows[q], c]
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def predict(prev, cur, nxt, older, rows):
+    top = 1e-300
+    for s in range(prev.shape[0]):
+        for c in range(prev.shape[1]):
+            top = max(top, abs(prev[s, c]), abs(cur[s, c]))
+    for q in range(rows.shape[0]):
+        y = rows[q]
+        for c in range(prev.shape[1]):
+            v = 2.0 * cur[y, c] - prev[y, c]
+            if older.shape[0]:
+                v = v + (cur[y, c] - 2.0 * prev[y, c] + older[y, c])
+            nxt[y, c] = v
+            top = max(top, abs(v))
+    return top
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def update(nxt, rows, delta):
+    m = nxt.shape[1]
+    top = 0.0
+    for q in range(rows.shape[0]):
+        for c in range(m):
+            nxt[rows[q], c] += delta[q * m + c]
+            top = max(top, abs(nxt[rows[q], c]))
+    return top
+"""
+
+
+def folded_kernels() -> Any:
+    """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``scatter``, ``predict``,
+    ``update``), built on first use and cached as the others (one build per machine, for every polynomial);
+    ``None``, with one info line, where numba cannot build it."""
+    key = hashlib.sha256(f"{_VERSION}|{_FOLDED}".encode()).hexdigest()[:24]
+    mod = _LOADED.get(key)
+    if mod is not None or key in _FAILED:
+        return mod
+    t0 = time.perf_counter()
+    try:
+        mod, how = _build_folded(key)
+    except Exception as exc:  # noqa: BLE001 - any failure: the polynomial keeps its numpy forms
+        _FAILED.add(key)
+        log.info(
+            "compiled polynomial kernel unavailable (%s: %s): serving uses its numpy forms", type(exc).__name__, exc
+        )
+        return None
+    seconds = time.perf_counter() - t0
+    BUILDS.append(("folded polynomial", seconds, how))
+    log.info("compiled polynomial kernel %s in %.2f s", how, seconds)
+    _LOADED[key] = mod
+    return mod
+
+
+def _build_folded(key: str) -> tuple[Any, str]:
+    """Write (once) and load the folded kernel module, and run each kernel once on one cell."""
+    import numba  # noqa: F401 - fails here, with the reason, where numba is missing
+
+    folder = cache_dir()
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"ldft_{key}.py"
+    how = "cached"
+    if not path.exists():
+        how = "built"
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(_FOLDED)
+        os.replace(tmp, path)
+    mod = _load(path, key)
+    one, idx = np.zeros((1, 1)), np.zeros((1, 1), dtype=np.int64)
+    rows, up = np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)
+    mod.folded_cells(one, one, idx, up, one, np.zeros(1), idx, one, np.empty((1, 1)))
+    mod.scatter(one, one, idx, up, rows, 1.0, np.empty((1, 1)), np.empty(1))
+    mod.predict(one, one, one, one, rows)
+    mod.predict(one, one, one, np.zeros((0, 1)), rows)
+    mod.update(one, rows, np.zeros(1))
     return mod, how

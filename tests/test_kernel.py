@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import sympy
 import torch
+import xarray as xr
 
 import latticedft as ldft
 from latticedft import lagrangians, systems
@@ -286,3 +287,68 @@ def test_the_compiled_loop_reports_a_failure_and_the_box_as_today() -> None:
     assert fast_box.slices == slow_box.slices
     a, b = np.asarray(fast_box.field.values), np.asarray(slow_box.field.values)
     assert np.array_equal(np.isnan(a), np.isnan(b)) and np.nanmax(np.abs(a - b)) <= 1e-12
+
+
+def _polynomial(ndim: int, m: int = 1) -> ldft.PolynomialLagrangian:
+    """The sine-Gordon case's polynomial class learned on a few slices of a small sine-Gordon field (one
+    component per copy of it, shifted)."""
+    n = {1: 16, 2: 8, 3: 5}[ndim]
+    model = sine_gordon()
+    init = _field(ndim, n)
+    served = ldft.serve(model, init, slices=10, progress=False).field
+    if m > 1:
+        served = xr.concat([served + 0.1 * c for c in range(m)], dim="component").transpose(..., "component")
+        served = served.assign_coords(component=[f"c{c}" for c in range(m)])
+    poly = ldft.PolynomialLagrangian(orders=(2, 6 if m > 1 else 12), time_symmetric=True)
+    ldft.learn(poly, served, progress=False)
+    return poly
+
+
+@pytest.mark.parametrize(
+    ("name", "ndim", "m", "keywords"),
+    [
+        ("periodic 1+1D", 1, 1, {}),
+        ("periodic 2+1D", 2, 1, {}),
+        ("periodic 3+1D", 3, 1, {}),
+        ("periodic 2+1D, streamed", 2, 1, {"every": 3}),
+        ("periodic 1+1D, two components", 1, 2, {}),
+    ],
+)
+def test_a_polynomial_served_on_the_folded_kernels_equals_its_numpy_forms(
+    name: str, ndim: int, m: int, keywords: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from latticedft._serve import _folded
+
+    calls = []
+    evaluate = _folded.FoldedSlices.evaluate
+    monkeypatch.setattr(_folded.FoldedSlices, "evaluate", lambda self, *a: calls.append(1) or evaluate(self, *a))
+    model = _polynomial(ndim, m)
+    init = _field(ndim, {1: 16, 2: 8, 3: 5}[ndim])
+    if m > 1:
+        init = xr.concat([init + 0.1 * c for c in range(m)], dim="component").transpose(..., "component")
+        init = init.assign_coords(component=[f"c{c}" for c in range(m)])
+    with ldft.set_options(compiled_numpy_models=True):
+        fast = ldft.serve(model, init, slices=12, progress=False, **keywords)
+    assert len(calls) >= 10, name
+    slow = ldft.serve(model, init, slices=12, progress=False, **keywords)
+    a, b = np.asarray(fast.field.values), np.asarray(slow.field.values)
+    assert np.abs(a - b).max() <= 1e-12 * max(1.0, float(np.abs(b).max())), name
+    assert fast.slice_solver == slow.slice_solver, name
+    assert fast.newton_iterations == slow.newton_iterations, name
+
+
+def test_the_folded_kernels_are_off_by_default_and_for_other_models() -> None:
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._folded import folded_slices
+    from latticedft._serve._slices import _SliceSystem
+
+    model = _polynomial(1)
+    f = as_lattice_field(_field(1, 16), source="init", min_slices=2)
+    sys_ = _SliceSystem(model, f)
+    flat = f.values.reshape(2, -1, 1).contiguous()
+    assert folded_slices(model, sys_, flat) is None
+    with ldft.set_options(compiled_numpy_models=True):
+        assert folded_slices(model, sys_, flat) is not None
+        assert folded_slices(sine_gordon().bind(2, 1, (0.04, 0.1)), sys_, flat) is None
+        with ldft.set_options(compiled_kernels=False):
+            assert folded_slices(model, sys_, flat) is None

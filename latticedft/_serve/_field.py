@@ -3,6 +3,7 @@ slice-Newton or the site-by-site sweep."""
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from typing import Any
@@ -17,6 +18,7 @@ from .._lattice import LatticeField, gather_cells
 from .._models import AbstractLagrangian
 from ._affine import _affine_prefix
 from ._edges import known_slices
+from ._folded import FoldedSlices, folded_slices
 from ._fused import FusedSlices, fused_slices
 from ._newton import _newton_slice
 from ._options import ServeOptions
@@ -85,14 +87,33 @@ def solve_and_tally(
     if done is not None:  # the compiled slice Newton: no per-cell gradients are carried to the next slice
         _tallied(run, *done)
         return None
-    flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
-    if run.mode == "newton" and older is not None:
+    folded = _folded_of(run) if run.mode == "newton" else None
+    if folded is not None:
+        folded.predict(flat, i, older)
+    else:
+        flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
+    if run.mode == "newton" and older is not None and folded is None:
         flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + older[unk]
     if run.mode == "newton":
-        if g_prev is None:
+        if g_prev is None and folded is not None:
+            g_prev = torch.from_numpy(folded.grad(flat, i - 1))
+        elif g_prev is None:
             g_prev = CellDerivatives(run.model, run.cells_at(i - 1)).grad
+        evaluate = functools.partial(folded.evaluate, flat, run.vol) if folded else None
         it, res, g_prev, err = _newton_slice(
-            run.model, run.sys, psi, flat, unk, i, g_prev, run.vol, rtol, max_newton, run.cells_at, run.cache
+            run.model,
+            run.sys,
+            psi,
+            flat,
+            unk,
+            i,
+            g_prev,
+            run.vol,
+            rtol,
+            max_newton,
+            run.cells_at,
+            run.cache,
+            evaluate=evaluate,
         )
     else:
         it, res, g_prev, err = _sweep_slice(run.model, run.sys, psi, flat, i, run.vol, rtol, max_newton, run.f)
@@ -110,6 +131,15 @@ def _tallied(run: Any, it: int, res: float) -> None:
     run.max_it = max(run.max_it, it)
     run.worst = max(run.worst, res)
     run.bar.update(1)
+
+
+def _folded_of(run: Any) -> FoldedSlices | None:
+    """The folded polynomial kernels of ``run`` (:mod:`._folded`), or ``None`` where they do not serve it."""
+    cache = run.cache
+    if "folded" not in cache:
+        cache["folded"] = folded_slices(run.model, run.sys, run.flat)
+    folded: FoldedSlices | None = cache["folded"]
+    return folded
 
 
 def _fused_of(run: Any) -> FusedSlices | None:
