@@ -555,6 +555,8 @@ def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tupl
 #: derivatives). Cells run along the innermost loops in chunks of ``_CHUNK``, as the numpy forms' cells-last
 #: evaluation, so that each product runs over a contiguous row that the compiler vectorises.
 _FOLDED = """
+import math
+
 import numba
 import numpy as np
 
@@ -655,6 +657,24 @@ def predict(prev, cur, nxt, older, rows):
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
+def excess(values, site_of, upper, proj, lo, hi, span, out):
+    nf, k = proj.shape
+    m = values.shape[2]
+    for i in range(values.shape[0] - 1):
+        for q in range(nf * m):
+            out[i, q] = 0.0
+        for n in range(site_of.shape[1]):
+            for p in range(nf):
+                for c in range(m):
+                    f = 0.0
+                    for a in range(k):
+                        f += proj[p, a] * values[i + upper[a], site_of[a, n], c]
+                    q = p * m + c
+                    e = math.inf if f != f else max(max(lo[q] - f, f - hi[q]), 0.0) / span[q]
+                    out[i, q] = max(out[i, q], e)
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
 def update(nxt, rows, delta):
     m = nxt.shape[1]
     top = 0.0
@@ -668,7 +688,7 @@ def update(nxt, rows, delta):
 
 def folded_kernels() -> Any:
     """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``scatter``, ``predict``,
-    ``update``), built on first use and cached as the others (one build per machine, for every polynomial);
+    ``update``, ``excess``), built on first use and cached as the others (one build per machine, for every polynomial);
     ``None``, with one info line, where numba cannot build it."""
     key = hashlib.sha256(f"{_VERSION}|{_FOLDED}".encode()).hexdigest()[:24]
     mod = _LOADED.get(key)
@@ -711,4 +731,5 @@ def _build_folded(key: str) -> tuple[Any, str]:
     mod.predict(one, one, one, one, rows)
     mod.predict(one, one, one, np.zeros((0, 1)), rows)
     mod.update(one, rows, np.zeros(1))
+    mod.excess(np.zeros((2, 1, 1)), idx, up, one, np.zeros(1), np.ones(1), np.ones(1), np.empty((1, 1)))
     return mod, how

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Iterator
 
 import numpy as np
@@ -335,6 +336,31 @@ def test_a_polynomial_served_on_the_folded_kernels_equals_its_numpy_forms(
     assert np.abs(a - b).max() <= 1e-12 * max(1.0, float(np.abs(b).max())), name
     assert fast.slice_solver == slow.slice_solver, name
     assert fast.newton_iterations == slow.newton_iterations, name
+    assert fast.extrapolation is not None and slow.extrapolation is not None
+    assert np.allclose(fast.extrapolation.values, slow.extrapolation.values, rtol=1e-9, atol=1e-12), name
+    assert fast.warnings == slow.warnings, name
+
+
+def test_the_folded_range_check_equals_todays_outside_the_range() -> None:
+    """A field well outside the training range: the compiled excess per slice equals ``_range._excess``'s."""
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._folded import folded_slices
+    from latticedft._serve._range import _excess
+    from latticedft._serve._slices import _SliceSystem
+
+    model = _polynomial(2)
+    f = as_lattice_field(_field(2, 8), source="init", min_slices=2)
+    values = f.values * torch.tensor([1.0, 3.0], dtype=torch.float64).reshape(2, 1, 1, 1)
+    values[1, 2, 3, 0] = math.nan
+    with ldft.set_options(compiled_numpy_models=True):
+        folded = folded_slices(model, _SliceSystem(model, f), values.reshape(2, -1, 1))
+    assert folded is not None
+    rng = model.trained_range()
+    assert rng is not None
+    want = _excess(model, rng.to(torch.float64), f, values)
+    got = folded.excess(model, values)
+    assert got is not None and np.isinf(got).any()
+    assert np.allclose(got, want, rtol=1e-12, atol=0.0)
 
 
 def test_the_folded_kernels_are_off_by_default_and_for_other_models() -> None:

@@ -214,7 +214,8 @@ class _FieldRun:
     def _result(
         self, field: LatticeField, complete: bool, reason: str, slices: int, wall: float, rate: float, residual: float
     ) -> ServeResult:
-        ext, warnings = assess(self.model, field)
+        folded = self.cache.get("folded")
+        ext, warnings = assess(self.model, field, folded.excess if folded is not None else None)
         return ServeResult(
             field=field.to_dataarray(),
             complete=complete,

@@ -13,6 +13,7 @@ taken only where ``set_options(compiled_numpy_models=True)`` asks.
 
 from __future__ import annotations
 
+import weakref
 from typing import Any
 
 import numpy as np
@@ -42,6 +43,24 @@ def _data(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[np
         np.ascontiguousarray(expo, dtype=np.int64),
         np.ascontiguousarray(folded.g_chain[keep], dtype=np.float64),
     )
+
+
+#: Per model, the folded data for its pairs with the parameters and buffers they were built from.
+_DATA: weakref.WeakKeyDictionary[Any, tuple[list[tuple[torch.Tensor, int]], tuple[Any, ...], tuple[Any, Any]]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def _data_of(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[Any, Any]:
+    """``(_data(model, []), _data(model, pairs))``, built once per model state and pairs."""
+    state = [(t, t._version) for t in [*model.parameters(), *model.buffers()]]
+    known = _DATA.get(model)
+    same = known is not None and known[1] == tuple(pairs) and len(known[0]) == len(state)
+    if known is not None and same and all(a is b and u == v for (a, u), (b, v) in zip(known[0], state)):
+        return known[2]
+    built = (_data(model, []), _data(model, pairs))
+    _DATA[model] = (state, tuple(pairs), built)
+    return built
 
 
 class FoldedCells:
@@ -92,6 +111,23 @@ class FoldedSlices:
         old = older.numpy() if older is not None else np.zeros((0, self.m))
         self.mod.predict(flat[i - 1].numpy(), flat[i].numpy(), flat[i + 1].numpy(), old, self.rows)
 
+    def excess(self, model: Any, values: torch.Tensor) -> np.ndarray | None:
+        """``(slices - 1, features)``: ``_range._excess`` of the served ``values`` ``(slices, *sites, m)`` in one
+        compiled pass (the cells' stencil mean and differences against ``model``'s training range); ``None``
+        without a range."""
+        rng = model.trained_range()
+        if rng is None or values.dtype != torch.float64 or not values.is_contiguous():
+            return None
+        rng = rng.to(torch.float64)
+        lo, hi = rng[0], rng[1]
+        span = torch.maximum(hi - lo, 1e-12 * torch.maximum(lo.abs(), hi.abs())).clamp_min(1e-300)  # as _excess
+        proj = np.ascontiguousarray(model.proj.detach().to(torch.float64).numpy())
+        flat = values.numpy().reshape(values.shape[0], -1, self.m)
+        out = np.empty((values.shape[0] - 1, lo.numel()))
+        parts = [np.ascontiguousarray(t.reshape(-1).numpy()) for t in (lo, hi, span)]
+        self.mod.excess(flat, self.site_of, self.upper, proj, *parts, out)
+        return out
+
     def evaluate(self, flat: torch.Tensor, vol: float, i: int, g_prev: Any) -> tuple[FoldedCells, np.ndarray]:
         """The cells anchored on slice ``i`` at the current state and the slice's DEL residual on its equation
         rows (``g_prev``: the gradients of the cells anchored on ``i - 1``, as this or ``CellDerivatives``
@@ -115,7 +151,7 @@ def folded_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FoldedSl
         return None
     if any(t.device.type != "cpu" for t in [*model.parameters(), *model.buffers()]):
         return None
-    grad_data, both_data = _data(model, []), _data(model, list(sys.pairs))
+    grad_data, both_data = _data_of(model, list(sys.pairs))
     if grad_data is None or both_data is None:
         return None
     mod = folded_kernels()
