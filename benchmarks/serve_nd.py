@@ -375,7 +375,11 @@ def run(cfg: Config) -> Table:
         if n**ndim >= {1: 16384, 2: 128**2, 3: 32**3}[ndim] or cfg.quick:
             key = f"{label} {ndim}+1D"
             worst[key] = max(worst.get(key, 0.0), ratio)
-        if label.endswith(", compiled") and (n**ndim >= {1: 4096, 2: 128**2, 3: 32**3}[ndim] or cfg.quick):
+        if (
+            label.startswith("sine-Gordon")
+            and label.endswith(", compiled")
+            and (n**ndim >= {1: 4096, 2: 128**2, 3: 32**3}[ndim] or cfg.quick)
+        ):
             per_site.setdefault(f"{ndim}", []).append(float(row[5]))
     steps = _oscillator_steps(cfg.quick)
     _notes(table, cfg, before, builds, steps)

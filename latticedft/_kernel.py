@@ -52,7 +52,7 @@ _LOADED: dict[str, Any] = {}
 _FAILED: set[str] = set()
 
 #: Bumped whenever the generated code changes, so that stale cached kernels are not reused.
-_VERSION = 10
+_VERSION = 12
 
 
 def cache_dir() -> Path:
@@ -92,6 +92,11 @@ class CompiledForms:
     def block_diagonal(self) -> bool:
         """Whether the kernels hold ``slice_newton`` (a scalar ``L_d`` with a block-diagonal slice Jacobian)."""
         return bool(self.module.BLOCK_DIAGONAL)
+
+    @property
+    def quadratic(self) -> bool:
+        """Whether the ``L_d`` is a polynomial of degree at most two (its DEL affine), by its form."""
+        return bool(self.module.QUADRATIC)
 
     @property
     def has_trajectory(self) -> bool:
@@ -179,7 +184,18 @@ def _source(form: SymbolicLd, pairs: Sequence[tuple[int, int]]) -> str:
                 "",
                 "",
             ]
+    text += [f"QUADRATIC = {_quadratic(form)}", ""]
     return "\n".join(text + _slice_newton_source(form, grads, pairs, second) + _trajectory_source(form, grads))
+
+
+def _quadratic(form: SymbolicLd) -> bool:
+    """Whether ``form`` is a polynomial of degree at most two in the cell's values (its DEL is affine)."""
+    import sympy
+
+    try:
+        return bool(sympy.Poly(form.expr, *form.flat_symbols()).total_degree() <= 2)
+    except sympy.PolynomialError:
+        return False
 
 
 def _diagonal_pairs(form: SymbolicLd, pairs: Sequence[tuple[int, int]], second: Sequence[Any]) -> list[tuple[int, int]]:
@@ -237,12 +253,15 @@ def _slice_newton_source(
     mapped = _newton_body(form, list(hessians), nxt, now, moving, constant, False, affine)
     body = ["        y = rows[q]", "        if plain[y]:", *["    " + x for x in plain], "        else:"]
     body += ["    " + x for x in mapped]
+    # the fixed offsets read once into scalars (the loop writes nxt: loads from delta would not be hoisted)
+    hoisted = [f"    d{a}_{p} = delta[{a}, {p}]" for a in range(k) for p in range(k)]
     text += [f"AFFINE = {affine}", ""]
     for suffix, parallel, loop in (("", "True", "numba.prange"), ("_serial", "False", "range")):
         text += [
             f"@numba.njit(parallel={parallel}, cache=True, error_model='numpy', nogil=True)",
             f"def slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, plain, delta, rows, vol, tol, step_tol,"
             " smin, maxit, res, its):",
+            *hoisted,
             f"    for q in {loop}(rows.shape[0]):",
             *body,
             "",
@@ -285,7 +304,7 @@ def _newton_body(
     def term(a: int, fn: str, anchored_before: bool) -> list[str]:
         low, high = ("prev", "cur") if anchored_before else ("cur", "nxt")
         if plain:
-            args = ", ".join(f"{high if form.offsets[p][0] else low}[y + delta[{a}, {p}], 0]" for p in range(k))
+            args = ", ".join(f"{high if form.offsets[p][0] else low}[y + d{a}_{p}, 0]" for p in range(k))
             return [f"{fn}({args})"]
         args = ", ".join(f"{high if form.offsets[p][0] else low}[site_of[{p}, c], 0]" for p in range(k))
         return [f"c = cell_at[{a}, y]", "if c >= 0:", f"    {fn}({args})"]

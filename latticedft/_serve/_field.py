@@ -24,7 +24,7 @@ from ._newton import _newton_slice
 from ._options import ServeOptions
 from ._range import assess
 from ._result import ServeResult, _bar
-from ._slices import _site_label, _SliceSystem
+from ._slices import _site_label, _SliceSystem, is_singular
 from ._sweep import _sweep_slice
 
 
@@ -82,6 +82,8 @@ def solve_and_tally(
     for the gradients (``g_prev``: the cells anchored at ``i - 1``; ``None`` has them evaluated afresh).
     """
     flat, unk = run.flat, run.unk
+    if run.mode == "newton":
+        _choose_fused(run, i, older)
     fused = _fused_of(run) if run.mode == "newton" else None
     done = None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, run.cache)
     if done is not None:  # the compiled slice Newton: no per-cell gradients are carried to the next slice
@@ -131,6 +133,34 @@ def _tallied(run: Any, it: int, res: float) -> None:
     run.max_it = max(run.max_it, it)
     run.worst = max(run.worst, res)
     run.bar.update(1)
+
+
+def _choose_fused(run: Any, i: int, older: Any) -> None:
+    """Before the first Newton slice, where the compiled slice Newton could serve: the site-wise solver chosen
+    and the scales set from the Hessian blocks at the predictor, as slice-Newton's first iteration would
+    (``_newton._fresh_blocks``; ``_solvers.choose_solver`` chooses site-wise for a Jacobian block diagonal by
+    the L_d's form), so that the kernel serves the first slice too. Anything else (a singular Jacobian,
+    another solver asked for, a checkpointed run) is left to slice-Newton, which reports it as before."""
+    cache = run.cache
+    if "fused" in cache or "dmax" in cache or cache.get("keep_factored"):
+        return
+    fused = fused_slices(run.model, run.sys, run.flat) if cache.get("solver") in ("auto", "sitewise") else None
+    if fused is None:
+        return
+    flat, unk = run.flat, run.unk
+    flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
+    if older is not None:
+        flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + older[unk]
+    found = fused.scales(flat, i)
+    if found is None:
+        return
+    dmax, smin, smax, _ = found
+    scale = max(cache.get("mscale", 0.0), smax)
+    if is_singular(smin, scale):
+        return
+    cache["dmax"], cache["mscale"] = dmax, scale
+    cache["used"] = ["sitewise"]
+    cache["fused"] = fused
 
 
 def _folded_of(run: Any) -> FoldedSlices | None:
@@ -268,7 +298,7 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options
     run = _FieldRun(model, f, steps, mode, options.progress, options.solver, options.boundary_value)
     if mode == "newton" and options.affine and steps > 2:
         run.serve_affine(rtol)
-    g_prev: torch.Tensor | None = CellDerivatives(model, run.cells_at(run.start - 1)).grad
+    g_prev: torch.Tensor | None = None  # the first Newton slice evaluates them (the compiled kernel needs none)
     for i in range(run.start, steps - 1):
         g_prev = run.solve_slice(i, g_prev, rtol, max_newton)
     return run.finish()
