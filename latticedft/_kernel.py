@@ -38,7 +38,7 @@ import numpy as np
 
 from ._symbolic import SymbolicLd
 
-__all__ = ["BUILDS", "CompiledForms", "cache_dir", "compile_forms", "folded_kernels"]
+__all__ = ["BUILDS", "CompiledForms", "cache_dir", "compile_forms", "folded_cells_kernel", "folded_kernels"]
 
 log = logging.getLogger("latticedft")
 
@@ -573,15 +573,7 @@ def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tupl
 #: shift``, the exponents of the monomials some derivative needs, the matrix from those monomials to the
 #: derivatives). Cells run along the innermost loops in chunks of ``_CHUNK``, as the numpy forms' cells-last
 #: evaluation, so that each product runs over a contiguous row that the compiler vectorises.
-_FOLDED = """
-import math
-
-import numba
-import numpy as np
-
-_CHUNK = 256
-
-
+_FOLDED_CELLS = """
 @numba.njit(cache=True, error_model='numpy', nogil=True)
 def folded_cells(lo, hi, site_of, upper, w, shift, expo, gc, out):
     k = site_of.shape[0]
@@ -624,25 +616,24 @@ def folded_cells(lo, hi, site_of, upper, w, shift, expo, gc, out):
         for c in range(cols):
             for j in range(n):
                 acc[c, j] = 0.0
-        for t in range(nmono):
-            e0 = expo[t, 0]
-            for j in range(n):
-                p[j] = pw[0, e0, j]
-            for v in range(1, nvar):
-                e = expo[t, v]
-                if e:
-                    for j in range(n):
-                        p[j] *= pw[v, e, j]
-            for c in range(cols):
-                g = gc[t, c]
-                if g != 0.0:
-                    for j in range(n):
-                        acc[c, j] += g * p[j]
+{monomials}
         for j in range(n):
             for c in range(cols):
                 out[start + j, c] = acc[c, j]
 
 
+"""
+
+_FOLDED = """
+import math
+
+import numba
+import numpy as np
+
+_CHUNK = 256
+
+
+{cells}
 @numba.njit(cache=True, error_model='numpy', nogil=True)
 def scatter(gprev, gcur, site_of, upper, rows, vol, el, r):
     m = el.shape[1]
@@ -704,33 +695,92 @@ def update(nxt, rows, delta):
     return top
 """
 
+#: The generic monomial loop of ``folded_cells``: any number of variables and columns.
+_GENERIC_MONOMIALS = """
+        for t in range(nmono):
+            e0 = expo[t, 0]
+            for j in range(n):
+                p[j] = pw[0, e0, j]
+            for v in range(1, nvar):
+                e = expo[t, v]
+                if e:
+                    for j in range(n):
+                        p[j] *= pw[v, e, j]
+            for c in range(cols):
+                g = gc[t, c]
+                if g != 0.0:
+                    for j in range(n):
+                        acc[c, j] += g * p[j]
+"""
+
+_FOLDED = _FOLDED.replace("{cells}", _FOLDED_CELLS.replace("{monomials}", _GENERIC_MONOMIALS.strip("\n")))
+
 
 def folded_kernels() -> Any:
     """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``scatter``, ``predict``,
-    ``update``, ``excess``), built on first use and cached as the others (one build per machine, for every polynomial);
-    ``None``, with one info line, where numba cannot build it."""
-    key = hashlib.sha256(f"{_VERSION}|{_FOLDED}".encode()).hexdigest()[:24]
+    ``update``, ``excess``), built on first use and cached as the others (one build per machine, for every
+    polynomial); ``None``, with one info line, where numba cannot build it."""
+    return _folded_module(_FOLDED, "folded polynomial")
+
+
+def folded_cells_kernel(nvar: int, cols: int) -> Callable[..., None] | None:
+    """``folded_cells`` with its monomial loop unrolled for ``nvar`` variables and ``cols`` columns (the class of
+    a polynomial: its orders, stencil, dimension and components; its coefficients stay data), four monomials
+    per pass over the cells; built once per class and cached; ``None`` where numba cannot build it."""
+    source = "\nimport numba\nimport numpy as np\n\n_CHUNK = 256\n\n" + _FOLDED_CELLS.replace(
+        "{monomials}", _unrolled_monomials(nvar, cols)
+    )
+    mod = _folded_module(source, f"folded polynomial ({nvar} variables, {cols} columns)", (nvar, cols))
+    return None if mod is None else mod.folded_cells
+
+
+def _unrolled_monomials(nvar: int, cols: int, unroll: int = 4) -> str:
+    """The monomial loop of ``folded_cells`` for ``nvar`` variables and ``cols`` columns: ``unroll`` monomials
+    per pass, each column's sum kept in one expression (fewer loads and stores per cell)."""
+
+    def take(u: int, at: str) -> list[str]:
+        e = ", ".join(f"e{u}_{v}" for v in range(nvar)) + ("," if nvar == 1 else "")
+        g = ", ".join(f"g{u}_{c}" for c in range(cols)) + ("," if cols == 1 else "")
+        exps = ", ".join(f"expo[{at}, {v}]" for v in range(nvar))
+        return [f"{e} = {exps}", f"{g} = " + ", ".join(f"gc[{at}, {c}]" for c in range(cols))]
+
+    def body(us: range) -> list[str]:
+        lines = ["for j in range(n):"]
+        lines += [f"    p{u} = " + " * ".join(f"pw[{v}, e{u}_{v}, j]" for v in range(nvar)) for u in us]
+        lines += [f"    acc[{c}, j] += " + " + ".join(f"g{u}_{c} * p{u}" for u in us) for c in range(cols)]
+        return lines
+
+    out = ["t = 0", f"while t + {unroll} <= nmono:"]
+    out += ["    " + x for u in range(unroll) for x in take(u, f"t + {u}")]
+    out += ["    " + x for x in body(range(unroll))] + [f"    t += {unroll}", "while t < nmono:"]
+    out += ["    " + x for x in take(0, "t")] + ["    " + x for x in body(range(1))] + ["    t += 1"]
+    return "\n".join("        " + x for x in out)
+
+
+def _folded_module(source: str, what: str, shape: tuple[int, int] = (1, 1)) -> Any:
+    """Build (once per machine) or load the folded kernel module of ``source``; ``None``, with one info line,
+    where numba cannot build it."""
+    key = hashlib.sha256(f"{_VERSION}|{source}".encode()).hexdigest()[:24]
     mod = _LOADED.get(key)
     if mod is not None or key in _FAILED:
         return mod
     t0 = time.perf_counter()
     try:
-        mod, how = _build_folded(key)
+        mod, how = _build_folded(key, source, shape)
     except Exception as exc:  # noqa: BLE001 - any failure: the polynomial keeps its numpy forms
         _FAILED.add(key)
-        log.info(
-            "compiled polynomial kernel unavailable (%s: %s): serving uses its numpy forms", type(exc).__name__, exc
-        )
+        log.info("compiled %s kernel unavailable (%s: %s): serving uses its numpy forms", what, type(exc).__name__, exc)
         return None
     seconds = time.perf_counter() - t0
-    BUILDS.append(("folded polynomial", seconds, how))
-    log.info("compiled polynomial kernel %s in %.2f s", how, seconds)
+    BUILDS.append((what, seconds, how))
+    log.info("compiled %s kernel %s in %.2f s", what, how, seconds)
     _LOADED[key] = mod
     return mod
 
 
-def _build_folded(key: str) -> tuple[Any, str]:
-    """Write (once) and load the folded kernel module, and run each kernel once on one cell."""
+def _build_folded(key: str, source: str, shape: tuple[int, int]) -> tuple[Any, str]:
+    """Write (once) and load a folded kernel module, and run each of its kernels once on one cell (``shape``:
+    the variables and columns ``folded_cells`` is run with)."""
     import numba  # noqa: F401 - fails here, with the reason, where numba is missing
 
     folder = cache_dir()
@@ -740,12 +790,18 @@ def _build_folded(key: str) -> tuple[Any, str]:
     if not path.exists():
         how = "built"
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(_FOLDED)
+        tmp.write_text(source)
         os.replace(tmp, path)
     mod = _load(path, key)
     one, idx = np.zeros((1, 1)), np.zeros((1, 1), dtype=np.int64)
     rows, up = np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)
-    mod.folded_cells(one, one, idx, up, one, np.zeros(1), idx, one, np.empty((1, 1)))
+    nvar, cols = shape
+    expo = np.zeros((1, nvar), dtype=np.int64)
+    mod.folded_cells(
+        one, one, idx, up, np.zeros((1, nvar)), np.zeros(nvar), expo, np.zeros((1, cols)), np.empty((1, cols))
+    )
+    if not hasattr(mod, "scatter"):  # a class's own folded_cells alone
+        return mod, how
     mod.scatter(one, one, idx, up, rows, 1.0, np.empty((1, 1)), np.empty(1))
     mod.predict(one, one, one, one, rows)
     mod.predict(one, one, one, np.zeros((0, 1)), rows)

@@ -387,3 +387,23 @@ def test_the_folded_kernels_are_off_by_default_and_for_other_models() -> None:
         assert folded_slices(sine_gordon().bind(2, 1, (0.04, 0.1)), sys_, flat) is None
         with ldft.set_options(compiled_kernels=False):
             assert folded_slices(model, sys_, flat) is None
+
+
+def test_a_class_kernel_equals_the_generic_folded_kernel() -> None:
+    """The monomial loop unrolled for a class (variables, columns) sums the same monomials as the generic one."""
+    from latticedft._kernel import folded_cells_kernel, folded_kernels
+
+    rng = np.random.default_rng(3)
+    nvar, cols, k, ncell = 3, 5, 4, 300
+    lo, hi = rng.standard_normal((ncell, 1)), rng.standard_normal((ncell, 1))
+    site_of = rng.integers(0, ncell, size=(k, ncell))
+    upper = np.array([0, 1, 0, 0])
+    w, shift = rng.standard_normal((k, nvar)), rng.standard_normal(nvar)
+    expo = rng.integers(0, 4, size=(7, nvar))  # seven monomials: one unrolled pass of four and three alone
+    gc = rng.standard_normal((7, cols))
+    want, got = np.empty((ncell, cols)), np.empty((ncell, cols))
+    folded_kernels().folded_cells(lo, hi, site_of, upper, w, shift, expo, gc, want)
+    kernel = folded_cells_kernel(nvar, cols)
+    assert kernel is not None
+    kernel(lo, hi, site_of, upper, w, shift, expo, gc, got)
+    assert np.allclose(got, want, rtol=1e-13, atol=1e-13 * float(np.abs(want).max()))

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._kernel import folded_kernels
+from .._kernel import folded_cells_kernel, folded_kernels
 from .._models import PolynomialLagrangian
 from .._models._polynumpy import _numpy_forms
 from .._options import option
@@ -95,11 +95,16 @@ class FoldedSlices:
         self.rows = np.ascontiguousarray(np.nonzero(sys.interior)[0], dtype=np.int64)
         self.grad_data, self.both_data = grad_data, both_data
         self.el = np.empty((sys.nsite, sys.m))
+        self.cells: dict[tuple[int, int], Any] = {}  # the folded_cells kernel per (variables, columns)
 
     def columns(self, lo: np.ndarray, hi: np.ndarray, data: tuple[np.ndarray, ...]) -> np.ndarray:
-        """The folded forms' columns on every cell anchored on slice ``lo`` (``hi``: the next one)."""
-        out = np.empty((self.site_of.shape[1], data[3].shape[1]))
-        self.mod.folded_cells(lo, hi, self.site_of, self.upper, *data, out)
+        """The folded forms' columns on every cell anchored on slice ``lo`` (``hi``: the next one), by the
+        kernel of the polynomial's class where it builds, else the generic one."""
+        nvar, cols = data[0].shape[1], data[3].shape[1]
+        if (nvar, cols) not in self.cells:
+            self.cells[(nvar, cols)] = folded_cells_kernel(nvar, cols) or self.mod.folded_cells
+        out = np.empty((self.site_of.shape[1], cols))
+        self.cells[(nvar, cols)](lo, hi, self.site_of, self.upper, *data, out)
         return out
 
     def grad(self, flat: torch.Tensor, i: int) -> np.ndarray:
