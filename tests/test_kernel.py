@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import functools
 import logging
 import math
@@ -387,6 +388,21 @@ def test_the_folded_kernels_are_off_by_default_and_for_other_models() -> None:
         assert folded_slices(sine_gordon().bind(2, 1, (0.04, 0.1)), sys_, flat) is None
         with ldft.set_options(compiled_kernels=False):
             assert folded_slices(model, sys_, flat) is None
+
+
+def test_a_polynomial_that_does_not_fold_keeps_its_numpy_forms_with_one_info_line(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    model = copy.deepcopy(_polynomial(1))  # its own folded data: built afresh under the option below
+    init = _field(1, 16)
+    with ldft.set_options(compiled_numpy_models=True, folded_max_powers=1), caplog.at_level(logging.INFO, "latticedft"):
+        fast = ldft.serve(model, init, slices=6, progress=False)
+        ldft.serve(model, init, slices=6, progress=False)
+    with ldft.set_options(folded_max_powers=1):  # the numpy forms term by term, as the fallback serves
+        slow = ldft.serve(model, init, slices=6, progress=False)
+    assert np.array_equal(np.asarray(fast.field.values), np.asarray(slow.field.values))
+    lines = [r.getMessage() for r in caplog.records if "compiled polynomial kernels unavailable" in r.getMessage()]
+    assert len(lines) == 1
 
 
 def test_a_class_kernel_equals_the_generic_folded_kernel() -> None:

@@ -13,6 +13,7 @@ taken only where ``set_options(compiled_numpy_models=True)`` asks.
 
 from __future__ import annotations
 
+import logging
 import weakref
 from typing import Any
 
@@ -26,6 +27,8 @@ from .._options import option
 from ._slices import _SliceSystem
 
 __all__ = ["FoldedSlices", "folded_slices"]
+
+log = logging.getLogger("latticedft")
 
 
 def _data(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[np.ndarray, ...] | None:
@@ -60,6 +63,12 @@ def _data_of(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple
         return known[2]
     built = (_data(model, []), _data(model, pairs))
     _DATA[model] = (state, tuple(pairs), built)
+    if built[0] is None or built[1] is None:  # once per model state
+        log.info(
+            "compiled polynomial kernels unavailable for %s (its coefficients do not fold onto few monomials): "
+            "serving uses its numpy forms",
+            type(model).__name__,
+        )
     return built
 
 
