@@ -6,10 +6,12 @@ tiny lattices, seconds).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import sys
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -231,36 +233,57 @@ def learned_mlp(quick: bool) -> Any:
     return model
 
 
-def _kernel_builds(ndim: int) -> tuple[float, float]:
-    """Seconds of the first build of the analytic sine-Gordon's compiled kernels (in an empty kernel folder) and
-    of their load from that folder (as in a later run): both apart from serving."""
+@contextlib.contextmanager
+def _empty_kernel_folder() -> Iterator[None]:
+    """An empty kernel folder (``LATTICEDFT_KERNEL_CACHE``) and no kernel loaded in the process, for a block."""
     import os
     import tempfile
 
-    from latticedft._action import compiled_closed_forms
     from latticedft._kernel import _LOADED
 
-    model = sine_gordon()
-    model.bind(ndim + 1, 1, (COURANT * H, *[H] * ndim))
     before = os.environ.get("LATTICEDFT_KERNEL_CACHE")
     with tempfile.TemporaryDirectory() as folder:
         os.environ["LATTICEDFT_KERNEL_CACHE"] = folder
         try:
             _LOADED.clear()
-            t0 = time.perf_counter()
-            compiled_closed_forms(model, torch.zeros(0, dtype=torch.float64))
-            first = time.perf_counter() - t0
-            _LOADED.clear()
-            t0 = time.perf_counter()
-            compiled_closed_forms(sine_gordon_bound(ndim), torch.zeros(0, dtype=torch.float64))
-            cached = time.perf_counter() - t0
+            yield
         finally:
             _LOADED.clear()
             if before is None:
                 os.environ.pop("LATTICEDFT_KERNEL_CACHE", None)
             else:
                 os.environ["LATTICEDFT_KERNEL_CACHE"] = before
-    return first, cached
+
+
+def _kernel_builds(ndim: int) -> tuple[float, float]:
+    """Seconds of the first build of the analytic sine-Gordon's compiled kernels (in an empty kernel folder) and
+    of their load from that folder (as in a later run): both apart from serving."""
+    from latticedft._action import compiled_closed_forms
+    from latticedft._kernel import _LOADED
+
+    with _empty_kernel_folder():
+        t0 = time.perf_counter()
+        compiled_closed_forms(sine_gordon_bound(ndim), torch.zeros(0, dtype=torch.float64))
+        first = time.perf_counter() - t0
+        _LOADED.clear()
+        t0 = time.perf_counter()
+        compiled_closed_forms(sine_gordon_bound(ndim), torch.zeros(0, dtype=torch.float64))
+        return first, time.perf_counter() - t0
+
+
+def _folded_builds() -> tuple[float, float]:
+    """Seconds of the first build of the folded polynomial kernels (one module for every polynomial) and of
+    their load from the kernel folder: both apart from serving."""
+    from latticedft._kernel import _LOADED, folded_kernels
+
+    with _empty_kernel_folder():
+        t0 = time.perf_counter()
+        folded_kernels()
+        first = time.perf_counter() - t0
+        _LOADED.clear()
+        t0 = time.perf_counter()
+        folded_kernels()
+        return first, time.perf_counter() - t0
 
 
 def sine_gordon_bound(ndim: int) -> ldft.AnalyticLagrangian:
@@ -288,9 +311,10 @@ def _runs(cfg: Config) -> list[tuple[str, Any, int, int, int, bool]]:
     for ndim, ns in _sizes(cfg.quick).items():
         # the learned polynomial's derivatives cost ~100x the sine-Gordon's: fewer slices, and in 3+1D two sizes
         poly_ns = ns if ndim < 3 or cfg.quick else [32, 64]
-        runs += [
-            ("polynomial (2, 12), learned", learned_polynomial(ndim, cfg.quick), ndim, n, 10, True) for n in poly_ns
-        ]
+        poly = learned_polynomial(ndim, cfg.quick)
+        runs += [(POLY + ", compiled", poly, ndim, n, 10, True) for n in poly_ns]
+        target = {1: 16384, 2: 128, 3: 32}[ndim] if not cfg.quick else ns[-1]
+        runs.append((POLY + ", numpy forms", poly, ndim, target, 10, False))
         runs += [("sine-Gordon, analytic, compiled", sine_gordon(), ndim, n, 66, True) for n in ns]
         runs.append(("sine-Gordon, analytic, not compiled", sine_gordon(), ndim, ns[-1], 66, False))
     big2 = _sizes(cfg.quick)[2][-2 if not cfg.quick else -1]
@@ -298,11 +322,14 @@ def _runs(cfg: Config) -> list[tuple[str, Any, int, int, int, bool]]:
     return runs
 
 
+POLY = "polynomial (2, 12), learned"
+
+
 def _targets(table: Table, worst: dict[str, float], per_site: dict[str, list[float]], steps: float) -> None:
     """The targets' checks: CPU-time ratios at >= 128^2 and >= 32^3 sites (1+1D: >= 16384), 1D steps per second,
     cost linear in sites (the analytic rows' sites per CPU second within 1.5x over the sizes of a dimension from
     4096, 128^2 and 32^3 sites: below, the fixed cost of a call dominates)."""
-    for key, bound in (("sine-Gordon, analytic, compiled", 2.0), ("polynomial (2, 12), learned", 10.0)):
+    for key, bound in (("sine-Gordon, analytic, compiled", 2.0), (POLY + ", compiled", 10.0)):
         for d in (1, 2, 3):
             v = worst.get(f"{key} {d}+1D", math.inf)
             table.checks.append(
@@ -338,16 +365,21 @@ def run(cfg: Config) -> Table:
     )
     before = load_average()
     builds = {d: _kernel_builds(d) for d in (1, 2, 3)}
+    builds[0] = _folded_builds()
     worst: dict[str, float] = {}
     per_site: dict[str, list[float]] = {}
     for label, model, ndim, n, most, compiled in _runs(cfg):
-        with ldft.set_options(compiled_kernels=compiled):
+        with ldft.set_options(compiled_kernels=compiled, compiled_numpy_models=compiled):
             row, ratio = _serve_row(label, model, ndim, n, cfg.quick, most)
         table.rows.append(row)
         if n**ndim >= {1: 16384, 2: 128**2, 3: 32**3}[ndim] or cfg.quick:
             key = f"{label} {ndim}+1D"
             worst[key] = max(worst.get(key, 0.0), ratio)
-        if label.endswith(", compiled") and (n**ndim >= {1: 4096, 2: 128**2, 3: 32**3}[ndim] or cfg.quick):
+        if (
+            label.startswith("sine-Gordon")
+            and label.endswith(", compiled")
+            and (n**ndim >= {1: 4096, 2: 128**2, 3: 32**3}[ndim] or cfg.quick)
+        ):
             per_site.setdefault(f"{ndim}", []).append(float(row[5]))
     steps = _oscillator_steps(cfg.quick)
     _notes(table, cfg, before, builds, steps)
@@ -368,6 +400,7 @@ def _notes(table: Table, cfg: Config, before: str, builds: dict[int, tuple[float
             f"+ solve {r[3]:.3g} s; "
             f"Krylov setup {r[4]:.3g} s + GMRES {r[5]:.3g} s; steps differ by {r[6]:.1e} (relative)."
         )
+    folded = builds.pop(0)
     built = "; ".join(f"{d}+1D {a:.2f} s first build, {b:.2f} s loaded from the cache" for d, (a, b) in builds.items())
     table.notes += [
         "Every lattice periodic, the field at rest at t = 0; sites = time slices served minus the two given, times "
@@ -380,11 +413,14 @@ def _notes(table: Table, cfg: Config, before: str, builds: dict[int, tuple[float
         f"serve / leapfrog; load average before {before}, after {load_average()} (the wall ratio suffers "
         "from other load, the CPU ratio much less).",
         f"Compiled DEL kernel of the analytic sine-Gordon (sympy -> numba, outside the serve times): {built}.",
+        f"Folded polynomial kernels (one numba module for every polynomial, its folded coefficients as data; "
+        f"outside the serve times): {folded[0]:.2f} s first build, {folded[1]:.2f} s loaded from the cache.",
         f"1D: one trajectory of the 27-term polynomial oscillator of serve-fast1d: {steps:.3g} steps per CPU second.",
         "slice solver: `ServeResult.slice_solver` chosen by solver='auto': site-wise for sine-Gordon (its "
         "first-order slice Jacobian is block diagonal; 'compiled': every slice after the first in the compiled "
         "slice Newton kernel; 'not compiled': today's torch path); the polynomial's cell mean couples "
-        "neighbouring unknowns, so LU in 1+1D and Krylov beyond (its numpy closed forms, not compiled).",
+        "neighbouring unknowns, so LU in 1+1D and Krylov beyond ('compiled': its folded coefficients on the "
+        "compiled folded kernels, `set_options(compiled_numpy_models=True)`; 'numpy forms': the default).",
         "L_d: 'learned' is `PolynomialLagrangian(orders=(2, 12), time_symmetric=True)` (the class of "
         "cases/sine-gordon) learned by exact least squares on a small sine-Gordon field of the same dimension; "
         "its last-slice column is the learned model's error. 'analytic' is the sine-Gordon L_d written in closed form "

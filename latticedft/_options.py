@@ -91,7 +91,7 @@ OPTIONS: dict[str, _Knob] = {
         False,
         lambda v: isinstance(v, bool),
         "True or False",
-        "also compile an L_d with numpy closed forms (the polynomial) for one 0+1D trajectory (first build: seconds)",
+        "also compile an L_d with numpy closed forms (the polynomial): one 0+1D trajectory, n-D slice-Newton (seconds)",
     ),
     "affine_check_every": _Knob(
         1,

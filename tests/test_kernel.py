@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import copy
+import functools
 import logging
+import math
 from collections.abc import Iterator
 
 import numpy as np
 import pytest
 import sympy
 import torch
+import xarray as xr
 
 import latticedft as ldft
 from latticedft import lagrangians, systems
@@ -286,3 +290,136 @@ def test_the_compiled_loop_reports_a_failure_and_the_box_as_today() -> None:
     assert fast_box.slices == slow_box.slices
     a, b = np.asarray(fast_box.field.values), np.asarray(slow_box.field.values)
     assert np.array_equal(np.isnan(a), np.isnan(b)) and np.nanmax(np.abs(a - b)) <= 1e-12
+
+
+@functools.lru_cache(maxsize=8)
+def _polynomial(ndim: int, m: int = 1) -> ldft.PolynomialLagrangian:
+    """The sine-Gordon case's polynomial class learned on a few leapfrog slices of a small sine-Gordon field
+    (one component per copy of it, shifted)."""
+    n = {1: 16, 2: 8, 3: 5}[ndim]
+    init = _field(ndim, n)
+    u = np.asarray(init.values)
+    slices = [u[0], u[1]]
+    c = (0.04 / 0.1) ** 2
+    for _ in range(8):  # the leapfrog of psi_tt = Laplacian psi - sin psi on the periodic lattice
+        b = slices[-1]
+        lap = sum(np.roll(b, s, k) for k in range(ndim) for s in (1, -1)) - 2 * ndim * b
+        slices.append(2 * b - slices[-2] + c * lap - 0.04**2 * np.sin(b))
+    served = init.isel(t=[0] * len(slices)).copy(data=np.stack(slices))
+    served = served.assign_coords(t=0.04 * np.arange(len(slices)))
+    if m > 1:
+        served = xr.concat([served + 0.1 * c for c in range(m)], dim="component").transpose(..., "component")
+        served = served.assign_coords(component=[f"c{c}" for c in range(m)])
+    poly = ldft.PolynomialLagrangian(orders=(2, 6 if m > 1 else 12), time_symmetric=True)
+    ldft.learn(poly, served, progress=False)
+    return poly
+
+
+@pytest.mark.parametrize(
+    ("name", "ndim", "m", "keywords"),
+    [
+        ("periodic 1+1D", 1, 1, {}),
+        ("periodic 2+1D", 2, 1, {}),
+        ("periodic 3+1D", 3, 1, {}),
+        ("periodic 2+1D, streamed", 2, 1, {"every": 3}),
+        ("periodic 1+1D, two components", 1, 2, {}),
+    ],
+)
+def test_a_polynomial_served_on_the_folded_kernels_equals_its_numpy_forms(
+    name: str, ndim: int, m: int, keywords: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from latticedft._serve import _folded
+
+    calls = []
+    evaluate = _folded.FoldedSlices.evaluate
+    monkeypatch.setattr(_folded.FoldedSlices, "evaluate", lambda self, *a: calls.append(1) or evaluate(self, *a))
+    model = _polynomial(ndim, m)
+    init = _field(ndim, {1: 16, 2: 8, 3: 5}[ndim])
+    if m > 1:
+        init = xr.concat([init + 0.1 * c for c in range(m)], dim="component").transpose(..., "component")
+        init = init.assign_coords(component=[f"c{c}" for c in range(m)])
+    with ldft.set_options(compiled_numpy_models=True):
+        fast = ldft.serve(model, init, slices=12, progress=False, **keywords)
+    assert len(calls) >= 10, name
+    slow = ldft.serve(model, init, slices=12, progress=False, **keywords)
+    a, b = np.asarray(fast.field.values), np.asarray(slow.field.values)
+    assert np.abs(a - b).max() <= 1e-12 * max(1.0, float(np.abs(b).max())), name
+    assert fast.slice_solver == slow.slice_solver, name
+    assert fast.newton_iterations == slow.newton_iterations, name
+    assert fast.extrapolation is not None and slow.extrapolation is not None
+    assert np.allclose(fast.extrapolation.values, slow.extrapolation.values, rtol=1e-9, atol=1e-12), name
+    assert fast.warnings == slow.warnings, name
+
+
+def test_the_folded_range_check_equals_todays_outside_the_range() -> None:
+    """A field well outside the training range: the compiled excess per slice equals ``_range._excess``'s."""
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._folded import folded_slices
+    from latticedft._serve._range import _excess
+    from latticedft._serve._slices import _SliceSystem
+
+    model = _polynomial(2)
+    f = as_lattice_field(_field(2, 8), source="init", min_slices=2)
+    values = f.values * torch.tensor([1.0, 3.0], dtype=torch.float64).reshape(2, 1, 1, 1)
+    values[1, 2, 3, 0] = math.nan
+    with ldft.set_options(compiled_numpy_models=True):
+        folded = folded_slices(model, _SliceSystem(model, f), values.reshape(2, -1, 1))
+    assert folded is not None
+    rng = model.trained_range()
+    assert rng is not None
+    want = _excess(model, rng.to(torch.float64), f, values)
+    got = folded.excess(model, values)
+    assert got is not None and np.isinf(got).any()
+    assert np.allclose(got, want, rtol=1e-12, atol=0.0)
+
+
+def test_the_folded_kernels_are_off_by_default_and_for_other_models() -> None:
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._folded import folded_slices
+    from latticedft._serve._slices import _SliceSystem
+
+    model = _polynomial(1)
+    f = as_lattice_field(_field(1, 16), source="init", min_slices=2)
+    sys_ = _SliceSystem(model, f)
+    flat = f.values.reshape(2, -1, 1).contiguous()
+    assert folded_slices(model, sys_, flat) is None
+    with ldft.set_options(compiled_numpy_models=True):
+        assert folded_slices(model, sys_, flat) is not None
+        assert folded_slices(sine_gordon().bind(2, 1, (0.04, 0.1)), sys_, flat) is None
+        with ldft.set_options(compiled_kernels=False):
+            assert folded_slices(model, sys_, flat) is None
+
+
+def test_a_polynomial_that_does_not_fold_keeps_its_numpy_forms_with_one_info_line(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    model = copy.deepcopy(_polynomial(1))  # its own folded data: built afresh under the option below
+    init = _field(1, 16)
+    with ldft.set_options(compiled_numpy_models=True, folded_max_powers=1), caplog.at_level(logging.INFO, "latticedft"):
+        fast = ldft.serve(model, init, slices=6, progress=False)
+        ldft.serve(model, init, slices=6, progress=False)
+    with ldft.set_options(folded_max_powers=1):  # the numpy forms term by term, as the fallback serves
+        slow = ldft.serve(model, init, slices=6, progress=False)
+    assert np.array_equal(np.asarray(fast.field.values), np.asarray(slow.field.values))
+    lines = [r.getMessage() for r in caplog.records if "compiled polynomial kernels unavailable" in r.getMessage()]
+    assert len(lines) == 1
+
+
+def test_a_class_kernel_equals_the_generic_folded_kernel() -> None:
+    """The monomial loop unrolled for a class (variables, columns) sums the same monomials as the generic one."""
+    from latticedft._kernel import folded_cells_kernel, folded_kernels
+
+    rng = np.random.default_rng(3)
+    nvar, cols, k, ncell = 3, 5, 4, 300
+    lo, hi = rng.standard_normal((ncell, 1)), rng.standard_normal((ncell, 1))
+    site_of = rng.integers(0, ncell, size=(k, ncell))
+    upper = np.array([0, 1, 0, 0])
+    w, shift = rng.standard_normal((k, nvar)), rng.standard_normal(nvar)
+    expo = rng.integers(0, 4, size=(7, nvar))  # seven monomials: one unrolled pass of four and three alone
+    gc = rng.standard_normal((7, cols))
+    want, got = np.empty((ncell, cols)), np.empty((ncell, cols))
+    folded_kernels().folded_cells(lo, hi, site_of, upper, w, shift, expo, gc, want)
+    kernel = folded_cells_kernel(nvar, cols)
+    assert kernel is not None
+    kernel(lo, hi, site_of, upper, w, shift, expo, gc, got)
+    assert np.allclose(got, want, rtol=1e-13, atol=1e-13 * float(np.abs(want).max()))

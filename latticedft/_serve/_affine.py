@@ -10,7 +10,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
-from .._action import cell_derivatives, del_residual
+from .._action import cell_derivatives, compiled_closed_forms, del_residual
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
 from .._options import option
@@ -195,6 +195,9 @@ def _affine_prefix(
     (Newton then reports it with the slice and site).
     """
     steps, m = psi.shape[0], sys.m
+    compiled = compiled_closed_forms(model, psi[:0])
+    if compiled is not None and not compiled.quadratic:  # not affine by its form: no probe needed
+        return None
     scale = float(f.values[:2].abs().max()) or 1.0
     probe = _AffineSlices.probe(model, sys.st, m, scale)
     if probe is None:

@@ -3,6 +3,7 @@ slice-Newton or the site-by-site sweep."""
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from typing import Any
@@ -17,12 +18,13 @@ from .._lattice import LatticeField, gather_cells
 from .._models import AbstractLagrangian
 from ._affine import _affine_prefix
 from ._edges import known_slices
+from ._folded import FoldedSlices, folded_slices
 from ._fused import FusedSlices, fused_slices
 from ._newton import _newton_slice
 from ._options import ServeOptions
 from ._range import assess
 from ._result import ServeResult, _bar
-from ._slices import _site_label, _SliceSystem
+from ._slices import _site_label, _SliceSystem, is_singular
 from ._sweep import _sweep_slice
 
 
@@ -80,19 +82,40 @@ def solve_and_tally(
     for the gradients (``g_prev``: the cells anchored at ``i - 1``; ``None`` has them evaluated afresh).
     """
     flat, unk = run.flat, run.unk
+    if run.mode == "newton":
+        _choose_fused(run, i, older)
     fused = _fused_of(run) if run.mode == "newton" else None
     done = None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, run.cache)
     if done is not None:  # the compiled slice Newton: no per-cell gradients are carried to the next slice
         _tallied(run, *done)
         return None
-    flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
-    if run.mode == "newton" and older is not None:
+    folded = _folded_of(run) if run.mode == "newton" else None
+    if folded is not None:
+        folded.predict(flat, i, older)
+    else:
+        flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
+    if run.mode == "newton" and older is not None and folded is None:
         flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + older[unk]
     if run.mode == "newton":
-        if g_prev is None:
+        if g_prev is None and folded is not None:
+            g_prev = torch.from_numpy(folded.grad(flat, i - 1))
+        elif g_prev is None:
             g_prev = CellDerivatives(run.model, run.cells_at(i - 1)).grad
+        evaluate = functools.partial(folded.evaluate, flat, run.vol) if folded else None
         it, res, g_prev, err = _newton_slice(
-            run.model, run.sys, psi, flat, unk, i, g_prev, run.vol, rtol, max_newton, run.cells_at, run.cache
+            run.model,
+            run.sys,
+            psi,
+            flat,
+            unk,
+            i,
+            g_prev,
+            run.vol,
+            rtol,
+            max_newton,
+            run.cells_at,
+            run.cache,
+            evaluate=evaluate,
         )
     else:
         it, res, g_prev, err = _sweep_slice(run.model, run.sys, psi, flat, i, run.vol, rtol, max_newton, run.f)
@@ -110,6 +133,43 @@ def _tallied(run: Any, it: int, res: float) -> None:
     run.max_it = max(run.max_it, it)
     run.worst = max(run.worst, res)
     run.bar.update(1)
+
+
+def _choose_fused(run: Any, i: int, older: Any) -> None:
+    """Before the first Newton slice, where the compiled slice Newton could serve: the site-wise solver chosen
+    and the scales set from the Hessian blocks at the predictor, as slice-Newton's first iteration would
+    (``_newton._fresh_blocks``; ``_solvers.choose_solver`` chooses site-wise for a Jacobian block diagonal by
+    the L_d's form), so that the kernel serves the first slice too. Anything else (a singular Jacobian,
+    another solver asked for, a checkpointed run) is left to slice-Newton, which reports it as before."""
+    cache = run.cache
+    if "fused" in cache or "dmax" in cache or cache.get("keep_factored"):
+        return
+    fused = fused_slices(run.model, run.sys, run.flat) if cache.get("solver") in ("auto", "sitewise") else None
+    if fused is None:
+        return
+    flat, unk = run.flat, run.unk
+    flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
+    if older is not None:
+        flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + older[unk]
+    found = fused.scales(flat, i)
+    if found is None:
+        return
+    dmax, smin, smax, _ = found
+    scale = max(cache.get("mscale", 0.0), smax)
+    if is_singular(smin, scale):
+        return
+    cache["dmax"], cache["mscale"] = dmax, scale
+    cache["used"] = ["sitewise"]
+    cache["fused"] = fused
+
+
+def _folded_of(run: Any) -> FoldedSlices | None:
+    """The folded polynomial kernels of ``run`` (:mod:`._folded`), or ``None`` where they do not serve it."""
+    cache = run.cache
+    if "folded" not in cache:
+        cache["folded"] = folded_slices(run.model, run.sys, run.flat)
+    folded: FoldedSlices | None = cache["folded"]
+    return folded
 
 
 def _fused_of(run: Any) -> FusedSlices | None:
@@ -184,7 +244,8 @@ class _FieldRun:
     def _result(
         self, field: LatticeField, complete: bool, reason: str, slices: int, wall: float, rate: float, residual: float
     ) -> ServeResult:
-        ext, warnings = assess(self.model, field)
+        folded = self.cache.get("folded")
+        ext, warnings = assess(self.model, field, folded.excess if folded is not None else None)
         return ServeResult(
             field=field.to_dataarray(),
             complete=complete,
@@ -237,7 +298,7 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options
     run = _FieldRun(model, f, steps, mode, options.progress, options.solver, options.boundary_value)
     if mode == "newton" and options.affine and steps > 2:
         run.serve_affine(rtol)
-    g_prev: torch.Tensor | None = CellDerivatives(model, run.cells_at(run.start - 1)).grad
+    g_prev: torch.Tensor | None = None  # the first Newton slice evaluates them (the compiled kernel needs none)
     for i in range(run.start, steps - 1):
         g_prev = run.solve_slice(i, g_prev, rtol, max_newton)
     return run.finish()

@@ -35,6 +35,32 @@ class FusedSlices:
         self.delta, self.plain = fixed_offsets(sys, site_of, cell_at)
         self.res = np.empty(self.rows.size)
         self.its = np.empty(self.rows.size, dtype=np.int64)
+        self.upper = [o[0] == 1 for o in sys.st.offsets]  # the point sits on the next slice
+        self.same_site = [
+            (q, a) for q, (a, b) in enumerate(sys.pairs) if sys.st.offsets[a][1:] == sys.st.offsets[b][1:]
+        ]
+
+    def scales(self, flat: torch.Tensor, i: int) -> tuple[float, float, float, int] | None:
+        """``(dmax, smin, smax, row)`` of slice ``i``'s Jacobian at the current values, as slice-Newton's
+        ``_fresh_blocks`` finds them: the largest diagonal Hessian block over the cells, and the smallest and
+        largest diagonal entry (in size) at an unknown site, with the row of the smallest; ``None`` without
+        unknowns. Its off-diagonal blocks vanish by the ``L_d``'s form."""
+        if not self.rows.size or not self.same_site:
+            return None
+        lo, hi = flat[i].numpy()[:, 0], flat[i + 1].numpy()[:, 0]
+        cells = np.stack([(hi if up else lo)[sites] for up, sites in zip(self.upper, self.site_of)], axis=1)
+        blocks = self.compiled.both(cells)[1]
+        diag = np.zeros(self.cell_at.shape[1])
+        dmax = 0.0
+        for q, a in self.same_site:  # one cell per site and point: the sums of index_add_, to the bit
+            block = blocks[q].reshape(-1)
+            if not np.isfinite(block).all():
+                return None  # slice-Newton reports it
+            dmax = max(dmax, float(np.abs(block).max()) if block.size else 0.0)
+            diag += np.bincount(self.site_of[a], weights=block, minlength=diag.size)
+        sv = np.nan_to_num(np.abs(diag[self.rows]), nan=0.0)
+        worst = int(np.argmin(sv))
+        return dmax, float(sv[worst]), float(sv.max()), worst
 
     def solve(
         self,

@@ -58,6 +58,7 @@ def _newton_slice(
     cells_at,
     cache,
     allmax: AllMax = _local,
+    evaluate: Callable[[int, Any], tuple[Any, np.ndarray]] | None = None,
 ):
     """Newton on one slice. Steps reuse the cached factorised Jacobian (chord steps, exact for quadratic
     ``L_d``) while each cuts the residual a hundredfold; fresh Hessian blocks are assembled only when one did not.
@@ -65,7 +66,9 @@ def _newton_slice(
     factorised by ``cache["factor"]`` when given (a split slice's), else ``_solvers.factor_step``.
 
     ``allmax`` makes every test that reads the whole slice (residual, sizes, singular values, the step) global
-    when the slice is split over processes (one part each in ``flat``): they then stop at the same iteration."""
+    when the slice is split over processes (one part each in ``flat``): they then stop at the same iteration.
+    ``evaluate(i, g_prev) -> (cells, residual)`` replaces the gathering of the cells anchored on slice ``i``,
+    their derivatives (``CellDerivatives``: ``grad``, ``blocks(pairs)``) and the residual (``._folded``)."""
     m = sys.m
     res = math.inf
     prev = math.inf
@@ -73,8 +76,11 @@ def _newton_slice(
     rscale = None
     small = False
     for it in range(1, max_newton + 1):
-        ev = CellDerivatives(model, cells_at(i))
-        r = sys.residual(g_prev, ev.grad, vol)
+        if evaluate is None:
+            ev = CellDerivatives(model, cells_at(i))
+            r = sys.residual(g_prev, ev.grad, vol)
+        else:
+            ev, r = evaluate(i, g_prev)
         (res,) = allmax(float(np.abs(r).max()) if r.size else 0.0)
         if not math.isfinite(res):
             return it, res, ev.grad, ("residual is not finite", None, res)

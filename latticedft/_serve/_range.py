@@ -64,17 +64,21 @@ def _excess(model: AbstractLagrangian, rng: torch.Tensor, f: LatticeField, value
     return out
 
 
-def extrapolation(model: AbstractLagrangian, f: LatticeField) -> xr.DataArray | None:
+def extrapolation(model: AbstractLagrangian, f: LatticeField, compiled: Any = None) -> xr.DataArray | None:
     """``extrapolation(t, feature)`` of field ``f`` against ``model``'s training range (None without one).
 
     Per time slice, the largest excess beyond the training range of the cells that hold the slice, per
     feature, relative to the feature's training span: 0 inside the range, 0.5 half a span outside.
+    ``compiled(model, values)``: the excess per anchor slice in one compiled pass (``None``: not here).
     """
     rng = model.trained_range()
     nt = f.shape[0]
     if rng is None or nt < 2 or tuple(rng.shape[1:]) != (f.ndim + 1, f.ncomp):
         return None
-    return _extrapolation_array(model, f, _excess(model, rng.to(torch.float64), f, f.values.detach()))
+    per_anchor = None if compiled is None else compiled(model, f.values.detach())
+    if per_anchor is None:
+        per_anchor = _excess(model, rng.to(torch.float64), f, f.values.detach())
+    return _extrapolation_array(model, f, per_anchor)
 
 
 def _extrapolation_array(
@@ -136,9 +140,10 @@ def extrapolation_warning(ext: xr.DataArray | None) -> str | None:
     )
 
 
-def assess(model: AbstractLagrangian, f: LatticeField) -> tuple[xr.DataArray | None, list[str]]:
-    """``(extrapolation, warnings)`` of a served field ``f``: what a ``ServeResult`` reports of its range."""
-    ext = extrapolation(model, f)
+def assess(model: AbstractLagrangian, f: LatticeField, compiled: Any = None) -> tuple[xr.DataArray | None, list[str]]:
+    """``(extrapolation, warnings)`` of a served field ``f``: what a ``ServeResult`` reports of its range
+    (``compiled``: as :func:`extrapolation`'s)."""
+    ext = extrapolation(model, f, compiled)
     warning = extrapolation_warning(ext)
     return ext, [warning] if warning else []
 

@@ -3,6 +3,7 @@ factorised Jacobian, shared by the slice solvers (affine recurrence, slice-Newto
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -55,24 +56,57 @@ class _SliceSystem:
         self.now = [a for a, o in enumerate(st.offsets) if o[0] == 0]
         self.nxt = [a for a, o in enumerate(st.offsets) if o[0] == 1]
         self.pairs = [(a, b) for a in self.now for b in self.nxt]
-        # Jacobian structure: rows (equation sites on slice i) x cols (unknowns on slice i+1)
-        self.jac: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.wraps = wraps
+        self.banded = len(spatial) == 1 and not wraps
+        # the Jacobian's structure (jac, lower, upper, triangular, diag_pairs, diag_entries) is built on first use:
+        # the compiled slice Newton of a block-diagonal L_d never needs it
+
+    @functools.cached_property
+    def jac(self) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Jacobian structure: per pair, the cells, equation rows (sites on slice i) and unknown columns (sites
+        on slice i+1) of its entries."""
+        jac = {}
         for a, b in self.pairs:
             r = self.index[self.site_of[a]]
             c = self.index[self.site_of[b]]
             keep = (r >= 0) & (c >= 0)
-            self.jac[(a, b)] = (np.nonzero(keep)[0], r[keep], c[keep])
-        m = self.m
+            jac[(a, b)] = (np.nonzero(keep)[0], r[keep], c[keep])
+        return jac
+
+    @functools.cached_property
+    def _rows_cols(self) -> tuple[np.ndarray, np.ndarray]:
         rows = np.concatenate([r for _, r, _ in self.jac.values()]) if self.jac else np.zeros(0, np.int64)
         cols = np.concatenate([c for _, _, c in self.jac.values()]) if self.jac else np.zeros(0, np.int64)
-        self.lower = int(max(0, (rows - cols).max() if rows.size else 0)) * m + m - 1
-        self.upper = int(max(0, (cols - rows).max() if rows.size else 0)) * m + m - 1
-        self.banded = len(spatial) == 1 and not wraps
-        self.triangular = bool(rows.size == 0 or (cols <= rows).all()) and not wraps
-        self.diag_pairs = [(a, b) for (a, b), (_, r, c) in self.jac.items() if np.any(r == c)]
-        # the entries of the Jacobian's diagonal m x m blocks (an equation's own site on the next slice):
-        # per unknown site the mixed Hessian summed over the cells that hold it
-        self.diag_entries = [
+        return rows, cols
+
+    @property
+    def lower(self) -> int:
+        """The Jacobian's lower bandwidth."""
+        rows, cols = self._rows_cols
+        return int(max(0, (rows - cols).max() if rows.size else 0)) * self.m + self.m - 1
+
+    @property
+    def upper(self) -> int:
+        """The Jacobian's upper bandwidth."""
+        rows, cols = self._rows_cols
+        return int(max(0, (cols - rows).max() if rows.size else 0)) * self.m + self.m - 1
+
+    @functools.cached_property
+    def triangular(self) -> bool:
+        """Whether the Jacobian is block lower-triangular (no wrap)."""
+        rows, cols = self._rows_cols
+        return bool(rows.size == 0 or (cols <= rows).all()) and not self.wraps
+
+    @functools.cached_property
+    def diag_pairs(self) -> list[tuple[int, int]]:
+        """The pairs with an entry on the Jacobian's diagonal blocks."""
+        return [(a, b) for (a, b), (_, r, c) in self.jac.items() if np.any(r == c)]
+
+    @functools.cached_property
+    def diag_entries(self) -> list[tuple[tuple[int, int], torch.Tensor, torch.Tensor]]:
+        """The entries of the Jacobian's diagonal m x m blocks (an equation's own site on the next slice): per
+        unknown site the mixed Hessian summed over the cells that hold it."""
+        return [
             (key, torch.from_numpy(cells[r == c]), torch.from_numpy(r[r == c]))
             for key, (cells, r, c) in self.jac.items()
             if np.any(r == c)

@@ -1,0 +1,172 @@
+"""Slice-Newton of a polynomial ``L_d`` on compiled kernels: the stencil gathered, the derivatives of its folded
+coefficients evaluated and the residual scattered in one compiled pass per Newton iteration.
+
+The polynomial's numpy forms fold its coefficients onto the monomials of its scaled variables
+(``latticedft._models._polynumpy``). The kernels of ``latticedft._kernel.folded_kernels`` take those folded
+coefficients as data, so one build serves every polynomial (any orders, stencil, dimension, components). Here
+they replace, inside slice-Newton (``._newton._newton_slice``: the same iterations, tests and linear solves),
+the gathering of the cells, the numpy evaluation of their gradients, the residual's scatter and the
+predictor; the Hessian blocks of a fresh Jacobian come from the same kernel with the blocks' columns. The
+values differ from the numpy forms' by round-off only (the sums run in another order), so this path is
+taken only where ``set_options(compiled_numpy_models=True)`` asks.
+"""
+
+from __future__ import annotations
+
+import logging
+import weakref
+from typing import Any
+
+import numpy as np
+import torch
+
+from .._kernel import folded_cells_kernel, folded_kernels
+from .._models import PolynomialLagrangian
+from .._models._polynumpy import _numpy_forms
+from .._options import option
+from ._slices import _SliceSystem
+
+__all__ = ["FoldedSlices", "folded_slices"]
+
+log = logging.getLogger("latticedft")
+
+
+def _data(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[np.ndarray, ...] | None:
+    """``(w, shift, expo, gc)`` of the folded forms for ``pairs``: the scaled variables ``z = x.flat @ w -
+    shift``, the exponents ``(monomials, V)`` of the monomials some derivative needs and the matrix
+    ``(monomials, K m + pairs m m)`` from them to ``[dL/dx | blocks]``; ``None`` where the model does not fold."""
+    folded = _numpy_forms(model, pairs)[1]
+    if folded is None:
+        return None
+    keep = np.nonzero(np.any(folded.g_chain != 0, axis=1))[0]
+    expo = np.stack(np.unravel_index(keep, folded.widths)).T if folded.widths else np.zeros((keep.size, 0))
+    return (
+        np.ascontiguousarray(folded.w, dtype=np.float64),
+        np.ascontiguousarray(folded.shift, dtype=np.float64),
+        np.ascontiguousarray(expo, dtype=np.int64),
+        np.ascontiguousarray(folded.g_chain[keep], dtype=np.float64),
+    )
+
+
+#: Per model, the folded data for its pairs with the parameters and buffers they were built from.
+_DATA: weakref.WeakKeyDictionary[Any, tuple[list[tuple[torch.Tensor, int]], tuple[Any, ...], tuple[Any, Any]]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def _data_of(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[Any, Any]:
+    """``(_data(model, []), _data(model, pairs))``, built once per model state and pairs."""
+    state = [(t, t._version) for t in [*model.parameters(), *model.buffers()]]
+    known = _DATA.get(model)
+    same = known is not None and known[1] == tuple(pairs) and len(known[0]) == len(state)
+    if known is not None and same and all(a is b and u == v for (a, u), (b, v) in zip(known[0], state)):
+        return known[2]
+    built = (_data(model, []), _data(model, pairs))
+    _DATA[model] = (state, tuple(pairs), built)
+    if built[0] is None or built[1] is None:  # once per model state
+        log.info(
+            "compiled polynomial kernels unavailable for %s (its coefficients do not fold onto few monomials): "
+            "serving uses its numpy forms",
+            type(model).__name__,
+        )
+    return built
+
+
+class FoldedCells:
+    """The cells anchored on one slice, their gradients evaluated (``grad``: ``(cells, K m)``), their Hessian
+    blocks on demand (what slice-Newton reads of ``CellDerivatives``)."""
+
+    def __init__(self, owner: FoldedSlices, lo: np.ndarray, hi: np.ndarray):
+        self.owner, self.lo, self.hi = owner, lo, hi
+        self.grad = owner.columns(lo, hi, owner.grad_data)
+
+    def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
+        """The Hessian blocks ``(cells, m, m)`` of ``pairs`` (the slice system's pairs)."""
+        o = self.owner
+        out = o.columns(self.lo, self.hi, o.both_data)
+        km, mm = o.k * o.m, o.m * o.m
+        return {
+            p: torch.from_numpy(np.ascontiguousarray(out[:, km + q * mm : km + (q + 1) * mm]).reshape(-1, o.m, o.m))
+            for q, p in enumerate(pairs)
+        }
+
+
+class FoldedSlices:
+    """The folded kernels of one served field: the model's folded coefficients and the slice's index maps."""
+
+    def __init__(
+        self, mod: Any, sys: _SliceSystem, grad_data: tuple[np.ndarray, ...], both_data: tuple[np.ndarray, ...]
+    ):
+        self.mod = mod
+        self.k, self.m = len(sys.st.offsets), sys.m
+        self.site_of = np.ascontiguousarray(np.stack(sys.site_of), dtype=np.int64)  # (K, cells)
+        self.upper = np.array([o[0] for o in sys.st.offsets], dtype=np.int64)  # 1: the point is on the next slice
+        self.rows = np.ascontiguousarray(np.nonzero(sys.interior)[0], dtype=np.int64)
+        self.grad_data, self.both_data = grad_data, both_data
+        self.el = np.empty((sys.nsite, sys.m))
+        self.cells: dict[tuple[int, int], Any] = {}  # the folded_cells kernel per (variables, columns)
+
+    def columns(self, lo: np.ndarray, hi: np.ndarray, data: tuple[np.ndarray, ...]) -> np.ndarray:
+        """The folded forms' columns on every cell anchored on slice ``lo`` (``hi``: the next one), by the
+        kernel of the polynomial's class where it builds, else the generic one."""
+        nvar, cols = data[0].shape[1], data[3].shape[1]
+        if (nvar, cols) not in self.cells:
+            self.cells[(nvar, cols)] = folded_cells_kernel(nvar, cols) or self.mod.folded_cells
+        out = np.empty((self.site_of.shape[1], cols))
+        self.cells[(nvar, cols)](lo, hi, self.site_of, self.upper, *data, out)
+        return out
+
+    def grad(self, flat: torch.Tensor, i: int) -> np.ndarray:
+        """The gradients ``(cells, K m)`` of the cells anchored on slice ``i``."""
+        return FoldedCells(self, flat[i].numpy(), flat[i + 1].numpy()).grad
+
+    def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> None:
+        """Slice-Newton's predictor on the unknown sites of slice ``i + 1`` (``_field.solve_and_tally``'s)."""
+        old = older.numpy() if older is not None else np.zeros((0, self.m))
+        self.mod.predict(flat[i - 1].numpy(), flat[i].numpy(), flat[i + 1].numpy(), old, self.rows)
+
+    def excess(self, model: Any, values: torch.Tensor) -> np.ndarray | None:
+        """``(slices - 1, features)``: ``_range._excess`` of the served ``values`` ``(slices, *sites, m)`` in one
+        compiled pass (the cells' stencil mean and differences against ``model``'s training range); ``None``
+        without a range."""
+        rng = model.trained_range()
+        if rng is None or values.dtype != torch.float64 or not values.is_contiguous():
+            return None
+        rng = rng.to(torch.float64)
+        lo, hi = rng[0], rng[1]
+        span = torch.maximum(hi - lo, 1e-12 * torch.maximum(lo.abs(), hi.abs())).clamp_min(1e-300)  # as _excess
+        proj = np.ascontiguousarray(model.proj.detach().to(torch.float64).numpy())
+        flat = values.numpy().reshape(values.shape[0], -1, self.m)
+        out = np.empty((values.shape[0] - 1, lo.numel()))
+        parts = [np.ascontiguousarray(t.reshape(-1).numpy()) for t in (lo, hi, span)]
+        self.mod.excess(flat, self.site_of, self.upper, proj, *parts, out)
+        return out
+
+    def evaluate(self, flat: torch.Tensor, vol: float, i: int, g_prev: Any) -> tuple[FoldedCells, np.ndarray]:
+        """The cells anchored on slice ``i`` at the current state and the slice's DEL residual on its equation
+        rows (``g_prev``: the gradients of the cells anchored on ``i - 1``, as this or ``CellDerivatives``
+        gives them)."""
+        ev = FoldedCells(self, flat[i].numpy(), flat[i + 1].numpy())
+        gp = g_prev.reshape(ev.grad.shape).numpy() if isinstance(g_prev, torch.Tensor) else g_prev
+        r = np.empty(self.rows.size * self.m)
+        self.mod.scatter(np.ascontiguousarray(gp), ev.grad, self.site_of, self.upper, self.rows, vol, self.el, r)
+        return ev, r
+
+
+def folded_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FoldedSlices | None:
+    """The folded kernels for ``model`` on ``sys``, or ``None``: for a polynomial whose numpy forms fold its
+    coefficients, with the values on the CPU in double precision, where the ``compiled_numpy_models`` and
+    ``compiled_kernels`` options are on and numba builds the kernels."""
+    if not (option("compiled_numpy_models") and option("compiled_kernels")) or not isinstance(
+        model, PolynomialLagrangian
+    ):
+        return None
+    if flat.dtype != torch.float64 or flat.device.type != "cpu" or not flat.is_contiguous() or not model.numpy_ready:
+        return None
+    if any(t.device.type != "cpu" for t in [*model.parameters(), *model.buffers()]):
+        return None
+    grad_data, both_data = _data_of(model, list(sys.pairs))
+    if grad_data is None or both_data is None:
+        return None
+    mod = folded_kernels()
+    return None if mod is None else FoldedSlices(mod, sys, grad_data, both_data)
