@@ -110,7 +110,8 @@ def _label(change: Mapping[str, Any] | AbstractLagrangian) -> str:
 def sparse_candidates(n: int, m: int) -> list[dict[str, Any]]:
     """The sparse candidates ``"auto"`` tries first on a lattice of ``n`` axes and ``m`` components: the default
     library of :class:`latticedft.SparseLagrangian` at each threshold of :data:`SPARSE_THRESHOLDS`, then for a
-    scalar field the library with its lattice corrections (``threshold = "auto"``).
+    scalar field the library with its lattice corrections, and its powers and its trig functions each alone
+    (``threshold = "auto"``).
 
     >>> sparse_candidates(1, 1)[0]
     {'kind': 'sparse', 'library': 'kinetic + poly:4 + trig:1', 'threshold': 0.1}
@@ -120,6 +121,10 @@ def sparse_candidates(n: int, m: int) -> list[dict[str, Any]]:
     ]
     if m == 1:
         out.append({"kind": "sparse", "library": default_library(n, m, corrections=True), "threshold": "auto"})
+        # the on-site powers and trig functions apart: on a field far from 0 they are nearly collinear, and
+        # together they fit the data with a few wrong terms that do not extrapolate (phi^4 about its vacuum)
+        base = default_library(n, m).replace(" + poly:4 + trig:1", "")
+        out += [{"kind": "sparse", "library": f"{base} + {f}", "threshold": "auto"} for f in ("poly:4", "trig:1")]
     return out
 
 
@@ -183,9 +188,10 @@ def select(
     field first; a fit that fails, a serve that stops or a non-finite field scores ``inf``. The best
     candidate is the one with the fewest parameters among those within ``factor`` of the lowest score (a sparse
     candidate, the fewest terms, within :data:`SPARSE_FACTOR` of it first); it
-    replaces the hand-set model only when its score is ``factor`` times smaller than the hand-set one's and the
-    hand-set score is above ``keep_below`` (or :data:`BEATEN` times the candidate's); when every candidate fails
-    the hand-set model is kept with a warning.
+    replaces the hand-set model only when its score is ``factor`` times smaller than the hand-set one's (a sparse
+    candidate preferred so replaces a hand-set model of another kind without it) and the hand-set score is above
+    ``keep_below`` (or :data:`BEATEN` times the candidate's); when every candidate fails the hand-set model is
+    kept with a warning.
 
     Parameters
     ----------
@@ -315,7 +321,8 @@ def _choose(rows: list[dict[str, Any]], factor: float, keep_below: float) -> tup
     """``(chosen row, reason, warnings)``: the best candidate is the one with the fewest parameters among
     those within ``factor`` of the lowest score, or the sparse one with the fewest terms among the sparse
     candidates within :data:`SPARSE_FACTOR` of it or below :data:`SPARSE_FLOOR`; it replaces the hand-set model
-    (row 0) only when ``factor`` times better and the hand-set score is above ``keep_below``."""
+    (row 0) only when ``factor`` times better (a preferred sparse one also when not, unless the hand-set model is
+    sparse itself) and the hand-set score is above ``keep_below``."""
     scores = [r["score"] for r in rows]
     lowest = min(scores)
     near = [i for i, sc in enumerate(scores) if math.isfinite(sc) and sc <= factor * lowest]
@@ -351,7 +358,9 @@ def _choose(rows: list[dict[str, Any]], factor: float, keep_below: float) -> tup
             f"({rows[best]['label']} scored {scores[best]:.3e})",
             [],
         )
-    if best == 0 or not scores[best] * factor < scores[0]:
+    # a sparse candidate preferred near the lowest score replaces a dense hand-set model it does not beat 2x
+    preferred = best in sparse and rows[0].get("kind") != "sparse"
+    if best == 0 or not (scores[best] * factor < scores[0] or preferred):
         reason = (
             f"the hand-set model scored {scores[0]:.3e}; no candidate was {factor:g}x better"
             if best != 0

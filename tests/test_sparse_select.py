@@ -49,6 +49,19 @@ def test_a_sparse_preference_never_keeps_a_hand_set_model_beaten_100x():
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 0
 
 
+def test_a_preferred_sparse_candidate_replaces_a_dense_hand_set_model_it_does_not_beat_2x():
+    rows = [  # sine-Gordon 1+1D: the default polynomial a little lower than the three true terms
+        {"score": 8.6e-5, "n_parameters": 135, "label": "hand-set", "kind": "polynomial"},
+        {"score": 1.1e-4, "n_parameters": 3, "label": "sparse", "kind": "sparse"},
+        {"score": 4.3e-5, "n_parameters": 54, "label": "orders", "kind": "polynomial"},
+    ]
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
+    rows[0]["kind"] = "sparse"  # a sparse hand-set model stays unless beaten 2x
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 0
+    rows[0].update(kind="polynomial", score=5e-7)  # below keep_below: kept
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 0
+
+
 def test_auto_tries_the_sparse_libraries_first():
     cands = auto_candidates(ldft.PolynomialLagrangian((4, 8)), n=2, m=1)
     assert cands[: len(sparse_candidates(2, 1))] == sparse_candidates(2, 1)
@@ -115,3 +128,18 @@ def test_check_refuses_a_library_that_does_not_fit_the_lattice(tmp_path, capsys,
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "model.library: " in err and words in err
     assert not (tmp_path / "results").exists()
+
+
+def test_backward_elimination_finds_an_exact_support_among_collinear_terms():
+    import numpy as np
+
+    from latticedft._learn._sparse import backward
+
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(2, 40))
+    t = np.stack([a, b, a + 2 * b + 1e-3 * rng.normal(size=40), rng.normal(size=40)], axis=1)
+    t[:, 1] = a / 2  # the exact support {0, 1}: a - 2 (a / 2) = 0
+    gauge = (np.array([[1.0, 0.0, 0.0, 0.0]]), np.array([1.0]))
+    path = backward(t, gauge, 0.0)
+    assert [int(np.count_nonzero(x)) for x in path] == [4, 3, 2, 1]
+    assert np.allclose(path[2], [1.0, -2.0, 0.0, 0.0])
