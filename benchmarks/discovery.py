@@ -178,7 +178,10 @@ def run(cfg: Config, names: tuple[str, ...] | None = None, peers: bool | None = 
         if peers and system.ode is not None:
             table.rows += peer_rows(system)
         last = table.rows[-1]
-        print(f"  {name}: {last[2]}, served {last[5]:.3g}, leapfrog {last[6]:.3g}", flush=True)
+        col = {c: i for i, c in enumerate(COLUMNS)}
+        print(
+            f"  {name}: {last[2]}, served {last[col['served']]:.3g}, leapfrog {last[col['leapfrog']]:.3g}", flush=True
+        )
     if peers:
         table.rows += xl_own_rows()
     table.checks += targets(mine)

@@ -143,3 +143,19 @@ def test_backward_elimination_finds_an_exact_support_among_collinear_terms():
     path = backward(t, gauge, 0.0)
     assert [int(np.count_nonzero(x)) for x in path] == [4, 3, 2, 1]
     assert np.allclose(path[2], [1.0, -2.0, 0.0, 0.0])
+
+
+def test_the_held_in_rows_are_the_head_of_the_whole_fields_rows():
+    import numpy as np
+
+    from latticedft._learn._data import as_fields
+    from latticedft._learn._exact import residual_matrix
+    from latticedft._learn._sparse import _head
+
+    data = pendulum(2.0, 20)
+    model = ldft.SparseLagrangian("kinetic + trig:1", threshold=0.1, bags=0)
+    ldft.learn(model, data, progress=False)
+    (field,) = as_fields([data], None)
+    whole = residual_matrix(model, field)
+    part = residual_matrix(model, field.with_values(field.values[:14]))
+    assert np.array_equal(_head(model, field, whole, 14), part)

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from .._errors import InputError, LatticeDFTError
-from .._lattice import LatticeField
+from .._lattice import LatticeField, interior_slices
 from .._models import SparseLagrangian
 from .._models._sparse import THRESHOLDS
 from ._exact import _constrained_lstsq, _qr_r, gauge_matrix, residual_matrix
@@ -147,14 +147,29 @@ def _unbatched(fields: list[LatticeField]) -> list[LatticeField]:
     return [replace(f, values=v, batch=0) for f in fields for v in (f.values if f.batch else [f.values])]
 
 
+def _head(model: SparseLagrangian, f: LatticeField, r: np.ndarray, keep: int) -> np.ndarray:
+    """The residual matrix of the first ``keep`` slices of the unbatched field ``f``: the first rows of its own,
+    ``r`` (rows are time-major; each holds the DEL of one site, which sees only its neighbouring cells)."""
+    times = [range(n)[interior_slices((n, *f.shape[1:]), model.stencil, f.boundary)[0]] for n in (f.shape[0], keep)]
+    if times[0].start != times[1].start or not len(times[0]) or r.shape[0] % len(times[0]):
+        return residual_matrix(model, f.with_values(f.values[:keep]))
+    return r[: r.shape[0] // len(times[0]) * len(times[1])]
+
+
 def _pick_served(
-    model: SparseLagrangian, fields: list[LatticeField], g: _Gauge, ridge: float, nsites: int
+    model: SparseLagrangian,
+    fields: list[LatticeField],
+    g: _Gauge,
+    ridge: float,
+    nsites: int,
+    rs: list[np.ndarray] | None = None,
 ) -> tuple[str, dict[str, float]] | None:
     """The rule chosen by held-out serving (a threshold, or a size on the backward path: :func:`_supports`), and
     the served error of every support tried (None where no fit serves): each support, fitted on the first part of
     every field (:func:`latticedft._learn._heldout.held_in`), the sparsest first, serves every field's held-out
     tail from the tail's first two slices (:func:`latticedft._learn._heldout.held_out_score`). The first served
-    within :data:`SERVE_FLOOR` is taken; else the sparsest within :data:`SERVE_SLACK` of the best."""
+    within :data:`SERVE_FLOOR` is taken; else the sparsest within :data:`SERVE_SLACK` of the best. ``rs``: the
+    residual matrices of the unbatched fields (scaled by ``1 / sqrt(nsites)``), when at hand."""
 
     single = _unbatched(fields)
     whole = [f.to_dataarray() for f in single]
@@ -163,11 +178,11 @@ def _pick_served(
         keep = [p.sizes[p.dims[0]] for p in held_in(whole, HOLD_OUT)]
     except InputError:  # too few slices to hold any out
         return None
-    parts = [f.with_values(f.values[:k]) for f, k in zip(single, keep)]
+    if rs is None:
+        rs = [residual_matrix(model, f) / math.sqrt(nsites) for f in single]
+    heads = [_head(model, f, r, k) for f, r, k in zip(single, rs, keep)]
     tails = [w.isel({w.dims[0]: slice(min(k, w.sizes[w.dims[0]] - 3), None)}) for w, k in zip(whole, keep)]
-    fits = _supports(
-        _stack(_blocks([residual_matrix(model, p) / math.sqrt(nsites) for p in parts], model.n_terms)), g, ridge
-    )
+    fits = _supports(_stack(_blocks(heads, model.n_terms)), g, ridge)
     scores: dict[str, float] = {}
     saved = model.coef.detach().clone()
     for label, theta in sorted(fits, key=lambda f: np.count_nonzero(f[1])):  # stable: thresholds first
@@ -196,11 +211,12 @@ def _fit(t: np.ndarray, g: _Gauge, ridge: float, active: np.ndarray) -> np.ndarr
     return theta
 
 
-def backward(t: np.ndarray, g: _Gauge, ridge: float) -> list[np.ndarray]:
+def backward(t: np.ndarray, g: _Gauge, ridge: float, stop: int = 0) -> list[np.ndarray]:
     """Backward elimination on the rows ``t`` under the gauge ``g``: from every term, drop one at a time the term
     whose removal raises the residual ``|t coef|`` least (the gauge kept feasible); the coefficients of every
-    support on the path, the densest first. Unlike thresholding by share, it is not misled by near-collinear
-    terms (powers and trig functions of a field far from 0) whose large coefficients cancel."""
+    support on the path, the densest first, down to ``stop`` terms. Unlike thresholding by share, it is not
+    misled by near-collinear terms (powers and trig functions of a field far from 0) whose large coefficients
+    cancel."""
     active = np.ones(t.shape[1], dtype=bool)
     if g is not None and not _feasible(g, active):
         return []
@@ -209,6 +225,8 @@ def backward(t: np.ndarray, g: _Gauge, ridge: float) -> list[np.ndarray]:
         try:
             path.append(_fit(t, g, ridge, active))
         except (InputError, np.linalg.LinAlgError):
+            break
+        if np.count_nonzero(active) <= stop:
             break
         best: tuple[float, np.ndarray] | None = None
         for j in np.flatnonzero(active):
@@ -248,7 +266,7 @@ def _refit(rule: str, t: np.ndarray, g: _Gauge, ridge: float) -> np.ndarray:
     if not rule.endswith(" terms"):
         return stlsq(t, g, float(rule), ridge)
     size = int(rule.split()[0])
-    path = [theta for theta in backward(t, g, ridge) if np.count_nonzero(theta) <= size]
+    path = [theta for theta in backward(t, g, ridge, size) if np.count_nonzero(theta) <= size]
     if not path:
         raise InputError.at("threshold", f"no support of {size} terms meets the gauge on these data")
     return path[0]
@@ -286,12 +304,13 @@ def learn_sparse(
     score of every support tried (empty for a given threshold)."""
     lam = 0.0 if ridge == "auto" else float(ridge)
     rs = [residual_matrix(model, f) / math.sqrt(nsites) for f in fields]
+    unbatched = not any(f.batch for f in fields)  # then the held-out threshold reuses these rows
     _finite_columns(model, rs)
     g = gauge_matrix(model, fields, gauge)
     blocks = _blocks(rs, model.n_terms)
     validation: dict[str, float] = {}
     if model.threshold == "auto":
-        served = _pick_served(model, fields, g, lam, nsites)
+        served = _pick_served(model, fields, g, lam, nsites, rs if unbatched else None)
         if served is None:
             picked, validation = _pick(blocks, g, lam)
             rule = f"{picked:g}"
