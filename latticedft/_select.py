@@ -51,6 +51,9 @@ SPARSE_FACTOR = 100.0
 #: the lattice's truncation error absorbed by more terms, not the physics (Kepler from one orbit: the true two
 #: terms score 1.6e-3, the polynomial (2, 2) 8.5e-7 and escapes beyond the training orbit).
 SPARSE_FLOOR = SERVE_FLOOR
+#: ... but not one that serves the held-out slices worse than this: its few terms do not hold the physics (the
+#: double pendulum's vector library without its coupling term scored 0.61 within 100x of a polynomial's 1.5e-2).
+SPARSE_CEILING = 1e-2
 #: The thresholds of the sparse candidates ``"auto"`` tries first (with the default library of the lattice).
 SPARSE_THRESHOLDS: tuple[float | str, ...] = (1e-1, 1e-2, "auto")
 
@@ -320,7 +323,8 @@ def _trial(
 def _choose(rows: list[dict[str, Any]], factor: float, keep_below: float) -> tuple[int, str, list[str]]:
     """``(chosen row, reason, warnings)``: the best candidate is the one with the fewest parameters among
     those within ``factor`` of the lowest score, or the sparse one with the fewest terms among the sparse
-    candidates within :data:`SPARSE_FACTOR` of it or below :data:`SPARSE_FLOOR`; it replaces the hand-set model
+    candidates within :data:`SPARSE_FACTOR` of it (and below :data:`SPARSE_CEILING`) or below :data:`SPARSE_FLOOR`;
+    it replaces the hand-set model
     (row 0) only when ``factor`` times better (a preferred sparse one also when not, unless the hand-set model is
     sparse itself) and the hand-set score is above ``keep_below``."""
     scores = [r["score"] for r in rows]
@@ -333,7 +337,7 @@ def _choose(rows: list[dict[str, Any]], factor: float, keep_below: float) -> tup
         if i > 0
         and rows[i].get("kind") == "sparse"
         and math.isfinite(sc)
-        and sc <= max(SPARSE_FACTOR * lowest, SPARSE_FLOOR)
+        and sc <= max(min(SPARSE_FACTOR * lowest, SPARSE_CEILING), SPARSE_FLOOR)
     ]
     dense = best
     if sparse and best not in sparse:  # a few symbolic terms near the lowest score: they extrapolate

@@ -35,6 +35,8 @@ def test_a_sparse_candidate_near_the_lowest_score_comes_first():
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
     rows[3]["score"] = 1.6e-3  # below SPARSE_FLOOR (Kepler from one orbit: the true two terms)
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 3
+    rows[1]["score"], rows[2]["score"], rows[3]["score"] = 1.5e-2, 0.6, math.inf  # above SPARSE_CEILING
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
 
 
 def test_a_sparse_preference_never_keeps_a_hand_set_model_beaten_100x():
