@@ -38,8 +38,11 @@ from ._terms import acceleration_terms, euler_lagrange_terms, term_error, terms_
 NOT_INSTALLED = "not installed"
 
 
-def rows_for(system: System, label: str, terms: str, coef: Any, pred: np.ndarray, fit: Any, dense: Any) -> list[list]:
-    """Table rows of one model on ``system``: one per error horizon, with the leapfrog of the true equation."""
+def rows_for(
+    system: System, label: str, terms: str, coef: Any, pred: np.ndarray, fit: Any, dense: Any, samples: Any = "-"
+) -> list[list]:
+    """Table rows of one model on ``system``: one per error horizon, with the leapfrog of the true equation
+    (``samples``: the coefficient error of the model learned on the samples, where ``coef`` is another's)."""
     ref = np.asarray(system.test.values, dtype=float)
     mine = max_errors(pred, ref, system.slices, system.at)
     base = max_errors(system.leapfrog(system.test, system.slices), ref, system.slices, system.at)
@@ -52,6 +55,7 @@ def rows_for(system: System, label: str, terms: str, coef: Any, pred: np.ndarray
             label,
             terms,
             coef,
+            samples,
             mine[i],
             base[i],
             mine[i] / base[i],
@@ -386,6 +390,7 @@ def xl_own_row(name: str, spec: OdeSpec, noise: float, seed: int = 1) -> list:
         label,
         terms_cell(n_got, n_want),
         err,
+        "-",
         served,
         None,
         None,

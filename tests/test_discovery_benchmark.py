@@ -126,5 +126,15 @@ def test_peer_rows_say_not_installed_when_the_peers_are_missing(monkeypatch):
     system = systems.build("pendulum", quick=True)
     rows = peers.peer_rows(system)
     assert [r[2] for r in rows] == ["PySINDy: not installed", "py-xl-sindy: not installed"]
-    assert all(r[5] == math.inf for r in rows)  # no prediction
+    assert all(r[6] == math.inf for r in rows)  # no prediction
     assert peers.xl_own_rows()[0][2] == "py-xl-sindy: not installed"
+
+
+def test_variational_data_obey_the_true_del():
+    """For a constant mass the trapezoid ``L_d``'s DEL is the Stormer-Verlet leapfrog: the regenerated training
+    data are that leapfrog from the same two slices."""
+    system = systems.build("pendulum", quick=True)
+    field = systems.variational_data(system)[0]
+    want = system.leapfrog(system.train[0], system.train[0].sizes["t"])
+    assert np.abs(np.asarray(field.values) - want).max() < 1e-12
+    assert field.dims == system.train[0].dims

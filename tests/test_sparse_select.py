@@ -35,6 +35,8 @@ def test_a_sparse_candidate_near_the_lowest_score_comes_first():
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
     rows[3]["score"] = 1.6e-3  # below SPARSE_FLOOR (Kepler from one orbit: the true two terms)
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 3
+    rows[1]["score"], rows[2]["score"], rows[3]["score"] = 1.5e-2, 0.6, math.inf  # above SPARSE_CEILING
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
 
 
 def test_a_sparse_preference_never_keeps_a_hand_set_model_beaten_100x():
@@ -46,6 +48,19 @@ def test_a_sparse_preference_never_keeps_a_hand_set_model_beaten_100x():
     chosen, reason, _ = _choose(rows, factor=2.0, keep_below=1e-6)
     assert chosen == 2 and "100x below the hand-set" in reason
     rows[2]["score"] = 7.0e-9  # only 10x better: the hand-set model is kept
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 0
+
+
+def test_a_preferred_sparse_candidate_replaces_a_dense_hand_set_model_it_does_not_beat_2x():
+    rows = [  # sine-Gordon 1+1D: the default polynomial a little lower than the three true terms
+        {"score": 8.6e-5, "n_parameters": 135, "label": "hand-set", "kind": "polynomial"},
+        {"score": 1.1e-4, "n_parameters": 3, "label": "sparse", "kind": "sparse"},
+        {"score": 4.3e-5, "n_parameters": 54, "label": "orders", "kind": "polynomial"},
+    ]
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
+    rows[0]["kind"] = "sparse"  # a sparse hand-set model stays unless beaten 2x
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 0
+    rows[0].update(kind="polynomial", score=5e-7)  # below keep_below: kept
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 0
 
 
@@ -115,3 +130,34 @@ def test_check_refuses_a_library_that_does_not_fit_the_lattice(tmp_path, capsys,
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "model.library: " in err and words in err
     assert not (tmp_path / "results").exists()
+
+
+def test_backward_elimination_finds_an_exact_support_among_collinear_terms():
+    import numpy as np
+
+    from latticedft._learn._sparse import backward
+
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(2, 40))
+    t = np.stack([a, b, a + 2 * b + 1e-3 * rng.normal(size=40), rng.normal(size=40)], axis=1)
+    t[:, 1] = a / 2  # the exact support {0, 1}: a - 2 (a / 2) = 0
+    gauge = (np.array([[1.0, 0.0, 0.0, 0.0]]), np.array([1.0]))
+    path = backward(t, gauge, 0.0)
+    assert [int(np.count_nonzero(x)) for x in path] == [4, 3, 2, 1]
+    assert np.allclose(path[2], [1.0, -2.0, 0.0, 0.0])
+
+
+def test_the_held_in_rows_are_the_head_of_the_whole_fields_rows():
+    import numpy as np
+
+    from latticedft._learn._data import as_fields
+    from latticedft._learn._exact import residual_matrix
+    from latticedft._learn._sparse import _head
+
+    data = pendulum(2.0, 20)
+    model = ldft.SparseLagrangian("kinetic + trig:1", threshold=0.1, bags=0)
+    ldft.learn(model, data, progress=False)
+    (field,) = as_fields([data], None)
+    whole = residual_matrix(model, field)
+    part = residual_matrix(model, field.with_values(field.values[:14]))
+    assert np.array_equal(_head(model, field, whole, 14), part)

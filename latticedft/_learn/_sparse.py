@@ -4,7 +4,8 @@ The DEL residual matrix ``R`` (rows: equations on interior sites, columns: the l
 training field is cut into contiguous time blocks, each reduced to its triangular factor (``|R_b x| =
 |T_b x|``). Sequential thresholding (STLSQ) fits ``coef`` under the gauge, drops every term whose share
 ``|coef_c| |R e_c|`` of the largest is below the threshold, and refits on the terms left until the support
-holds. ``threshold = "auto"`` fits every threshold on the first part of each training field and serves each
+holds. ``threshold = "auto"`` fits every threshold, and every support on the path of backward elimination
+(:func:`backward`), on the first part of each training field and serves each
 field's held-out tail from the tail's first two slices (as :func:`latticedft.select` scores); it keeps the
 sparsest support served within :data:`SERVE_FLOOR`, or else within :data:`SERVE_SLACK` of the best (the held-out
 residual of time blocks decides only where no fit serves). Bagged
@@ -20,14 +21,14 @@ import numpy as np
 import torch
 
 from .._errors import InputError, LatticeDFTError
-from .._lattice import LatticeField
+from .._lattice import LatticeField, interior_slices
 from .._models import SparseLagrangian
 from .._models._sparse import THRESHOLDS
 from ._exact import _constrained_lstsq, _qr_r, gauge_matrix, residual_matrix
 from ._gauge import Gauge
 from ._heldout import HOLD_OUT, held_in, held_out_score
 
-__all__ = ["learn_sparse", "stlsq", "BLOCKS", "SLACK", "SERVE_SLACK", "SERVE_FLOOR"]
+__all__ = ["learn_sparse", "stlsq", "backward", "BLOCKS", "SLACK", "SERVE_SLACK", "SERVE_FLOOR"]
 
 #: The training rows are cut into about this many time blocks (for the held-out threshold and the bagging).
 BLOCKS = 8
@@ -146,14 +147,29 @@ def _unbatched(fields: list[LatticeField]) -> list[LatticeField]:
     return [replace(f, values=v, batch=0) for f in fields for v in (f.values if f.batch else [f.values])]
 
 
+def _head(model: SparseLagrangian, f: LatticeField, r: np.ndarray, keep: int) -> np.ndarray:
+    """The residual matrix of the first ``keep`` slices of the unbatched field ``f``: the first rows of its own,
+    ``r`` (rows are time-major; each holds the DEL of one site, which sees only its neighbouring cells)."""
+    times = [range(n)[interior_slices((n, *f.shape[1:]), model.stencil, f.boundary)[0]] for n in (f.shape[0], keep)]
+    if times[0].start != times[1].start or not len(times[0]) or r.shape[0] % len(times[0]):
+        return residual_matrix(model, f.with_values(f.values[:keep]))
+    return r[: r.shape[0] // len(times[0]) * len(times[1])]
+
+
 def _pick_served(
-    model: SparseLagrangian, fields: list[LatticeField], g: _Gauge, ridge: float, nsites: int
-) -> tuple[float, dict[str, float]] | None:
-    """The threshold chosen by held-out serving, and the served error of every support tried (None where no fit
-    serves): each threshold of :data:`THRESHOLDS` fits the first part of every field
-    (:func:`latticedft._learn._heldout.held_in`), and each support, the sparsest first, serves every field's held-out
-    tail from the tail's first two slices (:func:`latticedft._learn._heldout.held_out_score`). The first served within
-    :data:`SERVE_FLOOR` is taken; else the sparsest within :data:`SERVE_SLACK` of the best."""
+    model: SparseLagrangian,
+    fields: list[LatticeField],
+    g: _Gauge,
+    ridge: float,
+    nsites: int,
+    rs: list[np.ndarray] | None = None,
+) -> tuple[str, dict[str, float]] | None:
+    """The rule chosen by held-out serving (a threshold, or a size on the backward path: :func:`_supports`), and
+    the served error of every support tried (None where no fit serves): each support, fitted on the first part of
+    every field (:func:`latticedft._learn._heldout.held_in`), the sparsest first, serves every field's held-out
+    tail from the tail's first two slices (:func:`latticedft._learn._heldout.held_out_score`). The first served
+    within :data:`SERVE_FLOOR` is taken; else the sparsest within :data:`SERVE_SLACK` of the best. ``rs``: the
+    residual matrices of the unbatched fields (scaled by ``1 / sqrt(nsites)``), when at hand."""
 
     single = _unbatched(fields)
     whole = [f.to_dataarray() for f in single]
@@ -162,46 +178,103 @@ def _pick_served(
         keep = [p.sizes[p.dims[0]] for p in held_in(whole, HOLD_OUT)]
     except InputError:  # too few slices to hold any out
         return None
-    parts = [f.with_values(f.values[:k]) for f, k in zip(single, keep)]
+    if rs is None:
+        rs = [residual_matrix(model, f) / math.sqrt(nsites) for f in single]
+    heads = [_head(model, f, r, k) for f, r, k in zip(single, rs, keep)]
     tails = [w.isel({w.dims[0]: slice(min(k, w.sizes[w.dims[0]] - 3), None)}) for w, k in zip(whole, keep)]
-    fits = _supports(
-        _stack(_blocks([residual_matrix(model, p) / math.sqrt(nsites) for p in parts], model.n_terms)), g, ridge
-    )
+    fits = _supports(_stack(_blocks(heads, model.n_terms)), g, ridge)
     scores: dict[str, float] = {}
     saved = model.coef.detach().clone()
-    for thr, theta in sorted(fits, key=lambda f: (np.count_nonzero(f[1]), -f[0])):
+    for label, theta in sorted(fits, key=lambda f: np.count_nonzero(f[1])):  # stable: thresholds first
         with torch.no_grad():
             model.coef.copy_(torch.from_numpy(theta))
         try:
-            scores[f"{thr:g}"] = held_out_score(model, tails, boundary)
+            scores[label] = held_out_score(model, tails, boundary)
         except LatticeDFTError:
-            scores[f"{thr:g}"] = math.inf
-        if scores[f"{thr:g}"] <= SERVE_FLOOR:
+            scores[label] = math.inf
+        if scores[label] <= SERVE_FLOOR:
             break
     with torch.no_grad():
         model.coef.copy_(saved)
     finite = [v for v in scores.values() if math.isfinite(v)]
     if not finite:
         return None
-    ok = [float(k) for k, v in scores.items() if v <= max(SERVE_FLOOR, SERVE_SLACK * min(finite))]
+    ok = [k for k, v in scores.items() if v <= max(SERVE_FLOOR, SERVE_SLACK * min(finite))]
     return ok[0], scores
 
 
-def _supports(t: np.ndarray, g: _Gauge, ridge: float) -> list[tuple[float, np.ndarray]]:
-    """``(threshold, coefficients)`` for each distinct support over :data:`THRESHOLDS` (the largest threshold
-    giving it), fitted on the rows ``t``."""
-    out: dict[bytes, tuple[float, np.ndarray]] = {}
+def _fit(t: np.ndarray, g: _Gauge, ridge: float, active: np.ndarray) -> np.ndarray:
+    """The gauge-fixed least-squares coefficients on the terms ``active`` (zero elsewhere)."""
+    theta = np.zeros(t.shape[1])
+    gm, gv = _columns(g, active)
+    theta[active] = _constrained_lstsq(t[:, active], gm, gv, ridge)
+    return theta
+
+
+def backward(t: np.ndarray, g: _Gauge, ridge: float, stop: int = 0) -> list[np.ndarray]:
+    """Backward elimination on the rows ``t`` under the gauge ``g``: from every term, drop one at a time the term
+    whose removal raises the residual ``|t coef|`` least (the gauge kept feasible); the coefficients of every
+    support on the path, the densest first, down to ``stop`` terms. Unlike thresholding by share, it is not
+    misled by near-collinear terms (powers and trig functions of a field far from 0) whose large coefficients
+    cancel."""
+    active = np.ones(t.shape[1], dtype=bool)
+    if g is not None and not _feasible(g, active):
+        return []
+    path = []
+    while active.any():
+        try:
+            path.append(_fit(t, g, ridge, active))
+        except (InputError, np.linalg.LinAlgError):
+            break
+        if np.count_nonzero(active) <= stop:
+            break
+        best: tuple[float, np.ndarray] | None = None
+        for j in np.flatnonzero(active):
+            trial = active.copy()
+            trial[j] = False
+            if not trial.any() or (g is not None and not _feasible(g, trial)):
+                continue
+            try:
+                res = float(np.linalg.norm(t @ _fit(t, g, ridge, trial)))
+            except (InputError, np.linalg.LinAlgError):
+                continue
+            if best is None or res < best[0]:
+                best = (res, trial)
+        if best is None:
+            break
+        active = best[1]
+    return path
+
+
+def _supports(t: np.ndarray, g: _Gauge, ridge: float) -> list[tuple[str, np.ndarray]]:
+    """``(rule, coefficients)`` for each distinct support over :data:`THRESHOLDS` (the rule the largest threshold
+    giving it, ``"0.01"``) and then on the :func:`backward` path (``"4 terms"``), fitted on the rows ``t``."""
+    out: dict[bytes, tuple[str, np.ndarray]] = {}
     for thr in THRESHOLDS:
         try:
             theta = stlsq(t, g, thr, ridge)
         except (InputError, np.linalg.LinAlgError):
             continue
-        out.setdefault((theta != 0).tobytes(), (thr, theta))
+        out.setdefault((theta != 0).tobytes(), (f"{thr:g}", theta))
+    for theta in backward(t, g, ridge):
+        out.setdefault((theta != 0).tobytes(), (f"{np.count_nonzero(theta)} terms", theta))
     return list(out.values())
 
 
-def _bagged(blocks: list[np.ndarray], g: _Gauge, threshold: float, ridge: float, bags: int) -> np.ndarray:
-    """Each term's share of ``bags`` fits on blocks drawn with replacement (NaN without bags or blocks)."""
+def _refit(rule: str, t: np.ndarray, g: _Gauge, ridge: float) -> np.ndarray:
+    """The coefficients of ``rule`` (a threshold, or ``"k terms"`` on the backward path) on the rows ``t``."""
+    if not rule.endswith(" terms"):
+        return stlsq(t, g, float(rule), ridge)
+    size = int(rule.split()[0])
+    path = [theta for theta in backward(t, g, ridge, size) if np.count_nonzero(theta) <= size]
+    if not path:
+        raise InputError.at("threshold", f"no support of {size} terms meets the gauge on these data")
+    return path[0]
+
+
+def _bagged(blocks: list[np.ndarray], g: _Gauge, rule: str, ridge: float, bags: int) -> np.ndarray:
+    """Each term's share of ``bags`` fits of ``rule`` on blocks drawn with replacement (NaN without bags or
+    blocks)."""
     c = blocks[0].shape[1]
     if bags == 0 or len(blocks) < 2:
         return np.full(c, math.nan)
@@ -210,32 +283,47 @@ def _bagged(blocks: list[np.ndarray], g: _Gauge, threshold: float, ridge: float,
     for _ in range(bags):
         pick = rng.integers(0, len(blocks), len(blocks))
         try:
-            counts += stlsq(_stack([blocks[i] for i in pick]), g, threshold, ridge) != 0
+            counts += _refit(rule, _stack([blocks[i] for i in pick]), g, ridge) != 0
         except (InputError, np.linalg.LinAlgError):
             continue
     return counts / bags
+
+
+def _share(theta: np.ndarray, t: np.ndarray) -> float:
+    """The smallest share ``|coef_c| |R e_c|`` of the largest among the kept terms (the threshold a support found
+    by backward elimination is reported with)."""
+    weight = np.abs(theta) * np.sqrt((t**2).sum(0))
+    kept = weight[theta != 0]
+    return float(kept.min() / kept.max()) if kept.size and kept.max() > 0 else 0.0
 
 
 def learn_sparse(
     model: SparseLagrangian, fields: list[LatticeField], gauge: Gauge, ridge: float | str, nsites: int
 ) -> tuple[float, dict[str, float]]:
     """Fit ``model.coef`` in place (``ridge="auto"`` counts as 0); returns the ridge used and the held-out
-    score of every threshold tried (empty for a given threshold)."""
+    score of every support tried (empty for a given threshold)."""
     lam = 0.0 if ridge == "auto" else float(ridge)
     rs = [residual_matrix(model, f) / math.sqrt(nsites) for f in fields]
+    unbatched = not any(f.batch for f in fields)  # then the held-out threshold reuses these rows
     _finite_columns(model, rs)
     g = gauge_matrix(model, fields, gauge)
     blocks = _blocks(rs, model.n_terms)
     validation: dict[str, float] = {}
     if model.threshold == "auto":
-        served = _pick_served(model, fields, g, lam, nsites)
-        threshold, validation = _pick(blocks, g, lam) if served is None else served
+        served = _pick_served(model, fields, g, lam, nsites, rs if unbatched else None)
+        if served is None:
+            picked, validation = _pick(blocks, g, lam)
+            rule = f"{picked:g}"
+        else:
+            rule, validation = served
     else:
-        threshold = float(model.threshold)
-    theta = stlsq(_stack(blocks), g, threshold, lam)
-    inclusion = _bagged(blocks, g, threshold, lam, model.bags)
+        rule = f"{float(model.threshold)!r}"
+    full = _stack(blocks)
+    theta = _refit(rule, full, g, lam)
+    inclusion = _bagged(blocks, g, rule, lam, model.bags)
+    threshold = _share(theta, full) if rule.endswith(" terms") else float(rule)
     with torch.no_grad():
         model.coef.copy_(torch.from_numpy(theta))
         model.inclusion.copy_(torch.from_numpy(inclusion))
         model.threshold_used.fill_(threshold)
-    return lam, {f"threshold {k}": v for k, v in validation.items()}
+    return lam, {f"threshold {k}" if not k.endswith(" terms") else k: v for k, v in validation.items()}

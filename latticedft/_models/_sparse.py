@@ -51,7 +51,8 @@ class SparseLagrangian(LinearLagrangian):
     psi[x]) / h_k`` (see :mod:`latticedft._models._library` for the library's shorthands and objects).
     :func:`latticedft.learn` solves the gauge-fixed least-squares problem with sequential thresholding: fit,
     drop every term whose share of the residual is below ``threshold``, refit, until the support holds.
-    ``threshold = "auto"`` tries :data:`THRESHOLDS`, each fitted on the first 70 % of every training field, and
+    ``threshold = "auto"`` tries :data:`THRESHOLDS` and the supports of backward elimination, each fitted on
+    the first 70 % of every training field, and
     keeps the sparsest support that serves the held-out tail (from its first two slices) within a relative
     error of 5e-3, or else within 3x of the best.
     ``bags`` refits on resampled time blocks of the data give each term an inclusion probability.
