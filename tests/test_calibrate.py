@@ -52,6 +52,21 @@ def _after_seed(seed: int) -> float:
     return torch.rand(1).item()
 
 
+def test_the_scale_follows_the_measured_error_not_the_runner_up() -> None:
+    """On held-out slices the trial's error is measured against the data: a runner-up that disagrees 100 times
+    more shapes the exponent, not the scale."""
+    from latticedft._calibrate import _fit, _Sample
+
+    k = np.arange(2.0, 22.0)
+    rel = 1e-6 * k
+    held = k >= 16
+    own = _fit([_Sample(k, held, rel, rel, False)], 0.95)
+    wide = _fit([_Sample(k, held, rel, 100 * rel, True)], 0.95)
+    assert own.exponent == pytest.approx(1.0) and wide.exponent == pytest.approx(1.0)
+    assert wide.scale == pytest.approx(own.scale) == pytest.approx(1e-6 / 2)
+    assert wide.coverage == own.coverage == 1.0
+
+
 def test_the_law_round_trips_and_warns_beyond_its_windows() -> None:
     law = _law()
     assert Calibration.from_dict(json.loads(json.dumps(law.to_dict()))) == law
