@@ -249,6 +249,7 @@ def calibrate(
         finally:
             np.random.set_state(state)
     cal = _fit(samples, quantile)
+    warnings += _stopped(samples, quantile)
     cal.windows, cal.slices = len(fields), max(f.sizes[f.dims[0]] for f in fields)
     cal.low = min(float(np.nanmin(f.values)) for f in fields)
     cal.high = max(float(np.nanmax(f.values)) for f in fields)
@@ -329,7 +330,11 @@ def _fit(samples: list[_Sample], quantile: float) -> Calibration:
     k, r = cat(lambda x: x.k[x.held]), cat(lambda x: x.rel[x.held])
     shape = k**p
     z = np.where(np.isfinite(r), r, np.inf) / shape  # a serve that stopped: an unbounded error
-    scale = float(np.quantile(z, quantile, method="higher")) / 2 if z.size else math.inf
+    q = float(np.quantile(z, quantile, method="higher")) if z.size else math.inf
+    if not math.isfinite(q) and np.isfinite(z).any():
+        # stopped on more than 1 - quantile of the slices: fitted to those served (:func:`_stopped` warns)
+        q = float(np.quantile(z[np.isfinite(z)], quantile, method="higher"))
+    scale = q / 2
     scale = scale if math.isfinite(scale) and scale > 0 else float(np.finfo(float).tiny)
     est = scale * shape
     finite = np.isfinite(r)
@@ -348,6 +353,21 @@ def _fit(samples: list[_Sample], quantile: float) -> Calibration:
         runner_up=None,
         wall_time=0.0,
     )
+
+
+def _stopped(samples: list[_Sample], quantile: float) -> list[str]:
+    """A trial whose serve stopped before more than ``1 - quantile`` of the held-out slices: the law is fitted to
+    the slices it served (a quantile over unbounded errors would be unbounded), and it does not bound the rest."""
+    held = [x.rel[x.held] for x in samples]
+    n, total = sum(int((~np.isfinite(r)).sum()) for r in held), sum(r.size for r in held)
+    if not total or n <= (1 - quantile) * total:
+        return []
+    fields = sum(1 for r in held if not np.isfinite(r).all())
+    return [
+        f"calibration: the trial model's serve stopped before {n} of {total} held-out slices ({fields} of "
+        f"{len(held)} training fields): the error bar is fitted to the slices it served and does not bound a "
+        "serve that stops"
+    ]
 
 
 def _noise_warnings(trial: AbstractLagrangian, rel: list[np.ndarray]) -> list[str]:
