@@ -315,7 +315,9 @@ def _trial(
             status = "served field not finite"
     except ServeError as exc:
         score, status = math.inf, f"serve stopped: {_short(exc)}"
-    except LatticeDFTError as exc:
+    except (LatticeDFTError, ArithmeticError, ValueError, RuntimeError) as exc:
+        # the package's errors and a candidate's numerics (a division by zero, an overflow, numpy's and torch's
+        # linear-algebra errors): that candidate failed, the others are still tried
         score, status = math.inf, f"{type(exc).__name__}: {_short(exc)}"
     return {"score": score, "status": status, "n_parameters": n_parameters, "wall_time": time.perf_counter() - t0}
 

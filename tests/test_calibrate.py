@@ -52,6 +52,38 @@ def _after_seed(seed: int) -> float:
     return torch.rand(1).item()
 
 
+def test_the_scale_follows_the_measured_error_not_the_runner_up() -> None:
+    """On held-out slices the trial's error is measured against the data: a runner-up that disagrees 100 times
+    more shapes the exponent, not the scale."""
+    from latticedft._calibrate import _fit, _Sample
+
+    k = np.arange(2.0, 22.0)
+    rel = 1e-6 * k
+    held = k >= 16
+    own = _fit([_Sample(k, held, rel, rel, False)], 0.95)
+    wide = _fit([_Sample(k, held, rel, 100 * rel, True)], 0.95)
+    assert own.exponent == pytest.approx(1.0) and wide.exponent == pytest.approx(1.0)
+    assert wide.scale == pytest.approx(own.scale) == pytest.approx(1e-6 / 2)
+    assert wide.coverage == own.coverage == 1.0
+
+
+def test_a_trial_that_stops_on_many_held_out_slices_keeps_a_band_and_warns() -> None:
+    """One field of ten whose trial stopped (10 % of the held-out slices, above 1 - 0.95): the scale is the
+    quantile over the served slices, not the smallest float, and a warning says what it does not bound."""
+    from latticedft._calibrate import _fit, _Sample, _stopped
+
+    k = np.arange(2.0, 22.0)
+    held = k >= 16
+    rel = 1e-6 * k
+    stopped = np.where(k < 10, rel, np.nan)
+    samples = [_Sample(k, held, rel, rel, False) for _ in range(9)] + [_Sample(k, held, stopped, stopped, False)]
+    law = _fit(samples, 0.95)
+    assert law.scale == pytest.approx(1e-6 / 2) and law.coverage == pytest.approx(0.9)
+    (warning,) = _stopped(samples, 0.95)
+    assert "stopped before 6 of 60 held-out slices (1 of 10 training fields)" in warning
+    assert _stopped(samples[:9], 0.95) == []
+
+
 def test_the_law_round_trips_and_warns_beyond_its_windows() -> None:
     law = _law()
     assert Calibration.from_dict(json.loads(json.dumps(law.to_dict()))) == law

@@ -161,6 +161,37 @@ def test_select_warns_when_every_candidate_fails(swing) -> None:
     assert any("every one of 2 candidates failed" in w for w in rep.model.report_.warnings)
 
 
+def test_select_records_a_candidate_whose_numerics_raise_as_failed(swing) -> None:
+    train, _ = swing
+
+    def divide(mean):
+        return 1 / 0
+
+    rep = ldft.select(PolynomialLagrangian((4, 8)), train, [FeatureLagrangian([divide])])
+    assert rep.chosen == 0 and rep.rows[1]["score"] == math.inf
+    assert rep.rows[1]["status"] == "ZeroDivisionError: division by zero"
+
+
+def wells(q0: float, n: int = 41) -> xr.DataArray:
+    """The double-well oscillator ``q'' = q - q^3`` from rest at ``q0``, every 0.25 (``q0 = 1``: at rest)."""
+    t = np.arange(n) * 0.25
+    sol = solve_ivp(
+        lambda _, y: [y[1], y[0] - y[0] ** 3], (0, t[-1]), [q0, 0.0], t_eval=t, method="DOP853", rtol=1e-12, atol=1e-12
+    )
+    return xr.DataArray(sol.y[0], dims="t", coords={"t": t}, name="psi")
+
+
+@pytest.mark.parametrize("chunk_sites", [0, 16])
+def test_ridge_auto_leaves_out_a_held_out_field_at_rest(chunk_sites) -> None:
+    # a field at the equilibrium q = 1 has no motion to measure a held-out residual against (it divided by zero)
+    train = [wells(q) for q in (0.6, 1.0, 1.3)]
+    rep = ldft.learn(PolynomialLagrangian((2, 4)), train, ridge="auto", chunk_sites=chunk_sites, progress=False)
+    assert rep.validation and all(math.isfinite(v) for v in rep.validation.values())
+    with pytest.raises(InputError, match="no held-out field in motion") as info:
+        ldft.learn(PolynomialLagrangian((2, 4)), [wells(1.0), wells(1.0)], ridge="auto", chunk_sites=chunk_sites)
+    assert info.value.key == "ridge"
+
+
 @pytest.mark.parametrize(
     ("kwargs", "key"),
     [

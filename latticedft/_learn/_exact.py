@@ -119,6 +119,16 @@ def _ridge_folds(
     return [([residual_matrix(model, split[0])], [residual_matrix(model, split[1])], [split[1]])]
 
 
+def _moving(kinetic: list[float]) -> list[int]:
+    """The folds whose held-out data move (a nonzero second time difference): a residual is measured relative
+    to that motion, so a field at rest (an equilibrium) cannot validate a ridge weight; raises
+    :class:`InputError` when no fold is left."""
+    keep = [i for i, k in enumerate(kinetic) if k > 0 and math.isfinite(k)]
+    if not keep:
+        raise InputError.at("ridge", "'auto' has no held-out field in motion (every one is at rest)")
+    return keep
+
+
 def _pick_ridge(
     model: LinearLagrangian,
     fields: list[LatticeField],
@@ -126,8 +136,10 @@ def _pick_ridge(
     g_mat: np.ndarray | None,
     g_vec: np.ndarray | None,
 ) -> tuple[float, dict[str, float]]:
-    """The ridge weight of the grid with the smallest held-out relative residual, and every score."""
+    """The ridge weight of the grid with the smallest held-out relative residual, and every score (folds
+    whose held-out fields do not move are left out: see :func:`_moving`)."""
     folds = _ridge_folds(model, fields, rs)
+    folds = [folds[i] for i in _moving([kinetic_scale(v, model, None) for _, _, v in folds])]
     validation: dict[str, float] = {}
     best, best_score = 0.0, math.inf
     for lam in _RIDGE_GRID:
@@ -324,6 +336,7 @@ def _pick_ridge_streamed(
     groups: list[_Group], folds: list[tuple[list[int], int]], g_mat: np.ndarray | None, g_vec: np.ndarray | None
 ) -> tuple[float, dict[str, float]]:
     """:func:`_pick_ridge` on the groups' factors: ``|R_v theta| = |T_v theta|`` on the held-out group."""
+    folds = [folds[i] for i in _moving([groups[v].kinetic[0] for _, v in folds])]
     factors = [  # each fold's training system, once
         _stacked_factor([t for t in (groups[i].t for i in train) if t is not None])
         / math.sqrt(sum(groups[i].sites for i in train))
