@@ -519,9 +519,9 @@ def compile_forms(form: SymbolicLd, pairs: Sequence[tuple[int, int]], what: str 
     return CompiledForms(mod, k, m, len(pairs))
 
 
-def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tuple[Any, str]:
-    """Write (once) and load the kernel module of ``key``, and run both kernels once on one cell (numba
-    compiles, or loads its cached machine code, on the first call): ``(module, "built" or "cached")``."""
+def _module(key: str, source: str) -> tuple[Any, str]:
+    """The kernel module ``key`` of ``source``, written once into the cache (atomically) and loaded:
+    ``(module, "built")`` when it was written now, else ``(module, "cached")``."""
     import numba  # noqa: F401 - fails here, with the reason, where numba is missing
 
     folder = cache_dir()
@@ -531,9 +531,15 @@ def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tupl
     if not path.exists():
         how = "built"
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(_source(form, pairs))
+        tmp.write_text(source)
         os.replace(tmp, path)
-    mod = _load(path, key)
+    return _load(path, key), how
+
+
+def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tuple[Any, str]:
+    """Write (once) and load the kernel module of ``key``, and run both kernels once on one cell (numba
+    compiles, or loads its cached machine code, on the first call): ``(module, "built" or "cached")``."""
+    mod, how = _module(key, _source(form, pairs))
     k, m = len(form.offsets), form.m
     cell = np.zeros((1, k, m))
     mod.grad_kernel_serial(cell, np.empty_like(cell))  # the parallel kernels compile on first use
@@ -781,18 +787,7 @@ def _folded_module(source: str, what: str, shape: tuple[int, int] = (1, 1)) -> A
 def _build_folded(key: str, source: str, shape: tuple[int, int]) -> tuple[Any, str]:
     """Write (once) and load a folded kernel module, and run each of its kernels once on one cell (``shape``:
     the variables and columns ``folded_cells`` is run with)."""
-    import numba  # noqa: F401 - fails here, with the reason, where numba is missing
-
-    folder = cache_dir()
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"ldft_{key}.py"
-    how = "cached"
-    if not path.exists():
-        how = "built"
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(source)
-        os.replace(tmp, path)
-    mod = _load(path, key)
+    mod, how = _module(key, source)
     one, idx = np.zeros((1, 1)), np.zeros((1, 1), dtype=np.int64)
     rows, up = np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)
     nvar, cols = shape
