@@ -44,6 +44,19 @@ def _fresh_blocks(ev: CellDerivatives, sys: _SliceSystem, cache: dict[str, Any],
     return blocks
 
 
+def _factorise(sys: _SliceSystem, blocks: Any, vol: float, cache: dict[str, Any], tol: float) -> None:
+    """Factorise the slice Jacobian of ``blocks`` into ``cache["solve"]``, by ``cache["factor"]`` (a split
+    slice's: the processes' own) or ``_solvers.factor_step``, with the solver ``cache["solver"]``; the name of
+    the solver chosen joins ``cache["used"]``, and the blocks are kept where a checkpoint rebuilds from them."""
+    factor = cache.get("factor", factor_step)
+    cache["solve"], name = factor(sys, blocks, vol, cache.get("solver", "auto"), tol)
+    if cache.get("keep_factored"):
+        cache["factored"] = (blocks, tol)
+    used = cache.setdefault("used", [])
+    if name not in used:
+        used.append(name)
+
+
 def _newton_slice(
     model: AbstractLagrangian,
     sys: _SliceSystem,
@@ -101,13 +114,7 @@ def _newton_slice(
                     blocks = _fresh_blocks(ev, sys, cache, allmax)
                     if cache["singular"]:
                         return it, res, ev.grad, (*cache["singular"], res)
-                factor = cache.get("factor", factor_step)  # a split slice: the processes' own
-                cache["solve"], name = factor(sys, blocks, vol, cache.get("solver", "auto"), rtol * rscale)
-                if cache.get("keep_factored"):  # a checkpoint rebuilds the factorisation from them
-                    cache["factored"] = (blocks, rtol * rscale)
-                used = cache.setdefault("used", [])
-                if name not in used:
-                    used.append(name)
+                _factorise(sys, blocks, vol, cache, rtol * rscale)
             delta = cache["solve"](-r)
         except SolverRefused as exc:
             return it, res, ev.grad, (str(exc), None, res)
@@ -121,12 +128,8 @@ def _newton_slice(
             cache.pop("solve", None)
             if stale:
                 continue
-            return (
-                it,
-                res,
-                ev.grad,
-                ("Newton step is not finite (singular mixed Hessian?)", int(np.argmax(np.abs(r))), res),
-            )
+            failure = ("Newton step is not finite (singular mixed Hessian?)", int(np.argmax(np.abs(r))), res)
+            return it, res, ev.grad, failure
         flat[i + 1, unk] += torch.from_numpy(delta.reshape(-1, m))
         small = not stale and step <= rtol * allmax(_scale(flat, i, unk))[0]
     worst: int | None = int(np.argmax(np.abs(r))) if r.size else None
