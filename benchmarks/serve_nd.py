@@ -274,7 +274,8 @@ def _kernel_builds(ndim: int) -> tuple[float, float]:
 def _folded_builds() -> tuple[float, float]:
     """Seconds of the first build of the folded polynomial kernels (one module for every polynomial) and of
     their load from the kernel folder: both apart from serving."""
-    from latticedft._kernel import _LOADED, folded_kernels
+    from latticedft._kernel import _LOADED
+    from latticedft._kernel_folded import folded_kernels
 
     with _empty_kernel_folder():
         t0 = time.perf_counter()

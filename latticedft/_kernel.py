@@ -38,7 +38,7 @@ import numpy as np
 
 from ._symbolic import SymbolicLd
 
-__all__ = ["BUILDS", "CompiledForms", "cache_dir", "compile_forms", "folded_cells_kernel", "folded_kernels"]
+__all__ = ["BUILDS", "CompiledForms", "cache_dir", "cached_module", "compile_forms", "write_module"]
 
 log = logging.getLogger("latticedft")
 
@@ -496,30 +496,44 @@ def compile_forms(form: SymbolicLd, pairs: Sequence[tuple[int, int]], what: str 
     process); ``None``, with one info line, where they cannot be built."""
     key = _key(form, pairs)
     k, m = len(form.offsets), form.m
-    mod = _LOADED.get(key)
+    mod = cached_module(
+        key,
+        lambda: _build(form, pairs, key),
+        what,
+        f"compiled DEL kernel for {what}",
+        f"compiled DEL kernel unavailable for {what}",
+        "serving uses its usual derivatives",
+    )
     if mod is None:
-        if key in _FAILED:
-            return None
-        t0 = time.perf_counter()
-        try:
-            mod, how = _build(form, pairs, key)
-        except Exception as exc:  # noqa: BLE001 - any failure: the model keeps its other derivatives
-            _FAILED.add(key)
-            log.info(
-                "compiled DEL kernel unavailable for %s (%s: %s): serving uses its usual derivatives",
-                what,
-                type(exc).__name__,
-                exc,
-            )
-            return None
-        seconds = time.perf_counter() - t0
-        BUILDS.append((what, seconds, how))
-        log.info("compiled DEL kernel for %s %s in %.2f s", what, how, seconds)
-        _LOADED[key] = mod
+        return None
     return CompiledForms(mod, k, m, len(pairs))
 
 
-def _module(key: str, source: str) -> tuple[Any, str]:
+def cached_module(
+    key: str, build: Callable[[], tuple[Any, str]], what: str, built: str, unavailable: str, fallback: str
+) -> Any | None:
+    """The kernel module ``key``: the one this process loaded already, else ``build()``'s ``(module, "built" or
+    "cached")``, timed into :data:`BUILDS` (as ``what``) and said in one info line (``built``, how, the time).
+    A build that fails is said once (``unavailable``, the error, ``fallback``) and not tried again in this
+    process: ``None``."""
+    mod = _LOADED.get(key)
+    if mod is not None or key in _FAILED:
+        return mod
+    t0 = time.perf_counter()
+    try:
+        mod, how = build()
+    except Exception as exc:  # noqa: BLE001 - any failure: the caller keeps its other path
+        _FAILED.add(key)
+        log.info("%s (%s: %s): %s", unavailable, type(exc).__name__, exc, fallback)
+        return None
+    seconds = time.perf_counter() - t0
+    BUILDS.append((what, seconds, how))
+    log.info("%s %s in %.2f s", built, how, seconds)
+    _LOADED[key] = mod
+    return mod
+
+
+def write_module(key: str, source: str) -> tuple[Any, str]:
     """The kernel module ``key`` of ``source``, written once into the cache (atomically) and loaded:
     ``(module, "built")`` when it was written now, else ``(module, "cached")``."""
     import numba  # noqa: F401 - fails here, with the reason, where numba is missing
@@ -539,7 +553,7 @@ def _module(key: str, source: str) -> tuple[Any, str]:
 def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tuple[Any, str]:
     """Write (once) and load the kernel module of ``key``, and run both kernels once on one cell (numba
     compiles, or loads its cached machine code, on the first call): ``(module, "built" or "cached")``."""
-    mod, how = _module(key, _source(form, pairs))
+    mod, how = write_module(key, _source(form, pairs))
     k, m = len(form.offsets), form.m
     cell = np.zeros((1, k, m))
     mod.grad_kernel_serial(cell, np.empty_like(cell))  # the parallel kernels compile on first use
@@ -571,235 +585,4 @@ def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tupl
         mod.trajectory(
             np.zeros(3), 1, 1, 1.0, 1.0, 1, -1.0, 1e-10, np.zeros(3), np.zeros(2, dtype=np.int64), np.zeros(6)
         )
-    return mod, how
-
-
-#: The folded polynomial's kernels (:func:`folded_kernels`): one module for every polynomial, whatever its
-#: orders, stencil, dimension and components, which it reads as data (the scaled variables ``z = x.flat @ w -
-#: shift``, the exponents of the monomials some derivative needs, the matrix from those monomials to the
-#: derivatives). Cells run along the innermost loops in chunks of ``_CHUNK``, as the numpy forms' cells-last
-#: evaluation, so that each product runs over a contiguous row that the compiler vectorises.
-_FOLDED_CELLS = """
-@numba.njit(cache=True, error_model='numpy', nogil=True)
-def folded_cells(lo, hi, site_of, upper, w, shift, expo, gc, out):
-    k = site_of.shape[0]
-    m = lo.shape[1]
-    nvar = w.shape[1]
-    ncell = site_of.shape[1]
-    nmono = gc.shape[0]
-    cols = gc.shape[1]
-    wmax = 2
-    for t in range(nmono):
-        for v in range(nvar):
-            wmax = max(wmax, expo[t, v] + 1)
-    ch = _CHUNK
-    x = np.empty((k * m, ch))
-    pw = np.empty((nvar, wmax, ch))
-    acc = np.empty((cols, ch))
-    p = np.empty(ch)
-    for start in range(0, ncell, ch):
-        n = min(ch, ncell - start)
-        for a in range(k):
-            src = hi if upper[a] else lo
-            for j in range(n):
-                s = site_of[a, start + j]
-                for c in range(m):
-                    x[a * m + c, j] = src[s, c]
-        for v in range(nvar):
-            for j in range(n):
-                p[j] = 0.0
-            for r in range(k * m):
-                wr = w[r, v]
-                if wr != 0.0:
-                    for j in range(n):
-                        p[j] += x[r, j] * wr
-            for j in range(n):
-                pw[v, 0, j] = 1.0
-                pw[v, 1, j] = p[j] - shift[v]
-            for e in range(2, wmax):
-                for j in range(n):
-                    pw[v, e, j] = pw[v, e - 1, j] * pw[v, 1, j]
-        for c in range(cols):
-            for j in range(n):
-                acc[c, j] = 0.0
-{monomials}
-        for j in range(n):
-            for c in range(cols):
-                out[start + j, c] = acc[c, j]
-
-
-"""
-
-_FOLDED = """
-import math
-
-import numba
-import numpy as np
-
-_CHUNK = 256
-
-
-{cells}
-@numba.njit(cache=True, error_model='numpy', nogil=True)
-def scatter(gprev, gcur, site_of, upper, rows, vol, el, r):
-    m = el.shape[1]
-    el[:] = 0.0
-    for a in range(site_of.shape[0]):
-        g = gprev if upper[a] else gcur
-        for n in range(site_of.shape[1]):
-            s = site_of[a, n]
-            for c in range(m):
-                el[s, c] += g[n, a * m + c]
-    for q in range(rows.shape[0]):
-        for c in range(m):
-            r[q * m + c] = vol * el[rows[q], c]
-
-
-@numba.njit(cache=True, error_model='numpy', nogil=True)
-def predict(prev, cur, nxt, older, rows):
-    top = 1e-300
-    for s in range(prev.shape[0]):
-        for c in range(prev.shape[1]):
-            top = max(top, abs(prev[s, c]), abs(cur[s, c]))
-    for q in range(rows.shape[0]):
-        y = rows[q]
-        for c in range(prev.shape[1]):
-            v = 2.0 * cur[y, c] - prev[y, c]
-            if older.shape[0]:
-                v = v + (cur[y, c] - 2.0 * prev[y, c] + older[y, c])
-            nxt[y, c] = v
-            top = max(top, abs(v))
-    return top
-
-
-@numba.njit(cache=True, error_model='numpy', nogil=True)
-def excess(values, site_of, upper, proj, lo, hi, span, out):
-    nf, k = proj.shape
-    m = values.shape[2]
-    for i in range(values.shape[0] - 1):
-        for q in range(nf * m):
-            out[i, q] = 0.0
-        for n in range(site_of.shape[1]):
-            for p in range(nf):
-                for c in range(m):
-                    f = 0.0
-                    for a in range(k):
-                        f += proj[p, a] * values[i + upper[a], site_of[a, n], c]
-                    q = p * m + c
-                    e = math.inf if f != f else max(max(lo[q] - f, f - hi[q]), 0.0) / span[q]
-                    out[i, q] = max(out[i, q], e)
-
-
-@numba.njit(cache=True, error_model='numpy', nogil=True)
-def update(nxt, rows, delta):
-    m = nxt.shape[1]
-    top = 0.0
-    for q in range(rows.shape[0]):
-        for c in range(m):
-            nxt[rows[q], c] += delta[q * m + c]
-            top = max(top, abs(nxt[rows[q], c]))
-    return top
-"""
-
-#: The generic monomial loop of ``folded_cells``: any number of variables and columns.
-_GENERIC_MONOMIALS = """
-        for t in range(nmono):
-            e0 = expo[t, 0]
-            for j in range(n):
-                p[j] = pw[0, e0, j]
-            for v in range(1, nvar):
-                e = expo[t, v]
-                if e:
-                    for j in range(n):
-                        p[j] *= pw[v, e, j]
-            for c in range(cols):
-                g = gc[t, c]
-                if g != 0.0:
-                    for j in range(n):
-                        acc[c, j] += g * p[j]
-"""
-
-_FOLDED = _FOLDED.replace("{cells}", _FOLDED_CELLS.replace("{monomials}", _GENERIC_MONOMIALS.strip("\n")))
-
-
-def folded_kernels() -> Any:
-    """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``scatter``, ``predict``,
-    ``update``, ``excess``), built on first use and cached as the others (one build per machine, for every
-    polynomial); ``None``, with one info line, where numba cannot build it."""
-    return _folded_module(_FOLDED, "folded polynomial")
-
-
-def folded_cells_kernel(nvar: int, cols: int) -> Callable[..., None] | None:
-    """``folded_cells`` with its monomial loop unrolled for ``nvar`` variables and ``cols`` columns (the class of
-    a polynomial: its orders, stencil, dimension and components; its coefficients stay data), four monomials
-    per pass over the cells; built once per class and cached; ``None`` where numba cannot build it."""
-    source = "\nimport numba\nimport numpy as np\n\n_CHUNK = 256\n\n" + _FOLDED_CELLS.replace(
-        "{monomials}", _unrolled_monomials(nvar, cols)
-    )
-    mod = _folded_module(source, f"folded polynomial ({nvar} variables, {cols} columns)", (nvar, cols))
-    return None if mod is None else mod.folded_cells
-
-
-def _unrolled_monomials(nvar: int, cols: int, unroll: int = 4) -> str:
-    """The monomial loop of ``folded_cells`` for ``nvar`` variables and ``cols`` columns: ``unroll`` monomials
-    per pass, each column's sum kept in one expression (fewer loads and stores per cell)."""
-
-    def take(u: int, at: str) -> list[str]:
-        e = ", ".join(f"e{u}_{v}" for v in range(nvar)) + ("," if nvar == 1 else "")
-        g = ", ".join(f"g{u}_{c}" for c in range(cols)) + ("," if cols == 1 else "")
-        exps = ", ".join(f"expo[{at}, {v}]" for v in range(nvar))
-        return [f"{e} = {exps}", f"{g} = " + ", ".join(f"gc[{at}, {c}]" for c in range(cols))]
-
-    def body(us: range) -> list[str]:
-        lines = ["for j in range(n):"]
-        lines += [f"    p{u} = " + " * ".join(f"pw[{v}, e{u}_{v}, j]" for v in range(nvar)) for u in us]
-        lines += [f"    acc[{c}, j] += " + " + ".join(f"g{u}_{c} * p{u}" for u in us) for c in range(cols)]
-        return lines
-
-    out = ["t = 0", f"while t + {unroll} <= nmono:"]
-    out += ["    " + x for u in range(unroll) for x in take(u, f"t + {u}")]
-    out += ["    " + x for x in body(range(unroll))] + [f"    t += {unroll}", "while t < nmono:"]
-    out += ["    " + x for x in take(0, "t")] + ["    " + x for x in body(range(1))] + ["    t += 1"]
-    return "\n".join("        " + x for x in out)
-
-
-def _folded_module(source: str, what: str, shape: tuple[int, int] = (1, 1)) -> Any:
-    """Build (once per machine) or load the folded kernel module of ``source``; ``None``, with one info line,
-    where numba cannot build it."""
-    key = hashlib.sha256(f"{_VERSION}|{source}".encode()).hexdigest()[:24]
-    mod = _LOADED.get(key)
-    if mod is not None or key in _FAILED:
-        return mod
-    t0 = time.perf_counter()
-    try:
-        mod, how = _build_folded(key, source, shape)
-    except Exception as exc:  # noqa: BLE001 - any failure: the polynomial keeps its numpy forms
-        _FAILED.add(key)
-        log.info("compiled %s kernel unavailable (%s: %s): serving uses its numpy forms", what, type(exc).__name__, exc)
-        return None
-    seconds = time.perf_counter() - t0
-    BUILDS.append((what, seconds, how))
-    log.info("compiled %s kernel %s in %.2f s", what, how, seconds)
-    _LOADED[key] = mod
-    return mod
-
-
-def _build_folded(key: str, source: str, shape: tuple[int, int]) -> tuple[Any, str]:
-    """Write (once) and load a folded kernel module, and run each of its kernels once on one cell (``shape``:
-    the variables and columns ``folded_cells`` is run with)."""
-    mod, how = _module(key, source)
-    one, idx = np.zeros((1, 1)), np.zeros((1, 1), dtype=np.int64)
-    rows, up = np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)
-    nvar, cols = shape
-    expo = np.zeros((1, nvar), dtype=np.int64)
-    mod.folded_cells(
-        one, one, idx, up, np.zeros((1, nvar)), np.zeros(nvar), expo, np.zeros((1, cols)), np.empty((1, cols))
-    )
-    if not hasattr(mod, "scatter"):  # a class's own folded_cells alone
-        return mod, how
-    mod.scatter(one, one, idx, up, rows, 1.0, np.empty((1, 1)), np.empty(1))
-    mod.predict(one, one, one, one, rows)
-    mod.predict(one, one, one, np.zeros((0, 1)), rows)
-    mod.update(one, rows, np.zeros(1))
-    mod.excess(np.zeros((2, 1, 1)), idx, up, one, np.zeros(1), np.ones(1), np.ones(1), np.empty((1, 1)))
     return mod, how

@@ -407,7 +407,7 @@ def test_a_polynomial_that_does_not_fold_keeps_its_numpy_forms_with_one_info_lin
 
 def test_a_class_kernel_equals_the_generic_folded_kernel() -> None:
     """The monomial loop unrolled for a class (variables, columns) sums the same monomials as the generic one."""
-    from latticedft._kernel import folded_cells_kernel, folded_kernels
+    from latticedft._kernel_folded import folded_cells_kernel, folded_kernels
 
     rng = np.random.default_rng(3)
     nvar, cols, k, ncell = 3, 5, 4, 300

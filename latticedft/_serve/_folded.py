@@ -2,7 +2,7 @@
 coefficients evaluated and the residual scattered in one compiled pass per Newton iteration.
 
 The polynomial's numpy forms fold its coefficients onto the monomials of its scaled variables
-(``latticedft._models._polynumpy``). The kernels of ``latticedft._kernel.folded_kernels`` take those folded
+(``latticedft._models._polynumpy``). The kernels of ``latticedft._kernel_folded.folded_kernels`` take those folded
 coefficients as data, so one build serves every polynomial (any orders, stencil, dimension, components). Here
 they replace, inside slice-Newton (``._newton._newton_slice``: the same iterations, tests and linear solves),
 the gathering of the cells, the numpy evaluation of their gradients, the residual's scatter and the
@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._kernel import folded_cells_kernel, folded_kernels
+from .._kernel_folded import folded_cells_kernel, folded_kernels
 from .._models import PolynomialLagrangian
 from .._models._polynumpy import _numpy_forms
 from .._options import option

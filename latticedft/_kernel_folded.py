@@ -1,0 +1,244 @@
+"""Compiled kernels of a dense polynomial ``L_d`` folded into data (``latticedft._serve._folded``).
+
+One numba module serves every polynomial, whatever its orders, stencil, dimension and components: the
+coefficients, exponents and scalings are arrays it reads. ``folded_cells_kernel`` adds, per class of
+polynomial (variables and columns), the cell pass with its monomial loop unrolled. Modules are written into
+and loaded from the kernel cache of ``latticedft._kernel``, and a module that cannot be built leaves the
+polynomial on its numpy forms with one info line.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ._kernel import _VERSION, cached_module, write_module
+
+__all__ = ["folded_cells_kernel", "folded_kernels"]
+
+
+#: The folded polynomial's kernels (:func:`folded_kernels`): one module for every polynomial, whatever its
+#: orders, stencil, dimension and components, which it reads as data (the scaled variables ``z = x.flat @ w -
+#: shift``, the exponents of the monomials some derivative needs, the matrix from those monomials to the
+#: derivatives). Cells run along the innermost loops in chunks of ``_CHUNK``, as the numpy forms' cells-last
+#: evaluation, so that each product runs over a contiguous row that the compiler vectorises.
+_FOLDED_CELLS = """
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def folded_cells(lo, hi, site_of, upper, w, shift, expo, gc, out):
+    k = site_of.shape[0]
+    m = lo.shape[1]
+    nvar = w.shape[1]
+    ncell = site_of.shape[1]
+    nmono = gc.shape[0]
+    cols = gc.shape[1]
+    wmax = 2
+    for t in range(nmono):
+        for v in range(nvar):
+            wmax = max(wmax, expo[t, v] + 1)
+    ch = _CHUNK
+    x = np.empty((k * m, ch))
+    pw = np.empty((nvar, wmax, ch))
+    acc = np.empty((cols, ch))
+    p = np.empty(ch)
+    for start in range(0, ncell, ch):
+        n = min(ch, ncell - start)
+        for a in range(k):
+            src = hi if upper[a] else lo
+            for j in range(n):
+                s = site_of[a, start + j]
+                for c in range(m):
+                    x[a * m + c, j] = src[s, c]
+        for v in range(nvar):
+            for j in range(n):
+                p[j] = 0.0
+            for r in range(k * m):
+                wr = w[r, v]
+                if wr != 0.0:
+                    for j in range(n):
+                        p[j] += x[r, j] * wr
+            for j in range(n):
+                pw[v, 0, j] = 1.0
+                pw[v, 1, j] = p[j] - shift[v]
+            for e in range(2, wmax):
+                for j in range(n):
+                    pw[v, e, j] = pw[v, e - 1, j] * pw[v, 1, j]
+        for c in range(cols):
+            for j in range(n):
+                acc[c, j] = 0.0
+{monomials}
+        for j in range(n):
+            for c in range(cols):
+                out[start + j, c] = acc[c, j]
+
+
+"""
+
+_FOLDED = """
+import math
+
+import numba
+import numpy as np
+
+_CHUNK = 256
+
+
+{cells}
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def scatter(gprev, gcur, site_of, upper, rows, vol, el, r):
+    m = el.shape[1]
+    el[:] = 0.0
+    for a in range(site_of.shape[0]):
+        g = gprev if upper[a] else gcur
+        for n in range(site_of.shape[1]):
+            s = site_of[a, n]
+            for c in range(m):
+                el[s, c] += g[n, a * m + c]
+    for q in range(rows.shape[0]):
+        for c in range(m):
+            r[q * m + c] = vol * el[rows[q], c]
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def predict(prev, cur, nxt, older, rows):
+    top = 1e-300
+    for s in range(prev.shape[0]):
+        for c in range(prev.shape[1]):
+            top = max(top, abs(prev[s, c]), abs(cur[s, c]))
+    for q in range(rows.shape[0]):
+        y = rows[q]
+        for c in range(prev.shape[1]):
+            v = 2.0 * cur[y, c] - prev[y, c]
+            if older.shape[0]:
+                v = v + (cur[y, c] - 2.0 * prev[y, c] + older[y, c])
+            nxt[y, c] = v
+            top = max(top, abs(v))
+    return top
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def excess(values, site_of, upper, proj, lo, hi, span, out):
+    nf, k = proj.shape
+    m = values.shape[2]
+    for i in range(values.shape[0] - 1):
+        for q in range(nf * m):
+            out[i, q] = 0.0
+        for n in range(site_of.shape[1]):
+            for p in range(nf):
+                for c in range(m):
+                    f = 0.0
+                    for a in range(k):
+                        f += proj[p, a] * values[i + upper[a], site_of[a, n], c]
+                    q = p * m + c
+                    e = math.inf if f != f else max(max(lo[q] - f, f - hi[q]), 0.0) / span[q]
+                    out[i, q] = max(out[i, q], e)
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def update(nxt, rows, delta):
+    m = nxt.shape[1]
+    top = 0.0
+    for q in range(rows.shape[0]):
+        for c in range(m):
+            nxt[rows[q], c] += delta[q * m + c]
+            top = max(top, abs(nxt[rows[q], c]))
+    return top
+"""
+
+#: The generic monomial loop of ``folded_cells``: any number of variables and columns.
+_GENERIC_MONOMIALS = """
+        for t in range(nmono):
+            e0 = expo[t, 0]
+            for j in range(n):
+                p[j] = pw[0, e0, j]
+            for v in range(1, nvar):
+                e = expo[t, v]
+                if e:
+                    for j in range(n):
+                        p[j] *= pw[v, e, j]
+            for c in range(cols):
+                g = gc[t, c]
+                if g != 0.0:
+                    for j in range(n):
+                        acc[c, j] += g * p[j]
+"""
+
+_FOLDED = _FOLDED.replace("{cells}", _FOLDED_CELLS.replace("{monomials}", _GENERIC_MONOMIALS.strip("\n")))
+
+
+def folded_kernels() -> Any:
+    """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``scatter``, ``predict``,
+    ``update``, ``excess``), built on first use and cached as the others (one build per machine, for every
+    polynomial); ``None``, with one info line, where numba cannot build it."""
+    return _folded_module(_FOLDED, "folded polynomial")
+
+
+def folded_cells_kernel(nvar: int, cols: int) -> Callable[..., None] | None:
+    """``folded_cells`` with its monomial loop unrolled for ``nvar`` variables and ``cols`` columns (the class of
+    a polynomial: its orders, stencil, dimension and components; its coefficients stay data), four monomials
+    per pass over the cells; built once per class and cached; ``None`` where numba cannot build it."""
+    source = "\nimport numba\nimport numpy as np\n\n_CHUNK = 256\n\n" + _FOLDED_CELLS.replace(
+        "{monomials}", _unrolled_monomials(nvar, cols)
+    )
+    mod = _folded_module(source, f"folded polynomial ({nvar} variables, {cols} columns)", (nvar, cols))
+    return None if mod is None else mod.folded_cells
+
+
+def _unrolled_monomials(nvar: int, cols: int, unroll: int = 4) -> str:
+    """The monomial loop of ``folded_cells`` for ``nvar`` variables and ``cols`` columns: ``unroll`` monomials
+    per pass, each column's sum kept in one expression (fewer loads and stores per cell)."""
+
+    def take(u: int, at: str) -> list[str]:
+        e = ", ".join(f"e{u}_{v}" for v in range(nvar)) + ("," if nvar == 1 else "")
+        g = ", ".join(f"g{u}_{c}" for c in range(cols)) + ("," if cols == 1 else "")
+        exps = ", ".join(f"expo[{at}, {v}]" for v in range(nvar))
+        return [f"{e} = {exps}", f"{g} = " + ", ".join(f"gc[{at}, {c}]" for c in range(cols))]
+
+    def body(us: range) -> list[str]:
+        lines = ["for j in range(n):"]
+        lines += [f"    p{u} = " + " * ".join(f"pw[{v}, e{u}_{v}, j]" for v in range(nvar)) for u in us]
+        lines += [f"    acc[{c}, j] += " + " + ".join(f"g{u}_{c} * p{u}" for u in us) for c in range(cols)]
+        return lines
+
+    out = ["t = 0", f"while t + {unroll} <= nmono:"]
+    out += ["    " + x for u in range(unroll) for x in take(u, f"t + {u}")]
+    out += ["    " + x for x in body(range(unroll))] + [f"    t += {unroll}", "while t < nmono:"]
+    out += ["    " + x for x in take(0, "t")] + ["    " + x for x in body(range(1))] + ["    t += 1"]
+    return "\n".join("        " + x for x in out)
+
+
+def _folded_module(source: str, what: str, shape: tuple[int, int] = (1, 1)) -> Any:
+    """Build (once per machine) or load the folded kernel module of ``source``; ``None``, with one info line,
+    where numba cannot build it."""
+    key = hashlib.sha256(f"{_VERSION}|{source}".encode()).hexdigest()[:24]
+    return cached_module(
+        key,
+        lambda: _build_folded(key, source, shape),
+        what,
+        f"compiled {what} kernel",
+        f"compiled {what} kernel unavailable",
+        "serving uses its numpy forms",
+    )
+
+
+def _build_folded(key: str, source: str, shape: tuple[int, int]) -> tuple[Any, str]:
+    """Write (once) and load a folded kernel module, and run each of its kernels once on one cell (``shape``:
+    the variables and columns ``folded_cells`` is run with)."""
+    mod, how = write_module(key, source)
+    one, idx = np.zeros((1, 1)), np.zeros((1, 1), dtype=np.int64)
+    rows, up = np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)
+    nvar, cols = shape
+    expo = np.zeros((1, nvar), dtype=np.int64)
+    mod.folded_cells(
+        one, one, idx, up, np.zeros((1, nvar)), np.zeros(nvar), expo, np.zeros((1, cols)), np.empty((1, cols))
+    )
+    if not hasattr(mod, "scatter"):  # a class's own folded_cells alone
+        return mod, how
+    mod.scatter(one, one, idx, up, rows, 1.0, np.empty((1, 1)), np.empty(1))
+    mod.predict(one, one, one, one, rows)
+    mod.predict(one, one, one, np.zeros((0, 1)), rows)
+    mod.update(one, rows, np.zeros(1))
+    mod.excess(np.zeros((2, 1, 1)), idx, up, one, np.zeros(1), np.ones(1), np.ones(1), np.empty((1, 1)))
+    return mod, how
