@@ -153,3 +153,18 @@ def run_group(argv, n: int, env: dict[str, str], timeout: float = 600.0) -> list
     ranks = start_group(argv, n, env, timeout)
     assert [rc for rc, _, _ in ranks] == [0] * n, "\n".join(err[-3000:] for _, _, err in ranks)
     return [err for _, _, err in ranks]
+
+
+def alone_and_in_two(tmp_path, worker: str) -> tuple[dict, list[dict]]:
+    """The worker script ``worker`` (writing JSON to its first argument) run in one process, then as the two
+    ranks of a group: the one process's JSON and each rank's."""
+    import json
+
+    script = tmp_path / "worker.py"
+    script.write_text(worker)
+    env = group_env()
+    one = subprocess.run([sys.executable, str(script), str(tmp_path / "one.json")], env=env, timeout=600)
+    assert one.returncode == 0
+    run_group(lambda r: [sys.executable, str(script), str(tmp_path / f"two_{r}.json")], 2, env)
+    ranks = [json.loads((tmp_path / f"two_{r}.json").read_text()) for r in range(2)]
+    return json.loads((tmp_path / "one.json").read_text()), ranks

@@ -8,7 +8,6 @@ fields. Two processes on the loopback (torch.distributed, gloo) learn what one p
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -25,7 +24,7 @@ from latticedft._errors import InputError
 from latticedft._lattice import gather_cells, interior_slices
 from latticedft._learn._source import as_sources, is_lazy, pieces
 
-from helpers import GROUP_END, group_env, run_group
+from helpers import GROUP_END, alone_and_in_two, group_env
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -223,14 +222,7 @@ with open(sys.argv[1], "w") as f:
 
 @pytest.mark.slow
 def test_two_processes_on_the_loopback_learn_what_one_learns(tmp_path: Path) -> None:
-    script = tmp_path / "worker.py"
-    script.write_text(_WORKER)
-    env = group_env(REPO)
-    one = subprocess.run([sys.executable, str(script), str(tmp_path / "one.json")], env=env, timeout=600)
-    assert one.returncode == 0
-    run_group(lambda r: [sys.executable, str(script), str(tmp_path / f"two_{r}.json")], 2, env)
-    ref = json.loads((tmp_path / "one.json").read_text())
-    ranks = [json.loads((tmp_path / f"two_{r}.json").read_text()) for r in range(2)]
+    ref, ranks = alone_and_in_two(tmp_path, _WORKER)
     assert ranks[0] == ranks[1]  # every process ends with the same model, bit for bit
     for key in ("poly 0.0", "poly auto"):
         coef, rel_res, ridge = ranks[0][key]

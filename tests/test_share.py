@@ -8,17 +8,12 @@ it to round-off.
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from helpers import GROUP_END, group_env, run_group
-
-REPO = Path(__file__).resolve().parents[1]
+from helpers import GROUP_END, alone_and_in_two
 
 _WORKER = (
     """
@@ -62,14 +57,7 @@ def _rel(a: np.ndarray, b: np.ndarray) -> float:
 
 @pytest.mark.slow
 def test_each_process_reads_its_share_and_learns_what_one_learns(tmp_path: Path) -> None:
-    script = tmp_path / "worker.py"
-    script.write_text(_WORKER)
-    env = group_env(REPO)
-    one = subprocess.run([sys.executable, str(script), str(tmp_path / "one.json")], env=env, timeout=600)
-    assert one.returncode == 0
-    run_group(lambda r: [sys.executable, str(script), str(tmp_path / f"two_{r}.json")], 2, env)
-    ref = json.loads((tmp_path / "one.json").read_text())
-    ranks = [json.loads((tmp_path / f"two_{r}.json").read_text()) for r in range(2)]
+    ref, ranks = alone_and_in_two(tmp_path, _WORKER)
     for kind in ("poly", "mlp"):
         reads = [{tuple(p) for p in r[f"{kind}_read"]} for r in ranks]
         assert reads[0] and reads[1] and not reads[0] & reads[1]  # each its share, no piece read twice
