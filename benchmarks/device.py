@@ -11,7 +11,15 @@ Workloads (each timed on the CPU and on ``--device``, same data, same model, sam
 - MLP training: the same model form, 10 L-BFGS iterations on a 2+1D field of 256 x 256 x 8 sites (without
   CUDA: 32 x 32 x 8), all data in one chunk.
 
-The table gives seconds on each device, their ratio (CPU / device: above 1 the device is faster) and the
+- sine-Gordon, sites per second (``--sg``, the default with CUDA: 3+1D at 128^3 and 256^3, 2+1D at 1024^2;
+  ``--quick`` or without CUDA: 16^3): the analytic sine-Gordon ``L_d`` of ``benchmarks.serve_nd`` served by
+  slice-Newton on the device (``serve(device=...)``: every slice after the first solved there,
+  :mod:`latticedft._serve._ondevice`) against a leapfrog of the same equation in torch on the same device,
+  and on the CPU the compiled kernel (its closed form) against the in-place numpy leapfrog. The served rate
+  is per slice after the first (two runs of different lengths, their difference), so that the first Newton
+  slice (on the host) and the set-up are not in it.
+
+The first table gives seconds on each device, their ratio (CPU / device: above 1 the device is faster) and the
 largest difference between the two results (served field, or final training loss relative). Not in the
 default benchmark run (it needs a GPU); without CUDA it says so and measures the CPU alone at small sizes.
 ``uptime`` is printed before and after.
@@ -138,26 +146,16 @@ def _uptime() -> str:
         return "load average: " + ", ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.device", description=__doc__.split("\n\n")[0])
-    p.add_argument("--device", default="cuda", help="the device measured against the CPU (default cuda)")
-    p.add_argument("--quick", action="store_true", help="small sizes only (seconds)")
-    p.add_argument("--threads", type=int, default=1, help="torch threads of the CPU runs (default 1)")
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    from latticedft._device import DeviceWarning, resolve_device
+def _print(title: str, cols: list[str], rows: list[list[Any]]) -> None:
+    widths = [max(len(str(x)) for x in col) for col in zip(cols, *rows)]
+    print(f"\n== {title}")
+    for j, row in enumerate([cols, *rows]):
+        print("  ".join(str(c).ljust(w) if k == 0 else str(c).rjust(w) for k, (c, w) in enumerate(zip(row, widths))))
+        if j == 0:
+            print("  ".join("-" * w for w in widths))
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", DeviceWarning)
-        resolved = resolve_device(args.device)
-    for w in caught:
-        print(f"note: {w.message}")
-    gpu = resolved.type == "cuda"
-    if not gpu:
-        print("CUDA is unavailable here: the CPU is measured against itself, at small sizes; no GPU figures")
-    big = gpu and not args.quick
-    device = str(resolved)
-    print(f"cores: {os.cpu_count()}; torch threads: {args.threads}; before: {_uptime()}", flush=True)
+
+def _mlp_table(big: bool, device: str) -> None:
     rows = []
     for what, run in (
         (f"serve 2+1D {1024 if big else 64}^2 x 2 slices", lambda: serving(2, 1024 if big else 64, device)),
@@ -177,13 +175,147 @@ def main(argv: list[str] | None = None) -> int:
             ]
         )
         print(f"  done: {what}", flush=True)
-    cols = ["workload", "sites", "cpu s", "device s", "cpu / device", "max diff", "device"]
-    widths = [max(len(str(x)) for x in col) for col in zip(cols, *rows)]
-    print(f"\n== {TITLE}")
-    for j, row in enumerate([cols, *rows]):
-        print("  ".join(str(c).ljust(w) if k == 0 else str(c).rjust(w) for k, (c, w) in enumerate(zip(row, widths))))
-        if j == 0:
-            print("  ".join("-" * w for w in widths))
+    _print(TITLE, ["workload", "sites", "cpu s", "device s", "cpu / device", "max diff", "device"], rows)
+
+
+def torch_leapfrog(a: torch.Tensor, b: torch.Tensor, steps: int, dt: float, h: float) -> torch.Tensor:
+    """The leapfrog of ``psi_tt = Laplacian psi - sin psi``, periodic, in torch on the tensors' device: the last
+    slice. Two work arrays allocated once; the neighbours by ``torch.roll`` (the device's caching allocator
+    serves its temporaries)."""
+    a, b = a.clone(), b.clone()
+    lap, tmp = torch.empty_like(b), torch.empty_like(b)
+    c, dt2 = (dt / h) ** 2, dt**2
+    for _ in range(steps):
+        torch.mul(b, -2 * b.ndim, out=lap)
+        for k in range(b.ndim):
+            lap += torch.roll(b, 1, k)
+            lap += torch.roll(b, -1, k)
+        torch.mul(b, 2, out=tmp)
+        torch.sub(tmp, a, out=a)
+        lap *= c
+        a += lap
+        torch.sin(b, out=tmp)
+        tmp *= dt2
+        a -= tmp
+        a, b = b, a
+    return b
+
+
+def _sg_rates(ndim: int, n: int, where: str, slices: int, every: int = 1) -> dict[str, Any]:
+    """Sites per second of the leapfrog and of serving (per slice after the first Newton slice; every
+    ``every``-th slice kept) on ``where``, and the largest difference between the two last slices."""
+    import latticedft as ldft
+
+    from .serve_nd import _field, _initial, leapfrog, sine_gordon
+
+    u0, h, dt = _initial(ndim, n)
+    model = sine_gordon()
+    da = _field(np.stack([u0, u0]), h, dt)
+    sites = n**ndim
+    if where == "cpu":
+        t_lf, last = _timed(lambda: leapfrog(u0, u0, slices - 2, dt, h), where)
+        t_lf, last = _timed(lambda: leapfrog(u0, u0, slices - 2, dt, h), where)
+    else:
+        dev = torch.from_numpy(u0).to(where)
+        torch_leapfrog(dev, dev, 2, dt, h)  # warm-up
+        t_lf, out = _timed(lambda: torch_leapfrog(dev, dev, slices - 2, dt, h), where)
+        last = out.cpu().numpy()
+    small, _, _ = _initial(ndim, 8)
+    ldft.serve(model, _field(np.stack([small, small]), h, dt), slices=5, progress=False, device=where)  # warm-up
+    kw = {"progress": False, "device": where, "every": every}
+    short, res = _timed(lambda: ldft.serve(model, da, slices=4, **kw), where)
+    full, res = _timed(lambda: ldft.serve(model, da, slices=slices, **kw), where)
+    per_slice = (full - short) / (slices - 4)
+    return {
+        "leapfrog": sites * (slices - 2) / t_lf,
+        "served": sites / per_slice if per_slice > 0 else math.nan,
+        "first": short,
+        "diff": float(np.abs(res.field.values[-1] - last).max()),
+        "iterations": res.newton_iterations / (slices - 2),
+        "solver": res.slice_solver or res.solver,
+        "label": res.device,
+    }
+
+
+def _sg_table(big: bool, device: str) -> None:
+    """Sine-Gordon served on the device and on the CPU, sites per second against the leapfrogs."""
+    sizes = [(3, 128, 26), (3, 256, 10), (2, 1024, 26)] if big else [(3, 16, 10)]
+    rows = []
+    for ndim, n, slices in sizes:
+        for where, every in dict.fromkeys([(device, 1), (device, 8), ("cpu", 1)]):
+            if where == "cpu" and n**ndim > 2**21:
+                continue  # the host at 256^3 would take minutes: the device rows are the point
+            r = _sg_rates(ndim, n, where, slices, every)
+            rows.append(
+                [
+                    f"{ndim}+1D {n}^{ndim} x {slices}",
+                    r["label"].split(" (")[0],
+                    "all" if every == 1 else f"1 in {every}",
+                    r["solver"],
+                    f"{r['leapfrog']:.3g}",
+                    f"{r['served']:.3g}",
+                    f"{r['leapfrog'] / r['served']:.1f}",
+                    f"{r['iterations']:.2f}",
+                    f"{r['first']:.2f}",
+                    f"{r['diff']:.1e}",
+                ]
+            )
+            print(f"  done: sine-Gordon {ndim}+1D {n} on {where}, every {every}", flush=True)
+    cols = ["lattice", "device", "kept", "slice solver", "leapfrog sites/s", "served sites/s", "ratio", "its/slice"]
+    cols += ["first 2 slices s", "max diff"]
+    _print("sine-Gordon (analytic L_d): served by slice-Newton against a leapfrog on the same device", cols, rows)
+
+
+def _profile(n: int, device: str) -> None:
+    """The operations of serving 3+1D ``n^3`` sine-Gordon for 8 slices on ``device``, by device time (CPU
+    time on the CPU), as torch's profiler counts them."""
+    from torch.profiler import ProfilerActivity, profile
+
+    import latticedft as ldft
+
+    from .serve_nd import _field, _initial, sine_gordon
+
+    u0, h, dt = _initial(3, n)
+    da, model = _field(np.stack([u0, u0]), h, dt), sine_gordon()
+    ldft.serve(model, da, slices=4, progress=False, device=device)  # warm-up
+    gpu = device.startswith("cuda")
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if gpu else [])
+    with profile(activities=activities) as prof:
+        ldft.serve(model, da, slices=10, progress=False, device=device)
+        _sync(device)
+    key = "self_cuda_time_total" if gpu else "self_cpu_time_total"
+    print(prof.key_averages().table(sort_by=key, row_limit=25, max_name_column_width=48))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.device", description=__doc__.split("\n\n")[0])
+    p.add_argument("--device", default="cuda", help="the device measured against the CPU (default cuda)")
+    p.add_argument("--quick", action="store_true", help="small sizes only (seconds)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads of the CPU runs (default 1)")
+    p.add_argument("--only", choices=("mlp", "sg"), help="one table: the MLP workloads or sine-Gordon's sites/s")
+    p.add_argument("--profile", type=int, metavar="N", help="instead: torch's profile of serving 3+1D N^3 sine-Gordon")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    from latticedft._device import DeviceWarning, resolve_device
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DeviceWarning)
+        resolved = resolve_device(args.device)
+    for w in caught:
+        print(f"note: {w.message}")
+    gpu = resolved.type == "cuda"
+    if not gpu:
+        print("CUDA is unavailable here: the CPU is measured against itself, at small sizes; no GPU figures")
+    big = gpu and not args.quick
+    device = str(resolved)
+    print(f"cores: {os.cpu_count()}; torch threads: {args.threads}; before: {_uptime()}", flush=True)
+    if args.profile:
+        _profile(args.profile, device)
+        return 0
+    if args.only != "sg":
+        _mlp_table(big, device)
+    if args.only != "mlp":
+        _sg_table(big, device)
     print(f"after: {_uptime()}", flush=True)
     return 0
 

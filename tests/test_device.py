@@ -112,8 +112,12 @@ def test_serve_same_on_every_device_spelling():
             out = ldft.serve(model, field, affine=False, device=device)
         dw = [w for w in caught if issubclass(w.category, ldft.DeviceWarning)]
         assert len(dw) == (1 if device == "cuda" else 0)
-        np.testing.assert_array_equal(out.field.values, ref.field.values)
-        assert out.device == "cpu" and out.to_dict()["device"] == "cpu"
+        if device == "cpu" or NO_CUDA:  # the same arithmetic: the same field to the bit
+            np.testing.assert_array_equal(out.field.values, ref.field.values)
+            assert out.device == "cpu" and out.to_dict()["device"] == "cpu"
+        else:  # "auto" on a GPU: the slices solved there, by its arithmetic (round-off apart)
+            np.testing.assert_allclose(out.field.values, ref.field.values, rtol=0, atol=1e-12)
+            assert out.device.startswith("cuda")
 
 
 def test_serve_batch_1d_with_device():

@@ -329,11 +329,12 @@ class _Plan:
         for f, src in zip(fs, self.sources if len(self.sources) == len(fs) else [None] * len(fs)):
             try:
                 n_f = _slices(self.slices, f) if self.slices is not None or src is None else src.nt
+                options = self.options.replace(device=str(self.where))  # checked, its fallback said once
                 with on_device(model, self.where):
-                    if self.options.cadence.streams(self.on_slice):
-                        out.append(_serve_stream(model, f, n_f, self.options, self.on_slice, src))
+                    if options.cadence.streams(self.on_slice):
+                        out.append(_serve_stream(model, f, n_f, options, self.on_slice, src))
                     else:
-                        out.append(_serve_field(model, f, n_f, self.options))
+                        out.append(_serve_field(model, f, n_f, options))
             except ServeError as err:
                 if isinstance(err.result, ServeResult):
                     _served_attrs([err.result], model)

@@ -13,9 +13,11 @@ import torch
 
 from .._action import CellDerivatives
 from .._boundary import missing_edges
+from .._device import resolve_device
 from .._errors import InputError, ServeError
 from .._lattice import LatticeField, gather_cells
 from .._models import AbstractLagrangian
+from . import _ondevice
 from ._affine import _affine_prefix
 from ._edges import known_slices
 from ._folded import FoldedSlices, folded_slices
@@ -25,6 +27,7 @@ from ._options import ServeOptions
 from ._range import assess
 from ._result import ServeResult, _bar
 from ._slices import _site_label, _SliceSystem, is_singular
+from ._solvers import OFFDIAG_RTOL
 from ._sweep import _sweep_slice
 
 
@@ -82,14 +85,21 @@ def solve_and_tally(
     for the gradients (``g_prev``: the cells anchored at ``i - 1``; ``None`` has them evaluated afresh).
     """
     flat, unk = run.flat, run.unk
-    if run.mode == "newton":
-        _choose_fused(run, i, older)
-    fused = _fused_of(run) if run.mode == "newton" else None
-    done = None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, run.cache)
-    if done is not None:  # the compiled slice Newton: no per-cell gradients are carried to the next slice
+    onchip = on_device(run)
+    if onchip:
+        _choose_device(run, i, older)
+        device = _device_of(run)
+        at = getattr(run, "base", 0) + i  # the slice's index in the whole field
+        done = None if device is None else device.solve(flat, i, at, older, run.vol, rtol, max_newton, run.cache)
+    else:
+        if run.mode == "newton":
+            _choose_fused(run, i, older)
+        fused = _fused_of(run) if run.mode == "newton" else None
+        done = None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, run.cache)
+    if done is not None:  # the compiled or device slice Newton: no per-cell gradients are carried to the next slice
         _tallied(run, *done)
         return None
-    folded = _folded_of(run) if run.mode == "newton" else None
+    folded = _folded_of(run) if run.mode == "newton" and not onchip else None
     if folded is not None:
         folded.predict(flat, i, older)
     else:
@@ -163,6 +173,56 @@ def _choose_fused(run: Any, i: int, older: Any) -> None:
     cache["fused"] = fused
 
 
+def served_where(device: str | None) -> torch.device:
+    """The device of a field's slice solves: CUDA where ``device`` asks for it and it is here (the request was
+    checked, and a fallback said, when serving began), else the CPU."""
+    if device in (None, "cpu") or not torch.cuda.is_available():
+        return torch.device("cpu")
+    return resolve_device(device)
+
+
+def on_device(run: Any) -> bool:
+    """Whether ``run``'s Newton slices are solved on its device (:mod:`._ondevice`) once the site-wise solver
+    is chosen: on CUDA (or on the CPU where the tests ask), for Newton on a run not checkpointed."""
+    where: torch.device = run.where
+    wanted = where.type == "cuda" or _ondevice.ON_CPU
+    return wanted and run.mode == "newton" and not run.cache.get("keep_factored")
+
+
+def _choose_device(run: Any, i: int, older: Any) -> None:
+    """Before the first Newton slice of a run on a device: the site-wise solver chosen and the scales set from
+    the Hessian blocks at the predictor, as slice-Newton's first iteration would (``_choose_fused`` on the
+    CPU), so that the device serves the first slice too. A Jacobian that is not block diagonal (to
+    ``OFFDIAG_RTOL``) or is singular, another solver asked for, or scales already set are left to
+    slice-Newton (which may still choose the site-wise solver, the device then serving the later slices)."""
+    cache = run.cache
+    if "probed" in cache or "used" in cache or "dmax" in cache or cache.get("solver") not in ("auto", "sitewise"):
+        return
+    cache["probed"] = True
+    device = _ondevice.device_slices(run.model, run.sys, run.flat, run.where)
+    if device is None:
+        return
+    found = device.probe(run.flat, i, getattr(run, "base", 0) + i, older)
+    mscale = max(cache.get("mscale", 0.0), found["smax"])
+    if not found["off"] <= OFFDIAG_RTOL * found["smax"] or is_singular(found["smin"], mscale):
+        return
+    cache["dmax"], cache["mscale"] = found["dmax"], mscale
+    cache["used"] = ["sitewise"]
+    cache["on_device"] = device
+
+
+def _device_of(run: Any) -> _ondevice.DeviceSlices | None:
+    """The device slice Newton of ``run`` once slice-Newton has chosen the site-wise solver (and only that
+    one) for it; ``None`` before, or where the field is not scalar."""
+    cache = run.cache
+    if "on_device" not in cache:
+        if cache.get("used") != ["sitewise"] or "dmax" not in cache or "mscale" not in cache:
+            return None
+        cache["on_device"] = _ondevice.device_slices(run.model, run.sys, run.flat, run.where)
+    device: _ondevice.DeviceSlices | None = cache["on_device"]
+    return device
+
+
 def _folded_of(run: Any) -> FoldedSlices | None:
     """The folded polynomial kernels of ``run`` (:mod:`._folded`), or ``None`` where they do not serve it."""
     cache = run.cache
@@ -196,8 +256,10 @@ class _FieldRun:
         progress: bool | None,
         solver: str,
         boundary_value: Any = None,
+        where: torch.device | None = None,
     ):
         self.model, self.f, self.steps, self.mode = model, f, steps, mode
+        self.where = where or torch.device("cpu")  # where the slice solves run (:func:`on_device`)
         self.sys = _SliceSystem(model, f)
         self.psi = _initial_values(f, self.sys, steps, boundary_value)
         self.flat = self.psi.reshape(steps, self.sys.nsite, f.ncomp)  # (steps, site, m): a view of psi
@@ -295,7 +357,8 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options
     """Serve one n-D field: the affine recurrence first where allowed, then Newton (or the sweep) slice by slice;
     ``options.solver`` solves Newton's steps (``_solvers.SOLVERS``)."""
     mode, rtol, max_newton = options.mode, options.rtol, options.max_newton
-    run = _FieldRun(model, f, steps, mode, options.progress, options.solver, options.boundary_value)
+    where = served_where(options.device)
+    run = _FieldRun(model, f, steps, mode, options.progress, options.solver, options.boundary_value, where)
     if mode == "newton" and options.affine and steps > 2:
         run.serve_affine(rtol)
     g_prev: torch.Tensor | None = None  # the first Newton slice evaluates them (the compiled kernel needs none)
