@@ -237,9 +237,10 @@ def _sg_rates(ndim: int, n: int, where: str, slices: int, every: int = 1) -> dic
     }
 
 
-def _sg_table(big: bool, device: str) -> None:
+def _sg_table(big: bool, device: str, ndim_only: int | None = None) -> None:
     """Sine-Gordon served on the device and on the CPU, sites per second against the leapfrogs."""
     sizes = [(3, 128, 26), (3, 256, 10), (2, 1024, 26)] if big else [(3, 16, 10)]
+    sizes = [s for s in sizes if ndim_only in (None, s[0])]
     rows = []
     for ndim, n, slices in sizes:
         for where, every in dict.fromkeys([(device, 1), (device, 8), ("cpu", 1)]):
@@ -264,6 +265,39 @@ def _sg_table(big: bool, device: str) -> None:
     cols = ["lattice", "device", "kept", "slice solver", "leapfrog sites/s", "served sites/s", "ratio", "its/slice"]
     cols += ["first 2 slices s", "max diff"]
     _print("sine-Gordon (analytic L_d): served by slice-Newton against a leapfrog on the same device", cols, rows)
+
+
+def _terms(n: int, device: str) -> None:
+    """Seconds of one Newton iteration's derivatives of the device slice Newton (gradients, residual part,
+    Jacobian diagonal) on a 3+1D ``n^3`` sine-Gordon slice on ``device``: generated from the closed form
+    against autograd, best of 5, side by side, with the largest difference of the residual parts."""
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._ondevice import DeviceSlices
+    from latticedft._serve._slices import _SliceSystem
+
+    from .serve_nd import _field, _initial, sine_gordon
+
+    u0, h, dt = _initial(3, n)
+    model = sine_gordon()
+    f = as_lattice_field(_field(np.stack([u0, u0]), h, dt), source="init", min_slices=2)
+    model.bind(f.ndim, f.ncomp, f.spacing, f.components)
+    slices = DeviceSlices(model, _SliceSystem(model, f), torch.device(device))
+    lo = torch.from_numpy(u0.reshape(-1).copy()).to(device)
+    hi = lo + 0.01
+    rows, parts = [], []
+    for label in ("closed form", "autograd"):
+        if label == "autograd":
+            slices._closed[:] = [None]
+        slices._newton_terms(lo, hi)  # warm-up (the closed form generated)
+        best = min(_timed(lambda: slices._newton_terms(lo, hi), device)[0] for _ in range(5))
+        parts.append(slices._newton_terms(lo, hi)[1])
+        rows.append([label, f"{n}^3", f"{best * 1e3:.2f}"])
+    diff = float((parts[0] - parts[1]).abs().max())
+    _print(
+        f"one iteration's derivatives on {device} (residual parts differ by {diff:.1e})",
+        ["derivatives", "slice", "ms"],
+        rows,
+    )
 
 
 def _profile(n: int, device: str) -> None:
@@ -293,6 +327,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="small sizes only (seconds)")
     p.add_argument("--threads", type=int, default=1, help="torch threads of the CPU runs (default 1)")
     p.add_argument("--only", choices=("mlp", "sg"), help="one table: the MLP workloads or sine-Gordon's sites/s")
+    p.add_argument(
+        "--terms",
+        type=int,
+        metavar="N",
+        help="instead: one Newton iteration's derivatives at N^3, "
+        "generated from the closed form against autograd, on --device",
+    )
+    p.add_argument("--ndim", type=int, choices=(2, 3), help="sine-Gordon: this dimension's rows only")
     p.add_argument("--profile", type=int, metavar="N", help="instead: torch's profile of serving 3+1D N^3 sine-Gordon")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -312,10 +354,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.profile:
         _profile(args.profile, device)
         return 0
+    if args.terms:
+        _terms(args.terms, device)
+        return 0
     if args.only != "sg":
         _mlp_table(big, device)
     if args.only != "mlp":
-        _sg_table(big, device)
+        _sg_table(big, device, args.ndim)
     print(f"after: {_uptime()}", flush=True)
     return 0
 

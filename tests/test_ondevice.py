@@ -7,6 +7,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+import sympy
 import torch
 
 import latticedft as ldft
@@ -20,8 +21,9 @@ def on_cpu(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     yield
 
 
-def sine_gordon() -> ldft.AnalyticLagrangian:
-    """The sine-Gordon ``L_d`` on the first-order stencil (no closed form: autograd serves it everywhere)."""
+def sine_gordon(closed: bool = False) -> ldft.AnalyticLagrangian:
+    """The sine-Gordon ``L_d`` on the first-order stencil; with its ``closed`` form (sympy) or without (autograd
+    serves it everywhere)."""
 
     def fn(c: torch.Tensor, h: tuple[float, ...]) -> torch.Tensor:
         u = c[..., 0, 0]
@@ -30,7 +32,14 @@ def sine_gordon() -> ldft.AnalyticLagrangian:
             out = out - 0.5 * ((c[..., k + 1, 0] - u) / h[k]) ** 2
         return out
 
-    return ldft.AnalyticLagrangian(fn, name="sine-Gordon")
+    def closed_form(c: np.ndarray, h: tuple[float, ...]) -> object:
+        u = c[0, 0]
+        out = 0.5 * ((c[1, 0] - u) / h[0]) ** 2 - (1 - sympy.cos(u))
+        for k in range(1, len(h)):
+            out = out - 0.5 * ((c[k + 1, 0] - u) / h[k]) ** 2
+        return out
+
+    return ldft.AnalyticLagrangian(fn, name="sine-Gordon", closed_form=closed_form if closed else None)
 
 
 def start(ndim: int, n: int, periodic: bool = True) -> object:
@@ -71,6 +80,25 @@ def test_device_slices_serve_what_slice_newton_serves(ndim: int, n: int) -> None
     device = served(model, init, True, slices=12)
     assert device.slice_solver == plain.slice_solver == "sitewise"
     assert device.newton_iterations == plain.newton_iterations
+    np.testing.assert_allclose(device.field.values, plain.field.values, rtol=0, atol=1e-12)
+
+
+def test_a_closed_form_is_served_by_its_generated_derivatives(on_cpu: None) -> None:
+    """With its closed form, the device path evaluates sympy's derivatives of it (no autograd): the field is
+    the one slice-Newton serves by autograd, to round-off."""
+    built = []
+    closed_terms = _ondevice.closed_terms
+
+    def spied(*args: object) -> object:
+        built.append(closed_terms(*args))  # type: ignore[arg-type]
+        return built[-1]
+
+    init = start(2, 10)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(_ondevice, "closed_terms", spied)
+        device = ldft.serve(sine_gordon(closed=True), init, slices=10, progress=False)
+    plain = served(sine_gordon(), init, False, slices=10)
+    assert len(built) == 1 and built[0] is not None
     np.testing.assert_allclose(device.field.values, plain.field.values, rtol=0, atol=1e-12)
 
 
@@ -153,9 +181,11 @@ def test_not_taken_for_vector_fields_or_on_the_cpu() -> None:
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("ndim,n,periodic", [(2, 16, True), (3, 8, True), (2, 10, False)])
-def test_on_cuda_the_field_is_the_cpu_field(ndim: int, n: int, periodic: bool) -> None:
-    model, init = sine_gordon(), start(ndim, n, periodic)
+@pytest.mark.parametrize(
+    "ndim,n,periodic,closed", [(2, 16, True, False), (3, 8, True, False), (2, 10, False, False), (3, 8, True, True)]
+)
+def test_on_cuda_the_field_is_the_cpu_field(ndim: int, n: int, periodic: bool, closed: bool) -> None:
+    model, init = sine_gordon(closed), start(ndim, n, periodic)
     if not periodic:
         init = systems.make_field(np.repeat(init.values[:1], 8, axis=0), init.dims, spacing=(0.04, 0.1, 0.1))
         init.values[1] = start(ndim, n, periodic).values[1]

@@ -1,25 +1,27 @@
 """Slice-Newton on the model's device: every unknown site of a slice solved at once, on a GPU where the model
 runs on one (``serve(device="cuda")``).
 
-It serves a scalar ``L_d`` whose slice Jacobian is block diagonal (each unknown's equation involves that
-unknown alone), once the first Newton slice, solved as usual, has chosen the site-wise solver: the same
-models and slices as the compiled kernel of :mod:`._fused`, whatever the model (closed form or not), since
-its derivatives are taken by autograd on the device. The last slices stay on the device between slices (a
-window keyed by the slice's index in the whole field), so a slice costs one copy back to the host, of the
-slice solved, and none the other way on a periodic lattice.
+It serves a scalar ``L_d`` whose slice Jacobian is diagonal (each unknown's equation involves that unknown
+alone: the site-wise solver). Before the first Newton slice a probe at the predictor measures the
+Jacobian's off-diagonal blocks and the conditioning of its diagonal as slice-Newton's first iteration would
+(``_field._choose_device``); where slice-Newton solved the first slice instead, the device takes over once
+it has chosen the site-wise solver. The derivatives are sympy's of the model's closed form, generated once
+as one torch function of the cells' columns (:func:`closed_terms`), or autograd's where it has none. The
+last slices stay on the device between slices (a window keyed by the slice's index in the whole field), so
+a slice costs one copy back to the host, of the slice solved, and none the other way on a periodic lattice.
 
 Per slice: the predictor of slice-Newton; the gradients of the cells anchored on the slice before, once
 (those of the last evaluation of the previous slice where it was solved here); then Newton's iterations,
-each evaluating every cell anchored on the slice with its gradient and the Jacobian's diagonal (the
-derivative of the sum of the residuals by the unknowns: the diagonal, the Jacobian being diagonal). A site
-stops where its residual is below the slice's tolerance, or one evaluation after a step below ``rtol`` times
-the values, as in the compiled kernel; a slice with a site that cannot finish (a Jacobian below the singular
-scale, a residual that is not a number, no convergence) is handed back to slice-Newton, which reports it
-as usual.
+each evaluating every cell anchored on the slice with its gradient and, per site, the second derivatives of
+the pairs of points that sit on it (the Jacobian's diagonal). A site stops where its residual is below the
+slice's tolerance, or one evaluation after a step below ``rtol`` times the values, as in the compiled CPU
+kernel (:mod:`._fused`); a slice with a site that cannot finish (a Jacobian below the singular scale, a
+residual that is not a number, no convergence) is handed back to slice-Newton, which reports it as usual.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -28,6 +30,10 @@ import torch
 from ._slices import SINGULAR_RTOL, _SliceSystem
 
 __all__ = ["DeviceSlices", "device_slices", "ON_CPU"]
+
+#: The generated derivatives of the closed forms met in this process, by expression and pairs (sympy
+#: differentiates each once, not once per served field).
+_CLOSED: dict[tuple[str, tuple[tuple[int, int], ...]], _Closed] = {}
 
 #: Take this path on the CPU too (the tests compare it there with slice-Newton); serving uses it on CUDA only.
 ON_CPU = False
@@ -55,6 +61,7 @@ class DeviceSlices:
                 self.same_site.append((a, b, None))
             elif bool(same.any()):
                 self.same_site.append((a, b, same))
+        self._closed: list[_Closed | None] = []  # built on the first Newton iteration (not for a probe alone)
         self.every_site = int(self.rows.numel()) == sys.nsite  # no known site: the next slice is not copied over
         self.nsite = sys.nsite
         self.window: dict[int, torch.Tensor] = {}  # slice index in the whole field -> its values on the device
@@ -103,18 +110,29 @@ class DeviceSlices:
     def _newton_terms(self, lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(gradients, part of the residual per site, its derivative by the site's unknown)`` on the cells of
         ``lo`` and ``hi`` (the unknowns): the derivative sums, per site, the second derivatives of the pairs of
-        points that sit on it (the Jacobian being diagonal, nothing else moves the site's equation)."""
-        with torch.enable_grad():
-            cells = self._cells(lo, hi).requires_grad_(True)
-            (g,) = torch.autograd.grad(self.model(cells).sum(), cells, create_graph=True)
-            second = self._second(g, cells)
-        g = g.detach()
+        points that sit on it (the Jacobian being diagonal, nothing else moves the site's equation). From the
+        model's closed form where it has one (:func:`closed_terms`), else by autograd."""
+        if not self._closed:
+            self._closed.append(closed_terms(self.model, [(a, b) for a, b, _ in self.same_site]))
+        closed = self._closed[0]
+        if closed is not None:
+            columns = [(hi if up else lo)[s] for up, s in zip(self.upper, self.site_of)]
+            grads, seconds = closed(columns)
+            g = torch.stack(grads, dim=1)[..., None]
+        else:
+            with torch.enable_grad():
+                cells = self._cells(lo, hi).requires_grad_(True)
+                (g,) = torch.autograd.grad(self.model(cells).sum(), cells, create_graph=True)
+                second = self._second(g, cells)
+            g = g.detach()
+            seconds = [second[b][:, a] for a, b, _ in self.same_site]
         jac = torch.zeros_like(lo)
-        for a, b, same in self.same_site:
-            if same is None:
-                jac = jac.index_add(0, self.site_of[a], second[b][:, a])
-            else:
-                jac = jac.index_add(0, self.site_of[a][same], second[b][same, a])
+        for (a, _, same), h in zip(self.same_site, seconds):
+            jac = (
+                jac.index_add(0, self.site_of[a], h)
+                if same is None
+                else jac.index_add(0, self.site_of[a][same], h[same])
+            )
         return g, self._scatter(g, upper=False), jac
 
     def _predicted(
@@ -237,6 +255,49 @@ class DeviceSlices:
                 nxt[r] = nxt[r] + step
             small = active & (step.abs() <= step_tol)
         return None
+
+
+class _Closed:
+    """The gradients of ``L_d`` at every stencil point and the second derivatives of some pairs of points, as
+    one generated torch function of the cells' columns (sympy's derivatives of the closed form, common
+    subexpressions shared): elementwise passes only, no autograd graph."""
+
+    def __init__(self, fn: Callable[..., list[Any]], k: int):
+        self.fn, self.k = fn, k
+
+    def __call__(self, columns: Sequence[torch.Tensor]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        out = self.fn(*columns)
+        full = [v if isinstance(v, torch.Tensor) else torch.full_like(columns[0], float(v)) for v in out]
+        return full[: self.k], full[self.k :]
+
+
+def closed_terms(model: Any, pairs: list[tuple[int, int]]) -> _Closed | None:
+    """The generated gradients and second derivatives of ``pairs`` of ``model``'s closed form (scalar), or
+    ``None`` without one (autograd then serves)."""
+    try:
+        form = model.symbolic()
+    except Exception:  # noqa: BLE001 - a model whose trace fails has no closed form here
+        return None
+    if form is None or form.m != 1:
+        return None
+    key = (sympy_key(form.expr), tuple(pairs))
+    if key in _CLOSED:
+        return _CLOSED[key]
+    import sympy
+
+    symbols = form.flat_symbols()
+    grads = [sympy.diff(form.expr, x) for x in symbols]
+    seconds = [sympy.diff(grads[a], symbols[b]) for a, b in pairs]
+    fn = sympy.lambdify(symbols, grads + seconds, modules="torch", cse=True)
+    _CLOSED[key] = _Closed(fn, len(symbols))
+    return _CLOSED[key]
+
+
+def sympy_key(expr: Any) -> str:
+    """A key of a sympy expression that tells apart what prints alike (``srepr``)."""
+    import sympy
+
+    return str(sympy.srepr(expr))
 
 
 def device_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor, where: torch.device) -> DeviceSlices | None:
