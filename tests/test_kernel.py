@@ -388,6 +388,9 @@ def test_the_folded_kernels_are_off_by_default_and_for_other_models() -> None:
         assert folded_slices(sine_gordon().bind(2, 1, (0.04, 0.1)), sys_, flat) is None
         with ldft.set_options(compiled_kernels=False):
             assert folded_slices(model, sys_, flat) is None
+        with ldft.set_options(folded_max_powers=1):  # the same model, an option that no longer lets it fold
+            assert folded_slices(model, sys_, flat) is None
+        assert folded_slices(model, sys_, flat) is not None
 
 
 def test_a_polynomial_that_does_not_fold_keeps_its_numpy_forms_with_one_info_line(

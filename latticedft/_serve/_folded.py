@@ -55,14 +55,16 @@ _DATA: weakref.WeakKeyDictionary[Any, tuple[list[tuple[torch.Tensor, int]], tupl
 
 
 def _data_of(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[Any, Any]:
-    """``(_data(model, []), _data(model, pairs))``, built once per model state and pairs."""
+    """``(_data(model, []), _data(model, pairs))``, built once per model state, pairs and ``folded_max_powers``
+    (the option that decides whether the coefficients fold)."""
     state = [(t, t._version) for t in [*model.parameters(), *model.buffers()]]
+    key = (tuple(pairs), option("folded_max_powers"))
     known = _DATA.get(model)
-    same = known is not None and known[1] == tuple(pairs) and len(known[0]) == len(state)
+    same = known is not None and known[1] == key and len(known[0]) == len(state)
     if known is not None and same and all(a is b and u == v for (a, u), (b, v) in zip(known[0], state)):
         return known[2]
     built = (_data(model, []), _data(model, pairs))
-    _DATA[model] = (state, tuple(pairs), built)
+    _DATA[model] = (state, key, built)
     if built[0] is None or built[1] is None:  # once per model state
         log.info(
             "compiled polynomial kernels unavailable for %s (its coefficients do not fold onto few monomials): "
