@@ -173,6 +173,17 @@ def _choose_fused(run: Any, i: int, older: Any) -> None:
     cache["fused"] = fused
 
 
+def solver_name(mode: str, affine_slices: int, steps: int) -> str:
+    """The ``solver`` of a served field's result: ``"sweep"``, ``"newton"``, ``"affine"`` (every slice by the
+    affine recurrence) or ``"affine+newton"`` (the recurrence first, then Newton), from ``steps`` slices of
+    which ``affine_slices`` the recurrence served (after the two given ones)."""
+    if mode == "sweep":
+        return "sweep"
+    if not affine_slices:
+        return "newton"
+    return "affine" if affine_slices >= steps - 2 else "affine+newton"
+
+
 def served_where(device: str | None) -> torch.device:
     """The device of a field's slice solves: CUDA where ``device`` asks for it and it is here (the request was
     checked, and a fallback said, when serving began), else the CPU."""
@@ -292,11 +303,7 @@ class _FieldRun:
 
     def solver(self) -> str:
         """The ``solver`` name of the result."""
-        if self.mode == "sweep":
-            return "sweep"
-        if not self.affine_slices:
-            return "newton"
-        return "affine" if self.start >= self.steps - 1 else "affine+newton"
+        return solver_name(self.mode, self.affine_slices, self.steps)
 
     def solve_slice(self, i: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int) -> torch.Tensor | None:
         """Solve slice ``i``'s equations for slice ``i + 1``; returns the gradients of the cells anchored at ``i``."""

@@ -41,7 +41,7 @@ from .._options import option
 from ._affine import _AffineSlices, _slice_residuals, passing_prefix
 from ._checkpoint import keep_factored, restore_stream, stream_state
 from ._edges import known_slices
-from ._field import served_where, slice_error, solve_and_tally
+from ._field import served_where, slice_error, solve_and_tally, solver_name
 from ._options import Cadence, ServeOptions, kept_slices
 from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
 from ._result import ServeResult, _bar
@@ -262,11 +262,8 @@ class _Stream:
 
     # -- the result ------------------------------------------------------------------------------------------
     def solver(self) -> str:
-        if self.mode == "sweep":
-            return "sweep"
-        if not self.affine_slices:
-            return "newton"
-        return "affine" if self.affine_slices >= self.steps - 2 else "affine+newton"
+        """The ``solver`` name of the result."""
+        return solver_name(self.mode, self.affine_slices, self.steps)
 
     def result(self, nt: int, complete: bool, reason: str, rate: float, residual: float) -> ServeResult:
         """The result over the ``nt`` slices served: the kept ones (the last slice among them)."""
