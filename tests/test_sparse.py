@@ -325,7 +325,7 @@ def test_held_out_serving_stops_early_and_chooses_as_serving_whole(monkeypatch):
     # else within SERVE_SLACK of the best) and serves fewer slices
     from latticedft._learn import _sparse
 
-    data = [pendulum(2.0, n=40), pendulum(2.6, n=40)]
+    data = [pendulum(2.6, n=30)]
     served = []
 
     def counting(model, init, **kw):
@@ -341,7 +341,7 @@ def test_held_out_serving_stops_early_and_chooses_as_serving_whole(monkeypatch):
             advance = whole if bounded else (lambda self, model, bound: whole(self, model, math.inf))
             monkeypatch.setattr(_sparse._Serving, "advance", advance)
             served.clear()
-            model = ldft.SparseLagrangian("kinetic + poly:4 + trig:1", bags=0)
+            model = ldft.SparseLagrangian("kinetic + poly:2 + trig:1", bags=0)
             ldft.learn(model, data, progress=False)
             coefs.append(model.coef.clone())
             counts.append(sum(served))
