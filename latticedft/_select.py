@@ -113,8 +113,8 @@ def _label(change: Mapping[str, Any] | AbstractLagrangian) -> str:
 def sparse_candidates(n: int, m: int) -> list[dict[str, Any]]:
     """The sparse candidates ``"auto"`` tries first on a lattice of ``n`` axes and ``m`` components: the default
     library of :class:`latticedft.SparseLagrangian` at each threshold of :data:`SPARSE_THRESHOLDS`, then for a
-    scalar field the library with its lattice corrections, and its powers and its trig functions each alone
-    (``threshold = "auto"``).
+    scalar field the library with its lattice corrections, and its powers and its trig functions each alone, for a
+    vector field the library without the terms singular at ``q = 0`` (``threshold = "auto"``).
 
     >>> sparse_candidates(1, 1)[0]
     {'kind': 'sparse', 'library': 'kinetic + poly:4 + trig:1', 'threshold': 0.1}
@@ -128,6 +128,9 @@ def sparse_candidates(n: int, m: int) -> list[dict[str, Any]]:
         # together they fit the data with a few wrong terms that do not extrapolate (phi^4 about its vacuum)
         base = default_library(n, m).replace(" + poly:4 + trig:1", "")
         out += [{"kind": "sparse", "library": f"{base} + {f}", "threshold": "auto"} for f in ("poly:4", "trig:1")]
+    else:  # without the terms singular at q = 0, which refuse data through the origin (a charged particle)
+        regular = default_library(n, m).replace(" + norm:-1 + log", "")
+        out.append({"kind": "sparse", "library": regular, "threshold": "auto"})
     return out
 
 

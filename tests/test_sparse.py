@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -316,3 +318,44 @@ def test_threshold_auto_finds_the_true_terms_alone_on_clean_data(library, data, 
     report = ldft.learn(model, data(), progress=False)
     assert set(kept(model)) == true
     assert report.validation  # the served error of each support tried
+
+
+def test_held_out_serving_stops_early_and_chooses_as_serving_whole(monkeypatch):
+    # serving each support only as far as the rule needs keeps its choice (the sparsest within SERVE_FLOOR, or
+    # else within SERVE_SLACK of the best) and serves fewer slices
+    from latticedft._learn import _sparse
+
+    data = [pendulum(2.6, n=30)]
+    served = []
+
+    def counting(model, init, **kw):
+        served.append(init.sizes["t"] - 2)
+        return ldft.serve(model, init, **kw)
+
+    monkeypatch.setattr(_sparse, "serve", counting)
+    whole = _sparse._Serving.advance
+    for floor in (_sparse.SERVE_FLOOR, 0.0):  # 0: no support within the floor, the best decides
+        monkeypatch.setattr(_sparse, "SERVE_FLOOR", floor)
+        coefs, counts = [], []
+        for bounded in (True, False):
+            advance = whole if bounded else (lambda self, model, bound: whole(self, model, math.inf))
+            monkeypatch.setattr(_sparse._Serving, "advance", advance)
+            served.clear()
+            model = ldft.SparseLagrangian("kinetic + poly:2 + trig:1", bags=0)
+            ldft.learn(model, data, progress=False)
+            coefs.append(model.coef.clone())
+            counts.append(sum(served))
+        assert torch.equal(coefs[0], coefs[1])
+        assert counts[0] < counts[1]
+
+
+def test_held_out_serving_in_chunks_matches_serving_whole():
+    from latticedft._learn._heldout import held_out_score
+    from latticedft._learn._sparse import _Serving
+
+    model = ldft.SparseLagrangian("kinetic + trig:1", bags=0)
+    ldft.learn(model, [pendulum(2.0), pendulum(2.6)], progress=False)
+    tails = [pendulum(a).isel(t=slice(50, None)) for a in (2.0, 2.9)]
+    run = _Serving(model.coef.detach().numpy().copy(), tails, None)
+    assert run.advance(model, math.inf) == pytest.approx(held_out_score(model, tails, None), rel=1e-8)
+    assert run.finished

@@ -68,6 +68,8 @@ def test_auto_tries_the_sparse_libraries_first():
     cands = auto_candidates(ldft.PolynomialLagrangian((4, 8)), n=2, m=1)
     assert cands[: len(sparse_candidates(2, 1))] == sparse_candidates(2, 1)
     assert all(c["kind"] == "sparse" for c in sparse_candidates(1, 2))
+    # data through q = 0 (a charged particle) refuse |q|^-1 and log|q|: a library without them is tried too
+    assert sparse_candidates(1, 2)[-1]["library"] == "kinetic + poly:2 + cross"
     assert {c["threshold"] for c in ldft.SparseLagrangian().auto_candidates(1)} >= {0.1, 0.0}
 
 

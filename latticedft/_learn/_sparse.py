@@ -8,7 +8,9 @@ holds. ``threshold = "auto"`` fits every threshold, and every support on the pat
 (:func:`backward`), on the first part of each training field and serves each
 field's held-out tail from the tail's first two slices (as :func:`latticedft.select` scores); it keeps the
 sparsest support served within :data:`SERVE_FLOOR`, or else within :data:`SERVE_SLACK` of the best (the held-out
-residual of time blocks decides only where no fit serves). Bagged
+residual of time blocks decides only where no fit serves). Each support is served only as far as that rule needs
+(a few slices at a time, stopped once its error passes the bound it must meet), which keeps the choice and leaves
+most of the cost of the supports that fail. Bagged
 fits on blocks drawn with replacement give each term an inclusion probability.
 """
 
@@ -19,11 +21,13 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+import xarray as xr
 
 from .._errors import InputError, LatticeDFTError
-from .._lattice import LatticeField, interior_slices
+from .._lattice import BoundaryKinds, LatticeField, interior_slices
 from .._models import SparseLagrangian
 from .._models._sparse import THRESHOLDS
+from .._serve import serve
 from ._exact import _constrained_lstsq, _qr_r, gauge_matrix, residual_matrix
 from ._gauge import Gauge
 from ._heldout import HOLD_OUT, held_in, held_out_score
@@ -166,11 +170,14 @@ def _pick_served(
 ) -> tuple[str, dict[str, float]] | None:
     """The rule chosen by held-out serving (a threshold, or a size on the backward path: :func:`_supports`), and
     the served error of every support tried (None where no fit serves): each support, fitted on the first part of
-    every field (:func:`latticedft._learn._heldout.held_in`), the sparsest first, serves every field's held-out
-    tail from the tail's first two slices (:func:`latticedft._learn._heldout.held_out_score`). The first served
-    within :data:`SERVE_FLOOR` is taken; else the sparsest within :data:`SERVE_SLACK` of the best. ``rs``: the
+    every field (:func:`latticedft._learn._heldout.held_in`), serves every field's held-out tail from the tail's
+    first two slices (as :func:`latticedft._learn._heldout.held_out_score` scores). The sparsest served within
+    :data:`SERVE_FLOOR` is taken; else the sparsest within :data:`SERVE_SLACK` of the best. Serving stops early
+    (:class:`_Serving`): first each support, the sparsest first, is served only until its error passes
+    :data:`SERVE_FLOOR`; where none stays within it, the supports, the best held-out residual first, are served
+    on until the error passes :data:`SERVE_SLACK` times the best served so far (a support stopped there cannot be
+    chosen). A support stopped early is reported with its error where it stopped (a lower bound). ``rs``: the
     residual matrices of the unbatched fields (scaled by ``1 / sqrt(nsites)``), when at hand."""
-
     single = _unbatched(fields)
     whole = [f.to_dataarray() for f in single]
     boundary = dict(zip(single[0].dims[1:], single[0].boundary[1:])) or None
@@ -182,25 +189,101 @@ def _pick_served(
         rs = [residual_matrix(model, f) / math.sqrt(nsites) for f in single]
     heads = [_head(model, f, r, k) for f, r, k in zip(single, rs, keep)]
     tails = [w.isel({w.dims[0]: slice(min(k, w.sizes[w.dims[0]] - 3), None)}) for w, k in zip(whole, keep)]
-    fits = _supports(_stack(_blocks(heads, model.n_terms)), g, ridge)
-    scores: dict[str, float] = {}
+    fits = sorted(_supports(_stack(_blocks(heads, model.n_terms)), g, ridge), key=lambda f: np.count_nonzero(f[1]))
+    runs = {label: _Serving(theta, tails, boundary) for label, theta in fits}  # stable: thresholds first
     saved = model.coef.detach().clone()
-    for label, theta in sorted(fits, key=lambda f: np.count_nonzero(f[1])):  # stable: thresholds first
+    try:
+        chosen = _serve_supports(model, runs, [r[h.shape[0] :] for r, h in zip(rs, heads)])
+    finally:
         with torch.no_grad():
-            model.coef.copy_(torch.from_numpy(theta))
-        try:
-            scores[label] = held_out_score(model, tails, boundary)
-        except LatticeDFTError:
-            scores[label] = math.inf
-        if scores[label] <= SERVE_FLOOR:
-            break
-    with torch.no_grad():
-        model.coef.copy_(saved)
-    finite = [v for v in scores.values() if math.isfinite(v)]
-    if not finite:
+            model.coef.copy_(saved)
+    scores = {label: run.error for label, run in runs.items() if run.started}
+    return None if chosen is None else (chosen, scores)
+
+
+def _serve_supports(model: SparseLagrangian, runs: dict[str, _Serving], rest: list[np.ndarray]) -> str | None:
+    """The rule of :func:`_pick_served` on the supports ``runs`` (in order of sparsity), serving each no further
+    than the rule needs; ``rest``: the residual rows of the held-out tails (the order of the second pass)."""
+    for label, run in runs.items():
+        if run.advance(model, SERVE_FLOOR) <= SERVE_FLOOR and run.finished:
+            return label
+    order = sorted(runs, key=lambda k: sum(float(np.sum((r @ runs[k].theta) ** 2)) for r in rest))
+    best = math.inf
+    for label in order:
+        error = runs[label].advance(model, SERVE_SLACK * best)
+        if runs[label].finished and math.isfinite(error):
+            best = min(best, error)
+    if not math.isfinite(best):
         return None
-    ok = [k for k, v in scores.items() if v <= max(SERVE_FLOOR, SERVE_SLACK * min(finite))]
-    return ok[0], scores
+    return next(k for k, run in runs.items() if run.finished and run.error <= SERVE_SLACK * best)
+
+
+#: Held-out serving advances this many slices at first, then twice as many each time (:class:`_Serving`).
+FIRST_CHUNK = 4
+
+
+class _Serving:
+    """One support's held-out serving of every tail, advanced a few slices at a time from the last two slices
+    served, so that it stops as soon as its error passes a bound (Newton's method restarted on each chunk, so
+    the slices agree with serving a tail in one call to within Newton's tolerance). ``error``: the largest
+    relative error so far (:func:`latticedft._learn._heldout.held_out_score`'s measure; ``inf`` once serving
+    stops)."""
+
+    def __init__(self, theta: np.ndarray, tails: list[xr.DataArray], boundary: BoundaryKinds | None):
+        self.theta, self.tails, self.boundary = theta, tails, boundary
+        self.error = 0.0
+        self.started = False
+        self._field = 0
+        self._served: np.ndarray | None = None
+        self._chunk = FIRST_CHUNK
+
+    @property
+    def finished(self) -> bool:
+        """Every tail served, or serving stopped."""
+        return self._field >= len(self.tails) or not math.isfinite(self.error)
+
+    def advance(self, model: SparseLagrangian, bound: float) -> float:
+        """Serve on until the error passes ``bound`` or every tail is served; the error so far."""
+        if self.finished or self.error > bound:
+            return self.error
+        self.started = True
+        with torch.no_grad():
+            model.coef.copy_(torch.from_numpy(self.theta))
+        noise = (model.report_.noise if model.report_ is not None else None) or {}
+        if noise.get("method", "none") != "none":  # a denoised start: the tails served whole
+            try:
+                self.error = held_out_score(model, self.tails, self.boundary)
+            except LatticeDFTError:
+                self.error = math.inf
+            self._field = len(self.tails)
+            return self.error
+        while not self.finished and self.error <= bound:
+            self._chunk_on(model)
+        return self.error
+
+    def _chunk_on(self, model: SparseLagrangian) -> None:
+        """Serve the next chunk of the current tail."""
+        tail = self.tails[self._field]
+        ref = np.asarray(tail.values)
+        served = ref[:2] if self._served is None else self._served
+        i0, nt = served.shape[0] - 2, ref.shape[0]
+        window = tail.isel({tail.dims[0]: slice(i0, min(nt, i0 + 2 + self._chunk))})
+        start = ref[i0 : i0 + window.sizes[tail.dims[0]]].copy()
+        start[:2] = served[-2:]
+        try:
+            out = serve(model, window.copy(data=start), boundary=self.boundary, progress=False)
+        except LatticeDFTError:
+            self.error = math.inf
+            return
+        new = np.asarray(out.field.values)[2:]
+        scale = max(float(np.max(np.abs(ref))), np.finfo(float).tiny)
+        if new.size:
+            err = float(np.max(np.abs(new - ref[i0 + 2 : i0 + 2 + new.shape[0]]))) / scale
+            self.error = max(self.error, err if math.isfinite(err) else math.inf)
+        self._served = np.concatenate([served, new])
+        self._chunk *= 2
+        if self._served.shape[0] >= nt or new.shape[0] < window.sizes[tail.dims[0]] - 2:
+            self._field, self._served, self._chunk = self._field + 1, None, FIRST_CHUNK
 
 
 def _fit(t: np.ndarray, g: _Gauge, ridge: float, active: np.ndarray) -> np.ndarray:
