@@ -52,7 +52,7 @@ _LOADED: dict[str, Any] = {}
 _FAILED: set[str] = set()
 
 #: Bumped whenever the generated code changes, so that stale cached kernels are not reused.
-_VERSION = 12
+_VERSION = 13
 
 
 def cache_dir() -> Path:
@@ -103,9 +103,10 @@ class CompiledForms:
         """Whether the kernels hold ``trajectory`` (a scalar 0+1D ``L_d`` on the two-point stencil)."""
         return bool(self.module.HAS_TRAJECTORY)
 
-    def slice_newton(self, sites: int) -> Callable[..., None]:
-        """The slice Newton kernel for ``sites`` unknown sites (parallel or serial as the gradient's)."""
-        return _kernel(self.module, "slice_newton", sites, suffix="")
+    def slice_step(self, sites: int) -> Callable[..., tuple[int, int, float]]:
+        """The kernel that solves a slice of ``sites`` unknown sites (predictor, scale, slice Newton, tally;
+        parallel or serial as the gradient's)."""
+        return _kernel(self.module, "slice_step", sites, suffix="")
 
 
 #: Cells per thread below which the serial kernel runs (starting threads costs more than it saves).
@@ -267,7 +268,28 @@ def _slice_newton_source(
             "",
             "",
         ]
-    return text + _predictor_source()
+    return text + _diagonal_source(form, list(hessians)) + _slice_step_source()
+
+
+def _diagonal_source(form: SymbolicLd, diag: list[tuple[int, int]]) -> list[str]:
+    """``site_diagonal(lo, hi, site_of, diag)``: the diagonal of a slice's Jacobian at the values of its two
+    slices (``lo``, ``hi``), added into ``diag`` per site pair after pair, cell after cell (the order of
+    ``_fused.FusedSlices.scales``); returns the largest block in size, ``-1.0`` at a block that is not finite.
+    The pairs of ``diag`` are those whose block the unknown can move; the others' blocks vanish."""
+    k = len(form.offsets)
+    text = ["@numba.njit(cache=True, error_model='numpy', nogil=True)", "def site_diagonal(lo, hi, site_of, diag):"]
+    text += ["    dmax = 0.0"]
+    for a, b in diag:
+        args = ", ".join(f"{'hi' if form.offsets[p][0] else 'lo'}[_u(site_of[{p}, n])]" for p in range(k))
+        text += [
+            "    for n in range(site_of.shape[1]):",
+            f"        v = h{a}_{b}({args})",
+            "        if not math.isfinite(v):",
+            "            return -1.0",
+            "        dmax = abs(v) if abs(v) > dmax else dmax",
+            f"        diag[_u(site_of[{a}, n])] += v",
+        ]
+    return text + ["    return dmax", "", ""]
 
 
 def _split(expr: Any, unknowns: set[Any]) -> tuple[Any, Any]:
@@ -303,10 +325,10 @@ def _newton_body(
 
     def term(a: int, fn: str, anchored_before: bool) -> list[str]:
         low, high = ("prev", "cur") if anchored_before else ("cur", "nxt")
-        if plain:
-            args = ", ".join(f"{high if form.offsets[p][0] else low}[y + d{a}_{p}, 0]" for p in range(k))
+        if plain:  # unsigned indices: no test for a negative index per load
+            args = ", ".join(f"{high if form.offsets[p][0] else low}[_u(y + d{a}_{p})]" for p in range(k))
             return [f"{fn}({args})"]
-        args = ", ".join(f"{high if form.offsets[p][0] else low}[site_of[{p}, c], 0]" for p in range(k))
+        args = ", ".join(f"{high if form.offsets[p][0] else low}[_u(site_of[{p}, c])]" for p in range(k))
         return [f"c = cell_at[{a}, y]", "if c >= 0:", f"    {fn}({args})"]
 
     body = ["fixed = 0.0", "jac0 = 0.0"]
@@ -333,7 +355,7 @@ def _newton_body(
         "        it = -1",
         "        break",
         "    step = -r / jac",
-        "    nxt[y, 0] += step",
+        "    nxt[_u(y)] += step",
         "    small = abs(step) <= step_tol",
     ]
     if affine:
@@ -342,31 +364,111 @@ def _newton_body(
     return ["        " + line for line in body]
 
 
-def _predictor_source() -> list[str]:
+#: Around ``slice_newton``: its predictor and scale, and the tally of its sites, so that one call solves a
+#: slice (``slice_step``). The slices are 1D arrays over the sites (a scalar field).
+_SLICE_STEP = """
+@numba.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _u(i):
+    return numba.uint64(i)
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def predict_exact(prev, cur, nxt, older, rows):
+    top = 1e-300
+    for s in range(prev.shape[0]):
+        top = max(top, abs(prev[s]), abs(cur[s]))
+    if older.shape[0]:
+        for q in range(rows.shape[0]):
+            y = rows[q]
+            v = (2.0 * cur[y] - prev[y]) + (cur[y] - 2.0 * prev[y] + older[y])
+            nxt[y] = v
+            top = max(top, abs(v))
+        return top
+    for q in range(rows.shape[0]):
+        y = rows[q]
+        v = 2.0 * cur[y] - prev[y]
+        nxt[y] = v
+        top = max(top, abs(v))
+    return top
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def predict(prev, cur, nxt, older, rows):
+    n = prev.shape[0]
+    t0, t1, t2, t3 = 1e-300, 1e-300, 1e-300, 1e-300
+    nan = False
+    s = 0
+    while s + 2 <= n:
+        x0, x1, x2, x3 = abs(prev[s]), abs(cur[s]), abs(prev[s + 1]), abs(cur[s + 1])
+        t0 = x0 if x0 > t0 else t0
+        t1 = x1 if x1 > t1 else t1
+        t2 = x2 if x2 > t2 else t2
+        t3 = x3 if x3 > t3 else t3
+        nan = nan or x0 != x0 or x1 != x1 or x2 != x2 or x3 != x3
+        s += 2
+    if s < n:
+        x0, x1 = abs(prev[s]), abs(cur[s])
+        t0 = x0 if x0 > t0 else t0
+        t1 = x1 if x1 > t1 else t1
+        nan = nan or x0 != x0 or x1 != x1
+    if older.shape[0]:
+        for q in range(rows.shape[0]):
+            y = _u(rows[q])
+            v = (2.0 * cur[y] - prev[y]) + (cur[y] - 2.0 * prev[y] + older[y])
+            nxt[y] = v
+            x0 = abs(v)
+            t2 = x0 if x0 > t2 else t2
+            nan = nan or x0 != x0
+    else:
+        for q in range(rows.shape[0]):
+            y = _u(rows[q])
+            v = 2.0 * cur[y] - prev[y]
+            nxt[y] = v
+            x0 = abs(v)
+            t2 = x0 if x0 > t2 else t2
+            nan = nan or x0 != x0
+    if nan:  # the order of the first loop's maxima matters only where a value is not a number
+        return predict_exact(prev, cur, nxt, older, rows)
+    t0 = t1 if t1 > t0 else t0
+    t2 = t3 if t3 > t2 else t2
+    return t2 if t2 > t0 else t0
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def tally(res, its):
+    lo, hi, worst = 0, 0, 0.0
+    if res.shape[0]:
+        lo, hi, worst = its[0], its[0], res[0]
+    for q in range(1, res.shape[0]):
+        lo = min(lo, its[q])
+        hi = max(hi, its[q])
+        worst = res[q] if res[q] > worst else worst
+    return lo, hi, worst
+"""
+
+
+def _slice_step_source() -> list[str]:
     """``predict``: slice-Newton's predictor on the unknown sites (``2 psi_i - psi_{i-1}``, plus
     ``psi_i - 2 psi_{i-1} + psi_{i-2}`` where ``older``, slice ``i - 2``, is given), in the order of
-    ``_field.solve_and_tally``; returns the scale of a Newton step (``_slices._scale``)."""
-    return [
-        "@numba.njit(cache=True, error_model='numpy', nogil=True)",
-        "def predict(prev, cur, nxt, older, rows):",
-        "    top = 1e-300",
-        "    for s in range(prev.shape[0]):",
-        "        top = max(top, abs(prev[s, 0]), abs(cur[s, 0]))",
-        "    if older.shape[0]:",
-        "        for q in range(rows.shape[0]):",
-        "            y = rows[q]",
-        "            v = (2.0 * cur[y, 0] - prev[y, 0]) + (cur[y, 0] - 2.0 * prev[y, 0] + older[y, 0])",
-        "            nxt[y, 0] = v",
-        "            top = max(top, abs(v))",
-        "        return top",
-        "    for q in range(rows.shape[0]):",
-        "        y = rows[q]",
-        "        v = 2.0 * cur[y, 0] - prev[y, 0]",
-        "        nxt[y, 0] = v",
-        "        top = max(top, abs(v))",
-        "    return top",
-        "",
-    ]
+    ``_field.solve_and_tally``, returning the scale of a Newton step (``_slices._scale``: the largest value
+    in size of the two slices and the predictor, maxima taken in independent lanes); ``tally``: the least
+    and most evaluations of the sites and their largest residual; ``slice_step`` (and ``slice_step_serial``):
+    the three around ``slice_newton``, the tolerances formed from the scale as ``_fused`` did in Python."""
+    text = _SLICE_STEP.splitlines()
+    for suffix in ("", "_serial"):
+        text += [
+            "",
+            "@numba.njit(cache=True, error_model='numpy', nogil=True)",
+            f"def slice_step{suffix}(prev, cur, nxt, older, site_of, cell_at, plain, delta, rows, vol, rtol, dmax,"
+            " smin, maxit, res, its):",
+            "    scale = predict(prev, cur, nxt, older, rows)",
+            "    tol = rtol * vol * dmax * scale",
+            f"    slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, plain, delta, rows, vol, tol, rtol * scale,"
+            " smin, maxit, res, its)",
+            "    return tally(res, its)",
+            "",
+        ]
+    return text
 
 
 #: The 0+1D trajectory loop: ``_fast1d.FastBatch.step_one`` slice after slice, the same IEEE operations in
@@ -559,28 +661,11 @@ def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tupl
     mod.grad_kernel_serial(cell, np.empty_like(cell))  # the parallel kernels compile on first use
     mod.both_kernel_serial(cell, np.empty_like(cell), np.empty((len(pairs), 1, m, m)))
     if mod.BLOCK_DIAGONAL:
-        one, none = np.zeros((1, 1)), np.zeros(0, dtype=np.int64)
+        one, none = np.zeros(1), np.zeros(0, dtype=np.int64)
         idx = np.zeros((k, 1), dtype=np.int64)
-        flags = np.zeros(1, dtype=np.bool_)
-        mod.slice_newton_serial(
-            one,
-            one,
-            one,
-            idx,
-            idx,
-            flags,
-            np.zeros((k, k), dtype=np.int64),
-            none,
-            1.0,
-            1.0,
-            1.0,
-            1.0,
-            1,
-            np.zeros(0),
-            none.copy(),
-        )
-        mod.predict(one, one, one, one, none)
-        mod.predict(one, one, one, np.zeros((0, 1)), none)
+        args = (idx, idx, np.zeros(1, dtype=np.bool_), np.zeros((k, k), dtype=np.int64), none, 1.0, 1.0, 1.0, 1.0, 1)
+        mod.slice_step_serial(one, one, one, one, *args, np.zeros(0), none.copy())  # the parallel one: on first use
+        mod.site_diagonal(one, one, idx, np.zeros(1))
     if mod.HAS_TRAJECTORY:
         mod.trajectory(
             np.zeros(3), 1, 1, 1.0, 1.0, 1, -1.0, 1e-10, np.zeros(3), np.zeros(2, dtype=np.int64), np.zeros(6)
