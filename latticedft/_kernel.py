@@ -113,7 +113,7 @@ class CompiledForms:
 PARALLEL_MIN_CELLS = 65536
 
 
-def _kernel(module: Any, name: str, cells: int, suffix: str = "_kernel") -> Callable[..., None]:
+def _kernel(module: Any, name: str, cells: int, suffix: str = "_kernel") -> Callable[..., Any]:
     """The parallel kernel ``name`` with as many threads as torch has (which :func:`latticedft.limit_threads`
     bounds with the BLAS pools), or the serial one for one thread or few cells."""
     import numba
