@@ -52,7 +52,7 @@ _LOADED: dict[str, Any] = {}
 _FAILED: set[str] = set()
 
 #: Bumped whenever the generated code changes, so that stale cached kernels are not reused.
-_VERSION = 13
+_VERSION = 14
 
 
 def cache_dir() -> Path:
@@ -168,7 +168,7 @@ def _source(form: SymbolicLd, pairs: Sequence[tuple[int, int]]) -> str:
     grads = [sympy.diff(form.expr, sym[p][c]) for p in range(k) for c in range(m)]
     second = [sympy.diff(grads[a * m + i], sym[b][j]) for a, b in pairs for i in range(m) for j in range(m)]
     loads = [f"        {sym[p][c]} = cells[n, {p}, {c}]" for p in range(k) for c in range(m)]
-    text = ["import math", "import numba", ""]
+    text = ["import math", "import numba", "import numpy as np", ""]
     for name, exprs, extra in (("grad", grads, ""), ("both", grads + second, ", blocks")):
         lines, values = _printed(exprs)
         body = loads + [f"        {line}" for line in lines]
@@ -258,17 +258,35 @@ def _slice_newton_source(
     hoisted = [f"    d{a}_{p} = delta[{a}, {p}]" for a in range(k) for p in range(k)]
     text += [f"AFFINE = {affine}", ""]
     for suffix, parallel, loop in (("", "True", "numba.prange"), ("_serial", "False", "range")):
+        serial = suffix == "_serial"  # the serial loop tallies its sites as it goes (no pass over res, its)
         text += [
             f"@numba.njit(parallel={parallel}, cache=True, error_model='numpy', nogil=True)",
             f"def slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, plain, delta, rows, vol, tol, step_tol,"
             " smin, maxit, res, its):",
             *hoisted,
+            *(["    lo, hi, worst = 1 << 62, -(1 << 62), 0.0"] if serial else []),
             f"    for q in {loop}(rows.shape[0]):",
-            *body,
+            *(_tallying(body) if serial else body),
+            *(["    return lo, hi, worst"] if serial else []),
             "",
             "",
         ]
     return text + _diagonal_source(form, list(hessians)) + _slice_step_source()
+
+
+def _tallying(body: list[str]) -> list[str]:
+    """``body`` with each site's residual and evaluations taken into ``worst``, ``lo`` and ``hi`` (as
+    ``tally`` takes them from ``res`` and ``its``) instead of stored."""
+    out = []
+    for line in body:
+        pad = line[: len(line) - len(line.lstrip())]
+        if line.strip() == "res[q] = abs(r) if r == r else math.inf":
+            out += [pad + "rq = abs(r) if r == r else math.inf", pad + "worst = rq if rq > worst else worst"]
+        elif line.strip() == "its[q] = it":
+            out += [pad + "lo = it if it < lo else lo", pad + "hi = it if it > hi else hi"]
+        else:
+            out.append(line)
+    return out
 
 
 def _diagonal_source(form: SymbolicLd, diag: list[tuple[int, int]]) -> list[str]:
@@ -393,45 +411,58 @@ def predict_exact(prev, cur, nxt, older, rows):
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
-def predict(prev, cur, nxt, older, rows):
-    n = prev.shape[0]
-    t0, t1, t2, t3 = 1e-300, 1e-300, 1e-300, 1e-300
-    nan = False
-    s = 0
-    while s + 2 <= n:
-        x0, x1, x2, x3 = abs(prev[s]), abs(cur[s]), abs(prev[s + 1]), abs(cur[s + 1])
+def predict(prev, cur, nxt, older, rows, interior):
+    t0, t1, t2 = 1e-300, 1e-300, 1e-300
+    bad = False
+    before = older.shape[0] > 0
+    for s in range(prev.shape[0]):
+        p = prev[s]
+        c = cur[s]
+        x0 = abs(p)
+        x1 = abs(c)
         t0 = x0 if x0 > t0 else t0
         t1 = x1 if x1 > t1 else t1
-        t2 = x2 if x2 > t2 else t2
-        t3 = x3 if x3 > t3 else t3
-        nan = nan or x0 != x0 or x1 != x1 or x2 != x2 or x3 != x3
-        s += 2
-    if s < n:
-        x0, x1 = abs(prev[s]), abs(cur[s])
-        t0 = x0 if x0 > t0 else t0
-        t1 = x1 if x1 > t1 else t1
-        nan = nan or x0 != x0 or x1 != x1
-    if older.shape[0]:
-        for q in range(rows.shape[0]):
-            y = _u(rows[q])
-            v = (2.0 * cur[y] - prev[y]) + (cur[y] - 2.0 * prev[y] + older[y])
-            nxt[y] = v
-            x0 = abs(v)
-            t2 = x0 if x0 > t2 else t2
-            nan = nan or x0 != x0
-    else:
-        for q in range(rows.shape[0]):
-            y = _u(rows[q])
-            v = 2.0 * cur[y] - prev[y]
-            nxt[y] = v
-            x0 = abs(v)
-            t2 = x0 if x0 > t2 else t2
-            nan = nan or x0 != x0
-    if nan:  # the order of the first loop's maxima matters only where a value is not a number
+        bad = bad | (x0 != x0) | (x1 != x1)
+        if interior[s]:
+            if before:
+                v = (2.0 * c - p) + (c - 2.0 * p + older[s])
+            else:
+                v = 2.0 * c - p
+            nxt[s] = v
+            x2 = abs(v)
+            t2 = x2 if x2 > t2 else t2
+            bad = bad | (x2 != x2)
+    if bad:  # the order of the maxima matters only where a value is not a number
         return predict_exact(prev, cur, nxt, older, rows)
     t0 = t1 if t1 > t0 else t0
-    t2 = t3 if t3 > t2 else t2
     return t2 if t2 > t0 else t0
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def cell_maps(site_of, cell_at):
+    for a in range(site_of.shape[0]):
+        for c in range(site_of.shape[1]):
+            y = site_of[a, c]
+            if cell_at[a, y] >= 0:
+                return False
+            cell_at[a, y] = c
+    return True
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def plain_sites(site_of, cell_at, delta, plain):
+    unwrapped = np.ones(site_of.shape[1], dtype=np.bool_)
+    for c in range(site_of.shape[1]):
+        for p in range(1, site_of.shape[0]):
+            if site_of[p, c] - site_of[0, c] != delta[0, p]:
+                unwrapped[c] = False
+    for y in range(cell_at.shape[1]):
+        ok = True
+        for a in range(cell_at.shape[0]):
+            c = cell_at[a, y]
+            if c < 0 or not unwrapped[c]:
+                ok = False
+        plain[y] = ok
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
@@ -451,21 +482,25 @@ def _slice_step_source() -> list[str]:
     """``predict``: slice-Newton's predictor on the unknown sites (``2 psi_i - psi_{i-1}``, plus
     ``psi_i - 2 psi_{i-1} + psi_{i-2}`` where ``older``, slice ``i - 2``, is given), in the order of
     ``_field.solve_and_tally``, returning the scale of a Newton step (``_slices._scale``: the largest value
-    in size of the two slices and the predictor, maxima taken in independent lanes); ``tally``: the least
-    and most evaluations of the sites and their largest residual; ``slice_step`` (and ``slice_step_serial``):
-    the three around ``slice_newton``, the tolerances formed from the scale as ``_fused`` did in Python."""
+    in size of the two slices and the predictor), in one pass over the sites (``interior``: those with an
+    equation), the maxima of each in its own chain; ``tally``: the least and most evaluations of the sites
+    and their largest residual; ``slice_step`` (and ``slice_step_serial``): the three around
+    ``slice_newton`` (whose serial loop tallies as it goes), the tolerances formed from the scale as
+    ``_fused`` did in Python.
+    Beside them, the per-lattice maps of ``_fused``: ``cell_maps`` (``cell_at`` from ``site_of``; ``False``
+    where two cells have a point on one site) and ``plain_sites`` (the sites read at fixed offsets)."""
     text = _SLICE_STEP.splitlines()
     for suffix in ("", "_serial"):
         text += [
             "",
             "@numba.njit(cache=True, error_model='numpy', nogil=True)",
-            f"def slice_step{suffix}(prev, cur, nxt, older, site_of, cell_at, plain, delta, rows, vol, rtol, dmax,"
-            " smin, maxit, res, its):",
-            "    scale = predict(prev, cur, nxt, older, rows)",
+            f"def slice_step{suffix}(prev, cur, nxt, older, site_of, cell_at, plain, delta, rows, interior, vol,"
+            " rtol, dmax, smin, maxit, res, its):",
+            "    scale = predict(prev, cur, nxt, older, rows, interior)",
             "    tol = rtol * vol * dmax * scale",
-            f"    slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, plain, delta, rows, vol, tol, rtol * scale,"
-            " smin, maxit, res, its)",
-            "    return tally(res, its)",
+            f"    out = slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, plain, delta, rows, vol, tol,"
+            " rtol * scale, smin, maxit, res, its)",
+            "    return out" if suffix else "    return tally(res, its)",
             "",
         ]
     return text
@@ -663,9 +698,12 @@ def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tupl
     if mod.BLOCK_DIAGONAL:
         one, none = np.zeros(1), np.zeros(0, dtype=np.int64)
         idx = np.zeros((k, 1), dtype=np.int64)
-        args = (idx, idx, np.zeros(1, dtype=np.bool_), np.zeros((k, k), dtype=np.int64), none, 1.0, 1.0, 1.0, 1.0, 1)
+        flags = np.zeros(1, dtype=np.bool_)
+        args = (idx, idx, flags, np.zeros((k, k), dtype=np.int64), none, flags, 1.0, 1.0, 1.0, 1.0, 1)
         mod.slice_step_serial(one, one, one, one, *args, np.zeros(0), none.copy())  # the parallel one: on first use
         mod.site_diagonal(one, one, idx, np.zeros(1))
+        mod.cell_maps(idx, idx.copy())
+        mod.plain_sites(idx, idx, np.zeros((k, k), dtype=np.int64), np.zeros(1, dtype=np.bool_))
     if mod.HAS_TRAJECTORY:
         mod.trajectory(
             np.zeros(3), 1, 1, 1.0, 1.0, 1, -1.0, 1e-10, np.zeros(3), np.zeros(2, dtype=np.int64), np.zeros(6)

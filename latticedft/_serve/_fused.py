@@ -31,8 +31,9 @@ class FusedSlices:
         self.compiled = compiled
         self.site_of = site_of  # (K, cells): the site of each stencil point of each cell
         self.cell_at = cell_at  # (K, sites): the cell whose stencil point sits on the site (-1: none)
-        self.rows = np.ascontiguousarray(np.nonzero(sys.interior)[0], dtype=np.int64)
-        self.delta, self.plain = fixed_offsets(sys, site_of, cell_at)
+        self.interior = np.ascontiguousarray(sys.interior, dtype=np.bool_)  # per site: it carries an equation
+        self.rows = np.ascontiguousarray(np.nonzero(self.interior)[0], dtype=np.int64)
+        self.delta, self.plain = fixed_offsets(sys, site_of, cell_at, compiled.module)
         self.res = np.empty(self.rows.size)
         self.its = np.empty(self.rows.size, dtype=np.int64)
         self.none = np.zeros(0)  # no slice before the previous one
@@ -84,6 +85,7 @@ class FusedSlices:
             self.plain,
             self.delta,
             self.rows,
+            self.interior,
             vol,
             rtol,
             cache["dmax"],
@@ -109,28 +111,23 @@ def fused_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FusedSlic
     if compiled is None or not compiled.block_diagonal:
         return None
     site_of = np.ascontiguousarray(np.stack(sys.site_of), dtype=np.int64)
-    cell_at = -np.ones((site_of.shape[0], sys.nsite), dtype=np.int64)
-    for a, sites in enumerate(site_of):
-        if sites.size and int(np.bincount(sites, minlength=sys.nsite).max()) > 1:  # two cells' points on one site
-            return None
-        cell_at[a, sites] = np.arange(sites.size)
+    cell_at = np.full((site_of.shape[0], sys.nsite), -1, dtype=np.int64)
+    if not compiled.module.cell_maps(site_of, cell_at):  # two cells' points on one site
+        return None
     return FusedSlices(compiled, sys, site_of, cell_at)
 
 
-def fixed_offsets(sys: _SliceSystem, site_of: np.ndarray, cell_at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def fixed_offsets(
+    sys: _SliceSystem, site_of: np.ndarray, cell_at: np.ndarray, module: Any
+) -> tuple[np.ndarray, np.ndarray]:
     """``(delta, plain)``: ``delta[a, p]``, the flat offset from the site of stencil point ``a`` of a cell to
     that of its point ``p`` (row-major over the spatial axes); ``plain[y]``, whether at site ``y`` every cell
     with a point on ``y`` exists and has each of its points at ``y + delta`` (no wrap, no boundary), so that
-    the kernel reads the stencil there without the cell maps."""
+    the kernel reads the stencil there without the cell maps (``module.plain_sites`` finds them)."""
     offsets = np.array([o[1:] for o in sys.st.offsets], dtype=np.int64).reshape(len(sys.st.offsets), -1)
     strides = np.array([int(np.prod(sys.spatial[k + 1 :])) for k in range(len(sys.spatial))], dtype=np.int64)
     flat = offsets @ strides if strides.size else np.zeros(len(offsets), dtype=np.int64)
     delta = np.ascontiguousarray(flat[None, :] - flat[:, None])
-    unwrapped = np.ones(site_of.shape[1], dtype=np.bool_)  # per cell: its points at the offsets from point 0
-    for p in range(1, site_of.shape[0]):
-        unwrapped &= site_of[p] - site_of[0] == delta[0, p]
-    plain = np.ones(cell_at.shape[1], dtype=np.bool_)
-    for cells in cell_at:  # cell_at[a, y] has its point a on y: the others then sit at y + delta[a]
-        plain &= cells >= 0
-        plain &= unwrapped[np.where(cells >= 0, cells, 0)]
+    plain = np.empty(cell_at.shape[1], dtype=np.bool_)
+    module.plain_sites(site_of, cell_at, delta, plain)
     return delta, plain
