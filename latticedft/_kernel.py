@@ -52,7 +52,7 @@ _LOADED: dict[str, Any] = {}
 _FAILED: set[str] = set()
 
 #: Bumped whenever the generated code changes, so that stale cached kernels are not reused.
-_VERSION = 14
+_VERSION = 16
 
 
 def cache_dir() -> Path:
@@ -252,41 +252,30 @@ def _slice_newton_source(
     affine = all((a, b) in constant for a in moving for aa, b in diag if aa == a)
     plain = _newton_body(form, list(hessians), nxt, now, moving, constant, True, affine)
     mapped = _newton_body(form, list(hessians), nxt, now, moving, constant, False, affine)
-    body = ["        y = rows[q]", "        if plain[y]:", *["    " + x for x in plain], "        else:"]
+    # every site an unknown (a periodic lattice): rows is 0, 1, ... and the loop reads no index per site
+    body = [
+        "        y = q if dense else rows[q]",
+        "        if plain[y]:",
+        *["    " + x for x in plain],
+        "        else:",
+    ]
     body += ["    " + x for x in mapped]
     # the fixed offsets read once into scalars (the loop writes nxt: loads from delta would not be hoisted)
     hoisted = [f"    d{a}_{p} = delta[{a}, {p}]" for a in range(k) for p in range(k)]
     text += [f"AFFINE = {affine}", ""]
     for suffix, parallel, loop in (("", "True", "numba.prange"), ("_serial", "False", "range")):
-        serial = suffix == "_serial"  # the serial loop tallies its sites as it goes (no pass over res, its)
         text += [
             f"@numba.njit(parallel={parallel}, cache=True, error_model='numpy', nogil=True)",
             f"def slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, plain, delta, rows, vol, tol, step_tol,"
             " smin, maxit, res, its):",
             *hoisted,
-            *(["    lo, hi, worst = 1 << 62, -(1 << 62), 0.0"] if serial else []),
+            "    dense = rows.shape[0] == plain.shape[0]",
             f"    for q in {loop}(rows.shape[0]):",
-            *(_tallying(body) if serial else body),
-            *(["    return lo, hi, worst"] if serial else []),
+            *body,
             "",
             "",
         ]
     return text + _diagonal_source(form, list(hessians)) + _slice_step_source()
-
-
-def _tallying(body: list[str]) -> list[str]:
-    """``body`` with each site's residual and evaluations taken into ``worst``, ``lo`` and ``hi`` (as
-    ``tally`` takes them from ``res`` and ``its``) instead of stored."""
-    out = []
-    for line in body:
-        pad = line[: len(line) - len(line.lstrip())]
-        if line.strip() == "res[q] = abs(r) if r == r else math.inf":
-            out += [pad + "rq = abs(r) if r == r else math.inf", pad + "worst = rq if rq > worst else worst"]
-        elif line.strip() == "its[q] = it":
-            out += [pad + "lo = it if it < lo else lo", pad + "hi = it if it > hi else hi"]
-        else:
-            out.append(line)
-    return out
 
 
 def _diagonal_source(form: SymbolicLd, diag: list[tuple[int, int]]) -> list[str]:
@@ -467,14 +456,22 @@ def plain_sites(site_of, cell_at, delta, plain):
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
 def tally(res, its):
-    lo, hi, worst = 0, 0, 0.0
-    if res.shape[0]:
-        lo, hi, worst = its[0], its[0], res[0]
-    for q in range(1, res.shape[0]):
+    lo, hi = 1 << 62, -(1 << 62)
+    for q in range(its.shape[0]):
         lo = min(lo, its[q])
         hi = max(hi, its[q])
-        worst = res[q] if res[q] > worst else worst
-    return lo, hi, worst
+    w0, w1, w2, w3 = 0.0, 0.0, 0.0, 0.0  # no residual is below zero or not a number
+    whole = res.shape[0] - res.shape[0] % 4
+    for q in range(0, whole, 4):
+        w0 = res[q] if res[q] > w0 else w0
+        w1 = res[q + 1] if res[q + 1] > w1 else w1
+        w2 = res[q + 2] if res[q + 2] > w2 else w2
+        w3 = res[q + 3] if res[q + 3] > w3 else w3
+    for q in range(whole, res.shape[0]):
+        w0 = res[q] if res[q] > w0 else w0
+    w0 = w1 if w1 > w0 else w0
+    w2 = w3 if w3 > w2 else w2
+    return lo, hi, w2 if w2 > w0 else w0
 """
 
 
@@ -484,9 +481,9 @@ def _slice_step_source() -> list[str]:
     ``_field.solve_and_tally``, returning the scale of a Newton step (``_slices._scale``: the largest value
     in size of the two slices and the predictor), in one pass over the sites (``interior``: those with an
     equation), the maxima of each in its own chain; ``tally``: the least and most evaluations of the sites
-    and their largest residual; ``slice_step`` (and ``slice_step_serial``): the three around
-    ``slice_newton`` (whose serial loop tallies as it goes), the tolerances formed from the scale as
-    ``_fused`` did in Python.
+    and their largest residual, in a pass of its own (a running maximum inside the Newton loop waits on
+    each site's sine: it costs more than the pass); ``slice_step`` (and ``slice_step_serial``): the three
+    around ``slice_newton``, the tolerances formed from the scale as ``_fused`` did in Python.
     Beside them, the per-lattice maps of ``_fused``: ``cell_maps`` (``cell_at`` from ``site_of``; ``False``
     where two cells have a point on one site) and ``plain_sites`` (the sites read at fixed offsets)."""
     text = _SLICE_STEP.splitlines()
@@ -498,9 +495,9 @@ def _slice_step_source() -> list[str]:
             " rtol, dmax, smin, maxit, res, its):",
             "    scale = predict(prev, cur, nxt, older, rows, interior)",
             "    tol = rtol * vol * dmax * scale",
-            f"    out = slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, plain, delta, rows, vol, tol,"
-            " rtol * scale, smin, maxit, res, its)",
-            "    return out" if suffix else "    return tally(res, its)",
+            f"    slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, plain, delta, rows, vol, tol, rtol * scale,"
+            " smin, maxit, res, its)",
+            "    return tally(res, its)",
             "",
         ]
     return text

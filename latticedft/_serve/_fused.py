@@ -41,6 +41,14 @@ class FusedSlices:
             (q, a) for q, (a, b) in enumerate(sys.pairs) if sys.st.offsets[a][1:] == sys.st.offsets[b][1:]
         ]
 
+    def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> None:
+        """Slice-Newton's predictor (``_field.solve_and_tally``'s) on the unknown sites of slice ``i + 1``."""
+        values = flat.numpy()
+        old = older.numpy()[:, 0] if older is not None else self.none
+        self.compiled.module.predict(
+            values[i - 1, :, 0], values[i, :, 0], values[i + 1, :, 0], old, self.rows, self.interior
+        )
+
     def scales(self, flat: torch.Tensor, i: int) -> tuple[float, float, float, int] | None:
         """``(dmax, smin, smax, row)`` of slice ``i``'s Jacobian at the current values, as slice-Newton's
         ``_fresh_blocks`` finds them: the largest diagonal Hessian block over the cells, and the smallest and
