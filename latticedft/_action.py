@@ -239,9 +239,18 @@ def compiled_closed_forms(
 
 
 def _same(a: Any, b: Any) -> bool:
-    """Whether two entries of a compiled-kernel key agree (a tensor by identity and version)."""
+    """Whether two entries of a compiled-kernel key agree: a tensor by identity and version, or, where the
+    model holds a new tensor (an analytic model binding its projection afresh on every call), one left
+    unchanged since with the same values."""
     if isinstance(a, tuple) and len(a) == 2 and isinstance(a[0], torch.Tensor):
-        return isinstance(b, tuple) and a[0] is b[0] and a[1] == b[1]
+        if not isinstance(b, tuple) or not isinstance(b[0], torch.Tensor):
+            return False
+        if a[0] is b[0]:
+            return bool(a[1] == b[1])
+        old, new = a[0], b[0]
+        if old._version != a[1] or old.dtype != new.dtype or old.shape != new.shape or old.device != new.device:
+            return False
+        return bool(torch.equal(old, new))
     return bool(a == b)
 
 

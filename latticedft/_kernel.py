@@ -52,7 +52,7 @@ _LOADED: dict[str, Any] = {}
 _FAILED: set[str] = set()
 
 #: Bumped whenever the generated code changes, so that stale cached kernels are not reused.
-_VERSION = 12
+_VERSION = 16
 
 
 def cache_dir() -> Path:
@@ -103,16 +103,17 @@ class CompiledForms:
         """Whether the kernels hold ``trajectory`` (a scalar 0+1D ``L_d`` on the two-point stencil)."""
         return bool(self.module.HAS_TRAJECTORY)
 
-    def slice_newton(self, sites: int) -> Callable[..., None]:
-        """The slice Newton kernel for ``sites`` unknown sites (parallel or serial as the gradient's)."""
-        return _kernel(self.module, "slice_newton", sites, suffix="")
+    def slice_step(self, sites: int) -> Callable[..., tuple[int, int, float]]:
+        """The kernel that solves a slice of ``sites`` unknown sites (predictor, scale, slice Newton, tally;
+        parallel or serial as the gradient's)."""
+        return _kernel(self.module, "slice_step", sites, suffix="")
 
 
 #: Cells per thread below which the serial kernel runs (starting threads costs more than it saves).
 PARALLEL_MIN_CELLS = 65536
 
 
-def _kernel(module: Any, name: str, cells: int, suffix: str = "_kernel") -> Callable[..., None]:
+def _kernel(module: Any, name: str, cells: int, suffix: str = "_kernel") -> Callable[..., Any]:
     """The parallel kernel ``name`` with as many threads as torch has (which :func:`latticedft.limit_threads`
     bounds with the BLAS pools), or the serial one for one thread or few cells."""
     import numba
@@ -167,7 +168,7 @@ def _source(form: SymbolicLd, pairs: Sequence[tuple[int, int]]) -> str:
     grads = [sympy.diff(form.expr, sym[p][c]) for p in range(k) for c in range(m)]
     second = [sympy.diff(grads[a * m + i], sym[b][j]) for a, b in pairs for i in range(m) for j in range(m)]
     loads = [f"        {sym[p][c]} = cells[n, {p}, {c}]" for p in range(k) for c in range(m)]
-    text = ["import math", "import numba", ""]
+    text = ["import math", "import numba", "import numpy as np", ""]
     for name, exprs, extra in (("grad", grads, ""), ("both", grads + second, ", blocks")):
         lines, values = _printed(exprs)
         body = loads + [f"        {line}" for line in lines]
@@ -251,7 +252,13 @@ def _slice_newton_source(
     affine = all((a, b) in constant for a in moving for aa, b in diag if aa == a)
     plain = _newton_body(form, list(hessians), nxt, now, moving, constant, True, affine)
     mapped = _newton_body(form, list(hessians), nxt, now, moving, constant, False, affine)
-    body = ["        y = rows[q]", "        if plain[y]:", *["    " + x for x in plain], "        else:"]
+    # every site an unknown (a periodic lattice): rows is 0, 1, ... and the loop reads no index per site
+    body = [
+        "        y = q if dense else rows[q]",
+        "        if plain[y]:",
+        *["    " + x for x in plain],
+        "        else:",
+    ]
     body += ["    " + x for x in mapped]
     # the fixed offsets read once into scalars (the loop writes nxt: loads from delta would not be hoisted)
     hoisted = [f"    d{a}_{p} = delta[{a}, {p}]" for a in range(k) for p in range(k)]
@@ -262,12 +269,34 @@ def _slice_newton_source(
             f"def slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, plain, delta, rows, vol, tol, step_tol,"
             " smin, maxit, res, its):",
             *hoisted,
+            "    dense = rows.shape[0] == plain.shape[0]",
             f"    for q in {loop}(rows.shape[0]):",
             *body,
             "",
             "",
         ]
-    return text + _predictor_source()
+    return text + _diagonal_source(form, list(hessians)) + _slice_step_source()
+
+
+def _diagonal_source(form: SymbolicLd, diag: list[tuple[int, int]]) -> list[str]:
+    """``site_diagonal(lo, hi, site_of, diag)``: the diagonal of a slice's Jacobian at the values of its two
+    slices (``lo``, ``hi``), added into ``diag`` per site pair after pair, cell after cell (the order of
+    ``_fused.FusedSlices.scales``); returns the largest block in size, ``-1.0`` at a block that is not finite.
+    The pairs of ``diag`` are those whose block the unknown can move; the others' blocks vanish."""
+    k = len(form.offsets)
+    text = ["@numba.njit(cache=True, error_model='numpy', nogil=True)", "def site_diagonal(lo, hi, site_of, diag):"]
+    text += ["    dmax = 0.0"]
+    for a, b in diag:
+        args = ", ".join(f"{'hi' if form.offsets[p][0] else 'lo'}[_u(site_of[{p}, n])]" for p in range(k))
+        text += [
+            "    for n in range(site_of.shape[1]):",
+            f"        v = h{a}_{b}({args})",
+            "        if not math.isfinite(v):",
+            "            return -1.0",
+            "        dmax = abs(v) if abs(v) > dmax else dmax",
+            f"        diag[_u(site_of[{a}, n])] += v",
+        ]
+    return text + ["    return dmax", "", ""]
 
 
 def _split(expr: Any, unknowns: set[Any]) -> tuple[Any, Any]:
@@ -303,10 +332,10 @@ def _newton_body(
 
     def term(a: int, fn: str, anchored_before: bool) -> list[str]:
         low, high = ("prev", "cur") if anchored_before else ("cur", "nxt")
-        if plain:
-            args = ", ".join(f"{high if form.offsets[p][0] else low}[y + d{a}_{p}, 0]" for p in range(k))
+        if plain:  # unsigned indices: no test for a negative index per load
+            args = ", ".join(f"{high if form.offsets[p][0] else low}[_u(y + d{a}_{p})]" for p in range(k))
             return [f"{fn}({args})"]
-        args = ", ".join(f"{high if form.offsets[p][0] else low}[site_of[{p}, c], 0]" for p in range(k))
+        args = ", ".join(f"{high if form.offsets[p][0] else low}[_u(site_of[{p}, c])]" for p in range(k))
         return [f"c = cell_at[{a}, y]", "if c >= 0:", f"    {fn}({args})"]
 
     body = ["fixed = 0.0", "jac0 = 0.0"]
@@ -333,7 +362,7 @@ def _newton_body(
         "        it = -1",
         "        break",
         "    step = -r / jac",
-        "    nxt[y, 0] += step",
+        "    nxt[_u(y)] += step",
         "    small = abs(step) <= step_tol",
     ]
     if affine:
@@ -342,31 +371,136 @@ def _newton_body(
     return ["        " + line for line in body]
 
 
-def _predictor_source() -> list[str]:
+#: Around ``slice_newton``: its predictor and scale, and the tally of its sites, so that one call solves a
+#: slice (``slice_step``). The slices are 1D arrays over the sites (a scalar field).
+_SLICE_STEP = """
+@numba.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def _u(i):
+    return numba.uint64(i)
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def predict_exact(prev, cur, nxt, older, rows):
+    top = 1e-300
+    for s in range(prev.shape[0]):
+        top = max(top, abs(prev[s]), abs(cur[s]))
+    if older.shape[0]:
+        for q in range(rows.shape[0]):
+            y = rows[q]
+            v = (2.0 * cur[y] - prev[y]) + (cur[y] - 2.0 * prev[y] + older[y])
+            nxt[y] = v
+            top = max(top, abs(v))
+        return top
+    for q in range(rows.shape[0]):
+        y = rows[q]
+        v = 2.0 * cur[y] - prev[y]
+        nxt[y] = v
+        top = max(top, abs(v))
+    return top
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def predict(prev, cur, nxt, older, rows, interior):
+    t0, t1, t2 = 1e-300, 1e-300, 1e-300
+    bad = False
+    before = older.shape[0] > 0
+    for s in range(prev.shape[0]):
+        p = prev[s]
+        c = cur[s]
+        x0 = abs(p)
+        x1 = abs(c)
+        t0 = x0 if x0 > t0 else t0
+        t1 = x1 if x1 > t1 else t1
+        bad = bad | (x0 != x0) | (x1 != x1)
+        if interior[s]:
+            if before:
+                v = (2.0 * c - p) + (c - 2.0 * p + older[s])
+            else:
+                v = 2.0 * c - p
+            nxt[s] = v
+            x2 = abs(v)
+            t2 = x2 if x2 > t2 else t2
+            bad = bad | (x2 != x2)
+    if bad:  # the order of the maxima matters only where a value is not a number
+        return predict_exact(prev, cur, nxt, older, rows)
+    t0 = t1 if t1 > t0 else t0
+    return t2 if t2 > t0 else t0
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def cell_maps(site_of, cell_at):
+    for a in range(site_of.shape[0]):
+        for c in range(site_of.shape[1]):
+            y = site_of[a, c]
+            if cell_at[a, y] >= 0:
+                return False
+            cell_at[a, y] = c
+    return True
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def plain_sites(site_of, cell_at, delta, plain):
+    unwrapped = np.ones(site_of.shape[1], dtype=np.bool_)
+    for c in range(site_of.shape[1]):
+        for p in range(1, site_of.shape[0]):
+            if site_of[p, c] - site_of[0, c] != delta[0, p]:
+                unwrapped[c] = False
+    for y in range(cell_at.shape[1]):
+        ok = True
+        for a in range(cell_at.shape[0]):
+            c = cell_at[a, y]
+            if c < 0 or not unwrapped[c]:
+                ok = False
+        plain[y] = ok
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def tally(res, its):
+    lo, hi = 1 << 62, -(1 << 62)
+    for q in range(its.shape[0]):
+        lo = min(lo, its[q])
+        hi = max(hi, its[q])
+    w0, w1, w2, w3 = 0.0, 0.0, 0.0, 0.0  # no residual is below zero or not a number
+    whole = res.shape[0] - res.shape[0] % 4
+    for q in range(0, whole, 4):
+        w0 = res[q] if res[q] > w0 else w0
+        w1 = res[q + 1] if res[q + 1] > w1 else w1
+        w2 = res[q + 2] if res[q + 2] > w2 else w2
+        w3 = res[q + 3] if res[q + 3] > w3 else w3
+    for q in range(whole, res.shape[0]):
+        w0 = res[q] if res[q] > w0 else w0
+    w0 = w1 if w1 > w0 else w0
+    w2 = w3 if w3 > w2 else w2
+    return lo, hi, w2 if w2 > w0 else w0
+"""
+
+
+def _slice_step_source() -> list[str]:
     """``predict``: slice-Newton's predictor on the unknown sites (``2 psi_i - psi_{i-1}``, plus
     ``psi_i - 2 psi_{i-1} + psi_{i-2}`` where ``older``, slice ``i - 2``, is given), in the order of
-    ``_field.solve_and_tally``; returns the scale of a Newton step (``_slices._scale``)."""
-    return [
-        "@numba.njit(cache=True, error_model='numpy', nogil=True)",
-        "def predict(prev, cur, nxt, older, rows):",
-        "    top = 1e-300",
-        "    for s in range(prev.shape[0]):",
-        "        top = max(top, abs(prev[s, 0]), abs(cur[s, 0]))",
-        "    if older.shape[0]:",
-        "        for q in range(rows.shape[0]):",
-        "            y = rows[q]",
-        "            v = (2.0 * cur[y, 0] - prev[y, 0]) + (cur[y, 0] - 2.0 * prev[y, 0] + older[y, 0])",
-        "            nxt[y, 0] = v",
-        "            top = max(top, abs(v))",
-        "        return top",
-        "    for q in range(rows.shape[0]):",
-        "        y = rows[q]",
-        "        v = 2.0 * cur[y, 0] - prev[y, 0]",
-        "        nxt[y, 0] = v",
-        "        top = max(top, abs(v))",
-        "    return top",
-        "",
-    ]
+    ``_field.solve_and_tally``, returning the scale of a Newton step (``_slices._scale``: the largest value
+    in size of the two slices and the predictor), in one pass over the sites (``interior``: those with an
+    equation), the maxima of each in its own chain; ``tally``: the least and most evaluations of the sites
+    and their largest residual, in a pass of its own (a running maximum inside the Newton loop waits on
+    each site's sine: it costs more than the pass); ``slice_step`` (and ``slice_step_serial``): the three
+    around ``slice_newton``, the tolerances formed from the scale as ``_fused`` did in Python.
+    Beside them, the per-lattice maps of ``_fused``: ``cell_maps`` (``cell_at`` from ``site_of``; ``False``
+    where two cells have a point on one site) and ``plain_sites`` (the sites read at fixed offsets)."""
+    text = _SLICE_STEP.splitlines()
+    for suffix in ("", "_serial"):
+        text += [
+            "",
+            "@numba.njit(cache=True, error_model='numpy', nogil=True)",
+            f"def slice_step{suffix}(prev, cur, nxt, older, site_of, cell_at, plain, delta, rows, interior, vol,"
+            " rtol, dmax, smin, maxit, res, its):",
+            "    scale = predict(prev, cur, nxt, older, rows, interior)",
+            "    tol = rtol * vol * dmax * scale",
+            f"    slice_newton{suffix}(prev, cur, nxt, site_of, cell_at, plain, delta, rows, vol, tol, rtol * scale,"
+            " smin, maxit, res, its)",
+            "    return tally(res, its)",
+            "",
+        ]
+    return text
 
 
 #: The 0+1D trajectory loop: ``_fast1d.FastBatch.step_one`` slice after slice, the same IEEE operations in
@@ -559,28 +693,14 @@ def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tupl
     mod.grad_kernel_serial(cell, np.empty_like(cell))  # the parallel kernels compile on first use
     mod.both_kernel_serial(cell, np.empty_like(cell), np.empty((len(pairs), 1, m, m)))
     if mod.BLOCK_DIAGONAL:
-        one, none = np.zeros((1, 1)), np.zeros(0, dtype=np.int64)
+        one, none = np.zeros(1), np.zeros(0, dtype=np.int64)
         idx = np.zeros((k, 1), dtype=np.int64)
         flags = np.zeros(1, dtype=np.bool_)
-        mod.slice_newton_serial(
-            one,
-            one,
-            one,
-            idx,
-            idx,
-            flags,
-            np.zeros((k, k), dtype=np.int64),
-            none,
-            1.0,
-            1.0,
-            1.0,
-            1.0,
-            1,
-            np.zeros(0),
-            none.copy(),
-        )
-        mod.predict(one, one, one, one, none)
-        mod.predict(one, one, one, np.zeros((0, 1)), none)
+        args = (idx, idx, flags, np.zeros((k, k), dtype=np.int64), none, flags, 1.0, 1.0, 1.0, 1.0, 1)
+        mod.slice_step_serial(one, one, one, one, *args, np.zeros(0), none.copy())  # the parallel one: on first use
+        mod.site_diagonal(one, one, idx, np.zeros(1))
+        mod.cell_maps(idx, idx.copy())
+        mod.plain_sites(idx, idx, np.zeros((k, k), dtype=np.int64), np.zeros(1, dtype=np.bool_))
     if mod.HAS_TRAJECTORY:
         mod.trajectory(
             np.zeros(3), 1, 1, 1.0, 1.0, 1, -1.0, 1e-10, np.zeros(3), np.zeros(2, dtype=np.int64), np.zeros(6)

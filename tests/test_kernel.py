@@ -199,6 +199,28 @@ def test_the_compiled_slice_newton_serves_todays_fields(
     assert plain.any() and not plain.all(), name
 
 
+def test_the_slice_steps_scale_and_tally_are_those_of_the_sequential_loops() -> None:
+    """The predictor's scale (maxima in independent chains) equals the sequential loop's, a value that is not
+    a number included (it then runs that loop); the tally equals numpy's minimum and maxima."""
+    model = sine_gordon()
+    model.bind(3, 1, (0.02, 0.05, 0.05))
+    mod = compiled_closed_forms(model, torch.zeros(0, dtype=torch.float64)).module  # type: ignore[union-attr]
+    rng = np.random.default_rng(0)
+    prev, cur, older = (rng.standard_normal(37) for _ in range(3))
+    interior = rng.random(37) < 0.7
+    rows = np.nonzero(interior)[0]
+    for bad in (None, 5, 30):
+        if bad is not None:
+            cur[bad] = math.nan
+        for old in (older, np.zeros(0)):
+            fast, slow = np.full(37, 9.0), np.full(37, 9.0)
+            a = mod.predict(prev, cur, fast, old, rows, interior)
+            b = mod.predict_exact(prev, cur, slow, old, rows)
+            assert (a == b or (math.isnan(a) and math.isnan(b))) and np.array_equal(fast, slow, equal_nan=True)
+    res, its = rng.random(13), rng.integers(-2, 5, 13)
+    assert mod.tally(res, its) == (its.min(), its.max(), res.max())
+
+
 def test_a_coupled_l_d_has_no_compiled_slice_newton() -> None:
     """A time difference mixed with a spatial one couples neighbouring unknowns: slice-Newton's Krylov steps."""
 

@@ -157,11 +157,8 @@ def _choose_fused(run: Any, i: int, older: Any) -> None:
     fused = fused_slices(run.model, run.sys, run.flat) if cache.get("solver") in ("auto", "sitewise") else None
     if fused is None:
         return
-    flat, unk = run.flat, run.unk
-    flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
-    if older is not None:
-        flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + older[unk]
-    found = fused.scales(flat, i)
+    fused.predict(run.flat, i, older)  # solve_and_tally's predictor, to the bit
+    found = fused.scales(run.flat, i)
     if found is None:
         return
     dmax, smin, smax, _ = found

@@ -31,33 +31,38 @@ class FusedSlices:
         self.compiled = compiled
         self.site_of = site_of  # (K, cells): the site of each stencil point of each cell
         self.cell_at = cell_at  # (K, sites): the cell whose stencil point sits on the site (-1: none)
-        self.rows = np.ascontiguousarray(np.nonzero(sys.interior)[0], dtype=np.int64)
-        self.delta, self.plain = fixed_offsets(sys, site_of, cell_at)
+        self.interior = np.ascontiguousarray(sys.interior, dtype=np.bool_)  # per site: it carries an equation
+        self.rows = np.ascontiguousarray(np.nonzero(self.interior)[0], dtype=np.int64)
+        self.delta, self.plain = fixed_offsets(sys, site_of, cell_at, compiled.module)
         self.res = np.empty(self.rows.size)
         self.its = np.empty(self.rows.size, dtype=np.int64)
-        self.upper = [o[0] == 1 for o in sys.st.offsets]  # the point sits on the next slice
+        self.none = np.zeros(0)  # no slice before the previous one
         self.same_site = [
             (q, a) for q, (a, b) in enumerate(sys.pairs) if sys.st.offsets[a][1:] == sys.st.offsets[b][1:]
         ]
+
+    def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> None:
+        """Slice-Newton's predictor (``_field.solve_and_tally``'s) on the unknown sites of slice ``i + 1``."""
+        values = flat.numpy()
+        old = older.numpy()[:, 0] if older is not None else self.none
+        self.compiled.module.predict(
+            values[i - 1, :, 0], values[i, :, 0], values[i + 1, :, 0], old, self.rows, self.interior
+        )
 
     def scales(self, flat: torch.Tensor, i: int) -> tuple[float, float, float, int] | None:
         """``(dmax, smin, smax, row)`` of slice ``i``'s Jacobian at the current values, as slice-Newton's
         ``_fresh_blocks`` finds them: the largest diagonal Hessian block over the cells, and the smallest and
         largest diagonal entry (in size) at an unknown site, with the row of the smallest; ``None`` without
-        unknowns. Its off-diagonal blocks vanish by the ``L_d``'s form."""
+        unknowns. Its off-diagonal blocks vanish by the ``L_d``'s form. The diagonal is summed in the
+        compiled kernel as ``index_add_`` sums it (one cell per site and point: to the bit)."""
         if not self.rows.size or not self.same_site:
             return None
-        lo, hi = flat[i].numpy()[:, 0], flat[i + 1].numpy()[:, 0]
-        cells = np.stack([(hi if up else lo)[sites] for up, sites in zip(self.upper, self.site_of)], axis=1)
-        blocks = self.compiled.both(cells)[1]
         diag = np.zeros(self.cell_at.shape[1])
-        dmax = 0.0
-        for q, a in self.same_site:  # one cell per site and point: the sums of index_add_, to the bit
-            block = blocks[q].reshape(-1)
-            if not np.isfinite(block).all():
-                return None  # slice-Newton reports it
-            dmax = max(dmax, float(np.abs(block).max()) if block.size else 0.0)
-            diag += np.bincount(self.site_of[a], weights=block, minlength=diag.size)
+        dmax = float(
+            self.compiled.module.site_diagonal(flat[i].numpy()[:, 0], flat[i + 1].numpy()[:, 0], self.site_of, diag)
+        )
+        if dmax < 0:
+            return None  # a block that is not finite: slice-Newton reports it
         sv = np.nan_to_num(np.abs(diag[self.rows]), nan=0.0)
         worst = int(np.argmin(sv))
         return dmax, float(sv[worst]), float(sv.max()), worst
@@ -74,35 +79,34 @@ class FusedSlices:
     ) -> tuple[int, float] | None:
         """Solve slice ``i``'s equations for slice ``i + 1`` of ``flat`` (``(slices, sites, 1)``) in place, from
         slice-Newton's predictor (with ``older``, slice ``i - 2``, where given): ``(evaluations, residual)``
-        (the most of any site), or ``None`` where a site failed (slice-Newton then starts afresh)."""
-        prev, cur, nxt = (flat[j].numpy() for j in (i - 1, i, i + 1))
-        old = older.numpy() if older is not None else np.zeros((0, 1))
-        scale = float(self.compiled.module.predict(prev, cur, nxt, old, self.rows))
-        tol = rtol * vol * cache["dmax"] * scale
-        smin = SINGULAR_RTOL * cache["mscale"] * vol
-        kernel = self.compiled.slice_newton(self.rows.size)
-        kernel(
-            prev,
-            cur,
-            nxt,
+        (the most of any site), or ``None`` where a site failed (slice-Newton then starts afresh). One call of
+        the compiled ``slice_step``: the predictor and its scale, Newton on every site, their tally."""
+        values = flat.numpy()
+        old = older.numpy()[:, 0] if older is not None else self.none
+        lo, hi, worst = self.compiled.slice_step(self.rows.size)(
+            values[i - 1, :, 0],
+            values[i, :, 0],
+            values[i + 1, :, 0],
+            old,
             self.site_of,
             self.cell_at,
             self.plain,
             self.delta,
             self.rows,
+            self.interior,
             vol,
-            tol,
-            rtol * scale,
-            smin,
+            rtol,
+            cache["dmax"],
+            SINGULAR_RTOL * cache["mscale"] * vol,
             max_newton,
             self.res,
             self.its,
         )
         if not self.rows.size:
             return 1, 0.0
-        if int(self.its.min()) < 0:
+        if lo < 0:
             return None
-        return int(self.its.max()), float(self.res.max())
+        return int(hi), float(worst)
 
 
 def fused_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FusedSlices | None:
@@ -115,28 +119,23 @@ def fused_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FusedSlic
     if compiled is None or not compiled.block_diagonal:
         return None
     site_of = np.ascontiguousarray(np.stack(sys.site_of), dtype=np.int64)
-    cell_at = -np.ones((site_of.shape[0], sys.nsite), dtype=np.int64)
-    for a, sites in enumerate(site_of):
-        if sites.size and int(np.bincount(sites, minlength=sys.nsite).max()) > 1:  # two cells' points on one site
-            return None
-        cell_at[a, sites] = np.arange(sites.size)
+    cell_at = np.full((site_of.shape[0], sys.nsite), -1, dtype=np.int64)
+    if not compiled.module.cell_maps(site_of, cell_at):  # two cells' points on one site
+        return None
     return FusedSlices(compiled, sys, site_of, cell_at)
 
 
-def fixed_offsets(sys: _SliceSystem, site_of: np.ndarray, cell_at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def fixed_offsets(
+    sys: _SliceSystem, site_of: np.ndarray, cell_at: np.ndarray, module: Any
+) -> tuple[np.ndarray, np.ndarray]:
     """``(delta, plain)``: ``delta[a, p]``, the flat offset from the site of stencil point ``a`` of a cell to
     that of its point ``p`` (row-major over the spatial axes); ``plain[y]``, whether at site ``y`` every cell
     with a point on ``y`` exists and has each of its points at ``y + delta`` (no wrap, no boundary), so that
-    the kernel reads the stencil there without the cell maps."""
+    the kernel reads the stencil there without the cell maps (``module.plain_sites`` finds them)."""
     offsets = np.array([o[1:] for o in sys.st.offsets], dtype=np.int64).reshape(len(sys.st.offsets), -1)
     strides = np.array([int(np.prod(sys.spatial[k + 1 :])) for k in range(len(sys.spatial))], dtype=np.int64)
     flat = offsets @ strides if strides.size else np.zeros(len(offsets), dtype=np.int64)
     delta = np.ascontiguousarray(flat[None, :] - flat[:, None])
-    unwrapped = np.ones(site_of.shape[1], dtype=np.bool_)  # per cell: its points at the offsets from point 0
-    for p in range(1, site_of.shape[0]):
-        unwrapped &= site_of[p] - site_of[0] == delta[0, p]
-    plain = np.ones(cell_at.shape[1], dtype=np.bool_)
-    for cells in cell_at:  # cell_at[a, y] has its point a on y: the others then sit at y + delta[a]
-        plain &= cells >= 0
-        plain &= unwrapped[np.where(cells >= 0, cells, 0)]
+    plain = np.empty(cell_at.shape[1], dtype=np.bool_)
+    module.plain_sites(site_of, cell_at, delta, plain)
     return delta, plain

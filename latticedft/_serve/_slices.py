@@ -45,14 +45,13 @@ class _SliceSystem:
         lo, width = st.lo, st.width
         cshape = [kind.cells(nk, int(width[k + 1])) for k, (nk, kind) in enumerate(zip(spatial, self.kinds))]
         self.cshape = tuple(cshape)
-        grids = np.meshgrid(*[np.arange(c) for c in cshape], indexing="ij")
         self.site_of: list[np.ndarray] = []  # per stencil point: flat site index of that point for every cell
-        for off in st.offsets:
-            idx = []
-            for k, gk in enumerate(grids):
-                v = self.kinds[k].sites(gk + off[k + 1] - lo[k + 1], spatial[k])
-                idx.append(v.reshape(-1))
-            self.site_of.append(np.ravel_multi_index(idx, spatial) if idx else np.zeros(1, dtype=np.int64))
+        for off in st.offsets:  # row-major, the sites of each axis found along that axis alone, then broadcast
+            site = np.zeros((1,) * len(cshape), dtype=np.int64)
+            for k, (ck, kind) in enumerate(zip(cshape, self.kinds)):
+                v = np.asarray(kind.sites(np.arange(ck) + off[k + 1] - lo[k + 1], spatial[k]), dtype=np.int64)
+                site = site * spatial[k] + v.reshape([-1 if j == k else 1 for j in range(len(cshape))])
+            self.site_of.append(site.reshape(-1) if cshape else np.zeros(1, dtype=np.int64))
         self.now = [a for a, o in enumerate(st.offsets) if o[0] == 0]
         self.nxt = [a for a, o in enumerate(st.offsets) if o[0] == 1]
         self.pairs = [(a, b) for a in self.now for b in self.nxt]
