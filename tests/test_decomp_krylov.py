@@ -61,6 +61,22 @@ try:
     serve_slabs(MODEL, field(2), 16, boundary="periodic", solver="lu")
 except InputError as exc:
     out["lu"] = str(exc)
+from latticedft._serve import _slabkrylov
+from latticedft._serve._flag import SlabError
+inverse, calls = _slabkrylov._block_inverse, [0]
+def failing(diag, vol):  # the preconditioner of rank 1 fails at its fifth use: inside a GMRES solve
+    prec = inverse(diag, vol)
+    def apply(v):
+        calls[0] += 1
+        if rank == 1 and calls[0] == 5:
+            raise RuntimeError("injected failure\\nin the preconditioner")
+        return prec(v)
+    return apply
+_slabkrylov._block_inverse = failing
+try:
+    serve_slabs(MODEL, field(2), 16, boundary="periodic", rtol=1e-13)
+except SlabError as err:
+    out["gmres"] = [str(err), None if err.result is None else err.result["slice"].values.tolist(), calls[0]]
 with open(sys.argv[1] + f".{rank}", "w") as f:
     json.dump(out, f)
 """
@@ -110,6 +126,10 @@ def test_two_processes_serve_a_coupled_slice_by_krylov_as_one(tmp_path: Path) ->
     for bnd in ("periodic", "dirichlet"):
         assert zero[bnd][0] <= 1e-12 and zero[bnd][1] == "krylov", zero
     assert zero["lu"] == one["lu"] and "\n" not in zero["lu"]
+    # an exception in one process inside a GMRES solve stops both with its one-line error
+    assert zero["gmres"][0] == one["gmres"][0] == "slice 2: process 1 of 2 failed: RuntimeError: injected failure"
+    assert zero["gmres"][1] == [0, 1] and one["gmres"][1] is None
+    assert zero["gmres"][2] >= 5 and one["gmres"][2] == 5  # rank 0 went on into the solve
 
 
 def test_the_command_refuses_lu_under_workers_naming_the_key_and_writes_nothing(tmp_path, capsys, monkeypatch):

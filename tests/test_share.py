@@ -44,6 +44,18 @@ ldft.learn(m, data, optimizer="lbfgs", max_iter=4, chunk_sites=150, boundary="pe
 params = torch.cat([p.detach().reshape(-1) for p in m.parameters()]).tolist()
 out["mlp"] = [params, m.in_center.tolist(), m.in_scale.tolist(), float(m.out_scale), m.trained_range().tolist()]
 out["mlp_read"] = sorted(set(map(tuple, seen)))
+from latticedft._learn import _noise
+estimated, _estimate = [], _noise._estimate
+def spied(fields, nt, pooled=False):
+    estimated.append(len(fields))
+    return _estimate(fields, nt, pooled)
+_noise._estimate = spied
+_noise.ROUNDS = 0  # the estimate only: no correction rounds
+noisy = [f + 2e-4 * torch.randn(f.shape, generator=torch.Generator().manual_seed(k)).numpy()
+         for k, f in enumerate(systems.wave_string([(1, 0.5), (2, 0.1)], nx=24, nt=60) for _ in range(3))]
+m = ldft.PolynomialLagrangian((2, 2))
+report = ldft.learn(m, noisy, noise="auto")
+out["noise"] = [report.noise["sigma"], report.noise["relative"], report.noise["method"], estimated]
 with open(sys.argv[1], "w") as f:
     json.dump(out, f)
 """
@@ -69,3 +81,8 @@ def test_each_process_reads_its_share_and_learns_what_one_learns(tmp_path: Path)
     params, *scaling = ranks[0]["mlp"]
     assert scaling == ref["mlp"][1:]
     assert _rel(np.array(params), np.array(ref["mlp"][0])) < 1e-8
+    # the noise estimate: each process its share of the three fields, the sums reduced over the processes
+    assert ref["noise"][3] == [3] and [r["noise"][3] for r in ranks] == [[2], [1]]
+    assert ranks[0]["noise"][:3] == ranks[1]["noise"][:3] and ref["noise"][0] > 0
+    assert _rel(np.array(ranks[0]["noise"][:2]), np.array(ref["noise"][:2])) < 1e-12
+    assert ranks[0]["noise"][2] == ref["noise"][2]

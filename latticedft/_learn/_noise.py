@@ -30,6 +30,7 @@ from .._action import _action, _check_model
 from .._errors import InputError
 from .._lattice import LatticeField, as_lattice_field, interior_slices
 from .._models import AbstractLagrangian
+from . import _dist
 from ._report import LearnReport
 from ._stream import TrainingData
 
@@ -149,18 +150,27 @@ def estimate_noise(field: xr.DataArray | LatticeField | Sequence[xr.DataArray | 
     True
     """
     fields = _fields(field, "field")
-    nt = min(f.shape[0] for f in fields)
+    return _estimate(fields, min(f.shape[0] for f in fields))
+
+
+def _estimate(fields: list[LatticeField], nt: int, pooled: bool = False) -> NoiseEstimate:
+    """:func:`estimate_noise` of ``fields``, the shortest of which (of all pooled) holds ``nt`` slices;
+    ``pooled``: ``fields`` are this process's share, the sums and the amplitude taken over the processes."""
     top = min(MAX_ORDER, nt - 8)
-    amp = max(float(f.values.abs().max()) for f in fields)
+    amp = max((float(f.values.abs().max()) for f in fields), default=0.0)
+    if pooled:
+        amp = float(_dist.all_max(torch.tensor([amp], dtype=torch.float64))[0])
     if top < 2 or amp == 0.0:
         return NoiseEstimate(0.0, 0.0, False, None)
-    s: dict[int, float] = {}
+    sums = torch.zeros((2, top + 1), dtype=torch.float64)  # per order: squared differences, their count
     diffs = [f.values for f in fields]
     for k in range(1, top + 1):
         diffs = [d[1:] - d[:-1] for d in diffs]
-        sq = sum(float((d**2).sum()) for d in diffs)
-        count = sum(d.numel() for d in diffs)
-        s[k] = math.sqrt(sq / count / math.comb(2 * k, k))
+        sums[0, k] = sum(float((d**2).sum()) for d in diffs)
+        sums[1, k] = sum(d.numel() for d in diffs)
+    if pooled:
+        sums = _dist.all_sum(sums)
+    s = {k: math.sqrt(float(sums[0, k]) / float(sums[1, k]) / math.comb(2 * k, k)) for k in range(1, top + 1)}
     for k in range(2, top - SPAN + 2):
         run = [s[j] for j in range(k, k + SPAN)]
         if min(run) > 0 and max(run) <= (1 + AGREE) * min(run):
@@ -312,10 +322,13 @@ def learn_noisy(
     iterative model's refits start from its previous weights). Returns the report (its ``noise`` records the
     estimate and what was done) and the training data of the last fit (the corrected fields when corrected),
     on which an ensemble's resampled members learn."""
-    fields = data.fields
-    amp = max(float(f.values.abs().max()) for f in fields) or 1.0
-    given = None if sigma is None else NoiseEstimate(float(sigma), float(sigma) / amp, True, None)
-    est = estimate_noise(fields) if given is None else given
+    share = _share(data)
+    if sigma is None:
+        est = _estimate(share, min(src.shape[0] for src in data.sources), pooled=True)
+    else:
+        amp = max((float(f.values.abs().max()) for f in share), default=0.0)
+        amp = float(_dist.all_max(torch.tensor([amp], dtype=torch.float64))[0]) or 1.0
+        est = NoiseEstimate(float(sigma), float(sigma) / amp, True, None)
     report = fit(data)
     wanted = mode == "correct" or (mode == "auto" and est.significant)
     info: dict[str, Any] = {
@@ -332,7 +345,7 @@ def learn_noisy(
     warnings = list(report.warnings)
     used = data
     if wanted:
-        current = fields
+        current = fields = data.fields  # the correction moves every field, in every process
         for k in range(ROUNDS):
             current = correct_fields(model, fields, current, STRENGTH * STRENGTH_GROWTH**k)
             used = make(current)
@@ -355,6 +368,15 @@ def learn_noisy(
             "less affected (a stride of k divides the share by about k^2 while it is small)"
         )
     return replace(report, noise=info, warnings=warnings), used
+
+
+def _share(data: TrainingData) -> list[LatticeField]:
+    """This process's share of the training fields (field ``i`` goes to rank ``i mod N``), read for the
+    noise estimate (every field without a process group)."""
+    rank, size = _dist.world()
+    if size == 1 or data._fields is not None:  # one process, or every field already in memory
+        return data.fields[rank::size]
+    return [src.load() for src in data.sources[rank::size]]
 
 
 def denoised_start(model: AbstractLagrangian, init: xr.DataArray, slices: int = DENOISE_SLICES) -> xr.DataArray:

@@ -44,8 +44,9 @@ from .._serve._slabkrylov import lu_refusal
 from .._serve._stream import _with_slice_coord
 from ._data import TaskData
 from ._meter import TaskMeter
+from ._splitckpt import served, split_checkpoint
 
-__all__ = ["Split", "check_split", "serve_split", "split_refusal"]
+__all__ = ["Split", "check_split", "serve_split", "skip_task", "split_refusal"]
 
 log = logging.getLogger("latticedft")
 
@@ -57,13 +58,18 @@ def split_refusal(model: AbstractLagrangian | None, td: TaskData) -> str | None:
     reasons = (
         (len(lattice_dims(td.init)) < 2, "a 1D trajectory has no spatial axis to split"),
         (td.slices <= 2, "it serves no slice"),
-        (bool(opts.checkpoint), "it writes checkpoints (checkpoint)"),
         (opts.mode != "newton" or not opts.affine, "only the affine recurrence and slice-Newton split (mode, affine)"),
         (opts.boundary_value is not None, "its boundary_value is a function of the whole lattice"),
         (_denoised(model, td), "its start is denoised on the whole lattice"),
         (isinstance(model, EnsembleLagrangian), "an ensemble is served whole"),
     )
     return next((why for cond, why in reasons if cond), None)
+
+
+def skip_task(model: AbstractLagrangian, td: TaskData) -> None:
+    """Rank 0, under ``--resume``: a task done before the run stopped, which the others skip too when split."""
+    if is_parallel() and split_refusal(model, td) is None:
+        served(True, skip=True)
 
 
 def _denoised(model: AbstractLagrangian | None, td: TaskData) -> bool:
@@ -203,6 +209,15 @@ class _SlabErrors:
         self.count += d.size
         self.compared = i + 1
 
+    def own(self) -> tuple[float, float, float, int, int]:
+        """This process's figures (a checkpoint carries them)."""
+        return self.worst, self.sum_sq, self.ref_max, self.count, self.compared
+
+    def put(self, own: tuple[float, float, float, int, int] | None) -> None:
+        """Go on from ``own`` (None: the figures were not this process's; rank 0 goes on from the totals)."""
+        if own is not None:
+            self.worst, self.sum_sq, self.ref_max, self.count, self.compared = own
+
     def reduced(self) -> tuple[dict[str, float], float]:
         worst, ref_max, sum_sq, count = _reduce_errors(self.worst, self.ref_max, self.sum_sq, self.count)
         rms = math.sqrt(sum_sq / count) if count else math.nan
@@ -231,23 +246,36 @@ def _baseline_errors(td: TaskData, slab: Slab, slices: int) -> dict[str, float]:
     return {"max_error": worst, "rms_error": math.sqrt(sum_sq / total) if total else math.nan, "slices": slices}
 
 
-def serve_split(model: AbstractLagrangian, td: TaskData, init: xr.DataArray, part: Any = None) -> Split:
+def serve_split(
+    model: AbstractLagrangian,
+    td: TaskData,
+    init: xr.DataArray,
+    part: Any = None,
+    resumed: bool = False,
+    resume: bool = False,
+) -> Split:
     """Serve ``td`` over the processes (every process calls it); rank 0 gets its :class:`Split`, the others
     one without result. A task served in one process instead (by rank 0: its ``result`` None in every
-    process) has the reason in its ``decomposition``. A task with an output cadence is measured on every
-    slice by rank 0 (:class:`_Whole`), which hands its kept slices to ``part`` (the task's part file)."""
+    process) has the reason in its ``decomposition``. A task with an output cadence or checkpoints is
+    measured on every slice by rank 0 (:class:`_Whole`), which hands its kept slices to ``part`` (the task's
+    part file) and writes the checkpoints (``_splitckpt``), going on from the last one when ``resumed``.
+    ``resume``: the command's ``--resume`` (in every process; the tasks done before are skipped)."""
     why = split_refusal(model, td)
+    if why is None and not served(resume):
+        return Split(result=None, errors=None, baseline=None)
     if why is None:
         t0 = time.perf_counter()
         report: dict[str, Any] = {}
         meter = _SlabErrors(td.reference)
-        whole = _Whole(model, td, part) if td.task.cadence.thins and world()[0] == 0 else None
+        whole_slices = td.task.cadence.thins or bool(td.task.options.checkpoint)
+        whole = _Whole(model, td, part) if whole_slices and world()[0] == 0 else None
+        ckpt = split_checkpoint(td, meter, whole, part, resumed) if td.task.options.checkpoint else None
         stopped = None
         try:
             got = _serve_slabs(
                 model, init, td.slices, boundary=td.task.boundary, rtol=td.task.options.rtol,
                 max_newton=td.task.options.max_newton, on_slab=meter, report=report, solver=td.task.options.solver,
-                every=td.task.cadence.every, on_slice=whole or (_ignore if td.task.cadence.thins else None),
+                every=td.task.cadence.every, on_slice=whole or (_ignore if whole_slices else None), checkpoint=ckpt,
             )  # fmt: skip
         except SlabError as exc:  # the same in every process; rank 0 holds what was served before it
             if report:

@@ -143,7 +143,7 @@ def serve_task(
     if stage is not None and (t.cadence.thins or t.options.checkpoint):
         part, resumed = open_part(stage, t.name, variable, td.init, t.cadence.every, resume)
     try:
-        served = _serve(model, td, device, part, resumed)
+        served = _serve(model, td, device, part, resumed, resume)
     finally:
         if part is not None:
             part.close()
@@ -182,9 +182,12 @@ class _Served:
 
 
 # -- serve ----------------------------------------------------------------------------------------------------
-def _serve(model: AbstractLagrangian, td: TaskData, device: str, part: PartFile | None, resumed: bool) -> _Served:
+def _serve(
+    model: AbstractLagrangian, td: TaskData, device: str, part: PartFile | None, resumed: bool, resume: bool = False
+) -> _Served:
     """Serve ``td`` with the task's options; with an output cadence (or checkpoints), a meter measures every
-    slice as it is served and hands each kept slice to ``part`` (and each checkpoint to its ``checkpointer``)."""
+    slice as it is served and hands each kept slice to ``part`` (and each checkpoint to its ``checkpointer``).
+    ``resumed``: the task goes on from its checkpoint; ``resume``: the command's ``--resume``."""
     t = td.task
     t0 = time.perf_counter()
     stopped = ""
@@ -195,7 +198,7 @@ def _serve(model: AbstractLagrangian, td: TaskData, device: str, part: PartFile 
         if part is not None and t.options.checkpoint:
             meter.checkpointer = TaskCheckpoint(part, meter, t.name, resumed)
     init, start = _start(model, td)
-    split = serve_split(model, td, init, part) if is_parallel() else None
+    split = serve_split(model, td, init, part, resumed, resume) if is_parallel() else None
     if split is not None and split.result is not None:
         return _Served(split.result, time.perf_counter() - t0, split.stopped, start, split.meter, split)
     try:

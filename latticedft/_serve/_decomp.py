@@ -45,6 +45,7 @@ from .._lattice import LatticeField, as_lattice_field, gather_cells
 from .._layout import lattice_dims
 from .._models import AbstractLagrangian
 from ._affine import _AffineSlices, _slice_residuals
+from ._checkpoint import keep_factored
 from ._edges import known_slices
 from ._flag import Failure, Flag, SlabError
 from ._newton import _newton_slice
@@ -201,6 +202,12 @@ class _SlabNewton:
         self.g_prev: torch.Tensor | None = None
         self.total_it, self.max_it = 0, 0
 
+    def refactor(self, blocks: dict[tuple[int, int], torch.Tensor], target: float) -> None:
+        """The factorisation of a checkpoint's Hessian blocks (a resumed run's chord steps), in every process."""
+        solver = self.cache.get("solver", "auto")
+        self.cache["solve"], _ = self.cache["factor"](self.sys, blocks, self.vol, solver, target)
+        self.cache["factored"] = (blocks, target)
+
     def cells_at(self, k: int) -> torch.Tensor:
         """The cells anchored on window row ``k`` (the unknown slice's halo exchanged first)."""
         if k == 2:
@@ -265,6 +272,7 @@ def serve_slabs(
     report: dict[str, Any] | None = None,
     solver: str = "auto",
     on_slice: Callable[[int, np.ndarray], None] | None = None,
+    checkpoint: Any = None,
 ) -> xr.DataArray | None:
     """Serve ``init`` (every slice held for Dirichlet strips; a periodic field needs two) over the processes of
     the group, one slab each; rank 0 gets the kept slices ``0, every, ...`` and the last, the others None.
@@ -276,6 +284,8 @@ def serve_slabs(
     ``solver`` is slice-Newton's linear solver (``"auto"``, ``"sitewise"`` or ``"krylov"``; ``"lu"`` is
     refused). ``on_slice(i, values)``, when given, sees on rank 0 every slice ``i`` whole (``(planes, ...,
     components)``, gathered slice by slice: the measurements a process makes on whole slices).
+    ``checkpoint`` (a :class:`._slabstate.SlabCheckpoint`, in every process) puts back the state it holds and
+    writes the checkpoints; the slices served before a resumed run's checkpoint are not seen again.
 
     A failure in any process (slice-Newton not converging, or an exception of one process alone) stops every
     process with the same :class:`SlabError` (:mod:`._flag`), whose ``result`` on rank 0 is the field served
@@ -287,6 +297,8 @@ def serve_slabs(
             if solver == "lu":
                 raise lu_refusal()
             run = _SlabRun(model, init, slices, boundary, every, flag, solver)
+            if checkpoint is not None:
+                run.checkpointed(checkpoint)
             run.serve(rtol, max_newton, on_slab, on_slice)
             flag.maxima()  # the gate before the gather: a process that failed after the last test says so
         except SlabError:
@@ -343,6 +355,14 @@ class _SlabRun:
         self.known = None if sys.interior.all() else np.repeat(~sys.interior, f.ncomp)
         self.shape = (len(slab.local), *f.shape[2:], f.ncomp)
         self.done, self.worst = 1, 0.0
+        self.on_done: Callable[[_SlabRun], None] | None = None
+
+    def checkpointed(self, checkpoint: Any) -> None:
+        """Write checkpoints by ``checkpoint`` (after each slice) and go on from the state it holds."""
+        if self.newton is not None:
+            keep_factored(self.newton.cache)
+        checkpoint.start(self)
+        self.on_done = checkpoint
 
     def own(self, row: int) -> np.ndarray:
         """Window row ``row`` on the slab's own planes, ``(planes, ..., components)``."""
@@ -357,11 +377,11 @@ class _SlabRun:
     ) -> None:
         """Serve every slice (``on_slab`` sees each on the slab's planes, ``on_slice`` on rank 0 whole)."""
         window = self.window
-        for k in range(2):
+        for k in range(2 if self.done == 1 else 0):  # a resumed run: served from its checkpoint's slice on
             if on_slab is not None:
                 on_slab(k, self.slab, self.own(k + 1))
             self.whole(k, k + 1, on_slice)
-        for i in range(1, self.slices - 1):
+        for i in range(self.done, self.slices - 1):
             self.step(i, rtol, max_newton)
             if on_slab is not None:
                 on_slab(i + 1, self.slab, self.own(3))
@@ -370,6 +390,8 @@ class _SlabRun:
                 self.kept.append(window[3].copy())
             window[:3] = window[1:]
             self.done = i + 1
+            if self.on_done is not None:
+                self.on_done(self)
 
     def whole(self, k: int, row: int, on_slice: Callable[[int, np.ndarray], None] | None) -> None:
         """Slice ``k`` (window row ``row``) gathered whole to rank 0's ``on_slice`` (after a gate)."""

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -137,17 +138,62 @@ class SlabSolver:
         sys, m = self.sys, self.sys.m
         unk = np.nonzero(sys.interior)[0]
 
-        def matvec(v: np.ndarray) -> np.ndarray:
-            full = np.zeros((sys.nsite, m))
-            full[unk] = v.reshape(-1, m)
-            self.exchange(full.reshape(-1))
-            return own @ v + halo @ full[self.held].reshape(-1)
+        def scatter(v: np.ndarray) -> np.ndarray:
+            full = np.zeros(sys.nsite * m)
+            full.reshape(sys.nsite, m)[unk] = v.reshape(-1, m)
+            return full
 
         def solve(rhs: np.ndarray) -> np.ndarray:
             self.maxima()  # the gate before the solve's exchanges and sums
-            return gmres(matvec, prec, rhs, prec(rhs), 0.1 * target)
+            guard = Guard(self.maxima)
+
+            def matvec(v: np.ndarray) -> np.ndarray:
+                full = guard.local(scatter, v, np.zeros(sys.nsite * m))
+                self.exchange(full)  # every process takes part, one that failed too (its planes are zeros)
+                held = full.reshape(sys.nsite, m)[self.held].reshape(-1)
+                return guard.local(lambda x: own @ x + halo @ held, v, v)
+
+            pre = partial(guard.local, prec)
+            return gmres(matvec, lambda v: pre(v, v), rhs, pre(rhs, rhs), 0.1 * target, sums=guard.sums)
 
         return solve
+
+
+class Guard:
+    """The local work of one GMRES solve over the processes, and its sums, flagged.
+
+    A process whose local work (a product with its rows of the Jacobian, the preconditioner) raises does not
+    leave the solve: it keeps its failure, goes on with zeros through the exchanges, and raises its flag in
+    the solve's next sum (every sum carries one, and every exchange comes after a sum), where every process
+    learns of it; then the failing process raises its own error and the others meet it in ``maxima``, the
+    split serve's flagged all-reduce (``_flag.Flag``), which raises the same error in every process."""
+
+    def __init__(self, maxima: Callable[..., tuple[float, ...]]):
+        self.maxima = maxima
+        self.error: Exception | None = None
+
+    def local(self, fn: Callable[[np.ndarray], np.ndarray], v: np.ndarray, like: np.ndarray) -> np.ndarray:
+        """``fn(v)``, or zeros like ``like`` once this process failed (now or before, in this solve)."""
+        if self.error is None:
+            try:
+                return fn(v)
+            except Exception as exc:  # told at the next sum
+                self.error = exc
+        return np.zeros_like(like)
+
+    def sums(self, values: np.ndarray) -> np.ndarray:
+        """``values`` summed over the processes, with the flag; a failure of any process raised in every one."""
+        failed = float(self.error is not None)
+        if world()[1] > 1:
+            t = torch.from_numpy(np.append(np.asarray(values, dtype=np.float64), failed)).to(group_device())
+            dist.all_reduce(t, op=dist.ReduceOp.SUM)
+            got = t.cpu().numpy()
+            values, failed = got[:-1], float(got[-1])
+        if failed:
+            if self.error is not None:
+                raise self.error  # the serve reports it to the others, as any failure of its own
+            self.maxima()  # meets the failing process's report: raises its error
+        return values
 
 
 def _sums(values: np.ndarray) -> np.ndarray:
@@ -159,10 +205,6 @@ def _sums(values: np.ndarray) -> np.ndarray:
     return t.cpu().numpy()
 
 
-def _norm(v: np.ndarray) -> float:
-    return math.sqrt(float(_sums(np.array([v @ v]))[0]))
-
-
 def gmres(
     matvec: Callable[[np.ndarray], np.ndarray],
     prec: Callable[[np.ndarray], np.ndarray],
@@ -172,9 +214,15 @@ def gmres(
     rtol: float = GMRES_RTOL,
     restart: int = GMRES_RESTART,
     maxiter: int = GMRES_MAXITER,
+    sums: Callable[[np.ndarray], np.ndarray] = _sums,
 ) -> np.ndarray:
     """Restarted, right-preconditioned GMRES on vectors split over the processes (each its rows): the
-    one-process Krylov step's tolerances; an inexact step when it stops early (Newton's test decides)."""
+    one-process Krylov step's tolerances; an inexact step when it stops early (Newton's test decides).
+    ``sums`` sums over the processes (:meth:`Guard.sums`: flagged)."""
+
+    def _norm(v: np.ndarray) -> float:
+        return math.sqrt(float(sums(np.array([v @ v]))[0]))
+
     x = x0.copy()
     tol = max(rtol * _norm(b), atol)
     for _ in range(maxiter):
@@ -193,9 +241,9 @@ def gmres(
             w = matvec(z)
             zs.append(z)
             v = np.stack(basis, axis=1)
-            coef = _sums(v.T @ w)
+            coef = sums(v.T @ w)
             w = w - v @ coef
-            again = _sums(v.T @ w)  # classical Gram-Schmidt, twice: as stable as the modified one
+            again = sums(v.T @ w)  # classical Gram-Schmidt, twice: as stable as the modified one
             w, coef = w - v @ again, coef + again
             hn = _norm(w)
             h[: k + 1, k], h[k + 1, k] = coef, hn

@@ -36,9 +36,10 @@ def add_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
-def checkpointed_stage(dest: Path, command: str, case: Case, model: Path | None = None) -> Path:
+def checkpointed_stage(dest: Path, command: str, case: Case, model: Path | None = None, say: bool = True) -> Path:
     """The staging folder of ``dest`` that a killed checkpointed ``command`` left, checked against ``case`` and
-    the model file (``model``; default the staging folder's ``model.pt``); a one-line InputError otherwise."""
+    the model file (``model``; default the staging folder's ``model.pt``); a one-line InputError otherwise.
+    ``say``: log which folder is taken up."""
     from .._results import leftovers
     from .._run._resume import RESUME_FILE, Journal
 
@@ -51,7 +52,8 @@ def checkpointed_stage(dest: Path, command: str, case: Case, model: Path | None 
         )
     stage = max(found, key=lambda p: p.stat().st_mtime)
     Journal.read(stage).check(command, case, model or stage / "model.pt")
-    log.info("resuming the checkpointed run in %s", stage.name)
+    if say:
+        log.info("resuming the checkpointed run in %s", stage.name)
     return stage
 
 

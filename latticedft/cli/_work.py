@@ -28,6 +28,7 @@ from .._results import (
     write_task,
 )
 from .._run import CaseData, TaskOutcome, case_calibration, serve_task, train_model
+from .._run._split import skip_task
 from ..io.exporters import remove_exports
 from ._common import INCOMPLETE, OK, WARNED, command_line
 
@@ -142,6 +143,7 @@ def serve_into(
         if resume and journal is not None and td.task.name in journal.done:  # served before the run stopped
             tasks[td.task.name] = journal.done[td.task.name]
             owners.update({f: td.task.name for f in tasks[td.task.name].get("exports") or []})
+            skip_task(model, td)  # the other processes skip it too
             continue
         out: TaskOutcome = serve_task(
             model,

@@ -37,6 +37,7 @@ __all__ = [
     "add_argument",
     "end_process",
     "supervise",
+    "starts_group",
     "is_helper",
     "join",
     "leave",
@@ -86,6 +87,11 @@ def _free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def starts_group(args: argparse.Namespace) -> bool:
+    """True when :func:`supervise` starts the processes (``--workers N > 1`` outside a process group)."""
+    return int(getattr(args, "workers", 1)) > 1 and _rank_env()[1] == 1
 
 
 def supervise(args: argparse.Namespace, argv: list[str]) -> int | None:
@@ -247,17 +253,18 @@ def _splits(data: Any, model: Any) -> bool | None:
         return None
 
 
-def serve_share(model: Any, data: Any) -> None:
-    """A helper rank's part of serving: its slab of every task that is split (rank 0 serves the others)."""
+def serve_share(model: Any, data: Any, resume: bool = False) -> None:
+    """A helper rank's part of serving: its slab of every task that is split (rank 0 serves the others; under
+    ``resume`` it says which tasks were done before the run stopped)."""
     from .._run._split import serve_split
 
     for td in data.tasks:
-        serve_split(model, td, td.init)
+        serve_split(model, td, td.init, resume=resume)
 
 
-def serve_only(case: Case, dest: Any) -> int:
+def serve_only(case: Case, dest: Any, resume: bool = False) -> int:
     """A helper rank's whole work in ``serve``: read the case and the model, serve its slab of every task that
-    is split, write nothing."""
+    is split (``resume``: of the run ``--resume`` continues), write nothing."""
     from .._results import load_verified_model
     from .._run import check_case
     from ._common import set_threads
@@ -268,6 +275,6 @@ def serve_only(case: Case, dest: Any) -> int:
     if not _splits(data, model):
         return OK  # no task is split (rank 0 serves them), or bad input (rank 0 says why)
     join("cpu", "serving")
-    serve_share(model, data)
+    serve_share(model, data, resume)
     leave()
     return OK

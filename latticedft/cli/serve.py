@@ -8,7 +8,6 @@ import time
 
 from . import _resume, _workers
 from ._common import (
-    OK,
     add_case_arguments,
     add_device_argument,
     checked_data,
@@ -39,14 +38,18 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
     from .._run._split import check_split
     from ._work import finish, serve_into
 
-    if not args.resume and (status := _workers.supervise(args, argv)) is not None:
+    if args.resume and _workers.starts_group(args):  # a bad --resume is refused before the processes start
+        case = open_case(args)
+        dest = results_dir(args, case)
+        _resume.checkpointed_stage(dest, "serve", case, dest / "model.pt", say=False)
+    if (status := _workers.supervise(args, argv)) is not None:
         return status
     t0 = time.perf_counter()
     case = open_case(args)
     refuse_learning_overrides(case, "serve")
     dest = results_dir(args, case)
-    if _workers.is_helper():  # its slab of each split task; a resumed run is rank 0's alone
-        return OK if args.resume else _workers.serve_only(case, dest)
+    if _workers.is_helper():  # its slab of each split task
+        return _workers.serve_only(case, dest, resume=args.resume)
     with hold_results(dest, keep=RESUME_FILE if args.resume else None):
         require_results(dest, "model.pt")
         model = load_verified_model(dest)
@@ -54,9 +57,9 @@ def main(args: argparse.Namespace, argv: list[str]) -> int:
         old = read_summary(dest) or {}
         set_threads(case)
         data = checked_data(case, dest, train=False)
+        stage = _resume.checkpointed_stage(dest, "serve", case, dest / "model.pt") if args.resume else None
         if check_split(data.tasks, model):  # some task is split: the group serves it
             _workers.join("cpu", "serving")
-        stage = _resume.checkpointed_stage(dest, "serve", case, dest / "model.pt") if args.resume else None
         with staged_results(dest, copy_existing=True, adopt=stage, keep=RESUME_FILE) as folder:
             case = run_device(case)  # in run.log too
             log.debug("serving with %s", dest / "model.pt")
