@@ -6,21 +6,40 @@ No timing is asserted: the benchmarks are run by hand (docs/performance.md).
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-@pytest.mark.slow
-def test_quick_run_prints_every_table_and_writes_results(tmp_path):
+@dataclass
+class Quick:
+    """One run of ``python -m benchmarks --quick --out DIR``: what it printed, its results.json, DIR."""
+
+    out: str
+    results: dict[str, Any]
+    folder: Path
+
+    def table(self, name: str) -> dict[str, Any]:
+        """The table of benchmark ``name`` as results.json holds it (``Table.to_dict``)."""
+        return next(b for b in self.results["benchmarks"] if b["name"] == name)
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory: pytest.TempPathFactory) -> Quick:
+    """The runner's ``--quick`` tables, run once for every test of this module that reads them."""
+    folder = tmp_path_factory.mktemp("quick")
     env = dict(os.environ, OMP_NUM_THREADS="1")
     proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks", "--quick", "--out", str(tmp_path)],
+        [sys.executable, "-m", "benchmarks", "--quick", "--out", str(folder)],
         cwd=ROOT,
         env=env,
         capture_output=True,
@@ -29,7 +48,12 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         check=False,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
-    out = proc.stdout
+    return Quick(proc.stdout, json.loads((folder / "results.json").read_text()), folder)
+
+
+@pytest.mark.slow
+def test_quick_run_prints_every_table_and_writes_results(quick: Quick) -> None:
+    out, tmp_path = quick.out, quick.folder
     for title in (
         "1+1D serving",
         "2+1D serving",
@@ -47,7 +71,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "Targets",
     ):
         assert f"== {title}" in out, f"table {title!r} missing from:\n{out}"
-    results = json.loads((tmp_path / "results.json").read_text())
+    results = quick.results
     names = [b["name"] for b in results["benchmarks"]]
     assert names == [
         "serve-1+1d",
@@ -100,11 +124,8 @@ def test_every_runner_module_is_listed_here():
     assert ALONE == BENCHMARKS
 
 
-@pytest.mark.parametrize("module", ALONE)
-def test_each_module_runs_alone(module):
-    """Every module answers ``--help`` alone with its own usage (its ``--quick`` tables are the runner's, run
-    once above: running each again alone would double the suite's longest test)."""
-    proc = subprocess.run(
+def _help(module: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
         [sys.executable, "-m", f"benchmarks.{module}", "--help"],
         cwd=ROOT,
         capture_output=True,
@@ -112,6 +133,21 @@ def test_each_module_runs_alone(module):
         timeout=600,
         check=False,
     )
+
+
+@pytest.fixture(scope="module")
+def helps() -> dict[str, subprocess.CompletedProcess[str]]:
+    """``python -m benchmarks.<module> --help`` of every module, each in its own fresh Python, four at a time
+    (each start imports torch: seconds of one core)."""
+    with ThreadPoolExecutor(4) as pool:
+        return dict(zip(ALONE, pool.map(_help, ALONE)))
+
+
+@pytest.mark.parametrize("module", ALONE)
+def test_each_module_runs_alone(helps: dict[str, subprocess.CompletedProcess[str]], module: str) -> None:
+    """Every module answers ``--help`` alone with its own usage (its ``--quick`` tables are the runner's, run
+    once above: running each again alone would double the suite's longest test)."""
+    proc = helps[module]
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.startswith("usage:") and "--quick" in proc.stdout, proc.stdout[-3000:]
 
@@ -133,22 +169,47 @@ def test_a_module_alone_prints_its_table():
     assert "== 2+1D serving" in proc.stdout, proc.stdout[-3000:]
 
 
-def test_calibration_quick_prints_one_row_with_its_columns_and_targets():
-    """``python -m benchmarks.calibration --quick``: one small case, the table's structure (no timing)."""
-    from benchmarks.calibration import Config, run
-
-    table = run(Config(quick=True))
-    assert table.columns[:6] == ["row", "noise", "tests", "slices", "coverage, single", "std/error, single"]
-    assert "cost" in table.columns and "coverage, ensemble" in table.columns
-    assert len(table.rows) == 1 and table.rows[0][0] == "oscillator-sin"
-    row = table.rows[0]
-    assert len(row) == len(table.columns), row
+@pytest.mark.slow
+def test_calibration_quick_prints_one_row_with_its_columns_and_targets(quick: Quick) -> None:
+    """The runner's ``--quick`` calibration table (``benchmarks.calibration.run(Config(quick=True))``): one small
+    case, the table's structure (no timing)."""
+    table = quick.table("calibration")
+    columns, rows = table["columns"], table["rows"]
+    assert columns[:6] == ["row", "noise", "tests", "slices", "coverage, single", "std/error, single"]
+    assert "cost" in columns and "coverage, ensemble" in columns
+    assert len(rows) == 1 and rows[0][0] == "oscillator-sin"
+    row = rows[0]
+    assert len(row) == len(columns), row
     assert 0 <= row[4] <= 1 and row[5] > 0 and 0 <= row[6] <= 1
-    assert [c.target for c in table.checks] == [
+    assert [c["target"] for c in table["checks"]] == [
         "single: 2-sigma coverage 80-99 % and std/error 0.5-2",
         "ensemble: 2-sigma coverage 80-99 % and std/error 0.5-2",
         "cost of calibration <= 1.5x selection alone",
     ]
+
+
+@pytest.mark.slow
+def test_discovery_quick_table_and_its_pendulum_row(quick: Quick) -> None:
+    """The runner's ``--quick`` discovery table (the pendulum, Kepler after 50 and 200 steps, sine-Gordon 1+1D;
+    no peers): its columns, and the pendulum's row against the true leapfrog (no timing)."""
+    from benchmarks import discovery
+
+    table = quick.table("discovery")
+    assert table["columns"] == discovery.COLUMNS
+    rows = [dict(zip(table["columns"], r)) for r in table["rows"]]
+    assert [r["system"] for r in rows] == [
+        "pendulum",
+        "Kepler, one orbit (50 steps)",
+        "Kepler, one orbit (200 steps)",
+        "sine-Gordon 1+1D",
+    ]
+    row = rows[0]
+    assert row["leapfrog"] == pytest.approx(1.67e-3, rel=0.05)  # the true leapfrog at h = 0.1, 150 steps
+    assert math.isfinite(row["served"]) and row["ratio"] == pytest.approx(row["served"] / row["leapfrog"])
+    assert row["cost"] == pytest.approx(row["fit (s)"] / row["dense (s)"])
+    assert row["terms"] == "n/a: no closed form" or "/" in row["terms"]
+    assert any("load average" in n for n in table["notes"])
+    assert len(table["checks"]) == 3 and all(isinstance(c["met"], bool) for c in table["checks"])
 
 
 def test_unknown_benchmark_is_refused():
