@@ -10,7 +10,8 @@ import math
 import os
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,22 +34,74 @@ class Quick:
         return next(b for b in self.results["benchmarks"] if b["name"] == name)
 
 
-@pytest.fixture(scope="module")
-def quick(tmp_path_factory: pytest.TempPathFactory) -> Quick:
-    """The runner's ``--quick`` tables, run once for every test of this module that reads them."""
-    folder = tmp_path_factory.mktemp("quick")
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks", "--quick", "--out", str(folder)],
+def _python(*argv: str, timeout: float = 1200) -> subprocess.CompletedProcess[str]:
+    """``python ARGV`` in a fresh Python at the repository's root, one thread."""
+    return subprocess.run(
+        [sys.executable, *argv],
         cwd=ROOT,
-        env=env,
+        env=dict(os.environ, OMP_NUM_THREADS="1"),
         capture_output=True,
         text=True,
-        timeout=3600,  # a guard against a hang only: on a busy machine the quick run takes minutes
+        timeout=timeout,
         check=False,
     )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return Quick(proc.stdout, json.loads((folder / "results.json").read_text()), folder)
+
+
+def _commands() -> dict[str, tuple[str, ...]]:
+    """The short commands of this module by name, each run in its own fresh Python (each start imports torch:
+    seconds of one core)."""
+    cmds = {f"help {m}": ("-m", f"benchmarks.{m}", "--help") for m in ALONE}
+    cmds["alone"] = ("-m", "benchmarks.serve_2p1d", "--quick")
+    cmds["unknown"] = ("-m", "benchmarks", "--only", "nope")
+    cmds["noise"] = ("-m", "benchmarks.noise", "duffing", "kepler-coarse", "--ratios", "--sigmas", "1e-3,1e-2")
+    return cmds
+
+
+@dataclass
+class Started:
+    """The runner's ``--quick`` run and the short commands, started together: the runner keeps one core busy
+    (one thread) while the short commands run one after another beside it."""
+
+    runner: subprocess.Popen[str]
+    folder: Path  # the runner's --out
+    log: Path  # its stdout and stderr
+    pool: ThreadPoolExecutor
+    jobs: dict[str, Future[subprocess.CompletedProcess[str]]]
+
+    def result(self, name: str) -> subprocess.CompletedProcess[str]:
+        return self.jobs[name].result()
+
+
+@pytest.fixture(scope="module")
+def started(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Started]:
+    folder, log = tmp_path_factory.mktemp("quick"), tmp_path_factory.mktemp("quick-log")
+    with open(log / "stdout", "w") as out, open(log / "stderr", "w") as err:  # files: no pipe to fill up
+        runner = subprocess.Popen(
+            [sys.executable, "-m", "benchmarks", "--quick", "--out", str(folder)],
+            cwd=ROOT,
+            env=dict(os.environ, OMP_NUM_THREADS="1"),
+            stdout=out,
+            stderr=err,
+            text=True,
+        )
+    pool = ThreadPoolExecutor(1)
+    jobs = {name: pool.submit(_python, *argv) for name, argv in _commands().items()}
+    try:
+        yield Started(runner, folder, log, pool, jobs)
+    finally:
+        pool.shutdown(cancel_futures=True)
+        if runner.poll() is None:  # not waited for (a test chosen alone): stopped
+            runner.kill()
+            runner.wait()
+
+
+@pytest.fixture(scope="module")
+def quick(started: Started) -> Quick:
+    """The runner's ``--quick`` tables, run once for every test of this module that reads them."""
+    code = started.runner.wait(timeout=3600)  # a guard against a hang only: on a busy machine it takes minutes
+    assert code == 0, (started.log / "stderr").read_text()[-3000:]
+    out = (started.log / "stdout").read_text()
+    return Quick(out, json.loads((started.folder / "results.json").read_text()), started.folder)
 
 
 @pytest.mark.slow
@@ -124,47 +177,20 @@ def test_every_runner_module_is_listed_here():
     assert ALONE == BENCHMARKS
 
 
-def _help(module: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", f"benchmarks.{module}", "--help"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-        check=False,
-    )
-
-
-@pytest.fixture(scope="module")
-def helps() -> dict[str, subprocess.CompletedProcess[str]]:
-    """``python -m benchmarks.<module> --help`` of every module, each in its own fresh Python, four at a time
-    (each start imports torch: seconds of one core)."""
-    with ThreadPoolExecutor(4) as pool:
-        return dict(zip(ALONE, pool.map(_help, ALONE)))
-
-
 @pytest.mark.parametrize("module", ALONE)
-def test_each_module_runs_alone(helps: dict[str, subprocess.CompletedProcess[str]], module: str) -> None:
+def test_each_module_runs_alone(started: Started, module: str) -> None:
     """Every module answers ``--help`` alone with its own usage (its ``--quick`` tables are the runner's, run
     once above: running each again alone would double the suite's longest test)."""
-    proc = helps[module]
+    proc = started.result(f"help {module}")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.startswith("usage:") and "--quick" in proc.stdout, proc.stdout[-3000:]
 
 
 @pytest.mark.slow
-def test_a_module_alone_prints_its_table():
+def test_a_module_alone_prints_its_table(started: Started) -> None:
     """``python -m benchmarks.serve_2p1d --quick``: a module run alone prints its table (the shared path of the
     modules that are also in the runner)."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks.serve_2p1d", "--quick"],
-        cwd=ROOT,
-        env=dict(os.environ, OMP_NUM_THREADS="1"),
-        capture_output=True,
-        text=True,
-        timeout=1200,
-        check=False,
-    )
+    proc = started.result("alone")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "== 2+1D serving" in proc.stdout, proc.stdout[-3000:]
 
@@ -212,33 +238,18 @@ def test_discovery_quick_table_and_its_pendulum_row(quick: Quick) -> None:
     assert len(table["checks"]) == 3 and all(isinstance(c["met"], bool) for c in table["checks"])
 
 
-def test_unknown_benchmark_is_refused():
-    proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks", "--only", "nope"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-        check=False,
-    )
+def test_unknown_benchmark_is_refused(started: Started) -> None:
+    proc = started.result("unknown")
     assert proc.returncode == 2
     assert "unknown benchmark 'nope'" in proc.stderr
 
 
-def test_noise_benchmark_ratios_and_systems():
+def test_noise_benchmark_ratios_and_systems(started: Started) -> None:
     """``python -m benchmarks.noise --ratios`` prints the noise's share of the second differences; the Kepler
     systems sample the case's orbits at their own steps."""
     from benchmarks import noise
 
-    proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks.noise", "duffing", "kepler-coarse", "--ratios", "--sigmas", "1e-3,1e-2"],
-        cwd=ROOT,
-        env=dict(os.environ, OMP_NUM_THREADS="1"),
-        capture_output=True,
-        text=True,
-        timeout=1200,
-        check=False,
-    )
+    proc = started.result("noise")
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = [line for line in proc.stdout.splitlines() if line.startswith("| double-well") or "dt = 0.2" in line]
     assert len(rows) == 2
