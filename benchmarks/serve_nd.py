@@ -1,7 +1,7 @@
 """n-D serving by slice-Newton: the slice solvers (site-wise, Krylov, LU) against a hand-written numpy leapfrog.
 
 ``python -m benchmarks --only serve-nd``, or alone: ``python -m benchmarks.serve_nd [--quick]`` (``--quick``:
-tiny lattices, seconds).
+tiny lattices, the first kernel build timed in 1+1D only; seconds).
 """
 
 from __future__ import annotations
@@ -365,7 +365,7 @@ def run(cfg: Config) -> Table:
         ],
     )
     before = load_average()
-    builds = {d: _kernel_builds(d) for d in (1, 2, 3)}
+    builds = {d: _kernel_builds(d) for d in ((1,) if cfg.quick else (1, 2, 3))}  # quick: the build path once
     builds[0] = _folded_builds()
     worst: dict[str, float] = {}
     per_site: dict[str, list[float]] = {}

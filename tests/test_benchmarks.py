@@ -6,30 +6,107 @@ No timing is asserted: the benchmarks are run by hand (docs/performance.md).
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-@pytest.mark.slow
-def test_quick_run_prints_every_table_and_writes_results(tmp_path):
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks", "--quick", "--out", str(tmp_path)],
+@dataclass
+class Quick:
+    """One run of ``python -m benchmarks --quick --out DIR``: what it printed, its results.json, DIR."""
+
+    out: str
+    results: dict[str, Any]
+    folder: Path
+
+    def table(self, name: str) -> dict[str, Any]:
+        """The table of benchmark ``name`` as results.json holds it (``Table.to_dict``)."""
+        return next(b for b in self.results["benchmarks"] if b["name"] == name)
+
+
+def _python(*argv: str, timeout: float = 1200) -> subprocess.CompletedProcess[str]:
+    """``python ARGV`` in a fresh Python at the repository's root, one thread."""
+    return subprocess.run(
+        [sys.executable, *argv],
         cwd=ROOT,
-        env=env,
+        env=dict(os.environ, OMP_NUM_THREADS="1"),
         capture_output=True,
         text=True,
-        timeout=3600,  # a guard against a hang only: on a busy machine the quick run takes minutes
+        timeout=timeout,
         check=False,
     )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    out = proc.stdout
+
+
+def _commands() -> dict[str, tuple[str, ...]]:
+    """The short commands of this module by name, each run in its own fresh Python (each start imports torch:
+    seconds of one core)."""
+    cmds = {f"help {m}": ("-m", f"benchmarks.{m}", "--help") for m in ALONE}
+    cmds["alone"] = ("-m", "benchmarks.serve_2p1d", "--quick")
+    cmds["unknown"] = ("-m", "benchmarks", "--only", "nope")
+    cmds["noise"] = ("-m", "benchmarks.noise", "duffing", "kepler-coarse", "--ratios", "--sigmas", "1e-3,1e-2")
+    return cmds
+
+
+@dataclass
+class Started:
+    """The runner's ``--quick`` run and the short commands, started together: the runner keeps one core busy
+    (one thread) while the short commands run one after another beside it."""
+
+    runner: subprocess.Popen[str]
+    folder: Path  # the runner's --out
+    log: Path  # its stdout and stderr
+    pool: ThreadPoolExecutor
+    jobs: dict[str, Future[subprocess.CompletedProcess[str]]]
+
+    def result(self, name: str) -> subprocess.CompletedProcess[str]:
+        return self.jobs[name].result()
+
+
+@pytest.fixture(scope="module")
+def started(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Started]:
+    folder, log = tmp_path_factory.mktemp("quick"), tmp_path_factory.mktemp("quick-log")
+    with open(log / "stdout", "w") as out, open(log / "stderr", "w") as err:  # files: no pipe to fill up
+        runner = subprocess.Popen(
+            [sys.executable, "-m", "benchmarks", "--quick", "--out", str(folder)],
+            cwd=ROOT,
+            env=dict(os.environ, OMP_NUM_THREADS="1"),
+            stdout=out,
+            stderr=err,
+            text=True,
+        )
+    pool = ThreadPoolExecutor(1)
+    jobs = {name: pool.submit(_python, *argv) for name, argv in _commands().items()}
+    try:
+        yield Started(runner, folder, log, pool, jobs)
+    finally:
+        pool.shutdown(cancel_futures=True)
+        if runner.poll() is None:  # not waited for (a test chosen alone): stopped
+            runner.kill()
+            runner.wait()
+
+
+@pytest.fixture(scope="module")
+def quick(started: Started) -> Quick:
+    """The runner's ``--quick`` tables, run once for every test of this module that reads them."""
+    code = started.runner.wait(timeout=3600)  # a guard against a hang only: on a busy machine it takes minutes
+    assert code == 0, (started.log / "stderr").read_text()[-3000:]
+    out = (started.log / "stdout").read_text()
+    return Quick(out, json.loads((started.folder / "results.json").read_text()), started.folder)
+
+
+@pytest.mark.slow
+def test_quick_run_prints_every_table_and_writes_results(quick: Quick) -> None:
+    out, tmp_path = quick.out, quick.folder
     for title in (
         "1+1D serving",
         "2+1D serving",
@@ -47,7 +124,7 @@ def test_quick_run_prints_every_table_and_writes_results(tmp_path):
         "Targets",
     ):
         assert f"== {title}" in out, f"table {title!r} missing from:\n{out}"
-    results = json.loads((tmp_path / "results.json").read_text())
+    results = quick.results
     names = [b["name"] for b in results["benchmarks"]]
     assert names == [
         "serve-1+1d",
@@ -101,83 +178,78 @@ def test_every_runner_module_is_listed_here():
 
 
 @pytest.mark.parametrize("module", ALONE)
-def test_each_module_runs_alone(module):
+def test_each_module_runs_alone(started: Started, module: str) -> None:
     """Every module answers ``--help`` alone with its own usage (its ``--quick`` tables are the runner's, run
     once above: running each again alone would double the suite's longest test)."""
-    proc = subprocess.run(
-        [sys.executable, "-m", f"benchmarks.{module}", "--help"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-        check=False,
-    )
+    proc = started.result(f"help {module}")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.startswith("usage:") and "--quick" in proc.stdout, proc.stdout[-3000:]
 
 
 @pytest.mark.slow
-def test_a_module_alone_prints_its_table():
+def test_a_module_alone_prints_its_table(started: Started) -> None:
     """``python -m benchmarks.serve_2p1d --quick``: a module run alone prints its table (the shared path of the
     modules that are also in the runner)."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks.serve_2p1d", "--quick"],
-        cwd=ROOT,
-        env=dict(os.environ, OMP_NUM_THREADS="1"),
-        capture_output=True,
-        text=True,
-        timeout=1200,
-        check=False,
-    )
+    proc = started.result("alone")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "== 2+1D serving" in proc.stdout, proc.stdout[-3000:]
 
 
-def test_calibration_quick_prints_one_row_with_its_columns_and_targets():
-    """``python -m benchmarks.calibration --quick``: one small case, the table's structure (no timing)."""
-    from benchmarks.calibration import Config, run
-
-    table = run(Config(quick=True))
-    assert table.columns[:6] == ["row", "noise", "tests", "slices", "coverage, single", "std/error, single"]
-    assert "cost" in table.columns and "coverage, ensemble" in table.columns
-    assert len(table.rows) == 1 and table.rows[0][0] == "oscillator-sin"
-    row = table.rows[0]
-    assert len(row) == len(table.columns), row
+@pytest.mark.slow
+def test_calibration_quick_prints_one_row_with_its_columns_and_targets(quick: Quick) -> None:
+    """The runner's ``--quick`` calibration table (``benchmarks.calibration.run(Config(quick=True))``): one small
+    case, the table's structure (no timing)."""
+    table = quick.table("calibration")
+    columns, rows = table["columns"], table["rows"]
+    assert columns[:6] == ["row", "noise", "tests", "slices", "coverage, single", "std/error, single"]
+    assert "cost" in columns and "coverage, ensemble" in columns
+    assert len(rows) == 1 and rows[0][0] == "oscillator-sin"
+    row = rows[0]
+    assert len(row) == len(columns), row
     assert 0 <= row[4] <= 1 and row[5] > 0 and 0 <= row[6] <= 1
-    assert [c.target for c in table.checks] == [
+    assert [c["target"] for c in table["checks"]] == [
         "single: 2-sigma coverage 80-99 % and std/error 0.5-2",
         "ensemble: 2-sigma coverage 80-99 % and std/error 0.5-2",
         "cost of calibration <= 1.5x selection alone",
     ]
 
 
-def test_unknown_benchmark_is_refused():
-    proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks", "--only", "nope"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-        check=False,
-    )
+@pytest.mark.slow
+def test_discovery_quick_table_and_its_pendulum_row(quick: Quick) -> None:
+    """The runner's ``--quick`` discovery table (the pendulum, Kepler after 50 and 200 steps, sine-Gordon 1+1D;
+    no peers): its columns, and the pendulum's row against the true leapfrog (no timing)."""
+    from benchmarks import discovery
+
+    table = quick.table("discovery")
+    assert table["columns"] == discovery.COLUMNS
+    rows = [dict(zip(table["columns"], r)) for r in table["rows"]]
+    assert [r["system"] for r in rows] == [
+        "pendulum",
+        "Kepler, one orbit (50 steps)",
+        "Kepler, one orbit (200 steps)",
+        "sine-Gordon 1+1D",
+    ]
+    row = rows[0]
+    assert row["leapfrog"] == pytest.approx(1.67e-3, rel=0.05)  # the true leapfrog at h = 0.1, 150 steps
+    assert math.isfinite(row["served"]) and row["ratio"] == pytest.approx(row["served"] / row["leapfrog"])
+    assert row["cost"] == pytest.approx(row["fit (s)"] / row["dense (s)"])
+    assert row["terms"] == "n/a: no closed form" or "/" in row["terms"]
+    assert any("load average" in n for n in table["notes"])
+    assert len(table["checks"]) == 3 and all(isinstance(c["met"], bool) for c in table["checks"])
+
+
+def test_unknown_benchmark_is_refused(started: Started) -> None:
+    proc = started.result("unknown")
     assert proc.returncode == 2
     assert "unknown benchmark 'nope'" in proc.stderr
 
 
-def test_noise_benchmark_ratios_and_systems():
+def test_noise_benchmark_ratios_and_systems(started: Started) -> None:
     """``python -m benchmarks.noise --ratios`` prints the noise's share of the second differences; the Kepler
     systems sample the case's orbits at their own steps."""
     from benchmarks import noise
 
-    proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks.noise", "duffing", "kepler-coarse", "--ratios", "--sigmas", "1e-3,1e-2"],
-        cwd=ROOT,
-        env=dict(os.environ, OMP_NUM_THREADS="1"),
-        capture_output=True,
-        text=True,
-        timeout=1200,
-        check=False,
-    )
+    proc = started.result("noise")
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = [line for line in proc.stdout.splitlines() if line.startswith("| double-well") or "dt = 0.2" in line]
     assert len(rows) == 2

@@ -1,4 +1,5 @@
-"""The discovery benchmark: its table, the leapfrog baseline of the true equations and the term comparison.
+"""The discovery benchmark: the leapfrog baseline of the true equations and the term comparison (its quick table:
+tests/test_benchmarks.py, from the runner's ``--quick`` run).
 
 No timing is asserted.
 """
@@ -14,7 +15,6 @@ import sympy
 
 from benchmarks import _discovery_systems as systems
 from benchmarks import discovery
-from benchmarks._common import Config
 from benchmarks._terms import coefficient_error, normalised_terms
 from latticedft._symbolic import SymbolicLd, cell_symbols
 
@@ -99,20 +99,6 @@ def test_field_leapfrog_reproduces_the_lattice_equation():
     ref = np.asarray(system.test.values)
     err = np.abs(system.leapfrog(system.test, 40) - ref[:40]).max()
     assert 0 < err < 1e-2
-
-
-def test_quick_table_on_one_system():
-    table = discovery.run(Config(quick=True), ("pendulum",), peers=False)
-    assert table.columns == discovery.COLUMNS
-    assert len(table.rows) == 1
-    row = dict(zip(table.columns, table.rows[0]))
-    assert row["system"] == "pendulum"
-    assert row["leapfrog"] == pytest.approx(1.67e-3, rel=0.05)  # the true leapfrog at h = 0.1, 150 steps
-    assert math.isfinite(row["served"]) and row["ratio"] == pytest.approx(row["served"] / row["leapfrog"])
-    assert row["cost"] == pytest.approx(row["fit (s)"] / row["dense (s)"])
-    assert row["terms"] == "n/a: no closed form" or "/" in row["terms"]
-    assert any("load average" in n for n in table.notes)
-    assert len(table.checks) == 3 and all(isinstance(c.met, bool) for c in table.checks)
 
 
 def test_peer_rows_say_not_installed_when_the_peers_are_missing(monkeypatch):
