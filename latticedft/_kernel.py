@@ -667,9 +667,10 @@ def cached_module(
     return mod
 
 
-def write_module(key: str, source: str) -> tuple[Any, str]:
-    """The kernel module ``key`` of ``source``, written once into the cache (atomically) and loaded:
-    ``(module, "built")`` when it was written now, else ``(module, "cached")``."""
+def write_module(key: str, source: str | Callable[[], str]) -> tuple[Any, str]:
+    """The kernel module ``key`` of ``source`` (or of what ``source()`` returns, called only where the module
+    is not cached yet: generating it means sympy's differentiation and ``cse``), written once into the cache
+    (atomically) and loaded: ``(module, "built")`` when it was written now, else ``(module, "cached")``."""
     import numba  # noqa: F401 - fails here, with the reason, where numba is missing
 
     folder = cache_dir()
@@ -679,7 +680,7 @@ def write_module(key: str, source: str) -> tuple[Any, str]:
     if not path.exists():
         how = "built"
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(source)
+        tmp.write_text(source if isinstance(source, str) else source())
         os.replace(tmp, path)
     return _load(path, key), how
 
@@ -687,7 +688,7 @@ def write_module(key: str, source: str) -> tuple[Any, str]:
 def _build(form: SymbolicLd, pairs: Sequence[tuple[int, int]], key: str) -> tuple[Any, str]:
     """Write (once) and load the kernel module of ``key``, and run both kernels once on one cell (numba
     compiles, or loads its cached machine code, on the first call): ``(module, "built" or "cached")``."""
-    mod, how = write_module(key, _source(form, pairs))
+    mod, how = write_module(key, lambda: _source(form, pairs))  # the key holds the form: no sympy when cached
     k, m = len(form.offsets), form.m
     cell = np.zeros((1, k, m))
     mod.grad_kernel_serial(cell, np.empty_like(cell))  # the parallel kernels compile on first use

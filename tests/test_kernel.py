@@ -145,12 +145,15 @@ def test_a_form_the_printer_cannot_take_is_reported_once(caplog: pytest.LogCaptu
     assert sum("compiled DEL kernel unavailable" in r.getMessage() for r in caplog.records) == 1
 
 
-def test_a_kernel_is_built_once_then_loaded_from_the_cache() -> None:
+def test_a_kernel_is_built_once_then_loaded_from_the_cache(monkeypatch: pytest.MonkeyPatch) -> None:
+    from latticedft import _kernel
+
     (u0,), (u1,) = cell_symbols(2, 1)
     form = SymbolicLd((u1 - u0) ** 2 / 2 - sympy.Rational(3, 7) * u0**4, ((0,), (1,)), 1, (0.1,))
     first = compile_forms(form, [(0, 1)])
     assert first is not None and BUILDS[-1][2] == "built"
     _LOADED.clear()  # as a new process would
+    monkeypatch.setattr(_kernel, "_source", lambda *a: pytest.fail("the cached module's source was generated"))
     again = compile_forms(form, [(0, 1)])
     assert again is not None and BUILDS[-1][2] == "cached"
     cells = np.random.default_rng(0).standard_normal((5, 2, 1))
