@@ -218,7 +218,7 @@ def measure(s: Setup, sigma: float) -> list[Any]:
         ens = ldft.EnsembleLagrangian(copy.deepcopy(fresh), members=MEMBERS, seed=0)
         ldft.learn(ens, train, boundary=s.boundary, progress=False, **own)
     t0 = time.perf_counter()
-    cal, _, trial = calibrate(fresh, train, boundary=s.boundary, runner_up=runner, ensemble=ens, **own)
+    cal, _, trial = calibrate(fresh, train, boundary=s.boundary, runner_up=runner, ensemble_model=ens, **own)
     t_cal = time.perf_counter() - t0
     pool = _Pool()
     for init, ref, slices, boundary in s.tests:

@@ -241,7 +241,7 @@ def calibrate(
     hold_out: float = HOLD_OUT,
     quantile: float = QUANTILE,
     folds: int = FOLDS,
-    ensemble: AbstractLagrangian | None = None,
+    ensemble_model: AbstractLagrangian | None = None,
     **learn_kwargs: Any,
 ) -> tuple[Calibration, list[str], AbstractLagrangian]:
     """Measure a calibration law by held-out serving (see the module docstring): ``(law, warnings, trial)``,
@@ -249,8 +249,8 @@ def calibrate(
 
     ``fresh`` is the chosen model unlearned (its learn keywords ``learn_kwargs``); ``runner_up`` the runner-up
     candidate unlearned, its own learn keywords and its label (its disagreement is measured on the first fold);
-    ``folds`` > 1 leaves groups of whole fields out instead of splitting them in time. ``ensemble``, the learned
-    ensemble, is served on every training field to measure :attr:`Calibration.spread_scale`.
+    ``folds`` > 1 leaves groups of whole fields out instead of splitting them in time. ``ensemble_model``, the
+    learned ensemble, is served on every training field to measure :attr:`Calibration.spread_scale`.
     The random state of torch and numpy is left as it was. ``InputError`` when the fields are too short
     (:func:`too_short`).
     """
@@ -271,7 +271,9 @@ def calibrate(
         finally:
             np.random.set_state(state)
     cal = _fit(samples, quantile)
-    cal.spread_scale = _spread_scale(ensemble, samples, fields, boundary, quantile) if ensemble is not None else None
+    cal.spread_scale = (
+        _spread_scale(ensemble_model, samples, fields, boundary, quantile) if ensemble_model is not None else None
+    )
     warnings += _stopped(samples, quantile)
     cal.windows, cal.slices = len(fields), max(f.sizes[f.dims[0]] for f in fields)
     cal.low = min(float(np.nanmin(f.values)) for f in fields)

@@ -53,7 +53,7 @@ def test_an_ensembles_spread_is_scaled_by_the_held_out_error() -> None:
     _, data = oscillator_data(amplitudes=(0.4, 0.8, 1.2), steps=40)
     ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 4)), members=3, seed=0)
     ldft.learn(ens, data, progress=False)
-    cal, _, _ = calibrate(ldft.PolynomialLagrangian((2, 4)), data, ensemble=ens)
+    cal, _, _ = calibrate(ldft.PolynomialLagrangian((2, 4)), data, ensemble_model=ens)
     assert cal.spread_scale is not None and 0 < cal.spread_scale < np.inf
     alone, _, _ = calibrate(ldft.PolynomialLagrangian((2, 4)), data)
     assert alone.spread_scale is None and alone.scale == cal.scale

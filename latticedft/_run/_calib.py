@@ -50,7 +50,7 @@ def case_calibration(
     try:
         ens = model if isinstance(model, EnsembleLagrangian) else None
         cal, warnings, trial = calibrate(
-            fresh, data.train, boundary=case.train.boundary, runner_up=runner_up, ensemble=ens, **kwargs
+            fresh, data.train, boundary=case.train.boundary, runner_up=runner_up, ensemble_model=ens, **kwargs
         )
     except LatticeDFTError as exc:
         text = " ".join(str(exc).split())[:160]
