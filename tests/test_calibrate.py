@@ -172,6 +172,28 @@ def test_a_calibrated_run_writes_the_estimate_and_its_coverage(tmp_path: Path, c
     assert (tmp_path / "cal" / "calibration.pt").is_file()
 
 
+def test_an_ensembles_calibrated_std_is_its_scaled_spread(tmp_path: Path, capsys) -> None:
+    """``[train] ensemble`` (calibrated by default): the law records ``spread_scale``, and ``psi_std`` is the
+    members' own (``psi_std_members``) times it, widened on no slice below the members' scaled spread."""
+    case = tiny_wave(tmp_path)
+    code, _, err = run_cli(
+        capsys, "run", case, "--out", tmp_path / "ens", "--set", "train.ensemble=3", "--set", "export.paraview=false"
+    )
+    assert code == 0, err
+    law = json.loads((tmp_path / "ens" / "summary.json").read_text())["train"]["calibration"]
+    scale = law["spread_scale"]
+    assert 0 < scale < np.inf
+    with xr.open_dataset(tmp_path / "ens" / "test.nc") as ds:
+        std, own = ds["psi_std"].values, ds["psi_std_members"].values
+    rms = lambda a: np.sqrt(np.mean(a.reshape(a.shape[0], -1) ** 2, axis=1))  # noqa: E731
+    assert np.all(rms(std)[2:] >= scale * rms(own)[2:] * (1 - 1e-12))
+    kept = rms(std) <= scale * rms(own) * (1 + 1e-9)  # not widened to the trial's disagreement
+    kept[:2] = False
+    a, b = std[kept], own[kept]
+    assert kept.any() and np.all(a[b == 0] == 0)
+    np.testing.assert_allclose(a[b > 0] / b[b > 0], scale, rtol=1e-12)
+
+
 def test_too_short_training_data_serve_without_a_band(tmp_path: Path, capsys) -> None:
     """Training fields of 3 slices: one warning line, no estimate; strict makes it exit status 4."""
     case = tmp_path / "short"
