@@ -14,7 +14,9 @@ per MLP candidate; nor for noisy space-time fields: each candidate would repeat 
 fits stop at 60 s each), calibrated by :func:`latticedft._calibrate.calibrate` (the runner-up's disagreement
 included), and served on every test field. A single model's band is ``psi_err_est`` (the larger of the held-out
 law and the held-out trial model's disagreement on the task); an ensemble's (5 members, seed 0; not for Kepler)
-is its members' standard deviation with ``psi_err_est`` added in quadrature (``psi_std``); "raw" is the
+is its members' standard deviation scaled by a factor measured on the held-out slices as the law's scale is,
+and widened to at least the trial's disagreement (``psi_std``, :meth:`latticedft._calibrate.Calibration.band`);
+"raw" is the
 members' standard deviation alone (the band before calibration); "law only" the held-out law without the
 trial's disagreement. Over the served slices of every test field
 (the two given ones excluded), per slice the RMS error over the lattice: *coverage* is the share within 2 times
@@ -211,13 +213,13 @@ def measure(s: Setup, sigma: float) -> list[Any]:
         s = copy.copy(s)
         s.select = False
     model, (fresh, own, runner), t_sel, _ = _learned(s, train, kw)
-    t0 = time.perf_counter()
-    cal, _, trial = calibrate(fresh, train, boundary=s.boundary, runner_up=runner, **own)
-    t_cal = time.perf_counter() - t0
     ens = None
     if s.ensemble:
         ens = ldft.EnsembleLagrangian(copy.deepcopy(fresh), members=MEMBERS, seed=0)
         ldft.learn(ens, train, boundary=s.boundary, progress=False, **own)
+    t0 = time.perf_counter()
+    cal, _, trial = calibrate(fresh, train, boundary=s.boundary, runner_up=runner, ensemble_model=ens, **own)
+    t_cal = time.perf_counter() - t0
     pool = _Pool()
     for init, ref, slices, boundary in s.tests:
         _serve_test(pool, model, ens, trial, cal, _noisy(init, sigma, rng), ref, slices, boundary)
@@ -258,10 +260,8 @@ def _serve_test(
     n = min(pred.sizes[pred.dims[0]], ref.sizes[ref.dims[0]])
     err = _rms(np.asarray(pred.values) - np.asarray(ref.values[:n] if n else ref.values), n)
     values = np.asarray(pred.values, dtype=np.float64)
-    est = np.fmax(
-        cal.estimate(np.arange(n), float(np.nanmax(np.abs(values)))),
-        disagreement(trial, start, pred, slices=slices, boundary=boundary)[:n],
-    )
+    other = disagreement(trial, start, pred, slices=slices, boundary=boundary)[:n]
+    est = np.fmax(cal.estimate(np.arange(n), float(np.nanmax(np.abs(values)))), other)
     law = cal.estimate(np.arange(n), float(np.nanmax(np.abs(values))))
     bands = {"single": est, "law": law}
     if ens is not None:
@@ -269,7 +269,7 @@ def _serve_test(
         if res.std is not None and res.field.sizes[res.field.dims[0]] >= n:
             std = np.asarray(res.std.values, dtype=np.float64)
             bands["raw"] = _rms(std, n)
-            bands["ensemble"] = np.sqrt(bands["raw"] ** 2 + est**2)
+            bands["ensemble"] = _rms(np.asarray(cal.band(res.std[:n], est, other).values), n)
     pool.add(err, **bands)
 
 

@@ -18,7 +18,10 @@ the scale to the larger of the two made the noisy ``cases/oscillator-sin`` band 
 A served task's estimate per slice is the larger of the law and the trial's disagreement with the served
 field on the task itself (the trial, learned on less data, served from the same start: :func:`disagreement`).
 :meth:`Calibration.estimate` gives the law's part (``psi_err_est``);
-:meth:`Calibration.band` adds it to an ensemble's standard deviation (``psi_std``); :meth:`Calibration.warnings`
+:meth:`Calibration.band` gives an ensemble's ``psi_std``: its members' standard deviation scaled by the same
+held-out measurement (:attr:`Calibration.spread_scale`: how the trial's error compares with the members' spread on
+the held-out slices; the scaled spread takes the law's place), widened to the trial's disagreement where
+narrower; :meth:`Calibration.warnings`
 names a task that runs longer than, or outside the value range of, the windows the law was measured on.
 """
 
@@ -42,7 +45,7 @@ from ._learn._heldout import HOLD_OUT
 from ._learn._heldout import held_in as _split
 from ._learn._noise import denoised_start
 from ._models import AbstractLagrangian
-from ._serve import serve
+from ._serve import ServeResult, serve
 
 __all__ = ["QUANTILE", "Calibration", "calibrate", "disagreement", "too_short", "slice_errors"]
 
@@ -88,6 +91,9 @@ class Calibration:
     runner_up: str | None
     wall_time: float
     law: str = "err(k) = A * scale * k^exponent (k: slice index, A: the field's largest magnitude)"
+    #: With an ensemble: the factor on its members' spread, the :data:`QUANTILE` quantile over the held-out
+    #: slices of the trial's error over the spread on the same slice, halved (None without an ensemble).
+    spread_scale: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -102,12 +108,26 @@ class Calibration:
         est = amplitude * self.scale * np.maximum(kk, 1.0) ** self.exponent
         return np.where(kk < 2, 0.0, est)
 
-    def band(self, std: xr.DataArray, est: np.ndarray) -> xr.DataArray:
-        """An ensemble's standard deviation with the estimate ``est`` (per slice) added in quadrature at every
-        site: the calibrated ``psi_std``."""
-        s = np.asarray(std.values, dtype=np.float64)
-        e = est.reshape(-1, *([1] * (s.ndim - 1)))
-        out = std.copy(data=np.sqrt(s**2 + e**2))
+    def band(self, std: xr.DataArray, est: np.ndarray, other: np.ndarray | None = None) -> xr.DataArray:
+        """An ensemble's calibrated ``psi_std``: its members' standard deviation times :attr:`spread_scale`,
+        widened at every site of a slice by the factor that brings its RMS over the lattice up to the floor
+        where it is narrower (a slice whose members agree exactly gets the floor at every site). With a
+        :attr:`spread_scale` the scaled spread takes the law's place: the floor is ``other``, the trial's
+        disagreement per slice (none when None); without one (a law recorded before it), the spread is taken
+        as it is and the floor is the estimate ``est``. The band's RMS is the larger of spread and floor."""
+        if self.spread_scale is None:
+            floor = np.asarray(est, dtype=np.float64)
+        else:
+            floor = np.zeros(len(est)) if other is None else np.nan_to_num(np.asarray(other, dtype=np.float64))
+        e = floor
+        s = np.asarray(std.values, dtype=np.float64) * (1.0 if self.spread_scale is None else self.spread_scale)
+        with np.errstate(invalid="ignore"):
+            rms = np.sqrt(np.nanmean(s.reshape(s.shape[0], -1) ** 2, axis=1)) if s.size else np.zeros(0)
+        shape = (-1, *([1] * (s.ndim - 1)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            up = np.where(rms > 0, np.fmax(e / rms, 1.0), 1.0).reshape(shape)
+        flat = (rms == 0).reshape(shape)
+        out = std.copy(data=np.where(flat, np.broadcast_to(e.reshape(shape), s.shape), s * up))
         out.attrs = {**std.attrs, "long_name": "calibrated standard deviation (ensemble and held-out error)"}
         return out
 
@@ -221,6 +241,7 @@ def calibrate(
     hold_out: float = HOLD_OUT,
     quantile: float = QUANTILE,
     folds: int = FOLDS,
+    ensemble_model: AbstractLagrangian | None = None,
     **learn_kwargs: Any,
 ) -> tuple[Calibration, list[str], AbstractLagrangian]:
     """Measure a calibration law by held-out serving (see the module docstring): ``(law, warnings, trial)``,
@@ -228,7 +249,8 @@ def calibrate(
 
     ``fresh`` is the chosen model unlearned (its learn keywords ``learn_kwargs``); ``runner_up`` the runner-up
     candidate unlearned, its own learn keywords and its label (its disagreement is measured on the first fold);
-    ``folds`` > 1 leaves groups of whole fields out instead of splitting them in time.
+    ``folds`` > 1 leaves groups of whole fields out instead of splitting them in time. ``ensemble_model``, the
+    learned ensemble, is served on every training field to measure :attr:`Calibration.spread_scale`.
     The random state of torch and numpy is left as it was. ``InputError`` when the fields are too short
     (:func:`too_short`).
     """
@@ -249,6 +271,9 @@ def calibrate(
         finally:
             np.random.set_state(state)
     cal = _fit(samples, quantile)
+    cal.spread_scale = (
+        _spread_scale(ensemble_model, samples, fields, boundary, quantile) if ensemble_model is not None else None
+    )
     warnings += _stopped(samples, quantile)
     cal.windows, cal.slices = len(fields), max(f.sizes[f.dims[0]] for f in fields)
     cal.low = min(float(np.nanmin(f.values)) for f in fields)
@@ -271,6 +296,8 @@ class _Sample:
     rel: np.ndarray
     target: np.ndarray
     disagreement: bool
+    #: The field's index in the training fields.
+    field: int = 0
 
 
 def _measure(
@@ -289,7 +316,7 @@ def _measure(
         except LatticeDFTError:
             other = None
     out = []
-    for f, start in zip(fields, fold.starts, strict=True):
+    for i, (f, start) in enumerate(zip(fields, fold.starts, strict=True)):
         nt = f.sizes[f.dims[0]]
         k = np.arange(2, nt)
         if start >= nt or not k.size:
@@ -300,20 +327,52 @@ def _measure(
         target = rel
         if other is not None:
             target = np.fmax(rel, _rms(_served(other, f, boundary), mine, nt)[k] / amp)
-        out.append(_Sample(k.astype(np.float64), k >= start, rel, target, other is not None))
+        out.append(_Sample(k.astype(np.float64), k >= start, rel, target, other is not None, i))
     return out
 
 
 def _served(model: AbstractLagrangian, field: xr.DataArray, boundary: BoundaryKinds | None) -> np.ndarray:
     """The field ``model`` serves from the first two slices of ``field`` (denoised when its training corrected
     noise); the slices solved when the serve stopped."""
+    return np.asarray(_result(model, field, boundary).field.values, dtype=np.float64)
+
+
+def _result(model: AbstractLagrangian, field: xr.DataArray, boundary: BoundaryKinds | None) -> ServeResult:
+    """``model`` serving ``field`` from its first two slices (denoised when its training corrected noise): the
+    result, of the slices solved when the serve stopped."""
     noise = (model.report_.noise if model.report_ is not None else None) or {}
     start = denoised_start(model, field) if noise.get("method", "none") != "none" else field
     try:
-        pred = serve(model, start, boundary=boundary, progress=False).field
+        return serve(model, start, boundary=boundary, progress=False)
     except ServeError as err:
-        pred = (err.result[0] if isinstance(err.result, list) else err.result).field
-    return np.asarray(pred.values, dtype=np.float64)
+        return err.result[0] if isinstance(err.result, list) else err.result
+
+
+def _spread_scale(
+    ensemble: AbstractLagrangian,
+    samples: list[_Sample],
+    fields: list[xr.DataArray],
+    boundary: BoundaryKinds | None,
+    quantile: float,
+) -> float | None:
+    """The factor on an ensemble's spread: the ``quantile`` quantile over the held-out slices of the trial's
+    error over the spread (RMS over the lattice of the members' standard deviation, the ensemble serving the
+    same training field from the same start), halved; slices where the members agree exactly, or a serve
+    stopped, are left out. None when the ensemble gives no spread."""
+    z = []
+    for x in samples:
+        f = fields[x.field]
+        std = _result(ensemble, f, boundary).std
+        if std is None:
+            return None
+        amp = max(float(np.max(np.abs(f.values))), np.finfo(float).tiny)
+        s = _rms(np.asarray(std.values, dtype=np.float64), np.zeros(std.shape), f.sizes[f.dims[0]]) / amp
+        k = x.k[x.held].astype(int)
+        r, sk = x.rel[x.held], s[k]
+        ok = np.isfinite(r) & np.isfinite(sk) & (sk > 0)
+        z.append(r[ok] / sk[ok])
+    zz = np.concatenate(z) if z else np.zeros(0)
+    return float(np.quantile(zz, quantile, method="higher")) / 2 if zz.size else None
 
 
 def _fit(samples: list[_Sample], quantile: float) -> Calibration:

@@ -47,6 +47,18 @@ def test_coverage_on_a_small_synthetic_case() -> None:
     assert d.shape == (60,) and np.all(d[:2] == 0)
 
 
+def test_an_ensembles_spread_is_scaled_by_the_held_out_error() -> None:
+    """With the learned ensemble, the law records the factor on its spread: twice the scaled spread covers the
+    quantile's share of the trial's held-out errors."""
+    _, data = oscillator_data(amplitudes=(0.4, 0.8, 1.2), steps=40)
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 4)), members=3, seed=0)
+    ldft.learn(ens, data, progress=False)
+    cal, _, _ = calibrate(ldft.PolynomialLagrangian((2, 4)), data, ensemble_model=ens)
+    assert cal.spread_scale is not None and 0 < cal.spread_scale < np.inf
+    alone, _, _ = calibrate(ldft.PolynomialLagrangian((2, 4)), data)
+    assert alone.spread_scale is None and alone.scale == cal.scale
+
+
 def _after_seed(seed: int) -> float:
     torch.manual_seed(seed)
     return torch.rand(1).item()
@@ -93,8 +105,13 @@ def test_the_law_round_trips_and_warns_beyond_its_windows() -> None:
     assert len(longer) == 1 and "serves 41 slices" in longer[0] and "at most 40" in longer[0]
     assert len(outside) == 1 and "outside the range" in outside[0]
     std = xr.DataArray(np.full((3, 2), 3.0), dims=("t", "x"))
-    band = law.band(std, np.array([0.0, 4.0, 4.0]))
-    np.testing.assert_allclose(band.values, [[3, 3], [5, 5], [5, 5]])
+    band = law.band(std, np.array([0.0, 4.0, 2.0]))  # the spread widened to the estimate where narrower
+    np.testing.assert_allclose(band.values, [[3, 3], [4, 4], [3, 3]])
+    # a measured spread scale: the scaled spread replaces the law, widened to the trial's disagreement only
+    scaled = _law(spread_scale=0.5)
+    two = xr.DataArray([[0.0, 0.0], [3.0, 1.0], [0.2, 0.2]], dims=("t", "x"))
+    out = scaled.band(two, np.array([9.0, 9.0, 9.0]), np.array([1.0, 1.0, 0.5]))
+    np.testing.assert_allclose(out.values, [[1, 1], [1.5, 0.5], [0.5, 0.5]])  # members that agree: the floor
 
 
 def test_too_short_data_say_so_in_one_line() -> None:
@@ -153,6 +170,28 @@ def test_a_calibrated_run_writes_the_estimate_and_its_coverage(tmp_path: Path, c
         xr.testing.assert_identical(ds["psi"], p["psi"])
     assert (tmp_path / "cal" / "test.png").stat().st_size > 0
     assert (tmp_path / "cal" / "calibration.pt").is_file()
+
+
+def test_an_ensembles_calibrated_std_is_its_scaled_spread(tmp_path: Path, capsys) -> None:
+    """``[train] ensemble`` (calibrated by default): the law records ``spread_scale``, and ``psi_std`` is the
+    members' own (``psi_std_members``) times it, widened on no slice below the members' scaled spread."""
+    case = tiny_wave(tmp_path)
+    code, _, err = run_cli(
+        capsys, "run", case, "--out", tmp_path / "ens", "--set", "train.ensemble=3", "--set", "export.paraview=false"
+    )
+    assert code == 0, err
+    law = json.loads((tmp_path / "ens" / "summary.json").read_text())["train"]["calibration"]
+    scale = law["spread_scale"]
+    assert 0 < scale < np.inf
+    with xr.open_dataset(tmp_path / "ens" / "test.nc") as ds:
+        std, own = ds["psi_std"].values, ds["psi_std_members"].values
+    rms = lambda a: np.sqrt(np.mean(a.reshape(a.shape[0], -1) ** 2, axis=1))  # noqa: E731
+    assert np.all(rms(std)[2:] >= scale * rms(own)[2:] * (1 - 1e-12))
+    kept = rms(std) <= scale * rms(own) * (1 + 1e-9)  # not widened to the trial's disagreement
+    kept[:2] = False
+    a, b = std[kept], own[kept]
+    assert kept.any() and np.all(a[b == 0] == 0)
+    np.testing.assert_allclose(a[b > 0] / b[b > 0], scale, rtol=1e-12)
 
 
 def test_too_short_training_data_serve_without_a_band(tmp_path: Path, capsys) -> None:

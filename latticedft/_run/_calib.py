@@ -16,6 +16,7 @@ from .._calibrate import RUNNER_UP_WITHIN, Calibration, calibrate, too_short
 from .._case import Case
 from .._contract import AbstractLagrangian
 from .._errors import LatticeDFTError
+from .._models import EnsembleLagrangian
 from .._select import _build
 from ._data import CaseData
 
@@ -47,7 +48,10 @@ def case_calibration(
     fresh, kwargs, runner_up = _candidates(case, data, model, report)
     log.info("calibrating the error bar by held-out serving ...")
     try:
-        cal, warnings, trial = calibrate(fresh, data.train, boundary=case.train.boundary, runner_up=runner_up, **kwargs)
+        ens = model if isinstance(model, EnsembleLagrangian) else None
+        cal, warnings, trial = calibrate(
+            fresh, data.train, boundary=case.train.boundary, runner_up=runner_up, ensemble_model=ens, **kwargs
+        )
     except LatticeDFTError as exc:
         text = " ".join(str(exc).split())[:160]
         return None, [f"calibration: failed ({text}): served without a calibrated error bar"], None
@@ -103,7 +107,8 @@ def task_band(
     cal: dict[str, Any], field: xr.DataArray, std: xr.DataArray | None, other: np.ndarray | None = None
 ) -> TaskBand:
     """The calibrated error bar of a served ``field`` (an ensemble's raw ``std`` beside it, or None): the larger
-    of the law and ``other``, the trial model's disagreement with the field per slice (None without one)."""
+    of the law and ``other``, the trial model's disagreement with the field per slice (None without one); an
+    ensemble's calibrated standard deviation by :meth:`Calibration.band`."""
     law = Calibration.from_dict(cal)
     tdim = field.dims[0]
     k = np.asarray(field["slice"].values if "slice" in field.coords else np.arange(field.sizes[tdim]))
@@ -112,7 +117,8 @@ def task_band(
     amplitude = float(finite.max()) if finite.size else math.nan
     est = law.estimate(k, amplitude)
     if other is not None:
-        est = np.fmax(est, np.where(k >= 2, other, 0.0))
+        other = np.where(k >= 2, other, 0.0)
+        est = np.fmax(est, other)
     err_est = xr.DataArray(est, dims=(tdim,), coords={tdim: field[tdim].values}, name="err_est")
     err_est.attrs = {
         "long_name": "calibrated error estimate (1 std, RMS over the lattice) from held-out serving",
@@ -122,7 +128,7 @@ def task_band(
     }
     if "units" in field.attrs:
         err_est.attrs["units"] = field.attrs["units"]
-    calibrated = law.band(std, est) if std is not None else None
+    calibrated = law.band(std, est, other) if std is not None else None
     served = int(k.max()) + 1 if k.size else 0
     record = {
         "band": "ensemble and held-out error" if std is not None else "held-out error",
