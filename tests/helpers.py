@@ -24,6 +24,28 @@ def series(values, dt: float, name: str = "psi", components=None) -> xr.DataArra
     return xr.DataArray(values, dims=("t", "component"), coords={"t": t, "component": list(components)}, name=name)
 
 
+def sine_gordon(closed: bool = True):
+    """The sine-Gordon ``L_d`` on the first-order stencil (any dimension); with its ``closed`` form (sympy: the
+    compiled kernels and the generated derivatives take it) or without (autograd serves it everywhere)."""
+    import sympy
+
+    def fn(c: torch.Tensor, h: tuple[float, ...]) -> torch.Tensor:
+        u = c[..., 0, 0]
+        out = 0.5 * ((c[..., 1, 0] - u) / h[0]) ** 2 - (1 - torch.cos(u))
+        for k in range(1, len(h)):
+            out = out - 0.5 * ((c[..., k + 1, 0] - u) / h[k]) ** 2
+        return out
+
+    def closed_form(c: np.ndarray, h: tuple[float, ...]) -> object:
+        u = c[0, 0]
+        out = 0.5 * ((c[1, 0] - u) / h[0]) ** 2 - (1 - sympy.cos(u))
+        for k in range(1, len(h)):
+            out = out - 0.5 * ((c[k + 1, 0] - u) / h[k]) ** 2
+        return out
+
+    return ldft.AnalyticLagrangian(fn, name="sine-Gordon", closed_form=closed_form if closed else None)
+
+
 def quartic(q: torch.Tensor) -> torch.Tensor:
     """An anharmonic potential ``V = q^2/2 + q^4/4``."""
     return 0.5 * q**2 + 0.25 * q**4
@@ -153,6 +175,18 @@ def run_group(argv, n: int, env: dict[str, str], timeout: float = 600.0) -> list
     ranks = start_group(argv, n, env, timeout)
     assert [rc for rc, _, _ in ranks] == [0] * n, "\n".join(err[-3000:] for _, _, err in ranks)
     return [err for _, _, err in ranks]
+
+
+def two_ranks(tmp_path, worker: str) -> list[dict]:
+    """The worker script ``worker`` (writing JSON to its first argument plus ``.<rank>``) run as the two ranks
+    of a group, asserting that both exit 0 (their stderr in the message): each rank's JSON."""
+    import json
+
+    script = tmp_path / "worker.py"
+    script.write_text(worker)
+    ranks = run_ranks(script, 2, str(tmp_path / "out"))
+    assert [rc for rc, _, _ in ranks] == [0, 0], "\n".join(err[-3000:] for _, _, err in ranks)
+    return [json.loads((tmp_path / f"out.{r}").read_text()) for r in range(2)]
 
 
 def alone_and_in_two(tmp_path, worker: str) -> tuple[dict, list[dict]]:

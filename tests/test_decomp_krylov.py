@@ -4,7 +4,6 @@ neighbouring unknowns, served by two gloo processes on the loopback, gives the o
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +15,7 @@ from latticedft._models import AnalyticLagrangian
 from latticedft._serve._decomp import serve_slabs
 from latticedft._serve._slabkrylov import gmres
 
-from helpers import GROUP_END, run_ranks
+from helpers import GROUP_END, two_ranks
 
 _MODEL = """
 import numpy as np, torch, xarray as xr
@@ -118,11 +117,7 @@ def test_gmres_solves_a_small_system_in_one_process() -> None:
 
 @pytest.mark.slow
 def test_two_processes_serve_a_coupled_slice_by_krylov_as_one(tmp_path: Path) -> None:
-    script = tmp_path / "worker.py"
-    script.write_text(_WORKER)
-    ranks = run_ranks(script, 2, str(tmp_path / "out"))
-    assert [rc for rc, _, _ in ranks] == [0, 0], "\n".join(err[-3000:] for _, _, err in ranks)
-    zero, one = (json.loads((tmp_path / f"out.{r}").read_text()) for r in range(2))
+    zero, one = two_ranks(tmp_path, _WORKER)
     for bnd in ("periodic", "dirichlet"):
         assert zero[bnd][0] <= 1e-12 and zero[bnd][1] == "krylov", zero
     assert zero["lu"] == one["lu"] and "\n" not in zero["lu"]

@@ -3,12 +3,11 @@ rank 0 keeps what was served before it (``latticedft._serve._flag``). Two gloo p
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pytest
 
-from helpers import GROUP_END, run_ranks
+from helpers import GROUP_END, two_ranks
 
 _WORKER = (
     """
@@ -75,11 +74,7 @@ with open(sys.argv[1] + f".{rank}", "w") as f:
 
 @pytest.mark.slow
 def test_a_failure_in_one_process_stops_both_with_one_error(tmp_path: Path) -> None:
-    script = tmp_path / "worker.py"
-    script.write_text(_WORKER)
-    ranks = run_ranks(script, 2, str(tmp_path / "out"))
-    assert [rc for rc, _, _ in ranks] == [0, 0], "\n".join(err[-3000:] for _, _, err in ranks)
-    zero, one = (json.loads((tmp_path / f"out.{r}").read_text()) for r in range(2))
+    zero, one = two_ranks(tmp_path, _WORKER)
     for name in ("read", "model", "newton"):
         assert zero[name]["error"] == one[name]["error"] and "\n" not in zero[name]["error"]
         assert one[name]["result"] and zero[name]["diff"] <= 1e-12

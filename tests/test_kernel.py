@@ -21,6 +21,8 @@ from latticedft._kernel import _LOADED, BUILDS, compile_forms
 from latticedft._serve._fast1d import trajectory_kernel
 from latticedft._symbolic import SymbolicLd, cell_symbols
 
+from helpers import sine_gordon
+
 
 @pytest.fixture(autouse=True, scope="module")
 def _kernel_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
@@ -28,26 +30,6 @@ def _kernel_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     mp.setenv("LATTICEDFT_KERNEL_CACHE", str(tmp_path_factory.mktemp("kernels")))
     yield
     mp.undo()
-
-
-def sine_gordon() -> ldft.AnalyticLagrangian:
-    """The sine-Gordon L_d on the first-order stencil, with its closed form for the trace."""
-
-    def fn(c: torch.Tensor, h: tuple[float, ...]) -> torch.Tensor:
-        u = c[..., 0, 0]
-        out = 0.5 * ((c[..., 1, 0] - u) / h[0]) ** 2 - (1 - torch.cos(u))
-        for k in range(1, len(h)):
-            out = out - 0.5 * ((c[..., k + 1, 0] - u) / h[k]) ** 2
-        return out
-
-    def closed(c: np.ndarray, h: tuple[float, ...]) -> object:
-        u = c[0, 0]
-        out = 0.5 * ((c[1, 0] - u) / h[0]) ** 2 - (1 - sympy.cos(u))
-        for k in range(1, len(h)):
-            out = out - 0.5 * ((c[k + 1, 0] - u) / h[k]) ** 2
-        return out
-
-    return ldft.AnalyticLagrangian(fn, name="sine-Gordon", closed_form=closed)
 
 
 def _field(ndim: int, n: int, m: int = 1) -> object:

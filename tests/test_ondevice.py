@@ -7,39 +7,19 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-import sympy
 import torch
 
 import latticedft as ldft
 from latticedft import systems
 from latticedft._serve import _ondevice
 
+from helpers import sine_gordon
+
 
 @pytest.fixture
 def on_cpu(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     monkeypatch.setattr(_ondevice, "ON_CPU", True)
     yield
-
-
-def sine_gordon(closed: bool = False) -> ldft.AnalyticLagrangian:
-    """The sine-Gordon ``L_d`` on the first-order stencil; with its ``closed`` form (sympy) or without (autograd
-    serves it everywhere)."""
-
-    def fn(c: torch.Tensor, h: tuple[float, ...]) -> torch.Tensor:
-        u = c[..., 0, 0]
-        out = 0.5 * ((c[..., 1, 0] - u) / h[0]) ** 2 - (1 - torch.cos(u))
-        for k in range(1, len(h)):
-            out = out - 0.5 * ((c[..., k + 1, 0] - u) / h[k]) ** 2
-        return out
-
-    def closed_form(c: np.ndarray, h: tuple[float, ...]) -> object:
-        u = c[0, 0]
-        out = 0.5 * ((c[1, 0] - u) / h[0]) ** 2 - (1 - sympy.cos(u))
-        for k in range(1, len(h)):
-            out = out - 0.5 * ((c[k + 1, 0] - u) / h[k]) ** 2
-        return out
-
-    return ldft.AnalyticLagrangian(fn, name="sine-Gordon", closed_form=closed_form if closed else None)
 
 
 def start(ndim: int, n: int, periodic: bool = True) -> object:
@@ -75,7 +55,7 @@ def served(model: ldft.AbstractLagrangian, init: object, device_path: bool, **kw
 
 @pytest.mark.parametrize("ndim,n", [(2, 12), (3, 6)])
 def test_device_slices_serve_what_slice_newton_serves(ndim: int, n: int) -> None:
-    model, init = sine_gordon(), start(ndim, n)
+    model, init = sine_gordon(False), start(ndim, n)
     plain = served(model, init, False, slices=12)
     device = served(model, init, True, slices=12)
     assert device.slice_solver == plain.slice_solver == "sitewise"
@@ -96,8 +76,8 @@ def test_a_closed_form_is_served_by_its_generated_derivatives(on_cpu: None) -> N
     init = start(2, 10)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(_ondevice, "closed_terms", spied)
-        device = ldft.serve(sine_gordon(closed=True), init, slices=10, progress=False)
-    plain = served(sine_gordon(), init, False, slices=10)
+        device = ldft.serve(sine_gordon(), init, slices=10, progress=False)
+    plain = served(sine_gordon(False), init, False, slices=10)
     assert len(built) == 1 and built[0] is not None
     np.testing.assert_allclose(device.field.values, plain.field.values, rtol=0, atol=1e-12)
 
@@ -109,7 +89,7 @@ def test_bounded_lattice_keeps_its_known_sites() -> None:
         np.repeat(init.values[:1], 10, axis=0), init.dims, spacing=(0.04, 0.1, 0.1)
     )  # the fixed ends hold their first values on every slice
     whole.values[1] = init.values[1]
-    model = sine_gordon()
+    model = sine_gordon(False)
     plain = served(model, whole, False)
     device = served(model, whole, True)
     assert plain.complete and device.complete
@@ -120,7 +100,7 @@ def test_bounded_lattice_keeps_its_known_sites() -> None:
 def test_streamed_window_reads_the_slices_it_holds() -> None:
     """A rolling window of one slice at a time (every chunk shifts it): the device keeps slices by their index
     in the whole field, so the kept slices equal those of the whole field served the same way."""
-    model, init = sine_gordon(), start(2, 8)
+    model, init = sine_gordon(False), start(2, 8)
     whole = served(model, init, True, slices=15)
     with ldft.set_options(serve_window_bytes=1):  # four slices in the window
         kept = served(model, init, True, slices=15, every=2)
@@ -128,7 +108,7 @@ def test_streamed_window_reads_the_slices_it_holds() -> None:
 
 
 def test_a_slice_the_device_cannot_finish_goes_to_slice_newton(on_cpu: None, monkeypatch: pytest.MonkeyPatch) -> None:
-    model, init = sine_gordon(), start(2, 8)
+    model, init = sine_gordon(False), start(2, 8)
     plain = served(model, init, False, slices=10)
     calls = []
     iterate = _ondevice.DeviceSlices._iterate
@@ -166,7 +146,7 @@ def test_a_coupled_jacobian_is_left_to_slice_newton() -> None:
 
 
 def test_not_taken_for_vector_fields_or_on_the_cpu() -> None:
-    model, init = sine_gordon(), start(2, 6)
+    model, init = sine_gordon(False), start(2, 6)
     model.bind(3, 1, (0.04, 0.1, 0.1))
     from latticedft._lattice import as_lattice_field
     from latticedft._serve._slices import _SliceSystem

@@ -10,7 +10,6 @@ without a checkpoint, or with a changed case, is refused in one line naming the 
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 
@@ -20,7 +19,7 @@ import xarray as xr
 from test_resume import _latticedft, _same_results, _stage, tiny_sine_gordon
 
 from case_helpers import copy_wave, run_cli, snapshot
-from helpers import GROUP_END, run_ranks
+from helpers import GROUP_END, two_ranks
 
 SETS = ["--set", "serve.test.slices=41", "--set", "serve.test.checkpoint=10"]
 
@@ -129,11 +128,7 @@ def test_split_states_resume_bit_for_bit_and_in_one_process(tmp_path: Path) -> N
     resumed from its second checkpoint gives the uninterrupted split field bit for bit (each process's own
     figures put back); one process going on from the split state gives it to round-off (affine) or Newton's
     tolerance (the factorisation not carried over)."""
-    script = tmp_path / "worker.py"
-    script.write_text(_WORKER)
-    ranks = run_ranks(script, 2, str(tmp_path / "out"))
-    assert [rc for rc, _, _ in ranks] == [0, 0], "\n".join(err[-3000:] for _, _, err in ranks)
-    zero, one = (json.loads((tmp_path / f"out.{r}").read_text()) for r in range(2))
+    zero, one = two_ranks(tmp_path, _WORKER)
     for name in ("affine", "newton"):
         assert zero[name]["same"] and zero[name]["saved"] == 4, zero
         assert zero[name]["put"] == [0] and one[name]["put"] == [1]  # each process's own figures, back to it
