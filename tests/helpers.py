@@ -46,6 +46,20 @@ def sine_gordon(closed: bool = True):
     return ldft.AnalyticLagrangian(fn, name="sine-Gordon", closed_form=closed_form if closed else None)
 
 
+def smooth_start(ndim: int, n: int, periodic: bool = True) -> xr.DataArray:
+    """Two slices at rest of a smooth field on ``n^ndim`` sites (spacing 0.1, dt 0.04), periodic or with
+    fixed ends (no periodic attribute)."""
+    x = np.arange(n) / n
+    u = np.ones([n] * ndim)
+    for k in range(ndim):
+        shape = [1] * ndim
+        shape[k] = n
+        u = u * np.sin(2 * np.pi * x + k).reshape(shape)
+    dims = ("t", *"zyx"[3 - ndim :])
+    attrs = {d: {"periodic": "true", "period": n * 0.1} for d in dims[1:]} if periodic else None
+    return systems.make_field(np.stack([0.8 * u, 0.8 * u]), dims, spacing=(0.04, *[0.1] * ndim), coord_attrs=attrs)
+
+
 def quartic(q: torch.Tensor) -> torch.Tensor:
     """An anharmonic potential ``V = q^2/2 + q^4/4``."""
     return 0.5 * q**2 + 0.25 * q**4
@@ -123,6 +137,16 @@ if dist.is_initialized():
     sys.stdout.flush(); sys.stderr.flush()
     os._exit(0)
 """
+
+#: The end of a worker script run by :func:`two_ranks`: its results ``out`` written as JSON to its first
+#: argument plus ``.<rank>``, then :data:`GROUP_END`.
+RANK_RESULTS_END = (
+    """
+with open(sys.argv[1] + f".{rank}", "w") as f:
+    json.dump(out, f)
+"""
+    + GROUP_END
+)
 
 RANK_VARIABLES = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT")
 REPO = Path(__file__).resolve().parents[1]

@@ -15,7 +15,7 @@ from latticedft._models import AnalyticLagrangian
 from latticedft._serve._decomp import serve_slabs
 from latticedft._serve._slabkrylov import gmres
 
-from helpers import GROUP_END, two_ranks
+from helpers import RANK_RESULTS_END, two_ranks
 
 _MODEL = """
 import numpy as np, torch, xarray as xr
@@ -76,10 +76,8 @@ try:
     serve_slabs(MODEL, field(2), 16, boundary="periodic", rtol=1e-13)
 except SlabError as err:
     out["gmres"] = [str(err), None if err.result is None else err.result["slice"].values.tolist(), calls[0]]
-with open(sys.argv[1] + f".{rank}", "w") as f:
-    json.dump(out, f)
 """
-    + GROUP_END
+    + RANK_RESULTS_END
 )
 
 

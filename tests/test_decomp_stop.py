@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from helpers import GROUP_END, two_ranks
+from helpers import RANK_RESULTS_END, two_ranks
 
 _WORKER = (
     """
@@ -65,10 +65,8 @@ for name, (model, kw) in runs.items():
     else:
         got["result"] = field is None
     out[name] = got
-with open(sys.argv[1] + f".{rank}", "w") as f:
-    json.dump(out, f)
 """
-    + GROUP_END
+    + RANK_RESULTS_END
 )
 
 

@@ -21,7 +21,7 @@ from latticedft._kernel import _LOADED, BUILDS, compile_forms
 from latticedft._serve._fast1d import trajectory_kernel
 from latticedft._symbolic import SymbolicLd, cell_symbols
 
-from helpers import sine_gordon
+from helpers import sine_gordon, smooth_start
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -43,15 +43,7 @@ def _field(ndim: int, n: int, m: int = 1) -> object:
             spacing=0.05,
             components=[f"q{c}" for c in range(m)] if m > 1 else None,
         )
-    x = np.arange(n) / n
-    u = np.ones([n] * ndim)
-    for k in range(ndim):
-        shape = [1] * ndim
-        shape[k] = n
-        u = u * np.sin(2 * np.pi * x + k).reshape(shape)
-    dims = ("t", *"zyx"[3 - ndim :])
-    attrs = {d: {"periodic": "true", "period": n * 0.1} for d in dims[1:]}
-    return systems.make_field(np.stack([0.8 * u, 0.8 * u]), dims, spacing=(0.04, *[0.1] * ndim), coord_attrs=attrs)
+    return smooth_start(ndim, n)
 
 
 @pytest.mark.parametrize("ndim", [1, 2, 3])

@@ -13,26 +13,13 @@ import latticedft as ldft
 from latticedft import systems
 from latticedft._serve import _ondevice
 
-from helpers import sine_gordon
+from helpers import sine_gordon, smooth_start
 
 
 @pytest.fixture
 def on_cpu(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     monkeypatch.setattr(_ondevice, "ON_CPU", True)
     yield
-
-
-def start(ndim: int, n: int, periodic: bool = True) -> object:
-    """Two slices of a smooth field at rest, periodic or with fixed ends."""
-    x = np.arange(n) / n
-    u = np.ones([n] * ndim)
-    for k in range(ndim):
-        shape = [1] * ndim
-        shape[k] = n
-        u = u * np.sin(2 * np.pi * x + k).reshape(shape)
-    dims = ("t", *"zyx"[3 - ndim :])
-    attrs = {d: {"periodic": "true", "period": n * 0.1} for d in dims[1:]} if periodic else None
-    return systems.make_field(np.stack([0.8 * u, 0.8 * u]), dims, spacing=(0.04, *[0.1] * ndim), coord_attrs=attrs)
 
 
 def served(model: ldft.AbstractLagrangian, init: object, device_path: bool, **kw: object) -> ldft.ServeResult:
@@ -55,7 +42,7 @@ def served(model: ldft.AbstractLagrangian, init: object, device_path: bool, **kw
 
 @pytest.mark.parametrize("ndim,n", [(2, 12), (3, 6)])
 def test_device_slices_serve_what_slice_newton_serves(ndim: int, n: int) -> None:
-    model, init = sine_gordon(False), start(ndim, n)
+    model, init = sine_gordon(False), smooth_start(ndim, n)
     plain = served(model, init, False, slices=12)
     device = served(model, init, True, slices=12)
     assert device.slice_solver == plain.slice_solver == "sitewise"
@@ -73,7 +60,7 @@ def test_a_closed_form_is_served_by_its_generated_derivatives(on_cpu: None) -> N
         built.append(closed_terms(*args))  # type: ignore[arg-type]
         return built[-1]
 
-    init = start(2, 10)
+    init = smooth_start(2, 10)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(_ondevice, "closed_terms", spied)
         device = ldft.serve(sine_gordon(), init, slices=10, progress=False)
@@ -84,7 +71,7 @@ def test_a_closed_form_is_served_by_its_generated_derivatives(on_cpu: None) -> N
 
 def test_bounded_lattice_keeps_its_known_sites() -> None:
     """Fixed ends: the boundary sites of each slice come from the input, the interior from the device path."""
-    init = start(2, 10, periodic=False)
+    init = smooth_start(2, 10, periodic=False)
     whole = systems.make_field(
         np.repeat(init.values[:1], 10, axis=0), init.dims, spacing=(0.04, 0.1, 0.1)
     )  # the fixed ends hold their first values on every slice
@@ -100,7 +87,7 @@ def test_bounded_lattice_keeps_its_known_sites() -> None:
 def test_streamed_window_reads_the_slices_it_holds() -> None:
     """A rolling window of one slice at a time (every chunk shifts it): the device keeps slices by their index
     in the whole field, so the kept slices equal those of the whole field served the same way."""
-    model, init = sine_gordon(False), start(2, 8)
+    model, init = sine_gordon(False), smooth_start(2, 8)
     whole = served(model, init, True, slices=15)
     with ldft.set_options(serve_window_bytes=1):  # four slices in the window
         kept = served(model, init, True, slices=15, every=2)
@@ -108,7 +95,7 @@ def test_streamed_window_reads_the_slices_it_holds() -> None:
 
 
 def test_a_slice_the_device_cannot_finish_goes_to_slice_newton(on_cpu: None, monkeypatch: pytest.MonkeyPatch) -> None:
-    model, init = sine_gordon(False), start(2, 8)
+    model, init = sine_gordon(False), smooth_start(2, 8)
     plain = served(model, init, False, slices=10)
     calls = []
     iterate = _ondevice.DeviceSlices._iterate
@@ -136,7 +123,7 @@ def test_a_coupled_jacobian_is_left_to_slice_newton() -> None:
             out = out - 0.5 * dk**2 + 0.2 * dt * dk
         return out
 
-    model, init = ldft.AnalyticLagrangian(fn, name="coupled"), start(2, 8)
+    model, init = ldft.AnalyticLagrangian(fn, name="coupled"), smooth_start(2, 8)
     plain = ldft.serve(model, init, slices=6, progress=False)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(_ondevice, "ON_CPU", True)
@@ -146,7 +133,7 @@ def test_a_coupled_jacobian_is_left_to_slice_newton() -> None:
 
 
 def test_not_taken_for_vector_fields_or_on_the_cpu() -> None:
-    model, init = sine_gordon(False), start(2, 6)
+    model, init = sine_gordon(False), smooth_start(2, 6)
     model.bind(3, 1, (0.04, 0.1, 0.1))
     from latticedft._lattice import as_lattice_field
     from latticedft._serve._slices import _SliceSystem
@@ -165,10 +152,10 @@ def test_not_taken_for_vector_fields_or_on_the_cpu() -> None:
     "ndim,n,periodic,closed", [(2, 16, True, False), (3, 8, True, False), (2, 10, False, False), (3, 8, True, True)]
 )
 def test_on_cuda_the_field_is_the_cpu_field(ndim: int, n: int, periodic: bool, closed: bool) -> None:
-    model, init = sine_gordon(closed), start(ndim, n, periodic)
+    model, init = sine_gordon(closed), smooth_start(ndim, n, periodic)
     if not periodic:
         init = systems.make_field(np.repeat(init.values[:1], 8, axis=0), init.dims, spacing=(0.04, 0.1, 0.1))
-        init.values[1] = start(ndim, n, periodic).values[1]
+        init.values[1] = smooth_start(ndim, n, periodic).values[1]
     cpu = ldft.serve(model, init, slices=8, progress=False)
     cuda = ldft.serve(model, init, slices=8, progress=False, device="cuda")
     assert cuda.device.startswith("cuda") and cuda.slice_solver == "sitewise"

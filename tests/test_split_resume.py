@@ -19,7 +19,7 @@ import xarray as xr
 from test_resume import _latticedft, _same_results, _stage, tiny_sine_gordon
 
 from case_helpers import copy_wave, run_cli, snapshot
-from helpers import GROUP_END, two_ranks
+from helpers import RANK_RESULTS_END, two_ranks
 
 SETS = ["--set", "serve.test.slices=41", "--set", "serve.test.checkpoint=10"]
 
@@ -115,10 +115,8 @@ for name, model in (("affine", ldft.lagrangians.wave()), ("newton", AnalyticLagr
         got["alone"] = float(np.abs(alone.field.values - whole.values).max() / scale)
         got["split"] = float(np.abs(one.field.values - whole.values).max() / scale)
     out[name] = got
-with open(sys.argv[1] + f".{rank}", "w") as f:
-    json.dump(out, f)
 """
-    + GROUP_END
+    + RANK_RESULTS_END
 )
 
 
