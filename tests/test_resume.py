@@ -186,6 +186,29 @@ def test_resume_with_a_changed_case_is_refused_naming_the_key(tmp_path, capsys):
     assert code != 0 and "serve[0].rtol: is 1e-09 now but the checkpointed run had unset" in err, err
 
 
+class _Planted:
+    """An object whose unpickling would write a file: what a checkpoint from someone else could hold."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.write_text, (self.marker, "unpickled"))
+
+
+def test_a_checkpoint_holding_a_pickled_object_is_refused_unread(tmp_path, capsys):
+    import pickle
+
+    case = copy_wave(tmp_path)
+    killed = _latticedft("run", case, "-q", *FAST, *WAVE_SETS, fault="kill:checkpoint")
+    assert killed.returncode == -9, killed.stderr
+    marker = tmp_path / "marker"
+    (_stage(case) / ".test.ckpt").write_bytes(pickle.dumps({"nkept": 3, "x": _Planted(marker)}))
+    code, _, err = run_cli(capsys, "run", case, "-q", *FAST, *WAVE_SETS, "--resume")
+    assert code != 0 and len(err.strip().splitlines()) == 1 and "checkpoint" in err, err
+    assert "cannot be read" in err and not marker.exists()
+
+
 @pytest.mark.parametrize("value", ["0", "-3", "2.5", '"ten"', "true"])
 def test_a_checkpoint_that_is_not_a_positive_integer_is_refused(tmp_path, capsys, value):
     case = copy_wave(tmp_path)
@@ -218,9 +241,9 @@ class _Keeper:
         self.kept.append(np.array(values))
 
     def save(self, state: dict) -> None:
-        import pickle
+        from latticedft._run._resume import state_bytes
 
-        self.saved.append(pickle.dumps({**state, "kept_values": np.stack(self.kept[: state["nkept"]])}))
+        self.saved.append(state_bytes({**state, "kept_values": np.stack(self.kept[: state["nkept"]])}))
 
     def load(self) -> dict | None:
         return self.resume_from
@@ -229,12 +252,11 @@ class _Keeper:
 def test_a_2p1d_newton_stream_resumed_from_a_state_equals_the_whole_run():
     """In-process, 2+1D periodic, a nonlinear ``L_d`` served by slice-Newton (not the affine path): the run
     resumed from its second checkpoint gives the kept slices, counters and extrapolation of the whole run."""
-    import pickle
-
     import torch
 
     import latticedft as ldft
     from latticedft._models import AnalyticLagrangian
+    from latticedft._run._resume import state_from_bytes
 
     def fn(cells: torch.Tensor, h: tuple[float, ...]) -> torch.Tensor:
         u0, u1 = cells[..., 0, 0], cells[..., 1, 0]
@@ -255,13 +277,13 @@ def test_a_2p1d_newton_stream_resumed_from_a_state_equals_the_whole_run():
     first = _Keeper()
     whole = ldft.serve(model, init, on_slice=first, **opts)
     assert whole.solver == "newton" and len(first.saved) >= 3
-    state = pickle.loads(first.saved[1])
+    state = state_from_bytes(first.saved[1])
     again = _Keeper(state)
     resumed = ldft.serve(model, init, on_slice=again, **opts)
     xr.testing.assert_identical(whole.field, resumed.field)
     for key in ("newton_iterations", "max_newton_iterations", "max_residual", "solver", "slice_solver"):
         assert getattr(whole, key) == getattr(resumed, key), key
-    later = [pickle.loads(b) for b in first.saved[2:]], [pickle.loads(b) for b in again.saved]
+    later = [state_from_bytes(b) for b in first.saved[2:]], [state_from_bytes(b) for b in again.saved]
     assert len(later[0]) == len(later[1]) >= 1
     for a, b in zip(*later):  # the later checkpoints too, bit for bit
         assert (a["base"], a["nkept"], a["counters"], a["on_affine"]) == (

@@ -15,11 +15,14 @@ checkpoint and serves the others. The checkpoint files are removed before the re
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import pickle
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import torch
 import xarray as xr
 
 from .._atomic import fault, write_bytes_atomic, write_text_atomic
@@ -29,7 +32,7 @@ from .._part_file import PartFile, part_path
 from ._guards import case_inputs
 from ._meter import TaskMeter
 
-__all__ = ["RESUME_FILE", "Journal", "TaskCheckpoint", "open_part"]
+__all__ = ["RESUME_FILE", "Journal", "TaskCheckpoint", "open_part", "read_state", "state_bytes", "state_from_bytes"]
 
 #: The journal of a stage that holds resumable tasks: a staging folder holding it is kept for ``--resume``.
 RESUME_FILE = ".latticedft-resume.json"
@@ -51,7 +54,7 @@ class TaskCheckpoint:
     def save(self, state: dict[str, Any]) -> None:
         """Write the window's ``state`` with the meter's figures, atomically."""
         state = {**state, "meter": self.meter.state()}
-        write_bytes_atomic(self.path, pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL))
+        write_bytes_atomic(self.path, state_bytes(state))
         fault("checkpoint", self.path)
 
     def load(self) -> dict[str, Any] | None:
@@ -59,7 +62,7 @@ class TaskCheckpoint:
         None for a task served from its start."""
         if not self.resume:
             return None
-        state: dict[str, Any] = pickle.loads(self.path.read_bytes())  # noqa: S301 - our own file, in our own stage
+        state = read_state(self.path)
         self.meter.restore(state.pop("meter"))
         self.part.n = int(state["nkept"])
         state["kept_values"] = self.part.rows()
@@ -74,9 +77,9 @@ def open_part(
     ckpt = checkpoint_path(stage, name)
     if resume and ckpt.is_file() and part_path(stage, name).is_file():
         try:
-            rows = int(pickle.loads(ckpt.read_bytes())["nkept"])  # noqa: S301 - our own file
+            rows = int(read_state(ckpt)["nkept"])
             return PartFile.reopen(stage, name, variable, template, rows), True
-        except (OSError, ValueError, KeyError, pickle.UnpicklingError, EOFError) as exc:
+        except (OSError, ValueError, KeyError, RuntimeError, pickle.UnpicklingError, EOFError) as exc:
             raise InputError.at(
                 "checkpoint",
                 f"task {name}: the checkpointed run's part file or checkpoint cannot be read ({exc}); "
@@ -84,6 +87,61 @@ def open_part(
             ) from None
     ckpt.unlink(missing_ok=True)  # the task was done when the run stopped: served again whole
     return PartFile(stage, name, variable, template, every), False
+
+
+def state_bytes(state: dict[str, Any]) -> bytes:
+    """``state`` (dicts, lists, tuples, numbers, strings, tensors, numpy arrays, DataArrays) as the bytes of a file that
+    :func:`read_state` reads back without unpickling any object: torch's format, numpy arrays as tensors."""
+    buf = io.BytesIO()
+    torch.save(_encoded(state), buf)
+    return buf.getvalue()
+
+
+def read_state(path: Path) -> dict[str, Any]:
+    """The state written by :func:`state_bytes` into ``path`` (:func:`state_from_bytes`)."""
+    return state_from_bytes(Path(path).read_bytes())
+
+
+def state_from_bytes(data: bytes) -> dict[str, Any]:
+    """The state of :func:`state_bytes`, read with ``weights_only``: a file holding any other pickled object
+    is refused (a checkpoint in a case folder may come from anyone)."""
+    try:
+        raw = torch.load(io.BytesIO(data), weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError):
+        raise ValueError("it is damaged, or holds objects a checkpoint does not (refused unread)") from None
+    state = _decoded(raw)
+    if not isinstance(state, dict):
+        raise ValueError("it is not a checkpoint")
+    return state
+
+
+_ARRAY, _DATAARRAY = "__ndarray__", "__dataarray__"
+
+
+def _encoded(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return {_ARRAY: torch.from_numpy(np.array(value, copy=True))}
+    if isinstance(value, xr.DataArray):
+        return {_DATAARRAY: _encoded(value.to_dict(data="array"))}
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, dict):
+        return {k: _encoded(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_encoded(v) for v in value)
+    return value
+
+
+def _decoded(value: Any) -> Any:
+    if isinstance(value, dict):
+        if set(value) == {_ARRAY} and isinstance(value[_ARRAY], torch.Tensor):
+            return value[_ARRAY].numpy()
+        if set(value) == {_DATAARRAY}:
+            return xr.DataArray.from_dict(_decoded(value[_DATAARRAY]))
+        return {k: _decoded(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_decoded(v) for v in value)
+    return value
 
 
 def _flat(value: Any, key: str = "") -> dict[str, Any]:
