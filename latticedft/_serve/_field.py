@@ -81,25 +81,16 @@ def solve_and_tally(
     ``i - 2``), the previous slice's correction to its own such predictor
     (``3 psi_i - 3 psi_{i-1} + psi_{i-2}``: the next term of the extrapolation).
 
-    Where the compiled slice Newton serves (:func:`_fused_of`) it solves the slice and ``None`` is returned
-    for the gradients (``g_prev``: the cells anchored at ``i - 1``; ``None`` has them evaluated afresh).
+    Where the device or the compiled slice Newton serves (:func:`_sitewise`) it solves the slice and ``None``
+    is returned for the gradients (``g_prev``: the cells anchored at ``i - 1``; ``None`` has them evaluated
+    afresh).
     """
     flat, unk = run.flat, run.unk
-    onchip = on_device(run)
-    if onchip:
-        _choose_device(run, i, older)
-        device = _device_of(run)
-        at = getattr(run, "base", 0) + i  # the slice's index in the whole field
-        done = None if device is None else device.solve(flat, i, at, older, run.vol, rtol, max_newton, run.cache)
-    else:
-        if run.mode == "newton":
-            _choose_fused(run, i, older)
-        fused = _fused_of(run) if run.mode == "newton" else None
-        done = None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, run.cache)
+    done = _sitewise(run, i, older, rtol, max_newton)
     if done is not None:  # the compiled or device slice Newton: no per-cell gradients are carried to the next slice
         _tallied(run, *done)
         return None
-    folded = _folded_of(run) if run.mode == "newton" and not onchip else None
+    folded = _folded_of(run) if run.mode == "newton" and not on_device(run) else None
     if folded is not None:
         folded.predict(flat, i, older)
     else:
@@ -135,6 +126,23 @@ def solve_and_tally(
         raise run.fail(i, msg, row, rval)
     _tallied(run, it, res)
     return g_prev
+
+
+def _sitewise(run: Any, i: int, older: Any, rtol: float, max_newton: int) -> tuple[int, float] | None:
+    """Slice ``i`` of ``run`` solved by the device slice Newton (a run on a device, :func:`on_device`) or the
+    compiled one, where either serves it: ``(evaluations, residual)``; ``None`` where neither does (or a site
+    failed: slice-Newton then solves the slice)."""
+    if run.mode != "newton":
+        return None
+    flat, cache = run.flat, run.cache
+    if on_device(run):
+        at = run.base + i  # the slice's index in the whole field
+        _choose_device(run, i, at, older)
+        device = _device_of(run)
+        return None if device is None else device.solve(flat, i, at, older, run.vol, rtol, max_newton, cache)
+    _choose_fused(run, i, older)
+    fused = _fused_of(run)
+    return None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, cache)
 
 
 def _tallied(run: Any, it: int, res: float) -> None:
@@ -197,7 +205,7 @@ def on_device(run: Any) -> bool:
     return wanted and run.mode == "newton" and not run.cache.get("keep_factored")
 
 
-def _choose_device(run: Any, i: int, older: Any) -> None:
+def _choose_device(run: Any, i: int, at: int, older: Any) -> None:
     """Before the first Newton slice of a run on a device: the site-wise solver chosen and the scales set from
     the Hessian blocks at the predictor, as slice-Newton's first iteration would (``_choose_fused`` on the
     CPU), so that the device serves the first slice too. A Jacobian that is not block diagonal (to
@@ -210,7 +218,7 @@ def _choose_device(run: Any, i: int, older: Any) -> None:
     device = _ondevice.device_slices(run.model, run.sys, run.flat, run.where)
     if device is None:
         return
-    found = device.probe(run.flat, i, getattr(run, "base", 0) + i, older)
+    found = device.probe(run.flat, i, at, older)
     mscale = max(cache.get("mscale", 0.0), found["smax"])
     if not found["off"] <= OFFDIAG_RTOL * found["smax"] or is_singular(found["smin"], mscale):
         return
@@ -278,6 +286,7 @@ class _FieldRun:
         self.bar = _bar(steps - 2, f"serve ({mode})", progress)
         self.cache: dict[str, Any] = {"solver": solver}
         self.start = 1  # first slice whose equations Newton (or the sweep) solves
+        self.base = 0  # the slice held at position 0 (the whole field: the first)
         self.affine_slices = 0
 
     def cells_at(self, i: int) -> torch.Tensor:

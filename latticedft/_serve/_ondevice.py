@@ -21,6 +21,7 @@ residual that is not a number, no convergence) is handed back to slice-Newton, w
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -61,7 +62,6 @@ class DeviceSlices:
                 self.same_site.append((a, b, None))
             elif bool(same.any()):
                 self.same_site.append((a, b, same))
-        self._closed: list[_Closed | None] = []  # built on the first Newton iteration (not for a probe alone)
         self.every_site = int(self.rows.numel()) == sys.nsite  # no known site: the next slice is not copied over
         self.nsite = sys.nsite
         self.window: dict[int, torch.Tensor] = {}  # slice index in the whole field -> its values on the device
@@ -86,6 +86,12 @@ class DeviceSlices:
             if up == upper:
                 out = out.index_add(0, s, grads[:, a, 0])
         return out
+
+    @functools.cached_property
+    def closed(self) -> _Closed | None:
+        """The generated derivatives of the model's closed form (:func:`closed_terms`), made on the first
+        Newton iteration (not for a probe alone); ``None``: autograd."""
+        return closed_terms(self.model, [(a, b) for a, b, _ in self.same_site])
 
     def _at(self, values: torch.Tensor) -> torch.Tensor:
         """``values`` (one per site) at the unknown sites."""
@@ -112,9 +118,7 @@ class DeviceSlices:
         ``lo`` and ``hi`` (the unknowns): the derivative sums, per site, the second derivatives of the pairs of
         points that sit on it (the Jacobian being diagonal, nothing else moves the site's equation). From the
         model's closed form where it has one (:func:`closed_terms`), else by autograd."""
-        if not self._closed:
-            self._closed.append(closed_terms(self.model, [(a, b) for a, b, _ in self.same_site]))
-        closed = self._closed[0]
+        closed = self.closed
         if closed is not None:
             columns = [(hi if up else lo)[s] for up, s in zip(self.upper, self.site_of)]
             grads, seconds = closed(columns)
