@@ -1,6 +1,6 @@
 """Serving split into slabs over processes: the field, peak memory per process and time against one process.
 
-    python -m benchmarks.serve_dist [--quick] [--point N SLICES EVERY] [--model kg|sg] [--full]
+    python -m benchmarks.serve_dist [--quick] [--point N SLICES EVERY] [--model kg|sg] [--full] [--grid]
 
 A 3+1D periodic Klein-Gordon field (the discrete ``L_d`` of ``latticedft.lagrangians.klein_gordon``: affine
 and explicit, the split recurrence of ``latticedft._serve._decomp.serve_slabs``), or with ``--model sg`` a
@@ -12,8 +12,9 @@ peak resident memory of each process (``VmHWM`` reset before serving) and its gr
 serving, and the wall time, with the load average (``os.getloadavg()``) before and after each run. Default
 ``N = 48, SLICES = 60, EVERY = 20`` (Klein-Gordon); ``--full`` is the issue's size: sine-Gordon at
 ``128^3`` sites, 200 slices, ``every = 50`` (``--model sg --point 128 200 50``: about 2 GiB and, on one
-core, tens of minutes a run); ``--quick``: 12^3 sites, 12 slices, 1 and 2 processes. Also ``python -m
-benchmarks --only serve-dist``.
+core, tens of minutes a run); ``--quick``: 12^3 sites, 12 slices, 1 and 2 processes. ``--grid`` adds a
+row of 4 processes in pencils, a ``2 x 2`` grid over ``(z, y)``, against the row of 4 slabs along ``z``.
+Also ``python -m benchmarks --only serve-dist``.
 """
 
 from __future__ import annotations
@@ -75,7 +76,9 @@ def _init(n: int) -> Any:
     return da
 
 
-def rank_probe(n: int, slices: int, every: int, out: str, model: str = "kg") -> dict[str, Any]:
+def rank_probe(
+    n: int, slices: int, every: int, out: str, model: str = "kg", grid: list[int] | None = None
+) -> dict[str, Any]:
     """One process of a run (rank 0 saves the field to ``out``): its peak memory and wall time."""
     import torch
 
@@ -90,7 +93,8 @@ def rank_probe(n: int, slices: int, every: int, out: str, model: str = "kg") -> 
     mem = PeakRSS()
     t0 = time.perf_counter()
     if parallel:
-        field = serve_slabs(lagrangian, init, slices, boundary="periodic", every=every)
+        shape = None if grid is None else (grid[0], grid[1])
+        field = serve_slabs(lagrangian, init, slices, boundary="periodic", every=every, grid=shape)
     else:
         field = ldft.serve(lagrangian, init, slices=slices, boundary="periodic", every=every, progress=False).field
     seconds = time.perf_counter() - t0
@@ -110,14 +114,16 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _launch(processes: int, n: int, slices: int, every: int, out: Path, model: str = "kg") -> list[dict[str, Any]]:
-    """``processes`` fresh Pythons forming one group; each one's answer, in rank order."""
+def _launch(
+    processes: int, n: int, slices: int, every: int, out: Path, model: str = "kg", grid: list[int] | None = None
+) -> list[dict[str, Any]]:
+    """``processes`` fresh Pythons forming one group (``grid``: pencils); each one's answer, in rank order."""
     root = Path(__file__).resolve().parent.parent
     code = (
         "import json, sys; from benchmarks.serve_dist import rank_probe; "
         "print('@@' + json.dumps(rank_probe(**json.loads(sys.argv[1]))))"
     )
-    kw = json.dumps({"n": n, "slices": slices, "every": every, "out": str(out), "model": model})
+    kw = json.dumps({"n": n, "slices": slices, "every": every, "out": str(out), "model": model, "grid": grid})
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONPATH=str(root))
     for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
         env.pop(k, None)
@@ -145,7 +151,7 @@ def _launch(processes: int, n: int, slices: int, every: int, out: Path, model: s
     return answers
 
 
-def run(cfg: Config, point: tuple[int, int, int] | None = None, model: str = "kg") -> Table:
+def run(cfg: Config, point: tuple[int, int, int] | None = None, model: str = "kg", pencils: bool = False) -> Table:
     n, slices, every = point or (QUICK if cfg.quick else FULL)
     title = TITLE if model == "kg" else TITLE.replace("Klein-Gordon", "sine-Gordon (site-wise slice-Newton)")
     table = Table(
@@ -157,22 +163,28 @@ def run(cfg: Config, point: tuple[int, int, int] | None = None, model: str = "kg
     diffs: dict[int, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         one = None
-        for p in PROCESSES[:2] if cfg.quick and point is None else PROCESSES:
-            out = Path(tmp) / f"field_{p}.npy"
+        runs: list[tuple[int, list[int] | None]] = [(p, None) for p in PROCESSES]
+        runs = runs[:2] if cfg.quick and point is None else runs + ([(4, [2, 2])] if pencils else [])
+        for p, grid in runs:
+            out = Path(tmp) / f"field_{p}_{grid}.npy"
             load = os.getloadavg()[0]
-            answers = _launch(p, n, slices, every, out, model)
+            answers = _launch(p, n, slices, every, out, model, grid)
             field = np.load(out)
             one = field if one is None else one
-            diffs[p] = float(np.abs(field - one).max() / max(np.abs(one).max(), 1e-300))
-            growth[p] = max(a["rss_peak"] - a["rss_before"] for a in answers)
+            diff = float(np.abs(field - one).max() / max(np.abs(one).max(), 1e-300))
+            grown = max(a["rss_peak"] - a["rss_before"] for a in answers)
+            if grid is None:
+                diffs[p], growth[p] = diff, grown
             peak = max(a["rss_peak"] for a in answers)
             wall = max(a["seconds"] for a in answers)
+            label = p if grid is None else f"{p} (pencils {grid[0]} x {grid[1]})"
             table.rows.append(
-                [p, f"{n}^3", slices, diffs[p], wall, peak, growth[p], f"{load:.1f}-{os.getloadavg()[0]:.1f}"]
+                [label, f"{n}^3", slices, diff, wall, peak, grown, f"{load:.1f}-{os.getloadavg()[0]:.1f}"]
             )
     table.notes += [
         "1 process: latticedft.serve (the one-process path); 2 and 4: latticedft._serve._decomp.serve_slabs, "
-        "slabs along z, one halo plane each side exchanged after every slice, kept slices gathered to rank 0.",
+        "slabs along z, one halo plane each side exchanged after every slice, kept slices gathered to rank 0; "
+        "pencils (--grid): blocks of a 2 x 2 grid over (z, y), their halo exchanged along z, then along y.",
         "Peak RSS and growth: the largest over the processes (VmHWM reset before serving; the interpreter and "
         "torch, ~300-400 MiB, are in the peak, not in the growth). Wall: the slowest process. On a machine "
         "with fewer free cores than processes the time ratio measures the load, not the scaling.",
@@ -205,10 +217,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--point", nargs=3, type=int, metavar=("N", "SLICES", "EVERY"), help="e.g. 128 200 50")
     parser.add_argument("--model", choices=("kg", "sg"), default="kg", help="Klein-Gordon or sine-Gordon")
     parser.add_argument("--full", action="store_true", help="the issue's size: sine-Gordon, 128^3, 200, every 50")
+    parser.add_argument("--grid", action="store_true", help="a row of 4 processes in 2 x 2 pencils")
     args = parser.parse_args(argv)
     point, model = (ISSUE, "sg") if args.full else (args.point and tuple(args.point), args.model)
-    if point or model != "kg":
-        return run_alone(lambda cfg: run(cfg, point, model), __doc__, ["--threads", str(args.threads)])
+    if point or model != "kg" or args.grid:
+        return run_alone(lambda cfg: run(cfg, point, model, args.grid), __doc__, ["--threads", str(args.threads)])
     return run_alone(run, __doc__, argv)
 
 

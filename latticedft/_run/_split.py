@@ -35,7 +35,7 @@ from .._models import AbstractLagrangian
 from .._models._ensemble import EnsembleLagrangian
 from .._options import option
 from .._serve import ServeResult
-from .._serve._decomp import Slab, _halo_width, plan_slabs
+from .._serve._decomp import Block, _halo_width, plan_grid
 from .._serve._decomp import serve_slabs as _serve_slabs
 from .._serve._flag import SlabError
 from .._serve._options import kept_slices
@@ -91,10 +91,10 @@ def check_split(tasks: list[TaskData], model: AbstractLagrangian | None = None) 
     for td in split:
         if td.task.options.solver == "lu":
             raise lu_refusal(f"{td.task.label}.solver")
-        axis = lattice_dims(td.init)[1]
-        halo = _halo_width(model) if model is not None else 0
+        axes = lattice_dims(td.init)[1:3]
+        halos = tuple(_halo_width(model, k + 1) if model is not None else 0 for k in range(len(axes)))
         try:
-            plan_slabs(td.init.sizes[axis], size, halo, False, axis)
+            plan_grid(tuple(td.init.sizes[a] for a in axes), size, halos, (False,) * len(axes), axes)
         except InputError as exc:
             raise InputError.at("--workers", f"task {td.task.name!r}: {exc.problem}") from None
     return True
@@ -197,11 +197,11 @@ class _SlabErrors:
         self.ref = ref
         self.worst, self.sum_sq, self.count, self.compared, self.ref_max = 0.0, 0.0, 0, 0, 0.0
 
-    def __call__(self, i: int, slab: Slab, own: np.ndarray) -> None:
+    def __call__(self, i: int, block: Block, own: np.ndarray) -> None:
         ref = self.ref
         if ref is None or i >= ref.sizes[ref.dims[0]]:
             return
-        part = np.asarray(ref.isel({ref.dims[0]: i, ref.dims[1]: slice(slab.lo, slab.hi)}).values, np.float64)
+        part = np.asarray(ref.isel({ref.dims[0]: i, **block.owned(ref.dims)}).values, np.float64)
         d = np.abs(own.reshape(part.shape) - part)
         self.worst = max(self.worst, float(d.max()))
         self.ref_max = max(self.ref_max, float(np.abs(part).max()))
@@ -231,13 +231,13 @@ def _reduce_errors(worst: float, ref_max: float, sum_sq: float, count: float) ->
     return float(mx[0]), float(mx[1]), float(sm[0]), float(sm[1])
 
 
-def _baseline_errors(td: TaskData, slab: Slab, slices: int) -> dict[str, float]:
+def _baseline_errors(td: TaskData, block: Block, slices: int) -> dict[str, float]:
     """The baseline against the reference over their first ``slices`` slices, on the slab, reduced."""
     base, ref = td.baseline, td.reference
     assert base is not None and ref is not None
     worst, sum_sq, count = 0.0, 0.0, 0
     for i in range(slices):
-        own = {ref.dims[1]: slice(slab.lo, slab.hi)}
+        own = block.owned(ref.dims)
         d = np.asarray(base.isel({base.dims[0]: i, **own}).values, np.float64) - np.asarray(
             ref.isel({ref.dims[0]: i, **own}).values, np.float64
         )
@@ -291,13 +291,10 @@ def serve_split(
     errors = meter.reduced() if td.reference is not None else None
     baseline = None
     if td.baseline is not None and td.reference is not None:
-        slab = _own_slab(report, td)
+        block = report["block"]
         n = min(td.baseline.sizes[td.baseline.dims[0]], td.reference.sizes[td.reference.dims[0]])
-        baseline = (_baseline_errors(td, slab, n), _baseline_errors(td, slab, min(n, meter.compared)))
-    decomposition = {k: report[k] for k in ("processes", "axis", "slabs")}
-    if world()[0] == 0:
-        slabs = " ".join(f"[{lo}, {hi})" for lo, hi in report["slabs"])
-        log.info("task %s: split over %d processes along %r, slabs %s", td.task.name, world()[1], report["axis"], slabs)
+        baseline = (_baseline_errors(td, block, n), _baseline_errors(td, block, min(n, meter.compared)))
+    decomposition = _decomposition(report, td.task.name)
     if got is None:
         return Split(result=None, errors=None, baseline=None)
     if whole is not None:
@@ -315,9 +312,17 @@ def _ignore(i: int, values: np.ndarray) -> None:
     """The ``on_slice`` of the processes but rank 0 (they take part in the gather and see nothing)."""
 
 
-def _own_slab(report: dict[str, Any], td: TaskData) -> Slab:
-    lo, hi = report["slabs"][world()[0]]
-    return Slab(lo, hi, td.init.sizes[report["axis"]], 0, False)
+def _decomposition(report: dict[str, Any], name: str) -> dict[str, Any]:
+    """The decomposition of a split task for ``summary.json`` (logged by rank 0): slabs as before pencils,
+    pencils with their grid, axes and blocks."""
+    if "slabs" in report:
+        if world()[0] == 0:
+            slabs = " ".join(f"[{lo}, {hi})" for lo, hi in report["slabs"])
+            log.info("task %s: split over %d processes along %r, slabs %s", name, world()[1], report["axis"], slabs)
+        return {k: report[k] for k in ("processes", "axis", "slabs")}
+    if world()[0] == 0:
+        log.info("task %s: split over %d processes, %s", name, world()[1], report["grid"])
+    return {k: report[k] for k in ("processes", "grid", "axes", "blocks")}
 
 
 def _result(

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 from functools import partial
 from typing import Any, NoReturn
 
@@ -39,7 +38,7 @@ import xarray as xr
 
 from .._action import CellDerivatives, check_model_lattice
 from .._boundary import BoundaryKinds
-from .._collective import group_device, world
+from .._collective import world
 from .._errors import InputError, ServeError
 from .._lattice import LatticeField, as_lattice_field, gather_cells
 from .._layout import lattice_dims
@@ -48,12 +47,13 @@ from ._affine import _AffineSlices, _slice_residuals
 from ._checkpoint import keep_factored
 from ._edges import known_slices
 from ._flag import Failure, Flag, SlabError
+from ._grid import Block, Slab, assemble, exchange, grid_text, plan_grid, plan_slabs
 from ._newton import _newton_slice
 from ._options import kept_slices
 from ._slabkrylov import SlabSolver, lu_refusal
 from ._slices import _site_label, _SliceSystem
 
-__all__ = ["ROUNDOFF", "Slab", "plan_slabs", "serve_slabs"]
+__all__ = ["ROUNDOFF", "Block", "Slab", "plan_grid", "plan_slabs", "serve_slabs"]
 
 #: Entries of the cell Hessian at most this fraction of its largest are taken as zero: a learned quadratic
 #: ``L_d`` couples the new slice's neighbouring sites at round-off (1e-16 of the kinetic entries), which
@@ -62,96 +62,23 @@ __all__ = ["ROUNDOFF", "Slab", "plan_slabs", "serve_slabs"]
 ROUNDOFF = 1e-12
 
 
-@dataclass(frozen=True)
-class Slab:
-    """Planes ``lo .. hi - 1`` of the outer spatial axis (of ``n``), held with ``halo`` planes each side."""
-
-    lo: int
-    hi: int
-    n: int
-    halo: int
-    periodic: bool
-
-    @property
-    def local(self) -> np.ndarray:
-        """The global planes this process holds, in order (its halo included; wrapped when periodic)."""
-        if self.periodic:
-            return np.arange(self.lo - self.halo, self.hi + self.halo) % self.n
-        return np.arange(max(self.lo - self.halo, 0), min(self.hi + self.halo, self.n))
-
-    @property
-    def own(self) -> slice:
-        """The slab's own planes among :attr:`local`."""
-        start = self.lo - self.halo if self.periodic else max(self.lo - self.halo, 0)
-        return slice(self.lo - start, self.hi - start)
-
-
-def plan_slabs(n: int, processes: int, halo: int, periodic: bool, axis: str = "x") -> list[Slab]:
-    """``processes`` slabs of the ``n`` planes of ``axis`` (as equal as can be); one-line InputErrors naming
-    ``--workers`` when there are more processes than planes or a slab is thinner than the halo."""
-    if processes > n:
-        raise InputError.at(
-            "--workers",
-            f"{processes} processes for the {n} planes of the outer axis {axis!r}: at most {n} (one plane each)",
-        )
-    bounds = [n * r // processes for r in range(processes + 1)]
-    thinnest = min(b - a for a, b in zip(bounds[:-1], bounds[1:]))
-    if processes > 1 and thinnest < halo:
-        raise InputError.at(
-            "--workers",
-            f"the halo of {halo} planes is wider than a slab of {thinnest} planes of {axis!r}; "
-            f"use at most {n // halo} processes",
-        )
-    return [Slab(a, b, n, halo, periodic) for a, b in zip(bounds[:-1], bounds[1:])]
-
-
-def _halo_width(model: AbstractLagrangian) -> int:
-    """The stencil's reach along the outer spatial axis: a site's equation sees this many planes each side."""
-    offsets = np.asarray(model.stencil.offsets)[:, 1]
+def _halo_width(model: AbstractLagrangian, axis: int = 1) -> int:
+    """The stencil's reach along lattice axis ``axis`` (1: the outer spatial axis): a site's equation sees
+    this many planes each side."""
+    offsets = np.asarray(model.stencil.offsets)[:, axis]
     return int(offsets.max() - offsets.min())
 
 
-def _local_field(init: xr.DataArray, slab: Slab, boundary: dict[str, str]) -> LatticeField:
-    """The slab's part of ``init`` (only it is read), its outer axis Dirichlet (the halo planes are known)."""
-    dims = lattice_dims(init)
-    axis = dims[1]
-    part = init.isel({axis: slab.local})
-    coord = np.asarray(init[axis].values, dtype=np.float64)
-    step = float(coord[1] - coord[0])
-    start = slab.lo - slab.halo if slab.periodic else max(slab.lo - slab.halo, 0)
-    part = part.assign_coords({axis: coord[0] + step * np.arange(start, start + len(slab.local))})
-    part[axis].attrs = {k: v for k, v in init[axis].attrs.items() if k != "periodic"}
-    return as_lattice_field(part.compute(), source="init", boundary={**boundary, axis: "dirichlet"}, min_slices=2)
-
-
-def _exchange(v: np.ndarray, slab: Slab, rank: int, size: int) -> None:
-    """Send the slab's edge planes of the slice ``v`` (``(nsite * m,)``) to its neighbours; receive theirs
-    into its halo planes."""
-    w, own = slab.halo, slab.own
-    planes = v.reshape(len(slab.local), -1)
-    if size == 1:  # periodic in one process: its own edge planes
-        planes[own.start - w : own.start] = planes[own.stop - w : own.stop]
-        planes[own.stop : own.stop + w] = planes[own.start : own.start + w]
-        return
-    left = (rank - 1) % size if (slab.periodic or rank > 0) else None
-    right = (rank + 1) % size if (slab.periodic or rank < size - 1) else None
-    dev = group_device()
-    ops, got = [], []
-    # tag 0: planes going left, tag 1: going right (two ranks, periodic: both neighbours are the same rank)
-    for peer, send, recv, out_tag in (
-        (left, slice(own.start, own.start + w), slice(own.start - w, own.start), 0),
-        (right, slice(own.stop - w, own.stop), slice(own.stop, own.stop + w), 1),
-    ):
-        if peer is None:
-            continue
-        ops.append(dist.P2POp(dist.isend, torch.from_numpy(planes[send].copy()).to(dev), peer, tag=out_tag))
-        buf = torch.empty((w, planes.shape[1]), dtype=torch.float64, device=dev)
-        ops.append(dist.P2POp(dist.irecv, buf, peer, tag=1 - out_tag))
-        got.append((recv, buf))
-    for req in dist.batch_isend_irecv(ops):
-        req.wait()
-    for where, buf in got:
-        planes[where] = buf.cpu().numpy()
+def _local_field(init: xr.DataArray, block: Block, boundary: dict[str, str]) -> LatticeField:
+    """The block's part of ``init`` (only it is read), its split axes Dirichlet (the halo planes are known)."""
+    part, kinds = init.isel({axis: p.local for axis, p in zip(block.axes, block.parts)}), dict(boundary)
+    for axis, p in zip(block.axes, block.parts):
+        coord = np.asarray(init[axis].values, dtype=np.float64)
+        step = float(coord[1] - coord[0])
+        part = part.assign_coords({axis: coord[0] + step * np.arange(p.start, p.start + len(p.local))})
+        part[axis].attrs = {k: v for k, v in init[axis].attrs.items() if k != "periodic"}
+        kinds[axis] = "dirichlet"
+    return as_lattice_field(part.compute(), source="init", boundary=kinds, min_slices=2)
 
 
 def _recurrence(model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem, flag: Flag) -> _AffineSlices | None:
@@ -185,19 +112,18 @@ class _SlabNewton:
         f: LatticeField,
         sys: _SliceSystem,
         window: np.ndarray,
-        slab: Slab,
+        block: Block,
         flag: Flag,
         init: xr.DataArray,
         solver: str,
     ):
-        self.model, self.f, self.sys, self.window, self.slab = model, f, sys, window, slab
+        self.model, self.f, self.sys, self.window, self.block = model, f, sys, window, block
         self.flag, self.init = flag, init
         self.psi = torch.from_numpy(window).view(4, *f.shape[1:], f.ncomp)
         self.flat = self.psi.view(4, sys.nsite, f.ncomp)
         self.unk = torch.from_numpy(np.nonzero(sys.interior)[0])
         self.vol = math.prod(model.spacing)
-        exchange = partial(_exchange, slab=slab, rank=world()[0], size=world()[1])
-        steps = SlabSolver(sys, f, slab.local, slab.own, slab.n, slab.periodic, exchange, flag.maxima)
+        steps = SlabSolver(sys, f, block, partial(exchange, block=block, rank=world()[0], size=world()[1]), flag.maxima)
         self.cache: dict[str, Any] = {"solver": solver, "factor": steps.factor}
         self.g_prev: torch.Tensor | None = None
         self.total_it, self.max_it = 0, 0
@@ -212,7 +138,7 @@ class _SlabNewton:
         """The cells anchored on window row ``k`` (the unknown slice's halo exchanged first)."""
         if k == 2:
             self.flag.maxima()  # the gate before the exchange
-            _exchange(self.window[3], self.slab, *world())
+            exchange(self.window[3], self.block, *world())
         return gather_cells(self.psi[k : k + 2], self.model.stencil, self.f.boundary)
 
     def step(self, i: int, rtol: float, max_newton: int) -> float:
@@ -240,8 +166,9 @@ class _SlabNewton:
         site = None
         if row is not None:
             local = _site_label(self.f, self.sys, i, row)
-            start = self.slab.lo - self.slab.halo if self.slab.periodic else max(self.slab.lo - self.slab.halo, 0)
-            site = (i, (local[1] + start) % self.slab.n, *local[2:])
+            split = len(self.block.parts)
+            at = [(local[1 + k] + p.start) % p.n for k, p in enumerate(self.block.parts)]
+            site = (i, *at, *local[1 + split :])
         f, dims = self.f, lattice_dims(self.init)
         text = (
             f"slice {i + 1} (t = {float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0]):.6g}): {msg}"
@@ -268,19 +195,23 @@ def serve_slabs(
     every: int = 1,
     rtol: float = 1e-10,
     max_newton: int = 30,
-    on_slab: Callable[[int, Slab, np.ndarray], None] | None = None,
+    on_slab: Callable[[int, Block, np.ndarray], None] | None = None,
     report: dict[str, Any] | None = None,
     solver: str = "auto",
     on_slice: Callable[[int, np.ndarray], None] | None = None,
     checkpoint: Any = None,
+    grid: tuple[int, int] | None = None,
 ) -> xr.DataArray | None:
     """Serve ``init`` (every slice held for Dirichlet strips; a periodic field needs two) over the processes of
-    the group, one slab each; rank 0 gets the kept slices ``0, every, ...`` and the last, the others None.
+    the group, one block each (:mod:`._grid`: slabs, or pencils where the shape asks; ``grid`` ``(p1, p2)``
+    imposes one); rank 0 gets the kept slices ``0, every, ...`` and the last, the others None.
 
-    ``on_slab(i, slab, values)``, in every process, sees each slice ``i`` served (the first two included) on
-    the process's own planes (``(planes, ..., components)``): the task's meters measure the slab there.
+    ``on_slab(i, block, values)``, in every process, sees each slice ``i`` served (the first two included)
+    on the process's own block (``(planes, ..., components)``): the task's meters measure the block there.
     ``report``, when given, receives ``max_residual`` (the largest DEL residual of the recurrence's check),
-    ``processes`` and ``slabs`` (the planes ``[lo, hi)`` of each process along ``axis``), and the solvers.
+    ``processes``, ``grid`` (its text, ``slabs 2 over x``), ``axis`` and ``slabs`` (the planes ``[lo, hi)``
+    of each process along ``axis``) for slabs, ``axes`` and ``blocks`` (each process's ``[lo, hi]`` along
+    each) for pencils, ``block`` (this process's), and the solvers.
     ``solver`` is slice-Newton's linear solver (``"auto"``, ``"sitewise"`` or ``"krylov"``; ``"lu"`` is
     refused). ``on_slice(i, values)``, when given, sees on rank 0 every slice ``i`` whole (``(planes, ...,
     components)``, gathered slice by slice: the measurements a process makes on whole slices).
@@ -296,7 +227,7 @@ def serve_slabs(
         try:
             if solver == "lu":
                 raise lu_refusal()
-            run = _SlabRun(model, init, slices, boundary, every, flag, solver)
+            run = _SlabRun(model, init, slices, boundary, every, flag, solver, grid)
             if checkpoint is not None:
                 run.checkpointed(checkpoint)
             run.serve(rtol, max_newton, on_slab, on_slice)
@@ -311,7 +242,7 @@ def serve_slabs(
             run.tell(report)
         raise
     run.tell(report)
-    return _gathered(init, run.f, run.slab, run.kept, run.kept_at, world()[0])
+    return _gathered(init, run.f, run.block, run.kept, run.kept_at, world()[0])
 
 
 def _failure_text(exc: Exception, run: _SlabRun | None) -> str:
@@ -334,26 +265,28 @@ class _SlabRun:
         every: int,
         flag: Flag,
         solver: str = "auto",
+        grid: tuple[int, int] | None = None,
     ):
         rank, size = world()
         dims = lattice_dims(init)
         kinds = _kinds(model, init, dims, boundary)
-        self.axis = axis = dims[1]
-        self.slabs = plan_slabs(init.sizes[axis], size, _halo_width(model), kinds[axis] == "periodic", axis)
-        self.slab = slab = self.slabs[rank]
+        self.axis, axes = dims[1], dims[1:3]
+        sizes, halos = tuple(init.sizes[a] for a in axes), tuple(_halo_width(model, k + 1) for k in range(len(axes)))
+        self.blocks = plan_grid(sizes, size, halos, tuple(kinds[a] == "periodic" for a in axes), axes, grid)
+        self.block = block = self.blocks[rank]
         self.data = any(k != "periodic" for k in kinds.values())  # Dirichlet strips: every slice of the slab is read
         nt = min(init.sizes[dims[0]], slices) if self.data else 2
-        self.f = f = _local_field(init.isel({dims[0]: slice(0, nt)}), slab, kinds)
+        self.f = f = _local_field(init.isel({dims[0]: slice(0, nt)}), block, kinds)
         self.model, self.init, self.slices, self.flag = model, init, slices, flag
         self.sys = sys = _SliceSystem(model, f)
         self.op = _recurrence(model, f, sys, flag)
         self.window = np.full((4, sys.nsite * f.ncomp), np.nan)  # slices i - 2 .. i + 1
         self.window[1:3] = f.values[:2].reshape(2, -1).numpy()
-        self.newton = _SlabNewton(model, f, sys, self.window, slab, flag, init, solver) if self.op is None else None
+        self.newton = _SlabNewton(model, f, sys, self.window, block, flag, init, solver) if self.op is None else None
         self.kept_at = kept_slices(slices, every)
         self.kept = [self.window[k + 1].copy() for k in range(2) if k in self.kept_at]
         self.known = None if sys.interior.all() else np.repeat(~sys.interior, f.ncomp)
-        self.shape = (len(slab.local), *f.shape[2:], f.ncomp)
+        self.shape = (*f.shape[1:], f.ncomp)
         self.done, self.worst = 1, 0.0
         self.on_done: Callable[[_SlabRun], None] | None = None
 
@@ -365,26 +298,26 @@ class _SlabRun:
         self.on_done = checkpoint
 
     def own(self, row: int) -> np.ndarray:
-        """Window row ``row`` on the slab's own planes, ``(planes, ..., components)``."""
-        return self.window[row].reshape(self.shape)[self.slab.own]
+        """Window row ``row`` on the block's own sites, ``(planes, ..., components)``."""
+        return self.window[row].reshape(self.shape)[self.block.own]
 
     def serve(
         self,
         rtol: float,
         max_newton: int,
-        on_slab: Callable[[int, Slab, np.ndarray], None] | None,
+        on_slab: Callable[[int, Block, np.ndarray], None] | None,
         on_slice: Callable[[int, np.ndarray], None] | None = None,
     ) -> None:
         """Serve every slice (``on_slab`` sees each on the slab's planes, ``on_slice`` on rank 0 whole)."""
         window = self.window
         for k in range(2 if self.done == 1 else 0):  # a resumed run: served from its checkpoint's slice on
             if on_slab is not None:
-                on_slab(k, self.slab, self.own(k + 1))
+                on_slab(k, self.block, self.own(k + 1))
             self.whole(k, k + 1, on_slice)
         for i in range(self.done, self.slices - 1):
             self.step(i, rtol, max_newton)
             if on_slab is not None:
-                on_slab(i + 1, self.slab, self.own(3))
+                on_slab(i + 1, self.block, self.own(3))
             self.whole(i + 1, 3, on_slice)
             if i + 1 in self.kept_at:
                 self.kept.append(window[3].copy())
@@ -403,7 +336,7 @@ class _SlabRun:
             parts = [None] * world()[1]
             dist.gather_object(self.own(row), parts if world()[0] == 0 else None, dst=0)
         if world()[0] == 0:
-            on_slice(k, np.concatenate(parts, axis=0))
+            on_slice(k, assemble(parts, self.block.grid, 0))
 
     def step(self, i: int, rtol: float, max_newton: int) -> None:
         """Solve slice ``i``'s equations for slice ``i + 1`` (window row 3), its halo planes exchanged."""
@@ -417,7 +350,7 @@ class _SlabRun:
         assert self.op is not None
         self.op.run(window[1:], 1, 2)
         self.flag.maxima()  # the gate before the exchange
-        _exchange(window[3], self.slab, *world())
+        exchange(window[3], self.block, *world())
         vol = math.prod(self.model.spacing)
         self.worst = max(self.worst, _check(self.model, f, window[1:], vol, self.op.dmax, rtol, i, self.flag))
 
@@ -425,8 +358,11 @@ class _SlabRun:
         """Fill ``report`` (when given) with the decomposition and the solver's figures."""
         if report is None:
             return
-        slabs = [[s.lo, s.hi] for s in self.slabs]
-        report.update(max_residual=self.worst, processes=world()[1], axis=self.axis, slabs=slabs)
+        report.update(max_residual=self.worst, processes=world()[1], grid=grid_text(self.blocks), block=self.block)
+        if len(self.block.parts) == 1:
+            report.update(axis=self.axis, slabs=[[b.parts[0].lo, b.parts[0].hi] for b in self.blocks])
+        else:
+            report.update(axes=list(self.block.axes), blocks=[b.bounds() for b in self.blocks])
         newton = self.newton
         its = (self.done - 1, 1) if newton is None else (newton.total_it, newton.max_it)
         report.update(solver="affine" if newton is None else "newton", newton_iterations=its[0], max_newton=its[1])
@@ -470,21 +406,21 @@ def _check(
 
 
 def _gathered(
-    init: xr.DataArray, f: LatticeField, slab: Slab, kept: list[np.ndarray], kept_at: np.ndarray, rank: int
+    init: xr.DataArray, f: LatticeField, block: Block, kept: list[np.ndarray], kept_at: np.ndarray, rank: int
 ) -> xr.DataArray | None:
-    """The kept slices of every slab, gathered to rank 0 as one field."""
-    own = np.stack(kept).reshape(len(kept), len(slab.local), -1)[:, slab.own]
+    """The kept slices of every block, gathered to rank 0 as one field."""
+    own = np.stack(kept).reshape(len(kept), *block.held, -1)[(slice(None), *block.own)]
     parts: list[Any] = [own] if world()[1] == 1 else [None] * world()[1]
     if world()[1] > 1:
         dist.gather_object(own, parts if rank == 0 else None, dst=0)
     if rank != 0:
         return None
-    return _as_field(init, f, np.concatenate(parts, axis=1), kept_at)
+    return _as_field(init, f, assemble(parts, block.grid, 1), kept_at)
 
 
 def _as_field(init: xr.DataArray, f: LatticeField, values: np.ndarray, idx: np.ndarray) -> xr.DataArray:
     """The slices ``idx`` of the whole lattice (``values``: ``(len(idx), planes, ...)``) as a field like ``init``."""
-    values = values.reshape(len(idx), init.sizes[lattice_dims(init)[1]], *f.shape[2:], f.ncomp)
+    values = values.reshape(len(idx), *(init.sizes[d] for d in lattice_dims(init)[1:]), f.ncomp)
     tdim = lattice_dims(init)[0]
     t = np.asarray(init[tdim].values[:2], dtype=np.float64)
     out = init.isel({tdim: [0] * len(idx)}).copy(data=values if f.components is not None else values[..., 0])
@@ -494,9 +430,9 @@ def _as_field(init: xr.DataArray, f: LatticeField, values: np.ndarray, idx: np.n
 def _partial(run: _SlabRun) -> xr.DataArray | None:
     """Rank 0's field of a stopped split serve: the kept slices up to the last slice every process completed,
     and that slice (the processes that failed later hold it in window row 1); the others get None."""
-    rows = len(run.slab.local)
-    kept = np.stack(run.kept).reshape(len(run.kept), rows, -1)[:, run.slab.own] if run.kept else None
-    last = run.window[1:3].reshape(2, rows, -1)[:, run.slab.own]
+    held, own = run.block.held, (slice(None), *run.block.own)
+    kept = np.stack(run.kept).reshape(len(run.kept), *held, -1)[own] if run.kept else None
+    last = run.window[1:3].reshape(2, *held, -1)[own]
     mine = (run.done, run.kept_at[: len(run.kept)].tolist(), kept, last)
     parts: list[Any] = [mine]
     if world()[1] > 1:
@@ -512,5 +448,5 @@ def _partial(run: _SlabRun) -> xr.DataArray | None:
         at, held, kept, last = part
         return kept[held.index(k)] if k in held else last[1 - (at - k)]  # type: ignore[index]
 
-    values = np.stack([np.concatenate([planes(p, k) for p in parts], axis=0) for k in idx])
+    values = np.stack([assemble([planes(p, k) for p in parts], run.block.grid, 0) for k in idx])
     return _as_field(run.init, run.f, values, np.asarray(idx))

@@ -60,31 +60,26 @@ class SlabSolver:
     """``factor(sys, blocks, vol, requested, target)`` of slice-Newton on a slab (``_newton``'s ``factor``
     hook): the site-wise or the Krylov step over the processes.
 
-    ``f`` is the slab's field (its outer axis Dirichlet), ``planes`` the global plane of each local plane,
-    ``own`` the slab's own planes among them, ``n_planes``/``periodic`` the outer axis, ``exchange`` the halo
-    exchange of a slice-wide vector, ``maxima`` the flagged all-reduce (the gate before each solve)."""
+    ``f`` is the block's field (its split axes Dirichlet), ``block`` the process's :class:`._grid.Block` (the
+    global plane of each local plane of each split axis, and its own planes among them), ``exchange`` the
+    halo exchange of a slice-wide vector, ``maxima`` the flagged all-reduce (the gate before each solve)."""
 
     def __init__(
-        self,
-        sys: Any,
-        f: LatticeField,
-        planes: np.ndarray,
-        own: slice,
-        n_planes: int,
-        periodic: bool,
-        exchange: Exchange,
-        maxima: Callable[..., tuple[float, ...]],
+        self, sys: Any, f: LatticeField, block: Any, exchange: Exchange, maxima: Callable[..., tuple[float, ...]]
     ):
         self.sys, self.exchange, self.maxima = sys, exchange, maxima
-        outer = interior_slices((f.shape[0], n_planes, *f.shape[2:]), sys.st, f.boundary)[1]
-        if periodic:
-            outer = slice(0, n_planes)
-        rest = np.zeros(f.shape[2:], dtype=bool)
-        rest[interior_slices(f.shape, sys.st, f.boundary)[2:]] = True
-        unknown = ((planes >= outer.start) & (planes < outer.stop))[:, None] & rest.reshape(1, -1)
-        halo = np.ones(len(planes), dtype=bool)
-        halo[own] = False
-        held = (unknown & halo[:, None]).reshape(-1)  # the neighbours' unknowns on the halo planes
+        split = len(block.parts)
+        whole = (f.shape[0], *(p.n for p in block.parts), *f.shape[1 + split :])
+        inner = interior_slices(whole, sys.st, f.boundary)
+        rest = np.zeros(f.shape[1 + split :], dtype=bool)
+        rest[interior_slices(f.shape, sys.st, f.boundary)[1 + split :]] = True
+        outer = np.ones(block.held, dtype=bool)  # the planes held that are unknown in the whole lattice
+        for k, p in enumerate(block.parts):
+            span = slice(0, p.n) if p.periodic else inner[1 + k]
+            on = (p.local >= span.start) & (p.local < span.stop)
+            outer &= on.reshape((1,) * k + (-1,) + (1,) * (split - k - 1))
+        outer[block.own] = False  # the halo planes only
+        held = (outer[..., None] & rest.reshape(1, -1)).reshape(-1)  # the neighbours' unknowns on the halo planes
         self.held = np.nonzero(held)[0]
         col = -np.ones(sys.nsite, dtype=np.int64)
         col[self.held] = np.arange(len(self.held))

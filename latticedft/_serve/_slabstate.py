@@ -28,6 +28,7 @@ from .._collective import world
 from .._layout import lattice_dims
 from .._options import option
 from ._checkpoint import STATE_VERSION
+from ._grid import assemble
 
 __all__ = ["SlabCheckpoint", "restore", "stream_chunk"]
 
@@ -65,7 +66,7 @@ class SlabCheckpoint:
         self.chunk = stream_chunk(8 * sites * run.f.ncomp, run.slices, self.every)
         parts: list[Any] = [None] * size
         if rank == 0 and self.state is not None:
-            parts = [_part(self.state, run, slab) for slab in run.slabs]
+            parts = [_part(self.state, run, block) for block in run.blocks]
         got: list[Any] = [parts[0]]
         if size > 1:
             dist.scatter_object_list(got, parts if rank == 0 else None, src=0)
@@ -93,7 +94,7 @@ class SlabCheckpoint:
 
 def _state(run: Any, chunk: int, parts: list[Any]) -> dict[str, Any]:
     """One process's windowed-run state of the split run ``run`` (rank 0), from every process's ``parts``."""
-    rows = torch.from_numpy(np.concatenate([p[0] for p in parts], axis=1))  # (3, planes, ..., components)
+    rows = torch.from_numpy(assemble([p[0] for p in parts], run.block.grid, 1))  # (3, planes, ..., components)
     s, newton = run.done, run.newton
     cache = {} if newton is None else {k: newton.cache[k] for k in _CACHE_KEYS if k in newton.cache}
     counters = [0, 0, float(run.worst), s - 1] if newton is None else [newton.total_it, newton.max_it, run.worst, 0]
@@ -114,25 +115,27 @@ def _state(run: Any, chunk: int, parts: list[Any]) -> dict[str, Any]:
         "cache": cache,
         "split": {
             "processes": world()[1],
+            "grid": list(run.block.grid),
             "own": [p[1] for p in parts],
             "factored": None if any(f is None for f in factored) else factored,
         },
     }
 
 
-def _part(state: dict[str, Any], run: Any, slab: Any) -> dict[str, Any]:
-    """The part of ``state`` (with its ``kept_values``) of the process holding ``slab``."""
+def _part(state: dict[str, Any], run: Any, block: Any) -> dict[str, Any]:
+    """The part of ``state`` (with its ``kept_values``) of the process holding ``block``."""
     split = state.get("split") or {}
-    same = split.get("processes") == world()[1]
+    grid = split.get("grid", [split.get("processes")])  # a state of slabs may not say its grid
+    same = split.get("processes") == world()[1] and list(grid) == list(block.grid)
     two = np.asarray(state["head"])
     head = np.concatenate([np.asarray(state["before"]).reshape(1, *two.shape[1:]), two])
     kept = np.asarray(state["kept_values"]).reshape(int(state["nkept"]), *head.shape[1:])
     factored = split.get("factored") if same else None
-    index = run.slabs.index(slab)
+    index = run.blocks.index(block)
     return {
         "own": split["own"][index] if same else None,
-        "rows": head[:, slab.local],
-        "kept": kept[:, slab.local],
+        "rows": block.take(head, 1),
+        "kept": block.take(kept, 1),
         "done": int(state["done"]) - 1,
         "on_affine": bool(state["on_affine"]),
         "counters": state["counters"],
