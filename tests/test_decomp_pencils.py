@@ -57,6 +57,19 @@ for name, (model, init, slices, bnd, every, shape, rtol) in cases.items():
         assert got["slice"].values.tolist() == one["slice"].values.tolist()
         rel = float(np.abs(got.values - one.values).max() / np.abs(one.values).max())
         out[name] = [rel, bool(np.array_equal(got.values, one.values)), rep["grid"], rep.get("slice_solver")]
+        if shape is None:  # what summary.json records of the task
+            from latticedft._run._split import _decomposition
+            out["summary"] = _decomposition(rep, "test")
+from latticedft._serve._flag import SlabError
+from latticedft._errors import ServeError
+try:  # slice-Newton not converging: one process's message, its site in the whole lattice; the slices before
+    serve_slabs(sG, grid((6, 8)), 12, boundary="periodic", max_newton=1, grid=(2, 2))
+except SlabError as err:
+    try:
+        ldft.serve(sG, grid((6, 8)), slices=12, boundary="periodic", max_newton=1)
+    except ServeError as one:
+        same = None if err.result is None else bool(np.array_equal(err.result.values, one.result.field.values))
+        out["newton"] = [str(err), str(one), err.site, same]
 from latticedft._stencil import Stencil
 reach = Stencil([(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 2, 0), (0, 0, 1), (0, 0, 2)])  # two planes each way
 def wide(c, h):
@@ -130,6 +143,11 @@ def test_four_processes_in_a_2_by_2_grid_serve_the_one_process_field(tmp_path: P
     assert [rc for rc, _, _ in ranks] == [0] * 4, "\n".join(err[-3000:] for _, _, err in ranks)
     zero = json.loads((tmp_path / "out.0").read_text())
     thin = zero.pop("thin")
+    err, one, site, same = zero.pop("newton")
+    assert err == one and "in the DEL equation of site index t=1" in err and site[0] == 1 and same, (err, one)
+    blocks = [[[0, 3], [lo, lo + 2]] for lo in (0, 2, 4, 6)]
+    grid = "pencils 1 x 4 over (x, y)"
+    assert zero.pop("summary") == {"processes": 4, "grid": grid, "axes": ["x", "y"], "blocks": blocks}
     for name in ("resume affine", "resume newton"):  # from the second checkpoint: bit for bit on the same grid
         got = zero.pop(name)
         assert got["saved"] == 3 and got["same"] and got["(2, 2)"] == 0.0, got

@@ -1,4 +1,4 @@
-"""A task served split into slabs over the processes of the group (``--workers N``, ``torchrun``).
+"""A task served split into slabs (or pencils) over the processes of the group (``--workers N``, ``torchrun``).
 
 Every process takes part in each task that can be split (:func:`split_refusal` is None and the learned DEL
 is the explicit affine recurrence, or nonlinear: slice-Newton, its step site-wise or by GMRES over the

@@ -1,10 +1,12 @@
-"""Serving one field split into slabs over the processes of a :mod:`torch.distributed` group.
+"""Serving one field split into slabs or pencils over the processes of a :mod:`torch.distributed` group.
 
 The lattice is split along its outer spatial axis (the first after time) into one slab a process
-(:func:`plan_slabs`). Each process holds its slab and ``halo`` planes of each neighbour's (the stencil's reach
-along that axis), reads only that part of the initial field, and serves it by the affine recurrence, one
-slice at a time: the slab's new slice is solved with the halo planes as known sites, then each process sends
-its edge planes to its neighbours (the halo exchange, once a slice). The recurrence's check against the
+(:func:`plan_slabs`), or, where the shape asks, along its two outer spatial axes into one block a process
+(pencils: :mod:`._grid`, whose :func:`plan_grid` chooses). Each process holds its slab (or block) and
+``halo`` planes of each neighbour's (the stencil's reach along each split axis), reads only that part of
+the initial field, and serves it by the affine recurrence, one slice at a time: the slab's new slice is
+solved with the halo planes as known sites, then each process sends its edge planes to its neighbours (the
+halo exchange, once a slice). The recurrence's check against the
 model's own DEL is the one-process test made global: the largest residual and the largest value of each
 slice are all-reduced. The kept slices are gathered to rank 0, which returns the field; the others return
 None.
