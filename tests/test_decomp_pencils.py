@@ -164,3 +164,25 @@ def test_four_processes_in_a_2_by_2_grid_serve_the_one_process_field(tmp_path: P
         "nor into pencils over ('x', 'y')"
     )
     assert "\n" not in thin
+
+
+def test_each_block_measures_its_own_part_of_the_reference() -> None:
+    """The task's errors (``_run._split._SlabErrors``) over the blocks of a 2 x 2 grid: together, every site
+    of the reference once (the sums of one process over the whole lattice)."""
+    import numpy as np
+    import xarray as xr
+
+    from latticedft._run._split import _SlabErrors
+
+    rng = np.random.default_rng(0)
+    ref = xr.DataArray(rng.normal(size=(3, 6, 8)), dims=("t", "x", "y"))
+    served = ref.values + 1e-3 * rng.normal(size=ref.shape)
+    meters = []
+    for block in plan_grid((6, 8), 4, (1, 1), (True, True), ("x", "y"), grid=(2, 2)):
+        meter = _SlabErrors(ref)
+        for i in range(3):
+            meter(i, block, block.take(served[i], 0)[block.own][..., None])
+        meters.append(meter.own())
+    d = np.abs(served - ref.values)
+    assert max(m[0] for m in meters) == d.max() and sum(m[3] for m in meters) == d.size
+    assert abs(sum(m[1] for m in meters) - np.sum(d**2)) <= 1e-15 * np.sum(d**2)
