@@ -1,6 +1,7 @@
 """Serving split into pencils (``latticedft._serve._grid``): the grid's choice, its refusals, and the field
 of 4 gloo processes on the loopback in a 2 x 2 grid against the one-process field, for the affine
-recurrence, site-wise slice-Newton and the Krylov step (whose cell stencil reaches the corner blocks)."""
+recurrence, site-wise slice-Newton and the Krylov step (whose cell stencil reaches the corner blocks), the
+split checkpoints, a non-convergence, and the command line's driver (errors reduced over the blocks)."""
 
 from __future__ import annotations
 
@@ -63,6 +64,22 @@ for name, (model, init, slices, bnd, every, shape, rtol) in cases.items():
         if shape is None:  # what summary.json records of the task
             from latticedft._run._split import _decomposition
             out["summary"] = _decomposition(rep, "test")
+from types import SimpleNamespace
+from latticedft._run._split import serve_split
+from latticedft._serve._options import Cadence, ServeOptions
+ref = grid((6, 8), 20)  # the command line's driver: the errors against the reference and the baseline, reduced
+task = SimpleNamespace(options=ServeOptions(), start="auto", cadence=Cadence(1), boundary="dirichlet", name="t")
+td = SimpleNamespace(task=task, slices=20, init=ref, reference=ref, baseline=ref * 1.001, invariant=None)
+split = serve_split(ldft.lagrangians.wave(), td, ref)
+if rank == 0:
+    one = ldft.serve(ldft.lagrangians.wave(), ref, slices=20, boundary="dirichlet").field.values
+    d, b = np.abs(one - ref.values), np.abs(td.baseline.values - ref.values)
+    err, base = split.errors[0], split.baseline[0]
+    out["driver"] = [
+        split.decomposition, bool(np.array_equal(split.result.field.values, one)),
+        bool(err["max_error"] == d.max()), float(err["rms_error"] / np.sqrt(np.mean(d**2))),
+        bool(base["max_error"] == b.max()), float(base["rms_error"] / np.sqrt(np.mean(b**2))),
+    ]
 from latticedft._serve._flag import SlabError
 from latticedft._errors import ServeError
 try:  # slice-Newton not converging: one process's message, its site in the whole lattice; the slices before
@@ -146,6 +163,9 @@ def test_four_processes_in_a_2_by_2_grid_serve_the_one_process_field(tmp_path: P
     assert [rc for rc, _, _ in ranks] == [0] * 4, "\n".join(err[-3000:] for _, _, err in ranks)
     zero = json.loads((tmp_path / "out.0").read_text())
     thin = zero.pop("thin")
+    record, same, worst, rms, base_worst, base_rms = zero.pop("driver")
+    assert record["grid"].startswith("pencils") and same and worst and base_worst, zero
+    assert abs(rms - 1) <= 1e-12 and abs(base_rms - 1) <= 1e-12
     err, one, site, same = zero.pop("newton")
     assert err == one and "in the DEL equation of site index t=1" in err and site[0] == 1 and same, (err, one)
     blocks = [[[0, 3], [lo, lo + 2]] for lo in (0, 2, 4, 6)]
