@@ -155,6 +155,8 @@ def test_a_block_thinner_than_the_halo_is_refused_in_one_line_naming_workers() -
 
 @pytest.mark.slow
 def test_four_processes_in_a_2_by_2_grid_serve_the_one_process_field(tmp_path: Path) -> None:
+    """One group of 4 processes runs every check (tens of seconds on a loaded 2-core machine, mostly the
+    processes' start): one group rather than one a check."""
     import json
 
     script = tmp_path / "worker.py"
