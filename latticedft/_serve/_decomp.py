@@ -40,7 +40,7 @@ import xarray as xr
 
 from .._action import CellDerivatives, check_model_lattice
 from .._boundary import BoundaryKinds
-from .._collective import world
+from .._collective import group_device, world
 from .._errors import InputError, ServeError
 from .._lattice import LatticeField, as_lattice_field, gather_cells
 from .._layout import lattice_dims
@@ -244,7 +244,7 @@ def serve_slabs(
             run.tell(report)
         raise
     run.tell(report)
-    return _gathered(init, run.f, run.block, run.kept, run.kept_at, world()[0])
+    return _gathered(run)
 
 
 def _failure_text(exc: Exception, run: _SlabRun | None) -> str:
@@ -286,9 +286,9 @@ class _SlabRun:
         self.window[1:3] = f.values[:2].reshape(2, -1).numpy()
         self.newton = _SlabNewton(model, f, sys, self.window, block, flag, init, solver) if self.op is None else None
         self.kept_at = kept_slices(slices, every)
-        self.kept = [self.window[k + 1].copy() for k in range(2) if k in self.kept_at]
         self.known = None if sys.interior.all() else np.repeat(~sys.interior, f.ncomp)
         self.shape = (*f.shape[1:], f.ncomp)
+        self.kept = [self.own(k + 1).copy() for k in range(2) if k in self.kept_at]  # the block's own sites
         self.done, self.worst = 1, 0.0
         self.on_done: Callable[[_SlabRun], None] | None = None
 
@@ -322,7 +322,7 @@ class _SlabRun:
                 on_slab(i + 1, self.block, self.own(3))
             self.whole(i + 1, 3, on_slice)
             if i + 1 in self.kept_at:
-                self.kept.append(window[3].copy())
+                self.kept.append(self.own(3).copy())
             window[:3] = window[1:]
             self.done = i + 1
             if self.on_done is not None:
@@ -407,34 +407,50 @@ def _check(
     return res
 
 
-def _gathered(
-    init: xr.DataArray, f: LatticeField, block: Block, kept: list[np.ndarray], kept_at: np.ndarray, rank: int
-) -> xr.DataArray | None:
-    """The kept slices of every block, gathered to rank 0 as one field."""
-    own = np.stack(kept).reshape(len(kept), *block.held, -1)[(slice(None), *block.own)]
-    parts: list[Any] = [own] if world()[1] == 1 else [None] * world()[1]
-    if world()[1] > 1:
-        dist.gather_object(own, parts if rank == 0 else None, dst=0)
+def _gathered(run: _SlabRun) -> xr.DataArray | None:
+    """The kept slices of every block, gathered to rank 0 as one field: each process sends its block of one
+    kept slice at a time (a tensor, point to point), which rank 0 copies into place, so that rank 0 holds the
+    kept field once and a block of one slice beside it, and the others their own blocks of the kept slices."""
+    rank, size = world()
     if rank != 0:
+        for values in run.kept:
+            dist.send(torch.from_numpy(np.ascontiguousarray(values)).to(group_device()), dst=0)
         return None
-    return _as_field(init, f, assemble(parts, block.grid, 1), kept_at)
+    dims = lattice_dims(run.init)
+    out = np.empty((len(run.kept), *(run.init.sizes[d] for d in dims[1:]), run.f.ncomp))
+    for r, block in enumerate(run.blocks):
+        where = tuple(slice(p.lo, p.hi) for p in block.parts)
+        for j in range(len(run.kept)):
+            if r == 0:
+                out[(j, *where)] = run.kept[j]
+                continue
+            buf = torch.empty(out[(j, *where)].shape, dtype=torch.float64, device=group_device())
+            dist.recv(buf, src=r)
+            out[(j, *where)] = buf.cpu().numpy()
+    run.kept.clear()
+    return _as_field(run.init, run.f, out, run.kept_at)
 
 
 def _as_field(init: xr.DataArray, f: LatticeField, values: np.ndarray, idx: np.ndarray) -> xr.DataArray:
-    """The slices ``idx`` of the whole lattice (``values``: ``(len(idx), planes, ...)``) as a field like ``init``."""
+    """The slices ``idx`` of the whole lattice (``values``: ``(len(idx), planes, ...)``) as a field like ``init``
+    (its coordinates along time taken at ``idx``'s length from its first slice: no copy of the field's
+    values is made)."""
     values = values.reshape(len(idx), *(init.sizes[d] for d in lattice_dims(init)[1:]), f.ncomp)
     tdim = lattice_dims(init)[0]
     t = np.asarray(init[tdim].values[:2], dtype=np.float64)
-    out = init.isel({tdim: [0] * len(idx)}).copy(data=values if f.components is not None else values[..., 0])
+    first = init.isel({tdim: [0]})
+    coords = {k: c.isel({tdim: [0] * len(idx)}) if tdim in c.dims else c for k, c in first.coords.items()}
+    data = values if f.components is not None else values[..., 0]
+    out = xr.DataArray(data, dims=init.dims, coords=coords, name=init.name, attrs=dict(init.attrs))
+    out.encoding = dict(init.encoding)
     return out.assign_coords({tdim: t[0] + (t[1] - t[0]) * idx.astype(np.float64), "slice": (tdim, idx)})
 
 
 def _partial(run: _SlabRun) -> xr.DataArray | None:
     """Rank 0's field of a stopped split serve: the kept slices up to the last slice every process completed,
     and that slice (the processes that failed later hold it in window row 1); the others get None."""
-    held, own = run.block.held, (slice(None), *run.block.own)
-    kept = np.stack(run.kept).reshape(len(run.kept), *held, -1)[own] if run.kept else None
-    last = run.window[1:3].reshape(2, *held, -1)[own]
+    kept = np.stack(run.kept) if run.kept else None
+    last = np.stack([run.own(1), run.own(2)])
     mine = (run.done, run.kept_at[: len(run.kept)].tolist(), kept, last)
     parts: list[Any] = [mine]
     if world()[1] > 1:

@@ -150,7 +150,7 @@ def restore(run: Any, part: dict[str, Any]) -> Any:
     n = part["rows"].shape[0]
     run.window[:n] = part["rows"].reshape(n, -1)
     run.done = int(part["done"])
-    run.kept = [k.reshape(-1).copy() for k in part["kept"]]
+    run.kept = [k[run.block.own].copy() for k in part["kept"]]  # the block's own sites
     total_it, max_it, worst, _ = part["counters"]
     run.worst = float(worst)
     newton = run.newton
