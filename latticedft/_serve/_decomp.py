@@ -421,12 +421,13 @@ def _gathered(run: _SlabRun) -> xr.DataArray | None:
     for r, block in enumerate(run.blocks):
         where = tuple(slice(p.lo, p.hi) for p in block.parts)
         for j in range(len(run.kept)):
+            place = out[j]
             if r == 0:
-                out[(j, *where)] = run.kept[j]
+                place[where] = run.kept[j]
                 continue
-            buf = torch.empty(out[(j, *where)].shape, dtype=torch.float64, device=group_device())
+            buf = torch.empty(place[where].shape, dtype=torch.float64, device=group_device())
             dist.recv(buf, src=r)
-            out[(j, *where)] = buf.cpu().numpy()
+            place[where] = buf.cpu().numpy()
     run.kept.clear()
     return _as_field(run.init, run.f, out, run.kept_at)
 
