@@ -151,6 +151,25 @@ def _sitewise(run: Any, i: int, older: Any, rtol: float, max_newton: int) -> tup
     return None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, cache)
 
 
+def solve_run(run: Any, i: int, stop: int, rtol: float, max_newton: int) -> int:
+    """Slices ``i .. stop - 1`` of ``run`` (a whole-field or a windowed run: ``run.flat`` its slices, slice
+    ``j - 2`` the older one of slice ``j`` from ``j = 2`` on) solved in one call of the compiled slice Newton
+    once it serves the run (as :func:`_sitewise` would call it slice by slice; at most :data:`RUN_SITES`
+    unknowns a call, so that the progress bar moves), tallied as :func:`solve_and_tally` tallies them: how
+    many (``0``: none; a slice a site could not finish is left to :func:`solve_and_tally`)."""
+    fused = run.cache.get("fused")
+    if fused is None or not fused.rows.size or run.mode != "newton" or on_device(run):
+        return 0
+    stop = min(stop, i + max(1, RUN_SITES // fused.rows.size))
+    j, its, res = fused.solve_many(run.flat, i, stop, run.vol, rtol, max_newton, run.cache)
+    if its:
+        run.total_it += sum(its)
+        run.max_it = max(run.max_it, *its)
+        run.worst = max(run.worst, *res)
+        run.bar.update(len(its))
+    return int(j - i)
+
+
 def _tallied(run: Any, it: int, res: float) -> None:
     """Count a solved slice's iterations and residual on ``run`` (and its progress bar)."""
     run.total_it += it
@@ -337,23 +356,6 @@ class _FieldRun:
         """The ``solver`` name of the result."""
         return solver_name(self.mode, self.affine_slices, self.steps)
 
-    def solve_run(self, i: int, rtol: float, max_newton: int) -> int:
-        """Slices ``i, i + 1, ...`` solved in one call of the compiled slice Newton once it serves this run (as
-        :func:`_sitewise` would call it slice by slice; at most :data:`RUN_SITES` unknowns a call, so that the
-        progress bar moves), tallied as :func:`solve_and_tally` tallies them: how many (``0``: none; a slice
-        a site could not finish is left to :meth:`solve_slice`)."""
-        fused = self.cache.get("fused")
-        if fused is None or not fused.rows.size or self.mode != "newton" or on_device(self):
-            return 0
-        stop = min(self.steps - 1, i + max(1, RUN_SITES // fused.rows.size))
-        j, its, res = fused.solve_many(self.flat, i, stop, self.vol, rtol, max_newton, self.cache)
-        if its:
-            self.total_it += sum(its)
-            self.max_it = max(self.max_it, *its)
-            self.worst = max(self.worst, *res)
-            self.bar.update(len(its))
-        return j - i
-
     def solve_slice(self, i: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int) -> torch.Tensor | None:
         """Solve slice ``i``'s equations for slice ``i + 1``; returns the gradients of the cells anchored at ``i``."""
         older = self.flat[i - 2] if i >= 2 else None
@@ -420,7 +422,7 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options
     g_prev: torch.Tensor | None = None  # the first Newton slice evaluates them (the compiled kernel needs none)
     i = run.start
     while i < steps - 1:
-        solved = run.solve_run(i, rtol, max_newton)  # the compiled slice Newton, once chosen: many slices a call
+        solved = solve_run(run, i, steps - 1, rtol, max_newton)  # the compiled slice Newton: many slices a call
         if solved:
             i, g_prev = i + solved, None
             continue

@@ -64,7 +64,9 @@ class FusedSlices:
         )
         if dmax < 0:
             return None  # a block that is not finite: slice-Newton reports it
-        sv = np.nan_to_num(np.abs(diag[self.rows]), nan=0.0)
+        sv = np.abs(diag if self.rows.size == diag.size else diag[self.rows])  # every site an unknown: no copy
+        if not np.isfinite(sv).all():
+            sv = np.nan_to_num(sv, nan=0.0)
         worst = int(np.argmin(sv))
         return dmax, float(sv[worst]), float(sv.max()), worst
 
