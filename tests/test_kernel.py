@@ -183,6 +183,28 @@ def test_the_compiled_slice_newton_serves_todays_fields(
     assert plain.any() and not plain.all(), name
 
 
+def test_the_tables_kept_per_lattice_serve_each_lattice_its_own() -> None:
+    """The slice system and the kernel's index tables kept from the last lattices are those of the lattice
+    served: fields on lattices that alternate (size, boundary) serve as each does in a fresh process, and one
+    lattice served again reuses its tables."""
+    from latticedft._serve import _field as field_module
+    from latticedft._serve import _fused
+
+    inits = [(_field(2, 8), {}), (_field(2, 6), {}), (_dirichlet(2, 8), {"boundary_value": 0.0}), (_field(2, 6), {})]
+    slow = []
+    for init, keywords in inits:
+        with ldft.set_options(compiled_kernels=False):
+            slow.append(ldft.serve(sine_gordon(), init, slices=8, progress=False, **keywords).field.values)
+    built = []
+    for (init, keywords), expected in zip(inits, slow):
+        with ldft.set_options(compiled_kernels=True):
+            fast = ldft.serve(sine_gordon(), init, slices=8, progress=False, **keywords).field.values
+        assert np.abs(np.asarray(fast) - np.asarray(expected)).max() <= 1e-12
+        built.append({id(tables) for tables in _fused._TABLES.values()})
+    assert built[3] == built[2]  # the 6 x 6 lattice served again, its tables still kept: none built
+    assert len(_fused._TABLES) == _fused.TABLES_KEPT and len(field_module._SYSTEMS) == 1
+
+
 def test_the_slice_steps_scale_and_tally_are_those_of_the_sequential_loops() -> None:
     """The predictor's scale (maxima in independent chains) equals the sequential loop's, a value that is not
     a number included (it then runs that loop); the tally equals numpy's minimum and maxima."""
