@@ -21,7 +21,7 @@ from . import _ondevice
 from ._affine import _affine_prefix
 from ._edges import known_slices
 from ._folded import FoldedSlices, folded_slices
-from ._fused import FusedSlices, fused_slices
+from ._fused import KEPT_BYTES, FusedSlices, fused_slices
 from ._newton import _newton_slice
 from ._options import ServeOptions
 from ._range import assess
@@ -295,13 +295,15 @@ _SYSTEMS: dict[tuple[Any, ...], _SliceSystem] = {}
 
 def slice_system(model: AbstractLagrangian, f: LatticeField) -> _SliceSystem:
     """The :class:`_SliceSystem` of ``model``'s stencil on ``f``'s lattice: the last one built where the
-    lattice is the same, else a new one (kept in its place)."""
+    lattice is the same, else a new one (kept in its place where its index maps hold at most
+    :data:`._fused.KEPT_BYTES`)."""
     key = (tuple(model.stencil.offsets), tuple(f.shape[1:]), f.ncomp, axis_kinds(f.boundary))
     sys = _SYSTEMS.get(key)
     if sys is None:
         sys = _SliceSystem(model, f)
         _SYSTEMS.clear()
-        _SYSTEMS[key] = sys
+        if sum(a.nbytes for a in sys.site_of) + sys.index.nbytes <= KEPT_BYTES:
+            _SYSTEMS[key] = sys
     return sys
 
 

@@ -158,15 +158,21 @@ class LatticeTables:
     plain: np.ndarray
 
 
-#: The tables of the lattices served last (at most :data:`TABLES_KEPT`), by stencil offsets, spatial shape,
-#: components and boundary kinds (which fix them); ``None`` for a lattice whose cell maps do not exist.
+#: The tables of the lattices served last (at most :data:`TABLES_KEPT`, each of at most :data:`KEPT_BYTES`),
+#: by stencil offsets, spatial shape, components and boundary kinds (which fix them); ``None`` for a lattice
+#: whose cell maps do not exist.
 _TABLES: dict[tuple[Any, ...], LatticeTables | None] = {}
 TABLES_KEPT = 2
+
+#: The most bytes of one lattice's tables kept after its field is served (64^3 sites on the first-order
+#: stencil hold about 23 MiB): a larger lattice builds them per field, a small share of its serving time.
+KEPT_BYTES = 64 << 20
 
 
 def lattice_tables(sys: _SliceSystem, module: Any) -> LatticeTables | None:
     """The tables of ``sys``'s lattice, built once and kept for the next fields on the same lattice (a few
-    field-sized integer arrays, rebuilt in milliseconds); ``None`` where two cells have a point on one site."""
+    field-sized integer arrays, rebuilt in milliseconds; up to :data:`KEPT_BYTES`); ``None`` where two cells
+    have a point on one site."""
     key = (tuple(sys.st.offsets), tuple(sys.spatial), sys.m, tuple(sys.kinds))
     if key in _TABLES:
         return _TABLES[key]
@@ -178,6 +184,8 @@ def lattice_tables(sys: _SliceSystem, module: Any) -> LatticeTables | None:
         rows = np.ascontiguousarray(np.nonzero(interior)[0], dtype=np.int64)
         delta, plain = fixed_offsets(sys, site_of, cell_at, module)
         tables = LatticeTables(site_of, cell_at, interior, rows, delta, plain)
+    if tables is not None and sum(a.nbytes for a in vars(tables).values()) > KEPT_BYTES:
+        return tables
     while len(_TABLES) >= TABLES_KEPT:
         del _TABLES[next(iter(_TABLES))]
     _TABLES[key] = tables
