@@ -127,7 +127,7 @@ def test_a_kernel_is_built_once_then_loaded_from_the_cache(monkeypatch: pytest.M
     first = compile_forms(form, [(0, 1)])
     assert first is not None and BUILDS[-1][2] == "built"
     _LOADED.clear()  # as a new process would
-    monkeypatch.setattr(_kernel, "_source", lambda *a: pytest.fail("the cached module's source was generated"))
+    monkeypatch.setattr(_kernel, "kernel_source", lambda *a: pytest.fail("the cached module's source was generated"))
     again = compile_forms(form, [(0, 1)])
     assert again is not None and BUILDS[-1][2] == "cached"
     cells = np.random.default_rng(0).standard_normal((5, 2, 1))
@@ -159,9 +159,16 @@ def test_the_compiled_slice_newton_serves_todays_fields(
 ) -> None:
     from latticedft._serve import _fused
 
-    calls = []
-    solve = _fused.FusedSlices.solve
+    calls = []  # per slice the compiled kernel solved: the sites it read at fixed offsets
+    solve, many = _fused.FusedSlices.solve, _fused.FusedSlices.solve_many
+
+    def solve_many(self: _fused.FusedSlices, *a: object) -> tuple[int, list[int], list[float]]:
+        out = many(self, *a)  # type: ignore[arg-type]
+        calls.extend([self.plain] * len(out[1]))
+        return out
+
     monkeypatch.setattr(_fused.FusedSlices, "solve", lambda self, *a: calls.append(self.plain) or solve(self, *a))
+    monkeypatch.setattr(_fused.FusedSlices, "solve_many", solve_many)
     field = init()
     with ldft.set_options(compiled_kernels=True):
         fast = ldft.serve(sine_gordon(), field, slices=30, progress=False, **keywords)
@@ -174,6 +181,28 @@ def test_the_compiled_slice_newton_serves_todays_fields(
     assert fast.newton_iterations == slow.newton_iterations, name
     plain = calls[0]  # the sites read at fixed offsets: all but those whose cells wrap or leave the lattice
     assert plain.any() and not plain.all(), name
+
+
+def test_the_tables_kept_per_lattice_serve_each_lattice_its_own() -> None:
+    """The slice system and the kernel's index tables kept from the last lattices are those of the lattice
+    served: fields on lattices that alternate (size, boundary) serve as each does in a fresh process, and one
+    lattice served again reuses its tables."""
+    from latticedft._serve import _field as field_module
+    from latticedft._serve import _fused
+
+    inits = [(_field(2, 8), {}), (_field(2, 6), {}), (_dirichlet(2, 8), {"boundary_value": 0.0}), (_field(2, 6), {})]
+    slow = []
+    for init, keywords in inits:
+        with ldft.set_options(compiled_kernels=False):
+            slow.append(ldft.serve(sine_gordon(), init, slices=8, progress=False, **keywords).field.values)
+    built = []
+    for (init, keywords), expected in zip(inits, slow):
+        with ldft.set_options(compiled_kernels=True):
+            fast = ldft.serve(sine_gordon(), init, slices=8, progress=False, **keywords).field.values
+        assert np.abs(np.asarray(fast) - np.asarray(expected)).max() <= 1e-12
+        built.append({id(tables) for tables in _fused._TABLES.values()})
+    assert built[3] == built[2]  # the 6 x 6 lattice served again, its tables still kept: none built
+    assert len(_fused._TABLES) == _fused.TABLES_KEPT and len(field_module._SYSTEMS) == 1
 
 
 def test_the_slice_steps_scale_and_tally_are_those_of_the_sequential_loops() -> None:
@@ -217,21 +246,31 @@ def test_a_coupled_l_d_has_no_compiled_slice_newton() -> None:
 
 
 def test_a_slice_the_kernel_cannot_finish_goes_back_to_slice_newton(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A site the kernel cannot finish (here: every slice refused) hands the slice to slice-Newton, which starts
-    from the predictor afresh: the same field."""
+    """A site the kernel cannot finish (here: every slice refused one by one, and a run of slices stopped every
+    third slice) hands the slice to slice-Newton, which starts from the predictor afresh: the same field."""
     from latticedft._serve import _fused
 
-    solve = _fused.FusedSlices.solve
+    solve, many = _fused.FusedSlices.solve, _fused.FusedSlices.solve_many
 
     def refused(self: _fused.FusedSlices, *args: object) -> None:
-        solve(self, *args)  # leaves the unknowns moved: slice-Newton must overwrite them
+        solve(self, *args)  # type: ignore[arg-type]  # leaves the unknowns moved: slice-Newton must overwrite them
         return None
+
+    def stopped(self: _fused.FusedSlices, flat: torch.Tensor, i: int, stop: int, *rest: object) -> object:
+        j, its, res = many(self, flat, i, min(stop, i + 2), *rest)  # type: ignore[arg-type]
+        if j < stop:  # the slice it stopped before, its unknowns moved as a failed kernel leaves them
+            flat[j + 1, torch.from_numpy(self.rows)] += 1.0
+        return j, its, res
 
     init = _field(2, 8)
     with ldft.set_options(compiled_kernels=False):
-        slow = np.asarray(ldft.serve(sine_gordon(), init, slices=20, progress=False).field.values)
+        slow = ldft.serve(sine_gordon(), init, slices=20, progress=False)
     monkeypatch.setattr(_fused.FusedSlices, "solve", refused)
-    fast = _served(sine_gordon(), init, 20, True)
+    monkeypatch.setattr(_fused.FusedSlices, "solve_many", stopped)
+    with ldft.set_options(compiled_kernels=True):
+        served = ldft.serve(sine_gordon(), init, slices=20, progress=False)
+    assert served.newton_iterations == slow.newton_iterations
+    fast, slow = np.asarray(served.field.values), np.asarray(slow.field.values)
     assert np.abs(fast - slow).max() <= 1e-12 * max(1.0, float(np.abs(slow).max()))
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from .._action import CellDerivatives
-from .._boundary import missing_edges
+from .._boundary import axis_kinds, missing_edges
 from .._device import resolve_device
 from .._errors import InputError, ServeError
 from .._lattice import LatticeField, gather_cells
@@ -21,7 +21,7 @@ from . import _ondevice
 from ._affine import _affine_prefix
 from ._edges import known_slices
 from ._folded import FoldedSlices, folded_slices
-from ._fused import FusedSlices, fused_slices
+from ._fused import KEPT_BYTES, FusedSlices, fused_slices
 from ._newton import _newton_slice
 from ._options import ServeOptions
 from ._range import assess
@@ -31,9 +31,13 @@ from ._solvers import OFFDIAG_RTOL
 from ._sweep import _sweep_slice
 
 
-def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int, boundary_value: Any = None) -> torch.Tensor:
-    """``(steps, *spatial, m)`` values: the first two slices and the boundary (known) sites, NaN elsewhere; the
-    boundary sites of slices beyond ``f``'s from ``boundary_value`` when given."""
+def _initial_values(
+    f: LatticeField, sys: _SliceSystem, steps: int, boundary_value: Any = None, nan: bool = True
+) -> torch.Tensor:
+    """``(steps, *spatial, m)`` values: the first two slices and the boundary (known) sites, NaN elsewhere
+    (``nan=False``: left as allocated, for a run whose every solve writes its slice's unknown sites before it
+    reads them: Newton's, which starts from its predictor); the boundary sites of slices beyond ``f``'s from
+    ``boundary_value`` when given."""
     nt_given = f.shape[0]
     m = f.ncomp
     missing = missing_edges(f.boundary, f.dims, nt_given, steps)
@@ -44,7 +48,9 @@ def _initial_values(f: LatticeField, sys: _SliceSystem, steps: int, boundary_val
             f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
             "fewer slices, a boundary_value, or a periodic boundary"
         )
-    psi = torch.full((steps, *f.shape[1:], m), math.nan, dtype=torch.float64)
+    psi = torch.empty((steps, *f.shape[1:], m), dtype=torch.float64)
+    if nan:
+        psi[2:] = math.nan
     psi[:2] = f.values[:2]
     known = np.ones(sys.nsite, dtype=bool)
     known[sys.interior] = False
@@ -143,6 +149,25 @@ def _sitewise(run: Any, i: int, older: Any, rtol: float, max_newton: int) -> tup
     _choose_fused(run, i, older)
     fused = _fused_of(run)
     return None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, cache)
+
+
+def solve_run(run: Any, i: int, stop: int, rtol: float, max_newton: int) -> int:
+    """Slices ``i .. stop - 1`` of ``run`` (a whole-field or a windowed run: ``run.flat`` its slices, slice
+    ``j - 2`` the older one of slice ``j`` from ``j = 2`` on) solved in one call of the compiled slice Newton
+    once it serves the run (as :func:`_sitewise` would call it slice by slice; at most :data:`RUN_SITES`
+    unknowns a call, so that the progress bar moves), tallied as :func:`solve_and_tally` tallies them: how
+    many (``0``: none; a slice a site could not finish is left to :func:`solve_and_tally`)."""
+    fused = run.cache.get("fused")
+    if fused is None or not fused.rows.size or run.mode != "newton" or on_device(run):
+        return 0
+    stop = min(stop, i + max(1, RUN_SITES // fused.rows.size))
+    j, its, res = fused.solve_many(run.flat, i, stop, run.vol, rtol, max_newton, run.cache)
+    if its:
+        run.total_it += sum(its)
+        run.max_it = max(run.max_it, *its)
+        run.worst = max(run.worst, *res)
+        run.bar.update(len(its))
+    return int(j - i)
 
 
 def _tallied(run: Any, it: int, res: float) -> None:
@@ -260,6 +285,28 @@ def _fused_of(run: Any) -> FusedSlices | None:
     return fused
 
 
+#: The unknowns (sites times slices) the compiled slice Newton solves in one call at most.
+RUN_SITES = 1 << 22
+
+#: The slice system of the lattice served last, by stencil offsets, spatial shape, components and boundary
+#: kinds (which fix it): the next field on that lattice reuses its index maps.
+_SYSTEMS: dict[tuple[Any, ...], _SliceSystem] = {}
+
+
+def slice_system(model: AbstractLagrangian, f: LatticeField) -> _SliceSystem:
+    """The :class:`_SliceSystem` of ``model``'s stencil on ``f``'s lattice: the last one built where the
+    lattice is the same, else a new one (kept in its place where its index maps hold at most
+    :data:`._fused.KEPT_BYTES`)."""
+    key = (tuple(model.stencil.offsets), tuple(f.shape[1:]), f.ncomp, axis_kinds(f.boundary))
+    sys = _SYSTEMS.get(key)
+    if sys is None:
+        sys = _SliceSystem(model, f)
+        _SYSTEMS.clear()
+        if sum(a.nbytes for a in sys.site_of) + sys.index.nbytes <= KEPT_BYTES:
+            _SYSTEMS[key] = sys
+    return sys
+
+
 class _FieldRun:
     """One n-D field being served: its slice system, values, iteration counters and progress bar."""
 
@@ -276,8 +323,8 @@ class _FieldRun:
     ):
         self.model, self.f, self.steps, self.mode = model, f, steps, mode
         self.where = where or torch.device("cpu")  # where the slice solves run (:func:`on_device`)
-        self.sys = _SliceSystem(model, f)
-        self.psi = _initial_values(f, self.sys, steps, boundary_value)
+        self.sys = slice_system(model, f)
+        self.psi = _initial_values(f, self.sys, steps, boundary_value, nan=mode != "newton")
         self.flat = self.psi.reshape(steps, self.sys.nsite, f.ncomp)  # (steps, site, m): a view of psi
         self.unk = torch.from_numpy(np.nonzero(self.sys.interior)[0])
         self.vol = math.prod(model.spacing)
@@ -375,6 +422,12 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options
     if mode == "newton" and options.affine and steps > 2:
         run.serve_affine(rtol)
     g_prev: torch.Tensor | None = None  # the first Newton slice evaluates them (the compiled kernel needs none)
-    for i in range(run.start, steps - 1):
+    i = run.start
+    while i < steps - 1:
+        solved = solve_run(run, i, steps - 1, rtol, max_newton)  # the compiled slice Newton: many slices a call
+        if solved:
+            i, g_prev = i + solved, None
+            continue
         g_prev = run.solve_slice(i, g_prev, rtol, max_newton)
+        i += 1
     return run.finish()

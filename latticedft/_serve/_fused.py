@@ -12,6 +12,7 @@ predictor restored, to slice-Newton, which reports the failure as usual.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -21,19 +22,19 @@ from .._action import compiled_closed_forms
 from .._kernel import CompiledForms
 from ._slices import SINGULAR_RTOL, _SliceSystem
 
-__all__ = ["FusedSlices", "fused_slices"]
+__all__ = ["FusedSlices", "LatticeTables", "fused_slices", "lattice_tables"]
 
 
 class FusedSlices:
     """The compiled slice Newton of one served field: its kernels and the index maps they read."""
 
-    def __init__(self, compiled: CompiledForms, sys: _SliceSystem, site_of: np.ndarray, cell_at: np.ndarray):
+    def __init__(self, compiled: CompiledForms, sys: _SliceSystem, tables: LatticeTables):
         self.compiled = compiled
-        self.site_of = site_of  # (K, cells): the site of each stencil point of each cell
-        self.cell_at = cell_at  # (K, sites): the cell whose stencil point sits on the site (-1: none)
-        self.interior = np.ascontiguousarray(sys.interior, dtype=np.bool_)  # per site: it carries an equation
-        self.rows = np.ascontiguousarray(np.nonzero(self.interior)[0], dtype=np.int64)
-        self.delta, self.plain = fixed_offsets(sys, site_of, cell_at, compiled.module)
+        self.site_of = tables.site_of  # (K, cells): the site of each stencil point of each cell
+        self.cell_at = tables.cell_at  # (K, sites): the cell whose stencil point sits on the site (-1: none)
+        self.interior = tables.interior  # per site: it carries an equation
+        self.rows = tables.rows
+        self.delta, self.plain = tables.delta, tables.plain
         self.res = np.empty(self.rows.size)
         self.its = np.empty(self.rows.size, dtype=np.int64)
         self.none = np.zeros(0)  # no slice before the previous one
@@ -63,7 +64,9 @@ class FusedSlices:
         )
         if dmax < 0:
             return None  # a block that is not finite: slice-Newton reports it
-        sv = np.nan_to_num(np.abs(diag[self.rows]), nan=0.0)
+        sv = np.abs(diag if self.rows.size == diag.size else diag[self.rows])  # every site an unknown: no copy
+        if not np.isfinite(sv).all():
+            sv = np.nan_to_num(sv, nan=0.0)
         worst = int(np.argmin(sv))
         return dmax, float(sv[worst]), float(sv.max()), worst
 
@@ -108,6 +111,86 @@ class FusedSlices:
             return None
         return int(hi), float(worst)
 
+    def solve_many(
+        self, flat: torch.Tensor, i: int, stop: int, vol: float, rtol: float, max_newton: int, cache: dict
+    ) -> tuple[int, list[int], list[float]]:
+        """Solve the equations of slices ``i .. stop - 1`` of ``flat`` one after the other in one call, each as
+        :meth:`solve` solves it (the older slice from slice 2 on): ``(j, evaluations, residuals)``, the slice
+        it stopped before (``stop`` when all were solved; a slice a site could not finish is left to
+        slice-Newton) and, per slice solved, its evaluations and residual. Only for a slice with unknowns."""
+        values = flat.numpy().reshape(flat.shape[0], -1)  # (slices, sites): a view, the field being scalar
+        most = np.zeros(stop, dtype=np.int64)
+        worst = np.zeros(stop)
+        j = self.compiled.slice_steps(self.rows.size)(
+            values,
+            i,
+            stop,
+            self.none,
+            self.site_of,
+            self.cell_at,
+            self.plain,
+            self.delta,
+            self.rows,
+            self.interior,
+            vol,
+            rtol,
+            cache["dmax"],
+            SINGULAR_RTOL * cache["mscale"] * vol,
+            max_newton,
+            self.res,
+            self.its,
+            most,
+            worst,
+        )
+        return int(j), most[i:j].tolist(), worst[i:j].tolist()
+
+
+@dataclass(frozen=True)
+class LatticeTables:
+    """The index tables of the compiled slice Newton on one lattice (stencil, spatial shape, boundary kinds):
+    the cell maps, the unknown sites, and the sites read at fixed offsets (:func:`fixed_offsets`)."""
+
+    site_of: np.ndarray
+    cell_at: np.ndarray
+    interior: np.ndarray
+    rows: np.ndarray
+    delta: np.ndarray
+    plain: np.ndarray
+
+
+#: The tables of the lattices served last (at most :data:`TABLES_KEPT`, each of at most :data:`KEPT_BYTES`),
+#: by stencil offsets, spatial shape, components and boundary kinds (which fix them); ``None`` for a lattice
+#: whose cell maps do not exist.
+_TABLES: dict[tuple[Any, ...], LatticeTables | None] = {}
+TABLES_KEPT = 2
+
+#: The most bytes of one lattice's tables kept after its field is served (64^3 sites on the first-order
+#: stencil hold about 23 MiB): a larger lattice builds them per field, a small share of its serving time.
+KEPT_BYTES = 64 << 20
+
+
+def lattice_tables(sys: _SliceSystem, module: Any) -> LatticeTables | None:
+    """The tables of ``sys``'s lattice, built once and kept for the next fields on the same lattice (a few
+    field-sized integer arrays, rebuilt in milliseconds; up to :data:`KEPT_BYTES`); ``None`` where two cells
+    have a point on one site."""
+    key = (tuple(sys.st.offsets), tuple(sys.spatial), sys.m, tuple(sys.kinds))
+    if key in _TABLES:
+        return _TABLES[key]
+    site_of = np.ascontiguousarray(np.stack(sys.site_of), dtype=np.int64)
+    cell_at = np.full((site_of.shape[0], sys.nsite), -1, dtype=np.int64)
+    tables = None
+    if module.cell_maps(site_of, cell_at):  # else: two cells' points on one site
+        interior = np.ascontiguousarray(sys.interior, dtype=np.bool_)
+        rows = np.ascontiguousarray(np.nonzero(interior)[0], dtype=np.int64)
+        delta, plain = fixed_offsets(sys, site_of, cell_at, module)
+        tables = LatticeTables(site_of, cell_at, interior, rows, delta, plain)
+    if tables is not None and sum(a.nbytes for a in vars(tables).values()) > KEPT_BYTES:
+        return tables
+    while len(_TABLES) >= TABLES_KEPT:
+        del _TABLES[next(iter(_TABLES))]
+    _TABLES[key] = tables
+    return tables
+
 
 def fused_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FusedSlices | None:
     """The compiled slice Newton for ``model`` on ``sys``, or ``None``: for a model whose compiled kernels
@@ -118,11 +201,8 @@ def fused_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FusedSlic
     compiled = compiled_closed_forms(model, flat[:0])
     if compiled is None or not compiled.block_diagonal:
         return None
-    site_of = np.ascontiguousarray(np.stack(sys.site_of), dtype=np.int64)
-    cell_at = np.full((site_of.shape[0], sys.nsite), -1, dtype=np.int64)
-    if not compiled.module.cell_maps(site_of, cell_at):  # two cells' points on one site
-        return None
-    return FusedSlices(compiled, sys, site_of, cell_at)
+    tables = lattice_tables(sys, compiled.module)
+    return None if tables is None else FusedSlices(compiled, sys, tables)
 
 
 def fixed_offsets(

@@ -41,7 +41,7 @@ from .._options import option
 from ._affine import _AffineSlices, _slice_residuals, passing_prefix
 from ._checkpoint import keep_factored, restore_stream, stream_state
 from ._edges import known_slices
-from ._field import served_where, slice_error, solve_and_tally, solver_name
+from ._field import served_where, slice_error, solve_and_tally, solve_run, solver_name
 from ._options import Cadence, ServeOptions, kept_slices
 from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
 from ._result import ServeResult, _bar
@@ -361,8 +361,14 @@ def _serve_stream(
                     run.total_it, run.max_it = run.affine_slices, 1
                     run.cache["dmax"], run.cache["mscale"] = op.dmax, mscale
                 g_prev = CellDerivatives(model, run.cells_at(start - 1)).grad
-        for p in range(start, n_new + 1):
+        p = start
+        while p <= n_new:
+            solved = solve_run(run, p, n_new + 1, rtol, max_newton) if p >= 2 else 0  # p = 1: its older slice
+            if solved:
+                p, g_prev = p + solved, None
+                continue
             g_prev = run.solve(p, g_prev, rtol, max_newton)
+            p += 1
         run.emit(n_new + 1)
         if run.base + n_new + 2 >= steps:
             break
