@@ -94,7 +94,8 @@ def rank_probe(
     t0 = time.perf_counter()
     if parallel:
         shape = None if grid is None else (grid[0], grid[1])
-        field = serve_slabs(lagrangian, init, slices, boundary="periodic", every=every, grid=shape)
+        report: dict[str, Any] = {}
+        field = serve_slabs(lagrangian, init, slices, boundary="periodic", every=every, grid=shape, report=report)
     else:
         field = ldft.serve(lagrangian, init, slices=slices, boundary="periodic", every=every, progress=False).field
     seconds = time.perf_counter() - t0
@@ -105,7 +106,8 @@ def rank_probe(
 
         dist.barrier()
         dist.destroy_process_group()
-    return {"seconds": seconds, "rss_before": mem.before, "rss_peak": mem.peak()}
+    gather = report.get("gather_seconds") if parallel else None
+    return {"seconds": seconds, "rss_before": mem.before, "rss_peak": mem.peak(), "gather": gather}
 
 
 def _free_port() -> int:
@@ -157,7 +159,18 @@ def run(cfg: Config, point: tuple[int, int, int] | None = None, model: str = "kg
     table = Table(
         NAME,
         title,
-        ["processes", "lattice", "slices", "max |diff| (rel.)", "wall (s)", "peak RSS (MiB)", "growth (MiB)", "load"],
+        [
+            "processes",
+            "lattice",
+            "slices",
+            "max |diff| (rel.)",
+            "wall (s)",
+            "gather (s)",
+            "peak RSS (MiB)",
+            "growth (MiB)",
+            "growth by rank (MiB)",
+            "load",
+        ],
     )
     growth: dict[int, float] = {}
     diffs: dict[int, float] = {}
@@ -178,8 +191,21 @@ def run(cfg: Config, point: tuple[int, int, int] | None = None, model: str = "kg
             peak = max(a["rss_peak"] for a in answers)
             wall = max(a["seconds"] for a in answers)
             label = p if grid is None else f"{p} (pencils {grid[0]} x {grid[1]})"
+            gather = "-" if answers[0]["gather"] is None else f"{answers[0]['gather']:.2f}"
+            ranks = " ".join(f"{a['rss_peak'] - a['rss_before']:.0f}" for a in answers)
             table.rows.append(
-                [label, f"{n}^3", slices, diff, wall, peak, grown, f"{load:.1f}-{os.getloadavg()[0]:.1f}"]
+                [
+                    label,
+                    f"{n}^3",
+                    slices,
+                    diff,
+                    wall,
+                    gather,
+                    peak,
+                    grown,
+                    ranks,
+                    f"{load:.1f}-{os.getloadavg()[0]:.1f}",
+                ]
             )
     table.notes += [
         "1 process: latticedft.serve (the one-process path); 2 and 4: latticedft._serve._decomp.serve_slabs, "
@@ -189,6 +215,8 @@ def run(cfg: Config, point: tuple[int, int, int] | None = None, model: str = "kg
         "torch, ~300-400 MiB, are in the peak, not in the growth). Wall: the slowest process. On a machine "
         "with fewer free cores than processes the time ratio measures the load, not the scaling.",
         "Load: the 1-minute load average (os.getloadavg) before and after the run.",
+        "Gather: rank 0's wall time gathering the kept slices (each process's block of one kept slice at a time, "
+        "point to point) into the field it returns, within the run's wall time.",
     ]
     if 2 in diffs:
         for p in (2, 4) if 4 in growth else (2,):

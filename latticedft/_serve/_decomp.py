@@ -29,6 +29,7 @@ before each exchange); rank 0 keeps the slices served before it.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from functools import partial
 from typing import Any, NoReturn
@@ -213,7 +214,8 @@ def serve_slabs(
     ``report``, when given, receives ``max_residual`` (the largest DEL residual of the recurrence's check),
     ``processes``, ``grid`` (its text, ``slabs 2 over x``), ``axis`` and ``slabs`` (the planes ``[lo, hi)``
     of each process along ``axis``) for slabs, ``axes`` and ``blocks`` (each process's ``[lo, hi]`` along
-    each) for pencils, ``block`` (this process's), and the solvers.
+    each) for pencils, ``block`` (this process's), the solvers, and ``gather_seconds`` (the wall time of
+    the kept slices' gather to rank 0).
     ``solver`` is slice-Newton's linear solver (``"auto"``, ``"sitewise"`` or ``"krylov"``; ``"lu"`` is
     refused). ``on_slice(i, values)``, when given, sees on rank 0 every slice ``i`` whole (``(planes, ...,
     components)``, gathered slice by slice: the measurements a process makes on whole slices).
@@ -244,7 +246,11 @@ def serve_slabs(
             run.tell(report)
         raise
     run.tell(report)
-    return _gathered(run)
+    start = time.perf_counter()
+    field = _gathered(run)
+    if report is not None:
+        report["gather_seconds"] = time.perf_counter() - start
+    return field
 
 
 def _failure_text(exc: Exception, run: _SlabRun | None) -> str:
