@@ -122,7 +122,8 @@ def sparse_candidates(n: int, m: int) -> list[dict[str, Any]]:
     library of :class:`latticedft.SparseLagrangian` at each threshold of :data:`SPARSE_THRESHOLDS`, then for a
     scalar field the library with its lattice corrections (on a time-only lattice also with ``at = "average"``),
     and its powers and its trig functions each alone, for a vector field the library without the terms singular at
-    ``q = 0`` and, on a time-only lattice, :data:`COUPLED_LIBRARY` (``threshold = "auto"``).
+    ``q = 0`` (``threshold = "auto"``) and, on a time-only lattice, :data:`COUPLED_LIBRARY` at each threshold of
+    :data:`SPARSE_THRESHOLDS`.
 
     >>> sparse_candidates(1, 1)[0]
     {'kind': 'sparse', 'library': 'kinetic + poly:4 + trig:1', 'threshold': 0.1}
@@ -142,7 +143,8 @@ def sparse_candidates(n: int, m: int) -> list[dict[str, Any]]:
         regular = default_library(n, m).replace(" + norm:-1 + log", "")
         out.append({"kind": "sparse", "library": regular, "threshold": "auto"})
         if n == 1:  # several degrees of freedom of unequal masses coupled through their differences
-            out.append({"kind": "sparse", "library": COUPLED_LIBRARY, "threshold": "auto", "at": "average"})
+            coupled = {"kind": "sparse", "library": COUPLED_LIBRARY, "at": "average"}
+            out += [{**coupled, "threshold": t} for t in SPARSE_THRESHOLDS]
     return out
 
 
