@@ -8,6 +8,7 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import torch
 import xarray as xr
@@ -308,15 +309,17 @@ def _fit(
     nsites: int,
     settings: Training,
     symmetries: bool = False,
+    shared: dict[str, Any] | None = None,
 ) -> LearnReport:
-    """One fit of the bound ``model`` with the gauge ``fix``, measured."""
+    """One fit of the bound ``model`` with the gauge ``fix``, measured (``shared``: a sparse fit's rows, kept for
+    the next fit of the same library on the same fields)."""
     t0 = time.perf_counter()
     history: list[tuple[int, float, float]] = []
     initial = None
     validation: dict[str, float] = {}
     used_ridge = 0.0
     if isinstance(model, SparseLagrangian) and settings.optimizer == "exact":  # few columns: rows held in memory
-        used_ridge, validation = learn_sparse(model, fields.fields, fix, ridge, nsites)
+        used_ridge, validation = learn_sparse(model, fields.fields, fix, ridge, nsites, shared)
         iterations, reason = 1, "sparse exact solve"
         wall = time.perf_counter() - t0
         diag = fields.diagnose(model, fix.name, symmetries)
@@ -417,10 +420,11 @@ def _learn_auto_sparse(
     antisymmetric mixed Hessian, which unit-mass cannot hold; a double pendulum's mass is not the identity)."""
     unit_mass, trace = gauge_named(GaugeName.UNIT_MASS), gauge_named(GaugeName.TRACE)
     probes: list[LearnReport] = []
+    shared: dict[str, Any] = {}  # the rows and the mean mixed Hessian, computed once for the three fits
     for gauge in (unit_mass, trace):
         probe = copy.deepcopy(model)
         probe.threshold, probe.bags = 0.0, 0
-        probes.append(_fit(probe, fields, gauge, ridge, nsites, settings))
+        probes.append(_fit(probe, fields, gauge, ridge, nsites, settings, shared=shared))
         if probes[0].rel_res <= AUTO_EXACT or model.unit_mass_by_construction:
             break
     scores = {g.name: p.rel_res for g, p in zip((unit_mass, trace), probes)}
@@ -428,7 +432,7 @@ def _learn_auto_sparse(
         better, why = False, f"unit-mass fits to round-off (rel_res {probes[0].rel_res:.1e} <= {AUTO_EXACT:g})"
     else:
         better, why = _trace_better(*probes)
-    report = _fit(model, fields, trace if better else unit_mass, ridge, nsites, settings, symmetries)
+    report = _fit(model, fields, trace if better else unit_mass, ridge, nsites, settings, symmetries, shared)
     wall = report.wall_time + sum(p.wall_time for p in probes)
     return replace(
         report,
