@@ -428,7 +428,9 @@ def _learn_auto_sparse(
         if probes[0].rel_res <= AUTO_EXACT or model.unit_mass_by_construction:
             break
     scores = {g.name: p.rel_res for g, p in zip((unit_mass, trace), probes)}
-    if len(probes) == 1:
+    if model.unit_mass_by_construction:
+        better, why = False, "the model has a unit mass by construction"
+    elif len(probes) == 1:
         better, why = False, f"unit-mass fits to round-off (rel_res {probes[0].rel_res:.1e} <= {AUTO_EXACT:g})"
     else:
         better, why = _trace_better(*probes)
