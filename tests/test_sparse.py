@@ -13,6 +13,7 @@ from scipy.integrate import solve_ivp
 import latticedft as ldft
 from latticedft import Library, systems
 from latticedft._lattice import gather_cells
+from latticedft._select import COUPLED_LIBRARY
 
 
 def _ode(rhs, y0, n: int, dt: float) -> np.ndarray:
@@ -74,6 +75,9 @@ def test_library_union_products_and_shorthands():
     assert names[:5] == ["(Dtq1**2+Dtq2**2)", "|q|**-1", "|q|**2", "log|q|", "(q1*Dtq2-q2*Dtq1)"]
     assert "cos(q1-q2)*Dtq1*Dtq2" in names
     assert [t.name for t in Library.parse("gradient").expand(3, 1)] == ["Dxq**2", "Dyq**2"]
+    # trig of another family's terms: cos(q^2 - 1) = cos(1) cos(q^2) + sin(1) sin(q^2)
+    names = [t.name for t in Library.parse("kinetic + trig:1(poly:2)").expand(1, 1)]
+    assert names == ["Dtq**2", "sin(q)", "cos(q)", "sin(q**2)", "cos(q**2)"]
 
 
 @pytest.mark.parametrize(
@@ -87,6 +91,8 @@ def test_library_union_products_and_shorthands():
         ("cross", 1, 3, "needs a field of 2 components"),
         ("gradient", 1, 1, "needs a space axis"),
         ("norm:0", 1, 2, "power 0"),
+        ("trig:1(wobble)", 1, 1, "unknown term 'wobble'"),
+        ("trig:0(poly:2)", 1, 1, "K >= 1"),
     ],
 )
 def test_library_bad_inputs_name_the_key(spec, n, m, words):
@@ -158,6 +164,8 @@ def test_charged_particle_magnetic_term():
     terms = kept(model)
     assert set(terms) == {"(Dtq1**2+Dtq2**2)", "(q1*Dtq2-q2*Dtq1)"}
     assert terms["(q1*Dtq2-q2*Dtq1)"] / (2 * terms["(Dtq1**2+Dtq2**2)"]) == pytest.approx(0.4, rel=1e-2)
+    # the gauge is chosen on the dense fits of the library, before the support: unit-mass cannot hold q x Dq
+    assert model.report_.gauge == "trace" and "dense fits of the library" in model.report_.gauge_choice
 
 
 def test_nonlinear_klein_gordon_string():
@@ -183,6 +191,9 @@ def test_symbolic_matches_the_model_to_round_off():
     for model in (
         ldft.SparseLagrangian("kinetic + gradient + poly:4 + trig:1", threshold=0.0, bags=0),
         ldft.SparseLagrangian("kinetic + gradient + poly:2*gradient + exp + trig:1", threshold=0.0, at="mean"),
+        ldft.SparseLagrangian(
+            "kinetic + poly:2*kinetic + gradient + trig:1(poly:2)", threshold=0.0, bags=0, at="average"
+        ),
         ldft.FeatureLagrangian(["poly:3", "trig:1"], differences=2),
     ):
         ldft.learn(model, data, progress=False)
@@ -296,6 +307,24 @@ def test_double_pendulum_with_the_trace_gauge():
     a = terms["Dtq1**2"]
     for name, ratio in (("Dtq2**2", 0.5), ("cos(q1-q2)*Dtq1*Dtq2", 1.0), ("cos(q1)", 2.0), ("cos(q2)", 1.0)):
         assert terms[name] / a == pytest.approx(ratio, rel=1e-2)
+
+
+def test_double_pendulum_at_both_ends_of_the_step_with_the_gauge_auto():
+    # the trapezoid rule (at = "average") meets a mass cos(q1 - q2) that depends on the positions; the gauge is
+    # chosen on the dense fits of the library (unequal masses: trace)
+    data = [double_pendulum([0.8, -0.5, 0.0, 0.0], n=60), double_pendulum([0.3, 1.0, 0.5, 0.0], n=60)]
+    model = ldft.SparseLagrangian(COUPLED_LIBRARY, threshold=0.1, bags=0, at="average")
+    ldft.learn(model, data, progress=False)
+    assert model.report_.gauge == "trace" and "dense fits of the library" in model.report_.gauge_choice
+    terms = kept(model)
+    assert set(terms) == {"Dtq1**2", "Dtq2**2", "cos(q1-q2)*Dtq1*Dtq2", "cos(q1)", "cos(q2)"}
+    a = terms["Dtq1**2"]
+    for name, ratio in (("Dtq2**2", 0.5), ("cos(q1-q2)*Dtq1*Dtq2", 1.0), ("cos(q1)", 2.0), ("cos(q2)", 1.0)):
+        assert terms[name] / a == pytest.approx(ratio, rel=1e-2)
+    form = model.symbolic()  # the average of the terms at both ends of the step
+    cells = _cells(model, data[0])[:5]
+    expected = model(cells).detach().numpy()
+    np.testing.assert_allclose([form.evaluate(c.tolist()) for c in cells], expected, rtol=1e-12)
 
 
 # -- threshold = "auto" by held-out serving ----------------------------------------------------------------

@@ -8,7 +8,7 @@ import pytest
 from test_sparse import kepler_one_orbit, pendulum
 
 import latticedft as ldft
-from latticedft._select import BEATEN, _choose, auto_candidates, sparse_candidates
+from latticedft._select import BEATEN, COUPLED_LIBRARY, _choose, auto_candidates, sparse_candidates
 
 
 def _rows(*scores: float) -> list[dict]:
@@ -37,6 +37,8 @@ def test_a_sparse_candidate_near_the_lowest_score_comes_first():
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 3
     rows[1]["score"], rows[2]["score"], rows[3]["score"] = 1.5e-2, 0.6, math.inf  # above SPARSE_CEILING
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
+    rows[2]["score"] = 3.0e-2  # the double pendulum's true terms by the trapezoid rule: within the ceiling
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 2
 
 
 def test_a_sparse_preference_never_keeps_a_hand_set_model_beaten_100x():
@@ -48,6 +50,21 @@ def test_a_sparse_preference_never_keeps_a_hand_set_model_beaten_100x():
     chosen, reason, _ = _choose(rows, factor=2.0, keep_below=1e-6)
     assert chosen == 2 and "100x below the hand-set" in reason
     rows[2]["score"] = 7.0e-9  # only 10x better: the hand-set model is kept
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 0
+
+
+def test_below_keep_below_a_sparse_candidate_is_kept_over_a_dense_hand_set_model():
+    rows = [  # paper Example 1: the hand-set polynomial and the sparse terms both below keep_below
+        {"score": 2.6e-9, "n_parameters": 45, "label": "hand-set", "kind": "polynomial"},
+        {"score": 9.0e-10, "n_parameters": 130, "label": "features", "kind": "features"},
+        {"score": 4.0e-9, "n_parameters": 3, "label": "sparse", "kind": "sparse"},
+        {"score": 3.0e-4, "n_parameters": 2, "label": "sparser", "kind": "sparse"},
+    ]
+    chosen, reason, _ = _choose(rows, factor=2.0, keep_below=1e-6)
+    assert chosen == 2 and "do not rank models" in reason
+    rows[2]["score"] = 2e-6  # above keep_below: the hand-set model is kept
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 0
+    rows[2]["score"], rows[0]["kind"] = 4.0e-9, "sparse"  # a sparse hand-set model is kept
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 0
 
 
@@ -69,7 +86,13 @@ def test_auto_tries_the_sparse_libraries_first():
     assert cands[: len(sparse_candidates(2, 1))] == sparse_candidates(2, 1)
     assert all(c["kind"] == "sparse" for c in sparse_candidates(1, 2))
     # data through q = 0 (a charged particle) refuse |q|^-1 and log|q|: a library without them is tried too
-    assert sparse_candidates(1, 2)[-1]["library"] == "kinetic + poly:2 + cross"
+    assert sparse_candidates(1, 2)[-4]["library"] == "kinetic + poly:2 + cross"
+    # coupled degrees of freedom of unequal masses, at both ends of the step; not on a lattice with space axes
+    assert sparse_candidates(1, 2)[-3:] == [
+        {"kind": "sparse", "library": COUPLED_LIBRARY, "at": "average", "threshold": t} for t in (0.1, 0.01, "auto")
+    ]
+    assert all(c.get("at") is None for c in sparse_candidates(2, 2) + sparse_candidates(2, 1))
+    assert any(c.get("at") == "average" for c in sparse_candidates(1, 1))
     assert {c["threshold"] for c in ldft.SparseLagrangian().auto_candidates(1)} >= {0.1, 0.0}
 
 

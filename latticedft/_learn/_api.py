@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import torch
 import xarray as xr
@@ -307,15 +309,17 @@ def _fit(
     nsites: int,
     settings: Training,
     symmetries: bool = False,
+    shared: dict[str, Any] | None = None,
 ) -> LearnReport:
-    """One fit of the bound ``model`` with the gauge ``fix``, measured."""
+    """One fit of the bound ``model`` with the gauge ``fix``, measured (``shared``: a sparse fit's rows, kept for
+    the next fit of the same library on the same fields)."""
     t0 = time.perf_counter()
     history: list[tuple[int, float, float]] = []
     initial = None
     validation: dict[str, float] = {}
     used_ridge = 0.0
     if isinstance(model, SparseLagrangian) and settings.optimizer == "exact":  # few columns: rows held in memory
-        used_ridge, validation = learn_sparse(model, fields.fields, fix, ridge, nsites)
+        used_ridge, validation = learn_sparse(model, fields.fields, fix, ridge, nsites, shared)
         iterations, reason = 1, "sparse exact solve"
         wall = time.perf_counter() - t0
         diag = fields.diagnose(model, fix.name, symmetries)
@@ -365,6 +369,8 @@ def _learn_auto(
     symmetries: bool = False,
 ) -> LearnReport:
     """``gauge="auto"``: the rule of :data:`AUTO_RULE`, every candidate fitted from the same start."""
+    if isinstance(model, SparseLagrangian) and model.m > 1 and settings.optimizer == "exact":
+        return _learn_auto_sparse(model, fields, ridge, nsites, settings, symmetries)
     start = {k: v.detach().clone() for k, v in model.state_dict().items()}
     unit_mass, trace = gauge_named(GaugeName.UNIT_MASS), gauge_named(GaugeName.TRACE)
     first = _fit(model, fields, unit_mass, ridge, nsites, settings, symmetries)
@@ -380,15 +386,60 @@ def _learn_auto(
         model.load_state_dict(start)
         second = _fit(model, fields, trace, ridge, nsites, settings, symmetries)
         scores[trace.name] = second.rel_res
-        better = second.rel_res < AUTO_FACTOR * first.rel_res and second.hessian_min_sv >= AUTO_MIN_SV
+        better, why = _trace_better(first, second)
         wall = first.wall_time + second.wall_time
         if better:
-            why = f"trace: rel_res {second.rel_res:.2e} against unit-mass {first.rel_res:.2e}"
             return replace(second, wall_time=wall, gauge_requested="auto", gauge_scores=scores, gauge_choice=why)
         model.load_state_dict(kept)
-        why = (
-            f"unit-mass: trace is not better by the factor {1 / AUTO_FACTOR:g} with an invertible M "
-            f"(rel_res {second.rel_res:.2e} against {first.rel_res:.2e}, min sv {second.hessian_min_sv:.2e})"
-        )
         return replace(first, wall_time=wall, gauge_requested="auto", gauge_scores=scores, gauge_choice=why)
     return replace(first, gauge_requested="auto", gauge_scores=scores, gauge_choice=why)
+
+
+def _trace_better(first: LearnReport, second: LearnReport) -> tuple[bool, str]:
+    """Whether the trace fit ``second`` is chosen over the unit-mass fit ``first`` (:data:`AUTO_RULE`), and why."""
+    if second.rel_res < AUTO_FACTOR * first.rel_res and second.hessian_min_sv >= AUTO_MIN_SV:
+        return True, f"trace: rel_res {second.rel_res:.2e} against unit-mass {first.rel_res:.2e}"
+    return False, (
+        f"unit-mass: trace is not better by the factor {1 / AUTO_FACTOR:g} with an invertible M "
+        f"(rel_res {second.rel_res:.2e} against {first.rel_res:.2e}, min sv {second.hessian_min_sv:.2e})"
+    )
+
+
+def _learn_auto_sparse(
+    model: SparseLagrangian,
+    fields: TrainingData,
+    ridge: float | str,
+    nsites: int,
+    settings: Training,
+    symmetries: bool = False,
+) -> LearnReport:
+    """``gauge="auto"`` for a sparse model of several components: the rule of :data:`AUTO_RULE` applied to the
+    dense fits of its whole library (threshold 0, no bags: one solve each), then one sparse fit in the gauge
+    chosen. The choice is made before the support is: a support is then chosen (by held-out serving, for
+    ``threshold = "auto"``) only once, in a gauge the library can meet (a magnetic term ``q x Dq`` has an
+    antisymmetric mixed Hessian, which unit-mass cannot hold; a double pendulum's mass is not the identity)."""
+    unit_mass, trace = gauge_named(GaugeName.UNIT_MASS), gauge_named(GaugeName.TRACE)
+    probes: list[LearnReport] = []
+    shared: dict[str, Any] = {}  # the rows and the mean mixed Hessian, computed once for the three fits
+    for gauge in (unit_mass, trace):
+        probe = copy.deepcopy(model)
+        probe.threshold, probe.bags = 0.0, 0
+        probes.append(_fit(probe, fields, gauge, ridge, nsites, settings, shared=shared))
+        if probes[0].rel_res <= AUTO_EXACT or model.unit_mass_by_construction:
+            break
+    scores = {g.name: p.rel_res for g, p in zip((unit_mass, trace), probes)}
+    if model.unit_mass_by_construction:
+        better, why = False, "the model has a unit mass by construction"
+    elif len(probes) == 1:
+        better, why = False, f"unit-mass fits to round-off (rel_res {probes[0].rel_res:.1e} <= {AUTO_EXACT:g})"
+    else:
+        better, why = _trace_better(*probes)
+    report = _fit(model, fields, trace if better else unit_mass, ridge, nsites, settings, symmetries, shared)
+    wall = report.wall_time + sum(p.wall_time for p in probes)
+    return replace(
+        report,
+        wall_time=wall,
+        gauge_requested="auto",
+        gauge_scores=scores,
+        gauge_choice=f"{why}, for the dense fits of the library",
+    )

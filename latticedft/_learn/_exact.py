@@ -32,7 +32,7 @@ from ._gauge import Gauge
 from ._source import FieldSource, Piece, pieces
 from ._stream import TrainingData
 
-__all__ = ["learn_exact", "residual_matrix", "gauge_matrix", "site_rows", "Triangle"]
+__all__ = ["learn_exact", "residual_matrix", "gauge_matrix", "mean_mixed_hessian", "site_rows", "Triangle"]
 
 _RIDGE_GRID = (0.0, 1e-14, 1e-12, 1e-10, 1e-8, 1e-6, 1e-4)
 
@@ -62,6 +62,11 @@ def gauge_matrix(
     (``None`` for no gauge)."""
     if not gauge.fixes:
         return None
+    return gauge.constraint(mean_mixed_hessian(model, fields), model.spacing[0])
+
+
+def mean_mixed_hessian(model: LinearLagrangian, fields: list[LatticeField]) -> np.ndarray:
+    """Every basis function's mixed time Hessian (anchor, forward) averaged over all training cells: ``(C, m, m)``."""
     st = model.stencil
     pair = (st.anchor, st.forward)
     m, c = model.m, model.n_terms
@@ -72,7 +77,7 @@ def gauge_matrix(
         ncells += x[..., 0, 0].numel()
         _, blocks = model.feature_derivatives(x, [pair], first=False)
         total += blocks[pair].reshape(-1, m, m, c).sum(0).permute(2, 0, 1)
-    return gauge.constraint((total / ncells).numpy(), model.spacing[0])  # mean: (C, m, m)
+    return (total / ncells).numpy()
 
 
 def _constrained_lstsq(r: np.ndarray, g_mat: np.ndarray | None, g_vec: np.ndarray | None, ridge: float) -> np.ndarray:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -28,7 +29,7 @@ from .._lattice import BoundaryKinds, LatticeField, interior_slices
 from .._models import SparseLagrangian
 from .._models._sparse import THRESHOLDS
 from .._serve import serve
-from ._exact import _constrained_lstsq, _qr_r, gauge_matrix, residual_matrix
+from ._exact import _constrained_lstsq, _qr_r, mean_mixed_hessian, residual_matrix
 from ._gauge import Gauge
 from ._heldout import HOLD_OUT, held_in, held_out_score
 
@@ -381,15 +382,27 @@ def _share(theta: np.ndarray, t: np.ndarray) -> float:
 
 
 def learn_sparse(
-    model: SparseLagrangian, fields: list[LatticeField], gauge: Gauge, ridge: float | str, nsites: int
+    model: SparseLagrangian,
+    fields: list[LatticeField],
+    gauge: Gauge,
+    ridge: float | str,
+    nsites: int,
+    shared: dict[str, Any] | None = None,
 ) -> tuple[float, dict[str, float]]:
     """Fit ``model.coef`` in place (``ridge="auto"`` counts as 0); returns the ridge used and the held-out
-    score of every support tried (empty for a given threshold)."""
+    score of every support tried (empty for a given threshold). ``shared``: the residual matrices and the mean
+    mixed Hessian, kept there for the next fit of the same library on the same fields (in another gauge)."""
     lam = 0.0 if ridge == "auto" else float(ridge)
-    rs = [residual_matrix(model, f) / math.sqrt(nsites) for f in fields]
+    shared = {} if shared is None else shared
+    if "rs" not in shared:
+        rows = [residual_matrix(model, f) / math.sqrt(nsites) for f in fields]
+        _finite_columns(model, rows)
+        shared["rs"] = rows
+    rs: list[np.ndarray] = shared["rs"]
     unbatched = not any(f.batch for f in fields)  # then the held-out threshold reuses these rows
-    _finite_columns(model, rs)
-    g = gauge_matrix(model, fields, gauge)
+    if gauge.fixes and shared.get("mean") is None:
+        shared["mean"] = mean_mixed_hessian(model, fields)
+    g = gauge.constraint(shared["mean"], model.spacing[0]) if gauge.fixes else None
     blocks = _blocks(rs, model.n_terms)
     validation: dict[str, float] = {}
     if model.threshold == "auto":

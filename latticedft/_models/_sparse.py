@@ -66,10 +66,12 @@ class SparseLagrangian(LinearLagrangian):
         Relative share below which a term is dropped (``0``: the dense fit), or ``"auto"``.
     bags : int
         Resampled fits for the inclusion probabilities (``0``: none).
-    at : "anchor" or "mean"
+    at : "anchor", "mean" or "average"
         Where the on-site functions of the field are evaluated: at the cell's anchor site (the default:
-        ``L_d = |D_t q|^2 / 2 - V(q[x])`` is the leapfrog's own ``L_d``) or at the stencil mean (a midpoint
-        rule, as :class:`FeatureLagrangian`).
+        ``L_d = |D_t q|^2 / 2 - V(q[x])`` is the leapfrog's own ``L_d``), at the stencil mean (a midpoint
+        rule, as :class:`FeatureLagrangian`), or at every stencil point with the term averaged over them (on
+        the first-order stencil of an ODE, the trapezoid rule ``h (L(q0, Dq) + L(q1, Dq)) / 2``, which a
+        position-dependent mass such as ``cos(q1 - q2) Dtq1 Dtq2`` needs to be met exactly).
     stencil : Stencil, optional
         Default: the first-order stencil.
     """
@@ -86,7 +88,7 @@ class SparseLagrangian(LinearLagrangian):
         *,
         threshold: float | str = "auto",
         bags: int = 20,
-        at: Literal["mean", "anchor"] = "anchor",
+        at: Literal["mean", "anchor", "average"] = "anchor",
         stencil: Stencil | None = None,
     ):
         super().__init__(stencil)
@@ -97,8 +99,8 @@ class SparseLagrangian(LinearLagrangian):
             raise InputError.at("threshold", f"expected a number in [0, 1) or 'auto', got {threshold!r}")
         if not isinstance(bags, int) or isinstance(bags, bool) or bags < 0:
             raise InputError.at("bags", f"expected an integer >= 0, got {bags!r}")
-        if at not in ("mean", "anchor"):
-            raise InputError.at("at", f"expected 'mean' or 'anchor', got {at!r}")
+        if at not in _AT:
+            raise InputError.at("at", f"expected 'anchor', 'mean' or 'average', got {at!r}")
         self.at = at
         self.threshold: float | str = threshold if threshold == "auto" else float(threshold)
         self.bags = bags
@@ -141,9 +143,15 @@ class SparseLagrangian(LinearLagrangian):
 
     def features(self, cells: torch.Tensor) -> torch.Tensor:
         z = self.mean_and_differences(cells)
-        if self.at == "anchor":  # the on-site functions see the anchor's value, not the stencil mean
-            z = torch.cat([cells[..., self.stencil.anchor : self.stencil.anchor + 1, :], z[..., 1:, :]], -2)
-        return term_values(self.terms, z, self.spacing)
+        if self.at == "mean":
+            return term_values(self.terms, z, self.spacing)
+        points = [self.stencil.anchor] if self.at == "anchor" else range(self.stencil.size)
+        # the on-site functions see one stencil point's value (the anchor's, or each in turn, averaged)
+        values = [
+            term_values(self.terms, torch.cat([cells[..., p : p + 1, :], z[..., 1:, :]], -2), self.spacing)
+            for p in points
+        ]
+        return values[0] if len(values) == 1 else torch.stack(values).mean(0)
 
     # -- the equation ------------------------------------------------------------------------------------
     def _kept(self) -> list[int]:
@@ -153,16 +161,18 @@ class SparseLagrangian(LinearLagrangian):
         """``L_d`` in the cell symbols (None when a user term has no sympy form)."""
         self._require_bound()
         q, d = cell_variables(self.proj, self.spacing, self.m)
-        if self.at == "anchor":
-            q = list(cell_symbols(self.stencil.size, self.m)[self.stencil.anchor])
-        return _sum_form(self, q, d)
+        if self.at == "mean":
+            return _sum_form(self, [q], d)
+        u = cell_symbols(self.stencil.size, self.m)
+        points = [self.stencil.anchor] if self.at == "anchor" else range(self.stencil.size)
+        return _sum_form(self, [list(u[p]) for p in points], d)
 
     def equation(self) -> Any:
         """``L_d`` as a sympy expression in the readable symbols ``q`` (``q1``, ...) and ``Dtq``, ``Dxq`` ...
         (None when a user term has no sympy form)."""
         self._require_bound()
         q, d, _ = readable_variables(self.n, self.m)
-        form = _sum_form(self, q, d)
+        form = _sum_form(self, [q], d)
         return None if form is None else form.expr
 
     def equation_text(self) -> dict[str, Any]:
@@ -224,7 +234,11 @@ class SparseLagrangian(LinearLagrangian):
         }
 
 
-_AT = {"anchor": "the value at the anchor site x", "mean": "the mean of the stencil values"}
+_AT = {
+    "anchor": "the value at the anchor site x",
+    "mean": "the mean of the stencil values",
+    "average": "each stencil value in turn, the L_d averaged over them",
+}
 
 
 def _clip(text: str, width: int = 400) -> str:
@@ -236,15 +250,18 @@ def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _sum_form(model: SparseLagrangian, q: list[Any], d: list[list[Any]]) -> SymbolicLd | None:
+def _sum_form(model: SparseLagrangian, qs: list[list[Any]], d: list[list[Any]]) -> SymbolicLd | None:
+    """The kept terms' sum in the derivatives ``d``, its on-site functions at each of ``qs`` in turn, averaged."""
     import sympy
 
     kept = model._kept()
-    forms = term_forms([model.terms[c] for c in kept], q, d)
-    if forms is None:
-        return None
     coef = model.coef.detach().tolist()
-    expr = sum((sympy.Float(coef[c]) * f for c, f in zip(kept, forms)), sympy.Integer(0))
+    expr = sympy.Integer(0)
+    for q in qs:
+        forms = term_forms([model.terms[c] for c in kept], q, d)
+        if forms is None:
+            return None
+        expr += sum((sympy.Float(coef[c]) * f for c, f in zip(kept, forms)), sympy.Integer(0)) / len(qs)
     return SymbolicLd(expr, tuple(tuple(o) for o in model.stencil.to_list()), model.m, model.spacing)
 
 

@@ -10,8 +10,8 @@ namespace, so the same code gives its torch values on cells and its sympy form (
 The shorthands (usable in case.toml, joined into libraries by :mod:`latticedft._models._library`):
 
 - on-site functions of the field: ``poly:K`` (the monomials of the components of total degree ``1 .. K``),
-  ``trig:K`` / ``trig:K:w`` (``sin(j w q_i)``, ``cos(j w q_i)``, ``j = 1 .. K``), ``exp`` / ``exp:w``
-  (``exp(w q_i)``);
+  ``trig:K`` / ``trig:K:w`` (``sin(j w q_i)``, ``cos(j w q_i)``, ``j = 1 .. K``), ``trig:K(F)`` (the same of
+  every term of one family ``F``: ``trig:1(poly:2)`` holds ``sin(q**2)``), ``exp`` / ``exp:w`` (``exp(w q_i)``);
 - squared derivatives: ``kinetic`` (``|D_t q|^2``), ``gradient`` (``|D_x q|^2`` per space axis),
   ``velocities`` (every product ``D_t q_i D_t q_j``, for unequal masses);
 - vector fields: ``norm:k1,k2,...`` (``|q|^k``, negative ``k`` too), ``log`` (``log|q|``), ``cross``
@@ -193,7 +193,7 @@ def named(spec: str) -> Family:
             return make(match, spec)
     raise InputError.at(
         "library",
-        f"unknown term {spec!r}; expected poly:K, trig:K[:w], exp[:w], kinetic, gradient, velocities, "
+        f"unknown term {spec!r}; expected poly:K, trig:K[:w], trig:K(F), exp[:w], kinetic, gradient, velocities, "
         "norm:k1,k2,..., log, cross, cosdiff, sindiff, joined by '+' and '*'",
     )
 
@@ -265,6 +265,32 @@ def _trig(match: re.Match[str], label: str) -> Family:
         return out
 
     return Family(label, build)
+
+
+@_family(rf"trig:(\d+)(?::{_NUMBER})?\(([^()]+)\)")
+def _trig_of(match: re.Match[str], label: str) -> Family:
+    """``trig:K(F)``: ``sin(j w T)``, ``cos(j w T)`` of every term ``T`` of the on-site family ``F`` (``poly:2``:
+    the trig functions of ``q`` and ``q^2``, a potential such as ``cos(q^2 - 1)``)."""
+    k, w = int(match.group(1)), _frequency(match.group(2), label)
+    inner = named(match.group(3).strip())
+    if k < 1:
+        raise InputError.at("library", f"expected K >= 1 in {label!r}")
+
+    def build(n: int, m: int) -> list[Term]:
+        out = []
+        for term in inner.expand(n, m):
+            for j in range(1, k + 1):
+                arg = _scaled(w, j, f"({term.name})" if _has_sum(term.name) else term.name)
+                c = _number(j * w)
+                out += [Term(f"{f}({arg})", partial(_of_term, f, c, term.fn), term.form) for f in ("sin", "cos")]
+        return out
+
+    return Family(label, build, inner.saveable)
+
+
+def _of_term(name: str, c: float, fn: Evaluator, v: Vars) -> Any:
+    """``name(c T)``: ``sin`` or ``cos`` of a scaled term."""
+    return getattr(v.xp, name)(c * fn(v))
 
 
 @_family(r"(?:cos|sin)")
