@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
+from dataclasses import replace
 from typing import Any, overload
 
 import torch
@@ -28,7 +29,7 @@ from ._gauge import gauge_named
 from ._report import diagnose, symmetry_reports
 from ._source import FieldSource, Piece, as_sources, pieces
 
-__all__ = ["TrainingData", "training_data", "default_chunk_sites"]
+__all__ = ["TrainingData", "by_field", "default_chunk_sites", "share_of", "training_data"]
 
 
 def default_chunk_sites(model: AbstractLagrangian) -> int:
@@ -127,8 +128,7 @@ class TrainingData:
     # -- reading ------------------------------------------------------------------------------------------
     def my_chunks(self) -> list[list[Piece]]:
         """The chunks this process reads (every one in a single process)."""
-        rank, size = _dist.world()
-        return self.chunks[rank::size]
+        return share_of(self.chunks, self.sources)
 
     def read(self, piece: Piece) -> tuple[LatticeField, int]:
         """A piece's slab of values and how many of its leading cell slices belong to the piece before it."""
@@ -166,13 +166,36 @@ def _merge_range(model: AbstractLagrangian, saw: bool) -> None:
         model.set_feature_range(torch.stack([lo, hi]))
 
 
+def share_of(chunks: list[list[Piece]], sources: list[FieldSource]) -> list[list[Piece]]:
+    """The chunks of ``chunks`` this process reads: under a process group of ``N``, chunk ``i`` goes to rank
+    ``i mod N``, or, when the sources have a ``home``, each chunk to its sources' home; every chunk in a
+    single process."""
+    rank, size = _dist.world()
+    if size == 1:
+        return chunks
+    if any(s.home is not None for s in sources):
+        return [c for c in chunks if sources[c[0].source].home == rank]
+    return chunks[rank::size]
+
+
+def by_field(sources: list[FieldSource]) -> list[FieldSource]:
+    """``sources`` with source ``i`` at home in rank ``i mod N`` of a process group of ``N``."""
+    size = _dist.world()[1]
+    return [replace(s, home=i % size) for i, s in enumerate(sources)]
+
+
 def training_data(data: Any, boundary: BoundaryKinds | None, chunk_sites: int | None) -> TrainingData:
-    """The training data of :func:`latticedft.learn`: fields (in memory or lazy) or paths of field files."""
+    """The training data of :func:`latticedft.learn`: fields (in memory or lazy) or paths of field files;
+    under a process group with ``learn_share="fields"`` (:func:`latticedft.set_options`), field ``i`` is read
+    by rank ``i mod N`` alone."""
     if chunk_sites is not None and (
         isinstance(chunk_sites, bool) or not isinstance(chunk_sites, int) or chunk_sites < 0
     ):
         raise InputError.at("chunk_sites", f"expected an integer >= 0 or None, got {chunk_sites!r}")
-    return TrainingData(as_sources(data, boundary), chunk_sites)
+    sources = as_sources(data, boundary)
+    if _dist.is_parallel() and option("learn_share") == "fields":
+        sources = by_field(sources)
+    return TrainingData(sources, chunk_sites)
 
 
 def _owned_cells(values: torch.Tensor, f: LatticeField, stencil: Stencil, skip: int) -> torch.Tensor:
