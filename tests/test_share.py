@@ -6,7 +6,8 @@ pieces each reads are disjoint and together those one process reads; the scaling
 it to round-off. A case (``check_case``, ``train_model``) of four tiny noisy training files, told apart by
 their number of time slices, learned with ``[train] noise = "correct"``: each rank holds in memory the files
 ``i mod 2`` (the others left in their files), reads and corrects only those, and the model equals the one
-process's to round-off.
+process's to round-off; so does a sparse model, which fits every corrected field at once (each process
+gets the others' corrections from them).
 """
 
 from __future__ import annotations
@@ -79,6 +80,9 @@ Piece.read, _noise._correct_one = counted2, spied2
 model, report = train_model(case, data)
 out["case"] = dict(held=held, read=sorted(read), corrected=sorted(set(corrected)), coef=model.coef.tolist(),
                    shift=report.noise["shift"], sigma=report.noise["sigma"])
+m = ldft.SparseLagrangian("kinetic + poly:2", threshold=0.0, bags=0)  # fits every field at once: they are
+ldft.learn(m, noisy, noise="correct")  # gathered from the processes that corrected them
+out["sparse"] = m.coef.tolist()
 with open(sys.argv[1], "w") as f:
     json.dump(out, f)
 """
@@ -144,3 +148,5 @@ def test_each_process_reads_its_share_and_learns_what_one_learns(tmp_path: Path)
     assert _rel(np.array(two[0]["coef"]), np.array(one["coef"])) < 1e-10
     assert two[0]["shift"] == pytest.approx(one["shift"], rel=1e-12)
     assert two[0]["sigma"] == pytest.approx(one["sigma"], rel=1e-12)
+    assert ranks[0]["sparse"] == ranks[1]["sparse"]
+    assert _rel(np.array(ranks[0]["sparse"]), np.array(ref["sparse"])) < 1e-10

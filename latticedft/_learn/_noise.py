@@ -395,7 +395,9 @@ def _corrected(data: TrainingData, current: list[LatticeField]) -> TrainingData:
     for j, f in enumerate(current):
         i = rank + j * size
         sources[i] = FieldSource(f, f.shape[0], sources[i].label, home=rank)
-    return TrainingData(sources, data.chunk_sites)
+    out = TrainingData(sources, data.chunk_sites)
+    out.held_at_home = True  # a training that holds every field (a sparse model's, the symmetry tests) gathers them
+    return out
 
 
 def _share(data: TrainingData) -> list[LatticeField]:

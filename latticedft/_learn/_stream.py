@@ -72,6 +72,9 @@ class TrainingData:
         self.stencil: Stencil | None = None
         self.budget = 0
         self._fields: list[LatticeField] | None = None
+        #: under a process group, only each source's home holds its values (the others' are stale): the
+        #: fields in memory are then taken from the homes (a noise correction's refits)
+        self.held_at_home = False
 
     # -- the two modes ------------------------------------------------------------------------------------
     @property
@@ -83,8 +86,14 @@ class TrainingData:
     def fields(self) -> list[LatticeField]:
         """Every field in memory (the in-memory mode's data; lazy ones are read once and kept)."""
         if self._fields is None:
-            self._fields = [s.load() for s in self.sources]
+            self._fields = [self._from_home(s) if self.held_at_home else s.load() for s in self.sources]
         return self._fields
+
+    def _from_home(self, s: FieldSource) -> LatticeField:
+        """Source ``s`` whole, its values broadcast by its home (every process calls it, in the same order)."""
+        assert s.home is not None
+        values = s.load().values if s.home == _dist.world()[0] else torch.empty((s.nt, *s.lattice.values.shape[1:]))
+        return replace(s.lattice, values=_dist.broadcast(values.to(torch.float64), s.home))
 
     def __len__(self) -> int:
         return len(self.sources)

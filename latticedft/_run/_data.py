@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import netCDF4
 import xarray as xr
 
 from .._boundary import missing_edges
@@ -118,7 +119,7 @@ def check_case(case: Case) -> CaseData:
     spacing: tuple[float, ...] = ()
     rank, size = _process()
     for i, path in enumerate(case.train.data):
-        da = _read(path, case, comps, lazy=i % size != rank)  # several processes: each holds its share
+        da = _read(path, case, comps) if i % size == rank else _read_other(path, case, comps)
         if comps is None:
             comps = component_labels(da)
             if comps is None and train:
@@ -149,6 +150,19 @@ def _process() -> tuple[int, int]:
     """(rank, number of processes) of the command (``--workers`` or ``torchrun``): from the environment, as
     the case is read before the processes join their group."""
     return int(os.environ.get("RANK", "0") or 0), int(os.environ.get("WORLD_SIZE", "1") or 1)
+
+
+def _read_other(path: Path, case: Case, components: tuple[str, ...] | None) -> xr.DataArray:
+    """A training file that another process holds (several processes: each holds its share): opened lazily,
+    its values checked in blocks of slices, with no chunk cache, so that none of its values stays in this
+    process (a file written by :func:`latticedft.io.write_field` is one compressed chunk: a cache would keep
+    it whole, decompressed, while the file is open)."""
+    size, nelems, preemption = netCDF4.get_chunk_cache()
+    netCDF4.set_chunk_cache(0, nelems, preemption)  # for the files opened now
+    try:
+        return _read(path, case, components, lazy=True)
+    finally:
+        netCDF4.set_chunk_cache(size, nelems, preemption)
 
 
 def _head(da: xr.DataArray) -> xr.DataArray:
