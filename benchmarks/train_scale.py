@@ -153,7 +153,7 @@ def _case(root: Path, n: int, nx: int, nt: int) -> Path:
 
 
 #: ``[train] chunk_sites`` of the case of :func:`case_workers`.
-CASE_CHUNK = 16384
+CASE_CHUNK = 2048
 
 
 def _ranks(case: Path, out: Path, n: int) -> list[dict[str, float]]:
@@ -221,7 +221,7 @@ def case_workers(cfg: Config, workers: int = 2) -> Table:
         "each process's `ru_maxrss`.",
         f"Growth with the data: the peak minus that of the same command on a tiny case ({workers} files of "
         "16 x 40, one a rank): what the training data add, beyond the interpreter, the package and the fixed "
-        "cost of training (about 100 MiB here).",
+        "cost of training.",
         f"The model of {workers} processes against one process's: max |coef difference| / max |coef| = {diff:.1e}.",
     ]
     table.checks.append(Check(f"{workers} processes learn one process's model to 1e-10", f"{diff:.1e}", diff < 1e-10))
