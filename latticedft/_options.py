@@ -111,6 +111,13 @@ OPTIONS: dict[str, _Knob] = {
         _POSITIVE,
         "sites per chunk of iterative training (its autograd graph holds a few KiB per site)",
     ),
+    "learn_share": _Knob(
+        "chunks",
+        lambda v: v in ("chunks", "fields"),
+        "'chunks' or 'fields'",
+        "what a process of several reads in training: chunk i ('chunks') or every chunk of field i ('fields') "
+        "goes to rank i mod N",
+    ),
 }
 
 _values: dict[str, Any] = {name: knob.default for name, knob in OPTIONS.items()}

@@ -293,3 +293,33 @@ def test_a_2p1d_newton_stream_resumed_from_a_state_equals_the_whole_run():
             b["on_affine"],
         )
         assert torch.equal(a["head"], b["head"]) and torch.equal(a["before"], b["before"])
+
+
+def test_a_checkpoint_is_read_once_on_resume(tmp_path, monkeypatch):
+    """``open_part`` reads the checkpoint; the task's checkpointer goes on from that state, unread again."""
+    from latticedft._part_file import PartFile
+    from latticedft._run import _resume
+    from latticedft._run._meter import TaskMeter
+
+    t, x = np.arange(5) * 0.1, np.arange(4) * 0.25
+    template = xr.DataArray(np.zeros((5, 4)), dims=("t", "x"), coords={"t": t, "x": x}, name="psi")
+    part = PartFile(tmp_path, "test", "psi", template, 1)
+    for i in range(3):
+        part(i, np.full(4, float(i)))
+    meter = TaskMeter(None, None, part)
+    meter.max_error = 0.5
+    _resume.TaskCheckpoint(part, meter, "test", None).save({"nkept": 3, "done": 3})
+    part.close()
+    reads = []
+    monkeypatch.setattr(
+        _resume, "read_state", lambda path: reads.append(path) or _resume.state_from_bytes(path.read_bytes())
+    )
+    again, state = _resume.open_part(tmp_path, "test", "psi", template, 1, True)
+    went_on = TaskMeter(None, None, again)
+    loaded = _resume.TaskCheckpoint(again, went_on, "test", state).load()
+    again.close()
+    assert len(reads) == 1 and loaded is not None and loaded["done"] == 3 and went_on.max_error == 0.5
+    assert np.array_equal(loaded["kept_values"], np.repeat(np.arange(3.0), 4).reshape(3, 4))
+    fresh, none = _resume.open_part(tmp_path, "other", "psi", template, 1, True)
+    fresh.close()
+    assert none is None and len(reads) == 1

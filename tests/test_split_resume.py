@@ -4,12 +4,14 @@ Rank 0 writes each checkpoint (the state gathered from every process, in one pro
 serve killed (SIGKILL, of rank 0, right after its first checkpoint; the launcher then stops the other
 rank) is continued by ``serve --resume --workers 2`` to the results of the uninterrupted split run, bit for
 bit; the same checkpoint taken up by one process gives the field to Newton's tolerance (the factorisation
-of the chord steps is not carried across decompositions). Bad input under ``--workers``: ``--resume``
+of the chord steps is not carried across decompositions). ``run --resume --workers 2`` takes up the same
+checkpoint split too, to the same results bit for bit. Bad input under ``--workers``: ``--resume``
 without a checkpoint, or with a changed case, is refused in one line naming the key, writing nothing.
 """
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -17,6 +19,8 @@ import numpy as np
 import pytest
 import xarray as xr
 from test_resume import _latticedft, _same_results, _stage, tiny_sine_gordon
+
+from latticedft._run._resume import RESUME_FILE
 
 from case_helpers import copy_wave, run_cli, snapshot
 from helpers import RANK_RESULTS_END, two_ranks
@@ -56,6 +60,13 @@ def test_a_killed_split_serve_is_resumed_split_to_the_same_results(tmp_path: Pat
     with xr.open_dataset(tmp_path / "whole" / "test.nc") as a, xr.open_dataset(case / "results" / "test.nc") as b:
         diff = float(np.abs(a["psi"].values - b["psi"].values).max() / np.abs(a["psi"].values).max())
         assert 0 < diff < 1e-7 and a["psi"].sizes["t"] == b["psi"].sizes["t"] == 41
+    # `run --resume --workers 2` serves on split too: the same stage, its journal made a killed `run`'s
+    shutil.copytree(tmp_path / "stage", stage)
+    journal = json.loads((stage / RESUME_FILE).read_text())
+    (stage / RESUME_FILE).write_text(json.dumps({**journal, "command": "run"}))
+    resumed = _latticedft("run", case, "-q", "--workers", "2", *SETS, "--resume")
+    assert resumed.returncode == 0, resumed.stderr
+    _same_results(tmp_path / "whole", case / "results")
 
 
 def test_resume_without_a_checkpoint_under_workers_is_refused_before_the_processes_start(tmp_path, capsys):

@@ -32,6 +32,7 @@ __all__ = [
     "all_min",
     "all_max",
     "all_gather",
+    "broadcast",
     "backend_for",
     "init_from_env",
 ]
@@ -65,6 +66,16 @@ def all_gather(a: np.ndarray) -> list[np.ndarray]:
     out = [torch.empty_like(t) for _ in range(world()[1])]
     dist.all_gather(out, t)
     return [o.cpu().numpy() for o in out]
+
+
+def broadcast(t: torch.Tensor, src: int) -> torch.Tensor:
+    """Rank ``src``'s tensor ``t`` in every process (the others pass a tensor of its shape); ``t`` itself
+    without a process group."""
+    if not is_parallel():
+        return t
+    buf = t.detach().to(group_device(), torch.float64).contiguous().clone()
+    dist.broadcast(buf, src=src)
+    return buf.cpu()
 
 
 def backend_for(local_processes: int, device: str | None = None) -> str:

@@ -64,6 +64,7 @@ def learn_ensemble(
     for k in range(1, len(ens)):
         pick = rng.integers(0, len(windows), size=len(windows))
         data = TrainingData([windows[i] for i in pick], fields.chunk_sites)
+        data.held_at_home = fields.held_at_home
         reports.append(fit(ens.member(k), data, first))
     warnings = list(first.warnings)
     if len(windows) < 2:

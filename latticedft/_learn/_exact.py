@@ -30,7 +30,7 @@ from . import _dist
 from ._data import kinetic_scale, kinetic_sums, site_sums, split_point, time_split
 from ._gauge import Gauge
 from ._source import FieldSource, Piece, pieces
-from ._stream import TrainingData
+from ._stream import TrainingData, share_of
 
 __all__ = ["learn_exact", "residual_matrix", "gauge_matrix", "mean_mixed_hessian", "site_rows", "Triangle"]
 
@@ -296,9 +296,8 @@ def _learn_streamed(
     groups = [_Group(Triangle(c)) for _ in range(ngroups)]
     gsum = torch.zeros(m, m, c, dtype=torch.float64)
     ncells = torch.zeros((), dtype=torch.float64)
-    rank, size = _dist.world()
     for ps in passes:
-        for chunk in ps.chunks[rank::size]:
+        for chunk in share_of(ps.chunks, ps.sources):
             for piece in chunk:
                 f, skip = piece.read(ps.sources, st)
                 cells = gather_cells(f.values, st, f.boundary)

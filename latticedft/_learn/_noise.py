@@ -32,7 +32,8 @@ from .._lattice import LatticeField, as_lattice_field, interior_slices
 from .._models import AbstractLagrangian
 from . import _dist
 from ._report import LearnReport
-from ._stream import TrainingData
+from ._source import FieldSource
+from ._stream import TrainingData, by_field
 
 __all__ = [
     "NOISE_MODES",
@@ -345,15 +346,7 @@ def learn_noisy(
     warnings = list(report.warnings)
     used = data
     if wanted:
-        current = fields = data.fields  # the correction moves every field, in every process
-        for k in range(ROUNDS):
-            current = correct_fields(model, fields, current, STRENGTH * STRENGTH_GROWTH**k)
-            used = make(current)
-            report = fit(used)
-        shift = math.sqrt(
-            sum(float(((c.values - d.values) ** 2).sum()) for c, d in zip(current, fields, strict=True))
-            / sum(d.values.numel() for d in fields)
-        )
+        report, used, shift = _correct(model, data, share, fit, make, report)
         info.update(method="errors in variables", rounds=ROUNDS, shift=shift)
         warnings = list(report.warnings)
         if est.resolved and est.sigma > 0 and shift > SHIFT_WARN * est.sigma:
@@ -368,6 +361,43 @@ def learn_noisy(
             "less affected (a stride of k divides the share by about k^2 while it is small)"
         )
     return replace(report, noise=info, warnings=warnings), used
+
+
+def _correct(
+    model: AbstractLagrangian,
+    data: TrainingData,
+    share: list[LatticeField],
+    fit: Callable[[TrainingData], LearnReport],
+    make: Callable[[list[LatticeField]], TrainingData],
+    report: LearnReport,
+) -> tuple[LearnReport, TrainingData, float]:
+    """:data:`ROUNDS` corrections of this process's share of the training fields (every field in a single
+    process), each followed by a refit; under a process group each process reads only its corrected fields in
+    the refits. Returns the last report (``report``, that of the first fit, without rounds), the data of the
+    last fit and the rms shift of the fields."""
+    used, current = data, share
+    for k in range(ROUNDS):
+        current = correct_fields(model, share, current, STRENGTH * STRENGTH_GROWTH**k)
+        used = _corrected(data, current) if _dist.is_parallel() else make(current)
+        report = fit(used)
+    sq: float = sum(float(((c.values - d.values) ** 2).sum()) for c, d in zip(current, share, strict=True))
+    count: float = sum(d.values.numel() for d in share)
+    if _dist.is_parallel():
+        sq, count = _dist.all_sum(torch.tensor([sq, count], dtype=torch.float64)).tolist()
+    return report, used, math.sqrt(sq / count)
+
+
+def _corrected(data: TrainingData, current: list[LatticeField]) -> TrainingData:
+    """The training data of a refit under a process group: field ``i`` at home in rank ``i mod N``, this
+    process's own fields replaced by their corrections ``current`` (the others are never read here)."""
+    rank, size = _dist.world()
+    sources = by_field(data.sources)
+    for j, f in enumerate(current):
+        i = rank + j * size
+        sources[i] = FieldSource(f, f.shape[0], sources[i].label, home=rank)
+    out = TrainingData(sources, data.chunk_sites)
+    out.held_at_home = True  # a training that holds every field (a sparse model's, the symmetry tests) gathers them
+    return out
 
 
 def _share(data: TrainingData) -> list[LatticeField]:

@@ -41,6 +41,8 @@ class FieldSource:
     ``lattice`` describes the field (its ``values`` are the whole field when it is in memory, else its first
     slices only); ``reader`` (lazy fields) reads the values of time slices ``[a, b)`` of the whole field;
     ``start`` and ``nt`` select the window ``[start, start + nt)`` of it that this source stands for.
+    ``home`` is the rank that reads every piece of it under a process group (``None``: its chunks are dealt
+    out to the processes in turn, see :func:`latticedft._learn._stream.TrainingData.my_chunks`).
     """
 
     lattice: LatticeField
@@ -48,6 +50,7 @@ class FieldSource:
     label: str
     reader: Reader | None = None
     start: int = 0
+    home: int | None = None
 
     @property
     def lazy(self) -> bool:
@@ -237,7 +240,8 @@ class Piece:
 
 def pieces(sources: list[FieldSource], stencil: Stencil, budget: int) -> list[list[Piece]]:
     """The sources cut into pieces of about ``budget`` lattice sites (``budget <= 0``: whole fields), packed in
-    order into chunks of at most ``budget`` sites (a field larger than it is cut along time)."""
+    order into chunks of at most ``budget`` sites (a field larger than it is cut along time); a chunk holds
+    sources of one ``home`` only."""
     chunks: list[list[Piece]] = []
     current: list[Piece] = []
     size = 0
@@ -249,7 +253,7 @@ def pieces(sources: list[FieldSource], stencil: Stencil, budget: int) -> list[li
         for t0 in range(0, src.nt, step):
             t1 = min(src.nt, t0 + step)
             n = (min(src.nt, t1 + w) - max(0, t0 - w)) * per_slice
-            if current and budget > 0 and size + n > budget:
+            if current and (budget > 0 and size + n > budget or sources[current[-1].source].home != src.home):
                 chunks.append(current)
                 current, size = [], 0
             current.append(Piece(i, t0, t1))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
+from dataclasses import replace
 from typing import Any, overload
 
 import torch
@@ -28,7 +29,7 @@ from ._gauge import gauge_named
 from ._report import diagnose, symmetry_reports
 from ._source import FieldSource, Piece, as_sources, pieces
 
-__all__ = ["TrainingData", "training_data", "default_chunk_sites"]
+__all__ = ["TrainingData", "by_field", "default_chunk_sites", "share_of", "training_data"]
 
 
 def default_chunk_sites(model: AbstractLagrangian) -> int:
@@ -71,6 +72,9 @@ class TrainingData:
         self.stencil: Stencil | None = None
         self.budget = 0
         self._fields: list[LatticeField] | None = None
+        #: under a process group, only each source's home holds its values (the others' are stale): the
+        #: fields in memory are then taken from the homes (a noise correction's refits)
+        self.held_at_home = False
 
     # -- the two modes ------------------------------------------------------------------------------------
     @property
@@ -82,8 +86,14 @@ class TrainingData:
     def fields(self) -> list[LatticeField]:
         """Every field in memory (the in-memory mode's data; lazy ones are read once and kept)."""
         if self._fields is None:
-            self._fields = [s.load() for s in self.sources]
+            self._fields = [self._from_home(s) if self.held_at_home else s.load() for s in self.sources]
         return self._fields
+
+    def _from_home(self, s: FieldSource) -> LatticeField:
+        """Source ``s`` whole, its values broadcast by its home (every process calls it, in the same order)."""
+        assert s.home is not None
+        values = s.load().values if s.home == _dist.world()[0] else torch.empty((s.nt, *s.lattice.values.shape[1:]))
+        return replace(s.lattice, values=_dist.broadcast(values.to(torch.float64), s.home))
 
     def __len__(self) -> int:
         return len(self.sources)
@@ -127,8 +137,7 @@ class TrainingData:
     # -- reading ------------------------------------------------------------------------------------------
     def my_chunks(self) -> list[list[Piece]]:
         """The chunks this process reads (every one in a single process)."""
-        rank, size = _dist.world()
-        return self.chunks[rank::size]
+        return share_of(self.chunks, self.sources)
 
     def read(self, piece: Piece) -> tuple[LatticeField, int]:
         """A piece's slab of values and how many of its leading cell slices belong to the piece before it."""
@@ -166,13 +175,36 @@ def _merge_range(model: AbstractLagrangian, saw: bool) -> None:
         model.set_feature_range(torch.stack([lo, hi]))
 
 
+def share_of(chunks: list[list[Piece]], sources: list[FieldSource]) -> list[list[Piece]]:
+    """The chunks of ``chunks`` this process reads: under a process group of ``N``, chunk ``i`` goes to rank
+    ``i mod N``, or, when the sources have a ``home``, each chunk to its sources' home; every chunk in a
+    single process."""
+    rank, size = _dist.world()
+    if size == 1:
+        return chunks
+    if any(s.home is not None for s in sources):
+        return [c for c in chunks if sources[c[0].source].home == rank]
+    return chunks[rank::size]
+
+
+def by_field(sources: list[FieldSource]) -> list[FieldSource]:
+    """``sources`` with source ``i`` at home in rank ``i mod N`` of a process group of ``N``."""
+    size = _dist.world()[1]
+    return [replace(s, home=i % size) for i, s in enumerate(sources)]
+
+
 def training_data(data: Any, boundary: BoundaryKinds | None, chunk_sites: int | None) -> TrainingData:
-    """The training data of :func:`latticedft.learn`: fields (in memory or lazy) or paths of field files."""
+    """The training data of :func:`latticedft.learn`: fields (in memory or lazy) or paths of field files;
+    under a process group with ``learn_share="fields"`` (:func:`latticedft.set_options`), field ``i`` is read
+    by rank ``i mod N`` alone."""
     if chunk_sites is not None and (
         isinstance(chunk_sites, bool) or not isinstance(chunk_sites, int) or chunk_sites < 0
     ):
         raise InputError.at("chunk_sites", f"expected an integer >= 0 or None, got {chunk_sites!r}")
-    return TrainingData(as_sources(data, boundary), chunk_sites)
+    sources = as_sources(data, boundary)
+    if _dist.is_parallel() and option("learn_share") == "fields":
+        sources = by_field(sources)
+    return TrainingData(sources, chunk_sites)
 
 
 def _owned_cells(values: torch.Tensor, f: LatticeField, stencil: Stencil, skip: int) -> torch.Tensor:

@@ -14,13 +14,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import netCDF4
 import xarray as xr
 
 from .._boundary import missing_edges
 from .._case import Case, ServeTask, load_invariant
 from .._errors import ConfigError, InputError, LatticeDFTError
 from .._lattice import as_lattice_field
-from .._layout import component_labels, field_spacing, lattice_dims
+from .._layout import component_labels, field_spacing, is_lazy, lattice_dims
 from .._models import SparseLagrangian
 from ..io.fields import read_field
 from ._charges import check_charges
@@ -116,8 +117,9 @@ def check_case(case: Case) -> CaseData:
     train: list[xr.DataArray] = []
     dims: tuple[str, ...] = ()
     spacing: tuple[float, ...] = ()
-    for path in case.train.data:
-        da = _read(path, case, comps)
+    rank, size = _process()
+    for i, path in enumerate(case.train.data):
+        da = _read(path, case, comps) if i % size == rank else _read_other(path, case, comps)
         if comps is None:
             comps = component_labels(da)
             if comps is None and train:
@@ -130,8 +132,8 @@ def check_case(case: Case) -> CaseData:
                 raise InputError(f"{path}: lattice dims {lattice_dims(da)} differ from {dims} of {first}")
             if not _same_spacing(field_spacing(da, str(path)), spacing):
                 raise InputError(f"{path}: spacing {field_spacing(da, str(path))} differs from {spacing} of {first}")
-        try:
-            as_lattice_field(da, source=str(path), boundary=case.train.boundary)
+        try:  # a field left in its file: its values were checked in blocks, its lattice on the first slices
+            as_lattice_field(_head(da) if is_lazy(da) else da, source=str(path), boundary=case.train.boundary)
         except InputError as exc:
             if exc.key == "boundary":
                 raise as_case_error(exc, "train.boundary") from None
@@ -144,11 +146,36 @@ def check_case(case: Case) -> CaseData:
     return CaseData(train=train, tasks=tasks, dims=dims, spacing=spacing, components=comps)
 
 
+def _process() -> tuple[int, int]:
+    """(rank, number of processes) of the command (``--workers`` or ``torchrun``): from the environment, as
+    the case is read before the processes join their group."""
+    return int(os.environ.get("RANK", "0") or 0), int(os.environ.get("WORLD_SIZE", "1") or 1)
+
+
+def _read_other(path: Path, case: Case, components: tuple[str, ...] | None) -> xr.DataArray:
+    """A training file that another process holds (several processes: each holds its share): opened lazily,
+    its values checked in blocks of slices, with no chunk cache, so that none of its values stays in this
+    process (a file written by :func:`latticedft.io.write_field` is one compressed chunk: a cache would keep
+    it whole, decompressed, while the file is open)."""
+    size, nelems, preemption = netCDF4.get_chunk_cache()
+    netCDF4.set_chunk_cache(0, nelems, preemption)  # for the files opened now
+    try:
+        return _read(path, case, components, lazy=True)
+    finally:
+        netCDF4.set_chunk_cache(size, nelems, preemption)
+
+
+def _head(da: xr.DataArray) -> xr.DataArray:
+    """The first three time slices of a lazily read field, in memory (what :func:`as_lattice_field` checks
+    beyond the coordinates and values, which :func:`read_field` checked)."""
+    return da.isel({da.dims[0]: slice(0, 3)}).compute()
+
+
 def _check_task(
     case: Case, t: ServeTask, dims: tuple[str, ...], spacing: tuple[float, ...], comps: tuple[str, ...] | None
 ) -> TaskData:
     # served slice by slice, or split over processes (each reads its slab): the files are read where needed
-    lazy = (t.cadence.thins or int(os.environ.get("WORLD_SIZE", "1") or 1) > 1) and len(dims) > 1
+    lazy = (t.cadence.thins or _process()[1] > 1) and len(dims) > 1
     init = _read(t.source, case, comps, lazy)
     if lattice_dims(init) != dims:
         raise InputError(

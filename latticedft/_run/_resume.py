@@ -45,11 +45,14 @@ def checkpoint_path(folder: Path, name: str) -> Path:
 
 
 class TaskCheckpoint:
-    """``.<task>.ckpt``: the ``checkpointer`` of a task's meter (see ``_serve._checkpoint.Checkpointer``)."""
+    """``.<task>.ckpt``: the ``checkpointer`` of a task's meter (see ``_serve._checkpoint.Checkpointer``).
 
-    def __init__(self, part: PartFile, meter: TaskMeter, name: str, resume: bool):
+    ``state`` is the checkpoint a resumed task goes on from, as :func:`open_part` read it (None for a task
+    served from its start): the file is read once."""
+
+    def __init__(self, part: PartFile, meter: TaskMeter, name: str, state: dict[str, Any] | None):
         self.path = checkpoint_path(part.path.parent, name)
-        self.part, self.meter, self.resume = part, meter, resume
+        self.part, self.meter, self.state = part, meter, state
 
     def save(self, state: dict[str, Any]) -> None:
         """Write the window's ``state`` with the meter's figures, atomically."""
@@ -60,9 +63,9 @@ class TaskCheckpoint:
     def load(self) -> dict[str, Any] | None:
         """The state to go on from (the meter's figures put back, the kept slices read from the part file), or
         None for a task served from its start."""
-        if not self.resume:
+        if self.state is None:
             return None
-        state = read_state(self.path)
+        state = dict(self.state)
         self.meter.restore(state.pop("meter"))
         self.part.n = int(state["nkept"])
         state["kept_values"] = self.part.rows()
@@ -71,14 +74,15 @@ class TaskCheckpoint:
 
 def open_part(
     stage: Path, name: str, variable: str, template: xr.DataArray, every: int, resume: bool
-) -> tuple[PartFile, bool]:
-    """The task's part file, and whether it goes on from a checkpoint: with ``resume`` and a checkpoint of the
-    task, the part file it left (refused in one line when unreadable); otherwise a new one."""
+) -> tuple[PartFile, dict[str, Any] | None]:
+    """The task's part file, and the checkpoint it goes on from: with ``resume`` and a checkpoint of the
+    task, the part file it left and the checkpoint read (refused in one line when unreadable); otherwise a
+    new one and None."""
     ckpt = checkpoint_path(stage, name)
     if resume and ckpt.is_file() and part_path(stage, name).is_file():
         try:
-            rows = int(read_state(ckpt)["nkept"])
-            return PartFile.reopen(stage, name, variable, template, rows), True
+            state = read_state(ckpt)
+            return PartFile.reopen(stage, name, variable, template, int(state["nkept"])), state
         except (OSError, ValueError, KeyError, RuntimeError, pickle.UnpicklingError, EOFError) as exc:
             raise InputError.at(
                 "checkpoint",
@@ -86,7 +90,7 @@ def open_part(
                 "run again without --resume",
             ) from None
     ckpt.unlink(missing_ok=True)  # the task was done when the run stopped: served again whole
-    return PartFile(stage, name, variable, template, every), False
+    return PartFile(stage, name, variable, template, every), None
 
 
 def state_bytes(state: dict[str, Any]) -> bytes:

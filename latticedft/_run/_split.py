@@ -251,14 +251,14 @@ def serve_split(
     td: TaskData,
     init: xr.DataArray,
     part: Any = None,
-    resumed: bool = False,
+    resumed: dict[str, Any] | None = None,
     resume: bool = False,
 ) -> Split:
     """Serve ``td`` over the processes (every process calls it); rank 0 gets its :class:`Split`, the others
     one without result. A task served in one process instead (by rank 0: its ``result`` None in every
     process) has the reason in its ``decomposition``. A task with an output cadence or checkpoints is
     measured on every slice by rank 0 (:class:`_Whole`), which hands its kept slices to ``part`` (the task's
-    part file) and writes the checkpoints (``_splitckpt``), going on from the last one when ``resumed``.
+    part file) and writes the checkpoints (``_splitckpt``), going on from ``resumed`` (the checkpoint read).
     ``resume``: the command's ``--resume`` (in every process; the tasks done before are skipped)."""
     why = split_refusal(model, td)
     if why is None and not served(resume):

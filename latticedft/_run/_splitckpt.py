@@ -36,10 +36,12 @@ def served(resume: bool, skip: bool = False) -> bool:
     return bool(go[0])
 
 
-def split_checkpoint(td: TaskData, errors: Any, whole: Any, part: Any, resumed: bool) -> SlabCheckpoint:
+def split_checkpoint(
+    td: TaskData, errors: Any, whole: Any, part: Any, resumed: dict[str, Any] | None
+) -> SlabCheckpoint:
     """The checkpoints of ``td`` in this process (``errors``: its slab's error meter; on rank 0 ``whole``, its
     measurements on the whole slices, and ``part``, the task's part file, whose checkpoint it goes on from
-    when ``resumed``)."""
+    ``resumed``, as read, when not None)."""
     every = int(td.task.options.checkpoint or 0)
     if world()[0] != 0 or whole is None or part is None:
         return SlabCheckpoint(every, errors.own, errors.put)

@@ -139,7 +139,8 @@ def serve_task(
             t.label,
         )
     log.info("serving %s: %d slices from %s (%s)", t.name, td.slices, t.source.name, t.options.mode)
-    part, resumed = None, False
+    part: PartFile | None = None
+    resumed: dict[str, Any] | None = None  # the checkpoint the task goes on from
     if stage is not None and (t.cadence.thins or t.options.checkpoint):
         part, resumed = open_part(stage, t.name, variable, td.init, t.cadence.every, resume)
     try:
@@ -183,11 +184,17 @@ class _Served:
 
 # -- serve ----------------------------------------------------------------------------------------------------
 def _serve(
-    model: AbstractLagrangian, td: TaskData, device: str, part: PartFile | None, resumed: bool, resume: bool = False
+    model: AbstractLagrangian,
+    td: TaskData,
+    device: str,
+    part: PartFile | None,
+    resumed: dict[str, Any] | None,
+    resume: bool = False,
 ) -> _Served:
     """Serve ``td`` with the task's options; with an output cadence (or checkpoints), a meter measures every
     slice as it is served and hands each kept slice to ``part`` (and each checkpoint to its ``checkpointer``).
-    ``resumed``: the task goes on from its checkpoint; ``resume``: the command's ``--resume``."""
+    ``resumed``: the checkpoint the task goes on from (None: from its start); ``resume``: the command's
+    ``--resume``."""
     t = td.task
     t0 = time.perf_counter()
     stopped = ""

@@ -9,6 +9,7 @@ from .._case import Case
 from .._contract import AbstractLagrangian
 from .._errors import ConfigError, InputError
 from .._learn import learn
+from .._options import set_options
 from .._select import select
 from ._data import CaseData, as_case_error
 
@@ -21,18 +22,8 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
     """Build the model of ``[model]`` and learn it from the training fields."""
     model = case.model.build(len(data.dims))
     try:
-        if case.model.select is not None:
-            model, report = _select_and_learn(case, data, model)
-        else:
-            log.info("training %s model on %d field(s) ...", case.model.kind, len(data.train))
-            report = learn(
-                model,
-                data.train,
-                boundary=case.train.boundary,
-                progress=None,
-                device=case.run.device,
-                **case.train.learn,
-            )
+        with set_options(learn_share="fields"):  # several processes: each reads the training files it holds
+            model, report = _learn(case, data, model)
     except InputError as exc:
         if exc.key is not None and exc.key in case.train.learn:
             raise as_case_error(exc, f"train.{exc.key}") from None
@@ -57,6 +48,17 @@ def train_model(case: Case, data: CaseData) -> tuple[Any, Any]:
     log.debug("training report: %s", {k: v for k, v in report.to_dict().items() if k != "history"})
     for warning in report.warnings:  # a degenerate M, a poor fit (thresholds in docs/outputs.md)
         log.warning("%s", warning)
+    return model, report
+
+
+def _learn(case: Case, data: CaseData, model: AbstractLagrangian) -> tuple[Any, Any]:
+    """The model learned (chosen first with ``[model] select``) and its report."""
+    if case.model.select is not None:
+        return _select_and_learn(case, data, model)
+    log.info("training %s model on %d field(s) ...", case.model.kind, len(data.train))
+    report = learn(
+        model, data.train, boundary=case.train.boundary, progress=None, device=case.run.device, **case.train.learn
+    )
     return model, report
 
 

@@ -70,15 +70,25 @@ def journal_for(folder: Path, command: str, case: Case, model: Path, resume: boo
 
 
 def resumed_run(args: argparse.Namespace, argv: list[str]) -> int:
-    """``latticedft run CASE --resume``: the model was learned and written by the killed run; serve on."""
+    """``latticedft run CASE --resume``: the model was learned and written by the killed run; serve on (with
+    ``--workers N`` or under ``torchrun``, each task that can be split served split, as ``serve --resume``)."""
     from .._results import hold_results, load_verified_model, staged_results
     from .._run._resume import RESUME_FILE
+    from .._run._split import check_split
+    from . import _workers
     from ._common import checked_data, open_case, results_dir, run_device, set_threads, summary_head
     from ._work import finish, serve_into
 
+    if _workers.starts_group(args):  # a bad --resume is refused before the processes start
+        case = open_case(args)
+        checkpointed_stage(results_dir(args, case), "run", case, say=False)
+    if (status := _workers.supervise(args, argv)) is not None:
+        return status
     t0 = time.perf_counter()
     case = open_case(args)
     dest = results_dir(args, case)
+    if _workers.is_helper():  # its slab of each split task, with the model of the stage rank 0 takes up
+        return _helper(case, dest)
     with hold_results(dest, keep=RESUME_FILE):
         set_threads(case)
         data = checked_data(case, dest, train=False)
@@ -86,11 +96,29 @@ def resumed_run(args: argparse.Namespace, argv: list[str]) -> int:
         with staged_results(dest, adopt=stage, keep=RESUME_FILE) as folder:
             case = run_device(case)
             model = load_verified_model(folder)
+            if check_split(data.tasks, model):  # some task is split: the group serves it
+                _workers.join("cpu", "serving")
             journal = journal_for(folder, "run", case, folder / "model.pt", True)
             assert journal is not None
             tasks = serve_into(folder, case, data, model, argv, journal.data["train"], journal=journal, resume=True)
             summary = summary_head(case, argv, "run")
             summary.update(train=journal.data["train"], tasks=tasks, wall_time=time.perf_counter() - t0)
+            _workers.record_processes(summary)
             status = finish(folder, summary, strict=case.run.strict)
+        _workers.leave()
     log.info("results in %s (%.1f s)", dest, time.perf_counter() - t0)
     return status
+
+
+def _helper(case: Case, dest: Path) -> int:
+    """A rank other than 0 of ``run --resume``: serve its slab of each split task with the model of the
+    checkpointed run's stage. Where that stage cannot be taken up, rank 0 says why (or, when rank 0 has
+    already published it, no task was split and there is nothing to serve)."""
+    from . import _workers
+    from ._common import OK
+
+    try:
+        stage = checkpointed_stage(dest, "run", case, say=False)
+    except InputError:
+        return OK
+    return _workers.serve_only(case, stage, resume=True)

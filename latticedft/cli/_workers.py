@@ -263,8 +263,9 @@ def serve_share(model: Any, data: Any, resume: bool = False) -> None:
 
 
 def serve_only(case: Case, dest: Any, resume: bool = False) -> int:
-    """A helper rank's whole work in ``serve``: read the case and the model, serve its slab of every task that
-    is split (``resume``: of the run ``--resume`` continues), write nothing."""
+    """A helper rank's whole work in ``serve`` (and ``run --resume``): read the case and the model of the
+    folder ``dest``, serve its slab of every task that is split (``resume``: of the run ``--resume``
+    continues), write nothing."""
     from .._results import load_verified_model
     from .._run import check_case
     from ._common import set_threads

@@ -8,7 +8,6 @@ import time
 
 from . import _resume, _workers
 from ._common import (
-    OK,
     add_case_arguments,
     add_device_argument,
     checked_data,
@@ -32,8 +31,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace, argv: list[str]) -> int:
-    if args.resume:  # the model is in the killed run's stage: no training, rank 0 alone serves on
-        return OK if _workers.is_helper() else _resume.resumed_run(args, argv)
+    if args.resume:  # the model is in the killed run's stage: no training; split tasks are served split
+        return _resume.resumed_run(args, argv)
     if (status := _workers.supervise(args, argv)) is not None:
         return status
     from .._results import hold_results, staged_results
