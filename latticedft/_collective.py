@@ -8,17 +8,37 @@ device and dtype.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import torch
 import torch.distributed as dist
 
-__all__ = ["group_device", "is_parallel", "merged_max", "merged_min", "reduce", "world"]
+__all__ = ["alone", "group_device", "is_parallel", "merged_max", "merged_min", "reduce", "world"]
+
+#: Inside :func:`alone`: this process works by itself although it belongs to a group.
+_ALONE = [False]
 
 
 def world() -> tuple[int, int]:
-    """(rank, number of processes) of the initialised process group; ``(0, 1)`` without one."""
-    if dist.is_available() and dist.is_initialized():
+    """(rank, number of processes) of the initialised process group; ``(0, 1)`` without one (or inside
+    :func:`alone`)."""
+    if not _ALONE[0] and dist.is_available() and dist.is_initialized():
         return dist.get_rank(), dist.get_world_size()
     return 0, 1
+
+
+@contextmanager
+def alone() -> Iterator[None]:
+    """Within, this process works as if it were the only one (:func:`world` is ``(0, 1)``): no collective is
+    entered, so that work one process does by itself inside a group (rank 0's calibration after training)
+    does not wait on processes that are not taking part."""
+    before = _ALONE[0]
+    _ALONE[0] = True
+    try:
+        yield
+    finally:
+        _ALONE[0] = before
 
 
 def is_parallel() -> bool:

@@ -14,6 +14,7 @@ import xarray as xr
 
 from .._calibrate import RUNNER_UP_WITHIN, Calibration, calibrate, too_short
 from .._case import Case
+from .._collective import alone
 from .._contract import AbstractLagrangian
 from .._errors import LatticeDFTError
 from .._models import EnsembleLagrangian
@@ -45,16 +46,17 @@ def case_calibration(
     short = too_short(data.train)
     if short is not None:
         return None, [short], None
-    fresh, kwargs, runner_up = _candidates(case, data, model, report)
-    log.info("calibrating the error bar by held-out serving ...")
-    try:
-        ens = model if isinstance(model, EnsembleLagrangian) else None
-        cal, warnings, trial = calibrate(
-            fresh, data.train, boundary=case.train.boundary, runner_up=runner_up, ensemble_model=ens, **kwargs
-        )
-    except LatticeDFTError as exc:
-        text = " ".join(str(exc).split())[:160]
-        return None, [f"calibration: failed ({text}): served without a calibrated error bar"], None
+    with alone():  # rank 0's alone under --workers: the other processes take no part in it
+        fresh, kwargs, runner_up = _candidates(case, data, model, report)
+        log.info("calibrating the error bar by held-out serving ...")
+        try:
+            ens = model if isinstance(model, EnsembleLagrangian) else None
+            cal, warnings, trial = calibrate(
+                fresh, data.train, boundary=case.train.boundary, runner_up=runner_up, ensemble_model=ens, **kwargs
+            )
+        except LatticeDFTError as exc:
+            text = " ".join(str(exc).split())[:160]
+            return None, [f"calibration: failed ({text}): served without a calibrated error bar"], None
     log.info(
         "calibration: err(k) = A * %.3g * k^%.2f on %d held-out slices (2 std covers %.0f %% of them; %.1f s)",
         cal.scale,
