@@ -6,7 +6,7 @@
 Rows: every repository case (``cases/*``, each its own ``case.toml`` model and data; the three without committed
 data made by their ``make_data.py`` in a temporary copy), clean and with Gaussian noise of ``1e-3`` of each field's
 amplitude (training fields and tasks' initial data; ``noise = "auto"``, served from denoised starts; errors
-against the clean reference), then the oscillators and fields of the issue that asked for calibration: the
+against the clean reference), then the oscillators and fields of the calibration targets' table: the
 double-well Duffing oscillator (test launches in one well and over both), a phi^4 string and a nonlinear
 Klein-Gordon string (leapfrog data, polynomial (2, 4)), and bound Kepler launches (the radial MLP learned on
 Venus, Earth, Mars). Per row: the model is chosen by ``select`` (``"auto"`` candidates; not for Kepler: minutes
@@ -111,7 +111,7 @@ def _string(force: Callable[[np.ndarray], np.ndarray], nt: int) -> Callable[[lis
 
 
 def _extra() -> list[Setup]:
-    """The oscillators and fields of the issue's table."""
+    """The oscillators and fields of the calibration targets' table."""
     from .noise import SYSTEMS
 
     out = []

@@ -10,7 +10,7 @@ slice-Newton), of ``N^3`` sites, served from two slices for ``SLICES`` slices wi
 each process a fresh Python). Per run: the largest difference from the one-process field (relative), the
 peak resident memory of each process (``VmHWM`` reset before serving) and its growth over the memory before
 serving, and the wall time, with the load average (``os.getloadavg()``) before and after each run. Default
-``N = 48, SLICES = 60, EVERY = 20`` (Klein-Gordon); ``--full`` is the issue's size: sine-Gordon at
+``N = 48, SLICES = 60, EVERY = 20`` (Klein-Gordon); ``--full`` is the target size: sine-Gordon at
 ``128^3`` sites, 200 slices, ``every = 50`` (``--model sg --point 128 200 50``: about 2 GiB and, on one
 core, tens of minutes a run); ``--quick``: 12^3 sites, 12 slices, 1 and 2 processes. ``--grid`` adds a
 row of 4 processes in pencils, a ``2 x 2`` grid over ``(z, y)``, against the row of 4 slabs along ``z``.
@@ -39,8 +39,8 @@ TITLE = "Serving split into slabs: 3+1D periodic Klein-Gordon, 1 / 2 / 4 process
 
 FULL = (48, 60, 20)
 QUICK = (12, 12, 4)
-#: the issue's size: sine-Gordon at 128^3 sites, 200 slices, every = 50
-ISSUE = (128, 200, 50)
+#: the target size: sine-Gordon at 128^3 sites, 200 slices, every = 50
+TARGET = (128, 200, 50)
 PROCESSES = (1, 2, 4)
 
 
@@ -244,10 +244,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--point", nargs=3, type=int, metavar=("N", "SLICES", "EVERY"), help="e.g. 128 200 50")
     parser.add_argument("--model", choices=("kg", "sg"), default="kg", help="Klein-Gordon or sine-Gordon")
-    parser.add_argument("--full", action="store_true", help="the issue's size: sine-Gordon, 128^3, 200, every 50")
+    parser.add_argument("--full", action="store_true", help="the target size: sine-Gordon, 128^3, 200, every 50")
     parser.add_argument("--grid", action="store_true", help="a row of 4 processes in 2 x 2 pencils")
     args = parser.parse_args(argv)
-    point, model = (ISSUE, "sg") if args.full else (args.point and tuple(args.point), args.model)
+    point, model = (TARGET, "sg") if args.full else (args.point and tuple(args.point), args.model)
     if point or model != "kg" or args.grid:
         return run_alone(lambda cfg: run(cfg, point, model, args.grid), __doc__, ["--threads", str(args.threads)])
     return run_alone(run, __doc__, argv)
