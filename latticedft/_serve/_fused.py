@@ -91,17 +91,8 @@ class FusedSlices:
             values[i, :, 0],
             values[i + 1, :, 0],
             old,
-            self.site_of,
-            self.cell_at,
-            self.plain,
-            self.delta,
-            self.rows,
-            self.interior,
-            vol,
-            rtol,
-            cache["dmax"],
-            SINGULAR_RTOL * cache["mscale"] * vol,
-            max_newton,
+            *self._maps(),
+            *self._tolerances(vol, rtol, max_newton, cache),
             self.res,
             self.its,
         )
@@ -110,6 +101,16 @@ class FusedSlices:
         if lo < 0:
             return None
         return int(hi), float(worst)
+
+    def _maps(self) -> tuple[np.ndarray, ...]:
+        """The lattice's maps, as the compiled slice steps take them."""
+        return self.site_of, self.cell_at, self.plain, self.delta, self.rows, self.interior
+
+    @staticmethod
+    def _tolerances(vol: float, rtol: float, max_newton: int, cache: dict) -> tuple[float, float, float, float, int]:
+        """``vol, rtol``, the DEL's largest second derivative, the singular bound and the iteration limit, as the
+        compiled slice steps take them."""
+        return vol, rtol, cache["dmax"], SINGULAR_RTOL * cache["mscale"] * vol, max_newton
 
     def solve_many(
         self, flat: torch.Tensor, i: int, stop: int, vol: float, rtol: float, max_newton: int, cache: dict
@@ -126,17 +127,8 @@ class FusedSlices:
             i,
             stop,
             self.none,
-            self.site_of,
-            self.cell_at,
-            self.plain,
-            self.delta,
-            self.rows,
-            self.interior,
-            vol,
-            rtol,
-            cache["dmax"],
-            SINGULAR_RTOL * cache["mscale"] * vol,
-            max_newton,
+            *self._maps(),
+            *self._tolerances(vol, rtol, max_newton, cache),
             self.res,
             self.its,
             most,
