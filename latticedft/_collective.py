@@ -8,14 +8,13 @@ device and dtype.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 
 import torch
 import torch.distributed as dist
 
-__all__ = ["alone", "env_world", "group_device", "is_parallel", "merged_max", "merged_min", "reduce", "world"]
+__all__ = ["alone", "group_device", "is_parallel", "merged_max", "merged_min", "reduce", "world"]
 
 #: Inside :func:`alone`: this process works by itself although it belongs to a group.
 _ALONE = [False]
@@ -40,12 +39,6 @@ def alone() -> Iterator[None]:
         yield
     finally:
         _ALONE[0] = before
-
-
-def env_world() -> tuple[int, int]:
-    """(``RANK``, ``WORLD_SIZE``) as the environment describes the command's processes (``torchrun``'s, or
-    ``--workers``'), before or without a process group; ``(0, 1)`` when it describes none."""
-    return int(os.environ.get("RANK", "0") or 0), int(os.environ.get("WORLD_SIZE", "1") or 1)
 
 
 def is_parallel() -> bool:

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from .._collective import env_world, group_device, reduce
+from .._collective import group_device, reduce
 from .._collective import is_parallel as is_parallel
 from .._collective import world as world
 from .._device import backend_for_device, resolve_device
@@ -100,7 +100,7 @@ def init_from_env(timeout_s: float = 1800.0, device: str | None = None) -> bool:
     """
     if dist.is_available() and dist.is_initialized():
         return is_parallel()
-    size = env_world()[1]
+    size = int(os.environ.get("WORLD_SIZE", "1") or 1)
     if size <= 1:
         return False
     local = int(os.environ.get("LOCAL_WORLD_SIZE", str(size)) or size)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +19,6 @@ import xarray as xr
 
 from .._boundary import missing_edges
 from .._case import Case, ServeTask, load_invariant
-from .._collective import env_world
 from .._errors import ConfigError, InputError, LatticeDFTError
 from .._lattice import as_lattice_field
 from .._layout import component_labels, field_spacing, is_lazy, lattice_dims
@@ -117,7 +117,7 @@ def check_case(case: Case) -> CaseData:
     train: list[xr.DataArray] = []
     dims: tuple[str, ...] = ()
     spacing: tuple[float, ...] = ()
-    rank, size = env_world()  # the case is read before the processes join their group
+    rank, size = _process()
     for i, path in enumerate(case.train.data):
         da = _read(path, case, comps) if i % size == rank else _read_other(path, case, comps)
         if comps is None:
@@ -146,6 +146,12 @@ def check_case(case: Case) -> CaseData:
     return CaseData(train=train, tasks=tasks, dims=dims, spacing=spacing, components=comps)
 
 
+def _process() -> tuple[int, int]:
+    """(rank, number of processes) of the command (``--workers`` or ``torchrun``): from the environment, as
+    the case is read before the processes join their group."""
+    return int(os.environ.get("RANK", "0") or 0), int(os.environ.get("WORLD_SIZE", "1") or 1)
+
+
 def _read_other(path: Path, case: Case, components: tuple[str, ...] | None) -> xr.DataArray:
     """A training file that another process holds (several processes: each holds its share): opened lazily,
     its values checked in blocks of slices, with no chunk cache, so that none of its values stays in this
@@ -169,7 +175,7 @@ def _check_task(
     case: Case, t: ServeTask, dims: tuple[str, ...], spacing: tuple[float, ...], comps: tuple[str, ...] | None
 ) -> TaskData:
     # served slice by slice, or split over processes (each reads its slab): the files are read where needed
-    lazy = (t.cadence.thins or env_world()[1] > 1) and len(dims) > 1
+    lazy = (t.cadence.thins or _process()[1] > 1) and len(dims) > 1
     init = _read(t.source, case, comps, lazy)
     if lattice_dims(init) != dims:
         raise InputError(

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -26,7 +27,7 @@ import torch
 import torch.distributed as dist
 import xarray as xr
 
-from .._collective import env_world, is_parallel, reduce, world
+from .._collective import is_parallel, reduce, world
 from .._errors import InputError, ServeError
 from .._lattice import as_lattice_field
 from .._layout import lattice_dims
@@ -83,7 +84,7 @@ def check_split(tasks: list[TaskData], model: AbstractLagrangian | None = None) 
     axis, or (with ``model``) a halo wider than a slab, in one line naming ``--workers``; ``solver = "lu"``
     (not split), in one line naming the task's ``solver`` and the alternative. True when some task may be
     split (its settings allow it) over several processes."""
-    size = world()[1] if is_parallel() else env_world()[1]
+    size = world()[1] if is_parallel() else _env_size()
     split = [td for td in tasks if split_refusal(model, td) is None]
     if size <= 1 or not split:
         return False
@@ -97,6 +98,11 @@ def check_split(tasks: list[TaskData], model: AbstractLagrangian | None = None) 
         except InputError as exc:
             raise InputError.at("--workers", f"task {td.task.name!r}: {exc.problem}") from None
     return True
+
+
+def _env_size() -> int:
+    """The number of processes the environment describes (``torchrun``'s, or ``--workers``')."""
+    return int(os.environ.get("WORLD_SIZE", "1") or 1)
 
 
 @dataclass

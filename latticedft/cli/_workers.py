@@ -25,7 +25,6 @@ import time
 import warnings
 from typing import IO, TYPE_CHECKING, Any
 
-from .._collective import env_world
 from .._errors import InputError
 from ._common import BAD_INPUT, OK
 
@@ -61,9 +60,14 @@ def add_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _rank_env() -> tuple[int, int]:
+    """(RANK, WORLD_SIZE) from the environment (torchrun's, or this launcher's)."""
+    return int(os.environ.get("RANK", "0") or 0), int(os.environ.get("WORLD_SIZE", "1") or 1)
+
+
 def is_helper() -> bool:
     """True in a rank other than 0 of a process group: it trains and writes nothing."""
-    rank, size = env_world()
+    rank, size = _rank_env()
     return size > 1 and rank > 0
 
 
@@ -87,7 +91,7 @@ def _free_port() -> int:
 
 def starts_group(args: argparse.Namespace) -> bool:
     """True when :func:`supervise` starts the processes (``--workers N > 1`` outside a process group)."""
-    return int(getattr(args, "workers", 1)) > 1 and env_world()[1] == 1
+    return int(getattr(args, "workers", 1)) > 1 and _rank_env()[1] == 1
 
 
 def supervise(args: argparse.Namespace, argv: list[str]) -> int | None:
@@ -96,7 +100,7 @@ def supervise(args: argparse.Namespace, argv: list[str]) -> int | None:
     n = getattr(args, "workers", 1)
     if n < 1:
         raise InputError(f"--workers: expected a positive integer, got {n}")
-    if n == 1 or env_world()[1] > 1:
+    if n == 1 or _rank_env()[1] > 1:
         return None
     port = _free_port()
     base = dict(os.environ, MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), WORLD_SIZE=str(n))
@@ -173,8 +177,8 @@ def join(device: str = "cpu", what: str = "training") -> None:
 
 def record_processes(summary: dict[str, Any]) -> None:
     """``processes`` in ``summary.json``: the number of processes of the command (left out for one)."""
-    if env_world()[1] > 1:
-        summary["processes"] = env_world()[1]
+    if _rank_env()[1] > 1:
+        summary["processes"] = _rank_env()[1]
 
 
 def _dist_backend() -> str:
