@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 import xarray as xr
+from xarray.indexes import PandasIndex
 
 from ._boundary import BoundaryKind, BoundaryKinds, axis_kinds, lattice_boundary
 from ._errors import InputError
@@ -24,6 +25,7 @@ from ._layout import (
     component_labels,
     coordinate_spacing,
     field_periodic,
+    is_lazy,
     validate_field,
 )
 from ._stencil import Stencil
@@ -221,11 +223,60 @@ def as_lattice_fields(
         f0 = seen.get(key) if key is not None else None
         f = _like_checked(data, f0) if f0 is not None and isinstance(data, xr.DataArray) else None
         if f is None:
+            f = _checked_before(data, key, boundary, min_slices)
+        if f is None:
             f = as_lattice_field(data, source=src, boundary=boundary, min_slices=min_slices)
             if key is not None:
                 seen[key] = f
+                _remember(data, key, boundary, min_slices, f)
         out.append(f)
     return out
+
+
+#: The lattice descriptions (values left out) of the last layouts :func:`as_lattice_fields` checked, by
+#: :func:`_checked_key`: a field laid out alike in a later call has only its values checked (serving the
+#: same lattice again and again checks its coordinates once). At most :data:`CHECKED_KEPT` layouts.
+_CHECKED: dict[tuple[Any, ...], LatticeField] = {}
+CHECKED_KEPT = 4
+
+
+def _checked_key(
+    data: Any, key: tuple[Any, ...] | None, boundary: BoundaryKinds | None, min_slices: int
+) -> tuple[Any, ...] | None:
+    """What :func:`as_lattice_field` reads of ``data`` and its arguments apart from the values: the layout
+    (:func:`_layout_key`), every coordinate attribute the checks read, ``boundary`` (by its ``repr``) and
+    ``min_slices``; None for a field not held in memory or not keyed."""
+    if key is None or type(data) is not xr.DataArray or is_lazy(data):
+        return None
+    read = ("periodic", "axis", "standard_name")
+    attrs = tuple((str(n), *(repr(v.attrs.get(a)) for a in read)) for n, v in data.coords.variables.items())
+    return key, attrs, repr(boundary), min_slices
+
+
+def _checked_before(
+    data: Any, key: tuple[Any, ...] | None, boundary: BoundaryKinds | None, min_slices: int
+) -> LatticeField | None:
+    """``as_lattice_field(data, ...)`` where a field laid out as ``data`` was checked by an earlier call (its
+    coordinates copied), else None."""
+    full = _checked_key(data, key, boundary, min_slices)
+    f0 = _CHECKED.get(full) if full is not None else None
+    f = _like_checked(data, f0) if f0 is not None else None
+    if f is not None:
+        f.coords = {d: c.copy() for d, c in f.coords.items()}
+    return f
+
+
+def _remember(
+    data: Any, key: tuple[Any, ...], boundary: BoundaryKinds | None, min_slices: int, f: LatticeField
+) -> None:
+    """Keep ``f``'s lattice description (without its values) for :func:`_checked_before`."""
+    full = _checked_key(data, key, boundary, min_slices)
+    if full is None:
+        return
+    while len(_CHECKED) >= CHECKED_KEPT:
+        del _CHECKED[next(iter(_CHECKED))]
+    coords = {d: c.copy() for d, c in f.coords.items()}
+    _CHECKED[full] = replace(f, values=torch.empty(0), coords=coords, coord_attrs={}, attrs={})
 
 
 #: A DataArray's dims, name, coordinate variables and indexes (:func:`dataarray_parts`).
@@ -260,29 +311,46 @@ def like_dataarray(
 
 
 def to_dataarrays(fields: Sequence[LatticeField]) -> list[xr.DataArray]:
-    """:meth:`LatticeField.to_dataarray` of every field: the first of each lattice (dims, coordinates,
-    components, name) is built by it, the others around its coordinates (:func:`like_dataarray`)."""
-    templates: dict[tuple[Any, ...], DataArrayParts] = {}
+    """:meth:`LatticeField.to_dataarray` of every field, built around the spatial coordinates of a template
+    of its lattice (dims, spatial coordinates, components, name: :func:`like_dataarray`) and its own time
+    coordinate: the template built once by :meth:`LatticeField.to_dataarray` and kept for later calls (at
+    most :data:`TEMPLATES_KEPT` lattices; serving one lattice again builds its spatial coordinates and their
+    indexes once). The same DataArrays, identical."""
     out = []
     for f in fields:
-        nt = int(f.values.shape[0])
-        coords = []
-        for d in f.dims:
-            c = np.asarray(f.coords[d], dtype=np.float64)
-            if d == f.dims[0] and len(c) != nt:
-                c = c[0] + f.spacing[0] * np.arange(nt, dtype=np.float64)
-            coords.append(c.tobytes())
-        key = (f.dims, f.components, f.name, tuple(f.values.shape), tuple(coords))
-        parts = templates.get(key)
+        spatial = tuple(np.asarray(f.coords[d], dtype=np.float64).tobytes() for d in f.dims[1:])
+        key: tuple[Any, ...] = (f.dims, f.components, f.name, tuple(f.values.shape[1:]), spatial)
+        parts = _TEMPLATES.get(key)
         if parts is None:
-            template = f.to_dataarray()
-            templates[key] = dataarray_parts(template)
-            out.append(template)
-            continue
+            parts = dataarray_parts(f.to_dataarray())  # kept apart: no caller holds its variables
+            while len(_TEMPLATES) >= TEMPLATES_KEPT:
+                del _TEMPLATES[next(iter(_TEMPLATES))]
+            _TEMPLATES[key] = parts
         v = f.values.detach().cpu().numpy()
         v = np.ascontiguousarray(v[..., 0] if f.components is None else v)
+        parts = _with_time(parts, f, int(v.shape[0]))
         out.append(like_dataarray(parts, v, dict(f.attrs), {d: f.coord_attrs.get(d, {}) for d in f.dims}))
     return out
+
+
+def _with_time(parts: DataArrayParts, f: LatticeField, nt: int) -> DataArrayParts:
+    """``parts`` with the time coordinate of ``f``'s ``nt`` slices and its index, as
+    :meth:`LatticeField.to_dataarray` makes them (its attributes are set by :func:`like_dataarray`)."""
+    dims, name, variables, indexes = parts
+    tdim = f.dims[0]
+    c = np.asarray(f.coords[tdim], dtype=np.float64)
+    if len(c) != nt:
+        c = c[0] + f.spacing[0] * np.arange(nt, dtype=np.float64)
+    var = xr.Variable((tdim,), c)
+    index = PandasIndex.from_variables({tdim: var}, options={})
+    time = index.create_variables({tdim: var})[tdim]
+    variables = {n: time if n == tdim else v for n, v in variables.items()}
+    return dims, name, variables, {n: index if n == tdim else i for n, i in indexes.items()}
+
+
+#: The parts (:func:`dataarray_parts`) of the DataArrays :func:`to_dataarrays` built last, by lattice.
+_TEMPLATES: dict[tuple[Any, ...], DataArrayParts] = {}
+TEMPLATES_KEPT = 4
 
 
 def gather_cells(psi: torch.Tensor, stencil: Stencil, boundary: AxisBoundaries, batch: int = 0) -> torch.Tensor:

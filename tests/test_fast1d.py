@@ -322,6 +322,40 @@ def test_a_bad_member_of_a_batch_is_named_as_one_by_one(oscillator):
         ldft.serve(model, [init, short], progress=False)
 
 
+def test_a_layout_checked_before_has_only_its_values_checked_later() -> None:
+    """A field laid out as one a call checked before is not checked again (only its values), the same
+    lattice field as the full check; a changed attribute the checks read, a value that is not a number or
+    another ``min_slices`` is checked in full."""
+    from latticedft import _lattice
+
+    _lattice._CHECKED.clear()
+    a = series([0.2, 0.1, 0.0], 0.1)
+    first = as_lattice_fields([a], ["init"], min_slices=2)[0]
+    assert len(_lattice._CHECKED) == 1
+    b = a.copy()
+    b.values[:] = [0.3, 0.2, 0.1]
+    again = as_lattice_fields([b.assign_attrs(source="b")], ["init"], min_slices=2)[0]
+    full = as_lattice_field(b.assign_attrs(source="b"), source="init", min_slices=2)
+    assert torch.equal(again.values, full.values) and again.attrs == full.attrs == {"source": "b"}
+    assert (again.spacing, again.boundary, again.dims, again.coord_attrs) == (
+        full.spacing,
+        full.boundary,
+        full.dims,
+        full.coord_attrs,
+    )
+    assert again.coords["t"] is not first.coords["t"]
+    np.testing.assert_array_equal(again.coords["t"], full.coords["t"])
+    b.values[1] = np.nan
+    with pytest.raises(InputError, match=r"^init: field 'psi' holds 1 NaN/inf value"):
+        as_lattice_fields([b], ["init"], min_slices=2)
+    with pytest.raises(InputError, match=r"at least 4 are needed"):
+        as_lattice_fields([a], ["init"], min_slices=4)
+    c = a.copy()
+    c["t"].attrs["periodic"] = "true"
+    with pytest.raises(InputError, match=r"cannot be periodic"):
+        as_lattice_fields([c], ["init"], min_slices=2)
+
+
 def test_lattice_fields_of_a_batch_equal_those_one_by_one(oscillator):
     _, data = oscillator
     inits = _mixed_batch(data)

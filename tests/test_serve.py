@@ -200,3 +200,35 @@ def test_constant_mixed_hessian_assembles_the_1d_jacobian_once(monkeypatch):
     assert hessians == 1 and sum(1 for pairs in calls if pairs) > 58
     for a, b in zip(fast, slow):
         np.testing.assert_allclose(a.field.values, b.field.values, rtol=0, atol=1e-12)
+
+
+def test_an_analytic_model_served_again_on_its_lattice_is_not_bound_again() -> None:
+    """Serving an analytic model on the lattice it is bound to leaves it as it is (its projection kept); a
+    model turned to single precision, or another spacing, is bound again."""
+    model = ldft.AnalyticLagrangian(lambda c, h: 0.5 * ((c[..., 1, 0] - c[..., 0, 0]) / h[0]) ** 2)
+    model.bind(2, 1, (0.1, 0.2))
+    proj = model.proj
+    model.bind(2, 1, (0.1, 0.2))
+    assert model.proj is proj
+    model.float()
+    model.bind(2, 1, (0.1, 0.2))
+    assert model.proj.dtype == torch.float64
+    model.bind(2, 1, (0.1, 0.25))
+    assert model.spacing == (0.1, 0.25)
+
+
+def test_served_fields_of_one_lattice_are_built_as_xarray_builds_them() -> None:
+    """The served DataArray, built around the kept coordinates of its lattice, is identical to the one
+    xarray's constructor builds, for a second call and another number of slices."""
+    import xarray as xr
+
+    from latticedft._lattice import as_lattice_field
+
+    from helpers import sine_gordon
+
+    model = sine_gordon(closed=False)
+    init = wave_field(nx=9, nt=6)
+    for slices in (4, 6, 4):
+        res = ldft.serve(model, init, slices=slices, progress=False)
+        f = as_lattice_field(res.field, min_slices=2)
+        xr.testing.assert_identical(res.field, f.to_dataarray())

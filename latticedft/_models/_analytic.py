@@ -63,10 +63,23 @@ class AnalyticLagrangian(AbstractLagrangian):
         self._given_stencil = stencil
 
     def bind(self, n: int, m: int, spacing: tuple[float, ...], components: tuple[str, ...] | None = None) -> None:
-        """Analytic models have no parameters: they rebind to any lattice they are served on."""
+        """Analytic models have no parameters: they rebind to any lattice they are served on (a lattice they are
+        bound to already, in double precision, leaves them as they are: serving it again binds nothing)."""
+        if self._bound_to(n, m, spacing, components):
+            return
         self._stencil = self._given_stencil
         self._n = self._m = self._spacing = None
         super().bind(n, m, spacing, components)
+
+    def _bound_to(self, n: int, m: int, spacing: tuple[float, ...], components: tuple[str, ...] | None) -> bool:
+        """Whether the model is bound to this lattice with its own stencil, every tensor in double precision
+        (what :meth:`bind` would leave)."""
+        if not self.bound or (self._given_stencil is not None and self._stencil is not self._given_stencil):
+            return False
+        lattice = (self._n, self._m, self._spacing, self.components)
+        if lattice != (n, m, tuple(float(h) for h in spacing), components):
+            return False
+        return all(t.dtype == torch.float64 for t in (*self.parameters(), *self.buffers()))
 
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
         self._require_bound()

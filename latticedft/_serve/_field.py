@@ -15,7 +15,7 @@ from .._action import CellDerivatives
 from .._boundary import axis_kinds, missing_edges
 from .._device import resolve_device
 from .._errors import InputError, ServeError
-from .._lattice import LatticeField, gather_cells
+from .._lattice import LatticeField, gather_cells, to_dataarrays
 from .._models import AbstractLagrangian
 from . import _ondevice
 from ._affine import _affine_prefix
@@ -369,7 +369,7 @@ class _FieldRun:
         folded = self.cache.get("folded")
         ext, warnings = assess(self.model, field, folded.excess if folded is not None else None)
         return ServeResult(
-            field=field.to_dataarray(),
+            field=to_dataarrays([field])[0],  # its coordinates built once per lattice
             complete=complete,
             reason=reason,
             slices=slices,
