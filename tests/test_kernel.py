@@ -464,3 +464,23 @@ def test_a_class_kernel_equals_the_generic_folded_kernel() -> None:
     assert kernel is not None
     kernel(lo, hi, site_of, upper, w, shift, expo, gc, got)
     assert np.allclose(got, want, rtol=1e-13, atol=1e-13 * float(np.abs(want).max()))
+
+
+def test_a_windowed_run_solves_each_window_in_runs_of_slices(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Served through small windows (``every = 3``, windows of four slices), every slice after the first Newton slice is
+    solved by runs of slices, each window's first position too (its older slice the one before the window):
+    the whole field's values, iterations and residual, to the bit."""
+    from latticedft._serve import _fused
+
+    single = []
+    solve = _fused.FusedSlices.solve
+    monkeypatch.setattr(_fused.FusedSlices, "solve", lambda self, *a: single.append(1) or solve(self, *a))
+    field = _field(2, 6)
+    with ldft.set_options(compiled_kernels=True):
+        whole = ldft.serve(sine_gordon(), field, slices=40, progress=False)
+        with ldft.set_options(serve_window_bytes=1):
+            windowed = ldft.serve(sine_gordon(), field, slices=40, progress=False, every=3)
+    assert len(single) == 2  # the first Newton slice of each run chooses the solver
+    kept = np.asarray(whole.field.values)[np.asarray(windowed.field["slice"].values)]
+    np.testing.assert_array_equal(np.asarray(windowed.field.values), kept)
+    assert (windowed.newton_iterations, windowed.max_residual) == (whole.newton_iterations, whole.max_residual)

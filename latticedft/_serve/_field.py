@@ -151,17 +151,18 @@ def _sitewise(run: Any, i: int, older: Any, rtol: float, max_newton: int) -> tup
     return None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, cache)
 
 
-def solve_run(run: Any, i: int, stop: int, rtol: float, max_newton: int) -> int:
+def solve_run(run: Any, i: int, stop: int, rtol: float, max_newton: int, before: torch.Tensor | None = None) -> int:
     """Slices ``i .. stop - 1`` of ``run`` (a whole-field or a windowed run: ``run.flat`` its slices, slice
-    ``j - 2`` the older one of slice ``j`` from ``j = 2`` on) solved in one call of the compiled slice Newton
-    once it serves the run (as :func:`_sitewise` would call it slice by slice; at most :data:`RUN_SITES`
-    unknowns a call, so that the progress bar moves), tallied as :func:`solve_and_tally` tallies them: how
-    many (``0``: none; a slice a site could not finish is left to :func:`solve_and_tally`)."""
+    ``j - 2`` the older one of slice ``j`` from ``j = 2`` on, ``before`` that of slice 1 where given) solved in
+    one call of the compiled slice Newton once it serves the run (as :func:`_sitewise` would call it slice by
+    slice; at most :data:`RUN_SITES` unknowns a call, so that the progress bar moves), tallied as
+    :func:`solve_and_tally` tallies them: how many (``0``: none; a slice a site could not finish is left to
+    :func:`solve_and_tally`)."""
     fused = run.cache.get("fused")
     if fused is None or not fused.rows.size or run.mode != "newton" or on_device(run):
         return 0
     stop = min(stop, i + max(1, RUN_SITES // fused.rows.size))
-    j, its, res = fused.solve_many(run.flat, i, stop, run.vol, rtol, max_newton, run.cache)
+    j, its, res = fused.solve_many(run.flat, i, stop, run.vol, rtol, max_newton, run.cache, before)
     if its:
         run.total_it += sum(its)
         run.max_it = max(run.max_it, *its)

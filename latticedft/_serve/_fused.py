@@ -113,20 +113,30 @@ class FusedSlices:
         return vol, rtol, cache["dmax"], SINGULAR_RTOL * cache["mscale"] * vol, max_newton
 
     def solve_many(
-        self, flat: torch.Tensor, i: int, stop: int, vol: float, rtol: float, max_newton: int, cache: dict
+        self,
+        flat: torch.Tensor,
+        i: int,
+        stop: int,
+        vol: float,
+        rtol: float,
+        max_newton: int,
+        cache: dict,
+        before: torch.Tensor | None = None,
     ) -> tuple[int, list[int], list[float]]:
         """Solve the equations of slices ``i .. stop - 1`` of ``flat`` one after the other in one call, each as
-        :meth:`solve` solves it (the older slice from slice 2 on): ``(j, evaluations, residuals)``, the slice
-        it stopped before (``stop`` when all were solved; a slice a site could not finish is left to
-        slice-Newton) and, per slice solved, its evaluations and residual. Only for a slice with unknowns."""
+        :meth:`solve` solves it (the older slice from slice 2 on; for slice 1, ``before`` where given: the
+        slice before ``flat``'s first in a window): ``(j, evaluations, residuals)``, the slice it stopped
+        before (``stop`` when all were solved; a slice a site could not finish is left to slice-Newton) and,
+        per slice solved, its evaluations and residual. Only for a slice with unknowns."""
         values = flat.numpy().reshape(flat.shape[0], -1)  # (slices, sites): a view, the field being scalar
+        older = before.numpy().reshape(-1) if before is not None else self.none
         most = np.zeros(stop, dtype=np.int64)
         worst = np.zeros(stop)
         j = self.compiled.slice_steps(self.rows.size)(
             values,
             i,
             stop,
-            self.none,
+            older,
             *self._maps(),
             *self._tolerances(vol, rtol, max_newton, cache),
             self.res,

@@ -363,7 +363,8 @@ def _serve_stream(
                 g_prev = CellDerivatives(model, run.cells_at(start - 1)).grad
         p = start
         while p <= n_new:
-            solved = solve_run(run, p, n_new + 1, rtol, max_newton) if p >= 2 else 0  # p = 1: its older slice
+            before = run.before if p == 1 and run.base else None  # position 1's older slice: before the window
+            solved = solve_run(run, p, n_new + 1, rtol, max_newton, before)
             if solved:
                 p, g_prev = p + solved, None
                 continue
