@@ -239,6 +239,10 @@ def as_lattice_fields(
 _CHECKED: dict[tuple[Any, ...], LatticeField] = {}
 CHECKED_KEPT = 4
 
+#: The most bytes of coordinates a kept layout or DataArray template holds (a lattice with more builds its
+#: own each time): 4 MiB, half a million sites along the axes.
+KEPT_COORD_BYTES = 4 << 20
+
 
 def _checked_key(
     data: Any, key: tuple[Any, ...] | None, boundary: BoundaryKinds | None, min_slices: int
@@ -271,7 +275,7 @@ def _remember(
 ) -> None:
     """Keep ``f``'s lattice description (without its values) for :func:`_checked_before`."""
     full = _checked_key(data, key, boundary, min_slices)
-    if full is None:
+    if full is None or sum(c.nbytes for c in f.coords.values()) > KEPT_COORD_BYTES:
         return
     while len(_CHECKED) >= CHECKED_KEPT:
         del _CHECKED[next(iter(_CHECKED))]
@@ -317,31 +321,39 @@ def to_dataarrays(fields: Sequence[LatticeField]) -> list[xr.DataArray]:
     most :data:`TEMPLATES_KEPT` lattices; serving one lattice again builds its spatial coordinates and their
     indexes once). The same DataArrays, identical."""
     out = []
+    timed: dict[tuple[Any, ...], DataArrayParts] = {}  # per lattice and time coordinate, in this call
     for f in fields:
         spatial = tuple(np.asarray(f.coords[d], dtype=np.float64).tobytes() for d in f.dims[1:])
         key: tuple[Any, ...] = (f.dims, f.components, f.name, tuple(f.values.shape[1:]), spatial)
         parts = _TEMPLATES.get(key)
         if parts is None:
             parts = dataarray_parts(f.to_dataarray())  # kept apart: no caller holds its variables
-            while len(_TEMPLATES) >= TEMPLATES_KEPT:
-                del _TEMPLATES[next(iter(_TEMPLATES))]
-            _TEMPLATES[key] = parts
+            if sum(len(c) for c in spatial) <= KEPT_COORD_BYTES:
+                while len(_TEMPLATES) >= TEMPLATES_KEPT:
+                    del _TEMPLATES[next(iter(_TEMPLATES))]
+                _TEMPLATES[key] = parts
         v = f.values.detach().cpu().numpy()
         v = np.ascontiguousarray(v[..., 0] if f.components is None else v)
-        parts = _with_time(parts, f, int(v.shape[0]))
+        time = _time_values(f, int(v.shape[0]))
+        both = (key, time.tobytes())
+        if both not in timed:
+            timed[both] = _with_time(parts, f.dims[0], time)
+        parts = timed[both]
         out.append(like_dataarray(parts, v, dict(f.attrs), {d: f.coord_attrs.get(d, {}) for d in f.dims}))
     return out
 
 
-def _with_time(parts: DataArrayParts, f: LatticeField, nt: int) -> DataArrayParts:
-    """``parts`` with the time coordinate of ``f``'s ``nt`` slices and its index, as
-    :meth:`LatticeField.to_dataarray` makes them (its attributes are set by :func:`like_dataarray`)."""
+def _time_values(f: LatticeField, nt: int) -> np.ndarray:
+    """The time coordinate of ``f``'s first ``nt`` slices, as :meth:`LatticeField.to_dataarray` makes it."""
+    c = np.asarray(f.coords[f.dims[0]], dtype=np.float64)
+    return c if len(c) == nt else c[0] + f.spacing[0] * np.arange(nt, dtype=np.float64)
+
+
+def _with_time(parts: DataArrayParts, tdim: str, values: np.ndarray) -> DataArrayParts:
+    """``parts`` with the time coordinate ``values`` along ``tdim`` and its index, as xarray's constructor
+    makes them (its attributes are set by :func:`like_dataarray`)."""
     dims, name, variables, indexes = parts
-    tdim = f.dims[0]
-    c = np.asarray(f.coords[tdim], dtype=np.float64)
-    if len(c) != nt:
-        c = c[0] + f.spacing[0] * np.arange(nt, dtype=np.float64)
-    var = xr.Variable((tdim,), c)
+    var = xr.Variable((tdim,), values)
     index = PandasIndex.from_variables({tdim: var}, options={})
     time = index.create_variables({tdim: var})[tdim]
     variables = {n: time if n == tdim else v for n, v in variables.items()}
