@@ -217,12 +217,20 @@ def test_an_analytic_model_served_again_on_its_lattice_is_not_bound_again() -> N
     assert model.spacing == (0.1, 0.25)
 
 
-def test_served_fields_of_one_lattice_are_built_as_xarray_builds_them() -> None:
+@pytest.mark.parametrize("kept", [True, False])
+def test_served_fields_of_one_lattice_are_built_as_xarray_builds_them(kept: bool, monkeypatch) -> None:
     """The served DataArray, built around the kept coordinates of its lattice, is identical to the one
-    xarray's constructor builds, for a second call and another number of slices."""
+    xarray's constructor builds, for a second call and another number of slices; so is one whose lattice's
+    coordinates are too large to be kept."""
     import xarray as xr
 
+    from latticedft import _lattice
     from latticedft._lattice import as_lattice_field
+
+    _lattice._TEMPLATES.clear()
+    _lattice._CHECKED.clear()
+    if not kept:
+        monkeypatch.setattr(_lattice, "KEPT_COORD_BYTES", 8)
 
     from helpers import sine_gordon
 
@@ -232,3 +240,4 @@ def test_served_fields_of_one_lattice_are_built_as_xarray_builds_them() -> None:
         res = ldft.serve(model, init, slices=slices, progress=False)
         f = as_lattice_field(res.field, min_slices=2)
         xr.testing.assert_identical(res.field, f.to_dataarray())
+    assert bool(_lattice._TEMPLATES) == bool(_lattice._CHECKED) == kept
