@@ -1,0 +1,229 @@
+"""Slice-Newton of a kinetic-plus-potential MLP ``L_d`` with its derivatives in closed form, batched over sites.
+
+``KineticPotentialMLPLagrangian`` is a quadratic kinetic part (constant Hessian) minus the mean over the stencil
+points of a network potential ``V`` of one site's values. So the gradient of a cell is its values times the
+kinetic Hessian, minus ``V'`` of each point's site over ``K``: ``V'`` is needed once per site of a slice, not
+once per stencil point of every cell, and once per slice, not per Newton iteration (the DEL of slice ``i``
+reads ``V'`` on slice ``i`` only; the unknowns of slice ``i + 1`` enter it through the kinetic part). ``V'``
+comes from one forward and one backward pass of the network written out in numpy (one matrix product per
+layer over all the sites), instead of autograd over every cell. The residual is scattered, and the predictor
+and range check made, by the folded polynomial's kernels (``._folded``); a fresh Jacobian's Hessian blocks
+(the first slice's) still come from autograd.
+
+The sums run in another order than autograd's, so the fields differ from the default path's by round-off:
+this path is taken only where ``set_options(compiled_numpy_models=True)`` asks, as the folded polynomial's.
+"""
+
+from __future__ import annotations
+
+import logging
+import weakref
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from .._kernel_folded import folded_kernels
+from .._models._mlp import KineticPotentialMLPLagrangian
+from .._options import option
+from ._folded import FoldedSlices
+from ._slices import _SliceSystem
+
+__all__ = ["PotentialNet", "PotentialSlices", "potential_slices"]
+
+log = logging.getLogger("latticedft")
+
+
+def _tanh(y: np.ndarray) -> np.ndarray:
+    return np.tanh(y, out=y)
+
+
+def _tanh_slope(a: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``d * tanh'`` at the activations ``a``, written over ``a``: ``d - d a^2``."""
+    np.multiply(a, a, out=a)
+    np.multiply(a, d, out=a)
+    return np.subtract(d, a, out=a)
+
+
+def _sigmoid(y: np.ndarray) -> np.ndarray:
+    np.negative(y, out=y)
+    np.exp(y, out=y)
+    y += 1.0
+    return np.reciprocal(y, out=y)
+
+
+def _sigmoid_slope(a: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``d * sigmoid'`` at the activations ``a``, written over ``a``: ``(a - a^2) d``."""
+    np.subtract(a, a * a, out=a)
+    return np.multiply(a, d, out=a)
+
+
+#: Activations written out: ``name -> (act(y) written over y, d * act' from the activations, over them)``.
+_ACTS: dict[str, tuple[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray, np.ndarray], np.ndarray]]] = {
+    "tanh": (_tanh, _tanh_slope),
+    "sigmoid": (_sigmoid, _sigmoid_slope),
+}
+
+
+class PotentialNet:
+    """``V'(x)``: the gradient of a kinetic-potential MLP's potential ``out_scale * net((x - center) / scale)``
+    at values ``x`` ``(sites, m)``, by one forward and one backward pass in numpy."""
+
+    def __init__(self, model: KineticPotentialMLPLagrangian):
+        lin = [layer for layer in model.net if isinstance(layer, torch.nn.Linear)]
+        self.layers = [(_np(layer.weight).T.copy(), _np(layer.bias)) for layer in lin[:-1]]
+        self.out = _np(lin[-1].weight)[0]
+        self.act, self.slope = _ACTS[model.activation]
+        self.center, self.scale = _np(model.in_center), _np(model.in_scale)
+        self.factor = float(model.out_scale) / self.scale
+
+    def grad(self, x: np.ndarray) -> np.ndarray:
+        """``dV/dx`` ``(sites, m)`` at ``x`` ``(sites, m)``."""
+        y = (x - self.center) / self.scale
+        acts = []
+        for w, b in self.layers:
+            y = y @ w
+            y += b
+            acts.append(self.act(y))
+        d: np.ndarray = self.out if acts else np.tile(self.out, (x.shape[0], 1))
+        for (w, _), a in zip(reversed(self.layers), reversed(acts)):
+            d = self.slope(a, d) @ w.T
+        d *= self.factor
+        return d
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().to(torch.float64).numpy())
+
+
+def _kinetic_hessian(model: KineticPotentialMLPLagrangian, k: int, m: int) -> np.ndarray:
+    """The constant Hessian ``(K m, K m)`` of the model's kinetic part in the flat cell values."""
+
+    def kin(x: torch.Tensor) -> torch.Tensor:
+        return model.kinetic(x.reshape(k, m))
+
+    with torch.enable_grad():
+        hess = torch.autograd.functional.hessian(kin, torch.zeros(k * m, dtype=torch.float64))
+    return np.ascontiguousarray(hess.detach().numpy())
+
+
+#: Per model, its closed forms with the parameters and buffers they were built from.
+_FORMS: weakref.WeakKeyDictionary[Any, tuple[list[tuple[torch.Tensor, int]], tuple[int, int], Any]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def _closed_forms(model: KineticPotentialMLPLagrangian, k: int, m: int) -> tuple[PotentialNet, np.ndarray]:
+    """``(PotentialNet(model), kinetic Hessian)``, built once per model state and cell shape."""
+    state = [(t, t._version) for t in [*model.parameters(), *model.buffers()]]
+    known = _FORMS.get(model)
+    same = known is not None and known[1] == (k, m) and len(known[0]) == len(state)
+    if known is not None and same and all(a is b and u == v for (a, u), (b, v) in zip(known[0], state)):
+        forms: tuple[PotentialNet, np.ndarray] = known[2]
+        return forms
+    built = (PotentialNet(model), _kinetic_hessian(model, k, m))
+    _FORMS[model] = (state, (k, m), built)
+    return built
+
+
+class PotentialCells:
+    """The cells anchored on a slice (``lo``; ``hi`` the next) at the current state: their gradients ``grad``
+    ``(cells, K m)`` (the points on the next slice filled in when first read) and their Hessian blocks."""
+
+    def __init__(self, owner: PotentialSlices, lo: np.ndarray, hi: np.ndarray):
+        self.owner, self.hi = owner, hi
+        self.x = owner.cell_values(lo, hi)
+        self.part = owner.kinetic_grad(self.x, lo)
+        self._grad: np.ndarray | None = None
+
+    @property
+    def grad(self) -> np.ndarray:
+        if self._grad is None:
+            self._grad = self.owner.add_potential(self.part, self.hi, upper=True)
+        return self._grad
+
+    def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
+        """The Hessian blocks ``(cells, m, m)`` of ``pairs`` (two points on two slices: the potential, one site's,
+        has none), the kinetic Hessian's on every cell."""
+        o, m = self.owner, self.owner.m
+        n = self.x.shape[0]
+        return {
+            (a, b): torch.from_numpy(np.tile(o.hess[a * m : (a + 1) * m, b * m : (b + 1) * m], (n, 1, 1)))
+            for a, b in pairs
+        }
+
+
+class PotentialSlices(FoldedSlices):
+    """A kinetic-potential MLP's slice-Newton evaluation on one served field (:class:`FoldedSlices`' index maps,
+    predictor, scatter and range check)."""
+
+    def __init__(self, mod: Any, sys: _SliceSystem, model: KineticPotentialMLPLagrangian):
+        super().__init__(mod, sys, (), ())
+        self.model = model
+        self.net, self.hess = _closed_forms(model, self.k, self.m)
+        self.known: list[tuple[np.ndarray, np.ndarray]] = []  # (a slice's values, -V'/K on its sites)
+
+    def cell_values(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """The flat values ``(cells, K m)`` of the cells anchored on slice ``lo`` (``hi``: the next one)."""
+        m = self.m
+        x = np.empty((self.site_of.shape[1], self.k * m))
+        for a in range(self.k):
+            x[:, a * m : (a + 1) * m] = (hi if self.upper[a] else lo)[self.site_of[a]]
+        return x
+
+    def potential(self, values: np.ndarray) -> np.ndarray:
+        """``-V'/K`` on every site of a slice at ``values``; the last few slices' are kept (the DEL of slice ``i``
+        and the cells of the slice before it read those of slice ``i``; a field at rest starts with two equal
+        slices)."""
+        for seen, out in self.known:
+            if np.array_equal(seen, values):
+                return out
+        out = self.net.grad(values) * (-1.0 / self.k)
+        self.known = [*self.known[-2:], (values.copy(), out)]
+        return out
+
+    def kinetic_grad(self, x: np.ndarray, lo: np.ndarray) -> np.ndarray:
+        """The kinetic gradient of cells ``x`` plus the potential's on their points on the anchor's slice
+        (``lo``)."""
+        return self.add_potential(x @ self.hess, lo, upper=False)
+
+    def add_potential(self, g: np.ndarray, values: np.ndarray, upper: bool) -> np.ndarray:
+        """``g`` with the potential's gradient added on the cells' points of a slice (``values``): the points
+        on the anchor's slice (``upper`` false) or on the next one."""
+        vp = self.potential(values)
+        m = self.m
+        for a in range(self.k):
+            if bool(self.upper[a]) == upper:
+                g[:, a * m : (a + 1) * m] += vp[self.site_of[a]]
+        return g
+
+    def grad(self, flat: torch.Tensor, i: int) -> np.ndarray:
+        return PotentialCells(self, flat[i].numpy(), flat[i + 1].numpy()).grad
+
+    def evaluate(self, flat: torch.Tensor, vol: float, i: int, g_prev: Any) -> tuple[Any, np.ndarray]:
+        ev = PotentialCells(self, flat[i].numpy(), flat[i + 1].numpy())
+        gp = g_prev.reshape(ev.part.shape).numpy() if isinstance(g_prev, torch.Tensor) else g_prev
+        r = np.empty(self.rows.size * self.m)
+        self.mod.scatter(np.ascontiguousarray(gp), ev.part, self.site_of, self.upper, self.rows, vol, self.el, r)
+        return ev, r
+
+
+def potential_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> PotentialSlices | None:
+    """The closed-form evaluation for a kinetic-potential MLP on the values themselves (``features="values"``)
+    with a ``tanh`` or ``sigmoid`` network, on the CPU in double precision, where the ``compiled_numpy_models``
+    and ``compiled_kernels`` options are on; ``None`` otherwise (or where the folded kernels do not build)."""
+    if not (option("compiled_numpy_models") and option("compiled_kernels")):
+        return None
+    if not isinstance(model, KineticPotentialMLPLagrangian) or model.features != "values":
+        return None
+    if model.activation not in _ACTS:
+        log.info("closed-form potential unavailable for activation %r: serving uses autograd", model.activation)
+        return None
+    if flat.dtype != torch.float64 or flat.device.type != "cpu" or not flat.is_contiguous():
+        return None
+    tensors = [*model.parameters(), *model.buffers()]
+    if any(t.device.type != "cpu" or (t.is_floating_point() and t.dtype != torch.float64) for t in tensors):
+        return None
+    mod = folded_kernels()
+    return None if mod is None else PotentialSlices(mod, sys, model)

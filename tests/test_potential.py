@@ -1,0 +1,98 @@
+"""A kinetic-potential MLP served with its derivatives in closed form (``_serve._potential``, opt-in by
+``compiled_numpy_models``) equals today's autograd path to round-off."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+import torch
+
+import latticedft as ldft
+from latticedft import systems
+
+
+def _field(ndim: int, n: int, slices: int = 2, periodic: bool = True) -> object:
+    """A smooth field of ``n`` sites per axis, its first ``slices`` leapfrog slices of sine-Gordon."""
+    x = np.arange(n) / n
+    u = np.ones([n] * ndim)
+    for k in range(ndim):
+        u = u * np.sin(2 * np.pi * x + k).reshape([n if j == k else 1 for j in range(ndim)])
+    u = 0.8 * u
+    out = [u, u]
+    c = (0.04 / 0.1) ** 2
+    for _ in range(slices - 2):
+        b = out[-1]
+        lap = sum(np.roll(b, s, k) for k in range(ndim) for s in (1, -1)) - 2 * ndim * b
+        out.append(2 * b - out[-2] + c * lap - 0.04**2 * np.sin(b))
+    dims = ("t", *"zyx"[3 - ndim :])
+    attrs = {d: {"periodic": "true" if periodic else "false", "period": n * 0.1} for d in dims[1:]}
+    return systems.make_field(np.stack(out), dims, spacing=(0.04, *[0.1] * ndim), coord_attrs=attrs)
+
+
+@functools.lru_cache(maxsize=4)
+def _mlp(ndim: int, activation: str = "tanh") -> ldft.MLPLagrangian:
+    model = ldft.MLPLagrangian(hidden=[6, 5], activation=activation, form="kinetic-potential", seed=1)
+    ldft.learn(model, _field(ndim, 6, slices=8), max_iter=5, progress=False)
+    return model
+
+
+def _both(model: ldft.MLPLagrangian, init: object, **keywords: object) -> tuple[ldft.ServeResult, ldft.ServeResult]:
+    with ldft.set_options(compiled_numpy_models=True):
+        fast = ldft.serve(model, init, progress=False, **keywords)
+    return fast, ldft.serve(model, init, progress=False, **keywords)
+
+
+@pytest.mark.parametrize(
+    ("ndim", "activation", "periodic", "keywords"),
+    [
+        (2, "tanh", True, {}),
+        (1, "sigmoid", True, {}),
+        (1, "tanh", False, {}),
+        (2, "tanh", True, {"every": 3}),
+    ],
+)
+def test_the_closed_form_potential_serves_as_autograd(
+    ndim: int, activation: str, periodic: bool, keywords: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from latticedft._serve import _potential
+
+    calls = []
+    evaluate = _potential.PotentialSlices.evaluate
+    monkeypatch.setattr(_potential.PotentialSlices, "evaluate", lambda s, *a: calls.append(1) or evaluate(s, *a))
+    model = _mlp(ndim, activation)
+    init = _field(ndim, 7, slices=2 if periodic else 10, periodic=periodic)  # Dirichlet: the whole field's strips
+    fast, slow = _both(model, init, slices=10, **keywords)
+    assert calls
+    a, b = np.asarray(fast.field.values), np.asarray(slow.field.values)
+    assert np.abs(a - b).max() <= 1e-12 * max(1.0, float(np.abs(b).max()))
+    assert fast.newton_iterations == slow.newton_iterations and fast.slice_solver == slow.slice_solver
+    assert fast.extrapolation is not None and slow.extrapolation is not None
+    assert np.allclose(fast.extrapolation.values, slow.extrapolation.values, rtol=1e-9, atol=1e-12)
+
+
+def test_the_potential_gradient_equals_autograd() -> None:
+    from latticedft._serve._potential import PotentialNet
+
+    model = _mlp(2)
+    x = torch.linspace(-2.0, 2.0, 41, dtype=torch.float64).reshape(-1, 1).requires_grad_(True)
+    (want,) = torch.autograd.grad(model._net(model._inputs(x)).sum(), x)
+    got = PotentialNet(model).grad(x.detach().numpy())
+    assert np.allclose(got, want.numpy(), rtol=1e-13, atol=1e-13 * float(want.abs().max()))
+
+
+def test_the_closed_form_potential_is_opt_in_and_falls_back() -> None:
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._potential import PotentialSlices, potential_slices
+    from latticedft._serve._slices import _SliceSystem
+
+    model = _mlp(1)
+    f = as_lattice_field(_field(1, 7), source="init", min_slices=2)
+    flat = f.values.reshape(2, -1, 1)
+    assert potential_slices(model, _SliceSystem(model, f), flat) is None  # off by default
+    with ldft.set_options(compiled_numpy_models=True):
+        assert isinstance(potential_slices(model, _SliceSystem(model, f), flat), PotentialSlices)
+        silu = ldft.MLPLagrangian(hidden=[4], activation="silu", form="kinetic-potential")
+        silu.bind(2, 1, (0.04, 0.1))
+        assert potential_slices(silu, _SliceSystem(silu, f), flat) is None  # no closed form: autograd serves
