@@ -137,6 +137,60 @@ def excess(values, site_of, upper, proj, lo, hi, span, out):
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
+def quadratic_residual(gprev, lo, hi, site_of, upper, hess, vlo, rows, vol, el, r):
+    m = el.shape[1]
+    km = site_of.shape[0] * m
+    el[:] = 0.0
+    x = np.empty(km)
+    for a in range(site_of.shape[0]):
+        if upper[a]:
+            for n in range(site_of.shape[1]):
+                s = site_of[a, n]
+                for c in range(m):
+                    el[s, c] += gprev[n, a * m + c]
+    for n in range(site_of.shape[1]):
+        for a in range(site_of.shape[0]):
+            src = hi if upper[a] else lo
+            s = site_of[a, n]
+            for c in range(m):
+                x[a * m + c] = src[s, c]
+        for a in range(site_of.shape[0]):
+            if not upper[a]:
+                s = site_of[a, n]
+                for c in range(m):
+                    q = a * m + c
+                    g = vlo[s, c]
+                    for b in range(km):
+                        g += x[b] * hess[b, q]
+                    el[s, c] += g
+    for q in range(rows.shape[0]):
+        for c in range(m):
+            r[q * m + c] = vol * el[rows[q], c]
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def quadratic_grad(lo, hi, site_of, upper, hess, vlo, vhi, out):
+    m = lo.shape[1]
+    km = site_of.shape[0] * m
+    x = np.empty(km)
+    for n in range(site_of.shape[1]):
+        for a in range(site_of.shape[0]):
+            src = hi if upper[a] else lo
+            s = site_of[a, n]
+            for c in range(m):
+                x[a * m + c] = src[s, c]
+        for a in range(site_of.shape[0]):
+            v = vhi if upper[a] else vlo
+            s = site_of[a, n]
+            for c in range(m):
+                q = a * m + c
+                g = v[s, c]
+                for b in range(km):
+                    g += x[b] * hess[b, q]
+                out[n, q] = g
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
 def update(nxt, rows, delta):
     m = nxt.shape[1]
     top = 0.0
@@ -170,7 +224,8 @@ _FOLDED = _FOLDED.replace("{cells}", _FOLDED_CELLS.replace("{monomials}", _GENER
 
 def folded_kernels() -> Any:
     """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``scatter``, ``predict``,
-    ``update``, ``excess``), built on first use and cached as the others (one build per machine, for every
+    ``update``, ``excess``; ``quadratic_residual`` and ``quadratic_grad`` for an ``L_d`` quadratic but for one-site
+    terms, ``._serve._potential``), built on first use and cached as the others (one build per machine, for every
     polynomial); ``None``, with one info line, where numba cannot build it."""
     return _folded_module(_FOLDED, "folded polynomial")
 
@@ -240,5 +295,7 @@ def _build_folded(key: str, source: str, shape: tuple[int, int]) -> tuple[Any, s
     mod.predict(one, one, one, one, rows)
     mod.predict(one, one, one, np.zeros((0, 1)), rows)
     mod.update(one, rows, np.zeros(1))
+    mod.quadratic_residual(one, one, one, idx, up, one, one, rows, 1.0, np.empty((1, 1)), np.empty(1))
+    mod.quadratic_grad(one, one, idx, up, one, one, one, np.empty((1, 1)))
     mod.excess(np.zeros((2, 1, 1)), idx, up, one, np.zeros(1), np.ones(1), np.ones(1), np.empty((1, 1)))
     return mod, how

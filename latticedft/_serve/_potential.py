@@ -77,20 +77,31 @@ class PotentialNet:
         self.act, self.slope = _ACTS[model.activation]
         self.center, self.scale = _np(model.in_center), _np(model.in_scale)
         self.factor = float(model.out_scale) / self.scale
+        self._kept: tuple[int, list[np.ndarray], list[np.ndarray]] = (-1, [], [])
 
     def grad(self, x: np.ndarray) -> np.ndarray:
-        """``dV/dx`` ``(sites, m)`` at ``x`` ``(sites, m)``."""
+        """``dV/dx`` ``(sites, m)`` at ``x`` ``(sites, m)`` (a new array; the layers' values are written into
+        buffers kept for the next call on as many sites: fresh pages cost as much as the arithmetic)."""
+        bufs, backs = self._buffers(x.shape[0])
         y = (x - self.center) / self.scale
-        acts = []
-        for w, b in self.layers:
-            y = y @ w
+        for (w, b), z in zip(self.layers, bufs):
+            y = np.matmul(y, w, out=z)
             y += b
-            acts.append(self.act(y))
-        d: np.ndarray = self.out if acts else np.tile(self.out, (x.shape[0], 1))
-        for (w, _), a in zip(reversed(self.layers), reversed(acts)):
-            d = self.slope(a, d) @ w.T
+            self.act(y)
+        d: np.ndarray = self.out if bufs else np.tile(self.out, (x.shape[0], 1))
+        for k in range(len(self.layers) - 1, -1, -1):
+            back = backs[k - 1] if k else np.empty_like(x)
+            d = np.matmul(self.slope(bufs[k], d), self.layers[k][0].T, out=back)
         d *= self.factor
         return d
+
+    def _buffers(self, n: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """Two ``(n, width)`` arrays per hidden layer (its activations, the gradient in them), kept for the last
+        number of sites ``n``."""
+        if self._kept[0] != n:
+            widths = [w.shape[1] for w, _ in self.layers]
+            self._kept = (n, [np.empty((n, h)) for h in widths], [np.empty((n, h)) for h in widths])
+        return self._kept[1], self._kept[2]
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -129,25 +140,28 @@ def _closed_forms(model: KineticPotentialMLPLagrangian, k: int, m: int) -> tuple
 
 class PotentialCells:
     """The cells anchored on a slice (``lo``; ``hi`` the next) at the current state: their gradients ``grad``
-    ``(cells, K m)`` (the points on the next slice filled in when first read) and their Hessian blocks."""
+    ``(cells, K m)`` (evaluated when first read: slice-Newton reads them once, at the solution) and their
+    Hessian blocks."""
 
     def __init__(self, owner: PotentialSlices, lo: np.ndarray, hi: np.ndarray):
-        self.owner, self.hi = owner, hi
-        self.x = owner.cell_values(lo, hi)
-        self.part = owner.kinetic_grad(self.x, lo)
+        self.owner, self.lo, self.hi = owner, lo, hi
+        self.vlo = owner.potential(lo)
         self._grad: np.ndarray | None = None
 
     @property
     def grad(self) -> np.ndarray:
         if self._grad is None:
-            self._grad = self.owner.add_potential(self.part, self.hi, upper=True)
+            o = self.owner
+            self._grad = np.empty((o.site_of.shape[1], o.k * o.m))
+            vhi = o.potential(self.hi)
+            o.mod.quadratic_grad(self.lo, self.hi, o.site_of, o.upper, o.hess, self.vlo, vhi, self._grad)
         return self._grad
 
     def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
         """The Hessian blocks ``(cells, m, m)`` of ``pairs`` (two points on two slices: the potential, one site's,
         has none), the kinetic Hessian's on every cell."""
         o, m = self.owner, self.owner.m
-        n = self.x.shape[0]
+        n = o.site_of.shape[1]
         return {
             (a, b): torch.from_numpy(np.tile(o.hess[a * m : (a + 1) * m, b * m : (b + 1) * m], (n, 1, 1)))
             for a, b in pairs
@@ -156,7 +170,7 @@ class PotentialCells:
 
 class PotentialSlices(FoldedSlices):
     """A kinetic-potential MLP's slice-Newton evaluation on one served field (:class:`FoldedSlices`' index maps,
-    predictor, scatter and range check)."""
+    predictor and range check; the residual and gradients by the folded module's quadratic kernels)."""
 
     def __init__(self, mod: Any, sys: _SliceSystem, model: KineticPotentialMLPLagrangian):
         super().__init__(mod, sys, (), ())
@@ -164,48 +178,28 @@ class PotentialSlices(FoldedSlices):
         self.net, self.hess = _closed_forms(model, self.k, self.m)
         self.known: list[tuple[np.ndarray, np.ndarray]] = []  # (a slice's values, -V'/K on its sites)
 
-    def cell_values(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-        """The flat values ``(cells, K m)`` of the cells anchored on slice ``lo`` (``hi``: the next one)."""
-        m = self.m
-        x = np.empty((self.site_of.shape[1], self.k * m))
-        for a in range(self.k):
-            x[:, a * m : (a + 1) * m] = (hi if self.upper[a] else lo)[self.site_of[a]]
-        return x
-
     def potential(self, values: np.ndarray) -> np.ndarray:
-        """``-V'/K`` on every site of a slice at ``values``; the last few slices' are kept (the DEL of slice ``i``
-        and the cells of the slice before it read those of slice ``i``; a field at rest starts with two equal
-        slices)."""
-        for seen, out in self.known:
+        """``-V'/K`` on every site of a slice at ``values`` (``(sites, m)``); the last two slices' are kept (the
+        DEL of slice ``i`` and the cells anchored on slice ``i - 1`` read those of slice ``i``; a field at rest
+        starts with two equal slices)."""
+        for seen, out in reversed(self.known):
             if np.array_equal(seen, values):
                 return out
-        out = self.net.grad(values) * (-1.0 / self.k)
-        self.known = [*self.known[-2:], (values.copy(), out)]
+        out = np.ascontiguousarray(self.net.grad(values) * (-1.0 / self.k))
+        self.known = [*self.known[-1:], (values.copy(), out)]
         return out
-
-    def kinetic_grad(self, x: np.ndarray, lo: np.ndarray) -> np.ndarray:
-        """The kinetic gradient of cells ``x`` plus the potential's on their points on the anchor's slice
-        (``lo``)."""
-        return self.add_potential(x @ self.hess, lo, upper=False)
-
-    def add_potential(self, g: np.ndarray, values: np.ndarray, upper: bool) -> np.ndarray:
-        """``g`` with the potential's gradient added on the cells' points of a slice (``values``): the points
-        on the anchor's slice (``upper`` false) or on the next one."""
-        vp = self.potential(values)
-        m = self.m
-        for a in range(self.k):
-            if bool(self.upper[a]) == upper:
-                g[:, a * m : (a + 1) * m] += vp[self.site_of[a]]
-        return g
 
     def grad(self, flat: torch.Tensor, i: int) -> np.ndarray:
         return PotentialCells(self, flat[i].numpy(), flat[i + 1].numpy()).grad
 
     def evaluate(self, flat: torch.Tensor, vol: float, i: int, g_prev: Any) -> tuple[Any, np.ndarray]:
         ev = PotentialCells(self, flat[i].numpy(), flat[i + 1].numpy())
-        gp = g_prev.reshape(ev.part.shape).numpy() if isinstance(g_prev, torch.Tensor) else g_prev
+        gp = g_prev.numpy() if isinstance(g_prev, torch.Tensor) else g_prev
+        gp = np.ascontiguousarray(gp).reshape(self.site_of.shape[1], self.k * self.m)
         r = np.empty(self.rows.size * self.m)
-        self.mod.scatter(np.ascontiguousarray(gp), ev.part, self.site_of, self.upper, self.rows, vol, self.el, r)
+        self.mod.quadratic_residual(
+            gp, ev.lo, ev.hi, self.site_of, self.upper, self.hess, ev.vlo, self.rows, vol, self.el, r
+        )
         return ev, r
 
 
