@@ -122,15 +122,19 @@ def predict(prev, cur, nxt, older, rows):
 def excess(values, site_of, upper, proj, lo, hi, span, out):
     nf, k = proj.shape
     m = values.shape[2]
+    x = np.empty((k, m))
     for i in range(values.shape[0] - 1):
         for q in range(nf * m):
             out[i, q] = 0.0
         for n in range(site_of.shape[1]):
+            for a in range(k):
+                for c in range(m):
+                    x[a, c] = values[i + upper[a], site_of[a, n], c]
             for p in range(nf):
                 for c in range(m):
                     f = 0.0
                     for a in range(k):
-                        f += proj[p, a] * values[i + upper[a], site_of[a, n], c]
+                        f += proj[p, a] * x[a, c]
                     q = p * m + c
                     e = math.inf if f != f else max(max(lo[q] - f, f - hi[q]), 0.0) / span[q]
                     out[i, q] = max(out[i, q], e)
