@@ -4,16 +4,18 @@
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import numpy as np
 import pytest
 import torch
+import xarray as xr
 
 import latticedft as ldft
 from latticedft import systems
 
 
-def _field(ndim: int, n: int, slices: int = 2, periodic: bool = True) -> object:
+def _field(ndim: int, n: int, slices: int = 2, periodic: bool = True) -> xr.DataArray:
     """A smooth field of ``n`` sites per axis, its first ``slices`` leapfrog slices of sine-Gordon."""
     x = np.arange(n) / n
     u = np.ones([n] * ndim)
@@ -38,7 +40,7 @@ def _mlp(ndim: int, activation: str = "tanh") -> ldft.MLPLagrangian:
     return model
 
 
-def _both(model: ldft.MLPLagrangian, init: object, **keywords: object) -> tuple[ldft.ServeResult, ldft.ServeResult]:
+def _both(model: ldft.MLPLagrangian, init: xr.DataArray, **keywords: Any) -> tuple[ldft.ServeResult, ldft.ServeResult]:
     with ldft.set_options(compiled_numpy_models=True):
         fast = ldft.serve(model, init, progress=False, **keywords)
     return fast, ldft.serve(model, init, progress=False, **keywords)
@@ -70,6 +72,19 @@ def test_the_closed_form_potential_serves_as_autograd(
     assert fast.newton_iterations == slow.newton_iterations and fast.slice_solver == slow.slice_solver
     assert fast.extrapolation is not None and slow.extrapolation is not None
     assert np.allclose(fast.extrapolation.values, slow.extrapolation.values, rtol=1e-9, atol=1e-12)
+
+
+def test_two_components_serve_as_autograd() -> None:
+    def two(f: xr.DataArray) -> xr.DataArray:
+        out = xr.concat([f, 0.5 * f + 0.1], dim="component").transpose(..., "component")
+        return out.assign_coords(component=["a", "b"])
+
+    model = ldft.MLPLagrangian(hidden=[5], activation="tanh", form="kinetic-potential", seed=2)
+    ldft.learn(model, two(_field(1, 6, slices=8)), max_iter=5, progress=False)
+    fast, slow = _both(model, two(_field(1, 7)), slices=8)
+    a, b = np.asarray(fast.field.values), np.asarray(slow.field.values)
+    assert np.abs(a - b).max() <= 1e-12 * max(1.0, float(np.abs(b).max()))
+    assert fast.newton_iterations == slow.newton_iterations
 
 
 def test_the_potential_gradient_equals_autograd() -> None:
