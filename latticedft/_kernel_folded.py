@@ -276,6 +276,26 @@ def quadratic_grad(lo, hi, site_of, upper, hess, vlo, vhi, out):
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
+def layer_in(x, center, scale, w, b, out):
+    m = x.shape[1]
+    for s in range(x.shape[0]):
+        for j in range(w.shape[1]):
+            out[s, j] = b[j]
+        for c in range(m):
+            y = (x[s, c] - center[c]) / scale[c]
+            for j in range(w.shape[1]):
+                out[s, j] += y * w[c, j]
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def act_slope(a, d, kind):
+    for s in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            v = a[s, j]
+            a[s, j] = d[s, j] * (1.0 - v * v) if kind == 0 else d[s, j] * (v * (1.0 - v))
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
 def update(nxt, rows, delta):
     m = nxt.shape[1]
     top = 0.0
@@ -308,10 +328,11 @@ _FOLDED = _FOLDED.replace("{cells}", _FOLDED_CELLS.replace("{monomials}", _GENER
 
 
 def folded_kernels() -> Any:
-    """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``scatter``, ``predict``,
-    ``update``, ``excess``; ``quadratic_residual`` and ``quadratic_grad`` for an ``L_d`` quadratic but for one-site
-    terms, ``._serve._potential``), built on first use and cached as the others (one build per machine, for every
-    polynomial); ``None``, with one info line, where numba cannot build it."""
+    """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``horner_cells``,
+    ``scatter``, ``predict``, ``update``, ``excess``; ``quadratic_residual``, ``quadratic_grad``, ``layer_in``
+    and ``act_slope`` for an ``L_d`` quadratic but for a network's one-site terms, ``._serve._potential``),
+    built on first use and cached as the others (one build per machine, for every polynomial); ``None``, with
+    one info line, where numba cannot build it."""
     return _folded_module(_FOLDED, "folded polynomial")
 
 
@@ -384,5 +405,8 @@ def _build_folded(key: str, source: str, shape: tuple[int, int]) -> tuple[Any, s
     texp, coef, top = np.zeros((1, 1), dtype=np.int64), np.zeros((1, 1, 1)), np.zeros((1, 1), dtype=np.int64)
     mod.horner_cells(one, one, idx, up, one, np.zeros(1), 0, texp, coef, top, np.empty((1, 1)))
     mod.quadratic_grad(one, one, idx, up, one, one, one, np.empty((1, 1)))
+    mod.layer_in(one, np.zeros(1), np.ones(1), one, np.zeros(1), np.empty((1, 1)))
+    mod.act_slope(np.zeros((1, 1)), one, 0)
+    mod.act_slope(np.zeros((1, 1)), np.broadcast_to(np.zeros(1), (1, 1)), 0)
     mod.excess(np.zeros((2, 1, 1)), idx, up, one, np.zeros(1), np.ones(1), np.ones(1), np.empty((1, 1)))
     return mod, how

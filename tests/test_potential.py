@@ -88,12 +88,13 @@ def test_two_components_serve_as_autograd() -> None:
 
 
 def test_the_potential_gradient_equals_autograd() -> None:
+    from latticedft._kernel_folded import folded_kernels
     from latticedft._serve._potential import PotentialNet
 
     model = _mlp(2)
     x = torch.linspace(-2.0, 2.0, 41, dtype=torch.float64).reshape(-1, 1).requires_grad_(True)
     (want,) = torch.autograd.grad(model._net(model._inputs(x)).sum(), x)
-    got = PotentialNet(model).grad(x.detach().numpy())
+    got = PotentialNet(model, folded_kernels()).grad(x.detach().numpy())
     assert np.allclose(got, want.numpy(), rtol=1e-13, atol=1e-13 * float(want.abs().max()))
 
 

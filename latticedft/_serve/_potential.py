@@ -39,13 +39,6 @@ def _tanh(y: np.ndarray) -> np.ndarray:
     return np.tanh(y, out=y)
 
 
-def _tanh_slope(a: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """``d * tanh'`` at the activations ``a``, written over ``a``: ``d - d a^2``."""
-    np.multiply(a, a, out=a)
-    np.multiply(a, d, out=a)
-    return np.subtract(d, a, out=a)
-
-
 def _sigmoid(y: np.ndarray) -> np.ndarray:
     np.negative(y, out=y)
     np.exp(y, out=y)
@@ -53,28 +46,22 @@ def _sigmoid(y: np.ndarray) -> np.ndarray:
     return np.reciprocal(y, out=y)
 
 
-def _sigmoid_slope(a: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """``d * sigmoid'`` at the activations ``a``, written over ``a``: ``(a - a^2) d``."""
-    np.subtract(a, a * a, out=a)
-    return np.multiply(a, d, out=a)
-
-
-#: Activations written out: ``name -> (act(y) written over y, d * act' from the activations, over them)``.
-_ACTS: dict[str, tuple[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray, np.ndarray], np.ndarray]]] = {
-    "tanh": (_tanh, _tanh_slope),
-    "sigmoid": (_sigmoid, _sigmoid_slope),
-}
+#: Activations written out: ``name -> (act(y) written over y, its kind in the kernel act_slope)``.
+_ACTS: dict[str, tuple[Callable[[np.ndarray], np.ndarray], int]] = {"tanh": (_tanh, 0), "sigmoid": (_sigmoid, 1)}
 
 
 class PotentialNet:
     """``V'(x)``: the gradient of a kinetic-potential MLP's potential ``out_scale * net((x - center) / scale)``
-    at values ``x`` ``(sites, m)``, by one forward and one backward pass in numpy."""
+    at values ``x`` ``(sites, m)``, by one forward and one backward pass over all the sites: numpy's matrix
+    products and activation, the folded module's kernels (``mod``) for the first layer and the derivative of the
+    activations (one pass each)."""
 
-    def __init__(self, model: KineticPotentialMLPLagrangian):
+    def __init__(self, model: KineticPotentialMLPLagrangian, mod: Any):
         lin = [layer for layer in model.net if isinstance(layer, torch.nn.Linear)]
         self.layers = [(_np(layer.weight).T.copy(), _np(layer.bias)) for layer in lin[:-1]]
         self.out = _np(lin[-1].weight)[0]
-        self.act, self.slope = _ACTS[model.activation]
+        self.mod = mod
+        self.act, self.kind = _ACTS[model.activation]
         self.center, self.scale = _np(model.in_center), _np(model.in_scale)
         self.factor = float(model.out_scale) / self.scale
         self._kept: tuple[int, list[np.ndarray], list[np.ndarray]] = (-1, [], [])
@@ -82,16 +69,20 @@ class PotentialNet:
     def grad(self, x: np.ndarray) -> np.ndarray:
         """``dV/dx`` ``(sites, m)`` at ``x`` ``(sites, m)`` (a new array; the layers' values are written into
         buffers kept for the next call on as many sites: fresh pages cost as much as the arithmetic)."""
+        if not self.layers:
+            return np.tile(self.out * self.factor, (x.shape[0], 1))
         bufs, backs = self._buffers(x.shape[0])
-        y = (x - self.center) / self.scale
-        for (w, b), z in zip(self.layers, bufs):
-            y = np.matmul(y, w, out=z)
-            y += b
-            self.act(y)
-        d: np.ndarray = self.out if bufs else np.tile(self.out, (x.shape[0], 1))
+        w0, b0 = self.layers[0]
+        self.mod.layer_in(np.ascontiguousarray(x), self.center, self.scale, w0, b0, bufs[0])
+        self.act(bufs[0])
+        for (w, b), y, z in zip(self.layers[1:], bufs, bufs[1:]):
+            np.matmul(y, w, out=z)
+            z += b
+            self.act(z)
+        d: np.ndarray = np.broadcast_to(self.out, bufs[-1].shape)
         for k in range(len(self.layers) - 1, -1, -1):
-            back = backs[k - 1] if k else np.empty_like(x)
-            d = np.matmul(self.slope(bufs[k], d), self.layers[k][0].T, out=back)
+            self.mod.act_slope(bufs[k], d, self.kind)
+            d = np.matmul(bufs[k], self.layers[k][0].T, out=backs[k - 1] if k else np.empty_like(x))
         d *= self.factor
         return d
 
@@ -125,15 +116,15 @@ _FORMS: weakref.WeakKeyDictionary[Any, tuple[list[tuple[torch.Tensor, int]], tup
 )
 
 
-def _closed_forms(model: KineticPotentialMLPLagrangian, k: int, m: int) -> tuple[PotentialNet, np.ndarray]:
-    """``(PotentialNet(model), kinetic Hessian)``, built once per model state and cell shape."""
+def _closed_forms(model: KineticPotentialMLPLagrangian, mod: Any, k: int, m: int) -> tuple[PotentialNet, np.ndarray]:
+    """``(PotentialNet(model, mod), kinetic Hessian)``, built once per model state and cell shape."""
     state = [(t, t._version) for t in [*model.parameters(), *model.buffers()]]
     known = _FORMS.get(model)
     same = known is not None and known[1] == (k, m) and len(known[0]) == len(state)
     if known is not None and same and all(a is b and u == v for (a, u), (b, v) in zip(known[0], state)):
         forms: tuple[PotentialNet, np.ndarray] = known[2]
         return forms
-    built = (PotentialNet(model), _kinetic_hessian(model, k, m))
+    built = (PotentialNet(model, mod), _kinetic_hessian(model, k, m))
     _FORMS[model] = (state, (k, m), built)
     return built
 
@@ -175,7 +166,7 @@ class PotentialSlices(FoldedSlices):
     def __init__(self, mod: Any, sys: _SliceSystem, model: KineticPotentialMLPLagrangian):
         super().__init__(mod, sys, (), ())
         self.model = model
-        self.net, self.hess = _closed_forms(model, self.k, self.m)
+        self.net, self.hess = _closed_forms(model, mod, self.k, self.m)
         self.known: list[tuple[np.ndarray, np.ndarray]] = []  # (a slice's values, -V'/K on its sites)
 
     def potential(self, values: np.ndarray) -> np.ndarray:
