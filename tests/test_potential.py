@@ -112,3 +112,28 @@ def test_the_closed_form_potential_is_opt_in_and_falls_back() -> None:
         silu = ldft.MLPLagrangian(hidden=[4], activation="silu", form="kinetic-potential")
         silu.bind(2, 1, (0.04, 0.1))
         assert potential_slices(silu, _SliceSystem(silu, f), flat) is None  # no closed form: autograd serves
+
+
+def test_the_affine_probe_is_answered_by_the_closed_forms() -> None:
+    """Where the closed forms say the DEL is not affine, so does autograd's probe; a constant potential (an
+    affine DEL) is left to the probe."""
+    from latticedft._serve._affine import _AffineSlices
+    from latticedft._serve._potential import _second, not_affine
+
+    model = _mlp(2)
+    k, scale = model.stencil.size, 0.8
+    x = torch.linspace(-1.0, 1.0, 9, dtype=torch.float64).reshape(-1, 1).requires_grad_(True)
+    with torch.enable_grad():
+        (g,) = torch.autograd.grad(model._net(model._inputs(x)).sum(), x, create_graph=True)
+        (h,) = torch.autograd.grad(g.sum(), x)
+    assert np.allclose(_second(model, x.detach().numpy().reshape(-1)), h.numpy().reshape(-1), rtol=1e-12, atol=1e-12)
+    assert not not_affine(model, k, 1, scale)  # off by default
+    with ldft.set_options(compiled_numpy_models=True):
+        assert not_affine(model, k, 1, scale)
+        assert _AffineSlices.probe(model, model.stencil, 1, scale) is None
+        flat = ldft.MLPLagrangian(hidden=[3], activation="tanh", form="kinetic-potential", seed=0)
+        flat.bind(3, 1, (0.04, 0.1, 0.1))
+        with torch.no_grad():
+            flat.net[-1].weight.zero_()
+        assert not not_affine(flat, k, 1, scale)
+        assert _AffineSlices.probe(flat, flat.stencil, 1, scale) is not None

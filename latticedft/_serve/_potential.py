@@ -30,7 +30,7 @@ from .._options import option
 from ._folded import FoldedSlices
 from ._slices import _SliceSystem
 
-__all__ = ["PotentialNet", "PotentialSlices", "potential_slices"]
+__all__ = ["PotentialNet", "PotentialSlices", "not_affine", "potential_slices"]
 
 log = logging.getLogger("latticedft")
 
@@ -192,6 +192,44 @@ class PotentialSlices(FoldedSlices):
             gp, ev.lo, ev.hi, self.site_of, self.upper, self.hess, ev.vlo, self.rows, vol, self.el, r
         )
         return ev, r
+
+
+def _second(model: KineticPotentialMLPLagrangian, x: np.ndarray) -> np.ndarray:
+    """``V''(x)`` of a scalar field's potential at the values ``x`` (1-D), by second-order forward mode
+    through the network."""
+    act, _ = _ACTS[model.activation]
+    lin = [layer for layer in model.net if isinstance(layer, torch.nn.Linear)]
+    y = ((x - float(model.in_center[0])) / float(model.in_scale[0]))[:, None]
+    dy, d2y = np.full_like(y, 1.0 / float(model.in_scale[0])), np.zeros_like(y)
+    for layer in lin[:-1]:
+        w, b = _np(layer.weight).T, _np(layer.bias)
+        z, dz, d2z = y @ w + b, dy @ w, d2y @ w
+        a = act(z)
+        slope = 1.0 - a * a if model.activation == "tanh" else a * (1.0 - a)
+        curve = -2.0 * a * slope if model.activation == "tanh" else slope * (1.0 - 2.0 * a)
+        y, dy, d2y = a, slope * dz, curve * dz * dz + slope * d2z
+    out: np.ndarray = float(model.out_scale) * (d2y @ _np(lin[-1].weight)[0])
+    return out
+
+
+def not_affine(model: Any, k: int, m: int, scale: float) -> bool:
+    """Whether the affine recurrence's probe (``_affine._AffineSlices.probe``: Hessian blocks at random cells of
+    size ``scale``) would find a kinetic-potential MLP's DEL not affine, known from its closed forms without
+    autograd: ``V''`` varies between the probe's states by a hundred times its tolerance (round-off cannot
+    decide it). ``False`` where unsure (the probe then runs): outside ``compiled_numpy_models``, for another
+    model, activation, network inputs or a field of several components."""
+    if not (option("compiled_numpy_models") and option("compiled_kernels")) or m != 1:
+        return False
+    if not isinstance(model, KineticPotentialMLPLagrangian) or model.features != "values":
+        return False
+    if model.activation not in _ACTS:
+        return False
+    gen = torch.Generator().manual_seed(12345)  # the probe's states
+    x = (scale * (2 * torch.rand(3, 4, k, m, generator=gen, dtype=torch.float64) - 1)).numpy().reshape(-1)
+    second = _second(model, np.concatenate([[0.0], x]))
+    h0 = _kinetic_hessian(model, k, m) - np.diag(np.full(k, second[0] / k))
+    big = float(np.abs(h0).max())
+    return big > 0.0 and float(np.abs(second[1:] - second[0]).max()) / k > 1e-8 * big  # the probe: 1e-10
 
 
 def potential_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> PotentialSlices | None:
