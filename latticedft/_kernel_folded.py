@@ -289,10 +289,27 @@ def layer_in(x, center, scale, w, b, out):
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
 def act_slope(a, d, kind):
-    for s in range(a.shape[0]):
-        for j in range(a.shape[1]):
-            v = a[s, j]
-            a[s, j] = d[s, j] * (1.0 - v * v) if kind == 0 else d[s, j] * (v * (1.0 - v))
+    x = a.reshape(-1)
+    y = d.reshape(-1)
+    if kind == 0:
+        for s in range(x.shape[0]):
+            x[s] = y[s] * (1.0 - x[s] * x[s])
+    else:
+        for s in range(x.shape[0]):
+            x[s] = y[s] * (x[s] * (1.0 - x[s]))
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def act_slope_row(a, d, kind):
+    h = d.shape[0]
+    if kind == 0:
+        for s in range(a.shape[0]):
+            for j in range(h):
+                a[s, j] = d[j] * (1.0 - a[s, j] * a[s, j])
+    else:
+        for s in range(a.shape[0]):
+            for j in range(h):
+                a[s, j] = d[j] * (a[s, j] * (1.0 - a[s, j]))
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
@@ -329,10 +346,10 @@ _FOLDED = _FOLDED.replace("{cells}", _FOLDED_CELLS.replace("{monomials}", _GENER
 
 def folded_kernels() -> Any:
     """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``horner_cells``,
-    ``scatter``, ``predict``, ``update``, ``excess``; ``quadratic_residual``, ``quadratic_grad``, ``layer_in``
-    and ``act_slope`` for an ``L_d`` quadratic but for a network's one-site terms, ``._serve._potential``),
-    built on first use and cached as the others (one build per machine, for every polynomial); ``None``, with
-    one info line, where numba cannot build it."""
+    ``scatter``, ``predict``, ``update``, ``excess``; ``quadratic_residual``, ``quadratic_grad``, ``layer_in``,
+    ``act_slope`` and ``act_slope_row`` for an ``L_d`` quadratic but for a network's one-site terms,
+    ``._serve._potential``), built on first use and cached as the others (one build per machine, for every
+    polynomial); ``None``, with one info line, where numba cannot build it."""
     return _folded_module(_FOLDED, "folded polynomial")
 
 
@@ -407,6 +424,6 @@ def _build_folded(key: str, source: str, shape: tuple[int, int]) -> tuple[Any, s
     mod.quadratic_grad(one, one, idx, up, one, one, one, np.empty((1, 1)))
     mod.layer_in(one, np.zeros(1), np.ones(1), one, np.zeros(1), np.empty((1, 1)))
     mod.act_slope(np.zeros((1, 1)), one, 0)
-    mod.act_slope(np.zeros((1, 1)), np.broadcast_to(np.zeros(1), (1, 1)), 0)
+    mod.act_slope_row(np.zeros((1, 1)), np.zeros(1), 0)
     mod.excess(np.zeros((2, 1, 1)), idx, up, one, np.zeros(1), np.ones(1), np.ones(1), np.empty((1, 1)))
     return mod, how

@@ -79,9 +79,9 @@ class PotentialNet:
             np.matmul(y, w, out=z)
             z += b
             self.act(z)
-        d: np.ndarray = np.broadcast_to(self.out, bufs[-1].shape)
+        d: np.ndarray = self.out
         for k in range(len(self.layers) - 1, -1, -1):
-            self.mod.act_slope(bufs[k], d, self.kind)
+            (self.mod.act_slope if d.ndim == 2 else self.mod.act_slope_row)(bufs[k], d, self.kind)
             d = np.matmul(bufs[k], self.layers[k][0].T, out=backs[k - 1] if k else np.empty_like(x))
         d *= self.factor
         return d
