@@ -5,10 +5,12 @@ points of a network potential ``V`` of one site's values. So the gradient of a c
 kinetic Hessian, minus ``V'`` of each point's site over ``K``: ``V'`` is needed once per site of a slice, not
 once per stencil point of every cell, and once per slice, not per Newton iteration (the DEL of slice ``i``
 reads ``V'`` on slice ``i`` only; the unknowns of slice ``i + 1`` enter it through the kinetic part). ``V'``
-comes from one forward and one backward pass of the network written out in numpy (one matrix product per
-layer over all the sites), instead of autograd over every cell. The residual is scattered, and the predictor
-and range check made, by the folded polynomial's kernels (``._folded``); a fresh Jacobian's Hessian blocks
-(the first slice's) still come from autograd.
+comes from one forward and one backward pass of the network written out (numpy's matrix products and
+activation, compiled passes for the first layer and the activations' derivative), instead of autograd over
+every cell. The residual and the cells' gradients come from compiled passes of the folded polynomial's module
+(``quadratic_residual``, ``quadratic_grad``), the predictor and range check from ``._folded``; the Hessian
+blocks slice-Newton asks for (of two points on two slices) are the kinetic Hessian's. :func:`not_affine`
+answers the affine recurrence's probe from the same closed forms where they decide it.
 
 The sums run in another order than autograd's, so the fields differ from the default path's by round-off:
 this path is taken only where ``set_options(compiled_numpy_models=True)`` asks, as the folded polynomial's.
@@ -111,21 +113,22 @@ def _kinetic_hessian(model: KineticPotentialMLPLagrangian, k: int, m: int) -> np
 
 
 #: Per model, its closed forms with the parameters and buffers they were built from.
-_FORMS: weakref.WeakKeyDictionary[Any, tuple[list[tuple[torch.Tensor, int]], tuple[int, int], Any]] = (
+_FORMS: weakref.WeakKeyDictionary[Any, tuple[list[tuple[torch.Tensor, int]], tuple[Any, ...], Any]] = (
     weakref.WeakKeyDictionary()
 )
 
 
 def _closed_forms(model: KineticPotentialMLPLagrangian, mod: Any, k: int, m: int) -> tuple[PotentialNet, np.ndarray]:
-    """``(PotentialNet(model, mod), kinetic Hessian)``, built once per model state and cell shape."""
+    """``(PotentialNet(model, mod), kinetic Hessian)``, built once per model state, cell shape and spacing."""
     state = [(t, t._version) for t in [*model.parameters(), *model.buffers()]]
     known = _FORMS.get(model)
-    same = known is not None and known[1] == (k, m) and len(known[0]) == len(state)
+    key = (k, m, tuple(float(h) for h in model.spacing))  # the kinetic Hessian holds the spacing
+    same = known is not None and known[1] == key and len(known[0]) == len(state)
     if known is not None and same and all(a is b and u == v for (a, u), (b, v) in zip(known[0], state)):
         forms: tuple[PotentialNet, np.ndarray] = known[2]
         return forms
     built = (PotentialNet(model, mod), _kinetic_hessian(model, k, m))
-    _FORMS[model] = (state, (k, m), built)
+    _FORMS[model] = (state, key, built)
     return built
 
 
