@@ -118,28 +118,6 @@ def predict(prev, cur, nxt, older, rows):
     return top
 
 
-@numba.njit(cache=True, error_model='numpy', nogil=True)
-def excess(values, site_of, upper, proj, lo, hi, span, out):
-    nf, k = proj.shape
-    m = values.shape[2]
-    x = np.empty((k, m))
-    for i in range(values.shape[0] - 1):
-        for q in range(nf * m):
-            out[i, q] = 0.0
-        for n in range(site_of.shape[1]):
-            for a in range(k):
-                for c in range(m):
-                    x[a, c] = values[i + upper[a], site_of[a, n], c]
-            for p in range(nf):
-                for c in range(m):
-                    f = 0.0
-                    for a in range(k):
-                        f += proj[p, a] * x[a, c]
-                    q = p * m + c
-                    e = math.inf if f != f else max(max(lo[q] - f, f - hi[q]), 0.0) / span[q]
-                    out[i, q] = max(out[i, q], e)
-
-
 @numba.njit(cache=True, error_model='numpy', nogil=True, fastmath={'contract'})
 def horner_cells(lo, hi, site_of, upper, w, shift, head, texp, coef, top, out):
     k = site_of.shape[0]
@@ -313,6 +291,25 @@ def act_slope_row(a, d, kind):
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
+def features(values, site_of, upper, proj, start, out):
+    nf, k = proj.shape
+    m = values.shape[2]
+    for r in range(out.shape[0]):
+        i = start + r
+        for p in range(nf):
+            for c in range(m):
+                row = out[r, p * m + c]
+                for n in range(row.shape[0]):
+                    row[n] = 0.0
+                for a in range(k):
+                    w = proj[p, a]
+                    src = values[i + upper[a]]
+                    col = site_of[a]
+                    for n in range(row.shape[0]):
+                        row[n] += w * src[col[n], c]
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
 def update(nxt, rows, delta):
     m = nxt.shape[1]
     top = 0.0
@@ -346,8 +343,8 @@ _FOLDED = _FOLDED.replace("{cells}", _FOLDED_CELLS.replace("{monomials}", _GENER
 
 def folded_kernels() -> Any:
     """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``horner_cells``,
-    ``scatter``, ``predict``, ``update``, ``excess``; ``quadratic_residual``, ``quadratic_grad``, ``layer_in``,
-    ``act_slope`` and ``act_slope_row`` for an ``L_d`` quadratic but for a network's one-site terms,
+    ``scatter``, ``predict``, ``update``, ``features``; ``quadratic_residual``, ``quadratic_grad``,
+    ``layer_in``, ``act_slope`` and ``act_slope_row`` for an ``L_d`` quadratic but for a network's one-site terms,
     ``._serve._potential``), built on first use and cached as the others (one build per machine, for every
     polynomial); ``None``, with one info line, where numba cannot build it."""
     return _folded_module(_FOLDED, "folded polynomial")
@@ -418,6 +415,7 @@ def _build_folded(key: str, source: str, shape: tuple[int, int]) -> tuple[Any, s
     mod.predict(one, one, one, one, rows)
     mod.predict(one, one, one, np.zeros((0, 1)), rows)
     mod.update(one, rows, np.zeros(1))
+    mod.features(np.zeros((2, 1, 1)), idx, up, one, 0, np.empty((1, 1, 1)))
     mod.quadratic_residual(one, one, one, idx, up, one, one, rows, 1.0, np.empty((1, 1)), np.empty(1))
     texp, coef, top = np.zeros((1, 1), dtype=np.int64), np.zeros((1, 1, 1)), np.zeros((1, 1), dtype=np.int64)
     mod.horner_cells(one, one, idx, up, one, np.zeros(1), 0, texp, coef, top, np.empty((1, 1)))
@@ -425,5 +423,4 @@ def _build_folded(key: str, source: str, shape: tuple[int, int]) -> tuple[Any, s
     mod.layer_in(one, np.zeros(1), np.ones(1), one, np.zeros(1), np.empty((1, 1)))
     mod.act_slope(np.zeros((1, 1)), one, 0)
     mod.act_slope_row(np.zeros((1, 1)), np.zeros(1), 0)
-    mod.excess(np.zeros((2, 1, 1)), idx, up, one, np.zeros(1), np.ones(1), np.ones(1), np.empty((1, 1)))
     return mod, how

@@ -164,9 +164,9 @@ class FoldedSlices:
         self.mod.predict(flat[i - 1].numpy(), flat[i].numpy(), flat[i + 1].numpy(), old, self.rows)
 
     def excess(self, model: Any, values: torch.Tensor) -> np.ndarray | None:
-        """``(slices - 1, features)``: ``_range._excess`` of the served ``values`` ``(slices, *sites, m)`` in one
-        compiled pass (the cells' stencil mean and differences against ``model``'s training range); ``None``
-        without a range."""
+        """``(slices - 1, features)``: ``_range._excess`` of the served ``values`` ``(slices, *sites, m)``: the cells'
+        stencil mean and differences in a compiled pass, their extremes per slice against ``model``'s training
+        range; ``None`` without a range."""
         rng = model.trained_range()
         if rng is None or values.dtype != torch.float64 or not values.is_contiguous():
             return None
@@ -175,10 +175,27 @@ class FoldedSlices:
         span = torch.maximum(hi - lo, 1e-12 * torch.maximum(lo.abs(), hi.abs())).clamp_min(1e-300)  # as _excess
         proj = np.ascontiguousarray(model.proj.detach().to(torch.float64).numpy())
         flat = values.numpy().reshape(values.shape[0], -1, self.m)
-        out = np.empty((values.shape[0] - 1, lo.numel()))
-        parts = [np.ascontiguousarray(t.reshape(-1).numpy()) for t in (lo, hi, span)]
-        self.mod.excess(flat, self.site_of, self.upper, proj, *parts, out)
+        low, high, size = (t.reshape(-1).numpy() for t in (lo, hi, span))
+        fmin, fmax = self._feature_range(flat, proj)
+        # the largest excess over the cells from the features' extremes: subtraction and division by a positive
+        # span are monotone, so this is the per-cell maximum to the bit (+ 0.0: no negative zero)
+        out: np.ndarray = np.maximum(np.maximum(low - fmin, fmax - high), 0.0) / size + 0.0
+        out[np.isnan(fmin) | np.isnan(fmax)] = np.inf
         return out
+
+    def _feature_range(self, flat: np.ndarray, proj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per slice but the last and feature (``(slices - 1, features)``), the least and largest value of the
+        feature over the cells anchored on the slice (a not-a-number wherever one is), a few slices a pass."""
+        nq, ncell = proj.shape[0] * self.m, self.site_of.shape[1]
+        fmin, fmax = np.empty((flat.shape[0] - 1, nq)), np.empty((flat.shape[0] - 1, nq))
+        rows = max(1, (1 << 21) // max(1, nq * ncell))
+        buf = np.empty((min(rows, fmin.shape[0]), nq, ncell))
+        for start in range(0, fmin.shape[0], rows):
+            part = buf[: min(rows, fmin.shape[0] - start)]
+            self.mod.features(flat, self.site_of, self.upper, proj, start, part)
+            fmin[start : start + part.shape[0]] = part.min(axis=2)
+            fmax[start : start + part.shape[0]] = part.max(axis=2)
+        return fmin, fmax
 
     def evaluate(self, flat: torch.Tensor, vol: float, i: int, g_prev: Any) -> tuple[FoldedCells, np.ndarray]:
         """The cells anchored on slice ``i`` at the current state and the slice's DEL residual on its equation
