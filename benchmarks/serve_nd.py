@@ -445,7 +445,8 @@ def _notes(table: Table, cfg: Config, before: str, builds: dict[int, tuple[float
         "cases/sine-gordon) learned by exact least squares on a small sine-Gordon field of the same dimension; "
         "its last-slice column is the learned model's error. 'analytic' is the sine-Gordon L_d written in closed form "
         "(`AnalyticLagrangian` with its sympy `closed_form`); it serves the leapfrog exactly (round-off). 'MLP' is "
-        "trained briefly (a timing, not an accurate model).",
+        "trained briefly (a timing, not an accurate model) and served with `compiled_numpy_models` (its "
+        "potential's derivative in closed form, batched over sites).",
         "Peak RSS: the kernel's high-water mark reset before serving (the process's whole memory, inputs included).",
     ]
 

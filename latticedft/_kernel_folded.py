@@ -118,22 +118,195 @@ def predict(prev, cur, nxt, older, rows):
     return top
 
 
+@numba.njit(cache=True, error_model='numpy', nogil=True, fastmath={'contract'})
+def horner_cells(lo, hi, site_of, upper, w, shift, head, texp, coef, top, out):
+    k = site_of.shape[0]
+    m = lo.shape[1]
+    nvar = w.shape[1]
+    ncell = site_of.shape[1]
+    ntail, cols, _ = coef.shape
+    wmax = 2
+    for t in range(ntail):
+        for v in range(nvar):
+            wmax = max(wmax, texp[t, v] + 1)
+    ch = _CHUNK
+    x = np.empty((k * m, ch))
+    z = np.empty((nvar, ch))
+    pw = np.empty((nvar, wmax, ch))
+    tv = np.empty(ch)
+    p = np.empty(ch)
+    zh = np.empty(ch)
+    acc = np.empty((cols, ch))
+    for start in range(0, ncell, ch):
+        n = min(ch, ncell - start)
+        for a in range(k):
+            src = hi if upper[a] else lo
+            for j in range(n):
+                s = site_of[a, start + j]
+                for c in range(m):
+                    x[a * m + c, j] = src[s, c]
+        for v in range(nvar):
+            for j in range(n):
+                z[v, j] = 0.0
+            for r in range(k * m):
+                wr = w[r, v]
+                if wr != 0.0:
+                    for j in range(n):
+                        z[v, j] += x[r, j] * wr
+            for j in range(n):
+                z[v, j] -= shift[v]
+                pw[v, 0, j] = 1.0
+                pw[v, 1, j] = z[v, j]
+            for e in range(2, wmax):
+                for j in range(n):
+                    pw[v, e, j] = pw[v, e - 1, j] * z[v, j]
+        for j in range(n):
+            zh[j] = z[head, j]
+        for c in range(cols):
+            for j in range(n):
+                acc[c, j] = 0.0
+        for t in range(ntail):
+            for j in range(n):
+                tv[j] = 1.0
+            for v in range(nvar):
+                e = texp[t, v]
+                if e:
+                    for j in range(n):
+                        tv[j] *= pw[v, e, j]
+            for c in range(cols):
+                d = top[t, c]
+                if d < 0:
+                    continue
+                ct = coef[t, c, d]
+                for j in range(n):
+                    p[j] = ct
+                e = d - 1
+                while e >= 3:  # four steps of Horner per pass over the cells: a quarter of the stores
+                    c0, c1, c2, c3 = coef[t, c, e], coef[t, c, e - 1], coef[t, c, e - 2], coef[t, c, e - 3]
+                    for j in range(n):
+                        y = zh[j]
+                        p[j] = (((p[j] * y + c0) * y + c1) * y + c2) * y + c3
+                    e -= 4
+                while e >= 0:
+                    ce = coef[t, c, e]
+                    for j in range(n):
+                        p[j] = p[j] * zh[j] + ce
+                    e -= 1
+                for j in range(n):
+                    acc[c, j] += tv[j] * p[j]
+        for j in range(n):
+            for c in range(cols):
+                out[start + j, c] = acc[c, j]
+
+
 @numba.njit(cache=True, error_model='numpy', nogil=True)
-def excess(values, site_of, upper, proj, lo, hi, span, out):
+def quadratic_residual(gprev, lo, hi, site_of, upper, hess, vlo, rows, vol, el, r):
+    m = el.shape[1]
+    km = site_of.shape[0] * m
+    el[:] = 0.0
+    x = np.empty(km)
+    for a in range(site_of.shape[0]):
+        if upper[a]:
+            for n in range(site_of.shape[1]):
+                s = site_of[a, n]
+                for c in range(m):
+                    el[s, c] += gprev[n, a * m + c]
+    for n in range(site_of.shape[1]):
+        for a in range(site_of.shape[0]):
+            src = hi if upper[a] else lo
+            s = site_of[a, n]
+            for c in range(m):
+                x[a * m + c] = src[s, c]
+        for a in range(site_of.shape[0]):
+            if not upper[a]:
+                s = site_of[a, n]
+                for c in range(m):
+                    q = a * m + c
+                    g = vlo[s, c]
+                    for b in range(km):
+                        g += x[b] * hess[b, q]
+                    el[s, c] += g
+    for q in range(rows.shape[0]):
+        for c in range(m):
+            r[q * m + c] = vol * el[rows[q], c]
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def quadratic_grad(lo, hi, site_of, upper, hess, vlo, vhi, out):
+    m = lo.shape[1]
+    km = site_of.shape[0] * m
+    x = np.empty(km)
+    for n in range(site_of.shape[1]):
+        for a in range(site_of.shape[0]):
+            src = hi if upper[a] else lo
+            s = site_of[a, n]
+            for c in range(m):
+                x[a * m + c] = src[s, c]
+        for a in range(site_of.shape[0]):
+            v = vhi if upper[a] else vlo
+            s = site_of[a, n]
+            for c in range(m):
+                q = a * m + c
+                g = v[s, c]
+                for b in range(km):
+                    g += x[b] * hess[b, q]
+                out[n, q] = g
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def layer_in(x, center, scale, w, b, out):
+    m = x.shape[1]
+    for s in range(x.shape[0]):
+        for j in range(w.shape[1]):
+            out[s, j] = b[j]
+        for c in range(m):
+            y = (x[s, c] - center[c]) / scale[c]
+            for j in range(w.shape[1]):
+                out[s, j] += y * w[c, j]
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def act_slope(a, d, kind):
+    x = a.reshape(-1)
+    y = d.reshape(-1)
+    if kind == 0:
+        for s in range(x.shape[0]):
+            x[s] = y[s] * (1.0 - x[s] * x[s])
+    else:
+        for s in range(x.shape[0]):
+            x[s] = y[s] * (x[s] * (1.0 - x[s]))
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def act_slope_row(a, d, kind):
+    h = d.shape[0]
+    if kind == 0:
+        for s in range(a.shape[0]):
+            for j in range(h):
+                a[s, j] = d[j] * (1.0 - a[s, j] * a[s, j])
+    else:
+        for s in range(a.shape[0]):
+            for j in range(h):
+                a[s, j] = d[j] * (a[s, j] * (1.0 - a[s, j]))
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def features(values, site_of, upper, proj, start, out):
     nf, k = proj.shape
     m = values.shape[2]
-    for i in range(values.shape[0] - 1):
-        for q in range(nf * m):
-            out[i, q] = 0.0
-        for n in range(site_of.shape[1]):
-            for p in range(nf):
-                for c in range(m):
-                    f = 0.0
-                    for a in range(k):
-                        f += proj[p, a] * values[i + upper[a], site_of[a, n], c]
-                    q = p * m + c
-                    e = math.inf if f != f else max(max(lo[q] - f, f - hi[q]), 0.0) / span[q]
-                    out[i, q] = max(out[i, q], e)
+    for r in range(out.shape[0]):
+        i = start + r
+        for p in range(nf):
+            for c in range(m):
+                row = out[r, p * m + c]
+                for n in range(row.shape[0]):
+                    row[n] = 0.0
+                for a in range(k):
+                    w = proj[p, a]
+                    src = values[i + upper[a]]
+                    col = site_of[a]
+                    for n in range(row.shape[0]):
+                        row[n] += w * src[col[n], c]
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
@@ -169,8 +342,10 @@ _FOLDED = _FOLDED.replace("{cells}", _FOLDED_CELLS.replace("{monomials}", _GENER
 
 
 def folded_kernels() -> Any:
-    """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``scatter``, ``predict``,
-    ``update``, ``excess``), built on first use and cached as the others (one build per machine, for every
+    """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``horner_cells``,
+    ``scatter``, ``predict``, ``update``, ``features``; ``quadratic_residual``, ``quadratic_grad``,
+    ``layer_in``, ``act_slope`` and ``act_slope_row`` for an ``L_d`` quadratic but for a network's one-site terms,
+    ``._serve._potential``), built on first use and cached as the others (one build per machine, for every
     polynomial); ``None``, with one info line, where numba cannot build it."""
     return _folded_module(_FOLDED, "folded polynomial")
 
@@ -240,5 +415,12 @@ def _build_folded(key: str, source: str, shape: tuple[int, int]) -> tuple[Any, s
     mod.predict(one, one, one, one, rows)
     mod.predict(one, one, one, np.zeros((0, 1)), rows)
     mod.update(one, rows, np.zeros(1))
-    mod.excess(np.zeros((2, 1, 1)), idx, up, one, np.zeros(1), np.ones(1), np.ones(1), np.empty((1, 1)))
+    mod.features(np.zeros((2, 1, 1)), idx, up, one, 0, np.empty((1, 1, 1)))
+    mod.quadratic_residual(one, one, one, idx, up, one, one, rows, 1.0, np.empty((1, 1)), np.empty(1))
+    texp, coef, top = np.zeros((1, 1), dtype=np.int64), np.zeros((1, 1, 1)), np.zeros((1, 1), dtype=np.int64)
+    mod.horner_cells(one, one, idx, up, one, np.zeros(1), 0, texp, coef, top, np.empty((1, 1)))
+    mod.quadratic_grad(one, one, idx, up, one, one, one, np.empty((1, 1)))
+    mod.layer_in(one, np.zeros(1), np.ones(1), one, np.zeros(1), np.empty((1, 1)))
+    mod.act_slope(np.zeros((1, 1)), one, 0)
+    mod.act_slope_row(np.zeros((1, 1)), np.zeros(1), 0)
     return mod, how

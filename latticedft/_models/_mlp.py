@@ -360,6 +360,12 @@ class KineticPotentialMLPLagrangian(MLPLagrangian):
         self.stiffness = torch.nn.Parameter(torch.ones(self.n - 1, dtype=torch.float64))
 
     def forward(self, cells: torch.Tensor) -> torch.Tensor:
+        lag = self.kinetic(cells)
+        potential = self._net(self._inputs(cells)).mean(-1)  # mean over the K stencil sites
+        return lag - potential
+
+    def kinetic(self, cells: torch.Tensor) -> torch.Tensor:
+        """The kinetic and gradient terms of ``L_d`` on ``cells`` (``(..., K, m)``): quadratic in the values."""
         # kinetic term from the time edge psi[x+e0] - psi[x]: its mixed Hessian is -I/h0^2 on every stencil;
         # spatial terms from the edges psi[x+e_k] - psi[x] when present, else the stencil's least-squares slope
         z = self.mean_and_differences(cells)  # (..., n+1, m)
@@ -371,8 +377,7 @@ class KineticPotentialMLPLagrangian(MLPLagrangian):
             edge = self._edge(k)
             dk = cells[..., edge, :] - x0 if edge is not None else z[..., k + 1, :]
             lag = lag - 0.5 * self.stiffness[k - 1] * (dk**2).sum(-1) / h[k] ** 2
-        potential = self._net(self._inputs(cells)).mean(-1)  # mean over the K stencil sites
-        return lag - potential
+        return lag
 
     def _formula(self) -> list[str]:
         lines = ["  L_d = |D_t psi|^2 / (2 h_t^2) - sum_k w_k |D_k psi|^2 / (2 h_k^2) - mean over stencil of V(psi)"]

@@ -14,6 +14,7 @@ from .._action import cell_derivatives, compiled_closed_forms, del_residual
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
 from .._options import option
+from ._potential import not_affine
 from ._slices import _SliceSystem, is_singular
 
 log = logging.getLogger("latticedft")
@@ -199,6 +200,8 @@ def _affine_prefix(
     if compiled is not None and not compiled.quadratic:  # not affine by its form: no probe needed
         return None
     scale = float(f.values[:2].abs().max()) or 1.0
+    if not_affine(model, sys.st.size, m, scale):  # a kinetic-potential MLP's closed forms answer the probe
+        return None
     probe = _AffineSlices.probe(model, sys.st, m, scale)
     if probe is None:
         return None

@@ -24,6 +24,7 @@ from ._folded import FoldedSlices, folded_slices
 from ._fused import KEPT_BYTES, FusedSlices, fused_slices
 from ._newton import _newton_slice
 from ._options import ServeOptions
+from ._potential import potential_slices
 from ._range import assess
 from ._result import ServeResult, _bar
 from ._slices import _site_label, _SliceSystem, is_singular
@@ -266,10 +267,11 @@ def _device_of(run: Any) -> _ondevice.DeviceSlices | None:
 
 
 def _folded_of(run: Any) -> FoldedSlices | None:
-    """The folded polynomial kernels of ``run`` (:mod:`._folded`), or ``None`` where they do not serve it."""
+    """The folded polynomial kernels of ``run`` (:mod:`._folded`) or a kinetic-potential MLP's closed forms on
+    them (:mod:`._potential`), or ``None`` where neither serves it."""
     cache = run.cache
     if "folded" not in cache:
-        cache["folded"] = folded_slices(run.model, run.sys, run.flat)
+        cache["folded"] = folded_slices(run.model, run.sys, run.flat) or potential_slices(run.model, run.sys, run.flat)
     folded: FoldedSlices | None = cache["folded"]
     return folded
 

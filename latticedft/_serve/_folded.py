@@ -48,6 +48,32 @@ def _data(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[np
     )
 
 
+def _horner(data: tuple[np.ndarray, ...]) -> tuple[Any, ...]:
+    """``(w, shift, head, texp, coef, top)``: the folded forms ``(w, shift, expo, gc)`` as polynomials in one
+    variable (``head``, the one of highest degree) per tail (the monomial of the others, ``texp`` ``(tails, V)``
+    with the head's exponent 0): ``coef[tail, column, e]`` the coefficient of ``z_head^e``, ``top[tail, column]``
+    its degree (``-1``: none)."""
+    w, shift, expo, gc = data
+    head = int(np.argmax(expo.max(axis=0))) if expo.size else 0
+    rest = expo.copy()
+    if rest.size:
+        rest[:, head] = 0
+    texp, which = np.unique(rest, axis=0, return_inverse=True)
+    deg = int(expo[:, head].max()) if expo.size else 0
+    coef = np.zeros((texp.shape[0], gc.shape[1], deg + 1))
+    coef[which.reshape(-1), :, expo[:, head] if expo.size else 0] = gc
+    nonzero = coef != 0
+    top = np.where(nonzero.any(axis=2), deg - np.argmax(nonzero[:, :, ::-1], axis=2), -1)
+    return (
+        w,
+        shift,
+        head,
+        np.ascontiguousarray(texp, dtype=np.int64),
+        np.ascontiguousarray(coef),
+        np.ascontiguousarray(top, dtype=np.int64),
+    )
+
+
 #: Per model, the folded data for its pairs with the parameters and buffers they were built from.
 _DATA: weakref.WeakKeyDictionary[Any, tuple[list[tuple[torch.Tensor, int]], tuple[Any, ...], tuple[Any, Any]]] = (
     weakref.WeakKeyDictionary()
@@ -107,14 +133,24 @@ class FoldedSlices:
         self.grad_data, self.both_data = grad_data, both_data
         self.el = np.empty((sys.nsite, sys.m))
         self.cells: dict[tuple[int, int], Any] = {}  # the folded_cells kernel per (variables, columns)
+        self.horner: dict[int, tuple[Any, ...] | None] = {}  # per data (its id): its Horner forms, if chosen
 
     def columns(self, lo: np.ndarray, hi: np.ndarray, data: tuple[np.ndarray, ...]) -> np.ndarray:
-        """The folded forms' columns on every cell anchored on slice ``lo`` (``hi``: the next one), by the
-        kernel of the polynomial's class where it builds, else the generic one."""
+        """The folded forms' columns on every cell anchored on slice ``lo`` (``hi``: the next one): by Horner's
+        rule in the head variable (``horner_cells``) where that takes fewer products than the monomials, else
+        by the monomial kernel of the polynomial's class where it builds, else the generic one."""
         nvar, cols = data[0].shape[1], data[3].shape[1]
+        out = np.empty((self.site_of.shape[1], cols))
+        if id(data) not in self.horner:
+            built = _horner(data)
+            fewer = int((built[5] + 1).sum()) <= data[2].shape[0] * (cols + nvar)
+            self.horner[id(data)] = built if fewer else None
+        forms = self.horner[id(data)]
+        if forms is not None:
+            self.mod.horner_cells(lo, hi, self.site_of, self.upper, *forms, out)
+            return out
         if (nvar, cols) not in self.cells:
             self.cells[(nvar, cols)] = folded_cells_kernel(nvar, cols) or self.mod.folded_cells
-        out = np.empty((self.site_of.shape[1], cols))
         self.cells[(nvar, cols)](lo, hi, self.site_of, self.upper, *data, out)
         return out
 
@@ -128,9 +164,9 @@ class FoldedSlices:
         self.mod.predict(flat[i - 1].numpy(), flat[i].numpy(), flat[i + 1].numpy(), old, self.rows)
 
     def excess(self, model: Any, values: torch.Tensor) -> np.ndarray | None:
-        """``(slices - 1, features)``: ``_range._excess`` of the served ``values`` ``(slices, *sites, m)`` in one
-        compiled pass (the cells' stencil mean and differences against ``model``'s training range); ``None``
-        without a range."""
+        """``(slices - 1, features)``: ``_range._excess`` of the served ``values`` ``(slices, *sites, m)``: the cells'
+        stencil mean and differences in a compiled pass, their extremes per slice against ``model``'s training
+        range; ``None`` without a range."""
         rng = model.trained_range()
         if rng is None or values.dtype != torch.float64 or not values.is_contiguous():
             return None
@@ -139,10 +175,27 @@ class FoldedSlices:
         span = torch.maximum(hi - lo, 1e-12 * torch.maximum(lo.abs(), hi.abs())).clamp_min(1e-300)  # as _excess
         proj = np.ascontiguousarray(model.proj.detach().to(torch.float64).numpy())
         flat = values.numpy().reshape(values.shape[0], -1, self.m)
-        out = np.empty((values.shape[0] - 1, lo.numel()))
-        parts = [np.ascontiguousarray(t.reshape(-1).numpy()) for t in (lo, hi, span)]
-        self.mod.excess(flat, self.site_of, self.upper, proj, *parts, out)
+        low, high, size = (t.reshape(-1).numpy() for t in (lo, hi, span))
+        fmin, fmax = self._feature_range(flat, proj)
+        # the largest excess over the cells from the features' extremes: subtraction and division by a positive
+        # span are monotone, so this is the per-cell maximum to the bit (+ 0.0: no negative zero)
+        out: np.ndarray = np.maximum(np.maximum(low - fmin, fmax - high), 0.0) / size + 0.0
+        out[np.isnan(fmin) | np.isnan(fmax)] = np.inf
         return out
+
+    def _feature_range(self, flat: np.ndarray, proj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per slice but the last and feature (``(slices - 1, features)``), the least and largest value of the
+        feature over the cells anchored on the slice (a not-a-number wherever one is), a few slices a pass."""
+        nq, ncell = proj.shape[0] * self.m, self.site_of.shape[1]
+        fmin, fmax = np.empty((flat.shape[0] - 1, nq)), np.empty((flat.shape[0] - 1, nq))
+        rows = max(1, (1 << 21) // max(1, nq * ncell))
+        buf = np.empty((min(rows, fmin.shape[0]), nq, ncell))
+        for start in range(0, fmin.shape[0], rows):
+            part = buf[: min(rows, fmin.shape[0] - start)]
+            self.mod.features(flat, self.site_of, self.upper, proj, start, part)
+            fmin[start : start + part.shape[0]] = part.min(axis=2)
+            fmax[start : start + part.shape[0]] = part.max(axis=2)
+        return fmin, fmax
 
     def evaluate(self, flat: torch.Tensor, vol: float, i: int, g_prev: Any) -> tuple[FoldedCells, np.ndarray]:
         """The cells anchored on slice ``i`` at the current state and the slice's DEL residual on its equation

@@ -1,0 +1,139 @@
+"""A kinetic-potential MLP served with its derivatives in closed form (``_serve._potential``, opt-in by
+``compiled_numpy_models``) equals today's autograd path to round-off."""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+import xarray as xr
+
+import latticedft as ldft
+from latticedft import systems
+
+
+def _field(ndim: int, n: int, slices: int = 2, periodic: bool = True) -> xr.DataArray:
+    """A smooth field of ``n`` sites per axis, its first ``slices`` leapfrog slices of sine-Gordon."""
+    x = np.arange(n) / n
+    u = np.ones([n] * ndim)
+    for k in range(ndim):
+        u = u * np.sin(2 * np.pi * x + k).reshape([n if j == k else 1 for j in range(ndim)])
+    u = 0.8 * u
+    out = [u, u]
+    c = (0.04 / 0.1) ** 2
+    for _ in range(slices - 2):
+        b = out[-1]
+        lap = sum(np.roll(b, s, k) for k in range(ndim) for s in (1, -1)) - 2 * ndim * b
+        out.append(2 * b - out[-2] + c * lap - 0.04**2 * np.sin(b))
+    dims = ("t", *"zyx"[3 - ndim :])
+    attrs = {d: {"periodic": "true" if periodic else "false", "period": n * 0.1} for d in dims[1:]}
+    return systems.make_field(np.stack(out), dims, spacing=(0.04, *[0.1] * ndim), coord_attrs=attrs)
+
+
+@functools.lru_cache(maxsize=4)
+def _mlp(ndim: int, activation: str = "tanh") -> ldft.MLPLagrangian:
+    model = ldft.MLPLagrangian(hidden=[6, 5], activation=activation, form="kinetic-potential", seed=1)
+    ldft.learn(model, _field(ndim, 6, slices=8), max_iter=5, progress=False)
+    return model
+
+
+def _both(model: ldft.MLPLagrangian, init: xr.DataArray, **keywords: Any) -> tuple[ldft.ServeResult, ldft.ServeResult]:
+    with ldft.set_options(compiled_numpy_models=True):
+        fast = ldft.serve(model, init, progress=False, **keywords)
+    return fast, ldft.serve(model, init, progress=False, **keywords)
+
+
+@pytest.mark.parametrize(
+    ("ndim", "activation", "periodic", "keywords"),
+    [
+        (2, "tanh", True, {}),
+        (1, "sigmoid", True, {}),
+        (1, "tanh", False, {}),
+        (2, "tanh", True, {"every": 3}),
+    ],
+)
+def test_the_closed_form_potential_serves_as_autograd(
+    ndim: int, activation: str, periodic: bool, keywords: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from latticedft._serve import _potential
+
+    calls = []
+    evaluate = _potential.PotentialSlices.evaluate
+    monkeypatch.setattr(_potential.PotentialSlices, "evaluate", lambda s, *a: calls.append(1) or evaluate(s, *a))
+    model = _mlp(ndim, activation)
+    init = _field(ndim, 7, slices=2 if periodic else 10, periodic=periodic)  # Dirichlet: the whole field's strips
+    fast, slow = _both(model, init, slices=10, **keywords)
+    assert calls
+    a, b = np.asarray(fast.field.values), np.asarray(slow.field.values)
+    assert np.abs(a - b).max() <= 1e-12 * max(1.0, float(np.abs(b).max()))
+    assert fast.newton_iterations == slow.newton_iterations and fast.slice_solver == slow.slice_solver
+    assert fast.extrapolation is not None and slow.extrapolation is not None
+    assert np.allclose(fast.extrapolation.values, slow.extrapolation.values, rtol=1e-9, atol=1e-12)
+
+
+def test_two_components_serve_as_autograd() -> None:
+    def two(f: xr.DataArray) -> xr.DataArray:
+        out = xr.concat([f, 0.5 * f + 0.1], dim="component").transpose(..., "component")
+        return out.assign_coords(component=["a", "b"])
+
+    model = ldft.MLPLagrangian(hidden=[5], activation="tanh", form="kinetic-potential", seed=2)
+    ldft.learn(model, two(_field(1, 6, slices=8)), max_iter=5, progress=False)
+    fast, slow = _both(model, two(_field(1, 7)), slices=8)
+    a, b = np.asarray(fast.field.values), np.asarray(slow.field.values)
+    assert np.abs(a - b).max() <= 1e-12 * max(1.0, float(np.abs(b).max()))
+    assert fast.newton_iterations == slow.newton_iterations
+
+
+def test_the_potential_gradient_equals_autograd() -> None:
+    from latticedft._kernel_folded import folded_kernels
+    from latticedft._serve._potential import PotentialNet
+
+    model = _mlp(2)
+    x = torch.linspace(-2.0, 2.0, 41, dtype=torch.float64).reshape(-1, 1).requires_grad_(True)
+    (want,) = torch.autograd.grad(model._net(model._inputs(x)).sum(), x)
+    got = PotentialNet(model, folded_kernels()).grad(x.detach().numpy())
+    assert np.allclose(got, want.numpy(), rtol=1e-13, atol=1e-13 * float(want.abs().max()))
+
+
+def test_the_closed_form_potential_is_opt_in_and_falls_back() -> None:
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._potential import PotentialSlices, potential_slices
+    from latticedft._serve._slices import _SliceSystem
+
+    model = _mlp(1)
+    f = as_lattice_field(_field(1, 7), source="init", min_slices=2)
+    flat = f.values.reshape(2, -1, 1)
+    assert potential_slices(model, _SliceSystem(model, f), flat) is None  # off by default
+    with ldft.set_options(compiled_numpy_models=True):
+        assert isinstance(potential_slices(model, _SliceSystem(model, f), flat), PotentialSlices)
+        silu = ldft.MLPLagrangian(hidden=[4], activation="silu", form="kinetic-potential")
+        silu.bind(2, 1, (0.04, 0.1))
+        assert potential_slices(silu, _SliceSystem(silu, f), flat) is None  # no closed form: autograd serves
+
+
+def test_the_affine_probe_is_answered_by_the_closed_forms() -> None:
+    """Where the closed forms say the DEL is not affine, so does autograd's probe; a constant potential (an
+    affine DEL) is left to the probe."""
+    from latticedft._serve._affine import _AffineSlices
+    from latticedft._serve._potential import _second, not_affine
+
+    model = _mlp(2)
+    k, scale = model.stencil.size, 0.8
+    x = torch.linspace(-1.0, 1.0, 9, dtype=torch.float64).reshape(-1, 1).requires_grad_(True)
+    with torch.enable_grad():
+        (g,) = torch.autograd.grad(model._net(model._inputs(x)).sum(), x, create_graph=True)
+        (h,) = torch.autograd.grad(g.sum(), x)
+    assert np.allclose(_second(model, x.detach().numpy().reshape(-1)), h.numpy().reshape(-1), rtol=1e-12, atol=1e-12)
+    assert not not_affine(model, k, 1, scale)  # off by default
+    with ldft.set_options(compiled_numpy_models=True):
+        assert not_affine(model, k, 1, scale)
+        assert _AffineSlices.probe(model, model.stencil, 1, scale) is None
+        flat = ldft.MLPLagrangian(hidden=[3], activation="tanh", form="kinetic-potential", seed=0)
+        flat.bind(3, 1, (0.04, 0.1, 0.1))
+        with torch.no_grad():
+            flat.net[-1].weight.zero_()
+        assert not not_affine(flat, k, 1, scale)
+        assert _AffineSlices.probe(flat, flat.stencil, 1, scale) is not None
