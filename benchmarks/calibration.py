@@ -220,7 +220,10 @@ def measure(s: Setup, sigma: float) -> list[Any]:
         ens = ldft.EnsembleLagrangian(copy.deepcopy(fresh), members=MEMBERS, seed=0)
         ldft.learn(ens, train, boundary=s.boundary, progress=False, **own)
     t0 = time.perf_counter()
-    cal, _, trial = calibrate(fresh, train, boundary=s.boundary, runner_up=runner, ensemble_model=ens, **own)
+    held: list[dict[str, Any]] = []
+    cal, _, trial = calibrate(
+        fresh, train, boundary=s.boundary, runner_up=runner, ensemble_model=ens, record=held, **own
+    )
     t_cal = time.perf_counter() - t0
     pool = _Pool()
     for init, ref, slices, boundary in s.tests:
@@ -228,7 +231,7 @@ def measure(s: Setup, sigma: float) -> list[Any]:
     single, ensemble, raw, law = (pool.score(k) for k in ("single", "ensemble", "raw", "law"))
     cost = (t_sel + t_cal) / t_sel if t_sel else None
     if "record" in ONLY:
-        _record(ONLY["record"], s.label, sigma, cal, pool)
+        _record(ONLY["record"], s.label, sigma, cal, pool, held)
     return [
         s.label,
         sigma,
@@ -245,16 +248,19 @@ def measure(s: Setup, sigma: float) -> list[Any]:
     ]
 
 
-def _record(path: str, label: str, sigma: float, cal: Calibration, pool: _Pool) -> None:
-    """Append one row's per-slice record to the JSON file ``path`` (``--record``): the law, and per test field
-    (the two given slices excluded) the RMS error and every band (``trial``: the trial's disagreement)."""
+def _record(
+    path: str, label: str, sigma: float, cal: Calibration, pool: _Pool, held: list[dict[str, Any]] | None = None
+) -> None:
+    """Append one row's per-slice record to the JSON file ``path`` (``--record``): the law, the trial's held-out
+    samples (``held``, as :func:`latticedft._calibrate.calibrate` records them), and per test field (the two
+    given slices excluded) the RMS error and every band (``trial``: the trial's disagreement)."""
     file = Path(path)
     rows = json.loads(file.read_text()) if file.exists() else []
     tests = [
         {"error": e.tolist(), **{k: v[i].tolist() for k, v in pool.bands.items() if i < len(v)}}
         for i, e in enumerate(pool.err)
     ]
-    rows.append({"row": label, "noise": sigma, "law": cal.to_dict(), "tests": tests})
+    rows.append({"row": label, "noise": sigma, "law": cal.to_dict(), "held_out": held or [], "tests": tests})
     file.write_text(json.dumps(rows))
 
 

@@ -225,9 +225,10 @@ def test_calibration_record_appends_each_rows_per_slice_bands(tmp_path: Path) ->
     pool.add(np.arange(6.0), single=np.ones(6), trial=np.full(6, np.nan))
     path = tmp_path / "rows.json"
     for sigma in (0.0, 1e-3):
-        calibration._record(str(path), "a row", sigma, law, pool)
+        calibration._record(str(path), "a row", sigma, law, pool, [{"k": [2.0], "rel": [0.1]}])
     rows = json.loads(path.read_text())
     assert [r["noise"] for r in rows] == [0.0, 1e-3] and rows[0]["law"]["slices"] == 9
+    assert rows[1]["held_out"] == [{"k": [2.0], "rel": [0.1]}]
     assert rows[1]["tests"][0]["error"] == [2.0, 3.0, 4.0, 5.0] and rows[1]["tests"][0]["single"] == [1.0] * 4
     assert all(math.isnan(x) for x in rows[0]["tests"][0]["trial"])
     assert calibration._part(["--record", "x.json", "--quick"]) == ["--quick"] and calibration.ONLY.pop("record")
