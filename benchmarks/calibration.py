@@ -1,6 +1,7 @@
 """Calibrated error bars: does twice the served error estimate cover the error, with and without an ensemble?
 
     python -m benchmarks.calibration [--quick] [--cases A,B] [--sigmas 0,0.001] [--no-extra | --extra TEXT]
+        [--record FILE]
     python -m benchmarks --only calibration
 
 Rows: every repository case (``cases/*``, each its own ``case.toml`` model and data; the three without committed
@@ -27,6 +28,7 @@ over selection alone. ``--quick``: one small case (cases/oscillator-sin, clean) 
 from __future__ import annotations
 
 import copy
+import json
 import shutil
 import subprocess
 import sys
@@ -218,13 +220,18 @@ def measure(s: Setup, sigma: float) -> list[Any]:
         ens = ldft.EnsembleLagrangian(copy.deepcopy(fresh), members=MEMBERS, seed=0)
         ldft.learn(ens, train, boundary=s.boundary, progress=False, **own)
     t0 = time.perf_counter()
-    cal, _, trial = calibrate(fresh, train, boundary=s.boundary, runner_up=runner, ensemble_model=ens, **own)
+    held: list[dict[str, Any]] = []
+    cal, _, trial = calibrate(
+        fresh, train, boundary=s.boundary, runner_up=runner, ensemble_model=ens, record=held, **own
+    )
     t_cal = time.perf_counter() - t0
     pool = _Pool()
     for init, ref, slices, boundary in s.tests:
         _serve_test(pool, model, ens, trial, cal, _noisy(init, sigma, rng), ref, slices, boundary)
     single, ensemble, raw, law = (pool.score(k) for k in ("single", "ensemble", "raw", "law"))
     cost = (t_sel + t_cal) / t_sel if t_sel else None
+    if "record" in ONLY:
+        _record(ONLY["record"], s.label, sigma, cal, pool, held)
     return [
         s.label,
         sigma,
@@ -239,6 +246,22 @@ def measure(s: Setup, sigma: float) -> list[Any]:
         t_cal,
         cost,
     ]
+
+
+def _record(
+    path: str, label: str, sigma: float, cal: Calibration, pool: _Pool, held: list[dict[str, Any]] | None = None
+) -> None:
+    """Append one row's per-slice record to the JSON file ``path`` (``--record``): the law, the trial's held-out
+    samples (``held``, as :func:`latticedft._calibrate.calibrate` records them), and per test field (the two
+    given slices excluded) the RMS error and every band (``trial``: the trial's disagreement)."""
+    file = Path(path)
+    rows = json.loads(file.read_text()) if file.exists() else []
+    tests = [
+        {"error": e.tolist(), **{k: v[i].tolist() for k, v in pool.bands.items() if i < len(v)}}
+        for i, e in enumerate(pool.err)
+    ]
+    rows.append({"row": label, "noise": sigma, "law": cal.to_dict(), "held_out": held or [], "tests": tests})
+    file.write_text(json.dumps(rows))
 
 
 def _serve_test(
@@ -263,7 +286,7 @@ def _serve_test(
     other = disagreement(trial, start, pred, slices=slices, boundary=boundary)[:n]
     est = np.fmax(cal.estimate(np.arange(n), float(np.nanmax(np.abs(values)))), other)
     law = cal.estimate(np.arange(n), float(np.nanmax(np.abs(values))))
-    bands = {"single": est, "law": law}
+    bands = {"single": est, "law": law, "trial": other}
     if ens is not None:
         res = _serve(ens, start, slices, boundary)
         if res.std is not None and res.field.sizes[res.field.dims[0]] >= n:
@@ -343,8 +366,9 @@ ONLY: dict[str, Any] = {}
 
 
 def _part(argv: list[str]) -> list[str]:
-    """Take ``--cases A,B``, ``--sigmas S,S``, ``--no-extra`` and ``--extra TEXT`` (the extra rows whose label
-    holds it) out of ``argv`` into :data:`ONLY`."""
+    """Take ``--cases A,B``, ``--sigmas S,S``, ``--no-extra``, ``--extra TEXT`` (the extra rows whose label
+    holds it) and ``--record FILE`` (per-slice errors and bands appended to a JSON file, :func:`_record`) out of
+    ``argv`` into :data:`ONLY`."""
     rest = []
     it = iter(argv)
     for a in it:
@@ -356,6 +380,8 @@ def _part(argv: list[str]) -> list[str]:
             ONLY["extra"] = False
         elif a == "--extra":
             ONLY["extra"] = next(it)
+        elif a == "--record":
+            ONLY["record"] = next(it)
         else:
             rest.append(a)
     return rest

@@ -242,6 +242,7 @@ def calibrate(
     quantile: float = QUANTILE,
     folds: int = FOLDS,
     ensemble_model: AbstractLagrangian | None = None,
+    record: list[dict[str, Any]] | None = None,
     **learn_kwargs: Any,
 ) -> tuple[Calibration, list[str], AbstractLagrangian]:
     """Measure a calibration law by held-out serving (see the module docstring): ``(law, warnings, trial)``,
@@ -250,7 +251,9 @@ def calibrate(
     ``fresh`` is the chosen model unlearned (its learn keywords ``learn_kwargs``); ``runner_up`` the runner-up
     candidate unlearned, its own learn keywords and its label (its disagreement is measured on the first fold);
     ``folds`` > 1 leaves groups of whole fields out instead of splitting them in time. ``ensemble_model``, the
-    learned ensemble, is served on every training field to measure :attr:`Calibration.spread_scale`.
+    learned ensemble, is served on every training field to measure :attr:`Calibration.spread_scale`. A ``record``
+    list receives every measured field's samples (slices ``k >= 2``: ``k``, which are ``held`` out, the trial's
+    relative error ``rel``, the fitted ``target``, the ``field``'s index), to measure another law on them.
     The random state of torch and numpy is left as it was. ``InputError`` when the fields are too short
     (:func:`too_short`).
     """
@@ -271,6 +274,8 @@ def calibrate(
         finally:
             np.random.set_state(state)
     cal = _fit(samples, quantile)
+    if record is not None:
+        record += [{k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in asdict(x).items()} for x in samples]
     cal.spread_scale = (
         _spread_scale(ensemble_model, samples, fields, boundary, quantile) if ensemble_model is not None else None
     )

@@ -214,6 +214,26 @@ def test_calibration_quick_prints_one_row_with_its_columns_and_targets(quick: Qu
     ]
 
 
+def test_calibration_record_appends_each_rows_per_slice_bands(tmp_path: Path) -> None:
+    """``--record FILE``: each row's law and per-slice errors and bands are appended to one JSON file."""
+    import numpy as np
+
+    from benchmarks import calibration
+
+    law = calibration.Calibration(1e-3, 1.0, 0.95, 1, 4, 9, -1.0, 1.0, 0.9, 0.8, None, 0.0)
+    pool = calibration._Pool()
+    pool.add(np.arange(6.0), single=np.ones(6), trial=np.full(6, np.nan))
+    path = tmp_path / "rows.json"
+    for sigma in (0.0, 1e-3):
+        calibration._record(str(path), "a row", sigma, law, pool, [{"k": [2.0], "rel": [0.1]}])
+    rows = json.loads(path.read_text())
+    assert [r["noise"] for r in rows] == [0.0, 1e-3] and rows[0]["law"]["slices"] == 9
+    assert rows[1]["held_out"] == [{"k": [2.0], "rel": [0.1]}]
+    assert rows[1]["tests"][0]["error"] == [2.0, 3.0, 4.0, 5.0] and rows[1]["tests"][0]["single"] == [1.0] * 4
+    assert all(math.isnan(x) for x in rows[0]["tests"][0]["trial"])
+    assert calibration._part(["--record", "x.json", "--quick"]) == ["--quick"] and calibration.ONLY.pop("record")
+
+
 @pytest.mark.slow
 def test_discovery_quick_table_and_its_pendulum_row(quick: Quick) -> None:
     """The runner's ``--quick`` discovery table (the pendulum, Kepler after 50 and 200 steps, sine-Gordon 1+1D;

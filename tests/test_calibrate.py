@@ -33,8 +33,10 @@ def test_coverage_on_a_small_synthetic_case() -> None:
     expected = _after_seed(3), np.random.RandomState(3).rand()
     torch.manual_seed(3)
     np.random.seed(3)
-    cal, warnings, trial = calibrate(ldft.PolynomialLagrangian((2, 4)), data)
+    record: list[dict] = []
+    cal, warnings, trial = calibrate(ldft.PolynomialLagrangian((2, 4)), data, record=record)
     assert (torch.rand(1).item(), np.random.rand()) == expected
+    assert [r["field"] for r in record] == [0, 1, 2] and len(record[0]["k"]) == 58 and sum(record[2]["held"]) == 18
     assert warnings == []
     assert cal.windows == 3 and cal.slices == 60 and cal.held_out_slices == 3 * 18
     assert cal.scale > 0 and 0 <= cal.exponent <= 3
