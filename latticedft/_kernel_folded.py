@@ -26,6 +26,29 @@ __all__ = ["folded_cells_kernel", "folded_kernels"]
 #: derivatives). Cells run along the innermost loops in chunks of ``_CHUNK``, as the numpy forms' cells-last
 #: evaluation, so that each product runs over a contiguous row that the compiler vectorises.
 _FOLDED_CELLS = """
+@numba.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def chunk_variables(lo, hi, site_of, upper, w, shift, start, n, x, z):
+    # the stencil of cells start .. start + n from the flat slices into x, then the scaled variables
+    # z = x.flat @ w - shift; inlined, so that the caller's floating-point flags hold for its sums
+    m = lo.shape[1]
+    for a in range(site_of.shape[0]):
+        src = hi if upper[a] else lo
+        for j in range(n):
+            s = site_of[a, start + j]
+            for c in range(m):
+                x[a * m + c, j] = src[s, c]
+    for v in range(w.shape[1]):
+        for j in range(n):
+            z[v, j] = 0.0
+        for r in range(w.shape[0]):
+            wr = w[r, v]
+            if wr != 0.0:
+                for j in range(n):
+                    z[v, j] += x[r, j] * wr
+        for j in range(n):
+            z[v, j] -= shift[v]
+
+
 @numba.njit(cache=True, error_model='numpy', nogil=True)
 def folded_cells(lo, hi, site_of, upper, w, shift, expo, gc, out):
     k = site_of.shape[0]
@@ -40,28 +63,17 @@ def folded_cells(lo, hi, site_of, upper, w, shift, expo, gc, out):
             wmax = max(wmax, expo[t, v] + 1)
     ch = _CHUNK
     x = np.empty((k * m, ch))
+    z = np.empty((nvar, ch))
     pw = np.empty((nvar, wmax, ch))
     acc = np.empty((cols, ch))
     p = np.empty(ch)
     for start in range(0, ncell, ch):
         n = min(ch, ncell - start)
-        for a in range(k):
-            src = hi if upper[a] else lo
-            for j in range(n):
-                s = site_of[a, start + j]
-                for c in range(m):
-                    x[a * m + c, j] = src[s, c]
+        chunk_variables(lo, hi, site_of, upper, w, shift, start, n, x, z)
         for v in range(nvar):
             for j in range(n):
-                p[j] = 0.0
-            for r in range(k * m):
-                wr = w[r, v]
-                if wr != 0.0:
-                    for j in range(n):
-                        p[j] += x[r, j] * wr
-            for j in range(n):
                 pw[v, 0, j] = 1.0
-                pw[v, 1, j] = p[j] - shift[v]
+                pw[v, 1, j] = z[v, j]
             for e in range(2, wmax):
                 for j in range(n):
                     pw[v, e, j] = pw[v, e - 1, j] * pw[v, 1, j]
@@ -139,22 +151,9 @@ def horner_cells(lo, hi, site_of, upper, w, shift, head, texp, coef, top, out):
     acc = np.empty((cols, ch))
     for start in range(0, ncell, ch):
         n = min(ch, ncell - start)
-        for a in range(k):
-            src = hi if upper[a] else lo
-            for j in range(n):
-                s = site_of[a, start + j]
-                for c in range(m):
-                    x[a * m + c, j] = src[s, c]
+        chunk_variables(lo, hi, site_of, upper, w, shift, start, n, x, z)
         for v in range(nvar):
             for j in range(n):
-                z[v, j] = 0.0
-            for r in range(k * m):
-                wr = w[r, v]
-                if wr != 0.0:
-                    for j in range(n):
-                        z[v, j] += x[r, j] * wr
-            for j in range(n):
-                z[v, j] -= shift[v]
                 pw[v, 0, j] = 1.0
                 pw[v, 1, j] = z[v, j]
             for e in range(2, wmax):
