@@ -12,6 +12,7 @@ signal came after the publishing step).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import sys
@@ -93,6 +94,17 @@ def main(argv: list[str] | None = None) -> int:
     return status
 
 
+def _error(text: str) -> None:
+    """The one-line error on stderr; in a rank that ``--workers`` started, also into the file it names
+    (``latticedft.cli._workers.ERROR_FILE``), so that the launcher says an error all ranks met once."""
+    line = f"latticedft: error: {text}"
+    print(line, file=sys.stderr)
+    path = os.environ.get("LATTICEDFT_ERROR_FILE")
+    if path:
+        with contextlib.suppress(OSError):
+            Path(path).write_text(line + "\n")
+
+
 def _main(argv: list[str] | None) -> int:
     """The command line's work and its exit status; errors, interrupts and signals answered as documented."""
     entry = argv is None  # the process's own command line: its outcome is final once main returns
@@ -120,11 +132,11 @@ def _main(argv: list[str] | None) -> int:
         n_published = len(published)
         return int(SUBCOMMANDS[args.command].main(args, argv))
     except LatticeDFTError as exc:
-        print(f"latticedft: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        _error(" ".join(str(exc).split()))
         return BAD_INPUT
     except OSError as exc:  # reading or writing outside a staged stage: the path and the reason
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        print(f"latticedft: error: {where}{exc.strerror or ' '.join(str(exc).split())}", file=sys.stderr)
+        _error(f"{where}{exc.strerror or ' '.join(str(exc).split())}")
         return BAD_INPUT
     except BrokenPipeError:  # e.g. `latticedft info CASE | head`: stop quietly
         devnull = os.open(os.devnull, os.O_WRONLY)

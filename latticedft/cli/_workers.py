@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 import warnings
+from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 from .._errors import InputError
@@ -108,13 +109,15 @@ def supervise(args: argparse.Namespace, argv: list[str]) -> int | None:
     cmd = [sys.executable, "-m", "latticedft", *_without_workers(argv)]
     procs: list[subprocess.Popen[bytes]] = []
     logs: list[IO[bytes] | None] = []
+    errors = tempfile.TemporaryDirectory(prefix="latticedft-ranks-")
     try:
         for rank in range(n):
             env = dict(base, RANK=str(rank), LOCAL_RANK=str(rank))
+            env[ERROR_FILE] = os.path.join(errors.name, f"rank{rank}")
             out = None if rank == 0 else tempfile.TemporaryFile()  # noqa: SIM115 - closed in the finally below
             logs.append(out)
             procs.append(subprocess.Popen(cmd, env=env, stdout=out, stderr=out))
-        return _wait(procs, logs)
+        return _wait(procs, logs, errors.name)
     finally:
         for p in procs:
             if p.poll() is None:
@@ -127,10 +130,34 @@ def supervise(args: argparse.Namespace, argv: list[str]) -> int | None:
         for f in logs:
             if f is not None:
                 f.close()
+        errors.cleanup()
 
 
-def _wait(procs: list[subprocess.Popen[bytes]], logs: list[Any]) -> int:
-    """Wait for every rank; stop the others as soon as one fails. Rank 0's status, or 1 when another failed."""
+#: The environment variable naming the file where a rank that ``--workers`` started writes its one-line error.
+ERROR_FILE = "LATTICEDFT_ERROR_FILE"
+#: Seconds rank 0 is given to end by itself once another rank failed, before that rank's error is reported.
+RANK0_GRACE_S = 10.0
+
+
+def _said_by_rank0(procs: list[subprocess.Popen[bytes]], folder: str, failed: int) -> bool:
+    """True when rank 0 failed too, within :data:`RANK0_GRACE_S`, with the error line rank ``failed`` wrote
+    (every rank checks the same inputs: a bad file is then said once, by rank 0, as in one process)."""
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        procs[0].wait(timeout=RANK0_GRACE_S)
+    if procs[0].poll() in (None, 0):
+        return False
+    lines = []
+    for rank in (0, failed):
+        try:
+            lines.append(Path(folder, f"rank{rank}").read_text().strip())
+        except OSError:
+            return False
+    return lines[0] == lines[1] != ""
+
+
+def _wait(procs: list[subprocess.Popen[bytes]], logs: list[Any], folder: str) -> int:
+    """Wait for every rank; stop the others as soon as one fails. Rank 0's status, or 1 when another failed
+    (its error said as ``worker N failed: ...``, unless rank 0 said the same error itself)."""
     while True:
         first = procs[0].poll()
         failed = next((i for i, p in enumerate(procs[1:], 1) if p.poll() not in (None, 0)), None)
@@ -147,6 +174,8 @@ def _wait(procs: list[subprocess.Popen[bytes]], logs: list[Any]) -> int:
             if failed is None:
                 return int(first)
         assert failed is not None
+        if first is None and _said_by_rank0(procs, folder, failed):
+            return int(procs[0].poll() or BAD_INPUT)
         logs[failed].seek(0)
         tail = [ln for ln in logs[failed].read().decode(errors="replace").splitlines() if ln.strip()][-3:]
         msg = " | ".join(ln.strip() for ln in tail) or f"exit status {procs[failed].poll()}"
