@@ -440,12 +440,12 @@ def _notes(table: Table, cfg: Config, before: str, builds: dict[int, tuple[float
         "first-order slice Jacobian is block diagonal; 'compiled': every slice after the first in the compiled "
         "slice Newton kernel; 'not compiled': today's torch path); the polynomial's cell mean couples "
         "neighbouring unknowns, so LU in 1+1D and Krylov beyond ('compiled': its folded coefficients on the "
-        "compiled folded kernels, `set_options(compiled_numpy_models=True)`; 'numpy forms': the default).",
+        "compiled folded kernels, the default; 'numpy forms': `set_options(compiled_kernels=False)`).",
         "L_d: 'learned' is `PolynomialLagrangian(orders=(2, 12), time_symmetric=True)` (the class of "
         "cases/sine-gordon) learned by exact least squares on a small sine-Gordon field of the same dimension; "
         "its last-slice column is the learned model's error. 'analytic' is the sine-Gordon L_d written in closed form "
         "(`AnalyticLagrangian` with its sympy `closed_form`); it serves the leapfrog exactly (round-off). 'MLP' is "
-        "trained briefly (a timing, not an accurate model) and served with `compiled_numpy_models` (its "
+        "trained briefly (a timing, not an accurate model) and served by default (its "
         "potential's derivative in closed form, batched over sites).",
         "Peak RSS: the kernel's high-water mark reset before serving (the process's whole memory, inputs included).",
     ]

@@ -85,13 +85,14 @@ OPTIONS: dict[str, _Knob] = {
         True,
         lambda v: isinstance(v, bool),
         "True or False",
-        "serve a closed-form L_d without numpy closed forms by its compiled DEL kernel (numba; False: torch/autograd)",
+        "serve closed-form L_d on compiled kernels (numba): the DEL kernel, folded polynomials, kinetic-potential MLPs "
+        "(False: torch/autograd and numpy forms)",
     ),
     "compiled_numpy_models": _Knob(
         False,
         lambda v: isinstance(v, bool),
         "True or False",
-        "also compile an L_d with numpy closed forms (the polynomial): one 0+1D trajectory, n-D slice-Newton (seconds)",
+        "also compile one 0+1D trajectory of an L_d with numpy closed forms (a polynomial): a build per model",
     ),
     "affine_check_every": _Knob(
         1,

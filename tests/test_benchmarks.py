@@ -54,6 +54,7 @@ def _commands() -> dict[str, tuple[str, ...]]:
     cmds["alone"] = ("-m", "benchmarks.serve_2p1d", "--quick")
     cmds["unknown"] = ("-m", "benchmarks", "--only", "nope")
     cmds["noise"] = ("-m", "benchmarks.noise", "duffing", "kepler-coarse", "--ratios", "--sigmas", "1e-3,1e-2")
+    cmds["compiled default"] = ("-m", "benchmarks.compiled_default", "--quick")
     return cmds
 
 
@@ -278,3 +279,12 @@ def test_noise_benchmark_ratios_and_systems(started: Started) -> None:
     for name, dt in (("kepler", 0.05), ("kepler-coarse", 0.2)):
         field = noise.SYSTEMS[name].test()[0]
         assert abs(float(field.t[1] - field.t[0]) - dt) < 1e-12
+
+
+def test_compiled_default_prints_its_row(started: Started) -> None:
+    """``python -m benchmarks.compiled_default --quick``: a case's model trained and served both ways; the two
+    fields agree to round-off."""
+    proc = started.result("compiled default")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    row = next(ln for ln in proc.stdout.splitlines() if ln.startswith("| sine-gordon kink_antikink"))
+    assert float(row.strip("| \n").split("|")[-1]) <= 1e-12, row

@@ -88,8 +88,10 @@ def test_served_analytic_fields_equal_todays(name: str, make, ndim: int, m: int)
 
 @pytest.mark.parametrize("ndim", [0, 1, 2])
 def test_linear_models_keep_their_numpy_forms(ndim: int) -> None:
-    """Polynomial and feature models serve by their numpy closed forms either way: fields equal to the bit
-    (unless ``compiled_numpy_models`` asks for the compiled 0+1D trajectory loop)."""
+    """Polynomial and feature models are not printed into a DEL kernel (``compiled_closed_forms``: their numpy
+    closed forms serve, or the folded kernels): 0+1D fields equal to the bit either way (unless
+    ``compiled_numpy_models`` asks for the compiled 0+1D trajectory loop); n-D a polynomial is served on the
+    folded kernels by default, its numpy forms with ``compiled_kernels=False``, equal to round-off."""
     init = _field(ndim, 8)
     data = ldft.serve(sine_gordon(), init, slices=12, progress=False).field
     models = [ldft.PolynomialLagrangian(orders=(2, 4), time_symmetric=True)]
@@ -98,7 +100,11 @@ def test_linear_models_keep_their_numpy_forms(ndim: int) -> None:
     for model in models:
         ldft.learn(model, data, progress=False)
         assert compiled_closed_forms(model, torch.zeros(0, dtype=torch.float64)) is None
-        assert np.array_equal(_served(model, init, 12, True), _served(model, init, 12, False))
+        fast, slow = _served(model, init, 12, True), _served(model, init, 12, False)
+        if ndim == 0:
+            assert np.array_equal(fast, slow)
+        else:
+            assert np.abs(fast - slow).max() <= 1e-12 * float(np.abs(slow).max())
 
 
 def test_a_model_without_closed_form_falls_back() -> None:
@@ -376,10 +382,10 @@ def test_a_polynomial_served_on_the_folded_kernels_equals_its_numpy_forms(
     if m > 1:
         init = xr.concat([init + 0.1 * c for c in range(m)], dim="component").transpose(..., "component")
         init = init.assign_coords(component=[f"c{c}" for c in range(m)])
-    with ldft.set_options(compiled_numpy_models=True):
-        fast = ldft.serve(model, init, slices=12, progress=False, **keywords)
+    fast = ldft.serve(model, init, slices=12, progress=False, **keywords)  # the default
     assert len(calls) >= 10, name
-    slow = ldft.serve(model, init, slices=12, progress=False, **keywords)
+    with ldft.set_options(compiled_kernels=False):
+        slow = ldft.serve(model, init, slices=12, progress=False, **keywords)
     a, b = np.asarray(fast.field.values), np.asarray(slow.field.values)
     assert np.abs(a - b).max() <= 1e-12 * max(1.0, float(np.abs(b).max())), name
     assert fast.slice_solver == slow.slice_solver, name
@@ -400,8 +406,7 @@ def test_the_folded_range_check_equals_todays_outside_the_range() -> None:
     f = as_lattice_field(_field(2, 8), source="init", min_slices=2)
     values = f.values * torch.tensor([1.0, 3.0], dtype=torch.float64).reshape(2, 1, 1, 1)
     values[1, 2, 3, 0] = math.nan
-    with ldft.set_options(compiled_numpy_models=True):
-        folded = folded_slices(model, _SliceSystem(model, f), values.reshape(2, -1, 1))
+    folded = folded_slices(model, _SliceSystem(model, f), values.reshape(2, -1, 1))
     assert folded is not None
     rng = model.trained_range()
     assert rng is not None
@@ -411,7 +416,7 @@ def test_the_folded_range_check_equals_todays_outside_the_range() -> None:
     assert np.allclose(got, want, rtol=1e-12, atol=0.0)
 
 
-def test_the_folded_kernels_are_off_by_default_and_for_other_models() -> None:
+def test_the_folded_kernels_are_on_by_default_and_not_for_other_models() -> None:
     from latticedft._lattice import as_lattice_field
     from latticedft._serve._folded import folded_slices
     from latticedft._serve._slices import _SliceSystem
@@ -420,15 +425,13 @@ def test_the_folded_kernels_are_off_by_default_and_for_other_models() -> None:
     f = as_lattice_field(_field(1, 16), source="init", min_slices=2)
     sys_ = _SliceSystem(model, f)
     flat = f.values.reshape(2, -1, 1).contiguous()
-    assert folded_slices(model, sys_, flat) is None
-    with ldft.set_options(compiled_numpy_models=True):
-        assert folded_slices(model, sys_, flat) is not None
-        assert folded_slices(sine_gordon().bind(2, 1, (0.04, 0.1)), sys_, flat) is None
-        with ldft.set_options(compiled_kernels=False):
-            assert folded_slices(model, sys_, flat) is None
-        with ldft.set_options(folded_max_powers=1):  # the same model, an option that no longer lets it fold
-            assert folded_slices(model, sys_, flat) is None
-        assert folded_slices(model, sys_, flat) is not None
+    assert folded_slices(model, sys_, flat) is not None
+    assert folded_slices(sine_gordon().bind(2, 1, (0.04, 0.1)), sys_, flat) is None
+    with ldft.set_options(compiled_kernels=False):
+        assert folded_slices(model, sys_, flat) is None
+    with ldft.set_options(folded_max_powers=1):  # the same model, an option that no longer lets it fold
+        assert folded_slices(model, sys_, flat) is None
+    assert folded_slices(model, sys_, flat) is not None
 
 
 def test_a_polynomial_that_does_not_fold_keeps_its_numpy_forms_with_one_info_line(
@@ -436,10 +439,10 @@ def test_a_polynomial_that_does_not_fold_keeps_its_numpy_forms_with_one_info_lin
 ) -> None:
     model = copy.deepcopy(_polynomial(1))  # its own folded data: built afresh under the option below
     init = _field(1, 16)
-    with ldft.set_options(compiled_numpy_models=True, folded_max_powers=1), caplog.at_level(logging.INFO, "latticedft"):
+    with ldft.set_options(folded_max_powers=1), caplog.at_level(logging.INFO, "latticedft"):
         fast = ldft.serve(model, init, slices=6, progress=False)
         ldft.serve(model, init, slices=6, progress=False)
-    with ldft.set_options(folded_max_powers=1):  # the numpy forms term by term, as the fallback serves
+    with ldft.set_options(compiled_kernels=False, folded_max_powers=1):  # the numpy forms, as the fallback serves
         slow = ldft.serve(model, init, slices=6, progress=False)
     assert np.array_equal(np.asarray(fast.field.values), np.asarray(slow.field.values))
     lines = [r.getMessage() for r in caplog.records if "compiled polynomial kernels unavailable" in r.getMessage()]

@@ -1,5 +1,5 @@
-"""A kinetic-potential MLP served with its derivatives in closed form (``_serve._potential``, opt-in by
-``compiled_numpy_models``) equals today's autograd path to round-off."""
+"""A kinetic-potential MLP served with its derivatives in closed form (``_serve._potential``, the default)
+equals today's autograd path to round-off."""
 
 from __future__ import annotations
 
@@ -41,9 +41,9 @@ def _mlp(ndim: int, activation: str = "tanh") -> ldft.MLPLagrangian:
 
 
 def _both(model: ldft.MLPLagrangian, init: xr.DataArray, **keywords: Any) -> tuple[ldft.ServeResult, ldft.ServeResult]:
-    with ldft.set_options(compiled_numpy_models=True):
-        fast = ldft.serve(model, init, progress=False, **keywords)
-    return fast, ldft.serve(model, init, progress=False, **keywords)
+    fast = ldft.serve(model, init, progress=False, **keywords)  # the default
+    with ldft.set_options(compiled_kernels=False):
+        return fast, ldft.serve(model, init, progress=False, **keywords)
 
 
 @pytest.mark.parametrize(
@@ -98,7 +98,7 @@ def test_the_potential_gradient_equals_autograd() -> None:
     assert np.allclose(got, want.numpy(), rtol=1e-13, atol=1e-13 * float(want.abs().max()))
 
 
-def test_the_closed_form_potential_is_opt_in_and_falls_back() -> None:
+def test_the_closed_form_potential_is_the_default_and_falls_back() -> None:
     from latticedft._lattice import as_lattice_field
     from latticedft._serve._potential import PotentialSlices, potential_slices
     from latticedft._serve._slices import _SliceSystem
@@ -106,12 +106,12 @@ def test_the_closed_form_potential_is_opt_in_and_falls_back() -> None:
     model = _mlp(1)
     f = as_lattice_field(_field(1, 7), source="init", min_slices=2)
     flat = f.values.reshape(2, -1, 1)
-    assert potential_slices(model, _SliceSystem(model, f), flat) is None  # off by default
-    with ldft.set_options(compiled_numpy_models=True):
-        assert isinstance(potential_slices(model, _SliceSystem(model, f), flat), PotentialSlices)
-        silu = ldft.MLPLagrangian(hidden=[4], activation="silu", form="kinetic-potential")
-        silu.bind(2, 1, (0.04, 0.1))
-        assert potential_slices(silu, _SliceSystem(silu, f), flat) is None  # no closed form: autograd serves
+    assert isinstance(potential_slices(model, _SliceSystem(model, f), flat), PotentialSlices)
+    with ldft.set_options(compiled_kernels=False):
+        assert potential_slices(model, _SliceSystem(model, f), flat) is None
+    silu = ldft.MLPLagrangian(hidden=[4], activation="silu", form="kinetic-potential")
+    silu.bind(2, 1, (0.04, 0.1))
+    assert potential_slices(silu, _SliceSystem(silu, f), flat) is None  # no closed form: autograd serves
 
 
 def test_the_affine_probe_is_answered_by_the_closed_forms() -> None:
@@ -127,13 +127,13 @@ def test_the_affine_probe_is_answered_by_the_closed_forms() -> None:
         (g,) = torch.autograd.grad(model._net(model._inputs(x)).sum(), x, create_graph=True)
         (h,) = torch.autograd.grad(g.sum(), x)
     assert np.allclose(_second(model, x.detach().numpy().reshape(-1)), h.numpy().reshape(-1), rtol=1e-12, atol=1e-12)
-    assert not not_affine(model, k, 1, scale)  # off by default
-    with ldft.set_options(compiled_numpy_models=True):
-        assert not_affine(model, k, 1, scale)
-        assert _AffineSlices.probe(model, model.stencil, 1, scale) is None
-        flat = ldft.MLPLagrangian(hidden=[3], activation="tanh", form="kinetic-potential", seed=0)
-        flat.bind(3, 1, (0.04, 0.1, 0.1))
-        with torch.no_grad():
-            flat.net[-1].weight.zero_()
-        assert not not_affine(flat, k, 1, scale)
-        assert _AffineSlices.probe(flat, flat.stencil, 1, scale) is not None
+    with ldft.set_options(compiled_kernels=False):
+        assert not not_affine(model, k, 1, scale)  # the probe decides
+    assert not_affine(model, k, 1, scale)
+    assert _AffineSlices.probe(model, model.stencil, 1, scale) is None
+    flat = ldft.MLPLagrangian(hidden=[3], activation="tanh", form="kinetic-potential", seed=0)
+    flat.bind(3, 1, (0.04, 0.1, 0.1))
+    with torch.no_grad():
+        flat.net[-1].weight.zero_()
+    assert not not_affine(flat, k, 1, scale)
+    assert _AffineSlices.probe(flat, flat.stencil, 1, scale) is not None

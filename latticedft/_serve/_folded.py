@@ -7,8 +7,9 @@ coefficients as data, so one build serves every polynomial (any orders, stencil,
 they replace, inside slice-Newton (``._newton._newton_slice``: the same iterations, tests and linear solves),
 the gathering of the cells, the numpy evaluation of their gradients, the residual's scatter and the
 predictor; the Hessian blocks of a fresh Jacobian come from the same kernel with the blocks' columns. The
-values differ from the numpy forms' by round-off only (the sums run in another order), so this path is
-taken only where ``set_options(compiled_numpy_models=True)`` asks.
+values differ from the numpy forms' by round-off only (the sums run in another order). The path is the
+default (it serves a dense polynomial in about half the numpy forms' time: docs/performance.md); it is left
+where ``set_options(compiled_kernels=False)`` asks, and where numba cannot build the kernels.
 """
 
 from __future__ import annotations
@@ -210,11 +211,9 @@ class FoldedSlices:
 
 def folded_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FoldedSlices | None:
     """The folded kernels for ``model`` on ``sys``, or ``None``: for a polynomial whose numpy forms fold its
-    coefficients, with the values on the CPU in double precision, where the ``compiled_numpy_models`` and
-    ``compiled_kernels`` options are on and numba builds the kernels."""
-    if not (option("compiled_numpy_models") and option("compiled_kernels")) or not isinstance(
-        model, PolynomialLagrangian
-    ):
+    coefficients, with the values on the CPU in double precision, where the ``compiled_kernels`` option is on
+    (the default) and numba builds the kernels."""
+    if not option("compiled_kernels") or not isinstance(model, PolynomialLagrangian):
         return None
     if flat.dtype != torch.float64 or flat.device.type != "cpu" or not flat.is_contiguous() or not model.numpy_ready:
         return None

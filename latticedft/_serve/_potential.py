@@ -13,7 +13,7 @@ blocks slice-Newton asks for (of two points on two slices) are the kinetic Hessi
 answers the affine recurrence's probe from the same closed forms where they decide it.
 
 The sums run in another order than autograd's, so the fields differ from the default path's by round-off:
-this path is taken only where ``set_options(compiled_numpy_models=True)`` asks, as the folded polynomial's.
+this path is the default, as the folded polynomial's, and left where ``set_options(compiled_kernels=False)`` asks.
 """
 
 from __future__ import annotations
@@ -219,9 +219,9 @@ def not_affine(model: Any, k: int, m: int, scale: float) -> bool:
     """Whether the affine recurrence's probe (``_affine._AffineSlices.probe``: Hessian blocks at random cells of
     size ``scale``) would find a kinetic-potential MLP's DEL not affine, known from its closed forms without
     autograd: ``V''`` varies between the probe's states by a hundred times its tolerance (round-off cannot
-    decide it). ``False`` where unsure (the probe then runs): outside ``compiled_numpy_models``, for another
+    decide it). ``False`` where unsure (the probe then runs): with ``compiled_kernels`` off, for another
     model, activation, network inputs or a field of several components."""
-    if not (option("compiled_numpy_models") and option("compiled_kernels")) or m != 1:
+    if not option("compiled_kernels") or m != 1:
         return False
     if not isinstance(model, KineticPotentialMLPLagrangian) or model.features != "values":
         return False
@@ -237,9 +237,9 @@ def not_affine(model: Any, k: int, m: int, scale: float) -> bool:
 
 def potential_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> PotentialSlices | None:
     """The closed-form evaluation for a kinetic-potential MLP on the values themselves (``features="values"``)
-    with a ``tanh`` or ``sigmoid`` network, on the CPU in double precision, where the ``compiled_numpy_models``
-    and ``compiled_kernels`` options are on; ``None`` otherwise (or where the folded kernels do not build)."""
-    if not (option("compiled_numpy_models") and option("compiled_kernels")):
+    with a ``tanh`` or ``sigmoid`` network, on the CPU in double precision, where the ``compiled_kernels`` option
+    is on (the default); ``None`` otherwise (or where the folded kernels do not build)."""
+    if not option("compiled_kernels"):
         return None
     if not isinstance(model, KineticPotentialMLPLagrangian) or model.features != "values":
         return None

@@ -31,7 +31,6 @@ import numpy as np
 import torch
 import xarray as xr
 
-from .._action import CellDerivatives
 from .._boundary import missing_edges
 from .._errors import InputError, ServeError
 from .._lattice import LatticeField, as_lattice_field, gather_cells
@@ -343,7 +342,7 @@ def _serve_stream(
         state = saver.load()
         on_affine = restore_stream(run, state) if state is not None else on_affine
     saved = run.base
-    g_prev: Any = None if on_affine else CellDerivatives(model, run.cells_at(0)).grad
+    g_prev: Any = None  # the first Newton slice evaluates them (by the folded kernels where those serve)
     run.emit(1)
     while run.base + 2 < steps:
         n_new = min(run.chunk, steps - run.base - 2)
@@ -360,7 +359,7 @@ def _serve_stream(
                 if run.affine_slices:
                     run.total_it, run.max_it = run.affine_slices, 1
                     run.cache["dmax"], run.cache["mscale"] = op.dmax, mscale
-                g_prev = CellDerivatives(model, run.cells_at(start - 1)).grad
+                g_prev = None
         p = start
         while p <= n_new:
             before = run.before if p == 1 and run.base else None  # position 1's older slice: before the window
