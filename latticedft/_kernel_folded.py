@@ -27,9 +27,10 @@ __all__ = ["folded_cells_kernel", "folded_kernels"]
 #: evaluation, so that each product runs over a contiguous row that the compiler vectorises.
 _FOLDED_CELLS = """
 @numba.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def chunk_variables(lo, hi, site_of, upper, w, shift, start, n, x, z):
-    # the stencil of cells start .. start + n from the flat slices into x, then the scaled variables
-    # z = x.flat @ w - shift; inlined, so that the caller's floating-point flags hold for its sums
+def chunk_variables(lo, hi, site_of, upper, w, shift, start, n, x, z, pw):
+    # the stencil of cells start .. start + n from the flat slices into x, the scaled variables
+    # z = x.flat @ w - shift, and their powers pw[v, e] = z[v]**e (e < pw.shape[1]); inlined, so that the
+    # caller's floating-point flags hold for its sums
     m = lo.shape[1]
     for a in range(site_of.shape[0]):
         src = hi if upper[a] else lo
@@ -47,6 +48,11 @@ def chunk_variables(lo, hi, site_of, upper, w, shift, start, n, x, z):
                     z[v, j] += x[r, j] * wr
         for j in range(n):
             z[v, j] -= shift[v]
+            pw[v, 0, j] = 1.0
+            pw[v, 1, j] = z[v, j]
+        for e in range(2, pw.shape[1]):
+            for j in range(n):
+                pw[v, e, j] = pw[v, e - 1, j] * z[v, j]
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
@@ -69,14 +75,7 @@ def folded_cells(lo, hi, site_of, upper, w, shift, expo, gc, out):
     p = np.empty(ch)
     for start in range(0, ncell, ch):
         n = min(ch, ncell - start)
-        chunk_variables(lo, hi, site_of, upper, w, shift, start, n, x, z)
-        for v in range(nvar):
-            for j in range(n):
-                pw[v, 0, j] = 1.0
-                pw[v, 1, j] = z[v, j]
-            for e in range(2, wmax):
-                for j in range(n):
-                    pw[v, e, j] = pw[v, e - 1, j] * pw[v, 1, j]
+        chunk_variables(lo, hi, site_of, upper, w, shift, start, n, x, z, pw)
         for c in range(cols):
             for j in range(n):
                 acc[c, j] = 0.0
@@ -151,14 +150,7 @@ def horner_cells(lo, hi, site_of, upper, w, shift, head, texp, coef, top, out):
     acc = np.empty((cols, ch))
     for start in range(0, ncell, ch):
         n = min(ch, ncell - start)
-        chunk_variables(lo, hi, site_of, upper, w, shift, start, n, x, z)
-        for v in range(nvar):
-            for j in range(n):
-                pw[v, 0, j] = 1.0
-                pw[v, 1, j] = z[v, j]
-            for e in range(2, wmax):
-                for j in range(n):
-                    pw[v, e, j] = pw[v, e - 1, j] * z[v, j]
+        chunk_variables(lo, hi, site_of, upper, w, shift, start, n, x, z, pw)
         for j in range(n):
             zh[j] = z[head, j]
         for c in range(cols):
