@@ -222,13 +222,15 @@ def as_lattice_fields(
         key = _layout_key(data) if type(data) is xr.DataArray else None
         f0 = seen.get(key) if key is not None else None
         f = _like_checked(data, f0) if f0 is not None and isinstance(data, xr.DataArray) else None
-        if f is None:
-            f = _checked_before(data, key, boundary, min_slices)
+        full = _checked_key(data, key, boundary, min_slices) if f is None else None
+        if full is not None:
+            f = _checked_before(data, full)
         if f is None:
             f = as_lattice_field(data, source=src, boundary=boundary, min_slices=min_slices)
             if key is not None:
                 seen[key] = f
-                _remember(data, key, boundary, min_slices, f)
+            if full is not None:
+                _remember(full, f)
         out.append(f)
     return out
 
@@ -257,30 +259,31 @@ def _checked_key(
     return key, attrs, repr(boundary), min_slices
 
 
-def _checked_before(
-    data: Any, key: tuple[Any, ...] | None, boundary: BoundaryKinds | None, min_slices: int
-) -> LatticeField | None:
-    """``as_lattice_field(data, ...)`` where a field laid out as ``data`` was checked by an earlier call (its
-    coordinates copied), else None."""
-    full = _checked_key(data, key, boundary, min_slices)
-    f0 = _CHECKED.get(full) if full is not None else None
+def _checked_before(data: Any, full: tuple[Any, ...]) -> LatticeField | None:
+    """``as_lattice_field(data, ...)`` where a field of the same :func:`_checked_key` ``full`` was checked by
+    an earlier call (its coordinates copied), else None."""
+    f0 = _CHECKED.get(full)
     f = _like_checked(data, f0) if f0 is not None else None
     if f is not None:
         f.coords = {d: c.copy() for d, c in f.coords.items()}
     return f
 
 
-def _remember(
-    data: Any, key: tuple[Any, ...], boundary: BoundaryKinds | None, min_slices: int, f: LatticeField
-) -> None:
-    """Keep ``f``'s lattice description (without its values) for :func:`_checked_before`."""
-    full = _checked_key(data, key, boundary, min_slices)
-    if full is None or sum(c.nbytes for c in f.coords.values()) > KEPT_COORD_BYTES:
+def _remember(full: tuple[Any, ...], f: LatticeField) -> None:
+    """Keep ``f``'s lattice description (without its values) under its :func:`_checked_key` ``full`` for
+    :func:`_checked_before`."""
+    if sum(c.nbytes for c in f.coords.values()) > KEPT_COORD_BYTES:
         return
-    while len(_CHECKED) >= CHECKED_KEPT:
-        del _CHECKED[next(iter(_CHECKED))]
     coords = {d: c.copy() for d, c in f.coords.items()}
-    _CHECKED[full] = replace(f, values=torch.empty(0), coords=coords, coord_attrs={}, attrs={})
+    keep_last(_CHECKED, full, replace(f, values=torch.empty(0), coords=coords, coord_attrs={}, attrs={}), CHECKED_KEPT)
+
+
+def keep_last(cache: dict[Any, Any], key: Any, value: Any, most: int) -> None:
+    """Put ``key: value`` into ``cache``, a dict of at most ``most`` entries kept in insertion order: the
+    oldest ones are dropped first."""
+    while len(cache) >= most:
+        del cache[next(iter(cache))]
+    cache[key] = value
 
 
 #: A DataArray's dims, name, coordinate variables and indexes (:func:`dataarray_parts`).
@@ -329,9 +332,7 @@ def to_dataarrays(fields: Sequence[LatticeField]) -> list[xr.DataArray]:
         if parts is None:
             parts = dataarray_parts(f.to_dataarray())  # kept apart: no caller holds its variables
             if sum(len(c) for c in spatial) <= KEPT_COORD_BYTES:
-                while len(_TEMPLATES) >= TEMPLATES_KEPT:
-                    del _TEMPLATES[next(iter(_TEMPLATES))]
-                _TEMPLATES[key] = parts
+                keep_last(_TEMPLATES, key, parts, TEMPLATES_KEPT)
         v = f.values.detach().cpu().numpy()
         v = np.ascontiguousarray(v[..., 0] if f.components is None else v)
         time = _time_values(f, int(v.shape[0]))

@@ -20,6 +20,7 @@ import torch
 
 from .._action import compiled_closed_forms
 from .._kernel import CompiledForms
+from .._lattice import keep_last
 from ._slices import SINGULAR_RTOL, _SliceSystem
 
 __all__ = ["FusedSlices", "LatticeTables", "fused_slices", "lattice_tables"]
@@ -188,9 +189,7 @@ def lattice_tables(sys: _SliceSystem, module: Any) -> LatticeTables | None:
         tables = LatticeTables(site_of, cell_at, interior, rows, delta, plain)
     if tables is not None and sum(a.nbytes for a in vars(tables).values()) > KEPT_BYTES:
         return tables
-    while len(_TABLES) >= TABLES_KEPT:
-        del _TABLES[next(iter(_TABLES))]
-    _TABLES[key] = tables
+    keep_last(_TABLES, key, tables, TABLES_KEPT)
     return tables
 
 
