@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import weakref
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -81,18 +82,27 @@ _DATA: weakref.WeakKeyDictionary[Any, tuple[list[tuple[torch.Tensor, int]], tupl
 )
 
 
+def per_model_state(
+    cache: weakref.WeakKeyDictionary[Any, Any], model: Any, key: tuple[Any, ...], build: Callable[[], Any]
+) -> tuple[Any, bool]:
+    """``(build(), True)`` the first time for ``model`` in its present state (its parameters and buffers, the
+    same tensors unchanged in place) and ``key``, kept in ``cache``; ``(that value, False)`` after."""
+    state = [(t, t._version) for t in [*model.parameters(), *model.buffers()]]
+    known = cache.get(model)
+    same = known is not None and known[1] == key and len(known[0]) == len(state)
+    if known is not None and same and all(a is b and u == v for (a, u), (b, v) in zip(known[0], state)):
+        return known[2], False
+    built = build()
+    cache[model] = (state, key, built)
+    return built, True
+
+
 def _data_of(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[Any, Any]:
     """``(_data(model, []), _data(model, pairs))``, built once per model state, pairs and ``folded_max_powers``
     (the option that decides whether the coefficients fold)."""
-    state = [(t, t._version) for t in [*model.parameters(), *model.buffers()]]
     key = (tuple(pairs), option("folded_max_powers"))
-    known = _DATA.get(model)
-    same = known is not None and known[1] == key and len(known[0]) == len(state)
-    if known is not None and same and all(a is b and u == v for (a, u), (b, v) in zip(known[0], state)):
-        return known[2]
-    built = (_data(model, []), _data(model, pairs))
-    _DATA[model] = (state, key, built)
-    if built[0] is None or built[1] is None:  # once per model state
+    built, fresh = per_model_state(_DATA, model, key, lambda: (_data(model, []), _data(model, pairs)))
+    if fresh and (built[0] is None or built[1] is None):  # once per model state
         log.info(
             "compiled polynomial kernels unavailable for %s (its coefficients do not fold onto few monomials): "
             "serving uses its numpy forms",

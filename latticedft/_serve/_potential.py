@@ -29,7 +29,7 @@ import torch
 from .._kernel_folded import folded_kernels
 from .._models._mlp import KineticPotentialMLPLagrangian
 from .._options import option
-from ._folded import FoldedSlices
+from ._folded import FoldedSlices, per_model_state
 from ._slices import _SliceSystem
 
 __all__ = ["PotentialNet", "PotentialSlices", "not_affine", "potential_slices"]
@@ -120,16 +120,10 @@ _FORMS: weakref.WeakKeyDictionary[Any, tuple[list[tuple[torch.Tensor, int]], tup
 
 def _closed_forms(model: KineticPotentialMLPLagrangian, mod: Any, k: int, m: int) -> tuple[PotentialNet, np.ndarray]:
     """``(PotentialNet(model, mod), kinetic Hessian)``, built once per model state, cell shape and spacing."""
-    state = [(t, t._version) for t in [*model.parameters(), *model.buffers()]]
-    known = _FORMS.get(model)
     key = (k, m, tuple(float(h) for h in model.spacing))  # the kinetic Hessian holds the spacing
-    same = known is not None and known[1] == key and len(known[0]) == len(state)
-    if known is not None and same and all(a is b and u == v for (a, u), (b, v) in zip(known[0], state)):
-        forms: tuple[PotentialNet, np.ndarray] = known[2]
-        return forms
-    built = (PotentialNet(model, mod), _kinetic_hessian(model, k, m))
-    _FORMS[model] = (state, key, built)
-    return built
+    forms: tuple[PotentialNet, np.ndarray]
+    forms, _ = per_model_state(_FORMS, model, key, lambda: (PotentialNet(model, mod), _kinetic_hessian(model, k, m)))
+    return forms
 
 
 class PotentialCells:
