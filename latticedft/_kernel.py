@@ -30,7 +30,8 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,7 +41,7 @@ import numpy as np
 from ._kernel_source import kernel_source
 from ._symbolic import SymbolicLd
 
-__all__ = ["BUILDS", "CompiledForms", "cache_dir", "cached_module", "compile_forms", "write_module"]
+__all__ = ["BUILDS", "CompiledForms", "build_lock", "cache_dir", "cached_module", "compile_forms", "write_module"]
 
 log = logging.getLogger("latticedft")
 
@@ -52,6 +53,9 @@ _LOADED: dict[str, Any] = {}
 
 #: Forms whose build failed in this process, by hash (the failure is reported once).
 _FAILED: set[str] = set()
+
+#: How long a process waits for another's build of the same kernel before it builds on its own.
+BUILD_WAIT_S = 120.0
 
 #: Bumped whenever the generated code changes, so that stale cached kernels are not reused.
 _VERSION = 17
@@ -183,7 +187,8 @@ def cached_module(
         return mod
     t0 = time.perf_counter()
     try:
-        mod, how = build()
+        with build_lock(key):
+            mod, how = build()
     except Exception as exc:  # noqa: BLE001 - any failure: the caller keeps its other path
         _FAILED.add(key)
         log.info("%s (%s: %s): %s", unavailable, type(exc).__name__, exc, fallback)
@@ -193,6 +198,44 @@ def cached_module(
     log.info("%s %s in %.2f s", built, how, seconds)
     _LOADED[key] = mod
     return mod
+
+
+@contextmanager
+def build_lock(key: str, wait: float | None = None) -> Iterator[None]:
+    """Hold the cache's build lock of kernel ``key`` (an exclusive ``flock`` on ``ldft_{key}.lock`` in
+    :func:`cache_dir`) while the block runs, so that processes needing the same kernel on an empty cache (the
+    ranks of ``--workers N``, the test processes) compile it once: the others wait, then load what it cached.
+    After ``wait`` seconds (:data:`BUILD_WAIT_S`) a waiting process builds on its own (a build that hangs does
+    not stop the others); where the folder or ``flock`` is not available the block runs unlocked. The lock
+    ends with its holder, killed or not."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no lock
+        yield
+        return
+    try:
+        folder = cache_dir()
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(folder / f"ldft_{key}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:  # a read-only or missing cache: the build says why, unlocked
+        yield
+        return
+    try:
+        deadline = time.monotonic() + (BUILD_WAIT_S if wait is None else wait)
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    log.info("kernel %s: another process's build holds its lock; building here too", key)
+                    break
+                time.sleep(0.05)
+            except OSError:  # a file system without flock: unlocked
+                break
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def write_module(key: str, source: str | Callable[[], str]) -> tuple[Any, str]:

@@ -140,6 +140,38 @@ def test_a_kernel_is_built_once_then_loaded_from_the_cache(monkeypatch: pytest.M
     assert np.array_equal(first.both(cells)[0], again.both(cells)[0])
 
 
+def test_a_build_waits_for_another_build_of_the_same_kernel() -> None:
+    """Two builders of one kernel on an empty cache: the second waits until the first's lock is released (a
+    flock on a descriptor of its own conflicts within the process too, as between processes)."""
+    import threading
+
+    from latticedft._kernel import build_lock, cached_module
+
+    started = threading.Event()
+
+    def build() -> tuple[object, str]:
+        started.set()
+        return object(), "cached"
+
+    key = "lock-test-" + str(np.random.default_rng().integers(1 << 40))
+    with build_lock(key):
+        worker = threading.Thread(target=cached_module, args=(key, build, "t", "built", "unavailable", "none"))
+        worker.start()
+        assert not started.wait(0.5), "the build ran while another held its lock"
+    assert started.wait(60)
+    worker.join(60)
+    assert _LOADED.pop(key) is not None
+
+
+def test_a_build_lock_held_too_long_is_passed_with_one_info_line(caplog: pytest.LogCaptureFixture) -> None:
+    from latticedft._kernel import build_lock
+
+    held, passed = build_lock("lock-test-held"), build_lock("lock-test-held", wait=0.1)
+    with held, caplog.at_level(logging.INFO, logger="latticedft"), passed:
+        pass
+    assert "another process's build holds its lock; building here too" in caplog.text
+
+
 def _dirichlet(ndim: int, n: int) -> object:
     """Two slices of a smooth field with Dirichlet ends (no periodic attribute)."""
     x = (np.arange(n) + 0.5) / n
