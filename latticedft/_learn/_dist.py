@@ -14,7 +14,6 @@ processes train on CUDA, each on ``cuda:<LOCAL_RANK>``, gloo otherwise.
 from __future__ import annotations
 
 import datetime
-import os
 
 import numpy as np
 import torch
@@ -24,6 +23,7 @@ from .._collective import group_device, reduce
 from .._collective import is_parallel as is_parallel
 from .._collective import world as world
 from .._device import backend_for_device, resolve_device
+from .._procenv import env_world, local_rank, local_world
 
 __all__ = [
     "world",
@@ -100,13 +100,12 @@ def init_from_env(timeout_s: float = 1800.0, device: str | None = None) -> bool:
     """
     if dist.is_available() and dist.is_initialized():
         return is_parallel()
-    size = int(os.environ.get("WORLD_SIZE", "1") or 1)
-    if size <= 1:
+    if env_world() <= 1:
         return False
-    local = int(os.environ.get("LOCAL_WORLD_SIZE", str(size)) or size)
+    local = local_world()
     backend = backend_for(local, device)
     if backend == "nccl":
-        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0") or 0))
+        torch.cuda.set_device(local_rank())
     dist.init_process_group(backend, timeout=datetime.timedelta(seconds=timeout_s))
     torch.set_num_threads(max(1, torch.get_num_threads() // max(local, 1)))
     return True

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +22,7 @@ from .._errors import ConfigError, InputError, LatticeDFTError
 from .._lattice import as_lattice_field
 from .._layout import component_labels, field_spacing, is_lazy, lattice_dims
 from .._models import SparseLagrangian
+from .._procenv import env_rank, env_world
 from ..io.fields import read_field
 from ._charges import check_charges
 
@@ -149,7 +149,7 @@ def check_case(case: Case) -> CaseData:
 def _process() -> tuple[int, int]:
     """(rank, number of processes) of the command (``--workers`` or ``torchrun``): from the environment, as
     the case is read before the processes join their group."""
-    return int(os.environ.get("RANK", "0") or 0), int(os.environ.get("WORLD_SIZE", "1") or 1)
+    return env_rank(), env_world()
 
 
 def _read_other(path: Path, case: Case, components: tuple[str, ...] | None) -> xr.DataArray:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,6 +33,7 @@ from .._layout import lattice_dims
 from .._models import AbstractLagrangian
 from .._models._ensemble import EnsembleLagrangian
 from .._options import option
+from .._procenv import env_world
 from .._serve import ServeResult
 from .._serve._decomp import Block, _halo_width, plan_grid
 from .._serve._decomp import serve_slabs as _serve_slabs
@@ -102,7 +102,7 @@ def check_split(tasks: list[TaskData], model: AbstractLagrangian | None = None) 
 
 def _env_size() -> int:
     """The number of processes the environment describes (``torchrun``'s, or ``--workers``')."""
-    return int(os.environ.get("WORLD_SIZE", "1") or 1)
+    return env_world()
 
 
 @dataclass

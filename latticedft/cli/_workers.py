@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 from .._errors import InputError
+from .._procenv import env_rank, env_world
 from ._common import BAD_INPUT, OK
 
 if TYPE_CHECKING:  # the CLI's help and usage errors load no engine (torch, xarray)
@@ -63,7 +64,7 @@ def add_argument(p: argparse.ArgumentParser) -> None:
 
 def _rank_env() -> tuple[int, int]:
     """(RANK, WORLD_SIZE) from the environment (torchrun's, or this launcher's)."""
-    return int(os.environ.get("RANK", "0") or 0), int(os.environ.get("WORLD_SIZE", "1") or 1)
+    return env_rank(), env_world()
 
 
 def is_helper() -> bool:
