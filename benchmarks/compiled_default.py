@@ -4,8 +4,9 @@ alternating, the least of three each.
 
     python -m benchmarks.compiled_default [--quick]
 
-The models are trained here from the cases' data by ``latticedft train`` (cases/sine-gordon: a polynomial
-(2, 12) served on the folded polynomial kernels; cases/klein-gordon-periodic/mlp: a kinetic-potential MLP
+The models are trained here from the cases' data by ``latticedft train`` (cases/wave and cases/wave-2d: a
+polynomial (2, 2), which is not quadratic in the stencil values, served on the folded polynomial kernels;
+cases/sine-gordon: a polynomial (2, 12), the same; cases/klein-gordon-periodic/mlp: a kinetic-potential MLP
 served by its closed forms), then the cases' test fields are served from their first two slices (and, with
 Dirichlet ends, their boundary strips). Each figure is the least of three calls; the first call of each
 is printed too (the process's first default serve loads the kernel module from the cache, and imports numba).
@@ -31,6 +32,8 @@ CASES = ROOT / "cases"
 
 #: (label, case folder, test file relative to it, boundary, quick)
 TASKS = [
+    ("wave test (41 sites, 401 slices)", "wave", "data/test.nc", "dirichlet", False),
+    ("wave-2d test", "wave-2d", "data/test.nc", "dirichlet", False),
     ("sine-gordon breather", "sine-gordon", "data/breather.nc", "dirichlet", False),
     ("sine-gordon kink_antikink", "sine-gordon", "data/kink_antikink.nc", "dirichlet", True),
     ("klein-gordon-periodic/mlp test400", "klein-gordon-periodic/mlp", "../data/test.nc", "periodic", False),
