@@ -15,8 +15,8 @@ The shorthands (usable in case.toml, joined into libraries by :mod:`latticedft._
 - squared derivatives: ``kinetic`` (``|D_t q|^2``), ``gradient`` (``|D_x q|^2`` per space axis),
   ``velocities`` (every product ``D_t q_i D_t q_j``, for unequal masses);
 - vector fields: ``norm:k1,k2,...`` (``|q|^k``, negative ``k`` too), ``log`` (``log|q|``), ``cross``
-  (``q_1 D_t q_2 - q_2 D_t q_1``, a magnetic term), ``cosdiff`` / ``sindiff`` (``cos(q_i - q_j)``,
-  ``sin(q_i - q_j)``, ``i < j``).
+  (``q_1 D_t q_2 - q_2 D_t q_1``, a magnetic term), ``radial`` (``(q . D_t q)^2``), ``cosdiff`` / ``sindiff``
+  (``cos(q_i - q_j)``, ``sin(q_i - q_j)``, ``i < j``).
 
 >>> [t.name for t in named("trig:2").expand(1, 1)]
 ['sin(q)', 'cos(q)', 'sin(2*q)', 'cos(2*q)']
@@ -194,7 +194,7 @@ def named(spec: str) -> Family:
     raise InputError.at(
         "library",
         f"unknown term {spec!r}; expected poly:K, trig:K[:w], trig:K(F), exp[:w], kinetic, gradient, velocities, "
-        "norm:k1,k2,..., log, cross, cosdiff, sindiff, joined by '+' and '*'",
+        "norm:k1,k2,..., log, cross, radial, cosdiff, sindiff, joined by '+' and '*'",
     )
 
 
@@ -382,6 +382,23 @@ def _log(match: re.Match[str], label: str) -> Family:
         return [Term("log|q|", lambda v: v.xp.log(_norm_squared(v)) / 2)]
 
     return Family(label, build)
+
+
+@_family(r"radial")
+def _radial(match: re.Match[str], label: str) -> Family:
+    """``(q . D_t q)^2``: the squared radial velocity times ``|q|^2``; with ``norm:-5`` the part of Kepler's
+    exact-step correction that the Hessian of ``1/|q|`` gives along ``q``."""
+
+    def build(n: int, m: int) -> list[Term]:
+        _need(label, n, m, vector=True)
+        name = "+".join(f"{component_name(m, i)}*Dt{component_name(m, i)}" for i in range(m))
+        return [Term(f"({name})**2", _radial_value)]
+
+    return Family(label, build)
+
+
+def _radial_value(v: Vars) -> Any:
+    return sum(qi * di for qi, di in zip(v.q, v.d[0])) ** 2
 
 
 @_family(r"cross")
