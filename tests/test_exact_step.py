@@ -64,22 +64,27 @@ def test_kepler_exact_samples_keep_the_step_corrections_of_the_true_potential():
     assert unit * coef["(q1*Dtq1+q2*Dtq2)**2*|q|**-5"] == pytest.approx(-(h**2) * gm / 4, rel=0.1)
 
 
-def test_exact_step_corrections_are_chosen_when_they_serve_2x_better():
+def test_exact_step_corrections_are_chosen_when_they_serve_2x_better_with_the_same_terms():
+    step = exact_step_candidates(1, 2)[0]
     rows = [
         {"score": math.inf, "n_parameters": 45, "label": "hand-set", "kind": "polynomial"},
-        {"score": 1.6e-3, "n_parameters": 2, "label": "true terms", "kind": "sparse", "options": {}},
+        {"score": 3e-6, "n_parameters": 36, "label": "orders", "kind": "polynomial"},
+        {"score": 1.6e-3, "n_parameters": 2, "label": "true", "kind": "sparse", "options": {}, "terms": ["T", "V"]},
         {
             "score": 8e-6,
-            "n_parameters": 5,
+            "n_parameters": 4,
             "label": "step",
             "kind": "sparse",
-            "options": exact_step_candidates(1, 2)[0],
+            "options": step,
+            "terms": ["T", "V", "C"],
         },
     ]
-    assert is_exact_step(rows[2]) and not is_exact_step(rows[1])
+    assert is_exact_step(rows[3]) and not is_exact_step(rows[2])  # the polynomial scores lowest: sparse first
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 3
+    rows[3]["score"] = 1e-3  # less than 2x better: the fewest terms
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 2
-    rows[2]["score"] = 1e-3  # less than 2x better: the fewest terms
-    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
+    rows[3].update(score=8e-6, terms=["T", "W", "C"])  # another potential, not corrections to the same one
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 2
 
 
 def test_auto_tries_the_exact_step_candidates_on_a_time_only_lattice():
