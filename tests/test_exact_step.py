@@ -113,3 +113,25 @@ def test_select_keeps_the_pendulum_step_corrections_and_drops_them_on_leapfrog_d
     model = ldft.SparseLagrangian(exact_step_libraries(1, 1)[0], threshold=EXACT_STEP_THRESHOLD, at="average", bags=0)
     ldft.learn(model, leap, progress=False)
     assert model.report_.sparse["kept"] == ["Dtq**2", "cos(q)"]
+
+
+def test_a_quartic_oscillator_keeps_the_step_corrections_of_its_potential():
+    import numpy as np
+    import xarray as xr
+    from test_sparse import _ode
+
+    h, lam = 0.1, 0.3  # V = q^2/2 + lam q^4/4: V'^2 = q^2 + 2 lam q^4 + lam^2 q^6, V'' = 1 + 3 lam q^2
+    data = [
+        xr.DataArray(_ode(lambda y: [y[1], -y[0] - lam * y[0] ** 3], [a, 0.0], 60, h)[0], dims="t", name="psi")
+        for a in (1.0, 1.5)
+    ]
+    model = ldft.SparseLagrangian(exact_step_libraries(1, 1)[1], threshold=EXACT_STEP_THRESHOLD, at="average", bags=0)
+    ldft.learn(model, [d.assign_coords(t=np.arange(60) * h) for d in data], progress=False)
+    coef = dict(zip(model.term_names, model.coef.tolist()))
+    mass = 1 + h**2 / 6  # the kinetic coefficient 1/2 + h^2/12 V''(0), normalised to 1/2
+    unit = 0.5 / coef["Dtq**2"]
+    assert unit * coef["q**2"] == pytest.approx((-0.5 - h**2 / 24) / mass, rel=1e-4)
+    assert unit * coef["q**4"] == pytest.approx((-lam / 4 - 2 * lam * h**2 / 24) / mass, rel=1e-3)
+    assert unit * coef["q**6"] == pytest.approx(-(lam**2) * h**2 / 24 / mass, rel=0.1)
+    assert unit * coef["Dtq**2*q**2"] == pytest.approx(3 * lam * h**2 / 12 / mass, rel=0.1)
+    assert set(model.report_.sparse["kept"]) == {"Dtq**2", "q**2", "q**4", "q**6", "Dtq**2*q**2"}
