@@ -78,7 +78,7 @@ class SelectionReport:
     ``rows[i]`` holds ``label`` (the candidate's settings in words), ``kind``, ``options``, ``ridge``,
     ``score`` (the largest error of the served held-out fields over the field's largest magnitude; ``inf``
     for a failed fit or serve), ``status`` (``"ok"`` or why it failed), ``n_parameters`` (None when the fit
-    failed) and ``wall_time`` (s).
+    failed), ``wall_time`` (s) and, for a sparse candidate learned, ``terms`` (the names of the terms it kept).
     """
 
     rows: list[dict[str, Any]]
