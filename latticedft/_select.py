@@ -22,7 +22,7 @@ from ._learn._heldout import held_in as _split
 from ._learn._heldout import held_out_score as _score
 from ._learn._sparse import SERVE_FLOOR
 from ._models import MODELS, AbstractLagrangian
-from ._models._sparse import default_library
+from ._models._sparse import SparseLagrangian, default_library, exact_step_libraries
 
 __all__ = [
     "SelectionReport",
@@ -63,6 +63,12 @@ SPARSE_CEILING = 1e-1
 COUPLED_LIBRARY = "velocities + trig:1 + cosdiff*velocities"
 #: The thresholds of the sparse candidates ``"auto"`` tries first (with the default library of the lattice).
 SPARSE_THRESHOLDS: tuple[float | str, ...] = (1e-1, 1e-2, "auto")
+#: The threshold of the exact-step corrections candidates (:func:`latticedft._models._sparse.exact_step_libraries`):
+#: low enough to keep the ``O(h^2)`` corrections of exact samples (their share is about ``h^2/24`` of the largest),
+#: high enough to drop the round-off coefficients they get on data that a first-order ``L_d`` obeys exactly.
+EXACT_STEP_THRESHOLD = 1e-5
+#: ... and of the fifth-order ones, whose ``O(h^4)`` terms have shares of about ``h^4/720``.
+EXACT_STEP_THRESHOLD_5 = 1e-9
 
 
 @dataclass
@@ -72,7 +78,7 @@ class SelectionReport:
     ``rows[i]`` holds ``label`` (the candidate's settings in words), ``kind``, ``options``, ``ridge``,
     ``score`` (the largest error of the served held-out fields over the field's largest magnitude; ``inf``
     for a failed fit or serve), ``status`` (``"ok"`` or why it failed), ``n_parameters`` (None when the fit
-    failed) and ``wall_time`` (s).
+    failed), ``wall_time`` (s) and, for a sparse candidate learned, ``terms`` (the names of the terms it kept).
     """
 
     rows: list[dict[str, Any]]
@@ -131,6 +137,7 @@ def sparse_candidates(n: int, m: int) -> list[dict[str, Any]]:
     out: list[dict[str, Any]] = [
         {"kind": "sparse", "library": default_library(n, m), "threshold": t} for t in SPARSE_THRESHOLDS
     ]
+    out += exact_step_candidates(n, m)
     if m == 1:
         out.append({"kind": "sparse", "library": default_library(n, m, corrections=True), "threshold": "auto"})
         if n == 1:  # a position-dependent mass, met exactly by the trapezoid rule (at both ends of the step)
@@ -146,6 +153,29 @@ def sparse_candidates(n: int, m: int) -> list[dict[str, Any]]:
             coupled = {"kind": "sparse", "library": COUPLED_LIBRARY, "at": "average"}
             out += [{**coupled, "threshold": t} for t in SPARSE_THRESHOLDS]
     return out
+
+
+def exact_step_candidates(n: int, m: int) -> list[dict[str, Any]]:
+    """The exact-step corrections candidates of a time-only lattice: each library of
+    :func:`latticedft._models._sparse.exact_step_libraries` in the trapezoid rule (``at = "average"``), those to
+    ``O(h^3)`` at :data:`EXACT_STEP_THRESHOLD`, those to ``O(h^5)`` at :data:`EXACT_STEP_THRESHOLD_5`.
+
+    >>> exact_step_candidates(1, 2)[0]["library"]
+    'kinetic + norm:-1,-4 + kinetic*norm:-3 + radial*norm:-5'
+    """
+    steps = [(lib, EXACT_STEP_THRESHOLD) for lib in exact_step_libraries(n, m)]
+    steps += [(lib, EXACT_STEP_THRESHOLD_5) for lib in exact_step_libraries(n, m, order=5)]
+    return [{"kind": "sparse", "library": lib, "at": "average", "threshold": t} for lib, t in steps]
+
+
+def is_exact_step(row: Mapping[str, Any]) -> bool:
+    """True for a candidate row of an exact-step corrections candidate (its options as
+    :func:`exact_step_candidates` made them)."""
+    options = row.get("options", {})
+    made = exact_step_candidates(1, 1) + exact_step_candidates(1, 2)
+    return row.get("kind") == "sparse" and any(
+        all(options.get(k) == c[k] for k in ("library", "at", "threshold")) for c in made
+    )
 
 
 def auto_candidates(model: AbstractLagrangian, n: int, ridge: Any = 0.0, m: int | None = None) -> list[dict[str, Any]]:
@@ -323,10 +353,11 @@ def _trial(
     """One candidate learned on the ``held`` parts and scored on the whole ``fields``: its row's measurements."""
     trial = copy.deepcopy(fresh)
     t0 = time.perf_counter()
-    n_parameters = None
+    n_parameters, kept = None, None
     try:
         learn(trial, held, boundary=boundary, ridge=ridge, progress=False, **{**learn_kwargs, "symmetries": False})
         n_parameters = trial.n_parameters()
+        kept = _kept_terms(trial)
         score, status = _score(trial, fields, boundary), "ok"
         if not math.isfinite(score):
             status = "served field not finite"
@@ -336,7 +367,15 @@ def _trial(
         # the package's errors and a candidate's numerics (a division by zero, an overflow, numpy's and torch's
         # linear-algebra errors): that candidate failed, the others are still tried
         score, status = math.inf, f"{type(exc).__name__}: {_short(exc)}"
-    return {"score": score, "status": status, "n_parameters": n_parameters, "wall_time": time.perf_counter() - t0}
+    row = {"score": score, "status": status, "n_parameters": n_parameters, "wall_time": time.perf_counter() - t0}
+    return row if kept is None else {**row, "terms": kept}
+
+
+def _kept_terms(model: AbstractLagrangian) -> list[str] | None:
+    """The names of the terms a learned sparse model kept (None for another kind)."""
+    if not isinstance(model, SparseLagrangian):
+        return None
+    return [name for name, c in zip(model.term_names, model.coef.tolist()) if c != 0.0]
 
 
 def _choose(rows: list[dict[str, Any]], factor: float, keep_below: float) -> tuple[int, str, list[str]]:
@@ -361,6 +400,8 @@ def _choose(rows: list[dict[str, Any]], factor: float, keep_below: float) -> tup
     dense = best
     if sparse and best not in sparse:  # a few symbolic terms near the lowest score: they extrapolate
         best = min(sparse, key=lambda i: (rows[i]["n_parameters"], scores[i]))
+    if best in sparse:  # the exact step's corrections, when they serve better, are physics, not extra terms
+        best = _exact_step_over(rows, sparse, best, factor)
     if not math.isfinite(scores[best]):
         warning = (
             f"model selection: every one of {len(rows)} candidates failed to serve the held-out data "
@@ -409,4 +450,24 @@ def _tied_sparse(rows: list[dict[str, Any]], sparse: list[int], keep_below: floa
     if rows[0].get("kind") == "sparse":
         return None
     tied = [i for i in sparse if rows[i]["score"] <= keep_below]
-    return min(tied, key=lambda i: (rows[i]["n_parameters"], rows[i]["score"])) if tied else None
+    if not tied:
+        return None
+    return _exact_step_over(rows, tied, min(tied, key=lambda i: (rows[i]["n_parameters"], rows[i]["score"])), FACTOR)
+
+
+def _exact_step_over(rows: list[dict[str, Any]], pool: list[int], best: int, factor: float) -> int:
+    """The exact-step corrections candidate of ``pool`` with the lowest score when it scores ``factor`` times
+    below the sparse candidate ``best`` and keeps every term ``best`` kept (else ``best``): its extra terms are then
+    the ``O(h^2)`` corrections of one step of the continuous flow to the same physics (:func:`exact_step_candidates`),
+    which serve a test beyond the training better than the true terms alone, and which it drops on data that a
+    first-order ``L_d`` obeys exactly. (Without the same terms it fits another potential, with large corrections:
+    paper Example 2's ``cos(q^2 - 1)`` by ``trig:3`` and ``Dtq^4`` terms, which serve its test 90x the leapfrog.)"""
+    physics = set(rows[best].get("terms") or ["?"])  # its terms, which the corrections must come on top of
+    better = [
+        i
+        for i in pool
+        if is_exact_step(rows[i])
+        and rows[i]["score"] * factor < rows[best]["score"]
+        and physics <= set(rows[i]["terms"])
+    ]
+    return min(better, key=lambda i: rows[i]["score"]) if better else best

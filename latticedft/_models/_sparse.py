@@ -15,7 +15,7 @@ from ._library import Library, cell_variables, readable_variables
 from ._linear import LinearLagrangian
 from ._terms import Term, axis_name, term_forms, term_values
 
-__all__ = ["SparseLagrangian", "default_library", "THRESHOLDS"]
+__all__ = ["SparseLagrangian", "default_library", "exact_step_libraries", "THRESHOLDS"]
 
 #: The thresholds tried by ``threshold = "auto"`` (a term is dropped when its share of the DEL residual's
 #: largest column, ``|coef_c| |R e_c|``, is below the threshold), largest first.
@@ -41,6 +41,32 @@ def default_library(n: int, m: int, corrections: bool = False) -> str:
             base += " + gradient*gradient + kinetic*gradient" if n > 1 else ""
         return base
     return "kinetic + poly:2 + norm:-1 + log" + (" + cross" if m == 2 else "")
+
+
+def exact_step_libraries(n: int, m: int, order: int = 3) -> list[str]:
+    """The exact-step corrections libraries of a time-only lattice (empty on a field lattice). For ``L = |q'|^2/2
+    - V(q)`` one step of the exact flow has the discrete Lagrangian, in the trapezoid rule (``at = "average"``),
+    ``h (|v|^2/2 - V) - h^3/24 |grad V|^2 + h^3/12 v.Hess(V).v + O(h^5)`` with ``v = (q1 - q0)/h``
+    (docs/discovery.md). Each library holds a family of potentials ``V`` and the terms that its corrections
+    span to ``O(h^order)``: at ``order = 3``, for ``V`` in ``trig:1``, ``V'^2`` in ``trig:2`` and ``V''`` in
+    ``trig:1``; for ``V`` in ``poly:4``, ``V'^2`` to degree 6 and ``V''`` to degree 2; for ``V = c/|q|``,
+    ``|q|^-4``, ``|Dq|^2 |q|^-3`` and ``(q . Dq)^2 |q|^-5``. At ``order = 5`` (the trig potentials only) also
+    ``V'^2 V''`` (in ``trig:3``), ``V''^2 v^2`` and ``V' V''' v^2`` (in ``kinetic*trig:2``) and ``V'''' v^4``.
+
+    >>> exact_step_libraries(1, 1)
+    ['kinetic + trig:2 + kinetic*trig:1', 'kinetic + poly:6 + kinetic*poly:2']
+    >>> exact_step_libraries(1, 1, order=5)
+    ['kinetic + trig:3 + kinetic*trig:2 + kinetic*kinetic*trig:1']
+    >>> exact_step_libraries(1, 2)
+    ['kinetic + norm:-1,-4 + kinetic*norm:-3 + radial*norm:-5']
+    """
+    if n != 1:
+        return []
+    if order == 5:
+        return ["kinetic + trig:3 + kinetic*trig:2 + kinetic*kinetic*trig:1"] if m == 1 else []
+    if m == 1:
+        return ["kinetic + trig:2 + kinetic*trig:1", "kinetic + poly:6 + kinetic*poly:2"]
+    return ["kinetic + norm:-1,-4 + kinetic*norm:-3 + radial*norm:-5"]
 
 
 class SparseLagrangian(LinearLagrangian):

@@ -15,8 +15,8 @@ The shorthands (usable in case.toml, joined into libraries by :mod:`latticedft._
 - squared derivatives: ``kinetic`` (``|D_t q|^2``), ``gradient`` (``|D_x q|^2`` per space axis),
   ``velocities`` (every product ``D_t q_i D_t q_j``, for unequal masses);
 - vector fields: ``norm:k1,k2,...`` (``|q|^k``, negative ``k`` too), ``log`` (``log|q|``), ``cross``
-  (``q_1 D_t q_2 - q_2 D_t q_1``, a magnetic term), ``cosdiff`` / ``sindiff`` (``cos(q_i - q_j)``,
-  ``sin(q_i - q_j)``, ``i < j``).
+  (``q_1 D_t q_2 - q_2 D_t q_1``, a magnetic term), ``radial`` (``(q . D_t q)^2``), ``cosdiff`` / ``sindiff``
+  (``cos(q_i - q_j)``, ``sin(q_i - q_j)``, ``i < j``).
 
 >>> [t.name for t in named("trig:2").expand(1, 1)]
 ['sin(q)', 'cos(q)', 'sin(2*q)', 'cos(2*q)']
@@ -24,7 +24,9 @@ The shorthands (usable in case.toml, joined into libraries by :mod:`latticedft._
 
 from __future__ import annotations
 
+import functools
 import itertools
+import operator
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -194,7 +196,7 @@ def named(spec: str) -> Family:
     raise InputError.at(
         "library",
         f"unknown term {spec!r}; expected poly:K, trig:K[:w], trig:K(F), exp[:w], kinetic, gradient, velocities, "
-        "norm:k1,k2,..., log, cross, cosdiff, sindiff, joined by '+' and '*'",
+        "norm:k1,k2,..., log, cross, radial, cosdiff, sindiff, joined by '+' and '*'",
     )
 
 
@@ -219,11 +221,7 @@ def _exponents(m: int, d: int) -> list[tuple[int, ...]]:
 
 def _monomial(e: tuple[int, ...], m: int) -> Term:
     def value(v: Vars) -> Any:
-        out: Any = 1
-        for i, p in enumerate(e):
-            if p:
-                out = out * v.q[i] ** p
-        return out
+        return _product([v.q[i] ** p for i, p in enumerate(e) if p])
 
     name = "*".join(component_name(m, i) + (f"**{p}" if p > 1 else "") for i, p in enumerate(e) if p)
     return Term(name, value)
@@ -290,7 +288,7 @@ def _trig_of(match: re.Match[str], label: str) -> Family:
 
 def _of_term(name: str, c: float, fn: Evaluator, v: Vars) -> Any:
     """``name(c T)``: ``sin`` or ``cos`` of a scaled term."""
-    return getattr(v.xp, name)(c * fn(v))
+    return getattr(v.xp, name)(_times(c, fn(v)))
 
 
 @_family(r"(?:cos|sin)")
@@ -312,7 +310,7 @@ def _exp(match: re.Match[str], label: str) -> Family:
 def _squared(axis: int, m: int) -> Term:
     """``|D_axis q|^2``: the sum over components (rotation invariant)."""
     name = "+".join(f"D{axis_name(axis)}{component_name(m, i)}**2" for i in range(m))
-    return Term(name if m == 1 else f"({name})", lambda v: sum(v.d[axis][i] ** 2 for i in range(m)))
+    return Term(name if m == 1 else f"({name})", lambda v: _total([v.d[axis][i] ** 2 for i in range(m)]))
 
 
 @_family(r"kinetic")
@@ -341,9 +339,27 @@ def _velocities(match: re.Match[str], label: str) -> Family:
     return Family(label, build)
 
 
+# Sums and products of a term's parts start from the first part, and a factor of 1 is left out: the values are the
+# same to the bit (0 + a = a, 1 * a = a), and under ``torch.func.jvp`` (the exact solve's derivatives) an
+# operation with a Python number costs several times one between tensors.
+def _total(parts: Sequence[Any]) -> Any:
+    """``parts[0] + parts[1] + ...``, left to right."""
+    return functools.reduce(operator.add, parts)
+
+
+def _product(parts: Sequence[Any]) -> Any:
+    """``parts[0] * parts[1] * ...``, left to right."""
+    return functools.reduce(operator.mul, parts)
+
+
+def _times(c: float, x: Any) -> Any:
+    """``c x``, or ``x`` itself for ``c = 1``."""
+    return x if c == 1 else c * x
+
+
 def _onsite(name: str, i: int, c: float, v: Vars) -> Any:
     """``name(c q_i)``: ``sin``, ``cos`` or ``exp`` of a scaled component."""
-    return getattr(v.xp, name)(c * v.q[i])
+    return getattr(v.xp, name)(_times(c, v.q[i]))
 
 
 def _velocity_product(i: int, j: int, v: Vars) -> Any:
@@ -359,7 +375,7 @@ def _component_difference(name: str, i: int, j: int, v: Vars) -> Any:
 
 
 def _norm_squared(v: Vars) -> Any:
-    return sum(qi**2 for qi in v.q)
+    return _total([qi**2 for qi in v.q])
 
 
 @_family(r"norm:(-?\d+(?:,-?\d+)*)")
@@ -382,6 +398,23 @@ def _log(match: re.Match[str], label: str) -> Family:
         return [Term("log|q|", lambda v: v.xp.log(_norm_squared(v)) / 2)]
 
     return Family(label, build)
+
+
+@_family(r"radial")
+def _radial(match: re.Match[str], label: str) -> Family:
+    """``(q . D_t q)^2``: the squared radial velocity times ``|q|^2``; with ``norm:-5`` the part of Kepler's
+    exact-step correction that the Hessian of ``1/|q|`` gives along ``q``."""
+
+    def build(n: int, m: int) -> list[Term]:
+        _need(label, n, m, vector=True)
+        name = "+".join(f"{component_name(m, i)}*Dt{component_name(m, i)}" for i in range(m))
+        return [Term(f"({name})**2", _radial_value)]
+
+    return Family(label, build)
+
+
+def _radial_value(v: Vars) -> Any:
+    return _total([qi * di for qi, di in zip(v.q, v.d[0])]) ** 2
 
 
 @_family(r"cross")
