@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from .._kernel_folded import folded_kernels
+from .._kernel_quadratic import quadratic_kernels
 from .._models._mlp import KineticPotentialMLPLagrangian
 from .._options import option
 from ._folded import FoldedSlices, per_model_state
@@ -128,22 +129,16 @@ def _closed_forms(model: KineticPotentialMLPLagrangian, mod: Any, k: int, m: int
 
 class PotentialCells:
     """The cells anchored on a slice (``lo``; ``hi`` the next) at the current state: their gradients ``grad``
-    ``(cells, K m)`` (evaluated when first read: slice-Newton reads them once, at the solution) and their
-    Hessian blocks."""
+    ``(cells, K m)`` and their Hessian blocks. ``grad`` is :class:`DeferredGrad`, evaluated where it is used:
+    slice-Newton returns it at the solution for the next slice, and after the last slice nothing reads it."""
 
     def __init__(self, owner: PotentialSlices, lo: np.ndarray, hi: np.ndarray):
         self.owner, self.lo, self.hi = owner, lo, hi
         self.vlo = owner.potential(lo)
-        self._grad: np.ndarray | None = None
 
     @property
-    def grad(self) -> np.ndarray:
-        if self._grad is None:
-            o = self.owner
-            self._grad = np.empty((o.site_of.shape[1], o.k * o.m))
-            vhi = o.potential(self.hi)
-            o.mod.quadratic_grad(self.lo, self.hi, o.site_of, o.upper, o.hess, self.vlo, vhi, self._grad)
-        return self._grad
+    def grad(self) -> DeferredGrad:
+        return DeferredGrad(self.owner, self.lo.copy(), self.hi.copy(), self.vlo)
 
     def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
         """The Hessian blocks ``(cells, m, m)`` of ``pairs`` (two points on two slices: the potential, one site's,
@@ -156,6 +151,22 @@ class PotentialCells:
         }
 
 
+class DeferredGrad:
+    """The gradients ``(cells, K m)`` of the cells anchored on a slice at the values ``lo`` and ``hi`` (copies:
+    a rolling window moves its slices), evaluated by ``numpy()`` on its first call."""
+
+    def __init__(self, owner: PotentialSlices, lo: np.ndarray, hi: np.ndarray, vlo: np.ndarray):
+        self.owner, self.lo, self.hi, self.vlo = owner, lo, hi, vlo
+        self._grad: np.ndarray | None = None
+
+    def numpy(self) -> np.ndarray:
+        if self._grad is None:
+            o = self.owner
+            self._grad = np.empty((o.site_of.shape[1], o.k * o.m))
+            o.grad_pass(self.lo, self.hi, self.vlo, o.potential(self.hi), self._grad)
+        return self._grad
+
+
 class PotentialSlices(FoldedSlices):
     """A kinetic-potential MLP's slice-Newton evaluation on one served field (:class:`FoldedSlices`' index maps,
     predictor and range check; the residual and gradients by the folded module's quadratic kernels)."""
@@ -165,6 +176,14 @@ class PotentialSlices(FoldedSlices):
         self.model = model
         self.net, self.hess = _closed_forms(model, mod, self.k, self.m)
         self.known: list[tuple[np.ndarray, np.ndarray]] = []  # (a slice's values, -V'/K on its sites)
+        self.quad = quadratic_kernels(self.hess, self.upper, self.m)
+
+    def grad_pass(self, lo: np.ndarray, hi: np.ndarray, vlo: np.ndarray, vhi: np.ndarray, out: np.ndarray) -> None:
+        """The cells' gradients into ``out``, by the passes generated for the stencil (else the folded module's)."""
+        if self.quad is not None:
+            self.quad.quadratic_grad(lo, hi, self.site_of, self.hess, vlo, vhi, out)
+        else:
+            self.mod.quadratic_grad(lo, hi, self.site_of, self.upper, self.hess, vlo, vhi, out)
 
     def potential(self, values: np.ndarray) -> np.ndarray:
         """``-V'/K`` on every site of a slice at ``values`` (``(sites, m)``); the last two slices' are kept (the
@@ -178,16 +197,19 @@ class PotentialSlices(FoldedSlices):
         return out
 
     def grad(self, flat: torch.Tensor, i: int) -> np.ndarray:
-        return PotentialCells(self, flat[i].numpy(), flat[i + 1].numpy()).grad
+        return PotentialCells(self, flat[i].numpy(), flat[i + 1].numpy()).grad.numpy()
 
     def evaluate(self, flat: torch.Tensor, vol: float, i: int, g_prev: Any) -> tuple[Any, np.ndarray]:
         ev = PotentialCells(self, flat[i].numpy(), flat[i + 1].numpy())
-        gp = g_prev.numpy() if isinstance(g_prev, torch.Tensor) else g_prev
+        gp = g_prev.numpy() if isinstance(g_prev, (torch.Tensor, DeferredGrad)) else g_prev
         gp = np.ascontiguousarray(gp).reshape(self.site_of.shape[1], self.k * self.m)
         r = np.empty(self.rows.size * self.m)
-        self.mod.quadratic_residual(
-            gp, ev.lo, ev.hi, self.site_of, self.upper, self.hess, ev.vlo, self.rows, vol, self.el, r
-        )
+        if self.quad is not None:
+            self.quad.quadratic_residual(gp, ev.lo, ev.hi, self.site_of, self.hess, ev.vlo, self.rows, vol, self.el, r)
+        else:
+            self.mod.quadratic_residual(
+                gp, ev.lo, ev.hi, self.site_of, self.upper, self.hess, ev.vlo, self.rows, vol, self.el, r
+            )
         return ev, r
 
 
