@@ -79,7 +79,8 @@ def _source(pattern: np.ndarray, upper: Sequence[int], m: int) -> str:
             lower.append(f"        el[s{q // m}, {q % m}] += " + column(q, "vlo"))
     text = _HEAD.replace("{entries}", entries).replace("{gather}", "\n".join(gather))
     text = text.replace("{grad}", "\n".join(grad)).replace("{upper}", "\n".join(up) or "    pass")
-    return text.replace("{lower}", "\n".join(lower) or "        pass").replace("{m}", str(m))
+    text = text.replace("{lower}", "\n".join(lower) or "        pass").replace("{m}", str(m))
+    return text
 
 
 def quadratic_kernels(hess: np.ndarray, upper: Sequence[int] | np.ndarray, m: int) -> Any:
