@@ -162,3 +162,17 @@ def test_the_generated_quadratic_passes_equal_the_folded_ones(k: int, m: int, up
     quad.quadratic_residual(gprev, lo, hi, site_of, hess, vlo, rows, 0.3, np.empty((sites, m)), r)
     mod.quadratic_residual(gprev, lo, hi, site_of, up, hess, vlo, rows, 0.3, np.empty((sites, m)), rref)
     assert np.array_equal(r, rref)
+
+
+def test_the_extrapolation_array_built_around_kept_coordinates_is_identical() -> None:
+    """A later field's extrapolation array, built around the kept feature coordinate with its own time
+    coordinate, equals the one xarray's constructor builds."""
+    from latticedft._serve import _range
+
+    model, init = _mlp(1), _field(1, 8)
+    for slices in (5, 7):
+        kept = ldft.serve(model, init, slices=slices, progress=False)
+        _range._KEPT.clear()
+        fresh = ldft.serve(model, init, slices=slices, progress=False)
+        assert kept.extrapolation is not None and fresh.extrapolation is not None
+        xr.testing.assert_identical(kept.extrapolation, fresh.extrapolation)
