@@ -6,11 +6,13 @@ kinetic Hessian, minus ``V'`` of each point's site over ``K``: ``V'`` is needed 
 once per stencil point of every cell, and once per slice, not per Newton iteration (the DEL of slice ``i``
 reads ``V'`` on slice ``i`` only; the unknowns of slice ``i + 1`` enter it through the kinetic part). ``V'``
 comes from one forward and one backward pass of the network written out (numpy's matrix products and
-activation, compiled passes for the first layer and the activations' derivative), instead of autograd over
-every cell. The residual and the cells' gradients come from compiled passes of the folded polynomial's module
-(``quadratic_residual``, ``quadratic_grad``), the predictor and range check from ``._folded``; the Hessian
-blocks slice-Newton asks for (of two points on two slices) are the kinetic Hessian's. :func:`not_affine`
-answers the affine recurrence's probe from the same closed forms where they decide it.
+activation, compiled passes for the first layer and the activations' derivative; a part of the sites at a
+time), instead of autograd over every cell. The residual and the cells' gradients come from compiled passes
+written out for the stencil and the kinetic Hessian's nonzeros (``.._kernel_quadratic``; the folded
+polynomial's ``quadratic_residual`` and ``quadratic_grad`` where those do not build), the gradients at a
+slice's solution only where the next slice reads them; the predictor and range check come from ``._folded``;
+the Hessian blocks slice-Newton asks for (of two points on two slices) are the kinetic Hessian's.
+:func:`not_affine` answers the affine recurrence's probe from the same closed forms where they decide it.
 
 The sums run in another order than autograd's, so the fields differ from the default path's by round-off:
 this path is the default, as the folded polynomial's, and left where ``set_options(compiled_kernels=False)`` asks.
