@@ -283,21 +283,30 @@ def act_slope_row(a, d, kind):
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
 def features(values, site_of, upper, proj, start, out):
+    # each point's values gathered once per slice and component (x[a]), the features summed from them over
+    # contiguous rows in the order of the points
     nf, k = proj.shape
     m = values.shape[2]
+    ncell = site_of.shape[1]
+    x = np.empty((k, ncell))
     for r in range(out.shape[0]):
         i = start + r
-        for p in range(nf):
-            for c in range(m):
+        for c in range(m):
+            for a in range(k):
+                src = values[i + upper[a]]
+                col = site_of[a]
+                xa = x[a]
+                for n in range(ncell):
+                    xa[n] = src[col[n], c]
+            for p in range(nf):
                 row = out[r, p * m + c]
-                for n in range(row.shape[0]):
+                for n in range(ncell):
                     row[n] = 0.0
                 for a in range(k):
                     w = proj[p, a]
-                    src = values[i + upper[a]]
-                    col = site_of[a]
-                    for n in range(row.shape[0]):
-                        row[n] += w * src[col[n], c]
+                    xa = x[a]
+                    for n in range(ncell):
+                        row[n] += w * xa[n]
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)

@@ -338,7 +338,7 @@ def to_dataarrays(fields: Sequence[LatticeField]) -> list[xr.DataArray]:
         time = _time_values(f, int(v.shape[0]))
         both = (key, time.tobytes())
         if both not in timed:
-            timed[both] = _with_time(parts, f.dims[0], time)
+            timed[both] = with_time(parts, f.dims[0], time)
         parts = timed[both]
         out.append(like_dataarray(parts, v, dict(f.attrs), {d: f.coord_attrs.get(d, {}) for d in f.dims}))
     return out
@@ -350,7 +350,7 @@ def _time_values(f: LatticeField, nt: int) -> np.ndarray:
     return c if len(c) == nt else c[0] + f.spacing[0] * np.arange(nt, dtype=np.float64)
 
 
-def _with_time(parts: DataArrayParts, tdim: str, values: np.ndarray) -> DataArrayParts:
+def with_time(parts: DataArrayParts, tdim: str, values: np.ndarray) -> DataArrayParts:
     """``parts`` with the time coordinate ``values`` along ``tdim`` and its index, as xarray's constructor
     makes them (its attributes are set by :func:`like_dataarray`)."""
     dims, name, variables, indexes = parts

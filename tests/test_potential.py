@@ -137,3 +137,42 @@ def test_the_affine_probe_is_answered_by_the_closed_forms() -> None:
         flat.net[-1].weight.zero_()
     assert not not_affine(flat, k, 1, scale)
     assert _AffineSlices.probe(flat, flat.stencil, 1, scale) is not None
+
+
+@pytest.mark.parametrize(("k", "m", "upper"), [(4, 1, (0, 1, 0, 0)), (3, 2, (0, 1, 1))])
+def test_the_generated_quadratic_passes_equal_the_folded_ones(k: int, m: int, upper: tuple[int, ...]) -> None:
+    """The passes written out for one stencil and Hessian pattern give the folded module's results to the bit."""
+    from latticedft._kernel_folded import folded_kernels
+    from latticedft._kernel_quadratic import quadratic_kernels
+
+    rng = np.random.default_rng(3)
+    km, sites, cells = k * m, 7, 9
+    hess = rng.normal(size=(km, km)) * (rng.random((km, km)) < 0.6)
+    quad, mod = quadratic_kernels(hess, upper, m), folded_kernels()
+    assert quad is not None and mod is not None
+    lo, hi, vlo, vhi = (rng.normal(size=(sites, m)) for _ in range(4))
+    site_of = rng.integers(0, sites, size=(k, cells))
+    up = np.asarray(upper, dtype=np.int64)
+    out, ref = np.empty((cells, km)), np.empty((cells, km))
+    quad.quadratic_grad(lo, hi, site_of, hess, vlo, vhi, out)
+    mod.quadratic_grad(lo, hi, site_of, up, hess, vlo, vhi, ref)
+    assert np.array_equal(out, ref)
+    gprev, rows = rng.normal(size=(cells, km)), np.array([0, 2, 3, 6])
+    r, rref = np.empty(rows.size * m), np.empty(rows.size * m)
+    quad.quadratic_residual(gprev, lo, hi, site_of, hess, vlo, rows, 0.3, np.empty((sites, m)), r)
+    mod.quadratic_residual(gprev, lo, hi, site_of, up, hess, vlo, rows, 0.3, np.empty((sites, m)), rref)
+    assert np.array_equal(r, rref)
+
+
+def test_the_extrapolation_array_built_around_kept_coordinates_is_identical() -> None:
+    """A later field's extrapolation array, built around the kept feature coordinate with its own time
+    coordinate, equals the one xarray's constructor builds."""
+    from latticedft._serve import _range
+
+    model, init = _mlp(1), _field(1, 8)
+    for slices in (5, 7):
+        kept = ldft.serve(model, init, slices=slices, progress=False)
+        _range._KEPT.clear()
+        fresh = ldft.serve(model, init, slices=slices, progress=False)
+        assert kept.extrapolation is not None and fresh.extrapolation is not None
+        xr.testing.assert_identical(kept.extrapolation, fresh.extrapolation)

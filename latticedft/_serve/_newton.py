@@ -130,7 +130,10 @@ def _newton_slice(
                 continue
             failure = ("Newton step is not finite (singular mixed Hessian?)", int(np.argmax(np.abs(r))), res)
             return it, res, ev.grad, failure
-        flat[i + 1, unk] += torch.from_numpy(delta.reshape(-1, m))
+        if unk.numel() == flat.shape[1]:  # every site an unknown (distinct sites): no gather and scatter
+            flat[i + 1] += torch.from_numpy(delta.reshape(-1, m))
+        else:
+            flat[i + 1, unk] += torch.from_numpy(delta.reshape(-1, m))
         small = not stale and step <= rtol * allmax(_scale(flat, i, unk))[0]
     worst: int | None = int(np.argmax(np.abs(r))) if r.size else None
     return max_newton, res, ev.grad, (f"Newton did not converge in {max_newton} iterations", worst, res)

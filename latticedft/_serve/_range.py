@@ -17,7 +17,7 @@ import numpy as np
 import torch
 import xarray as xr
 
-from .._lattice import LatticeField, dataarray_parts, gather_cells, like_dataarray
+from .._lattice import LatticeField, dataarray_parts, gather_cells, keep_last, like_dataarray, with_time
 from .._models import AbstractLagrangian
 from .._options import option
 
@@ -102,11 +102,21 @@ def _extrapolation_array(
     parts = None if shared is None else shared.get(key)
     if parts is not None:  # built around the coordinates of a member already recorded
         return like_dataarray(parts, per_slice, attrs)
+    kept = _KEPT.get(key[2:]) if shared is None else None
+    if kept is not None:  # the feature coordinate of an earlier field's, its own time coordinate
+        return like_dataarray(with_time(kept, tdim, t), per_slice, attrs)
     coords = xr.Coordinates({tdim: t, "feature": feature_labels(model, f.dims, f.components)})
     out = xr.DataArray(per_slice, dims=(tdim, "feature"), coords=coords, name="extrapolation", attrs=attrs)
     if shared is not None:
         shared[key] = dataarray_parts(out)
+    elif nt <= 1 << 16:  # a long time axis is not kept
+        keep_last(_KEPT, key[2:], dataarray_parts(out), 4)
     return out
+
+
+#: An extrapolation array's coordinates per lattice dims and components, the last few (:func:`_extrapolation_array`
+#: builds later arrays around them with their own time coordinate, as :func:`.._lattice.to_dataarrays` does).
+_KEPT: dict[tuple[Any, ...], Any] = {}
 
 
 def extrapolation_summary(ext: xr.DataArray | None) -> dict[str, Any] | None:

@@ -189,5 +189,7 @@ def _site_label(f: LatticeField, sys: _SliceSystem, tslice: int, row: int) -> tu
 
 
 def _scale(flat: torch.Tensor, i: int, unk: torch.Tensor) -> float:
-    """Size of the values on slices ``i - 1``, ``i`` and the unknowns of ``i + 1``: the scale of a Newton step."""
-    return max(float(flat[i - 1].abs().max()), float(flat[i].abs().max()), float(flat[i + 1, unk].abs().max()), 1e-300)
+    """Size of the values on slices ``i - 1``, ``i`` and the unknowns of ``i + 1``: the scale of a Newton step
+    (``unk``, distinct sites, holding every site: the whole slice, not gathered)."""
+    nxt = flat[i + 1] if unk.numel() == flat.shape[1] else flat[i + 1, unk]
+    return max(float(flat[i - 1].abs().max()), float(flat[i].abs().max()), float(nxt.abs().max()), 1e-300)
