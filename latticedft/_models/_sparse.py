@@ -4,7 +4,8 @@ inside the gauge-fixed exact solve, and printed as an equation."""
 from __future__ import annotations
 
 import math
-from typing import Any, Literal
+from collections.abc import Sequence
+from typing import Any, Literal, overload
 
 import torch
 
@@ -13,6 +14,7 @@ from .._stencil import Stencil
 from .._symbolic import SymbolicLd, cell_symbols, del_equations
 from ._library import Library, cell_variables, readable_variables
 from ._linear import LinearLagrangian
+from ._termderiv import closed_derivatives, term_derivatives
 from ._terms import Term, axis_name, term_forms, term_values
 
 __all__ = ["SparseLagrangian", "default_library", "exact_step_libraries", "THRESHOLDS"]
@@ -178,6 +180,57 @@ class SparseLagrangian(LinearLagrangian):
             for p in points
         ]
         return values[0] if len(values) == 1 else torch.stack(values).mean(0)
+
+    @overload
+    def feature_derivatives(
+        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: Literal[True] = True
+    ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]]: ...
+
+    @overload
+    def feature_derivatives(
+        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool
+    ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]: ...
+
+    def feature_derivatives(
+        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool = True
+    ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]:
+        """The terms' derivatives in closed form (their sympy forms differentiated,
+        :mod:`latticedft._models._termderiv`); forward-mode differentiation where a user term has no form."""
+        rule = term_derivatives(self.terms, self.n, self.m) if self.library is None or self.library.saveable else None
+        if rule is None:
+            return super().feature_derivatives(cells, pairs, first=first)
+        return closed_derivatives(rule, self._input_maps(), cells, self.spacing, pairs, first, self.n_terms)
+
+    def fast_derivatives(
+        self, cells: torch.Tensor, pairs: list[tuple[int, int]]
+    ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]] | None:
+        """``dL/dx`` and Hessian blocks of the kept terms in closed form (what serving asks for; None, so autograd,
+        where a user term has no sympy form)."""
+        if self.library is not None and not self.library.saveable:
+            return None
+        kept = self._kept()
+        rule = term_derivatives([self.terms[c] for c in kept], self.n, self.m)
+        if rule is None:
+            return None
+        coef = self.coef.detach()[kept]
+        with torch.no_grad():
+            d, blocks = closed_derivatives(rule, self._input_maps(), cells, self.spacing, pairs, True, len(kept))
+        assert d is not None
+        return d @ coef, {p: b @ coef for p, b in blocks.items()}
+
+    def _input_maps(self) -> list[torch.Tensor]:
+        """The linear maps from a cell's values to the terms' inputs (the on-site value, then the differences),
+        one per stencil point that :meth:`features` evaluates the on-site functions at."""
+        if self.at == "mean":
+            return [self.proj]
+        points = [self.stencil.anchor] if self.at == "anchor" else range(self.stencil.size)
+        maps = []
+        for p in points:
+            a_map = self.proj.clone()
+            a_map[0] = 0.0
+            a_map[0, p] = 1.0
+            maps.append(a_map)
+        return maps
 
     # -- the equation ------------------------------------------------------------------------------------
     def _kept(self) -> list[int]:

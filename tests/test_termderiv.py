@@ -1,0 +1,66 @@
+"""The sparse library's closed-form term derivatives equal forward-mode differentiation of its features."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import latticedft as ldft
+from latticedft import Library
+from latticedft._action import cell_derivatives
+from latticedft._models._linear import LinearLagrangian
+from latticedft._stencil import Stencil
+
+CASES = [
+    ("kinetic + trig:3 + kinetic*trig:2 + kinetic*kinetic*trig:1", 1, 1, "average"),
+    ("kinetic + norm:-1,-4 + kinetic*norm:-3 + radial*norm:-5 + log + cross", 1, 2, "average"),
+    ("kinetic + gradient + poly:4 + trig:1 + kinetic*gradient + exp:0.5", 2, 1, "anchor"),
+    ("velocities + trig:1 + cosdiff*velocities + sindiff + poly:2", 1, 2, "mean"),
+    ("kinetic + gradient + trig:2(poly:2)", 3, 1, "average"),
+]
+
+
+def _bound(library: object, n: int, m: int, at: str) -> LinearLagrangian:
+    model = ldft.MODELS["sparse"](library=library, at=at, stencil=Stencil.first_order(n))
+    model.bind(n, m, (0.1, 0.2, 0.3)[:n])
+    return model
+
+
+@pytest.mark.parametrize(("library", "n", "m", "at"), CASES)
+def test_closed_form_derivatives_equal_forward_mode(library: str, n: int, m: int, at: str) -> None:
+    model = _bound(library, n, m, at)
+    k = model.stencil.size
+    x = 0.5 + torch.rand(4, 3, k, m, dtype=torch.float64, generator=torch.Generator().manual_seed(n + m))
+    pairs = [(a, b) for a in range(k) for b in range(k)]
+    d, blocks = model.feature_derivatives(x, pairs)
+    d_ref, blocks_ref = LinearLagrangian.feature_derivatives(model, x, pairs)
+    torch.testing.assert_close(d, d_ref, rtol=1e-13, atol=1e-13 * float(d_ref.abs().max()))
+    for p in pairs:
+        torch.testing.assert_close(blocks[p], blocks_ref[p], rtol=1e-13, atol=1e-13 * float(blocks_ref[p].abs().max()))
+    _, only = model.feature_derivatives(x, pairs[:1], first=False)
+    assert only.keys() == {pairs[0]}
+
+
+def test_a_user_term_is_differentiated_in_forward_mode() -> None:
+    model = _bound(Library.parse("kinetic") + Library.function(lambda q: q[..., 0] ** 3, "cube"), 1, 1, "anchor")
+    x = torch.rand(5, 2, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    d, _ = model.feature_derivatives(x)
+    d_ref, _ = LinearLagrangian.feature_derivatives(model, x)
+    torch.testing.assert_close(d, d_ref)
+
+
+@pytest.mark.parametrize(("library", "n", "m", "at"), CASES[:3])
+def test_serving_derivatives_of_the_kept_terms_equal_autograd(library: str, n: int, m: int, at: str) -> None:
+    model = _bound(library, n, m, at)
+    coef = torch.rand(model.n_terms, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        model.coef.copy_(torch.where(torch.arange(model.n_terms) % 3 == 1, 0.0, coef))
+    k = model.stencil.size
+    x = 0.5 + torch.rand(6, k, m, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    pairs = [(0, 0), (0, k - 1), (k - 1, 0)]
+    closed = model.fast_derivatives(x, pairs)
+    assert closed is not None
+    grad, blocks = cell_derivatives(model, x, pairs, create_graph=True)  # autograd (closed forms skipped)
+    torch.testing.assert_close(closed[0], grad.detach(), rtol=1e-13, atol=1e-13)
+    for p in pairs:
+        torch.testing.assert_close(closed[1][p], blocks[p].detach(), rtol=1e-13, atol=1e-13)
