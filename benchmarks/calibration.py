@@ -214,11 +214,16 @@ def measure(s: Setup, sigma: float) -> list[Any]:
     if sigma and s.train[0].ndim > 1:
         s = copy.copy(s)
         s.select = False
-    model, (fresh, own, runner), t_sel, _ = _learned(s, train, kw)
-    ens = None
-    if s.ensemble:
-        ens = ldft.EnsembleLagrangian(copy.deepcopy(fresh), members=MEMBERS, seed=0)
-        ldft.learn(ens, train, boundary=s.boundary, progress=False, **own)
+    if s.ensemble and not s.select:  # member 0 is the single model: learned once (a noisy fit corrects once)
+        ens = ldft.EnsembleLagrangian(s.model(), members=MEMBERS, seed=0)
+        ldft.learn(ens, train, boundary=s.boundary, progress=False, **kw)
+        model, fresh, own, runner, t_sel = ens.member(0), s.model(), kw, None, 0.0
+    else:
+        model, (fresh, own, runner), t_sel, _ = _learned(s, train, kw)
+        ens = None
+        if s.ensemble:
+            ens = ldft.EnsembleLagrangian(copy.deepcopy(fresh), members=MEMBERS, seed=0)
+            ldft.learn(ens, train, boundary=s.boundary, progress=False, **own)
     t0 = time.perf_counter()
     held: list[dict[str, Any]] = []
     cal, _, trial = calibrate(
