@@ -13,7 +13,9 @@ Klein-Gordon string (leapfrog data, polynomial (2, 4)), and bound Kepler launche
 Venus, Earth, Mars). Per row: the model is chosen by ``select`` (``"auto"`` candidates; not for Kepler: minutes
 per MLP candidate; nor for noisy space-time fields: each candidate would repeat the noise correction; the MLP
 fits stop at 60 s each), calibrated by :func:`latticedft._calibrate.calibrate` (the runner-up's disagreement
-included), and served on every test field. A single model's band is ``psi_err_est`` (the larger of the held-out
+included), and served on every test field; without selection, a row with an ensemble takes its member 0 (learned
+on all the data, as the single model is) as the single model instead of learning it twice. A single model's band
+is ``psi_err_est`` (the larger of the held-out
 law and the held-out trial model's disagreement on the task); an ensemble's (5 members, seed 0; not for Kepler)
 is its members' standard deviation scaled by a factor measured on the held-out slices as the law's scale is,
 and widened to at least the trial's disagreement (``psi_std``, :meth:`latticedft._calibrate.Calibration.band`);
