@@ -185,12 +185,13 @@ class _Pool:
 
 
 def _learned(s: Setup, train: list[xr.DataArray], kw: dict[str, Any]) -> tuple[Any, Any, float, float]:
-    """(chosen model, its fresh copy with learn keywords and the runner-up, selection time, its wall time)."""
+    """(chosen model, its fresh copy with learn keywords, the runner-up and the two as selection learned them on
+    the held-in slices (None without selection), selection time, its wall time)."""
     if not s.select:
         model = s.model()
         t0 = time.perf_counter()
         ldft.learn(model, train, boundary=s.boundary, progress=False, **kw)
-        return model, (s.model(), kw, None), 0.0, time.perf_counter() - t0
+        return model, (s.model(), kw, None, None), 0.0, time.perf_counter() - t0
     t0 = time.perf_counter()
     sel = select(s.model(), train, "auto", boundary=s.boundary, **kw)
     t_sel = time.perf_counter() - t0
@@ -198,13 +199,16 @@ def _learned(s: Setup, train: list[xr.DataArray], kw: dict[str, Any]) -> tuple[A
     hand = s.model()
     fresh = _build(hand, rows[chosen]["kind"], dict(rows[chosen]["options"]))
     own = {**kw, "ridge": rows[chosen]["ridge"]}
-    others = [r for i, r in enumerate(rows) if i != chosen and np.isfinite(r["score"])]
-    others = [r for r in others if r["score"] <= 10 * rows[chosen]["score"]]
-    runner = None
+    others = [i for i, r in enumerate(rows) if i != chosen and np.isfinite(r["score"])]
+    others = [i for i in others if rows[i]["score"] <= 10 * rows[chosen]["score"]]
+    runner, second = None, None
     if others:
-        r = min(others, key=lambda row: row["score"])
+        i = min(others, key=lambda j: rows[j]["score"])
+        r = rows[i]
         runner = (_build(hand, r["kind"], dict(r["options"])), {**kw, "ridge": r["ridge"]}, r["label"])
-    return sel.model, (fresh, own, runner), t_sel, t_sel
+        second = sel.trials[i]
+    learned = (sel.trials[chosen], second) if sel.trials[chosen] is not None else None
+    return sel.model, (fresh, own, runner, learned), t_sel, t_sel
 
 
 def measure(s: Setup, sigma: float) -> list[Any]:
@@ -219,9 +223,9 @@ def measure(s: Setup, sigma: float) -> list[Any]:
     if s.ensemble and not s.select:  # member 0 is the single model: learned once (a noisy fit corrects once)
         ens = ldft.EnsembleLagrangian(s.model(), members=MEMBERS, seed=0)
         ldft.learn(ens, train, boundary=s.boundary, progress=False, **kw)
-        model, fresh, own, runner, t_sel = ens.member(0), s.model(), kw, None, 0.0
+        model, fresh, own, runner, learned, t_sel = ens.member(0), s.model(), kw, None, None, 0.0
     else:
-        model, (fresh, own, runner), t_sel, _ = _learned(s, train, kw)
+        model, (fresh, own, runner, learned), t_sel, _ = _learned(s, train, kw)
         ens = None
         if s.ensemble:
             ens = ldft.EnsembleLagrangian(copy.deepcopy(fresh), members=MEMBERS, seed=0)
@@ -229,7 +233,7 @@ def measure(s: Setup, sigma: float) -> list[Any]:
     t0 = time.perf_counter()
     held: list[dict[str, Any]] = []
     cal, _, trial = calibrate(
-        fresh, train, boundary=s.boundary, runner_up=runner, ensemble_model=ens, record=held, **own
+        fresh, train, boundary=s.boundary, runner_up=runner, ensemble_model=ens, record=held, learned=learned, **own
     )
     t_cal = time.perf_counter() - t0
     pool = _Pool()
