@@ -13,7 +13,9 @@ Klein-Gordon string (leapfrog data, polynomial (2, 4)), and bound Kepler launche
 Venus, Earth, Mars). Per row: the model is chosen by ``select`` (``"auto"`` candidates; not for Kepler: minutes
 per MLP candidate; nor for noisy space-time fields: each candidate would repeat the noise correction; the MLP
 fits stop at 60 s each), calibrated by :func:`latticedft._calibrate.calibrate` (the runner-up's disagreement
-included), and served on every test field. A single model's band is ``psi_err_est`` (the larger of the held-out
+included), and served on every test field; without selection, a row with an ensemble takes its member 0 (learned
+on all the data, as the single model is) as the single model instead of learning it twice. A single model's band
+is ``psi_err_est`` (the larger of the held-out
 law and the held-out trial model's disagreement on the task); an ensemble's (5 members, seed 0; not for Kepler)
 is its members' standard deviation scaled by a factor measured on the held-out slices as the law's scale is,
 and widened to at least the trial's disagreement (``psi_std``, :meth:`latticedft._calibrate.Calibration.band`);
@@ -183,12 +185,13 @@ class _Pool:
 
 
 def _learned(s: Setup, train: list[xr.DataArray], kw: dict[str, Any]) -> tuple[Any, Any, float, float]:
-    """(chosen model, its fresh copy with learn keywords and the runner-up, selection time, its wall time)."""
+    """(chosen model, its fresh copy with learn keywords, the runner-up and the two as selection learned them on
+    the held-in slices (None without selection), selection time, its wall time)."""
     if not s.select:
         model = s.model()
         t0 = time.perf_counter()
         ldft.learn(model, train, boundary=s.boundary, progress=False, **kw)
-        return model, (s.model(), kw, None), 0.0, time.perf_counter() - t0
+        return model, (s.model(), kw, None, None), 0.0, time.perf_counter() - t0
     t0 = time.perf_counter()
     sel = select(s.model(), train, "auto", boundary=s.boundary, **kw)
     t_sel = time.perf_counter() - t0
@@ -196,13 +199,16 @@ def _learned(s: Setup, train: list[xr.DataArray], kw: dict[str, Any]) -> tuple[A
     hand = s.model()
     fresh = _build(hand, rows[chosen]["kind"], dict(rows[chosen]["options"]))
     own = {**kw, "ridge": rows[chosen]["ridge"]}
-    others = [r for i, r in enumerate(rows) if i != chosen and np.isfinite(r["score"])]
-    others = [r for r in others if r["score"] <= 10 * rows[chosen]["score"]]
-    runner = None
+    others = [i for i, r in enumerate(rows) if i != chosen and np.isfinite(r["score"])]
+    others = [i for i in others if rows[i]["score"] <= 10 * rows[chosen]["score"]]
+    runner, second = None, None
     if others:
-        r = min(others, key=lambda row: row["score"])
+        i = min(others, key=lambda j: rows[j]["score"])
+        r = rows[i]
         runner = (_build(hand, r["kind"], dict(r["options"])), {**kw, "ridge": r["ridge"]}, r["label"])
-    return sel.model, (fresh, own, runner), t_sel, t_sel
+        second = sel.trials[i]
+    learned = (sel.trials[chosen], second) if sel.trials[chosen] is not None else None
+    return sel.model, (fresh, own, runner, learned), t_sel, t_sel
 
 
 def measure(s: Setup, sigma: float) -> list[Any]:
@@ -214,15 +220,20 @@ def measure(s: Setup, sigma: float) -> list[Any]:
     if sigma and s.train[0].ndim > 1:
         s = copy.copy(s)
         s.select = False
-    model, (fresh, own, runner), t_sel, _ = _learned(s, train, kw)
-    ens = None
-    if s.ensemble:
-        ens = ldft.EnsembleLagrangian(copy.deepcopy(fresh), members=MEMBERS, seed=0)
-        ldft.learn(ens, train, boundary=s.boundary, progress=False, **own)
+    if s.ensemble and not s.select:  # member 0 is the single model: learned once (a noisy fit corrects once)
+        ens = ldft.EnsembleLagrangian(s.model(), members=MEMBERS, seed=0)
+        ldft.learn(ens, train, boundary=s.boundary, progress=False, **kw)
+        model, fresh, own, runner, learned, t_sel = ens.member(0), s.model(), kw, None, None, 0.0
+    else:
+        model, (fresh, own, runner, learned), t_sel, _ = _learned(s, train, kw)
+        ens = None
+        if s.ensemble:
+            ens = ldft.EnsembleLagrangian(copy.deepcopy(fresh), members=MEMBERS, seed=0)
+            ldft.learn(ens, train, boundary=s.boundary, progress=False, **own)
     t0 = time.perf_counter()
     held: list[dict[str, Any]] = []
     cal, _, trial = calibrate(
-        fresh, train, boundary=s.boundary, runner_up=runner, ensemble_model=ens, record=held, **own
+        fresh, train, boundary=s.boundary, runner_up=runner, ensemble_model=ens, record=held, learned=learned, **own
     )
     t_cal = time.perf_counter() - t0
     pool = _Pool()

@@ -243,6 +243,7 @@ def calibrate(
     folds: int = FOLDS,
     ensemble_model: AbstractLagrangian | None = None,
     record: list[dict[str, Any]] | None = None,
+    learned: tuple[AbstractLagrangian, AbstractLagrangian | None] | None = None,
     **learn_kwargs: Any,
 ) -> tuple[Calibration, list[str], AbstractLagrangian]:
     """Measure a calibration law by held-out serving (see the module docstring): ``(law, warnings, trial)``,
@@ -254,6 +255,9 @@ def calibrate(
     learned ensemble, is served on every training field to measure :attr:`Calibration.spread_scale`. A ``record``
     list receives every measured field's samples (slices ``k >= 2``: ``k``, which are ``held`` out, the trial's
     relative error ``rel``, the fitted ``target``, the ``field``'s index), to measure another law on them.
+    ``learned``: the trial and the runner-up (None: not learned) as model selection learned them, on the first
+    ``1 - hold_out`` of every field with the same keywords (:attr:`latticedft.SelectionReport.trials`): taken as
+    they are instead of learning the same fits again (a noise-aware fit repeats its correction), with one fold.
     The random state of torch and numpy is left as it was. ``InputError`` when the fields are too short
     (:func:`too_short`).
     """
@@ -266,9 +270,14 @@ def calibrate(
         state = np.random.get_state()
         try:
             for n, fold in enumerate(_folds(fields, hold_out, folds)):
-                trial = _trial(fresh, fold.train, boundary, learn_kwargs)
+                reuse = learned if n == 0 and folds == 1 else None
+                trial = reuse[0] if reuse is not None else _trial(fresh, fold.train, boundary, learn_kwargs)
                 first = first or trial
-                found = _measure(trial, runner_up if n == 0 else None, fold, fields, boundary)
+                if reuse is not None:
+                    other = reuse[1] if runner_up is not None else None
+                else:
+                    other = _runner_trial(runner_up, fold, boundary) if n == 0 else None
+                found = _measure(trial, other, fold, fields, boundary)
                 warnings = warnings or _noise_warnings(trial, [x.rel[x.held] for x in found])
                 samples += found
         finally:
@@ -305,21 +314,27 @@ class _Sample:
     field: int = 0
 
 
+def _runner_trial(
+    runner_up: tuple[AbstractLagrangian, dict[str, Any], str] | None, fold: _Fold, boundary: BoundaryKinds | None
+) -> AbstractLagrangian | None:
+    """The runner-up candidate learned on the fold's fields (None without one, or when its fit fails)."""
+    if runner_up is None:
+        return None
+    try:
+        return _trial(runner_up[0], fold.train, boundary, runner_up[1])
+    except LatticeDFTError:
+        return None
+
+
 def _measure(
     trial: AbstractLagrangian,
-    runner_up: tuple[AbstractLagrangian, dict[str, Any], str] | None,
+    other: AbstractLagrangian | None,
     fold: _Fold,
     fields: list[xr.DataArray],
     boundary: BoundaryKinds | None,
 ) -> list[_Sample]:
-    """Every field of the fold with held-out slices, served by ``trial`` (and by the runner-up): its slices
-    ``k >= 2``."""
-    other = None
-    if runner_up is not None:
-        try:
-            other = _trial(runner_up[0], fold.train, boundary, runner_up[1])
-        except LatticeDFTError:
-            other = None
+    """Every field of the fold with held-out slices, served by ``trial`` (and by ``other``, the learned
+    runner-up): its slices ``k >= 2``."""
     out = []
     for i, (f, start) in enumerate(zip(fields, fold.starts, strict=True)):
         nt = f.sizes[f.dims[0]]

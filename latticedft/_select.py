@@ -91,6 +91,9 @@ class SelectionReport:
     model: AbstractLagrangian | None = None
     #: A hand-set score at or below this kept the hand-set model.
     keep_below: float = KEEP_BELOW
+    #: Every candidate as learned on the first ``1 - hold_out`` of each field (None where its fit failed), in the
+    #: order of ``rows``: the calibration's trial and runner-up (:func:`latticedft._calibrate.calibrate`).
+    trials: list[AbstractLagrangian | None] = field(default_factory=list, repr=False, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible (scores of failed candidates as ``None``)."""
@@ -282,7 +285,8 @@ def select(
     changes = auto_candidates(model, first.ndim, ridge, first.ncomp) if candidates == "auto" else list(candidates)
     specs = _candidates(model, changes, ridge)
     held = _split(fields, hold_out)
-    rows = [{**row, **_trial(fresh, r, held, fields, boundary, learn_kwargs)} for fresh, r, row in specs]
+    done = [_trial(fresh, r, held, fields, boundary, learn_kwargs) for fresh, r, _ in specs]
+    rows = [{**row, **measured} for (_, _, row), (measured, _) in zip(specs, done, strict=True)]
     chosen, reason, warnings = _choose(rows, factor, keep_below)
     chosen_model = copy.deepcopy(specs[chosen][0])
     report = learn(chosen_model, fields, boundary=boundary, ridge=specs[chosen][1], progress=False, **learn_kwargs)
@@ -294,6 +298,7 @@ def select(
         factor=float(factor),
         warnings=warnings,
         keep_below=float(keep_below),
+        trials=[trial for _, trial in done],
     )
     report.selection = sel.to_dict()
     report.warnings.extend(warnings)
@@ -349,8 +354,9 @@ def _trial(
     fields: list[xr.DataArray],
     boundary: BoundaryKinds | None,
     learn_kwargs: dict[str, Any],
-) -> dict[str, Any]:
-    """One candidate learned on the ``held`` parts and scored on the whole ``fields``: its row's measurements."""
+) -> tuple[dict[str, Any], AbstractLagrangian | None]:
+    """One candidate learned on the ``held`` parts and scored on the whole ``fields``: its row's measurements, and
+    the learned candidate (None when its fit failed)."""
     trial = copy.deepcopy(fresh)
     t0 = time.perf_counter()
     n_parameters, kept = None, None
@@ -368,7 +374,8 @@ def _trial(
         # linear-algebra errors): that candidate failed, the others are still tried
         score, status = math.inf, f"{type(exc).__name__}: {_short(exc)}"
     row = {"score": score, "status": status, "n_parameters": n_parameters, "wall_time": time.perf_counter() - t0}
-    return row if kept is None else {**row, "terms": kept}
+    row = row if kept is None else {**row, "terms": kept}
+    return row, (trial if n_parameters is not None else None)
 
 
 def _kept_terms(model: AbstractLagrangian) -> list[str] | None:

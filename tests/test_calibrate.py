@@ -61,6 +61,24 @@ def test_an_ensembles_spread_is_scaled_by_the_held_out_error() -> None:
     assert alone.spread_scale is None and alone.scale == cal.scale
 
 
+def test_the_trials_selection_learned_are_taken_as_they_are() -> None:
+    """Selection learns every candidate on the held-in slices: given those of the chosen one and the runner-up,
+    the calibration takes them instead of learning them again, and measures the same law and samples."""
+    _, data = oscillator_data(amplitudes=(0.4, 0.8, 1.2), steps=40)
+    sel = ldft.select(ldft.PolynomialLagrangian((2, 2)), data, [{"orders": [2, 4]}])
+    assert len(sel.trials) == 2 and all(t is not None and t.report_ is not None for t in sel.trials)
+    fresh = [ldft.PolynomialLagrangian((2, 2)), ldft.PolynomialLagrangian((2, 4))]
+    runner = (fresh[1 - sel.chosen], {"ridge": 0.0}, "other")
+    again: list[dict] = []
+    cal, _, trial = calibrate(fresh[sel.chosen], data, runner_up=runner, record=again, ridge=0.0)
+    taken: list[dict] = []
+    pair = (sel.trials[sel.chosen], sel.trials[1 - sel.chosen])
+    reused, _, same = calibrate(fresh[sel.chosen], data, runner_up=runner, record=taken, learned=pair, ridge=0.0)
+    assert same is sel.trials[sel.chosen] and taken == again
+    assert {**reused.to_dict(), "wall_time": 0} == {**cal.to_dict(), "wall_time": 0}
+    assert all(torch.equal(a, b) for a, b in zip(trial.state_dict().values(), same.state_dict().values()))
+
+
 def _after_seed(seed: int) -> float:
     torch.manual_seed(seed)
     return torch.rand(1).item()
@@ -247,9 +265,15 @@ def test_serve_again_uses_the_recorded_law_and_trial(tmp_path: Path, capsys) -> 
         xr.testing.assert_identical(ds["psi_err_est"], first)
 
 
-def test_auto_calibrates_after_selection_with_the_runner_up(tmp_path: Path, capsys) -> None:
+def test_auto_calibrates_after_selection_with_the_runner_up(tmp_path: Path, capsys, monkeypatch) -> None:
     """``calibrate = "auto"`` is on with ``[model] select``; the runner-up candidate's label is recorded when its
-    score was within reach of the chosen one's."""
+    score was within reach of the chosen one's. The trial and the runner-up are those selection learned."""
+    import latticedft._calibrate as calibration
+
+    def refit(*args: object) -> None:
+        raise AssertionError("the calibration learned again a candidate that selection had learned")
+
+    monkeypatch.setattr(calibration, "_trial", refit)
     case = tiny_wave(tmp_path)
     code, _, err = run_cli(
         capsys, "run", case, "--out", tmp_path / "r", "--set", 'model.select="auto"', "--set", "export.paraview=false"

@@ -47,12 +47,18 @@ def case_calibration(
     if short is not None:
         return None, [short], None
     with alone():  # rank 0's alone under --workers: the other processes take no part in it
-        fresh, kwargs, runner_up = _candidates(case, data, model, report)
+        fresh, kwargs, runner_up, learned = _candidates(case, data, model, report)
         log.info("calibrating the error bar by held-out serving ...")
         try:
             ens = model if isinstance(model, EnsembleLagrangian) else None
             cal, warnings, trial = calibrate(
-                fresh, data.train, boundary=case.train.boundary, runner_up=runner_up, ensemble_model=ens, **kwargs
+                fresh,
+                data.train,
+                boundary=case.train.boundary,
+                runner_up=runner_up,
+                ensemble_model=ens,
+                learned=learned,
+                **kwargs,
             )
         except LatticeDFTError as exc:
             text = " ".join(str(exc).split())[:160]
@@ -70,28 +76,39 @@ def case_calibration(
 
 def _candidates(
     case: Case, data: CaseData, model: AbstractLagrangian, report: Any
-) -> tuple[AbstractLagrangian, dict[str, Any], tuple[AbstractLagrangian, dict[str, Any], str] | None]:
-    """The chosen model unlearned with its learn keywords, and the runner-up of model selection (None without
-    selection, or when no other candidate scored within :data:`RUNNER_UP_WITHIN` of the chosen one)."""
+) -> tuple[
+    AbstractLagrangian,
+    dict[str, Any],
+    tuple[AbstractLagrangian, dict[str, Any], str] | None,
+    tuple[AbstractLagrangian, AbstractLagrangian | None] | None,
+]:
+    """The chosen model unlearned with its learn keywords, the runner-up of model selection (None without
+    selection, or when no other candidate scored within :data:`RUNNER_UP_WITHIN` of the chosen one), and the two
+    as selection learned them on the held-in slices where it kept them (``selection_trials_``; else None)."""
     kwargs = {k: v for k, v in case.train.learn.items() if k not in ("ensemble", "ensemble_seed")}
     hand = case.model.build(len(data.dims))
     sel = getattr(report, "selection", None)
     if not sel:
-        return hand, kwargs, None
-    rows = sel["candidates"]
-    chosen = rows[sel["chosen"]]
+        return hand, kwargs, None, None
+    rows, at = sel["candidates"], sel["chosen"]
+    chosen = rows[at]
     fresh = _build(hand, chosen["kind"], dict(chosen["options"]))
     best = chosen["score"]
     others = [
-        r
+        i
         for i, r in enumerate(rows)
-        if i != sel["chosen"] and r["score"] is not None and best is not None and r["score"] <= RUNNER_UP_WITHIN * best
+        if i != at and r["score"] is not None and best is not None and r["score"] <= RUNNER_UP_WITHIN * best
     ]
     own = {**kwargs, "ridge": chosen["ridge"]}
-    if not others:
-        return fresh, own, None
-    r = min(others, key=lambda row: row["score"])
-    return fresh, own, (_build(hand, r["kind"], dict(r["options"])), {**kwargs, "ridge": r["ridge"]}, r["label"])
+    runner = min(others, key=lambda i: rows[i]["score"]) if others else None
+    first = model.member(0) if isinstance(model, EnsembleLagrangian) else model
+    trials = getattr(first, "selection_trials_", None)
+    learned = (trials[at], None if runner is None else trials[runner]) if trials and trials[at] is not None else None
+    if runner is None:
+        return fresh, own, None, learned
+    r = rows[runner]
+    up = (_build(hand, r["kind"], dict(r["options"])), {**kwargs, "ridge": r["ridge"]}, r["label"])
+    return fresh, own, up, learned
 
 
 @dataclass

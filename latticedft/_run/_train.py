@@ -6,6 +6,7 @@ import logging
 from typing import Any
 
 from .._case import Case
+from .._collective import is_parallel
 from .._contract import AbstractLagrangian
 from .._errors import ConfigError, InputError
 from .._learn import learn
@@ -90,4 +91,6 @@ def _select_and_learn(case: Case, data: CaseData, model: AbstractLagrangian) -> 
         report.selection = selection
         report.warnings[:0] = [w for w in warnings if w not in report.warnings]
         chosen.report_ = report
+    if case.run.device == "cpu" and not is_parallel():  # the calibration's fits would be these, learned alike
+        object.__setattr__(chosen, "selection_trials_", sel.trials)  # not submodules: read by the calibration
     return chosen, report
