@@ -1,7 +1,7 @@
 """The polynomial model's closed-form derivatives equal automatic differentiation.
 
 The exact solve builds its residual and gauge matrices from
-``feature_derivatives``: the polynomial's closed form, or the linear-model
+``feature_derivatives`` (``derivatives_of_features``): the polynomial's closed form, or the linear-model
 default (forward-mode AD of ``features``); serving uses
 ``fast_derivatives``. Both closed forms are checked here against the AD
 routes they replace, on the model variants whose chain rule differs.
@@ -27,7 +27,7 @@ from helpers import membrane_field, oscillator_data, wave_field
 class _JvpOnly(ldft.PolynomialLagrangian):
     """The same model without the closed form: the linear-model default, forward-mode AD of ``features``."""
 
-    feature_derivatives = ldft.LinearLagrangian.feature_derivatives
+    derivatives_of_features = ldft.LinearLagrangian.derivatives_of_features
 
 
 def _kepler():
@@ -68,7 +68,7 @@ def _rel(a, b) -> float:
 @pytest.mark.parametrize("case", list(CASES))
 def test_closed_form_residual_and_gauge_matrices_equal_jvp(case):
     (fast, slow), fields = _bound_pair(case)
-    assert type(fast).feature_derivatives is not type(slow).feature_derivatives
+    assert type(fast).derivatives_of_features is not type(slow).derivatives_of_features
     for f in fields:
         r_fast, r_slow = residual_matrix(fast, f), residual_matrix(slow, f)
         assert r_fast.shape == r_slow.shape and np.abs(r_slow).max() > 0

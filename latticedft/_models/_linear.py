@@ -35,8 +35,9 @@ class LinearLagrangian(AbstractLagrangian):
     - :meth:`features`: every basis function on a batch of cells.
 
     It may override :meth:`_build` (create what :meth:`features` needs, then call ``super()._build()``,
-    which creates ``coef``), :meth:`feature_derivatives` (closed forms for the exact solve; the default is
-    forward-mode automatic differentiation of :meth:`features`) and :meth:`fast_derivatives` (closed
+    which creates ``coef``), :meth:`derivatives_of_features` (what :meth:`feature_derivatives` returns, in
+    closed form, for the exact solve; the default is forward-mode automatic differentiation of :meth:`features`;
+    overriding :meth:`feature_derivatives` itself works too) and :meth:`fast_derivatives` (closed
     forms for serving; the default ``None`` lets serving differentiate :meth:`forward` by autograd) and
     :meth:`numpy_derivatives` (closed forms in numpy: 1D serving then runs Newton's method in numpy, and n-D
     slice-Newton evaluates its cells with them while the model is on the CPU).
@@ -87,9 +88,16 @@ class LinearLagrangian(AbstractLagrangian):
         derivatives ``blocks[(a, b)][..., i, j, c] = d^2 phi_c / d x_{a,i} d x_{b,j}`` with shape
         ``(*cells, m, m, C)``. The exact solve's residual and gauge matrices are linear in these.
 
-        This default differentiates :meth:`features` in forward mode: one pass per stencil point and
-        component for ``d``, one per pair of components for each block.
+        A kind overrides :meth:`derivatives_of_features` (the same, positional) where it knows them in closed
+        form.
         """
+        return self.derivatives_of_features(cells, pairs, first)
+
+    def derivatives_of_features(
+        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]], first: bool
+    ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]:
+        """:meth:`feature_derivatives`' work. This default differentiates :meth:`features` in forward mode: one
+        pass per stencil point and component for ``d``, one per pair of components for each block."""
         k, m = cells.shape[-2], cells.shape[-1]
         d = None
         if first:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from typing import Any, Literal, overload
+from typing import Any
 
 import numpy as np
 import torch
@@ -362,20 +362,10 @@ class PolynomialLagrangian(LinearLagrangian):
         parts = [fn(zf[s : s + size]) for s in range(0, zf.shape[0], size)]
         return [torch.cat(p).reshape(*z.shape[:-1], *p[0].shape[1:]) for p in zip(*parts)]
 
-    @overload
-    def feature_derivatives(
-        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: Literal[True] = True
-    ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]]: ...
-
-    @overload
-    def feature_derivatives(
-        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool
-    ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]: ...
-
-    def feature_derivatives(
-        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool = True
+    def derivatives_of_features(
+        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]], first: bool
     ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]:
-        """Closed-form derivatives of every basis function (see :meth:`LinearLagrangian.feature_derivatives`).
+        """Closed-form derivatives of every basis function (:meth:`LinearLagrangian.feature_derivatives`).
 
         The chain rule of :meth:`fast_derivatives`, term by term instead of summed with ``coef``.
         """

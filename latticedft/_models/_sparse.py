@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any, Literal, overload
+from typing import Any, Literal
 
 import torch
 
@@ -181,24 +181,14 @@ class SparseLagrangian(LinearLagrangian):
         ]
         return values[0] if len(values) == 1 else torch.stack(values).mean(0)
 
-    @overload
-    def feature_derivatives(
-        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: Literal[True] = True
-    ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]]: ...
-
-    @overload
-    def feature_derivatives(
-        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool
-    ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]: ...
-
-    def feature_derivatives(
-        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]] = (), *, first: bool = True
+    def derivatives_of_features(
+        self, cells: torch.Tensor, pairs: Sequence[tuple[int, int]], first: bool
     ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]:
         """The terms' derivatives in closed form (their sympy forms differentiated,
         :mod:`latticedft._models._termderiv`); forward-mode differentiation where a user term has no form."""
         rule = term_derivatives(self.terms, self.n, self.m) if self.library is None or self.library.saveable else None
         if rule is None:
-            return super().feature_derivatives(cells, pairs, first=first)
+            return super().derivatives_of_features(cells, pairs, first)
         return closed_derivatives(rule, self._input_maps(), cells, self.spacing, pairs, first, self.n_terms)
 
     def fast_derivatives(
