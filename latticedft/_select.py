@@ -380,9 +380,7 @@ def _trial(
 
 def _kept_terms(model: AbstractLagrangian) -> list[str] | None:
     """The names of the terms a learned sparse model kept (None for another kind)."""
-    if not isinstance(model, SparseLagrangian):
-        return None
-    return [name for name, c in zip(model.term_names, model.coef.tolist()) if c != 0.0]
+    return model.kept_terms() if isinstance(model, SparseLagrangian) else None
 
 
 def _choose(rows: list[dict[str, Any]], factor: float, keep_below: float) -> tuple[int, str, list[str]]:

@@ -14,7 +14,7 @@ from .._stencil import Stencil
 from .._symbolic import SymbolicLd, cell_symbols, del_equations
 from ._library import Library, cell_variables, readable_variables
 from ._linear import LinearLagrangian
-from ._termderiv import closed_derivatives, term_derivatives
+from ._termderiv import TermDerivatives, closed_derivatives, term_derivatives
 from ._terms import Term, axis_name, term_forms, term_values
 
 __all__ = ["SparseLagrangian", "default_library", "exact_step_libraries", "THRESHOLDS"]
@@ -186,7 +186,7 @@ class SparseLagrangian(LinearLagrangian):
     ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]:
         """The terms' derivatives in closed form (their sympy forms differentiated,
         :mod:`latticedft._models._termderiv`); forward-mode differentiation where a user term has no form."""
-        rule = term_derivatives(self.terms, self.n, self.m) if self.library is None or self.library.saveable else None
+        rule = self._closed_rule(self.terms)
         if rule is None:
             return super().derivatives_of_features(cells, pairs, first)
         return closed_derivatives(rule, self._input_maps(), cells, self.spacing, pairs, first, self.n_terms)
@@ -196,10 +196,8 @@ class SparseLagrangian(LinearLagrangian):
     ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]] | None:
         """``dL/dx`` and Hessian blocks of the kept terms in closed form (what serving asks for; None, so autograd,
         where a user term has no sympy form)."""
-        if self.library is not None and not self.library.saveable:
-            return None
         kept = self._kept()
-        rule = term_derivatives([self.terms[c] for c in kept], self.n, self.m)
+        rule = self._closed_rule([self.terms[c] for c in kept])
         if rule is None:
             return None
         coef = self.coef.detach()[kept]
@@ -207,6 +205,13 @@ class SparseLagrangian(LinearLagrangian):
             d, blocks = closed_derivatives(rule, self._input_maps(), cells, self.spacing, pairs, True, len(kept))
         assert d is not None
         return d @ coef, {p: b @ coef for p, b in blocks.items()}
+
+    def _closed_rule(self, terms: list[Term]) -> TermDerivatives | None:
+        """The closed-form derivatives of ``terms`` (None where the library holds a user function: no sympy
+        form to differentiate)."""
+        if self.library is not None and not self.library.saveable:
+            return None
+        return term_derivatives(terms, self.n, self.m)
 
     def _input_maps(self) -> list[torch.Tensor]:
         """The linear maps from a cell's values to the terms' inputs (the on-site value, then the differences),
@@ -225,6 +230,10 @@ class SparseLagrangian(LinearLagrangian):
     # -- the equation ------------------------------------------------------------------------------------
     def _kept(self) -> list[int]:
         return [c for c, a in enumerate(self.coef.detach().tolist()) if a != 0.0]
+
+    def kept_terms(self) -> list[str]:
+        """The names of the terms the fit kept (nonzero coefficients), in the order of ``coef``."""
+        return [self.terms[c].name for c in self._kept()]
 
     def symbolic(self) -> SymbolicLd | None:
         """``L_d`` in the cell symbols (None when a user term has no sympy form)."""
@@ -298,7 +307,7 @@ class SparseLagrangian(LinearLagrangian):
                 {"term": t.name, "coef": coef[c], "inclusion": _finite(float(self.inclusion[c]))}
                 for c, t in enumerate(self.terms)
             ],
-            "kept": [self.terms[c].name for c in self._kept()],
+            "kept": self.kept_terms(),
             "equation": self.equation_text() if self._kept() else {},
         }
 
