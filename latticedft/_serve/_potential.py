@@ -220,13 +220,18 @@ class PotentialSlices(FoldedSlices):
         gp = g_prev.numpy() if isinstance(g_prev, (torch.Tensor, DeferredGrad)) else g_prev
         gp = np.ascontiguousarray(gp).reshape(self.site_of.shape[1], self.k * self.m)
         r = np.empty(self.rows.size * self.m)
+        self.residual_pass(gp, ev, vol, r)
+        return ev, r
+
+    def residual_pass(self, gp: np.ndarray, ev: PotentialCells, vol: float, r: np.ndarray) -> None:
+        """Slice ``i``'s DEL residual into ``r`` from the older cells' gradients ``gp`` and the cells ``ev``
+        anchored on it, by the passes generated for the stencil (else the folded module's)."""
         if self.quad is not None:
             self.quad.quadratic_residual(gp, ev.lo, ev.hi, self.site_of, self.hess, ev.vlo, self.rows, vol, self.el, r)
         else:
             self.mod.quadratic_residual(
                 gp, ev.lo, ev.hi, self.site_of, self.upper, self.hess, ev.vlo, self.rows, vol, self.el, r
             )
-        return ev, r
 
 
 def _second(model: KineticPotentialMLPLagrangian, x: np.ndarray) -> np.ndarray:
