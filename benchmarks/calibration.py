@@ -46,7 +46,7 @@ import xarray as xr
 
 import latticedft as ldft
 from latticedft import systems
-from latticedft._calibrate import Calibration, calibrate, disagreement
+from latticedft._calibrate import Calibration, calibrate, disagreement, runner_up
 from latticedft._learn._noise import denoised_start
 from latticedft._select import _build, select
 
@@ -199,11 +199,9 @@ def _learned(s: Setup, train: list[xr.DataArray], kw: dict[str, Any]) -> tuple[A
     hand = s.model()
     fresh = _build(hand, rows[chosen]["kind"], dict(rows[chosen]["options"]))
     own = {**kw, "ridge": rows[chosen]["ridge"]}
-    others = [i for i, r in enumerate(rows) if i != chosen and np.isfinite(r["score"])]
-    others = [i for i in others if rows[i]["score"] <= 10 * rows[chosen]["score"]]
     runner, second = None, None
-    if others:
-        i = min(others, key=lambda j: rows[j]["score"])
+    i = runner_up(rows, chosen)
+    if i is not None:
         r = rows[i]
         runner = (_build(hand, r["kind"], dict(r["options"])), {**kw, "ridge": r["ridge"]}, r["label"])
         second = sel.trials[i]

@@ -30,7 +30,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -47,7 +47,7 @@ from ._learn._noise import denoised_start
 from ._models import AbstractLagrangian
 from ._serve import ServeResult, serve
 
-__all__ = ["QUANTILE", "Calibration", "calibrate", "disagreement", "too_short", "slice_errors"]
+__all__ = ["QUANTILE", "Calibration", "calibrate", "disagreement", "runner_up", "too_short", "slice_errors"]
 
 #: Twice the calibrated estimate covers this share of the held-out slices' errors.
 QUANTILE = 0.95
@@ -148,6 +148,24 @@ class Calibration:
                 f"[{self.low:.3g}, {self.high:.3g}] of the windows the error bar was measured on"
             )
         return out
+
+
+def runner_up(rows: Sequence[Mapping[str, Any]], chosen: int) -> int | None:
+    """The runner-up among model selection's candidate ``rows`` (:class:`latticedft.SelectionReport`'s, or their
+    JSON form): the index of the lowest score but the ``chosen`` one's, within :data:`RUNNER_UP_WITHIN` times it;
+    None without one. A score that is None or not finite is a failed candidate."""
+
+    def score(i: int) -> float | None:
+        s = rows[i]["score"]
+        return s if s is not None and math.isfinite(s) else None
+
+    best = score(chosen)
+    if best is None:
+        return None
+    others = [
+        i for i in range(len(rows)) if i != chosen and (s := score(i)) is not None and s <= RUNNER_UP_WITHIN * best
+    ]
+    return min(others, key=lambda i: rows[i]["score"]) if others else None
 
 
 def too_short(fields: Sequence[xr.DataArray], hold_out: float = HOLD_OUT) -> str | None:

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from .._calibrate import RUNNER_UP_WITHIN, Calibration, calibrate, too_short
+from .._calibrate import Calibration, calibrate, runner_up, too_short
 from .._case import Case
 from .._collective import alone
 from .._contract import AbstractLagrangian
@@ -83,8 +83,8 @@ def _candidates(
     tuple[AbstractLagrangian, AbstractLagrangian | None] | None,
 ]:
     """The chosen model unlearned with its learn keywords, the runner-up of model selection (None without
-    selection, or when no other candidate scored within :data:`RUNNER_UP_WITHIN` of the chosen one), and the two
-    as selection learned them on the held-in slices where it kept them (``selection_trials_``; else None)."""
+    selection, or without one: :func:`latticedft._calibrate.runner_up`), and the two as selection learned them on
+    the held-in slices where it kept them (``selection_trials_``; else None)."""
     kwargs = {k: v for k, v in case.train.learn.items() if k not in ("ensemble", "ensemble_seed")}
     hand = case.model.build(len(data.dims))
     sel = getattr(report, "selection", None)
@@ -93,14 +93,8 @@ def _candidates(
     rows, at = sel["candidates"], sel["chosen"]
     chosen = rows[at]
     fresh = _build(hand, chosen["kind"], dict(chosen["options"]))
-    best = chosen["score"]
-    others = [
-        i
-        for i, r in enumerate(rows)
-        if i != at and r["score"] is not None and best is not None and r["score"] <= RUNNER_UP_WITHIN * best
-    ]
     own = {**kwargs, "ridge": chosen["ridge"]}
-    runner = min(others, key=lambda i: rows[i]["score"]) if others else None
+    runner = runner_up(rows, at)
     first = model.member(0) if isinstance(model, EnsembleLagrangian) else model
     trials = getattr(first, "selection_trials_", None)
     learned = (trials[at], None if runner is None else trials[runner]) if trials and trials[at] is not None else None
