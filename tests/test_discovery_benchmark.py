@@ -124,3 +124,29 @@ def test_variational_data_obey_the_true_del():
     want = system.leapfrog(system.train[0], system.train[0].sizes["t"])
     assert np.abs(np.asarray(field.values) - want).max() < 1e-12
     assert field.dims == system.train[0].dims
+
+
+def test_noisy_samples_are_seeded_and_scaled_by_the_largest_magnitude():
+    from benchmarks.discovery_noise import noisy
+
+    system = systems.build("pendulum", quick=True)
+    a, scale = noisy(system.train, 1e-2, seed=3)
+    b, _ = noisy(system.train, 1e-2, seed=3)
+    largest = max(float(np.abs(f.values).max()) for f in system.train)
+    assert scale == pytest.approx(1e-2 * largest)
+    assert all(np.array_equal(x.values, y.values) for x, y in zip(a, b, strict=True))
+    diff = np.concatenate([(x.values - f.values).ravel() for x, f in zip(a, system.train, strict=True)])
+    assert np.std(diff) == pytest.approx(scale, rel=0.15)  # 200 samples: the deviation to about 10 %
+    assert a[0].dims == system.train[0].dims and a[0].coords["t"].equals(system.train[0].coords["t"])
+
+
+def test_noise_targets_read_recovery_bound_and_warnings():
+    from benchmarks.discovery_noise import targets
+
+    low = {"sigma": 1e-3, "recovered": True, "within": True, "warned": False}
+    checks = targets([low, {**low, "sigma": 1e-2, "recovered": False, "warned": True}], (1e-3, 1e-2))
+    assert [c.met for c in checks] == [True, True, True]
+    checks = targets([{**low, "within": False}, {**low, "sigma": 1e-2, "recovered": False}], (1e-3, 1e-2))
+    assert [c.met for c in checks] == [True, False, False]
+    assert checks[1].measured == "0 of 1 systems" and checks[2].measured.startswith("0 of 1")
+    assert len(targets([low], (1e-3,))) == 2  # one level: no high-noise target
