@@ -13,7 +13,7 @@ from scipy.integrate import solve_ivp
 import latticedft as ldft
 from latticedft import Library, systems
 from latticedft._lattice import gather_cells
-from latticedft._select import COUPLED_LIBRARY
+from latticedft._select import COUPLED_LIBRARY, sparse_candidates
 
 
 def _ode(rhs, y0, n: int, dt: float) -> np.ndarray:
@@ -388,3 +388,21 @@ def test_held_out_serving_in_chunks_matches_serving_whole():
     run = _Serving(model.coef.detach().numpy().copy(), tails, None)
     assert run.advance(model, math.inf) == pytest.approx(held_out_score(model, tails, None), rel=1e-8)
     assert run.finished
+
+
+def test_only_the_kept_model_prints_its_equation():
+    data = [pendulum(2.0, 40), pendulum(2.6, 40)]
+    sel = ldft.select(ldft.PolynomialLagrangian((2, 2)), data, sparse_candidates(1, 1)[:2], progress=False)
+    assert all(t.report_._equation is not None for t in sel.trials if isinstance(t, ldft.SparseLagrangian))
+    report = sel.model.report_
+    assert "cos(q)" in report.sparse["equation"]["L_d"] and report._equation is None
+    assert "cos" in report.to_dict()["sparse"]["equation"]["latex"]
+
+
+def test_a_report_prints_the_equation_learned_even_after_the_model_changes():
+    model = ldft.SparseLagrangian("kinetic + poly:2 + trig:1")
+    ldft.learn(model, pendulum(2.0, 40), progress=False)
+    text = model.equation_text()
+    with torch.no_grad():
+        model.coef.mul_(2.0)
+    assert model.report_.sparse["equation"] == text != model.equation_text()

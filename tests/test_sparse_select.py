@@ -4,11 +4,22 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
-from test_sparse import kepler_one_orbit, pendulum
+import xarray as xr
+from test_sparse import _ode, kepler_one_orbit, pendulum
 
 import latticedft as ldft
-from latticedft._select import BEATEN, COUPLED_LIBRARY, _choose, auto_candidates, sparse_candidates
+from latticedft._select import (
+    BEATEN,
+    BEYOND_CEILING,
+    COUPLED_LIBRARY,
+    _choose,
+    auto_candidates,
+    exact_step_candidates,
+    largest_field,
+    sparse_candidates,
+)
 
 
 def _rows(*scores: float) -> list[dict]:
@@ -186,3 +197,63 @@ def test_the_held_in_rows_are_the_head_of_the_whole_fields_rows():
     whole = residual_matrix(model, field)
     part = residual_matrix(model, field.with_values(field.values[:14]))
     assert np.array_equal(_head(model, field, whole, 14), part)
+
+
+# -- beyond the training amplitudes ------------------------------------------------------------------------------
+def _kept_by_keep_below() -> list[dict]:
+    return [  # the hand-set polynomial below keep_below, an exact-step candidate 500x above it
+        {"score": 3.5e-9, "n_parameters": 45, "label": "hand-set", "kind": "polynomial"},
+        {"score": 2.8e-2, "n_parameters": 3, "label": "true terms", "kind": "sparse", "terms": ["a", "b", "c"]},
+        {"score": 6.4e-6, "n_parameters": 5, "label": "exact step", "kind": "sparse", "terms": ["a", "b", "c", "d"]},
+    ]
+
+
+def test_a_hand_set_model_kept_by_keep_below_is_replaced_when_a_candidate_serves_the_largest_field_better():
+    rows = _kept_by_keep_below()
+    asked: list[int] = []
+
+    def beyond(scores):
+        def score(i):  # as select's: the score goes into the row
+            asked.append(i)
+            rows[i]["beyond"] = scores[i]
+            return scores[i]
+
+        return score
+
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 0  # not measured (one training field): kept
+    chosen, reason, _ = _choose(rows, 2.0, 1e-6, beyond({0: math.inf, 2: 5.8e-2}))
+    assert chosen == 2 and "largest amplitude" in reason and "inf" in reason
+    chosen, reason, _ = _choose(rows, 2.0, 1e-6, beyond({0: 1e-1, 2: 5.8e-2}))
+    assert chosen == 0 and "keep_below" in reason  # not 2x better: kept
+    assert "beyond the training amplitudes 5.800e-02 against the hand-set model's 1.000e-01" in reason
+    asked.clear()
+    assert _choose(rows, 2.0, 1e-6, beyond({0: math.inf, 2: 2 * BEYOND_CEILING}))[0] == 0  # misses the ceiling
+    assert asked == [2]  # ... and the hand-set model is not scored
+    rows[0]["score"] = 1e-5  # above keep_below: the rules on the held-out slices alone
+    asked.clear()
+    assert _choose(rows, 2.0, 1e-6, beyond({0: math.inf, 2: 5.8e-2}))[0] == 2 and asked == []
+
+
+def test_the_largest_field_is_the_one_of_largest_range_in_one_component():
+    t = np.arange(5)
+    small = xr.DataArray(np.outer(np.sin(t), [1.0, 0.1]) + 10.0, dims=("t", "component"))
+    wide = xr.DataArray(np.outer(np.sin(t), [0.2, 1.5]), dims=("t", "component"))
+    assert largest_field([small, wide]) == 1 and largest_field([wide, small, wide]) == 0
+    assert largest_field([xr.DataArray(np.sin(t) * a, dims="t") for a in (0.5, 2.0, 1.0)]) == 1
+
+
+def _quartic(a: float, n: int = 101, dt: float = 0.2) -> xr.DataArray:
+    q = _ode(lambda y: [y[1], -y[0] - 0.5 * y[0] ** 3], [a, 0.0], n, dt)[0]
+    return xr.DataArray(q, dims="t", coords={"t": np.arange(n) * dt}, name="psi")
+
+
+def test_select_scores_candidates_beyond_the_training_amplitudes_only_when_the_hand_set_model_is_kept():
+    exact_step = [c for c in exact_step_candidates(1, 1) if "poly:6" in c["library"]]
+    data = [_quartic(0.5), _quartic(1.0)]
+    sel = ldft.select(ldft.PolynomialLagrangian(), data, exact_step, progress=False)
+    assert sel.rows[0]["score"] <= sel.keep_below < sel.rows[1]["score"]  # kept by keep_below on the slices alone
+    assert sel.rows[0]["beyond"] == math.inf and sel.rows[1]["beyond"] < BEYOND_CEILING  # learned on 0.5, serve 1.0
+    assert sel.chosen == 1 and isinstance(sel.model, ldft.SparseLagrangian)
+    assert sel.to_dict()["candidates"][0]["beyond"] is None and "largest field left out" in sel.table_lines()[1]
+    one = ldft.select(ldft.PolynomialLagrangian(), data[1:], exact_step, progress=False)
+    assert all("beyond" not in r for r in one.rows)  # one field: nothing to leave out

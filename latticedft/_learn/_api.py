@@ -356,7 +356,8 @@ def _fit(
         hessian_max_sv=diag["hessian_max_sv"],
         degenerate=degenerate,
         warnings=warnings,
-        sparse=model.sparse_summary() if isinstance(model, SparseLagrangian) else None,
+        _sparse=model.sparse_summary(equation=False) if isinstance(model, SparseLagrangian) else None,
+        _equation=model.equation_later() if isinstance(model, SparseLagrangian) else None,
     )
 
 

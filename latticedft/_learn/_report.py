@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import copy
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -85,9 +86,19 @@ class LearnReport:
     ensemble: dict[str, Any] | None = None
     #: ``select``: the candidate table and the choice (see ``latticedft.select``), else None.
     selection: dict[str, Any] | None = None
-    #: A sparse model (``kind = "sparse"``): the threshold used, every term's coefficient and inclusion
-    #: probability over the bagged fits, and the terms kept; else None.
-    sparse: dict[str, Any] | None = None
+    #: What :attr:`sparse` returns, its ``"equation"`` built by ``_equation`` when first read.
+    _sparse: dict[str, Any] | None = None
+    _equation: Callable[[], dict[str, Any]] | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def sparse(self) -> dict[str, Any] | None:
+        """A sparse model (``kind = "sparse"``): the threshold used, every term's coefficient and inclusion
+        probability over the bagged fits, the terms kept and the equation with its DEL (sympy's printing, built
+        when first read: selection learns many candidates and keeps one); else None."""
+        if self._sparse is not None and self._equation is not None:
+            self._sparse["equation"] = self._equation()
+            self._equation = None
+        return self._sparse
 
     def summary_line(self) -> str:
         auto = f", gauge {self.gauge} (auto: {self.gauge_choice})" if self.gauge_requested == "auto" else ""
@@ -107,7 +118,11 @@ class LearnReport:
         return symmetry_lines(self.symmetries or [])
 
     def to_dict(self) -> dict[str, Any]:
+        sparse = self.sparse  # its equation built
         d = asdict(self)
+        del d["_sparse"], d["_equation"]
+        if sparse is not None:
+            d["sparse"] = copy.deepcopy(sparse)
         d["history"] = [list(h) for h in self.history]
         if self.symmetries is None:
             del d["symmetries"]
@@ -117,8 +132,6 @@ class LearnReport:
             del d["selection"]
         if self.noise is None:
             del d["noise"]
-        if self.sparse is None:
-            del d["sparse"]
         return d
 
 

@@ -17,7 +17,7 @@ from ._linear import LinearLagrangian
 from ._termderiv import TermDerivatives, closed_derivatives, term_derivatives
 from ._terms import Term, axis_name, term_forms, term_values
 
-__all__ = ["SparseLagrangian", "default_library", "exact_step_libraries", "THRESHOLDS"]
+__all__ = ["SparseLagrangian", "LazyEquation", "default_library", "exact_step_libraries", "THRESHOLDS"]
 
 #: The thresholds tried by ``threshold = "auto"`` (a term is dropped when its share of the DEL residual's
 #: largest column, ``|coef_c| |R e_c|``, is below the threshold), largest first.
@@ -228,8 +228,9 @@ class SparseLagrangian(LinearLagrangian):
         return maps
 
     # -- the equation ------------------------------------------------------------------------------------
-    def _kept(self) -> list[int]:
-        return [c for c, a in enumerate(self.coef.detach().tolist()) if a != 0.0]
+    def _kept(self, coef: list[float] | None = None) -> list[int]:
+        coef = self.coef.detach().tolist() if coef is None else coef
+        return [c for c, a in enumerate(coef) if a != 0.0]
 
     def kept_terms(self) -> list[str]:
         """The names of the terms the fit kept (nonzero coefficients), in the order of ``coef``."""
@@ -237,31 +238,45 @@ class SparseLagrangian(LinearLagrangian):
 
     def symbolic(self) -> SymbolicLd | None:
         """``L_d`` in the cell symbols (None when a user term has no sympy form)."""
+        return self._symbolic(self.coef.detach().tolist())
+
+    def _symbolic(self, coef: list[float]) -> SymbolicLd | None:
         self._require_bound()
         q, d = cell_variables(self.proj, self.spacing, self.m)
         if self.at == "mean":
-            return _sum_form(self, [q], d)
+            return _sum_form(self, [q], d, coef)
         u = cell_symbols(self.stencil.size, self.m)
         points = [self.stencil.anchor] if self.at == "anchor" else range(self.stencil.size)
-        return _sum_form(self, [list(u[p]) for p in points], d)
+        return _sum_form(self, [list(u[p]) for p in points], d, coef)
 
     def equation(self) -> Any:
         """``L_d`` as a sympy expression in the readable symbols ``q`` (``q1``, ...) and ``Dtq``, ``Dxq`` ...
         (None when a user term has no sympy form)."""
+        return self._equation(self.coef.detach().tolist())
+
+    def _equation(self, coef: list[float]) -> Any:
         self._require_bound()
         q, d, _ = readable_variables(self.n, self.m)
-        form = _sum_form(self, [q], d)
+        form = _sum_form(self, [q], d, coef)
         return None if form is None else form.expr
 
     def equation_text(self) -> dict[str, Any]:
         """``L_d`` and the DEL it implies in plain text and LaTeX (what describe, model.json and figures show)."""
+        return self._equation_text(self.coef.detach().tolist())
+
+    def equation_later(self) -> LazyEquation:
+        """:meth:`equation_text` of the coefficients learned now, built when first called: sympy's printing costs
+        more than a small fit, and selection fits many candidates to keep one (the learning report's equation)."""
+        return LazyEquation(self, self.coef.detach().tolist())
+
+    def _equation_text(self, coef: list[float]) -> dict[str, Any]:
         import sympy
 
-        expr = self.equation()
+        expr = self._equation(coef)
         if expr is None:
             return {}
         _, _, names = readable_variables(self.n, self.m)
-        form = self.symbolic()
+        form = self._symbolic(coef)
         assert form is not None
         dels = del_equations(form, lambda shift, c: _site_name(shift, c, self.m))
         return {
@@ -297,19 +312,31 @@ class SparseLagrangian(LinearLagrangian):
             lines.append(f"  where {text['where']}")
         return "\n".join(lines)
 
-    def sparse_summary(self) -> dict[str, Any]:
-        """The terms, their coefficients and inclusion probabilities, the threshold, and the equation with its DEL
-        (:meth:`equation_text`): what the learning report (model.json, summary.json) holds."""
+    def sparse_summary(self, equation: bool = True) -> dict[str, Any]:
+        """The terms, their coefficients and inclusion probabilities, the threshold, and (with ``equation``) the
+        equation with its DEL (:meth:`equation_text`): what the learning report (model.json, summary.json) holds."""
         coef = self.coef.detach().tolist()
-        return {
+        summary = {
             "threshold": float(self.threshold_used),
             "terms": [
                 {"term": t.name, "coef": coef[c], "inclusion": _finite(float(self.inclusion[c]))}
                 for c, t in enumerate(self.terms)
             ],
             "kept": self.kept_terms(),
-            "equation": self.equation_text() if self._kept() else {},
         }
+        return {**summary, "equation": self.equation_text() if self._kept() else {}} if equation else summary
+
+
+class LazyEquation:
+    """The equation of a sparse model's coefficients ``coef`` (:meth:`SparseLagrangian.equation_text`), built when
+    called: the learning report holds one and builds its ``sparse["equation"]`` when first read."""
+
+    def __init__(self, model: SparseLagrangian, coef: list[float]):
+        self.model = model
+        self.coef = coef
+
+    def __call__(self) -> dict[str, Any]:
+        return self.model._equation_text(self.coef) if self.model._kept(self.coef) else {}
 
 
 _AT = {
@@ -328,12 +355,12 @@ def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _sum_form(model: SparseLagrangian, qs: list[list[Any]], d: list[list[Any]]) -> SymbolicLd | None:
-    """The kept terms' sum in the derivatives ``d``, its on-site functions at each of ``qs`` in turn, averaged."""
+def _sum_form(model: SparseLagrangian, qs: list[list[Any]], d: list[list[Any]], coef: list[float]) -> SymbolicLd | None:
+    """The kept terms' sum (coefficients ``coef``) in the derivatives ``d``, its on-site functions at each of ``qs``
+    in turn, averaged."""
     import sympy
 
-    kept = model._kept()
-    coef = model.coef.detach().tolist()
+    kept = model._kept(coef)
     expr = sympy.Integer(0)
     for q in qs:
         forms = term_forms([model.terms[c] for c in kept], q, d)
