@@ -309,12 +309,16 @@ def _breather(nt: int, nx: int, sigma: float, seed: int) -> xr.DataArray:
 
 
 def _learned(kind: str) -> tuple[ldft.AbstractLagrangian, xr.DataArray]:
-    """A model learned on a small noisy field, and that field: a polynomial on a breather (closed-form second
-    derivatives), a 2+1D polynomial on a membrane, an MLP on a two-component orbit (second derivatives by
-    autograd)."""
-    if kind == "breather":
+    """A model learned on a small noisy field, and that field: a polynomial and a sparse library on a breather
+    (closed-form second derivatives), a 2+1D polynomial on a membrane, an MLP on a two-component orbit (second
+    derivatives by autograd)."""
+    if kind in ("breather", "terms"):
         f = _breather(24, 17, 1e-3, 0)
-        model: ldft.AbstractLagrangian = ldft.PolynomialLagrangian(orders=(2, 6), time_symmetric=True)
+        model: ldft.AbstractLagrangian = (
+            ldft.PolynomialLagrangian(orders=(2, 6), time_symmetric=True)
+            if kind == "breather"
+            else ldft.SparseLagrangian("kinetic + gradient + trig:1")
+        )
     elif kind == "membrane":
         f = noisy(systems.wave_membrane([(1, 1, 1.0), (2, 1, 0.3)], nx=7, ny=6, nt=9), 1e-3, np.random.default_rng(1))
         model = ldft.PolynomialLagrangian(orders=(2, 2))
@@ -325,7 +329,7 @@ def _learned(kind: str) -> tuple[ldft.AbstractLagrangian, xr.DataArray]:
     return model, f
 
 
-@pytest.mark.parametrize("kind", ["breather", "membrane", "orbit"])
+@pytest.mark.parametrize("kind", ["breather", "terms", "membrane", "orbit"])
 @pytest.mark.parametrize("wrap", [False, True])
 def test_sparse_action_hessian_equals_the_dense_one(kind: str, wrap: bool) -> None:
     """The Hessian assembled from per-cell blocks equals autograd's dense Hessian of the action, and its
