@@ -13,8 +13,8 @@ steps, where ``rbar^2`` is the mean squared row norm of the Jacobian ``J = dEL/d
 free of units: ``strength = 1`` moves a site half-way to its equation). ``J`` is the Hessian of the
 action restricted to the interior rows; it is assembled once per step as a sparse matrix from the per-cell
 second derivatives of ``L_d``, and the normal equations ``(strength J^T J / rbar^2 + I) delta = ...`` are
-solved by conjugate gradients with sparse products. Learning
-with ``noise="correct"`` alternates a fit of the model with a correction of the training fields.
+solved by conjugate gradients with sparse products. Learning with ``noise="correct"`` alternates a fit of the
+model with a correction of the training fields.
 """
 
 from __future__ import annotations
