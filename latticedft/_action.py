@@ -1,8 +1,9 @@
-"""The discrete action, the DEL residual and the mixed time Hessian.
+"""The discrete action, the DEL residual, the mixed time Hessian and the action's sparse Hessian.
 
 ``A_d = prod(h) * sum_cells L_d(psi[x+s_0], ..., psi[x+s_{K-1}])`` and
 ``EL_y = dA_d / dpsi_y``, evaluated on a whole field by one reverse-mode pass
-(Qin 2020, Eqs. 3 and 6).
+(Qin 2020, Eqs. 3 and 6). The Hessian ``d^2 A_d / dpsi_x dpsi_y`` couples only the sites of a common cell:
+:func:`action_hessian` assembles it as a sparse matrix from the per-cell blocks ``d^2 L_d / dx_a dx_b``.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import scipy.sparse
 import torch
 import xarray as xr
 
@@ -26,6 +28,7 @@ from ._stencil import Stencil
 __all__ = [
     "check_model_lattice",
     "action",
+    "action_hessian",
     "del_residual",
     "mixed_hessian",
     "cell_derivatives",
@@ -78,6 +81,34 @@ def _action(
     cells = gather_cells(psi, model.stencil, periodic, batch)
     density: torch.Tensor = model(cells)
     return math.prod(spacing) * density.sum()
+
+
+def action_hessian(
+    model: AbstractLagrangian, psi: torch.Tensor, spacing: tuple[float, ...], periodic: AxisBoundaries
+) -> tuple[torch.Tensor, scipy.sparse.csr_matrix]:
+    """The gradient ``dA_d / dpsi`` (``psi``'s shape, on its device) and the Hessian ``d^2 A_d / dpsi dpsi`` of
+    the action of one field ``psi`` (``(*N, m)``, no batch axes), the latter a CPU sparse matrix over the
+    flattened values of ``psi`` (row-major: sites, then components).
+
+    Both are sums over the cells of their per-cell derivatives (:func:`cell_derivatives`: the model's closed
+    forms where it has them, else ``K m`` backward passes), scattered to the sites each cell's points land on;
+    a Hessian-vector product is then one sparse product instead of a double backward pass through the model.
+    """
+    st = model.stencil
+    k, m = st.size, int(psi.shape[-1])
+    where = gather_cells(torch.arange(psi.numel()).reshape(psi.shape), st, periodic).reshape(-1, k, m)
+    cells = gather_cells(psi.detach(), st, periodic)
+    pairs = [(a, b) for a in range(k) for b in range(k)]
+    grad, blocks = cell_derivatives(model, cells, pairs)
+    scale = math.prod(spacing)
+    flat = where.reshape(-1).to(psi.device)
+    g = torch.zeros(psi.numel(), dtype=psi.dtype, device=psi.device).index_add_(0, flat, grad.reshape(-1))
+    rows = [where[:, a, :, None].expand(-1, m, m).reshape(-1) for a, _ in pairs]
+    cols = [where[:, b, None, :].expand(-1, m, m).reshape(-1) for _, b in pairs]
+    vals = torch.cat([blocks[p].reshape(-1) for p in pairs]).detach().cpu().numpy() * scale
+    size = psi.numel()
+    hess = scipy.sparse.csr_matrix((vals, (torch.cat(rows).numpy(), torch.cat(cols).numpy())), shape=(size, size))
+    return (g * scale).reshape(psi.shape), hess
 
 
 def check_model_lattice(model: AbstractLagrangian, f: LatticeField, what: str) -> None:

@@ -11,9 +11,10 @@ The correction (errors in variables) moves the fields ``psi`` from the data ``d`
 learned model, minimising ``strength * sum_y |EL_y(psi)|^2 / rbar^2 + |psi - d|^2`` by Gauss-Newton
 steps, where ``rbar^2`` is the mean squared row norm of the Jacobian ``J = dEL/dpsi`` (so the weight is
 free of units: ``strength = 1`` moves a site half-way to its equation). ``J`` is the Hessian of the
-action restricted to the interior rows; its products with a vector are Hessian-vector products, and the
-normal equations ``(strength J^T J / rbar^2 + I) delta = ...`` are solved by conjugate gradients. Learning
-with ``noise="correct"`` alternates a fit of the model with a correction of the training fields.
+action restricted to the interior rows; it is assembled once per step as a sparse matrix from the per-cell
+second derivatives of ``L_d``, and the normal equations ``(strength J^T J / rbar^2 + I) delta = ...`` are
+solved by conjugate gradients with sparse products. Learning with ``noise="correct"`` alternates a fit of the
+model with a correction of the training fields.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from typing import Any
 import torch
 import xarray as xr
 
-from .._action import _action, _check_model
+from .._action import _check_model, action_hessian
 from .._errors import InputError
 from .._lattice import LatticeField, as_lattice_field, interior_slices
 from .._models import AbstractLagrangian
@@ -205,6 +206,21 @@ def _cg(
     return x
 
 
+def _products(
+    model: AbstractLagrangian, f: LatticeField, psi: torch.Tensor
+) -> tuple[torch.Tensor, Callable[[torch.Tensor], torch.Tensor]]:
+    """The action's gradient at ``psi`` and the product of its Hessian with a vector, on the CPU (where the
+    solve runs). The Hessian is assembled once as a sparse matrix (:func:`action_hessian`): each product is one
+    sparse product instead of a double backward pass through the model."""
+    g, hess = action_hessian(model, psi, f.spacing, f.boundary)
+    shape = psi.shape
+
+    def hv(v: torch.Tensor) -> torch.Tensor:
+        return torch.from_numpy(hess @ v.reshape(-1).numpy()).reshape(shape)
+
+    return g.cpu(), hv
+
+
 def _step(
     model: AbstractLagrangian,
     f: LatticeField,
@@ -214,24 +230,17 @@ def _step(
     strength: float,
     gen: torch.Generator,
 ) -> torch.Tensor | None:
-    """One Gauss-Newton step: the move ``delta`` of ``psi`` (None when the Jacobian vanishes)."""
-    x = psi.clone().requires_grad_(True)
-    with torch.enable_grad():
-        a = _action(model, x, f.spacing, f.boundary, 0)
-        (g,) = torch.autograd.grad(a, x, create_graph=True)
-
-        def hv(v: torch.Tensor) -> torch.Tensor:  # Hessian of the action times v
-            (out,) = torch.autograd.grad(g, x, grad_outputs=v, retain_graph=True)
-            return out.detach()
-
-        # mean squared row norm of J = mask * H, by Hutchinson's estimate with four Rademacher probes
-        probes = [torch.randint(0, 2, psi.shape, generator=gen, dtype=torch.float64) * 2 - 1 for _ in range(4)]
-        fro = sum(float(((mask * hv(z)) ** 2).sum()) for z in probes) / len(probes)
-        if fro == 0.0:
-            return None
-        w = strength * float(mask.sum()) / fro
-        rhs = -w * hv(mask * g.detach()) - (psi - data)
-        return _cg(lambda v: w * hv(mask * hv(v)) + v, rhs)
+    """One Gauss-Newton step: the move ``delta`` of ``psi`` (None when the Jacobian vanishes), on the CPU."""
+    g, hv = _products(model, f, psi)
+    mask, psi, data = mask.cpu(), psi.cpu(), data.cpu()
+    # mean squared row norm of J = mask * H, by Hutchinson's estimate with four Rademacher probes
+    probes = [torch.randint(0, 2, psi.shape, generator=gen, dtype=torch.float64) * 2 - 1 for _ in range(4)]
+    fro = sum(float(((mask * hv(z)) ** 2).sum()) for z in probes) / len(probes)
+    if fro == 0.0:
+        return None
+    w = strength * float(mask.sum()) / fro
+    rhs = -w * hv(mask * g) - (psi - data)
+    return _cg(lambda v: w * hv(mask * hv(v)) + v, rhs)
 
 
 def _correct_one(
@@ -246,7 +255,7 @@ def _correct_one(
         delta = _step(model, f, psi, data, mask, strength, gen)
         if delta is None:
             break
-        psi = psi + delta
+        psi = psi + delta.to(psi.device)
         if float(delta.abs().max()) <= 1e-14 * max(float(psi.abs().max()), 1.0):
             break
     return psi
