@@ -111,9 +111,8 @@ def _block_inverse(diag: torch.Tensor, vol: float) -> Solve:
 
 def _krylov(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Tensor], vol: float, diag, target: float) -> Solve:
     """GMRES on the assembled Jacobian with the block-Jacobi preconditioner."""
-    rows, cols, vals = sys.matrix_entries(blocks, vol)
     size = sys.n * sys.m
-    mat = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(size, size))
+    mat = sys.csr(blocks, vol)
     prec = _block_inverse(diag, vol)
     pre = scipy.sparse.linalg.LinearOperator((size, size), matvec=prec, dtype=np.float64)
     atol = 0.1 * target
