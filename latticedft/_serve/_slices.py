@@ -104,6 +104,18 @@ class _SliceSystem:
         return [(a, b) for (a, b), (_, r, c) in self.jac.items() if np.any(r == c)]
 
     @functools.cached_property
+    def offdiag_cells(self) -> list[tuple[tuple[int, int], torch.Tensor | None]]:
+        """Per pair with entries off the Jacobian's diagonal blocks, the cells that hold them (``None``: every cell
+        of the pair's blocks, in order: no gather)."""
+        out: list[tuple[tuple[int, int], torch.Tensor | None]] = []
+        for key, (at, r, c) in self.jac.items():
+            cells = at[r != c]
+            if cells.size:
+                every = cells.size == self.site_of[0].size and bool(np.array_equal(cells, np.arange(cells.size)))
+                out.append((key, None if every else torch.from_numpy(cells)))
+        return out
+
+    @functools.cached_property
     def diag_entries(self) -> list[tuple[tuple[int, int], torch.Tensor, torch.Tensor]]:
         """The entries of the Jacobian's diagonal m x m blocks (an equation's own site on the next slice): per
         unknown site the mixed Hessian summed over the cells that hold it."""

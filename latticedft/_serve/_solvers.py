@@ -70,10 +70,9 @@ def _diag_and_offdiag(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Ten
     for key, cells, rows in sys.diag_entries:
         diag.index_add_(0, rows, blocks[key].reshape(-1, m, m)[cells])
     off = 0.0
-    for key, (at, r, c) in sys.jac.items():
-        sel = r != c
-        if np.any(sel):
-            off = max(off, float(blocks[key].reshape(-1, m, m)[at[sel]].abs().max()))
+    for key, where in sys.offdiag_cells:
+        held = blocks[key].reshape(-1, m, m)
+        off = max(off, float((held if where is None else held[where]).abs().max()))
     return diag, off
 
 
