@@ -17,7 +17,7 @@ import numpy as np
 
 from ._kernel import _VERSION, cached_module, write_module
 
-__all__ = ["folded_cells_kernel", "folded_kernels"]
+__all__ = ["folded_cells_kernel", "folded_kernels", "horner_cells_kernel"]
 
 
 #: The folded polynomial's kernels (:func:`folded_kernels`): one module for every polynomial, whatever its
@@ -110,6 +110,25 @@ def scatter(gprev, gcur, site_of, upper, rows, vol, el, r):
     for q in range(rows.shape[0]):
         for c in range(m):
             r[q * m + c] = vol * el[rows[q], c]
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
+def gather_residual(gprev, gcur, cell_at, upper, rows, vol, r):
+    # scatter's residual read per equation row (cell_at[a, site]: the cell whose point a the site is, -1: none),
+    # each row's terms added in the order of the points, as scatter adds them: the same sums
+    m = gcur.shape[1] // cell_at.shape[0]
+    for q in range(rows.shape[0]):
+        y = rows[q]
+        for c in range(m):
+            acc = 0.0
+            for a in range(cell_at.shape[0]):
+                n = cell_at[a, y]
+                if n >= 0:
+                    if upper[a]:
+                        acc += gprev[n, a * m + c]
+                    else:
+                        acc += gcur[n, a * m + c]
+            r[q * m + c] = vol * acc
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
@@ -343,7 +362,7 @@ _FOLDED = _FOLDED.replace("{cells}", _FOLDED_CELLS.replace("{monomials}", _GENER
 
 def folded_kernels() -> Any:
     """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``horner_cells``,
-    ``scatter``, ``predict``, ``update``, ``features``; ``quadratic_residual``, ``quadratic_grad``,
+    ``scatter``, ``gather_residual``, ``predict``, ``update``, ``features``; ``quadratic_residual``, ``quadratic_grad``,
     ``layer_in``, ``act_slope`` and ``act_slope_row`` for an ``L_d`` quadratic but for a network's one-site terms,
     ``._serve._potential``), built on first use and cached as the others (one build per machine, for every
     polynomial); ``None``, with one info line, where numba cannot build it."""
@@ -359,6 +378,79 @@ def folded_cells_kernel(nvar: int, cols: int) -> Callable[..., None] | None:
     )
     mod = _folded_module(source, f"folded polynomial ({nvar} variables, {cols} columns)", (nvar, cols))
     return None if mod is None else mod.folded_cells
+
+
+#: ``horner_cells`` for one class of columns and degree (:func:`horner_cells_kernel`): per tail, every column's
+#: Horner chain of the head variable written out over the cells of a chunk, its coefficients read once into
+#: scalars, so that the chains run in registers (``horner_cells`` stores each column's partial value every four
+#: steps). A (tail, column) of lower degree starts with zero coefficients, which leave its chain as
+#: ``horner_cells`` computes it: the same multiply-adds in the same order, the same columns to the bit.
+_HORNER_CLASS = """
+@numba.njit(cache=True, error_model='numpy', nogil=True, fastmath={'contract'})
+def horner_class(lo, hi, site_of, upper, w, shift, head, texp, coef, top, out):
+    k = site_of.shape[0]
+    m = lo.shape[1]
+    nvar = w.shape[1]
+    ncell = site_of.shape[1]
+    ntail = coef.shape[0]
+    wmax = 2
+    for t in range(ntail):
+        for v in range(nvar):
+            wmax = max(wmax, texp[t, v] + 1)
+    ch = _CHUNK
+    x = np.empty((k * m, ch))
+    z = np.empty((nvar, ch))
+    pw = np.empty((nvar, wmax, ch))
+    tv = np.empty(ch)
+    acc = np.empty((COLS, ch))
+    for start in range(0, ncell, ch):
+        n = min(ch, ncell - start)
+        chunk_variables(lo, hi, site_of, upper, w, shift, start, n, x, z, pw)
+        zh = z[head]
+        for c in range(COLS):
+            for j in range(n):
+                acc[c, j] = 0.0
+        for t in range(ntail):
+            for j in range(n):
+                tv[j] = 1.0
+            for v in range(nvar):
+                e = texp[t, v]
+                if e:
+                    for j in range(n):
+                        tv[j] *= pw[v, e, j]
+{chains}
+        for j in range(n):
+            for c in range(COLS):
+                out[start + j, c] = acc[c, j]
+"""
+
+
+def _horner_chains(cols: int, deg: int) -> str:
+    """The per-tail body of ``horner_class``: the coefficients of ``cols`` columns of degree ``deg`` read into
+    scalars, then one pass over the chunk's cells with every column's chain."""
+    lines = []
+    for c in range(cols):
+        names = ", ".join(f"k{c}_{e}" for e in range(deg + 1))
+        lines.append(f"{names} = " + ", ".join(f"coef[t, {c}, {e}]" for e in range(deg + 1)))
+    lines += ["for j in range(n):", "    y = zh[j]", "    s = tv[j]"]
+    for c in range(cols):
+        chain = f"k{c}_{deg}"
+        for e in range(deg - 1, -1, -1):
+            chain = f"({chain} * y + k{c}_{e})"
+        lines.append(f"    acc[{c}, j] += s * {chain}")
+    return "\n".join("            " + x for x in lines)
+
+
+def horner_cells_kernel(cols: int, deg: int) -> Callable[..., None] | None:
+    """``horner_cells`` written out for ``cols`` columns of degree ``deg`` in the head variable (the class of a
+    polynomial's folded forms; its coefficients stay data): the same columns to the bit, about a quarter
+    faster where every (tail, column) has that degree; built once per class and cached; ``None`` where numba
+    cannot build it."""
+    body = _HORNER_CLASS.replace("{chains}", _horner_chains(cols, deg)).replace("COLS", str(cols))
+    cells = _FOLDED_CELLS.replace("{monomials}", _GENERIC_MONOMIALS.strip("\n"))
+    source = "\nimport numba\nimport numpy as np\n\n_CHUNK = 256\n\n" + cells + body
+    mod = _folded_module(source, f"folded polynomial (Horner, {cols} columns of degree {deg})", (1, cols), deg)
+    return None if mod is None else mod.horner_class
 
 
 def _unrolled_monomials(nvar: int, cols: int, unroll: int = 4) -> str:
@@ -384,13 +476,13 @@ def _unrolled_monomials(nvar: int, cols: int, unroll: int = 4) -> str:
     return "\n".join("        " + x for x in out)
 
 
-def _folded_module(source: str, what: str, shape: tuple[int, int] = (1, 1)) -> Any:
+def _folded_module(source: str, what: str, shape: tuple[int, int] = (1, 1), deg: int = -1) -> Any:
     """Build (once per machine) or load the folded kernel module of ``source``; ``None``, with one info line,
-    where numba cannot build it."""
+    where numba cannot build it (``deg >= 0``: a ``horner_class`` module of that degree)."""
     key = hashlib.sha256(f"{_VERSION}|{source}".encode()).hexdigest()[:24]
     return cached_module(
         key,
-        lambda: _build_folded(key, source, shape),
+        lambda: _build_folded(key, source, shape, deg),
         what,
         f"compiled {what} kernel",
         f"compiled {what} kernel unavailable",
@@ -398,13 +490,18 @@ def _folded_module(source: str, what: str, shape: tuple[int, int] = (1, 1)) -> A
     )
 
 
-def _build_folded(key: str, source: str, shape: tuple[int, int]) -> tuple[Any, str]:
+def _build_folded(key: str, source: str, shape: tuple[int, int], deg: int = -1) -> tuple[Any, str]:
     """Write (once) and load a folded kernel module, and run each of its kernels once on one cell (``shape``:
-    the variables and columns ``folded_cells`` is run with)."""
+    the variables and columns ``folded_cells`` is run with; ``deg``: the degree of a ``horner_class``)."""
     mod, how = write_module(key, source)
     one, idx = np.zeros((1, 1)), np.zeros((1, 1), dtype=np.int64)
     rows, up = np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)
     nvar, cols = shape
+    if deg >= 0:
+        texp, top = np.zeros((1, 1), dtype=np.int64), np.zeros((1, cols), dtype=np.int64)
+        coef = np.zeros((1, cols, deg + 1))
+        mod.horner_class(one, one, idx, up, one, np.zeros(1), 0, texp, coef, top, np.empty((1, cols)))
+        return mod, how
     expo = np.zeros((1, nvar), dtype=np.int64)
     mod.folded_cells(
         one, one, idx, up, np.zeros((1, nvar)), np.zeros(nvar), expo, np.zeros((1, cols)), np.empty((1, cols))
@@ -412,6 +509,7 @@ def _build_folded(key: str, source: str, shape: tuple[int, int]) -> tuple[Any, s
     if not hasattr(mod, "scatter"):  # a class's own folded_cells alone
         return mod, how
     mod.scatter(one, one, idx, up, rows, 1.0, np.empty((1, 1)), np.empty(1))
+    mod.gather_residual(one, one, idx, up, rows, 1.0, np.empty(1))
     mod.predict(one, one, one, one, rows)
     mod.predict(one, one, one, np.zeros((0, 1)), rows)
     mod.update(one, rows, np.zeros(1))

@@ -408,7 +408,9 @@ def test_a_polynomial_served_on_the_folded_kernels_equals_its_numpy_forms(
 
     calls = []
     evaluate = _folded.FoldedSlices.evaluate
-    monkeypatch.setattr(_folded.FoldedSlices, "evaluate", lambda self, *a: calls.append(1) or evaluate(self, *a))
+    monkeypatch.setattr(
+        _folded.FoldedSlices, "evaluate", lambda self, *a, **k: calls.append(1) or evaluate(self, *a, **k)
+    )
     model = _polynomial(ndim, m)
     init = _field(ndim, {1: 16, 2: 8, 3: 5}[ndim])
     if m > 1:
@@ -425,6 +427,101 @@ def test_a_polynomial_served_on_the_folded_kernels_equals_its_numpy_forms(
     assert fast.extrapolation is not None and slow.extrapolation is not None
     assert np.allclose(fast.extrapolation.values, slow.extrapolation.values, rtol=1e-9, atol=1e-12), name
     assert fast.warnings == slow.warnings, name
+
+
+def test_a_fresh_jacobians_blocks_come_with_the_gradients(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where slice-Newton reads a fresh Jacobian at an iteration (its first slice's first), the blocks are evaluated
+    with the gradients in one pass: the gradients equal the pass without the blocks to the bit, the blocks those
+    evaluated afterwards, and in a serve each fresh Jacobian's blocks are evaluated
+    once."""
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve import _folded, _newton
+    from latticedft._serve._slices import _SliceSystem
+
+    model = _polynomial(2)
+    f = as_lattice_field(_field(2, 8), source="init", min_slices=2)
+    sys_ = _SliceSystem(model, f)
+    flat = torch.cat([f.values, f.values[1:] * 1.01]).reshape(3, -1, 1).contiguous()
+    folded = _folded.folded_slices(model, sys_, flat)
+    assert folded is not None
+    together, _ = folded.evaluate(flat, 0.01, 1, folded.grad(flat, 0), True)
+    alone, _ = folded.evaluate(flat, 0.01, 1, folded.grad(flat, 0), False)
+    assert together.both is not None and alone.both is None
+    np.testing.assert_array_equal(together.grad, alone.grad)
+    for p, block in together.blocks(sys_.pairs).items():
+        np.testing.assert_array_equal(block.numpy(), alone.blocks(sys_.pairs)[p].numpy())
+    passes: list[str] = []
+    columns = _folded.FoldedSlices.columns
+    monkeypatch.setattr(
+        _folded.FoldedSlices,
+        "columns",
+        lambda self, lo, hi, data: (
+            passes.append("both" if data is self.both_data else "grad") or columns(self, lo, hi, data)
+        ),
+    )
+    fresh = []
+    factorise = _newton._factorise
+    monkeypatch.setattr(_newton, "_factorise", lambda *a: fresh.append(1) or factorise(*a))
+    served = ldft.serve(model, _field(2, 8), slices=8, progress=False)
+    assert passes.count("both") == len(fresh) >= 1  # each fresh Jacobian's blocks evaluated once
+    # a pass per iteration and the first slice's older cells, and one of the blocks alone only for a Jacobian
+    # refreshed after a chord step (not at the first iteration)
+    assert len(passes) < served.newton_iterations + 1 + len(fresh)
+
+
+def _served_with_states(monkeypatch: pytest.MonkeyPatch, model, init, **keywords) -> tuple[object, list]:
+    """The serve and, per Newton slice, its evaluations and ``cache["fresh_first"]`` after it."""
+    from latticedft._serve import _field as field_module
+
+    states = []
+    newton = field_module._newton_slice
+
+    def recorded(*a, **k):
+        out = newton(*a, **k)
+        states.append((out[0], a[11].get("fresh_first", 0)))
+        return out
+
+    monkeypatch.setattr(field_module, "_newton_slice", recorded)
+    return ldft.serve(model, init, slices=24, progress=False, **keywords), states
+
+
+def test_after_a_slow_chord_slices_start_from_a_fresh_jacobian(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A 3+1D polynomial whose chord steps from an older slice's Jacobian take four evaluations: the next slices
+    start from a fresh Jacobian (fewer evaluations in all), and the field moves by what Newton's tolerance leaves
+    (a hundredth of it where ``rtol`` is a hundredth)."""
+    from latticedft._serve import _newton
+
+    model, init = _polynomial(3), _field(3, 6)
+    fresh, states = _served_with_states(monkeypatch, model, init)
+    assert any(it >= _newton.FRESH_FIRST_ON and on == 1 for it, on in states[1:])
+    monkeypatch.setattr(_newton, "FRESH_FIRST_ON", 10**9)  # the chord from the last Jacobian, as before
+    chord, states = _served_with_states(monkeypatch, model, init)
+    assert all(on == 0 for _, on in states)
+    assert fresh.newton_iterations < chord.newton_iterations
+    a, b = np.asarray(fresh.field.values), np.asarray(chord.field.values)
+    scale = float(np.abs(b).max())
+    assert 0 < np.abs(a - b).max() <= 24 * 1e-10 * scale  # each slice within rtol = 1e-10 of its solution
+    tight = [np.asarray(ldft.serve(model, init, slices=24, progress=False, rtol=1e-12).field.values) for _ in range(2)]
+    monkeypatch.setattr(_newton, "FRESH_FIRST_ON", 4)
+    tight[0] = np.asarray(ldft.serve(model, init, slices=24, progress=False, rtol=1e-12).field.values)
+    assert np.abs(tight[0] - tight[1]).max() <= 0.1 * np.abs(a - b).max()
+
+
+def test_fresh_starts_try_the_chord_again_every_few_slices(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every ``FRESH_FIRST_RETRY``-th slice started fresh starts with the chord again, and its evaluations decide
+    whether the next slices start fresh."""
+    from latticedft._serve import _newton
+
+    monkeypatch.setattr(_newton, "FRESH_FIRST_RETRY", 3)
+    _, states = _served_with_states(monkeypatch, _polynomial(3), _field(3, 6))
+    retries = 0
+    for (_, before), (it, after) in zip(states[1:], states[2:]):
+        if before and before % 3:
+            assert after == before + 1
+        else:  # a chord start
+            retries += before > 0
+            assert after == int(it >= _newton.FRESH_FIRST_ON)
+    assert retries >= 2
 
 
 def test_the_folded_range_check_equals_todays_outside_the_range() -> None:

@@ -62,7 +62,9 @@ def test_the_closed_form_potential_serves_as_autograd(
 
     calls = []
     evaluate = _potential.PotentialSlices.evaluate
-    monkeypatch.setattr(_potential.PotentialSlices, "evaluate", lambda s, *a: calls.append(1) or evaluate(s, *a))
+    monkeypatch.setattr(
+        _potential.PotentialSlices, "evaluate", lambda s, *a, **k: calls.append(1) or evaluate(s, *a, **k)
+    )
     model = _mlp(ndim, activation)
     init = _field(ndim, 7, slices=2 if periodic else 10, periodic=periodic)  # Dirichlet: the whole field's strips
     fast, slow = _both(model, init, slices=10, **keywords)

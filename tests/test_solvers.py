@@ -184,3 +184,52 @@ def test_summary_json_records_the_slice_solver(tmp_path: Path, capsys):
     task = json.loads((case / "results" / "summary.json").read_text())["tasks"]["test"]
     assert task["complete"] and task["solver"] == "newton" and task["slice_solver"] == "krylov"
     assert task["max_error"] < 1e-2
+
+
+def _system_and_blocks(full: bool, periodic: bool = True):
+    """A 2+1D slice system (the sine-Gordon's first-order stencil or the full unit cell, 7^2 sites) and random
+    Hessian blocks on it."""
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._slices import _SliceSystem
+
+    model = _full_cell(3) if full else _sine_gordon()
+    n = 7
+    x = np.arange(n) / n
+    u = 0.3 * np.sin(2 * np.pi * x)[None, :, None] * np.cos(2 * np.pi * x)[None, None, :] * np.ones((2, 1, 1))
+    attrs = {d: {"periodic": "true", "period": n * 0.1} for d in ("y", "x")} if periodic else None
+    init = systems.make_field(u, ("t", "y", "x"), spacing=(0.04, 0.1, 0.1), coord_attrs=attrs)
+    f = as_lattice_field(init, source="init", min_slices=2)
+    model.bind(f.ndim, f.ncomp, f.spacing, f.components)
+    sys_ = _SliceSystem(model, f)
+    rng = np.random.default_rng(0)
+    blocks = {p: torch.from_numpy(rng.standard_normal((sys_.site_of[0].size, 1, 1))) for p in sys_.pairs}
+    return sys_, blocks
+
+
+@pytest.mark.parametrize(("full", "shared"), [(False, False), (True, True)])
+def test_the_jacobian_assembled_on_its_kept_structure_is_scipys(full: bool, shared: bool) -> None:
+    """The slice Jacobian in CSR from its structure sorted once per lattice: scipy's matrix from the same entries
+    (data, indices, row pointers); where entries share a place (the full unit cell's pairs) scipy sums them."""
+    import scipy.sparse
+
+    sys_, blocks = _system_and_blocks(full)
+    assert (sys_._csr_pattern is None) == shared
+    rows, cols, vals = sys_.matrix_entries(blocks, 0.5)
+    want = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(sys_.n, sys_.n))
+    got = sys_.csr(blocks, 0.5)
+    np.testing.assert_array_equal(got.indptr, want.indptr)
+    np.testing.assert_array_equal(got.indices, want.indices)
+    np.testing.assert_array_equal(got.data, want.data)
+
+
+@pytest.mark.parametrize(("full", "periodic"), [(False, True), (True, True), (False, False)])
+def test_the_largest_off_diagonal_entry_is_read_from_the_kept_cells(full: bool, periodic: bool) -> None:
+    """The largest off-diagonal entry of the slice Jacobian (``auto``'s choice of solver) from the cells kept per
+    pair (a whole pair's blocks where every cell holds one): the largest over the assembled entries."""
+    from latticedft._serve._solvers import _diag_and_offdiag
+
+    sys_, blocks = _system_and_blocks(full, periodic)
+    rows, cols, vals = sys_.matrix_entries(blocks, 1.0)
+    off = rows != cols
+    assert off.any()
+    assert _diag_and_offdiag(sys_, blocks)[1] == float(np.abs(vals[off]).max())

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._kernel_folded import folded_cells_kernel, folded_kernels
+from .._kernel_folded import folded_cells_kernel, folded_kernels, horner_cells_kernel
 from .._models import PolynomialLagrangian
 from .._models._polynumpy import _numpy_forms
 from .._options import option
@@ -111,18 +111,55 @@ def _data_of(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple
     return built
 
 
+#: The written-out Horner kernel (``horner_cells_kernel``) serves forms whose chains use at least this share of
+#: its multiply-adds (it runs every (tail, column) to the full degree, each about a quarter cheaper than
+#: ``horner_cells``'s, which stops at each chain's own degree and skips empty ones).
+HORNER_CLASS_FILL = 0.8
+
+
+def _horner_kernel(forms: tuple[Any, ...], mod: Any) -> Any:
+    """The kernel for the Horner ``forms``: the one written out for their columns and degree where their chains
+    fill it (:data:`HORNER_CLASS_FILL`) and it builds, else the module's ``horner_cells``."""
+    coef, top = forms[4], forms[5]
+    full = coef.size
+    if full and int((top + 1).sum()) >= HORNER_CLASS_FILL * full:
+        kernel = horner_cells_kernel(coef.shape[1], coef.shape[2] - 1)
+        if kernel is not None:
+            return kernel
+    return mod.horner_cells
+
+
+def _cell_at(site_of: np.ndarray, nsite: int) -> np.ndarray | None:
+    """``(K, nsite)``: per stencil point and site, the cell whose point that site is (``-1``: none), for the
+    residual read per equation row (``gather_residual``); ``None`` where a point is the same site in two cells
+    (a lattice narrower than the stencil), which only the scatter sums."""
+    cell_at = np.full((site_of.shape[0], nsite), -1, dtype=np.int64)
+    cells = np.arange(site_of.shape[1], dtype=np.int64)
+    for a in range(site_of.shape[0]):
+        cell_at[a, site_of[a]] = cells
+        if not np.array_equal(cell_at[a, site_of[a]], cells):  # a site written twice keeps one cell only
+            return None
+    return cell_at
+
+
 class FoldedCells:
     """The cells anchored on one slice, their gradients evaluated (``grad``: ``(cells, K m)``), their Hessian
-    blocks on demand (what slice-Newton reads of ``CellDerivatives``)."""
+    blocks on demand (what slice-Newton reads of ``CellDerivatives``), or evaluated with the gradients in one
+    pass where ``with_blocks`` says they will be read (the gradients are the same columns, to the bit)."""
 
-    def __init__(self, owner: FoldedSlices, lo: np.ndarray, hi: np.ndarray):
+    def __init__(self, owner: FoldedSlices, lo: np.ndarray, hi: np.ndarray, with_blocks: bool = False):
         self.owner, self.lo, self.hi = owner, lo, hi
-        self.grad = owner.columns(lo, hi, owner.grad_data)
+        self.both: np.ndarray | None = None
+        if with_blocks:
+            self.both = owner.columns(lo, hi, owner.both_data)
+            self.grad = np.ascontiguousarray(self.both[:, : owner.k * owner.m])
+        else:
+            self.grad = owner.columns(lo, hi, owner.grad_data)
 
     def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
         """The Hessian blocks ``(cells, m, m)`` of ``pairs`` (the slice system's pairs)."""
         o = self.owner
-        out = o.columns(self.lo, self.hi, o.both_data)
+        out = self.both if self.both is not None else o.columns(self.lo, self.hi, o.both_data)
         km, mm = o.k * o.m, o.m * o.m
         return {
             p: torch.from_numpy(np.ascontiguousarray(out[:, km + q * mm : km + (q + 1) * mm]).reshape(-1, o.m, o.m))
@@ -145,6 +182,16 @@ class FoldedSlices:
         self.el = np.empty((sys.nsite, sys.m))
         self.cells: dict[tuple[int, int], Any] = {}  # the folded_cells kernel per (variables, columns)
         self.horner: dict[int, tuple[Any, ...] | None] = {}  # per data (its id): its Horner forms, if chosen
+        self.horner_kernel: dict[int, Any] = {}  # per data (its id): the Horner kernel of its forms
+        self.sys = sys
+
+    @property
+    def cell_at(self) -> np.ndarray | None:
+        """:func:`_cell_at` of the slice's cells, kept with the slice system (per lattice)."""
+        if "cell_at" not in self.sys.kept:
+            self.sys.kept["cell_at"] = _cell_at(self.site_of, self.sys.nsite)
+        cell_at: np.ndarray | None = self.sys.kept["cell_at"]
+        return cell_at
 
     def columns(self, lo: np.ndarray, hi: np.ndarray, data: tuple[np.ndarray, ...]) -> np.ndarray:
         """The folded forms' columns on every cell anchored on slice ``lo`` (``hi``: the next one): by Horner's
@@ -156,9 +203,10 @@ class FoldedSlices:
             built = _horner(data)
             fewer = int((built[5] + 1).sum()) <= data[2].shape[0] * (cols + nvar)
             self.horner[id(data)] = built if fewer else None
+            self.horner_kernel[id(data)] = _horner_kernel(built, self.mod) if fewer else None
         forms = self.horner[id(data)]
         if forms is not None:
-            self.mod.horner_cells(lo, hi, self.site_of, self.upper, *forms, out)
+            self.horner_kernel[id(data)](lo, hi, self.site_of, self.upper, *forms, out)
             return out
         if (nvar, cols) not in self.cells:
             self.cells[(nvar, cols)] = folded_cells_kernel(nvar, cols) or self.mod.folded_cells
@@ -208,14 +256,21 @@ class FoldedSlices:
             fmax[start : start + part.shape[0]] = part.max(axis=2)
         return fmin, fmax
 
-    def evaluate(self, flat: torch.Tensor, vol: float, i: int, g_prev: Any) -> tuple[FoldedCells, np.ndarray]:
+    def evaluate(
+        self, flat: torch.Tensor, vol: float, i: int, g_prev: Any, blocks: bool = False
+    ) -> tuple[FoldedCells, np.ndarray]:
         """The cells anchored on slice ``i`` at the current state and the slice's DEL residual on its equation
         rows (``g_prev``: the gradients of the cells anchored on ``i - 1``, as this or ``CellDerivatives``
-        gives them)."""
-        ev = FoldedCells(self, flat[i].numpy(), flat[i + 1].numpy())
+        gives them). ``blocks``: slice-Newton reads the Hessian blocks at this state (a fresh Jacobian), so they
+        are evaluated with the gradients, in one pass."""
+        ev = FoldedCells(self, flat[i].numpy(), flat[i + 1].numpy(), with_blocks=blocks)
         gp = g_prev.reshape(ev.grad.shape).numpy() if isinstance(g_prev, torch.Tensor) else g_prev
         r = np.empty(self.rows.size * self.m)
-        self.mod.scatter(np.ascontiguousarray(gp), ev.grad, self.site_of, self.upper, self.rows, vol, self.el, r)
+        gp = np.ascontiguousarray(gp)
+        if self.cell_at is not None:
+            self.mod.gather_residual(gp, ev.grad, self.cell_at, self.upper, self.rows, vol, r)
+        else:
+            self.mod.scatter(gp, ev.grad, self.site_of, self.upper, self.rows, vol, self.el, r)
         return ev, r
 
 

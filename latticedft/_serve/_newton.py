@@ -18,6 +18,13 @@ from ._solvers import SolverRefused, factor_step
 #: while each cuts the residual by at least this factor; otherwise the next step assembles a fresh Jacobian.
 CHORD_DROP = 1e-2
 
+#: A slice whose chord steps from the last Jacobian took at least this many evaluations (each cut the residual
+#: less than the tolerance needs) has the next slices start from a fresh Jacobian at their predictor (Newton's
+#: own steps from the first); every :data:`FRESH_FIRST_RETRY`-th of them tries the chord again, whose count
+#: decides as before.
+FRESH_FIRST_ON = 4
+FRESH_FIRST_RETRY = 8
+
 #: ``allmax(*values)``: each value's largest over the processes serving one slice together (identity in one).
 AllMax = Callable[..., tuple[float, ...]]
 
@@ -71,7 +78,7 @@ def _newton_slice(
     cells_at,
     cache,
     allmax: AllMax = _local,
-    evaluate: Callable[[int, Any], tuple[Any, np.ndarray]] | None = None,
+    evaluate: Callable[[int, Any, bool], tuple[Any, np.ndarray]] | None = None,
 ):
     """Newton on one slice. Steps reuse the cached factorised Jacobian (chord steps, exact for quadratic
     ``L_d``) while each cuts the residual a hundredfold; fresh Hessian blocks are assembled only when one did not.
@@ -80,24 +87,31 @@ def _newton_slice(
 
     ``allmax`` makes every test that reads the whole slice (residual, sizes, singular values, the step) global
     when the slice is split over processes (one part each in ``flat``): they then stop at the same iteration.
-    ``evaluate(i, g_prev) -> (cells, residual)`` replaces the gathering of the cells anchored on slice ``i``,
-    their derivatives (``CellDerivatives``: ``grad``, ``blocks(pairs)``) and the residual (``._folded``)."""
+    ``evaluate(i, g_prev, blocks) -> (cells, residual)`` replaces the gathering of the cells anchored on slice
+    ``i``, their derivatives (``CellDerivatives``: ``grad``, ``blocks(pairs)``; ``blocks``: this iteration reads
+    the blocks unless it converges) and the residual (``._folded``).
+
+    A slice whose chord steps took :data:`FRESH_FIRST_ON` evaluations or more has the next ones assemble a fresh
+    Jacobian at their first iteration (``cache["fresh_first"]``: how many slices since; every
+    :data:`FRESH_FIRST_RETRY`-th starts with the chord again, which decides anew)."""
     m = sys.m
     res = math.inf
     prev = math.inf
     r = np.zeros(0)
     rscale = None
     small = False
+    fresh = cache.get("fresh_first", 0)  # slices started fresh since a slow chord (0: chord starts)
+    first_stale = "solve" in cache and fresh % FRESH_FIRST_RETRY == 0
     for it in range(1, max_newton + 1):
         if evaluate is None:
             ev = CellDerivatives(model, cells_at(i))
             r = sys.residual(g_prev, ev.grad, vol)
         else:
-            ev, r = evaluate(i, g_prev)
+            ev, r = evaluate(i, g_prev, "dmax" not in cache or (it == 1 and not first_stale))
         (res,) = allmax(float(np.abs(r).max()) if r.size else 0.0)
         if not math.isfinite(res):
             return it, res, ev.grad, ("residual is not finite", None, res)
-        stale = "solve" in cache and (it == 1 or res <= CHORD_DROP * prev)
+        stale = "solve" in cache and (first_stale if it == 1 else res <= CHORD_DROP * prev)
         prev = res
         blocks = _fresh_blocks(ev, sys, cache, allmax) if "dmax" not in cache else None
         if blocks is not None and cache["singular"]:
@@ -107,6 +121,8 @@ def _newton_slice(
         if res <= rtol * rscale or small:
             # converged (or the last step was below rtol times the values: the residual stalls at round-off);
             # the cells anchored at slice i are evaluated at the solution: reuse them for slice i + 1
+            if first_stale or fresh:
+                cache["fresh_first"] = int(it >= FRESH_FIRST_ON) if first_stale else fresh + 1
             return it, res, ev.grad, None
         try:
             if not stale:

@@ -215,7 +215,10 @@ class PotentialSlices(FoldedSlices):
     def grad(self, flat: torch.Tensor, i: int) -> np.ndarray:
         return PotentialCells(self, flat[i].numpy(), flat[i + 1].numpy()).grad.numpy()
 
-    def evaluate(self, flat: torch.Tensor, vol: float, i: int, g_prev: Any) -> tuple[Any, np.ndarray]:
+    def evaluate(
+        self, flat: torch.Tensor, vol: float, i: int, g_prev: Any, blocks: bool = False
+    ) -> tuple[Any, np.ndarray]:
+        """As :meth:`FoldedSlices.evaluate`; the blocks (the kinetic Hessian's) are not evaluated with the cells."""
         ev = PotentialCells(self, flat[i].numpy(), flat[i + 1].numpy())
         gp = g_prev.numpy() if isinstance(g_prev, (torch.Tensor, DeferredGrad)) else g_prev
         gp = np.ascontiguousarray(gp).reshape(self.site_of.shape[1], self.k * self.m)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import Any
 
 import numpy as np
 import scipy.linalg
@@ -57,6 +58,7 @@ class _SliceSystem:
         self.pairs = [(a, b) for a in self.now for b in self.nxt]
         self.wraps = wraps
         self.banded = len(spatial) == 1 and not wraps
+        self.kept: dict[str, Any] = {}  # what a solve derives from these maps and keeps with them (per lattice)
         # the Jacobian's structure (jac, lower, upper, triangular, diag_pairs, diag_entries) is built on first use:
         # the compiled slice Newton of a block-diagonal L_d never needs it
 
@@ -102,6 +104,18 @@ class _SliceSystem:
         return [(a, b) for (a, b), (_, r, c) in self.jac.items() if np.any(r == c)]
 
     @functools.cached_property
+    def offdiag_cells(self) -> list[tuple[tuple[int, int], torch.Tensor | None]]:
+        """Per pair with entries off the Jacobian's diagonal blocks, the cells that hold them (``None``: every cell
+        of the pair's blocks, in order: no gather)."""
+        out: list[tuple[tuple[int, int], torch.Tensor | None]] = []
+        for key, (at, r, c) in self.jac.items():
+            cells = at[r != c]
+            if cells.size:
+                every = cells.size == self.site_of[0].size and bool(np.array_equal(cells, np.arange(cells.size)))
+                out.append((key, None if every else torch.from_numpy(cells)))
+        return out
+
+    @functools.cached_property
     def diag_entries(self) -> list[tuple[tuple[int, int], torch.Tensor, torch.Tensor]]:
         """The entries of the Jacobian's diagonal m x m blocks (an equation's own site on the next slice): per
         unknown site the mixed Hessian summed over the cells that hold it."""
@@ -123,16 +137,54 @@ class _SliceSystem:
             el.index_add_(0, torch.from_numpy(self.site_of[a]), gc[:, a])
         return (vol * el).numpy()[self.interior].reshape(-1)
 
-    def matrix_entries(self, blocks: dict[tuple[int, int], torch.Tensor], vol: float):
+    @functools.cached_property
+    def _entry_places(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(rows, cols)`` of the slice Jacobian's entries, pair by pair (the order of :meth:`matrix_entries`)."""
         m = self.m
-        rs, cs, vs = [], [], []
+        rs, cs = [], []
         ii, jj = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
-        for key, (cells, r, c) in self.jac.items():
-            v = blocks[key].reshape(-1, m, m).numpy()[cells] * vol  # (nnz, m, m)
+        for _, r, c in self.jac.values():
             rs.append((r[:, None, None] * m + ii).reshape(-1))
             cs.append((c[:, None, None] * m + jj).reshape(-1))
-            vs.append(v.reshape(-1))
-        return np.concatenate(rs), np.concatenate(cs), np.concatenate(vs)
+        return np.concatenate(rs), np.concatenate(cs)
+
+    def _entry_values(self, blocks: dict[tuple[int, int], torch.Tensor], vol: float) -> np.ndarray:
+        m = self.m
+        vs = [
+            (blocks[key].reshape(-1, m, m).numpy()[cells] * vol).reshape(-1) for key, (cells, _, _) in self.jac.items()
+        ]
+        return np.concatenate(vs)
+
+    def matrix_entries(self, blocks: dict[tuple[int, int], torch.Tensor], vol: float):
+        """``(rows, cols, values)`` of the slice Jacobian's entries, pair by pair."""
+        rows, cols = self._entry_places
+        return rows, cols, self._entry_values(blocks, vol)
+
+    @functools.cached_property
+    def _csr_pattern(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """``(order, indices, indptr)``: the slice Jacobian's entries (in :meth:`matrix_entries`'s order) sorted
+        by row, then column, and the CSR structure they fill; ``None`` where two entries share a place (a
+        lattice narrower than the stencil: their sum is left to scipy)."""
+        rows, cols = self._entry_places
+        order = np.lexsort((cols, rows))
+        r, c = rows[order], cols[order]
+        if r.size > 1 and bool(np.any((r[1:] == r[:-1]) & (c[1:] == c[:-1]))):
+            return None
+        indptr = np.zeros(self.n * self.m + 1, dtype=np.int64)
+        np.cumsum(np.bincount(r, minlength=self.n * self.m), out=indptr[1:])
+        return order, c.astype(np.int32 if c.size < 2**31 else np.int64), indptr.astype(c.dtype)
+
+    def csr(self, blocks: dict[tuple[int, int], torch.Tensor], vol: float) -> scipy.sparse.csr_matrix:
+        """The slice Jacobian of ``blocks`` as scipy builds it from :meth:`matrix_entries` (columns sorted within
+        each row, the same values), its structure sorted once per lattice."""
+        size = self.n * self.m
+        pattern = self._csr_pattern
+        if pattern is None:
+            rows, cols, vals = self.matrix_entries(blocks, vol)
+            return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(size, size))
+        order, indices, indptr = pattern
+        vals = self._entry_values(blocks, vol)[order]
+        return scipy.sparse.csr_matrix((vals, indices, indptr), shape=(size, size), copy=False)
 
     def site_singular_values(self, blocks: dict[tuple[int, int], torch.Tensor]) -> tuple[float, float, int]:
         """``(smallest, largest, row)``: the extreme singular values of the Jacobian's diagonal blocks (the mixed

@@ -70,10 +70,9 @@ def _diag_and_offdiag(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Ten
     for key, cells, rows in sys.diag_entries:
         diag.index_add_(0, rows, blocks[key].reshape(-1, m, m)[cells])
     off = 0.0
-    for key, (at, r, c) in sys.jac.items():
-        sel = r != c
-        if np.any(sel):
-            off = max(off, float(blocks[key].reshape(-1, m, m)[at[sel]].abs().max()))
+    for key, where in sys.offdiag_cells:
+        held = blocks[key].reshape(-1, m, m)
+        off = max(off, float((held if where is None else held[where]).abs().max()))
     return diag, off
 
 
@@ -111,9 +110,8 @@ def _block_inverse(diag: torch.Tensor, vol: float) -> Solve:
 
 def _krylov(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Tensor], vol: float, diag, target: float) -> Solve:
     """GMRES on the assembled Jacobian with the block-Jacobi preconditioner."""
-    rows, cols, vals = sys.matrix_entries(blocks, vol)
     size = sys.n * sys.m
-    mat = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(size, size))
+    mat = sys.csr(blocks, vol)
     prec = _block_inverse(diag, vol)
     pre = scipy.sparse.linalg.LinearOperator((size, size), matvec=prec, dtype=np.float64)
     atol = 0.1 * target
