@@ -23,10 +23,10 @@ from ._solvers import factor_step
 __all__ = ["STATE_VERSION", "Checkpointer", "keep_factored", "restore_stream", "stream_state"]
 
 #: The layout of the state; a checkpoint of another layout is refused.
-STATE_VERSION = 1
+STATE_VERSION = 2
 
 #: The cache entries kept (``solve`` is rebuilt from ``factored``: the blocks and target it was made from).
-_CACHE_KEYS = ("solver", "dmax", "mscale", "singular", "used", "factored")
+_CACHE_KEYS = ("solver", "dmax", "mscale", "singular", "used", "fresh_first", "factored")
 
 
 class Checkpointer(Protocol):

@@ -33,7 +33,7 @@ from ._grid import assemble
 __all__ = ["SlabCheckpoint", "restore", "stream_chunk"]
 
 #: The Newton cache entries a state carries (as ``_checkpoint._CACHE_KEYS``, but the factorisation).
-_CACHE_KEYS = ("solver", "dmax", "mscale", "singular", "used")
+_CACHE_KEYS = ("solver", "dmax", "mscale", "singular", "used", "fresh_first")
 
 
 def stream_chunk(slice_bytes: int, steps: int, checkpoint: int | None) -> int:
