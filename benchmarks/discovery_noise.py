@@ -15,6 +15,8 @@ from the clean test's first two slices (and boundary strips). Columns:
   (samples)`` column), which this error includes;
 - ``served 50``: the largest error of the served test over its first 50 steps; ``/ sigma``: that over the noise's
   standard deviation; ``leapfrog 50``: the leapfrog of the true equation from the same two slices;
+- ``bag spread``: for a sparse model, the largest standard deviation of a kept coefficient over its bagged fits
+  (resampled time blocks) relative to the coefficient (``n/a`` for another model);
 - ``warned``: the learning report's warnings, shortened (``-`` for none): the run saying its fit may not hold;
 - ``select (s)``: the time of the selection with the noise correction.
 
@@ -60,6 +62,7 @@ COLUMNS = [
     "served 50",
     "/ sigma",
     "leapfrog 50",
+    "bag spread",
     "warned",
     "select (s)",
 ]
@@ -113,8 +116,10 @@ def row(system: systems_mod.System, sigma: float, seed: int) -> tuple[list[Any],
     mine = systems_mod.max_errors(_served(rep.model, system, STEPS), ref, slices)[0]
     base = systems_mod.max_errors(system.leapfrog(system.test, slices), ref, slices)[0]
     warned = _warned(rep.model.report_)
+    spread = getattr(rep.model, "bag_spread", None)
+    bag = float(np.nanmax(spread)) if spread is not None and np.isfinite(spread).any() else "n/a"
     recovered = isinstance(coef, float) and n_got == n_want and coef <= COEF_TOL
-    out = [system.name, sigma, label, terms, coef, mine, mine / scale, base, warned, seconds]
+    out = [system.name, sigma, label, terms, coef, mine, mine / scale, base, bag, warned, seconds]
     return out, {"sigma": sigma, "recovered": recovered, "within": mine <= SIGMA_BOUND * scale, "warned": warned != "-"}
 
 

@@ -24,6 +24,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numpy as np
 import torch
 import xarray as xr
 
@@ -76,6 +77,10 @@ SHIFT_WARN = 3.0
 #: Noisy data whose noise is more than this share of their second time differences are reported as a warning
 #: (on the systems of ``benchmarks.noise``, every row the noise-aware fit failed lay above it: docs/noise.md).
 SECOND_DIFFERENCE_WARN = 0.7
+#: A sparse model learned from noisy data whose kept coefficients vary over its bagged fits (resampled time
+#: blocks) by more than this share of their value is reported as a warning (``benchmarks.discovery_noise``: the
+#: rows whose terms were wrong without another warning varied by 140 % to 390 %, those recovered by 0.5 % or less).
+SPREAD_WARN = 0.05
 
 
 @dataclass
@@ -369,7 +374,24 @@ def learn_noisy(
             "which the learned equations must explain: they may be unreliable; data sampled coarser in time are "
             "less affected (a stride of k divides the share by about k^2 while it is small)"
         )
+    spread = _largest_spread(model)
+    if est.significant and spread is not None and spread[0] > SPREAD_WARN:
+        warnings.append(
+            f"the kept terms' coefficients vary by up to {100 * spread[0]:.0f} % ({spread[1]}) over the fits on "
+            "resampled time blocks of the noisy data: the terms and their coefficients may be the noise's"
+        )
     return replace(report, noise=info, warnings=warnings), used
+
+
+def _largest_spread(model: AbstractLagrangian) -> tuple[float, str] | None:
+    """A sparse model's largest relative spread of a kept coefficient over its bagged fits, and that term's
+    name (None for another model, or without bags)."""
+    spread = getattr(model, "bag_spread", None)
+    if spread is None or not np.isfinite(spread).any():
+        return None
+    i = int(np.nanargmax(spread))
+    terms = getattr(model, "terms", None) or []
+    return float(spread[i]), (str(terms[i].name) if i < len(terms) else f"term {i}")
 
 
 def _correct(

@@ -356,21 +356,30 @@ def _refit(rule: str, t: np.ndarray, g: _Gauge, ridge: float) -> np.ndarray:
     return path[0]
 
 
-def _bagged(blocks: list[np.ndarray], g: _Gauge, rule: str, ridge: float, bags: int) -> np.ndarray:
-    """Each term's share of ``bags`` fits of ``rule`` on blocks drawn with replacement (NaN without bags or
-    blocks)."""
+def _bagged(
+    blocks: list[np.ndarray], g: _Gauge, rule: str, ridge: float, bags: int, theta: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each term's share of ``bags`` fits of ``rule`` on blocks drawn with replacement, and the standard
+    deviation of its coefficient over them relative to its coefficient ``theta`` (0 where ``theta`` is 0);
+    both NaN without bags or blocks."""
     c = blocks[0].shape[1]
     if bags == 0 or len(blocks) < 2:
-        return np.full(c, math.nan)
+        return np.full(c, math.nan), np.full(c, math.nan)
     rng = np.random.default_rng(0)
-    counts = np.zeros(c)
+    fits = []
     for _ in range(bags):
         pick = rng.integers(0, len(blocks), len(blocks))
         try:
-            counts += _refit(rule, _stack([blocks[i] for i in pick]), g, ridge) != 0
+            fits.append(_refit(rule, _stack([blocks[i] for i in pick]), g, ridge))
         except (InputError, np.linalg.LinAlgError):
             continue
-    return counts / bags
+    if not fits:
+        return np.zeros(c), np.full(c, math.nan)
+    coefs = np.array(fits)
+    kept = theta != 0
+    spread = np.zeros(c)
+    spread[kept] = coefs[:, kept].std(0) / np.abs(theta[kept])
+    return (coefs != 0).sum(0) / bags, spread
 
 
 def _share(theta: np.ndarray, t: np.ndarray) -> float:
@@ -416,10 +425,11 @@ def learn_sparse(
         rule = f"{float(model.threshold)!r}"
     full = _stack(blocks)
     theta = _refit(rule, full, g, lam)
-    inclusion = _bagged(blocks, g, rule, lam, model.bags)
+    inclusion, spread = _bagged(blocks, g, rule, lam, model.bags, theta)
     threshold = _share(theta, full) if rule.endswith(" terms") else float(rule)
     with torch.no_grad():
         model.coef.copy_(torch.from_numpy(theta))
         model.inclusion.copy_(torch.from_numpy(inclusion))
         model.threshold_used.fill_(threshold)
+    model.bag_spread = spread
     return lam, {f"threshold {k}" if not k.endswith(" terms") else k: v for k, v in validation.items()}

@@ -7,6 +7,7 @@ import math
 from collections.abc import Sequence
 from typing import Any, Literal
 
+import numpy as np
 import torch
 
 from .._errors import InputError
@@ -109,6 +110,9 @@ class SparseLagrangian(LinearLagrangian):
     #: the threshold the fit used.
     inclusion: torch.Tensor
     threshold_used: torch.Tensor
+    #: Set by the last fit (not saved): each term's coefficient's standard deviation over the bagged fits over
+    #: the coefficient's magnitude (0 for a term not kept, NaN without bags); None before a fit.
+    bag_spread: np.ndarray | None = None
 
     def __init__(
         self,
