@@ -247,8 +247,13 @@ def run_alone(run: Callable[[Config], Table], doc: str | None, argv: list[str] |
     t0 = time.perf_counter()
     table = run(Config(quick=args.quick, threads=args.threads))
     table.seconds = time.perf_counter() - t0
+    print_table(table)
+    print(f"# load average after: {load_average()}", flush=True)
+    return 0
+
+
+def print_table(table: Table) -> None:
+    """The table as text, then its targets, met or not."""
     print(text(table))
     for c in table.checks:
         print(f"  [{'met' if c.met else 'NOT met'}] {c.target}: {c.measured}")
-    print(f"# load average after: {load_average()}", flush=True)
-    return 0

@@ -19,6 +19,7 @@ data's own steps, in numpy.
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,7 +35,7 @@ from latticedft._symbolic import SymbolicLd, cell_symbols
 
 from ._terms import del_equations, neighbour
 
-__all__ = ["System", "SYSTEMS", "build", "ode_leapfrog", "OdeSpec", "variational_data"]
+__all__ = ["System", "SYSTEMS", "build", "chosen", "ode_leapfrog", "OdeSpec", "variational_data"]
 
 Accel = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -535,6 +536,16 @@ def max_errors(pred: np.ndarray, ref: np.ndarray, slices: int, at: tuple[int, ..
     good = len(err) if np.isfinite(err).all() else int(np.argmax(~np.isfinite(err)))
     err = np.concatenate([err[:good], np.full(slices - good, np.inf)])
     return [float(err.max())] + [float(err[: k + 1].max()) for k in at]
+
+
+def chosen(parser: argparse.ArgumentParser, only: list[str]) -> tuple[str, ...]:
+    """The system names of the ``--only`` arguments (each may hold several, comma-separated); an unknown one is
+    the parser's error."""
+    names = tuple(n for item in only for n in item.split(",") if n)
+    unknown = [n for n in names if n not in SYSTEMS]
+    if unknown:
+        parser.error(f"unknown system {unknown[0]!r}; choose from {', '.join(SYSTEMS)}")
+    return names
 
 
 def build(name: str, quick: bool = False) -> System:

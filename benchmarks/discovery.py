@@ -46,7 +46,7 @@ from latticedft._case._schema import ModelConfig
 from latticedft._stencil import Stencil
 
 from . import _discovery_systems as systems_mod
-from ._common import Check, Config, Table, load_average, text
+from ._common import Check, Config, Table, load_average, print_table
 from ._discovery_peers import peer_rows, rows_for, xl_own_rows
 from ._terms import coefficient_error, terms_cell
 
@@ -208,10 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--peers", action="store_true", help="add the peers' rows in quick mode too")
     p.add_argument("--threads", type=int, default=1, help="threads of torch and BLAS (default 1)")
     args = p.parse_args(argv)
-    names = tuple(n for item in args.only for n in item.split(",") if n)
-    unknown = [n for n in names if n not in systems_mod.SYSTEMS]
-    if unknown:
-        p.error(f"unknown system {unknown[0]!r}; choose from {', '.join(systems_mod.SYSTEMS)}")
+    names = systems_mod.chosen(p, args.only)
     ldft.limit_threads(args.threads)
     print(f"# python -m benchmarks.discovery {' '.join(argv if argv is not None else sys.argv[1:])}")
     print(f"# load average (uptime) before: {load_average()}", flush=True)
@@ -219,9 +216,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     table = run(Config(quick=args.quick, threads=args.threads), names or None, peers)
     table.seconds = time.perf_counter() - t0
-    print(text(table))
-    for c in table.checks:
-        print(f"  [{'met' if c.met else 'NOT met'}] {c.target}: {c.measured}")
+    print_table(table)
     print(f"# load average (uptime) after: {load_average()}", flush=True)
     return 0
 

@@ -39,7 +39,7 @@ import latticedft as ldft
 from latticedft._case._schema import ModelConfig
 
 from . import _discovery_systems as systems_mod
-from ._common import Check, Config, Table, load_average, text
+from ._common import Check, Config, Table, load_average, print_table
 from ._terms import coefficient_error, terms_cell
 
 NAME = "discovery-noise"
@@ -189,10 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="the systems' small sizes")
     p.add_argument("--threads", type=int, default=1, help="threads of torch and BLAS (default 1)")
     args = p.parse_args(argv)
-    names = tuple(n for item in args.only for n in item.split(",") if n)
-    unknown = [n for n in names if n not in systems_mod.SYSTEMS]
-    if unknown:
-        p.error(f"unknown system {unknown[0]!r}; choose from {', '.join(systems_mod.SYSTEMS)}")
+    names = systems_mod.chosen(p, args.only)
     if any(not s > 0 for s in args.sigmas):
         p.error("--sigmas: expected noise levels > 0")
     ldft.limit_threads(args.threads)
@@ -201,9 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     table = run(Config(quick=args.quick, threads=args.threads), names or None, tuple(args.sigmas), args.seed)
     table.seconds = time.perf_counter() - t0
-    print(text(table))
-    for c in table.checks:
-        print(f"  [{'met' if c.met else 'NOT met'}] {c.target}: {c.measured}")
+    print_table(table)
     print(f"# load average (uptime) after: {load_average()}", flush=True)
     return 0
 
