@@ -150,3 +150,21 @@ def test_noise_targets_read_recovery_bound_and_warnings():
     assert [c.met for c in checks] == [True, False, False]
     assert checks[1].measured == "0 of 1 systems" and checks[2].measured.startswith("0 of 1")
     assert len(targets([low], (1e-3,))) == 2  # one level: no high-noise target
+
+
+def test_weak_rows_are_test_function_sums_that_average_out_second_difference_noise():
+    from benchmarks.noise_weak import weak
+
+    rng = np.random.default_rng(0)
+    nt, sites = 60, 3
+    noise = rng.standard_normal((nt + 2, sites))
+    rows = (noise[2:] - 2 * noise[1:-1] + noise[:-2]).reshape(-1, 1)  # one column: second differences of noise
+    assert weak(rows, nt, 0) is rows  # w = 0: the plain rows
+    w = 4
+    out = weak(rows, nt, w)
+    assert out.shape == (len(range(0, nt - 2 * w, w // 2)) * sites, 1)
+    s = np.linspace(-1, 1, 2 * w + 3)[1:-1]
+    phi = (1 - s**2) ** 4 / np.linalg.norm((1 - s**2) ** 4)
+    assert out[:sites, 0] == pytest.approx(phi @ rows.reshape(nt, sites)[: 2 * w + 1])
+    # summed by parts the differences fall on phi: the noise shrinks far below that of a plain row (sqrt(6))
+    assert np.std(out) < 0.2 * np.std(rows)
