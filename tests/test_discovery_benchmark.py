@@ -172,3 +172,21 @@ def test_a_noisy_sparse_fit_whose_coefficients_vary_over_its_bags_warns():
     assert true.bag_spread is not None and np.nanmax(true.bag_spread) < SPREAD_WARN / 10
     assert not any("vary by up to" in w for w in warned)
     assert np.all(true.bag_spread[true.coef.detach().numpy() == 0] == 0)
+
+
+def test_weak_rows_are_test_function_sums_that_average_out_second_difference_noise():
+    from benchmarks.noise_weak import weak
+
+    rng = np.random.default_rng(0)
+    nt, sites = 60, 3
+    noise = rng.standard_normal((nt + 2, sites))
+    rows = (noise[2:] - 2 * noise[1:-1] + noise[:-2]).reshape(-1, 1)  # one column: second differences of noise
+    assert weak(rows, nt, 0) is rows  # w = 0: the plain rows
+    w = 4
+    out = weak(rows, nt, w)
+    assert out.shape == (len(range(0, nt - 2 * w, w // 2)) * sites, 1)
+    s = np.linspace(-1, 1, 2 * w + 3)[1:-1]
+    phi = (1 - s**2) ** 4 / np.linalg.norm((1 - s**2) ** 4)
+    assert out[:sites, 0] == pytest.approx(phi @ rows.reshape(nt, sites)[: 2 * w + 1])
+    # summed by parts the differences fall on phi: the noise shrinks far below that of a plain row (sqrt(6))
+    assert np.std(out) < 0.2 * np.std(rows)
