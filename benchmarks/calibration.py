@@ -24,7 +24,9 @@ members' standard deviation alone (the band before calibration); "law only" the 
 trial's disagreement. Over the served slices of every test field
 (the two given ones excluded), per slice the RMS error over the lattice: *coverage* is the share within 2 times
 the band's RMS, *std/error* the mean band over the mean error. *cost* is the time of selection plus calibration
-over selection alone. ``--quick``: one small case (cases/oscillator-sin, clean) for the structure.
+over selection alone. A failed calibration (no held-out slice served: :attr:`Calibration.failed`) gives no single
+band and leaves the ensemble's raw spread, as a case serves it. ``--quick``: one small case
+(cases/oscillator-sin, clean) for the structure.
 """
 
 from __future__ import annotations
@@ -238,6 +240,8 @@ def measure(s: Setup, sigma: float) -> list[Any]:
     for init, ref, slices, boundary in s.tests:
         _serve_test(pool, model, ens, trial, cal, _noisy(init, sigma, rng), ref, slices, boundary)
     single, ensemble, raw, law = (pool.score(k) for k in ("single", "ensemble", "raw", "law"))
+    if cal.failed is not None:  # no law: served as a case is, without psi_err_est, the ensemble's spread as it is
+        single, law, ensemble = (None, None), (None, None), raw
     cost = (t_sel + t_cal) / t_sel if t_sel else None
     if "record" in ONLY:
         _record(ONLY["record"], s.label, sigma, cal, pool, held)
@@ -250,7 +254,7 @@ def measure(s: Setup, sigma: float) -> list[Any]:
         *ensemble,
         *raw,
         *law,
-        cal.coverage,
+        cal.coverage if cal.failed is None else None,
         t_sel if t_sel else None,
         t_cal,
         cost,

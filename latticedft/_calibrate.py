@@ -94,6 +94,13 @@ class Calibration:
     #: With an ensemble: the factor on its members' spread, the :data:`QUANTILE` quantile over the held-out
     #: slices of the trial's error over the spread on the same slice, halved (None without an ensemble).
     spread_scale: float | None = None
+    #: Why the law is degenerate (None when it is not): no held-out slice was served, so no scale was measured.
+    #: Callers serve without a calibrated error bar and report a failed calibration.
+    failed: str | None = None
+    #: The training fields' amplitudes (the range of a field's values, largest less smallest), smallest and
+    #: largest (None in a law recorded before them).
+    span_low: float | None = None
+    span_high: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -132,8 +139,10 @@ class Calibration:
         return out
 
     def warnings(self, served_slices: int, values: np.ndarray) -> list[str]:
-        """Why a task's estimate is extrapolated: it serves more slices than the longest window measured, or
-        its values leave the training fields' range (by more than :data:`RANGE_MARGIN` of its width)."""
+        """Why a task's estimate is extrapolated: it serves more slices than the longest window measured, its
+        values leave the training fields' range (by more than :data:`RANGE_MARGIN` of its width), or its
+        amplitude (the range of its values) is below the smallest training field's or above the largest's (by more
+        than :data:`RANGE_MARGIN` of it)."""
         out = []
         if served_slices > self.slices:
             out.append(
@@ -147,6 +156,14 @@ class Calibration:
                 f"calibration: the served field spans [{finite.min():.3g}, {finite.max():.3g}], outside the range "
                 f"[{self.low:.3g}, {self.high:.3g}] of the windows the error bar was measured on"
             )
+        if finite.size and self.span_low is not None and self.span_high is not None:
+            span = float(finite.max() - finite.min())
+            if span < (1 - RANGE_MARGIN) * self.span_low or span > (1 + RANGE_MARGIN) * self.span_high:
+                out.append(
+                    f"calibration: the served field's amplitude (range of values) {span:.3g} is outside the "
+                    f"training fields' [{self.span_low:.3g}, {self.span_high:.3g}]: the error bar was measured "
+                    "along the training fields and does not bound the model's error on another one"
+                )
         return out
 
 
@@ -276,7 +293,9 @@ def calibrate(
     ``learned``: the trial and the runner-up (None: not learned) as model selection learned them, on the first
     ``1 - hold_out`` of every field with the same keywords (:attr:`latticedft.SelectionReport.trials`): taken as
     they are instead of learning the same fits again (a noise-aware fit repeats its correction), with one fold.
-    The random state of torch and numpy is left as it was. ``InputError`` when the fields are too short
+    A law that could not be measured (no held-out slice served) comes back with :attr:`Calibration.failed` set: it
+    is no law, and a caller serves without a calibrated error bar. The random state of torch and numpy is left as
+    it was. ``InputError`` when the fields are too short
     (:func:`too_short`).
     """
     t0 = time.perf_counter()
@@ -307,9 +326,12 @@ def calibrate(
         _spread_scale(ensemble_model, samples, fields, boundary, quantile) if ensemble_model is not None else None
     )
     warnings += _stopped(samples, quantile)
+    cal.failed = _degenerate(samples)
     cal.windows, cal.slices = len(fields), max(f.sizes[f.dims[0]] for f in fields)
     cal.low = min(float(np.nanmin(f.values)) for f in fields)
     cal.high = max(float(np.nanmax(f.values)) for f in fields)
+    spans = [float(np.nanmax(f.values) - np.nanmin(f.values)) for f in fields]
+    cal.span_low, cal.span_high = min(spans), max(spans)
     used = any(x.disagreement for x in samples)
     cal.runner_up = runner_up[2] if runner_up is not None and used else None
     cal.wall_time = time.perf_counter() - t0
@@ -450,6 +472,19 @@ def _fit(samples: list[_Sample], quantile: float) -> Calibration:
         runner_up=None,
         wall_time=0.0,
     )
+
+
+def _degenerate(samples: list[_Sample]) -> str | None:
+    """Why no law can be fitted to the samples (None when one can): not one held-out slice with a finite error
+    (the trial's serve stopped before every one, or no field had held-out slices). Its quantile would be
+    unbounded and the scale meaningless (a law of scale 1e-308 and held-out coverage 0 % was recorded so)."""
+    held = [x.rel[x.held] for x in samples]
+    total = sum(r.size for r in held)
+    if any(np.isfinite(r).any() for r in held):
+        return None
+    if not total:
+        return "no held-out slice was measured"
+    return f"the trial model's serve stopped before all {total} held-out slices: no error was measured to scale the law"
 
 
 def _stopped(samples: list[_Sample], quantile: float) -> list[str]:

@@ -134,6 +134,17 @@ def test_the_law_round_trips_and_warns_beyond_its_windows() -> None:
     np.testing.assert_allclose(out.values, [[1, 1], [1.5, 0.5], [0.5, 0.5]])  # members that agree: the floor
 
 
+def test_a_task_of_another_amplitude_than_the_training_fields_is_told() -> None:
+    """Training fields of amplitudes 0.8 to 2.4 (cases/oscillator-sin's 0.4, 0.8, 1.2 launches): a task of range
+    0.2 (its 0.1 launch) is told that the band does not bound it; one of range 1.2 inside is not."""
+    law = _law(low=-1.2, high=1.2, span_low=0.8, span_high=2.4)
+    assert law.warnings(40, np.linspace(-0.6, 0.6, 30)) == []
+    (small,) = law.warnings(40, np.linspace(-0.1, 0.1, 30))
+    assert "amplitude (range of values) 0.2 is outside the training fields' [0.8, 2.4]" in small
+    assert law.warnings(40, np.linspace(-0.39, 0.39, 30)) == []  # within 5 % of the smallest
+    assert len(law.warnings(40, np.linspace(-1.25, 1.3, 30))) == 1  # wider than the widest: 2.55 > 1.05 * 2.4
+
+
 def test_too_short_data_say_so_in_one_line() -> None:
     short = [systems.oscillator_sin(1.0, n=3)]
     msg = too_short(short)
@@ -285,3 +296,53 @@ def test_auto_calibrates_after_selection_with_the_runner_up(tmp_path: Path, caps
     assert law["runner_up"] is None or (law["runner_up"] in labels and law["runner_up"] != sel["chosen_label"])
     with xr.open_dataset(tmp_path / "r" / "test.nc") as ds:
         assert "psi_err_est" in ds.data_vars
+
+
+def test_a_law_with_no_held_out_error_measured_is_degenerate() -> None:
+    """Every held-out slice unserved: no scale was measured, so the law is marked failed (it was recorded with a
+    scale of the smallest float and 0 % held-out coverage); one served held-out slice is enough for a law."""
+    from latticedft._calibrate import _degenerate, _Sample
+
+    k = np.arange(2.0, 22.0)
+    held = k >= 16
+    stopped = np.where(k < 6, 1e-6 * k, np.nan)
+    reason = _degenerate([_Sample(k, held, stopped, stopped, False) for _ in range(3)])
+    assert reason is not None and "stopped before all 18 held-out slices" in reason
+    one = np.where(k < 17, 1e-6 * k, np.nan)
+    assert _degenerate([_Sample(k, held, stopped, stopped, False), _Sample(k, held, one, one, False)]) is None
+    assert _degenerate([]) == "no held-out slice was measured"
+
+
+def test_a_degenerate_law_is_a_failed_calibration(tmp_path: Path, capsys, monkeypatch) -> None:
+    """A trial that serves no held-out slice: the run reports a failed calibration (exit status 4 when strict),
+    records no law and writes no estimate."""
+    import latticedft._calibrate as calibration
+
+    measure = calibration._measure
+
+    def stops(*args: object, **kwargs: object) -> list[object]:
+        out = measure(*args, **kwargs)  # type: ignore[arg-type]
+        for x in out:
+            x.rel = np.where(x.held, np.nan, x.rel)
+        return out  # type: ignore[return-value]
+
+    monkeypatch.setattr(calibration, "_measure", stops)
+    case = tiny_wave(tmp_path)
+    code, _, err = run_cli(
+        capsys,
+        "run",
+        case,
+        "--out",
+        tmp_path / "r",
+        "--set",
+        "train.calibrate=true",
+        "--set",
+        "export.paraview=false",
+        "--strict",
+    )
+    assert code == 4, err
+    assert "calibration: failed (the trial model's serve stopped before all" in err
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert "calibration" not in summary["train"]
+    with xr.open_dataset(tmp_path / "r" / "test.nc") as ds:
+        assert "psi_err_est" not in ds.data_vars

@@ -63,6 +63,8 @@ def case_calibration(
         except LatticeDFTError as exc:
             text = " ".join(str(exc).split())[:160]
             return None, [f"calibration: failed ({text}): served without a calibrated error bar"], None
+        if cal.failed is not None:
+            return None, [*warnings, f"calibration: failed ({cal.failed}): served without a calibrated error bar"], None
     log.info(
         "calibration: err(k) = A * %.3g * k^%.2f on %d held-out slices (2 std covers %.0f %% of them; %.1f s)",
         cal.scale,
