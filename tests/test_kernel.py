@@ -492,6 +492,7 @@ def test_after_a_slow_chord_slices_start_from_a_fresh_jacobian(monkeypatch: pyte
     from latticedft._serve import _newton
 
     model, init = _polynomial(3), _field(3, 6)
+    monkeypatch.setattr(_newton, "CHORD_PREDICT", False)  # a slow chord told by its evaluations alone
     fresh, states = _served_with_states(monkeypatch, model, init)
     assert any(it >= _newton.FRESH_FIRST_ON and on == 1 for it, on in states[1:])
     monkeypatch.setattr(_newton, "FRESH_FIRST_ON", 10**9)  # the chord from the last Jacobian, as before
@@ -513,6 +514,7 @@ def test_fresh_starts_try_the_chord_again_every_few_slices(monkeypatch: pytest.M
     from latticedft._serve import _newton
 
     monkeypatch.setattr(_newton, "FRESH_FIRST_RETRY", 3)
+    monkeypatch.setattr(_newton, "CHORD_PREDICT", False)  # the evaluations alone decide
     _, states = _served_with_states(monkeypatch, _polynomial(3), _field(3, 6))
     retries = 0
     for (_, before), (it, after) in zip(states[1:], states[2:]):
@@ -522,6 +524,39 @@ def test_fresh_starts_try_the_chord_again_every_few_slices(monkeypatch: pytest.M
             retries += before > 0
             assert after == int(it >= _newton.FRESH_FIRST_ON)
     assert retries >= 2
+
+
+def test_the_chord_is_kept_only_where_its_rate_reaches_the_target() -> None:
+    """A chord step follows one that cut the residual a hundredfold only where that rate reaches the target in
+    one more step."""
+    from latticedft._serve import _newton
+
+    assert _newton._chord_pays(1e-6, 1e-3, 1e-9)
+    assert not _newton._chord_pays(1e-6, 1e-3, 1e-10)  # 1e-9 after one more chord step: a fresh Jacobian
+    assert not _newton._chord_pays(1e-6, 1e-5, 1.0)  # cut tenfold only
+
+
+def test_a_chord_predicted_slow_takes_a_fresh_jacobian(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With the chord's rate predicting the target (the default), a 3+1D polynomial whose chord steps are slow
+    takes a fresh Jacobian within the slice, its next slices start fresh, and it serves in fewer evaluations
+    than with the evaluations alone deciding; the field moves by what Newton's tolerance leaves (a hundredth
+    of it where ``rtol`` is a hundredth)."""
+    from latticedft._serve import _newton
+
+    model, init = _polynomial(3), _field(3, 6)
+    predicted, states = _served_with_states(monkeypatch, model, init)
+    assert all(it < _newton.FRESH_FIRST_ON for it, _ in states[1:])
+    assert any(on == 1 for _, on in states[1:])
+    monkeypatch.setattr(_newton, "CHORD_PREDICT", False)
+    counted, _ = _served_with_states(monkeypatch, model, init)
+    assert predicted.newton_iterations < counted.newton_iterations
+    a, b = np.asarray(predicted.field.values), np.asarray(counted.field.values)
+    moved = float(np.abs(a - b).max())
+    assert 0 < moved <= 24 * 1e-10 * float(np.abs(b).max())  # each slice within rtol = 1e-10 of its solution
+    tight = [np.asarray(ldft.serve(model, init, slices=24, progress=False, rtol=1e-12).field.values)]
+    monkeypatch.setattr(_newton, "CHORD_PREDICT", True)
+    tight.append(np.asarray(ldft.serve(model, init, slices=24, progress=False, rtol=1e-12).field.values))
+    assert np.abs(tight[0] - tight[1]).max() <= 0.1 * moved
 
 
 def test_the_folded_range_check_equals_todays_outside_the_range() -> None:

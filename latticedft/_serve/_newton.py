@@ -25,6 +25,11 @@ CHORD_DROP = 1e-2
 FRESH_FIRST_ON = 4
 FRESH_FIRST_RETRY = 8
 
+#: The chord is kept only while its rate predicts the target in one more step (:func:`_chord_pays`); a slice
+#: that assembled a fresh Jacobian after its first iteration (its chord did not pay), and the field's first
+#: slice where its own Jacobian did not serve it in one step, count as slow chords for :data:`FRESH_FIRST_ON`.
+CHORD_PREDICT = True
+
 #: ``allmax(*values)``: each value's largest over the processes serving one slice together (identity in one).
 AllMax = Callable[..., tuple[float, ...]]
 
@@ -32,6 +37,14 @@ AllMax = Callable[..., tuple[float, ...]]
 def _local(*values: float) -> tuple[float, ...]:
     """The values themselves: one process holds the whole slice."""
     return values
+
+
+def _chord_pays(res: float, prev: float, target: float) -> bool:
+    """Whether the next step reuses the last Jacobian (a chord step): the last step cut the residual by at least
+    :data:`CHORD_DROP` and, cutting it again by as much, one more step is predicted to reach ``target``;
+    otherwise a fresh Jacobian (one Newton step from a residual this small converges) costs less than the
+    chord steps it would take."""
+    return res <= CHORD_DROP * prev and (not CHORD_PREDICT or res * (res / prev) <= target)
 
 
 def _fresh_blocks(ev: CellDerivatives, sys: _SliceSystem, cache: dict[str, Any], allmax: AllMax = _local) -> dict:
@@ -102,6 +115,8 @@ def _newton_slice(
     small = False
     fresh = cache.get("fresh_first", 0)  # slices started fresh since a slow chord (0: chord starts)
     first_stale = "solve" in cache and fresh % FRESH_FIRST_RETRY == 0
+    refreshed = False  # a fresh Jacobian assembled after the first iteration
+    first = "solve" not in cache  # no Jacobian yet: the field's first slice (or the first after a failed step)
     for it in range(1, max_newton + 1):
         if evaluate is None:
             ev = CellDerivatives(model, cells_at(i))
@@ -111,7 +126,7 @@ def _newton_slice(
         (res,) = allmax(float(np.abs(r).max()) if r.size else 0.0)
         if not math.isfinite(res):
             return it, res, ev.grad, ("residual is not finite", None, res)
-        stale = "solve" in cache and (first_stale if it == 1 else res <= CHORD_DROP * prev)
+        stale = "solve" in cache and (first_stale if it == 1 else _chord_pays(res, prev, rtol * (rscale or 0.0)))
         prev = res
         blocks = _fresh_blocks(ev, sys, cache, allmax) if "dmax" not in cache else None
         if blocks is not None and cache["singular"]:
@@ -121,11 +136,13 @@ def _newton_slice(
         if res <= rtol * rscale or small:
             # converged (or the last step was below rtol times the values: the residual stalls at round-off);
             # the cells anchored at slice i are evaluated at the solution: reuse them for slice i + 1
-            if first_stale or fresh:
-                cache["fresh_first"] = int(it >= FRESH_FIRST_ON) if first_stale else fresh + 1
+            if first_stale or fresh or (CHORD_PREDICT and first):
+                slow = it >= FRESH_FIRST_ON or (CHORD_PREDICT and refreshed)
+                cache["fresh_first"] = fresh + 1 if fresh and not first_stale else int(slow)
             return it, res, ev.grad, None
         try:
             if not stale:
+                refreshed = refreshed or it > 1
                 if blocks is None:
                     blocks = _fresh_blocks(ev, sys, cache, allmax)
                     if cache["singular"]:
