@@ -20,6 +20,7 @@ from ._learn._data import as_fields
 from ._learn._heldout import HOLD_OUT
 from ._learn._heldout import held_in as _split
 from ._learn._heldout import held_out_score as _score
+from ._learn._noise import SPREAD_WARN
 from ._learn._sparse import SERVE_FLOOR
 from ._models import MODELS, AbstractLagrangian
 from ._models._sparse import SparseLagrangian, default_library, exact_step_libraries
@@ -263,7 +264,9 @@ def select(
     ``keep_below`` (or :data:`BEATEN` times the candidate's). With two training fields or more, a hand-set model
     that ``keep_below`` would keep is replaced when the candidate, learned on every field but the one of largest
     amplitude, serves that one ``factor`` times better and within :data:`BEYOND_CEILING` (the row's ``beyond``).
-    When every candidate fails the hand-set model is kept with a warning.
+    Under noise (a candidate whose fit corrected it), the sparse candidates whose kept coefficients vary over
+    their bagged fits by at most ``SPREAD_WARN`` (the row's ``spread``) come first among the sparse ones. When
+    every candidate fails the hand-set model is kept with a warning.
 
     Parameters
     ----------
@@ -379,11 +382,14 @@ def _trial(
     the learned candidate (None when its fit failed)."""
     trial = copy.deepcopy(fresh)
     t0 = time.perf_counter()
-    n_parameters, kept = None, None
+    n_parameters, kept, spread = None, None, None
     try:
-        learn(trial, held, boundary=boundary, ridge=ridge, progress=False, **{**learn_kwargs, "symmetries": False})
+        rep = learn(
+            trial, held, boundary=boundary, ridge=ridge, progress=False, **{**learn_kwargs, "symmetries": False}
+        )
         n_parameters = trial.n_parameters()
         kept = _kept_terms(trial)
+        spread = _noisy_spread(trial, rep.noise)
         score, status = _score(trial, fields, boundary), "ok"
         if not math.isfinite(score):
             status = "served field not finite"
@@ -395,7 +401,17 @@ def _trial(
         score, status = math.inf, f"{type(exc).__name__}: {_short(exc)}"
     row = {"score": score, "status": status, "n_parameters": n_parameters, "wall_time": time.perf_counter() - t0}
     row = row if kept is None else {**row, "terms": kept}
+    row = row if spread is None else {**row, "spread": spread}
     return row, (trial if n_parameters is not None else None)
+
+
+def _noisy_spread(trial: AbstractLagrangian, noise: dict[str, Any] | None) -> float | None:
+    """A sparse candidate's largest relative spread of a kept coefficient over its bagged fits, when its fit
+    corrected the noise of its data (None otherwise: on clean data small corrections are kept on purpose)."""
+    spread = getattr(trial, "bag_spread", None)
+    if noise is None or noise.get("method") == "none" or spread is None or not np.isfinite(spread).any():
+        return None
+    return float(np.nanmax(spread))
 
 
 def _beyond(
@@ -463,6 +479,8 @@ def _choose(
         and math.isfinite(sc)
         and sc <= max(min(SPARSE_FACTOR * lowest, SPARSE_CEILING), SPARSE_FLOOR)
     ]
+    stable = [i for i in sparse if rows[i].get("spread", 0.0) <= SPREAD_WARN]
+    sparse = stable or sparse  # under noise, the candidates whose kept coefficients hold over the bags
     dense = best
     if sparse and best not in sparse:  # a few symbolic terms near the lowest score: they extrapolate
         best = min(sparse, key=lambda i: (rows[i]["n_parameters"], scores[i]))

@@ -10,6 +10,7 @@ import xarray as xr
 from test_sparse import _ode, kepler_one_orbit, pendulum
 
 import latticedft as ldft
+from latticedft._learn._noise import SPREAD_WARN
 from latticedft._select import (
     BEATEN,
     BEYOND_CEILING,
@@ -49,6 +50,25 @@ def test_a_sparse_candidate_near_the_lowest_score_comes_first():
     rows[1]["score"], rows[2]["score"], rows[3]["score"] = 1.5e-2, 0.6, math.inf  # above SPARSE_CEILING
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
     rows[2]["score"] = 3.0e-2  # the double pendulum's true terms by the trapezoid rule: within the ceiling
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 2
+
+
+def test_under_noise_the_sparse_candidates_whose_coefficients_hold_over_the_bags_come_first():
+    """Sine-Gordon 1+1D with noise 1e-3: the threshold 0.1 keeps the wrong six terms, which vary over the bags
+    (spread 1.1) and score lower than the true six (spread 5e-4); the stable one is chosen. Without a spread (clean
+    data) or with every candidate unstable, the rule is as before."""
+    rows = [
+        {"score": 8e-3, "n_parameters": 40, "label": "hand-set", "kind": "polynomial"},
+        {"score": 1e-3, "n_parameters": 6, "label": "wrong", "kind": "sparse", "spread": 1.1},
+        {"score": 3e-3, "n_parameters": 6, "label": "true", "kind": "sparse", "spread": 5e-4},
+    ]
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 2
+    rows[2]["spread"] = 0.5  # both unstable: the lower score
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
+    for row in rows:
+        row.pop("spread", None)
+    assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 1
+    rows[1]["spread"], rows[2]["spread"] = 1.1, SPREAD_WARN  # at the bound: stable
     assert _choose(rows, factor=2.0, keep_below=1e-6)[0] == 2
 
 
