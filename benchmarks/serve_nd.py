@@ -1,7 +1,8 @@
 """n-D serving by slice-Newton: the slice solvers (site-wise, Krylov, LU) against a hand-written numpy leapfrog.
 
 ``python -m benchmarks --only serve-nd``, or alone: ``python -m benchmarks.serve_nd [--quick]`` (``--quick``:
-tiny lattices, the first kernel build timed in 1+1D only; seconds).
+tiny lattices, the first kernel build timed in 1+1D only; seconds). Some rows alone, their targets only:
+``python -m benchmarks.serve_nd --only polynomial --dims 3`` (``--only`` words of the L_d column, repeatable).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import functools
 import math
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -321,23 +322,40 @@ def _oscillator_steps(quick: bool) -> float:
         return steps / (time.process_time() - c0)
 
 
-def _runs(cfg: Config) -> list[tuple[str, Any, int, int, int, bool]]:
-    """(label, model, dims, sites per axis, most slices, compiled kernels on) of every serving row."""
+def _runs(
+    cfg: Config, keep: Callable[[str, int], bool] = lambda label, ndim: True
+) -> list[tuple[str, Any, int, int, int, bool]]:
+    """(label, model, dims, sites per axis, most slices, compiled kernels on) of every serving row that ``keep``
+    (label, dims) keeps; a model is learned only for a row kept."""
     runs = []
     for ndim, ns in _sizes(cfg.quick).items():
         # the learned polynomial's derivatives cost ~100x the sine-Gordon's: fewer slices, and in 3+1D two sizes
         poly_ns = ns if ndim < 3 or cfg.quick else [32, 64]
-        poly = learned_polynomial(ndim, cfg.quick)
-        runs += [(POLY + ", compiled", poly, ndim, n, 10, True) for n in poly_ns]
         target = {1: 16384, 2: 128, 3: 32}[ndim] if not cfg.quick else ns[-1]
-        runs.append((POLY + ", numpy forms", poly, ndim, target, 10, False))
+        if keep(POLY + ", compiled", ndim) or keep(POLY + ", numpy forms", ndim):
+            poly = learned_polynomial(ndim, cfg.quick)
+            runs += [(POLY + ", compiled", poly, ndim, n, 10, True) for n in poly_ns]
+            runs.append((POLY + ", numpy forms", poly, ndim, target, 10, False))
         runs += [("sine-Gordon, analytic, compiled", sine_gordon(), ndim, n, 66, True) for n in ns]
         runs.append(("sine-Gordon, analytic, not compiled", sine_gordon(), ndim, ns[-1], 66, False))
     big2 = _sizes(cfg.quick)[2][-2 if not cfg.quick else -1]
-    runs.append(("MLP (kinetic-potential, 16x16), learned", learned_mlp(cfg.quick), 2, big2, 6, True))
-    return runs
+    if keep(MLP, 2):
+        runs.append((MLP, learned_mlp(cfg.quick), 2, big2, 6, True))
+    return [r for r in runs if keep(r[0], r[2])]
 
 
+def keeper(only: Sequence[str] = (), dims: Sequence[int] = ()) -> Callable[[str, int], bool]:
+    """Whether a row (label, dims) is measured: its label holds one of ``only`` (case-insensitive; none: every
+    label) and its dimension is one of ``dims`` (none: every dimension)."""
+    words = [w.lower() for w in only]
+
+    def keep(label: str, ndim: int) -> bool:
+        return (not words or any(w in label.lower() for w in words)) and (not dims or ndim in dims)
+
+    return keep
+
+
+MLP = "MLP (kinetic-potential, 16x16), learned"
 POLY = "polynomial (2, 12), learned"
 
 
@@ -345,14 +363,7 @@ def _targets(table: Table, worst: dict[str, float], per_site: dict[str, list[flo
     """The targets' checks: CPU-time ratios at >= 128^2 and >= 32^3 sites (1+1D: >= 16384), 1D steps per second,
     cost linear in sites (the analytic rows' sites per CPU second within 1.5x over the sizes of a dimension from
     4096, 128^2 and 32^3 sites: below, the fixed cost of a call dominates)."""
-    for key, bound in (("sine-Gordon, analytic, compiled", 2.0), (POLY + ", compiled", 10.0)):
-        for d in (1, 2, 3):
-            v = worst.get(f"{key} {d}+1D", math.inf)
-            table.checks.append(
-                Check(f"{key} {d}+1D: CPU <= {bound:g}x the in-place leapfrog", f"{v:.3g}x", v <= bound)
-            )
-    mlp = worst.get("MLP (kinetic-potential, 16x16), learned 2+1D", math.inf)
-    table.checks.append(Check("MLP 2+1D: CPU <= 30x the in-place leapfrog", f"{mlp:.3g}x", mlp <= 30))
+    _ratio_checks(table, worst, every=True)
     table.checks.append(Check("1D polynomial oscillator, one trajectory: >= 2e5 steps/s", f"{steps:.3g}", steps >= 2e5))
     spread = max((max(v) / min(v) for v in per_site.values() if len(v) > 1), default=1.0)
     table.checks.append(
@@ -360,7 +371,27 @@ def _targets(table: Table, worst: dict[str, float], per_site: dict[str, list[flo
     )
 
 
-def run(cfg: Config) -> Table:
+def _ratio_checks(table: Table, worst: dict[str, float], every: bool) -> None:
+    """The CPU-ratio targets: of every row kind and dimension (``every``; one not measured reads inf), or of those
+    measured only."""
+    for key, bound, dims in (
+        ("sine-Gordon, analytic, compiled", 2.0, (1, 2, 3)),
+        (POLY + ", compiled", 10.0, (1, 2, 3)),
+        (MLP, 30.0, (2,)),
+    ):
+        for d in dims:
+            if not every and f"{key} {d}+1D" not in worst:
+                continue
+            v = worst.get(f"{key} {d}+1D", math.inf)
+            name = "MLP" if key == MLP else key
+            table.checks.append(
+                Check(f"{name} {d}+1D: CPU <= {bound:g}x the in-place leapfrog", f"{v:.3g}x", v <= bound)
+            )
+
+
+def run(cfg: Config, only: Sequence[str] = (), dims: Sequence[int] = ()) -> Table:
+    """The table; with ``only`` (words of the L_d column) or ``dims``, of those rows alone (:func:`keeper`), without
+    the kernel builds, the 1D oscillator and the linear-solver notes, and with the measured rows' targets only."""
     table = Table(
         NAME,
         TITLE,
@@ -381,11 +412,11 @@ def run(cfg: Config) -> Table:
         ],
     )
     before = load_average()
-    builds = {d: _kernel_builds(d) for d in ((1,) if cfg.quick else (1, 2, 3))}  # quick: the build path once
-    builds[0] = _folded_builds()
+    whole = not only and not dims
+    builds = {d: _kernel_builds(d) for d in ((1,) if cfg.quick else (1, 2, 3))} if whole else {}  # quick: once
     worst: dict[str, float] = {}
     per_site: dict[str, list[float]] = {}
-    for label, model, ndim, n, most, compiled in _runs(cfg):
+    for label, model, ndim, n, most, compiled in _runs(cfg, keeper(only, dims)):
         with ldft.set_options(compiled_kernels=compiled, compiled_numpy_models=compiled):
             row, ratio = _serve_row(label, model, ndim, n, cfg.quick, most)
         table.rows.append(row)
@@ -398,6 +429,14 @@ def run(cfg: Config) -> Table:
             and (n**ndim >= {1: 4096, 2: 128**2, 3: 32**3}[ndim] or cfg.quick)
         ):
             per_site.setdefault(f"{ndim}", []).append(float(row[5]))
+    if not whole:
+        table.notes.append(
+            f"Rows of L_d {', '.join(map(repr, only)) or 'any'} in dimensions {', '.join(map(str, dims)) or 'any'} "
+            f"alone; load average before {before}, after {load_average()}. The targets of the rows measured only."
+        )
+        _ratio_checks(table, worst, every=False)
+        return table
+    builds[0] = _folded_builds()
     steps = _oscillator_steps(cfg.quick)
     _notes(table, cfg, before, builds, steps)
     _targets(table, worst, per_site, steps)
@@ -451,7 +490,31 @@ def _notes(table: Table, cfg: Config, before: str, builds: dict[int, tuple[float
     ]
 
 
-if __name__ == "__main__":
-    from ._common import run_alone
+def main(argv: list[str] | None = None) -> int:
+    import argparse
 
-    sys.exit(run_alone(run, __doc__))
+    from ._common import print_table
+
+    p = argparse.ArgumentParser(prog="python -m benchmarks.serve_nd", description=(__doc__ or "").split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="tiny lattices (seconds)")
+    p.add_argument("--threads", type=int, default=1, help="threads of torch and BLAS (default 1)")
+    p.add_argument(
+        "--only", action="append", default=[], metavar="WORDS", help="rows whose L_d holds WORDS ('polynomial', 'MLP')"
+    )
+    p.add_argument("--dims", type=int, nargs="+", default=[], choices=(1, 2, 3), help="space dimensions of the rows")
+    args = p.parse_args(argv)
+    ldft.limit_threads(args.threads)
+    print(f"# load average before: {load_average()}", flush=True)
+    t0 = time.perf_counter()
+    table = run(Config(quick=args.quick, threads=args.threads), tuple(args.only), tuple(args.dims))
+    table.seconds = time.perf_counter() - t0
+    print_table(table)
+    print(f"# load average after: {load_average()}", flush=True)
+    if not table.rows:
+        print("serve_nd: no row matches --only/--dims", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -288,3 +288,16 @@ def test_compiled_default_prints_its_row(started: Started) -> None:
     assert proc.returncode == 0, proc.stderr[-3000:]
     row = next(ln for ln in proc.stdout.splitlines() if ln.startswith("| sine-gordon kink_antikink"))
     assert float(row.strip("| \n").split("|")[-1]) <= 1e-12, row
+
+
+def test_serve_nd_rows_chosen_by_words_and_dimensions(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--only`` keeps the rows whose L_d holds a word (any case), ``--dims`` those of a dimension; a filter that
+    keeps no row is an exit status 2 with a line saying so, and learns nothing."""
+    from benchmarks import serve_nd
+
+    keep = serve_nd.keeper(["Polynomial"], [3])
+    assert keep(serve_nd.POLY + ", compiled", 3) and not keep(serve_nd.POLY + ", compiled", 2)
+    assert not keep("sine-Gordon, analytic, compiled", 3) and not keep(serve_nd.MLP, 2)
+    assert serve_nd.keeper()(serve_nd.MLP, 2) and serve_nd.keeper((), [2])(serve_nd.MLP, 2)
+    assert serve_nd.main(["--quick", "--only", "no such row"]) == 2
+    assert "no row matches" in capsys.readouterr().err
