@@ -55,22 +55,27 @@ def chunk_variables(lo, hi, site_of, upper, w, shift, start, n, x, z, pw):
                 pw[v, e, j] = pw[v, e - 1, j] * z[v, j]
 
 
+@numba.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def chunk_buffers(lo, site_of, w, expo):
+    # the buffers chunk_variables fills for one chunk of cells: the stencil's values x, the variables z and
+    # their powers pw, up to the largest exponent in the rows of expo (at least the first)
+    nvar = w.shape[1]
+    wmax = 2
+    for t in range(expo.shape[0]):
+        for v in range(nvar):
+            wmax = max(wmax, expo[t, v] + 1)
+    x = np.empty((site_of.shape[0] * lo.shape[1], _CHUNK))
+    return x, np.empty((nvar, _CHUNK)), np.empty((nvar, wmax, _CHUNK))
+
+
 @numba.njit(cache=True, error_model='numpy', nogil=True)
 def folded_cells(lo, hi, site_of, upper, w, shift, expo, gc, out):
-    k = site_of.shape[0]
-    m = lo.shape[1]
     nvar = w.shape[1]
     ncell = site_of.shape[1]
     nmono = gc.shape[0]
     cols = gc.shape[1]
-    wmax = 2
-    for t in range(nmono):
-        for v in range(nvar):
-            wmax = max(wmax, expo[t, v] + 1)
     ch = _CHUNK
-    x = np.empty((k * m, ch))
-    z = np.empty((nvar, ch))
-    pw = np.empty((nvar, wmax, ch))
+    x, z, pw = chunk_buffers(lo, site_of, w, expo[:nmono])
     acc = np.empty((cols, ch))
     p = np.empty(ch)
     for start in range(0, ncell, ch):
@@ -150,19 +155,11 @@ def predict(prev, cur, nxt, older, rows):
 
 @numba.njit(cache=True, error_model='numpy', nogil=True, fastmath={'contract'})
 def horner_cells(lo, hi, site_of, upper, w, shift, head, texp, coef, top, out):
-    k = site_of.shape[0]
-    m = lo.shape[1]
     nvar = w.shape[1]
     ncell = site_of.shape[1]
     ntail, cols, _ = coef.shape
-    wmax = 2
-    for t in range(ntail):
-        for v in range(nvar):
-            wmax = max(wmax, texp[t, v] + 1)
     ch = _CHUNK
-    x = np.empty((k * m, ch))
-    z = np.empty((nvar, ch))
-    pw = np.empty((nvar, wmax, ch))
+    x, z, pw = chunk_buffers(lo, site_of, w, texp[:ntail])
     tv = np.empty(ch)
     p = np.empty(ch)
     zh = np.empty(ch)
@@ -388,19 +385,11 @@ def folded_cells_kernel(nvar: int, cols: int) -> Callable[..., None] | None:
 _HORNER_CLASS = """
 @numba.njit(cache=True, error_model='numpy', nogil=True, fastmath={'contract'})
 def horner_class(lo, hi, site_of, upper, w, shift, head, texp, coef, top, out):
-    k = site_of.shape[0]
-    m = lo.shape[1]
     nvar = w.shape[1]
     ncell = site_of.shape[1]
     ntail = coef.shape[0]
-    wmax = 2
-    for t in range(ntail):
-        for v in range(nvar):
-            wmax = max(wmax, texp[t, v] + 1)
     ch = _CHUNK
-    x = np.empty((k * m, ch))
-    z = np.empty((nvar, ch))
-    pw = np.empty((nvar, wmax, ch))
+    x, z, pw = chunk_buffers(lo, site_of, w, texp[:ntail])
     tv = np.empty(ch)
     acc = np.empty((COLS, ch))
     for start in range(0, ncell, ch):
