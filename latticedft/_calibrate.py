@@ -328,10 +328,10 @@ def calibrate(
     warnings += _stopped(samples, quantile)
     cal.failed = _degenerate(samples)
     cal.windows, cal.slices = len(fields), max(f.sizes[f.dims[0]] for f in fields)
-    cal.low = min(float(np.nanmin(f.values)) for f in fields)
-    cal.high = max(float(np.nanmax(f.values)) for f in fields)
-    spans = [float(np.nanmax(f.values) - np.nanmin(f.values)) for f in fields]
-    cal.span_low, cal.span_high = min(spans), max(spans)
+    lows = [float(np.nanmin(f.values)) for f in fields]
+    highs = [float(np.nanmax(f.values)) for f in fields]
+    spans = [h - lo for lo, h in zip(lows, highs, strict=True)]
+    cal.low, cal.high, cal.span_low, cal.span_high = min(lows), max(highs), min(spans), max(spans)
     used = any(x.disagreement for x in samples)
     cal.runner_up = runner_up[2] if runner_up is not None and used else None
     cal.wall_time = time.perf_counter() - t0

@@ -20,7 +20,7 @@ from ._learn._data import as_fields
 from ._learn._heldout import HOLD_OUT
 from ._learn._heldout import held_in as _split
 from ._learn._heldout import held_out_score as _score
-from ._learn._noise import SPREAD_WARN
+from ._learn._noise import SPREAD_WARN, largest_spread
 from ._learn._sparse import SERVE_FLOOR
 from ._models import MODELS, AbstractLagrangian
 from ._models._sparse import SparseLagrangian, default_library, exact_step_libraries
@@ -408,10 +408,10 @@ def _trial(
 def _noisy_spread(trial: AbstractLagrangian, noise: dict[str, Any] | None) -> float | None:
     """A sparse candidate's largest relative spread of a kept coefficient over its bagged fits, when its fit
     corrected the noise of its data (None otherwise: on clean data small corrections are kept on purpose)."""
-    spread = getattr(trial, "bag_spread", None)
-    if noise is None or noise.get("method") == "none" or spread is None or not np.isfinite(spread).any():
+    if noise is None or noise.get("method") == "none":
         return None
-    return float(np.nanmax(spread))
+    spread = largest_spread(trial)
+    return None if spread is None else spread[0]
 
 
 def _beyond(

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -12,10 +11,11 @@ import xarray as xr
 from scipy.integrate import solve_ivp
 
 import latticedft as ldft
+from benchmarks.noise_hessian import autograd_products
 from latticedft import ConfigError, InputError, systems
 from latticedft._action import _action, action_hessian
 from latticedft._case import load_case
-from latticedft._lattice import LatticeField, as_lattice_field
+from latticedft._lattice import as_lattice_field
 from latticedft._learn import _noise
 from latticedft._learn._noise import DENOISE_SLICES, SECOND_DIFFERENCE_WARN, denoised_start
 from latticedft._run._task import _start
@@ -351,22 +351,6 @@ def test_sparse_action_hessian_equals_the_dense_one(kind: str, wrap: bool) -> No
     assert float((g - grad).abs().max()) <= 1e-13 * float(grad.abs().max())
 
 
-def _autograd_products(
-    model: ldft.AbstractLagrangian, f: LatticeField, psi: torch.Tensor
-) -> tuple[torch.Tensor, Callable[[torch.Tensor], torch.Tensor]]:
-    """The correction's products as first built: a double backward pass of the action per product."""
-
-    x = psi.clone().requires_grad_(True)
-    with torch.enable_grad():
-        (g,) = torch.autograd.grad(_action(model, x, f.spacing, f.boundary, 0), x, create_graph=True)
-
-    def hv(v: torch.Tensor) -> torch.Tensor:
-        (out,) = torch.autograd.grad(g, x, grad_outputs=v, retain_graph=True)
-        return out.detach()
-
-    return g.detach(), hv
-
-
 def test_sparse_products_correct_as_the_double_backward_did(monkeypatch: pytest.MonkeyPatch) -> None:
     """The noise-aware fit and the denoised field with the assembled sparse Hessian equal those with a double
     backward pass per product (the conjugate gradients converged, to 1e-10 of their residual): the corrected
@@ -375,7 +359,7 @@ def test_sparse_products_correct_as_the_double_backward_did(monkeypatch: pytest.
     fits, moved = {}, {}
     for name in ("sparse", "autograd"):
         if name == "autograd":
-            monkeypatch.setattr(_noise, "_products", _autograd_products)
+            monkeypatch.setattr(_noise, "_products", autograd_products)  # the path replaced
         model = ldft.PolynomialLagrangian(orders=(2, 6), time_symmetric=True)
         rep = ldft.learn(model, f, progress=False, noise="correct")
         assert rep.noise is not None and rep.noise["rounds"] == _noise.ROUNDS

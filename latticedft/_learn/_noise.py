@@ -374,7 +374,7 @@ def learn_noisy(
             "which the learned equations must explain: they may be unreliable; data sampled coarser in time are "
             "less affected (a stride of k divides the share by about k^2 while it is small)"
         )
-    spread = _largest_spread(model)
+    spread = largest_spread(model)
     if est.significant and spread is not None and spread[0] > SPREAD_WARN:
         warnings.append(
             f"the kept terms' coefficients vary by up to {100 * spread[0]:.0f} % ({spread[1]}) over the fits on "
@@ -383,7 +383,7 @@ def learn_noisy(
     return replace(report, noise=info, warnings=warnings), used
 
 
-def _largest_spread(model: AbstractLagrangian) -> tuple[float, str] | None:
+def largest_spread(model: AbstractLagrangian) -> tuple[float, str] | None:
     """A sparse model's largest relative spread of a kept coefficient over its bagged fits, and that term's
     name (None for another model, or without bags)."""
     spread = getattr(model, "bag_spread", None)

@@ -61,10 +61,9 @@ def case_calibration(
                 **kwargs,
             )
         except LatticeDFTError as exc:
-            text = " ".join(str(exc).split())[:160]
-            return None, [f"calibration: failed ({text}): served without a calibrated error bar"], None
+            return None, [_failed(" ".join(str(exc).split())[:160])], None
         if cal.failed is not None:
-            return None, [*warnings, f"calibration: failed ({cal.failed}): served without a calibrated error bar"], None
+            return None, [*warnings, _failed(cal.failed)], None
     log.info(
         "calibration: err(k) = A * %.3g * k^%.2f on %d held-out slices (2 std covers %.0f %% of them; %.1f s)",
         cal.scale,
@@ -74,6 +73,11 @@ def case_calibration(
         cal.wall_time,
     )
     return cal.to_dict(), warnings, trial
+
+
+def _failed(why: str) -> str:
+    """The warning of a calibration that could not be measured."""
+    return f"calibration: failed ({why}): served without a calibrated error bar"
 
 
 def _candidates(

@@ -20,13 +20,14 @@ import numpy as np
 from .._errors import InputError
 from ._solvers import factor_step
 
-__all__ = ["STATE_VERSION", "Checkpointer", "keep_factored", "restore_stream", "stream_state"]
+__all__ = ["CACHE_KEYS", "STATE_VERSION", "Checkpointer", "keep_factored", "restore_stream", "stream_state"]
 
 #: The layout of the state; a checkpoint of another layout is refused.
 STATE_VERSION = 2
 
-#: The cache entries kept (``solve`` is rebuilt from ``factored``: the blocks and target it was made from).
-_CACHE_KEYS = ("solver", "dmax", "mscale", "singular", "used", "fresh_first", "factored")
+#: The Newton cache entries kept (``solve`` is rebuilt from ``factored``: the blocks and target it was made from);
+#: an entry that steers later slices (as ``fresh_first``) belongs here, or a resumed run takes other steps.
+CACHE_KEYS = ("solver", "dmax", "mscale", "singular", "used", "fresh_first", "factored")
 
 
 class Checkpointer(Protocol):
@@ -44,7 +45,7 @@ def _shape_key(run: Any) -> dict[str, Any]:
 
 def stream_state(run: Any, on_affine: bool) -> dict[str, Any]:
     """The state of the windowed run ``run`` (a ``_stream._Stream``) just after its window moved on."""
-    cache = {k: run.cache[k] for k in _CACHE_KEYS if k in run.cache}
+    cache = {k: run.cache[k] for k in CACHE_KEYS if k in run.cache}
     if "solve" not in run.cache:
         cache.pop("factored", None)  # the factorisation was dropped after a failed step
     per_anchor = None if run.per_anchor is None else run.per_anchor[: max(run.done - 1, 0)].copy()

@@ -27,13 +27,13 @@ import torch.distributed as dist
 from .._collective import world
 from .._layout import lattice_dims
 from .._options import option
-from ._checkpoint import STATE_VERSION
+from ._checkpoint import CACHE_KEYS, STATE_VERSION
 from ._grid import assemble
 
 __all__ = ["SlabCheckpoint", "restore", "stream_chunk"]
 
-#: The Newton cache entries a state carries (as ``_checkpoint._CACHE_KEYS``, but the factorisation).
-_CACHE_KEYS = ("solver", "dmax", "mscale", "singular", "used", "fresh_first")
+#: The Newton cache entries a state carries: the window state's, but the factorisation (kept per part apart).
+_CACHE_KEYS = tuple(k for k in CACHE_KEYS if k != "factored")
 
 
 def stream_chunk(slice_bytes: int, steps: int, checkpoint: int | None) -> int:
