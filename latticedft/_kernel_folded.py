@@ -298,31 +298,47 @@ def act_slope_row(a, d, kind):
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
-def features(values, site_of, upper, proj, start, out):
-    # each point's values gathered once per slice and component (x[a]), the features summed from them over
-    # contiguous rows in the order of the points
+def feature_extremes(values, site_of, upper, proj, fmin, fmax):
+    # per anchor slice i and feature, the least and largest value over the cells (a not-a-number wherever one
+    # is): each cell's feature summed over the points in their order from 0.0, a chunk of cells at a time into
+    # per-lane extremes (each lane's select vectorises), which are reduced once per slice
     nf, k = proj.shape
     m = values.shape[2]
     ncell = site_of.shape[1]
-    x = np.empty((k, ncell))
-    for r in range(out.shape[0]):
-        i = start + r
+    ch = _CHUNK
+    x = np.empty((k, ch))
+    row = np.empty(ch)
+    lo = np.empty((nf, ch))
+    hi = np.empty((nf, ch))
+    for i in range(fmin.shape[0]):
         for c in range(m):
-            for a in range(k):
-                src = values[i + upper[a]]
-                col = site_of[a]
-                xa = x[a]
-                for n in range(ncell):
-                    xa[n] = src[col[n], c]
-            for p in range(nf):
-                row = out[r, p * m + c]
-                for n in range(ncell):
-                    row[n] = 0.0
+            lo[:] = np.inf
+            hi[:] = -np.inf
+            for start in range(0, ncell, ch):
+                n = min(ch, ncell - start)
                 for a in range(k):
-                    w = proj[p, a]
-                    xa = x[a]
-                    for n in range(ncell):
-                        row[n] += w * xa[n]
+                    src = values[i + upper[a]]
+                    for j in range(n):
+                        x[a, j] = src[site_of[a, start + j], c]
+                for p in range(nf):
+                    for j in range(n):
+                        row[j] = 0.0
+                    for a in range(k):
+                        w = proj[p, a]
+                        for j in range(n):
+                            row[j] += w * x[a, j]
+                    lp, hp = lo[p], hi[p]
+                    for j in range(n):
+                        v = row[j]
+                        lp[j] = lp[j] if (lp[j] <= v or lp[j] != lp[j]) else v
+                        hp[j] = hp[j] if (hp[j] >= v or hp[j] != hp[j]) else v
+            for p in range(nf):
+                a_lo, a_hi = lo[p, 0], hi[p, 0]
+                for j in range(1, ch):
+                    a_lo = a_lo if (a_lo <= lo[p, j] or a_lo != a_lo) else lo[p, j]
+                    a_hi = a_hi if (a_hi >= hi[p, j] or a_hi != a_hi) else hi[p, j]
+                fmin[i, p * m + c] = a_lo
+                fmax[i, p * m + c] = a_hi
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
@@ -359,8 +375,9 @@ _FOLDED = _FOLDED.replace("{cells}", _FOLDED_CELLS.replace("{monomials}", _GENER
 
 def folded_kernels() -> Any:
     """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``horner_cells``,
-    ``scatter``, ``gather_residual``, ``predict``, ``update``, ``features``; ``quadratic_residual``, ``quadratic_grad``,
-    ``layer_in``, ``act_slope`` and ``act_slope_row`` for an ``L_d`` quadratic but for a network's one-site terms,
+    ``scatter``, ``gather_residual``, ``predict``, ``update``, ``feature_extremes``; ``quadratic_residual``,
+    ``quadratic_grad``, ``layer_in``, ``act_slope`` and ``act_slope_row`` for an ``L_d`` quadratic but for a
+    network's one-site terms,
     ``._serve._potential``), built on first use and cached as the others (one build per machine, for every
     polynomial); ``None``, with one info line, where numba cannot build it."""
     return _folded_module(_FOLDED, "folded polynomial")
@@ -502,7 +519,7 @@ def _build_folded(key: str, source: str, shape: tuple[int, int], deg: int = -1) 
     mod.predict(one, one, one, one, rows)
     mod.predict(one, one, one, np.zeros((0, 1)), rows)
     mod.update(one, rows, np.zeros(1))
-    mod.features(np.zeros((2, 1, 1)), idx, up, one, 0, np.empty((1, 1, 1)))
+    mod.feature_extremes(np.zeros((2, 1, 1)), idx, up, one, np.empty((1, 1)), np.empty((1, 1)))
     mod.quadratic_residual(one, one, one, idx, up, one, one, rows, 1.0, np.empty((1, 1)), np.empty(1))
     texp, coef, top = np.zeros((1, 1), dtype=np.int64), np.zeros((1, 1, 1)), np.zeros((1, 1), dtype=np.int64)
     mod.horner_cells(one, one, idx, up, one, np.zeros(1), 0, texp, coef, top, np.empty((1, 1)))

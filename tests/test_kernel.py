@@ -580,6 +580,38 @@ def test_the_folded_range_check_equals_todays_outside_the_range() -> None:
     assert np.allclose(got, want, rtol=1e-12, atol=0.0)
 
 
+def test_the_folded_feature_extremes_equal_numpy_on_every_cell() -> None:
+    """The compiled range pass (``feature_extremes``, no array of the features) gives per slice the least and
+    largest feature over the cells to the bit, as numpy's min and max of every cell's features summed over the
+    points in order, a not-a-number wherever one is; an infinite value reads as itself; over more cells than
+    one chunk, with a last chunk in part."""
+    from latticedft._lattice import as_lattice_field, gather_cells
+    from latticedft._serve._folded import folded_slices
+    from latticedft._serve._slices import _SliceSystem
+
+    model = _polynomial(2)
+    f = as_lattice_field(_field(2, 23), source="init", min_slices=2)  # 529 cells: two chunks and a part
+    rng = np.random.default_rng(3)
+    values = torch.from_numpy(rng.uniform(-2, 2, (5, 23, 23, 1)))
+    values[1, 4, 5, 0] = math.nan
+    values[3, 7, 0, 0] = math.inf
+    values[2] = 0.0  # zeros of both signs: their extremes are equal numbers
+    values[2, 1, 1, 0] = -0.0
+    folded = folded_slices(model, _SliceSystem(model, f), values.reshape(5, -1, 1))
+    assert folded is not None
+    proj = np.ascontiguousarray(model.proj.detach().to(torch.float64).numpy())
+    fmin, fmax = folded._feature_range(values.numpy().reshape(5, -1, 1), proj)
+    cells = gather_cells(values, model.stencil, f.boundary).numpy()  # (slices - 1, *cells, K, 1)
+    feats = np.zeros((4, *cells.shape[1:3], proj.shape[0]))
+    for a in range(proj.shape[1]):  # the points in order, as the kernel sums them
+        feats += proj[:, a] * cells[..., a, 0][..., None]
+    feats = feats.reshape(4, -1, proj.shape[0])
+    assert np.array_equal(fmin, feats.min(axis=1), equal_nan=True)
+    assert np.array_equal(fmax, feats.max(axis=1), equal_nan=True)
+    assert np.isnan(fmin[0]).any() and np.isnan(fmax[1]).any() and np.isinf(fmax[2:]).any()
+    assert not np.isnan(fmin[3]).all() and np.isfinite(fmin[2]).all()
+
+
 def test_the_folded_kernels_are_on_by_default_and_not_for_other_models() -> None:
     from latticedft._lattice import as_lattice_field
     from latticedft._serve._folded import folded_slices

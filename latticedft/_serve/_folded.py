@@ -244,16 +244,11 @@ class FoldedSlices:
 
     def _feature_range(self, flat: np.ndarray, proj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per slice but the last and feature (``(slices - 1, features)``), the least and largest value of the
-        feature over the cells anchored on the slice (a not-a-number wherever one is), a few slices a pass."""
-        nq, ncell = proj.shape[0] * self.m, self.site_of.shape[1]
+        feature over the cells anchored on the slice (a not-a-number wherever one is), in one compiled pass
+        (``feature_extremes``: no array of the features themselves)."""
+        nq = proj.shape[0] * self.m
         fmin, fmax = np.empty((flat.shape[0] - 1, nq)), np.empty((flat.shape[0] - 1, nq))
-        rows = max(1, (1 << 21) // max(1, nq * ncell))
-        buf = np.empty((min(rows, fmin.shape[0]), nq, ncell))
-        for start in range(0, fmin.shape[0], rows):
-            part = buf[: min(rows, fmin.shape[0] - start)]
-            self.mod.features(flat, self.site_of, self.upper, proj, start, part)
-            fmin[start : start + part.shape[0]] = part.min(axis=2)
-            fmax[start : start + part.shape[0]] = part.max(axis=2)
+        self.mod.feature_extremes(flat, self.site_of, self.upper, proj, fmin, fmax)
         return fmin, fmax
 
     def evaluate(
