@@ -612,6 +612,45 @@ def test_the_folded_feature_extremes_equal_numpy_on_every_cell() -> None:
     assert not np.isnan(fmin[3]).all() and np.isfinite(fmin[2]).all()
 
 
+@pytest.mark.parametrize("ndim", [1, 2, 3])
+def test_the_folded_forms_find_a_polynomial_not_affine_as_the_probe_does(ndim: int) -> None:
+    """The affine probe's shortcut for a polynomial: its folded Hessian blocks at the probe's states equal
+    autograd's to far below the shortcut's margin; a learned (2, 12) polynomial is found not affine by them
+    (and by the probe without them), one learned from Klein-Gordon is not, and the probe then answers as
+    before."""
+    from latticedft._kernel_folded import folded_kernels
+    from latticedft._serve._affine import _AffineSlices
+    from latticedft._serve._folded import _ALL_PAIRS, NOT_AFFINE_MARGIN, not_affine_by_forms
+
+    model = _polynomial(ndim)
+    k = model.stencil.size
+    gen = torch.Generator().manual_seed(12345)
+    x = 0.8 * (2 * torch.rand(12, k, 1, generator=gen, dtype=torch.float64) - 1)
+    x[0] = 0.0
+    pairs = [(a, b) for a in range(k) for b in range(k)]
+    want = torch.stack([cell_derivatives(model, x, pairs)[1][p] for p in pairs], 1).numpy().reshape(12, -1)
+    assert not_affine_by_forms(model, x.numpy())
+    data = _ALL_PAIRS[model][2]  # the folded forms of every pair it evaluated
+    out, flat = np.empty((12, data[3].shape[1])), np.ascontiguousarray(x.numpy().reshape(12 * k, 1))
+    site_of = np.ascontiguousarray(np.arange(12 * k).reshape(12, k).T)
+    folded_kernels().folded_cells(flat, flat, site_of, np.zeros(k, dtype=np.int64), *data, out)
+    big = np.abs(want[0]).max()
+    assert np.abs(out[:, k:] - want).max() <= 1e-4 * NOT_AFFINE_MARGIN * big  # round-off, far below the margin
+    assert np.abs(want - want[0]).max() > NOT_AFFINE_MARGIN * big
+    assert _AffineSlices.probe(model, model.stencil, 1, 0.8) is None
+    with ldft.set_options(compiled_kernels=False):  # the probe alone: the same answer
+        assert not not_affine_by_forms(model, x.numpy())
+        assert _AffineSlices.probe(model, model.stencil, 1, 0.8) is None
+    quad = ldft.PolynomialLagrangian(orders=(2, 2))  # learned from Klein-Gordon: its DEL affine
+    ldft.learn(quad, ldft.serve(lagrangians.klein_gordon(1.0), _field(ndim, 8), slices=8, progress=False).field)
+    assert not not_affine_by_forms(quad, x.numpy())
+    found = _AffineSlices.probe(quad, quad.stencil, 1, 0.8)
+    with ldft.set_options(compiled_kernels=False):
+        alone = _AffineSlices.probe(quad, quad.stencil, 1, 0.8)
+    assert found is not None and alone is not None
+    assert all(np.array_equal(a, b) for a, b in zip(found, alone))
+
+
 def test_the_folded_kernels_are_on_by_default_and_not_for_other_models() -> None:
     from latticedft._lattice import as_lattice_field
     from latticedft._serve._folded import folded_slices

@@ -28,7 +28,7 @@ from .._models._polynumpy import _numpy_forms
 from .._options import option
 from ._slices import _SliceSystem
 
-__all__ = ["FoldedSlices", "folded_slices"]
+__all__ = ["FoldedSlices", "folded_slices", "not_affine_by_forms"]
 
 log = logging.getLogger("latticedft")
 
@@ -269,18 +269,61 @@ class FoldedSlices:
         return ev, r
 
 
+def _foldable(model: Any) -> bool:
+    """Whether ``model`` may be served on the folded kernels: a polynomial ready for its numpy forms, on the
+    CPU, where the ``compiled_kernels`` option is on (the default)."""
+    if not option("compiled_kernels") or not isinstance(model, PolynomialLagrangian) or not model.numpy_ready:
+        return False
+    return all(t.device.type == "cpu" for t in [*model.parameters(), *model.buffers()])
+
+
 def folded_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FoldedSlices | None:
     """The folded kernels for ``model`` on ``sys``, or ``None``: for a polynomial whose numpy forms fold its
     coefficients, with the values on the CPU in double precision, where the ``compiled_kernels`` option is on
     (the default) and numba builds the kernels."""
-    if not option("compiled_kernels") or not isinstance(model, PolynomialLagrangian):
+    if not _foldable(model):
         return None
-    if flat.dtype != torch.float64 or flat.device.type != "cpu" or not flat.is_contiguous() or not model.numpy_ready:
-        return None
-    if any(t.device.type != "cpu" for t in [*model.parameters(), *model.buffers()]):
+    if flat.dtype != torch.float64 or flat.device.type != "cpu" or not flat.is_contiguous():
         return None
     grad_data, both_data = _data_of(model, list(sys.pairs))
     if grad_data is None or both_data is None:
         return None
     mod = folded_kernels()
     return None if mod is None else FoldedSlices(mod, sys, grad_data, both_data)
+
+
+#: The affine probe (``._affine._AffineSlices.probe``) leaves a polynomial without its autograd pass where the
+#: Hessian blocks of its folded forms at the probe's states differ from those at the first state by more than
+#: this share of the largest entry there: 1e4 times the probe's own tolerance (1e-10), far beyond the round-off
+#: by which the two evaluations of one polynomial differ, so the probe would find the same.
+NOT_AFFINE_MARGIN = 1e-6
+
+#: Per model, the folded forms of every pair of stencil points (the probe's Hessian), with the state they are of.
+_ALL_PAIRS: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()
+
+
+def not_affine_by_forms(model: Any, states: np.ndarray) -> bool:
+    """Whether the DEL of ``model`` is found not affine on its folded kernels: its Hessian blocks of every pair
+    of stencil points on the cells ``states`` ``(cells, K, m)`` (the affine probe's, the first one the state
+    the others are compared with) vary by more than :data:`NOT_AFFINE_MARGIN` of the largest entry on the
+    first. ``False`` where they do not, or where the model is not served on the folded kernels (the probe
+    decides then)."""
+    if not _foldable(model):
+        return False
+    k, m = states.shape[1], states.shape[2]
+    pairs = [(a, b) for a in range(k) for b in range(k)]
+    key = (k, m, option("folded_max_powers"))
+    data, _ = per_model_state(_ALL_PAIRS, model, key, lambda: _data(model, pairs))
+    mod = folded_kernels() if data is not None else None
+    if mod is None:
+        return False
+    ncell = states.shape[0]
+    x = np.ascontiguousarray(states.reshape(ncell * k, m), dtype=np.float64)
+    site_of = np.ascontiguousarray(np.arange(ncell * k, dtype=np.int64).reshape(ncell, k).T)  # each cell its own
+    out = np.empty((ncell, data[3].shape[1]))
+    mod.folded_cells(x, x, site_of, np.zeros(k, dtype=np.int64), *data, out)
+    hess = out[:, k * m :]
+    if not hess.size or not np.isfinite(hess).all():
+        return False
+    big = float(np.abs(hess[0]).max())
+    return big > 0.0 and float(np.abs(hess - hess[0]).max()) > NOT_AFFINE_MARGIN * big
