@@ -651,6 +651,41 @@ def test_the_folded_forms_find_a_polynomial_not_affine_as_the_probe_does(ndim: i
     assert all(np.array_equal(a, b) for a, b in zip(found, alone))
 
 
+@pytest.mark.parametrize("ndim", [1, 2, 3])
+def test_the_earlier_cells_gradients_are_the_later_points_columns_to_the_bit(ndim: int) -> None:
+    """The first Newton slice's earlier cells: ``FoldedSlices.grad`` runs the chains of the columns of the points
+    on the later slice only; those columns equal the whole gradients' to the bit, the others are zero, and the
+    slice's residual from them is the same. A second field of the same model state reuses the Horner forms; a
+    changed state builds its own."""
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._folded import FoldedCells, folded_slices
+    from latticedft._serve._slices import _SliceSystem
+
+    model, m = _polynomial(ndim), 1
+    f = as_lattice_field(_field(ndim, {1: 40, 2: 9, 3: 5}[ndim]), source="init", min_slices=2)
+    sys_ = _SliceSystem(model, f)
+    flat = (f.values * torch.tensor([1.0, 1.01], dtype=torch.float64).reshape(2, *[1] * (ndim + 1))).reshape(2, -1, m)
+    flat = flat.contiguous()
+    folded = folded_slices(model, sys_, flat)
+    assert folded is not None
+    whole = FoldedCells(folded, flat[0].numpy(), flat[1].numpy()).grad
+    got = folded.grad(flat, 0)
+    later = np.repeat(folded.upper.astype(bool), m)
+    assert later.any() and not later.all()
+    assert np.array_equal(got[:, later], whole[:, later]) and not got[:, ~later].any()
+    assert np.abs(whole[:, ~later]).max() > 0  # the columns left out are not zero themselves
+    _, r_got = folded.evaluate(flat, 0.01, 0, got)
+    _, r_whole = folded.evaluate(flat, 0.01, 0, whole)
+    assert np.array_equal(r_got, r_whole)
+    again = folded_slices(model, sys_, flat)
+    assert again is not None and again.horner is folded.horner and again._later_forms() is folded._later_forms()
+    with torch.no_grad():
+        model.coef.mul_(1.0)  # the same values, a new state
+    changed = folded_slices(model, sys_, flat)
+    assert changed is not None and changed.horner is not folded.horner
+    assert np.array_equal(changed.grad(flat, 0), got)
+
+
 def test_the_folded_kernels_are_on_by_default_and_not_for_other_models() -> None:
     from latticedft._lattice import as_lattice_field
     from latticedft._serve._folded import folded_slices

@@ -97,11 +97,12 @@ def per_model_state(
     return built, True
 
 
-def _data_of(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[Any, Any]:
-    """``(_data(model, []), _data(model, pairs))``, built once per model state, pairs and ``folded_max_powers``
-    (the option that decides whether the coefficients fold)."""
+def _data_of(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[Any, Any, dict[str, Any]]:
+    """``(_data(model, []), _data(model, pairs), kept)``, built once per model state, pairs and
+    ``folded_max_powers`` (the option that decides whether the coefficients fold); ``kept``: what
+    :class:`FoldedSlices` derives from them (Horner forms, kernels), for later fields of the same state."""
     key = (tuple(pairs), option("folded_max_powers"))
-    built, fresh = per_model_state(_DATA, model, key, lambda: (_data(model, []), _data(model, pairs)))
+    built, fresh = per_model_state(_DATA, model, key, lambda: (_data(model, []), _data(model, pairs), {}))
     if fresh and (built[0] is None or built[1] is None):  # once per model state
         log.info(
             "compiled polynomial kernels unavailable for %s (its coefficients do not fold onto few monomials): "
@@ -171,18 +172,34 @@ class FoldedSlices:
     """The folded kernels of one served field: the model's folded coefficients and the slice's index maps."""
 
     def __init__(
-        self, mod: Any, sys: _SliceSystem, grad_data: tuple[np.ndarray, ...], both_data: tuple[np.ndarray, ...]
+        self,
+        mod: Any,
+        sys: _SliceSystem,
+        grad_data: tuple[np.ndarray, ...],
+        both_data: tuple[np.ndarray, ...],
+        kept: dict[str, Any] | None = None,
     ):
         self.mod = mod
         self.k, self.m = len(sys.st.offsets), sys.m
-        self.site_of = np.ascontiguousarray(np.stack(sys.site_of), dtype=np.int64)  # (K, cells)
-        self.upper = np.array([o[0] for o in sys.st.offsets], dtype=np.int64)  # 1: the point is on the next slice
-        self.rows = np.ascontiguousarray(np.nonzero(sys.interior)[0], dtype=np.int64)
+        if "folded_maps" not in sys.kept:  # per lattice
+            site_of = np.ascontiguousarray(np.stack(sys.site_of), dtype=np.int64)  # (K, cells)
+            upper = np.array([o[0] for o in sys.st.offsets], dtype=np.int64)  # 1: the point is on the next slice
+            sys.kept["folded_maps"] = (
+                site_of,
+                upper,
+                np.ascontiguousarray(np.nonzero(sys.interior)[0], dtype=np.int64),
+            )
+        self.site_of, self.upper, self.rows = sys.kept["folded_maps"]
         self.grad_data, self.both_data = grad_data, both_data
         self.el = np.empty((sys.nsite, sys.m))
-        self.cells: dict[tuple[int, int], Any] = {}  # the folded_cells kernel per (variables, columns)
-        self.horner: dict[int, tuple[Any, ...] | None] = {}  # per data (its id): its Horner forms, if chosen
-        self.horner_kernel: dict[int, Any] = {}  # per data (its id): the Horner kernel of its forms
+        # what is derived from the data, kept per model state (``kept``, from _data_of) for this module's kernels
+        self.kept = {} if kept is None else kept
+        if self.kept.get("mod") is not mod:
+            self.kept.clear()
+            self.kept["mod"] = mod
+        self.cells: dict[tuple[int, int], Any] = self.kept.setdefault("cells", {})  # folded_cells per (V, columns)
+        self.horner: dict[int, tuple[Any, ...] | None] = self.kept.setdefault("horner", {})  # per data (id): forms
+        self.horner_kernel: dict[int, Any] = self.kept.setdefault("kernel", {})  # per data (id): their kernel
         self.sys = sys
 
     @property
@@ -199,12 +216,7 @@ class FoldedSlices:
         by the monomial kernel of the polynomial's class where it builds, else the generic one."""
         nvar, cols = data[0].shape[1], data[3].shape[1]
         out = np.empty((self.site_of.shape[1], cols))
-        if id(data) not in self.horner:
-            built = _horner(data)
-            fewer = int((built[5] + 1).sum()) <= data[2].shape[0] * (cols + nvar)
-            self.horner[id(data)] = built if fewer else None
-            self.horner_kernel[id(data)] = _horner_kernel(built, self.mod) if fewer else None
-        forms = self.horner[id(data)]
+        forms = self._horner_forms(data)
         if forms is not None:
             self.horner_kernel[id(data)](lo, hi, self.site_of, self.upper, *forms, out)
             return out
@@ -213,9 +225,48 @@ class FoldedSlices:
         self.cells[(nvar, cols)](lo, hi, self.site_of, self.upper, *data, out)
         return out
 
+    def _horner_forms(self, data: tuple[np.ndarray, ...]) -> tuple[Any, ...] | None:
+        """The Horner forms of ``data`` where they take fewer products than its monomials (their kernel in
+        ``horner_kernel``), else ``None``; chosen once per model state."""
+        if id(data) not in self.horner:
+            nvar, cols = data[0].shape[1], data[3].shape[1]
+            built = _horner(data)
+            fewer = int((built[5] + 1).sum()) <= data[2].shape[0] * (cols + nvar)
+            self.horner[id(data)] = built if fewer else None
+            self.horner_kernel[id(data)] = _horner_kernel(built, self.mod) if fewer else None
+        return self.horner[id(data)]
+
     def grad(self, flat: torch.Tensor, i: int) -> np.ndarray:
-        """The gradients ``(cells, K m)`` of the cells anchored on slice ``i``."""
-        return FoldedCells(self, flat[i].numpy(), flat[i + 1].numpy()).grad
+        """The gradients ``(cells, K m)`` of the cells anchored on slice ``i`` as slice ``i + 1``'s residual reads
+        them: the columns of the points on slice ``i + 1`` (``upper``: ``gather_residual`` and ``scatter`` read
+        no other column of the earlier cells), the others zero. Where the gradients run by Horner's rule, the
+        chains of those columns alone run (each column's chain is the same, so are its values to the bit)."""
+        lo, hi = flat[i].numpy(), flat[i + 1].numpy()
+        later = self._later_forms()
+        if later is None:
+            return FoldedCells(self, lo, hi).grad
+        forms, kernel, cols = later
+        part = np.empty((self.site_of.shape[1], cols.size))
+        kernel(lo, hi, self.site_of, self.upper, *forms, part)
+        out = np.zeros((self.site_of.shape[1], self.k * self.m))
+        out[:, cols] = part
+        return out
+
+    def _later_forms(self) -> tuple[tuple[Any, ...], Any, np.ndarray] | None:
+        """``(forms, kernel, columns)``: the gradients' Horner forms restricted to the columns of the points on
+        the later slice, and their kernel; ``None`` where the gradients do not run by Horner's rule. Kept per
+        model state."""
+        if "later" not in self.kept:
+            full = self._horner_forms(self.grad_data)
+            later = None
+            if full is not None:
+                up = [a for a in range(self.k) if self.upper[a]]
+                cols = np.array([a * self.m + c for a in up for c in range(self.m)], dtype=np.int64)
+                forms = (*full[:4], np.ascontiguousarray(full[4][:, cols]), np.ascontiguousarray(full[5][:, cols]))
+                later = (forms, _horner_kernel(forms, self.mod), cols)
+            self.kept["later"] = later
+        later_forms: tuple[tuple[Any, ...], Any, np.ndarray] | None = self.kept["later"]
+        return later_forms
 
     def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> None:
         """Slice-Newton's predictor on the unknown sites of slice ``i + 1`` (``_field.solve_and_tally``'s)."""
@@ -285,11 +336,11 @@ def folded_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FoldedSl
         return None
     if flat.dtype != torch.float64 or flat.device.type != "cpu" or not flat.is_contiguous():
         return None
-    grad_data, both_data = _data_of(model, list(sys.pairs))
+    grad_data, both_data, kept = _data_of(model, list(sys.pairs))
     if grad_data is None or both_data is None:
         return None
     mod = folded_kernels()
-    return None if mod is None else FoldedSlices(mod, sys, grad_data, both_data)
+    return None if mod is None else FoldedSlices(mod, sys, grad_data, both_data, kept)
 
 
 #: The affine probe (``._affine._AffineSlices.probe``) leaves a polynomial without its autograd pass where the
