@@ -136,21 +136,63 @@ def gather_residual(gprev, gcur, cell_at, upper, rows, vol, r):
             r[q * m + c] = vol * acc
 
 
+@numba.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def magnitude(a):
+    # the largest |value| of a (flat), a not-a-number wherever one is (as torch's abs().max()), 0.0 when empty: in
+    # eight lanes (each lane's select vectorises); a NaN or infinity seen (x - x is not 0) is settled by a
+    # scalar pass
+    lane = np.zeros(8)
+    seen = np.zeros(8)
+    n = a.shape[0]
+    s = 0
+    while s + 8 <= n:
+        for j in range(8):
+            x = abs(a[s + j])
+            lane[j] = x if x > lane[j] else lane[j]
+            seen[j] += x - x
+        s += 8
+    top = 0.0
+    for j in range(8):
+        top = lane[j] if lane[j] > top else top
+    odd = False
+    for j in range(8):
+        odd = odd or seen[j] != 0.0
+    for t in range(s, n):
+        x = abs(a[t])
+        top = x if x > top else top
+        odd = odd or x - x != 0.0
+    if odd:
+        for t in range(n):
+            if a[t] != a[t]:
+                return math.nan
+    return top
+
+
 @numba.njit(cache=True, error_model='numpy', nogil=True)
 def predict(prev, cur, nxt, older, rows):
-    top = 1e-300
-    for s in range(prev.shape[0]):
-        for c in range(prev.shape[1]):
-            top = max(top, abs(prev[s, c]), abs(cur[s, c]))
+    # the predictor on the unknown sites rows of nxt; returns the magnitudes of prev, cur and the predicted sites
+    # (_slices._scale's three); a slice whose every site is unknown runs over contiguous rows
+    m = prev.shape[1]
+    pf, cf, nf = prev.reshape(-1), cur.reshape(-1), nxt.reshape(-1)
+    if rows.shape[0] == prev.shape[0]:  # rows are every site in order
+        if older.shape[0]:
+            of = older.reshape(-1)
+            for t in range(nf.shape[0]):
+                nf[t] = (2.0 * cf[t] - pf[t]) + (cf[t] - 2.0 * pf[t] + of[t])
+        else:
+            for t in range(nf.shape[0]):
+                nf[t] = 2.0 * cf[t] - pf[t]
+        return magnitude(pf), magnitude(cf), magnitude(nf)
+    new = np.empty(rows.shape[0] * m)
     for q in range(rows.shape[0]):
         y = rows[q]
-        for c in range(prev.shape[1]):
+        for c in range(m):
             v = 2.0 * cur[y, c] - prev[y, c]
             if older.shape[0]:
                 v = v + (cur[y, c] - 2.0 * prev[y, c] + older[y, c])
             nxt[y, c] = v
-            top = max(top, abs(v))
-    return top
+            new[q * m + c] = v
+    return magnitude(pf), magnitude(cf), magnitude(new)
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True, fastmath={'contract'})

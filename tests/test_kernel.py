@@ -686,6 +686,38 @@ def test_the_earlier_cells_gradients_are_the_later_points_columns_to_the_bit(ndi
     assert np.array_equal(changed.grad(flat, 0), got)
 
 
+@pytest.mark.parametrize("every", [True, False])
+def test_the_folded_predictor_measures_the_step_scale_as_slices_scale(every: bool) -> None:
+    """The folded predictor writes ``2 psi_i - psi_{i-1}`` (plus the older slice's term) on the unknown sites and
+    returns ``_slices._scale`` of the slice at its predictor, equal to it in every case: finite values (over more
+    sites than its lanes, with a remainder), an infinity, a not-a-number on each slice (``_scale`` keeps one on
+    the earliest slice only, as Python's ``max`` does); every site unknown, or some (a Dirichlet frame)."""
+    from latticedft._kernel_folded import folded_kernels
+    from latticedft._serve._slices import _scale
+
+    mod = folded_kernels()
+    rng = np.random.default_rng(5)
+    nsite = 203
+    rows = np.arange(nsite) if every else np.arange(3, nsite - 3)
+    unk = torch.from_numpy(rows)
+    for case in range(6):
+        flat = torch.from_numpy(rng.uniform(-2, 2, (4, nsite, 1)))
+        if case == 1:
+            flat[2, 50, 0] = -math.inf
+        elif case in (2, 3, 4):
+            flat[case - 1, 7 if case != 4 else 0, 0] = math.nan  # slices 1, 2; an older slice's on the predictor
+        elif case == 5:
+            flat[:3] = 0.0
+        older = flat[0].clone()
+        want_next = flat[3].clone()
+        want_next[unk] = (2 * flat[2, unk] - flat[1, unk]) + (flat[2, unk] - 2 * flat[1, unk] + older[unk])
+        got = mod.predict(flat[1].numpy(), flat[2].numpy(), flat[3].numpy(), older.numpy(), rows)
+        assert np.array_equal(flat[3].numpy(), want_next.numpy(), equal_nan=True)
+        scale = max(float(got[0]), float(got[1]), float(got[2]), 1e-300)
+        want = _scale(flat, 2, unk)
+        assert scale == want or (math.isnan(scale) and math.isnan(want)), case
+
+
 def test_the_folded_kernels_are_on_by_default_and_not_for_other_models() -> None:
     from latticedft._lattice import as_lattice_field
     from latticedft._serve._folded import folded_slices

@@ -268,10 +268,12 @@ class FoldedSlices:
         later_forms: tuple[tuple[Any, ...], Any, np.ndarray] | None = self.kept["later"]
         return later_forms
 
-    def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> None:
-        """Slice-Newton's predictor on the unknown sites of slice ``i + 1`` (``_field.solve_and_tally``'s)."""
+    def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> float:
+        """Slice-Newton's predictor on the unknown sites of slice ``i + 1`` (``_field.solve_and_tally``'s); returns
+        ``_slices._scale(flat, i, unknowns)`` at the predictor, from the magnitudes the same pass measured."""
         old = older.numpy() if older is not None else np.zeros((0, self.m))
-        self.mod.predict(flat[i - 1].numpy(), flat[i].numpy(), flat[i + 1].numpy(), old, self.rows)
+        a, b, c = self.mod.predict(flat[i - 1].numpy(), flat[i].numpy(), flat[i + 1].numpy(), old, self.rows)
+        return max(float(a), float(b), float(c), 1e-300)  # as _scale, in its order (a NaN first stays)
 
     def excess(self, model: Any, values: torch.Tensor) -> np.ndarray | None:
         """``(slices - 1, features)``: ``_range._excess`` of the served ``values`` ``(slices, *sites, m)``: the cells'
