@@ -718,6 +718,38 @@ def test_the_folded_predictor_measures_the_step_scale_as_slices_scale(every: boo
         assert scale == want or (math.isnan(scale) and math.isnan(want)), case
 
 
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_a_fresh_folded_jacobian_is_read_from_its_columns_as_from_its_blocks(ndim: int) -> None:
+    """A fresh Jacobian on the folded kernels: the slice matrix read from the evaluated columns in CSR order and
+    the diagonal kept with the blocks (summed once for the singular values and the factorisation) equal those
+    of the blocks as a plain dict to the bit; on a Dirichlet frame too (fewer unknowns than cells)."""
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._folded import FoldedCells, folded_slices
+    from latticedft._serve._slices import Blocks, _SliceSystem
+
+    model = _polynomial(ndim)
+    init = _field(ndim, {2: 9, 3: 5}[ndim])
+    frame = init.copy()
+    for d in frame.dims[1:]:
+        frame[d].attrs = {}  # no periodic attribute: a Dirichlet frame
+    for f0 in (init, frame):
+        f = as_lattice_field(f0, source="init", min_slices=2)
+        sys_ = _SliceSystem(model, f)
+        flat = (f.values * torch.tensor([1.0, 1.02], dtype=torch.float64).reshape(2, *[1] * (ndim + 1))).contiguous()
+        flat = flat.reshape(2, -1, 1)
+        folded = folded_slices(model, sys_, flat)
+        assert folded is not None
+        blocks = FoldedCells(folded, flat[0].numpy(), flat[1].numpy(), with_blocks=True).blocks(sys_.pairs)
+        assert isinstance(blocks, Blocks) and blocks.columns is not None
+        plain = dict(blocks)
+        got, want = sys_.csr(blocks, 0.003), sys_.csr(plain, 0.003)
+        assert np.array_equal(got.indptr, want.indptr) and np.array_equal(got.indices, want.indices)
+        assert np.array_equal(got.data, want.data) and np.abs(want.data).max() > 0
+        diag = sys_.diagonal(blocks)
+        assert sys_.diagonal(blocks) is diag and torch.equal(diag, sys_.diagonal(plain))
+        assert sys_.site_singular_values(blocks) == sys_.site_singular_values(plain)
+
+
 def test_the_folded_kernels_are_on_by_default_and_not_for_other_models() -> None:
     from latticedft._lattice import as_lattice_field
     from latticedft._serve._folded import folded_slices

@@ -26,7 +26,7 @@ from .._kernel_folded import folded_cells_kernel, folded_kernels, horner_cells_k
 from .._models import PolynomialLagrangian
 from .._models._polynumpy import _numpy_forms
 from .._options import option
-from ._slices import _SliceSystem
+from ._slices import Blocks, _SliceSystem
 
 __all__ = ["FoldedSlices", "folded_slices", "not_affine_by_forms"]
 
@@ -162,10 +162,13 @@ class FoldedCells:
         o = self.owner
         out = self.both if self.both is not None else o.columns(self.lo, self.hi, o.both_data)
         km, mm = o.k * o.m, o.m * o.m
-        return {
-            p: torch.from_numpy(np.ascontiguousarray(out[:, km + q * mm : km + (q + 1) * mm]).reshape(-1, o.m, o.m))
+        blocks = Blocks(
+            (p, torch.from_numpy(np.ascontiguousarray(out[:, km + q * mm : km + (q + 1) * mm]).reshape(-1, o.m, o.m)))
             for q, p in enumerate(pairs)
-        }
+        )
+        if list(pairs) == list(o.sys.pairs):  # the slice Jacobian's entries read from the columns themselves
+            blocks.columns = (out, km)
+        return blocks
 
 
 class FoldedSlices:
