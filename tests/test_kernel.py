@@ -678,7 +678,7 @@ def test_the_earlier_cells_gradients_are_the_later_points_columns_to_the_bit(ndi
     _, r_whole = folded.evaluate(flat, 0.01, 0, whole)
     assert np.array_equal(r_got, r_whole)
     again = folded_slices(model, sys_, flat)
-    assert again is not None and again.horner is folded.horner and again._later_forms() is folded._later_forms()
+    assert again is not None and again.kept is folded.kept and folded.kept["later"] is not None
     with torch.no_grad():
         model.coef.mul_(1.0)  # the same values, a new state
     changed = folded_slices(model, sys_, flat)
@@ -722,7 +722,9 @@ def test_the_folded_predictor_measures_the_step_scale_as_slices_scale(every: boo
 def test_a_fresh_folded_jacobian_is_read_from_its_columns_as_from_its_blocks(ndim: int) -> None:
     """A fresh Jacobian on the folded kernels: the slice matrix read from the evaluated columns in CSR order and
     the diagonal kept with the blocks (summed once for the singular values and the factorisation) equal those
-    of the blocks as a plain dict to the bit; on a Dirichlet frame too (fewer unknowns than cells)."""
+    of the blocks as a plain dict to the bit, and blocks evaluated by the pass of their columns alone (a fresh
+    Jacobian after an iteration evaluated without them) equal those evaluated with the gradients; on a
+    Dirichlet frame too (fewer unknowns than cells)."""
     from latticedft._lattice import as_lattice_field
     from latticedft._serve._folded import FoldedCells, folded_slices
     from latticedft._serve._slices import Blocks, _SliceSystem
@@ -741,6 +743,10 @@ def test_a_fresh_folded_jacobian_is_read_from_its_columns_as_from_its_blocks(ndi
         assert folded is not None
         blocks = FoldedCells(folded, flat[0].numpy(), flat[1].numpy(), with_blocks=True).blocks(sys_.pairs)
         assert isinstance(blocks, Blocks) and blocks.columns is not None
+        alone = FoldedCells(folded, flat[0].numpy(), flat[1].numpy()).blocks(sys_.pairs)  # the blocks' pass alone
+        assert alone.columns is not None and alone.columns[1] == 0 and folded.kept["blocks"] is not None
+        assert all(torch.equal(alone[p], blocks[p]) for p in sys_.pairs)
+        assert np.array_equal(sys_.csr(alone, 0.003).data, sys_.csr(blocks, 0.003).data)
         plain = dict(blocks)
         got, want = sys_.csr(blocks, 0.003), sys_.csr(plain, 0.003)
         assert np.array_equal(got.indptr, want.indptr) and np.array_equal(got.indices, want.indices)

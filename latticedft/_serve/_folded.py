@@ -158,16 +158,25 @@ class FoldedCells:
             self.grad = owner.columns(lo, hi, owner.grad_data)
 
     def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
-        """The Hessian blocks ``(cells, m, m)`` of ``pairs`` (the slice system's pairs)."""
+        """The Hessian blocks ``(cells, m, m)`` of ``pairs`` (the slice system's pairs): from the columns evaluated
+        with the gradients, else from a pass of the blocks' columns alone (:meth:`FoldedSlices.block_columns`)."""
         o = self.owner
-        out = self.both if self.both is not None else o.columns(self.lo, self.hi, o.both_data)
         km, mm = o.k * o.m, o.m * o.m
+        if self.both is not None:
+            out, first = self.both, km
+        else:
+            out, first = o.block_columns(self.lo, self.hi)
         blocks = Blocks(
-            (p, torch.from_numpy(np.ascontiguousarray(out[:, km + q * mm : km + (q + 1) * mm]).reshape(-1, o.m, o.m)))
+            (
+                p,
+                torch.from_numpy(
+                    np.ascontiguousarray(out[:, first + q * mm : first + (q + 1) * mm]).reshape(-1, o.m, o.m)
+                ),
+            )
             for q, p in enumerate(pairs)
         )
         if list(pairs) == list(o.sys.pairs):  # the slice Jacobian's entries read from the columns themselves
-            blocks.columns = (out, km)
+            blocks.columns = (out, first)
         return blocks
 
 
@@ -245,7 +254,8 @@ class FoldedSlices:
         no other column of the earlier cells), the others zero. Where the gradients run by Horner's rule, the
         chains of those columns alone run (each column's chain is the same, so are its values to the bit)."""
         lo, hi = flat[i].numpy(), flat[i + 1].numpy()
-        later = self._later_forms()
+        up = [a for a in range(self.k) if self.upper[a]]
+        later = self._subset_forms("later", self.grad_data, [a * self.m + c for a in up for c in range(self.m)])
         if later is None:
             return FoldedCells(self, lo, hi).grad
         forms, kernel, cols = later
@@ -255,21 +265,35 @@ class FoldedSlices:
         out[:, cols] = part
         return out
 
-    def _later_forms(self) -> tuple[tuple[Any, ...], Any, np.ndarray] | None:
-        """``(forms, kernel, columns)``: the gradients' Horner forms restricted to the columns of the points on
-        the later slice, and their kernel; ``None`` where the gradients do not run by Horner's rule. Kept per
-        model state."""
-        if "later" not in self.kept:
-            full = self._horner_forms(self.grad_data)
-            later = None
+    def block_columns(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, int]:
+        """``(columns, first)``: the Hessian blocks' columns of the cells anchored on ``lo`` from ``first`` on: where
+        the forms run by Horner's rule, by the chains of those columns alone (``first`` 0; the same values to the
+        bit as with the gradients' columns), else every column of ``both_data``."""
+        km, width = self.k * self.m, self.both_data[3].shape[1]
+        blocks = self._subset_forms("blocks", self.both_data, list(range(km, width)))
+        if blocks is None:
+            return self.columns(lo, hi, self.both_data), km
+        forms, kernel, cols = blocks
+        out = np.empty((self.site_of.shape[1], cols.size))
+        kernel(lo, hi, self.site_of, self.upper, *forms, out)
+        return out, 0
+
+    def _subset_forms(
+        self, name: str, data: tuple[np.ndarray, ...], columns: list[int]
+    ) -> tuple[tuple[Any, ...], Any, np.ndarray] | None:
+        """``(forms, kernel, columns)``: the Horner forms of ``data`` restricted to ``columns`` (the same head and
+        tails, so each column's chain is the same), and their kernel; ``None`` where ``data`` does not run by
+        Horner's rule. Kept per model state under ``name``."""
+        if name not in self.kept:
+            full = self._horner_forms(data)
+            subset = None
             if full is not None:
-                up = [a for a in range(self.k) if self.upper[a]]
-                cols = np.array([a * self.m + c for a in up for c in range(self.m)], dtype=np.int64)
+                cols = np.array(columns, dtype=np.int64)
                 forms = (*full[:4], np.ascontiguousarray(full[4][:, cols]), np.ascontiguousarray(full[5][:, cols]))
-                later = (forms, _horner_kernel(forms, self.mod), cols)
-            self.kept["later"] = later
-        later_forms: tuple[tuple[Any, ...], Any, np.ndarray] | None = self.kept["later"]
-        return later_forms
+                subset = (forms, _horner_kernel(forms, self.mod), cols)
+            self.kept[name] = subset
+        kept: tuple[tuple[Any, ...], Any, np.ndarray] | None = self.kept[name]
+        return kept
 
     def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> float:
         """Slice-Newton's predictor on the unknown sites of slice ``i + 1`` (``_field.solve_and_tally``'s); returns
