@@ -136,21 +136,63 @@ def gather_residual(gprev, gcur, cell_at, upper, rows, vol, r):
             r[q * m + c] = vol * acc
 
 
+@numba.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def magnitude(a):
+    # the largest |value| of a (flat), a not-a-number wherever one is (as torch's abs().max()), 0.0 when empty: in
+    # eight lanes (each lane's select vectorises); a NaN or infinity seen (x - x is not 0) is settled by a
+    # scalar pass
+    lane = np.zeros(8)
+    seen = np.zeros(8)
+    n = a.shape[0]
+    s = 0
+    while s + 8 <= n:
+        for j in range(8):
+            x = abs(a[s + j])
+            lane[j] = x if x > lane[j] else lane[j]
+            seen[j] += x - x
+        s += 8
+    top = 0.0
+    for j in range(8):
+        top = lane[j] if lane[j] > top else top
+    odd = False
+    for j in range(8):
+        odd = odd or seen[j] != 0.0
+    for t in range(s, n):
+        x = abs(a[t])
+        top = x if x > top else top
+        odd = odd or x - x != 0.0
+    if odd:
+        for t in range(n):
+            if a[t] != a[t]:
+                return math.nan
+    return top
+
+
 @numba.njit(cache=True, error_model='numpy', nogil=True)
 def predict(prev, cur, nxt, older, rows):
-    top = 1e-300
-    for s in range(prev.shape[0]):
-        for c in range(prev.shape[1]):
-            top = max(top, abs(prev[s, c]), abs(cur[s, c]))
+    # the predictor on the unknown sites rows of nxt; returns the magnitudes of prev, cur and the predicted sites
+    # (_slices._scale's three); a slice whose every site is unknown runs over contiguous rows
+    m = prev.shape[1]
+    pf, cf, nf = prev.reshape(-1), cur.reshape(-1), nxt.reshape(-1)
+    if rows.shape[0] == prev.shape[0]:  # rows are every site in order
+        if older.shape[0]:
+            of = older.reshape(-1)
+            for t in range(nf.shape[0]):
+                nf[t] = (2.0 * cf[t] - pf[t]) + (cf[t] - 2.0 * pf[t] + of[t])
+        else:
+            for t in range(nf.shape[0]):
+                nf[t] = 2.0 * cf[t] - pf[t]
+        return magnitude(pf), magnitude(cf), magnitude(nf)
+    new = np.empty(rows.shape[0] * m)
     for q in range(rows.shape[0]):
         y = rows[q]
-        for c in range(prev.shape[1]):
+        for c in range(m):
             v = 2.0 * cur[y, c] - prev[y, c]
             if older.shape[0]:
                 v = v + (cur[y, c] - 2.0 * prev[y, c] + older[y, c])
             nxt[y, c] = v
-            top = max(top, abs(v))
-    return top
+            new[q * m + c] = v
+    return magnitude(pf), magnitude(cf), magnitude(new)
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True, fastmath={'contract'})
@@ -298,31 +340,47 @@ def act_slope_row(a, d, kind):
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
-def features(values, site_of, upper, proj, start, out):
-    # each point's values gathered once per slice and component (x[a]), the features summed from them over
-    # contiguous rows in the order of the points
+def feature_extremes(values, site_of, upper, proj, fmin, fmax):
+    # per anchor slice i and feature, the least and largest value over the cells (a not-a-number wherever one
+    # is): each cell's feature summed over the points in their order from 0.0, a chunk of cells at a time into
+    # per-lane extremes (each lane's select vectorises), which are reduced once per slice
     nf, k = proj.shape
     m = values.shape[2]
     ncell = site_of.shape[1]
-    x = np.empty((k, ncell))
-    for r in range(out.shape[0]):
-        i = start + r
+    ch = _CHUNK
+    x = np.empty((k, ch))
+    row = np.empty(ch)
+    lo = np.empty((nf, ch))
+    hi = np.empty((nf, ch))
+    for i in range(fmin.shape[0]):
         for c in range(m):
-            for a in range(k):
-                src = values[i + upper[a]]
-                col = site_of[a]
-                xa = x[a]
-                for n in range(ncell):
-                    xa[n] = src[col[n], c]
-            for p in range(nf):
-                row = out[r, p * m + c]
-                for n in range(ncell):
-                    row[n] = 0.0
+            lo[:] = np.inf
+            hi[:] = -np.inf
+            for start in range(0, ncell, ch):
+                n = min(ch, ncell - start)
                 for a in range(k):
-                    w = proj[p, a]
-                    xa = x[a]
-                    for n in range(ncell):
-                        row[n] += w * xa[n]
+                    src = values[i + upper[a]]
+                    for j in range(n):
+                        x[a, j] = src[site_of[a, start + j], c]
+                for p in range(nf):
+                    for j in range(n):
+                        row[j] = 0.0
+                    for a in range(k):
+                        w = proj[p, a]
+                        for j in range(n):
+                            row[j] += w * x[a, j]
+                    lp, hp = lo[p], hi[p]
+                    for j in range(n):
+                        v = row[j]
+                        lp[j] = lp[j] if (lp[j] <= v or lp[j] != lp[j]) else v
+                        hp[j] = hp[j] if (hp[j] >= v or hp[j] != hp[j]) else v
+            for p in range(nf):
+                a_lo, a_hi = lo[p, 0], hi[p, 0]
+                for j in range(1, ch):
+                    a_lo = a_lo if (a_lo <= lo[p, j] or a_lo != a_lo) else lo[p, j]
+                    a_hi = a_hi if (a_hi >= hi[p, j] or a_hi != a_hi) else hi[p, j]
+                fmin[i, p * m + c] = a_lo
+                fmax[i, p * m + c] = a_hi
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
@@ -359,8 +417,9 @@ _FOLDED = _FOLDED.replace("{cells}", _FOLDED_CELLS.replace("{monomials}", _GENER
 
 def folded_kernels() -> Any:
     """The folded polynomial's kernel module (:data:`_FOLDED`: ``folded_cells``, ``horner_cells``,
-    ``scatter``, ``gather_residual``, ``predict``, ``update``, ``features``; ``quadratic_residual``, ``quadratic_grad``,
-    ``layer_in``, ``act_slope`` and ``act_slope_row`` for an ``L_d`` quadratic but for a network's one-site terms,
+    ``scatter``, ``gather_residual``, ``predict``, ``update``, ``feature_extremes``; ``quadratic_residual``,
+    ``quadratic_grad``, ``layer_in``, ``act_slope`` and ``act_slope_row`` for an ``L_d`` quadratic but for a
+    network's one-site terms,
     ``._serve._potential``), built on first use and cached as the others (one build per machine, for every
     polynomial); ``None``, with one info line, where numba cannot build it."""
     return _folded_module(_FOLDED, "folded polynomial")
@@ -502,7 +561,7 @@ def _build_folded(key: str, source: str, shape: tuple[int, int], deg: int = -1) 
     mod.predict(one, one, one, one, rows)
     mod.predict(one, one, one, np.zeros((0, 1)), rows)
     mod.update(one, rows, np.zeros(1))
-    mod.features(np.zeros((2, 1, 1)), idx, up, one, 0, np.empty((1, 1, 1)))
+    mod.feature_extremes(np.zeros((2, 1, 1)), idx, up, one, np.empty((1, 1)), np.empty((1, 1)))
     mod.quadratic_residual(one, one, one, idx, up, one, one, rows, 1.0, np.empty((1, 1)), np.empty(1))
     texp, coef, top = np.zeros((1, 1), dtype=np.int64), np.zeros((1, 1, 1)), np.zeros((1, 1), dtype=np.int64)
     mod.horner_cells(one, one, idx, up, one, np.zeros(1), 0, texp, coef, top, np.empty((1, 1)))

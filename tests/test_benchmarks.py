@@ -301,3 +301,27 @@ def test_serve_nd_rows_chosen_by_words_and_dimensions(capsys: pytest.CaptureFixt
     assert serve_nd.keeper()(serve_nd.MLP, 2) and serve_nd.keeper((), [2])(serve_nd.MLP, 2)
     assert serve_nd.main(["--quick", "--only", "no such row"]) == 2
     assert "no row matches" in capsys.readouterr().err
+
+
+def test_serve_nd_repeat_reports_the_least_of_several_serves(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--repeat N`` times N serves of each row and reports the least (the note says so); a count below 1 is
+    refused by name."""
+    from benchmarks import serve_nd
+
+    served: list[int] = []
+    real = serve_nd.ldft.serve
+
+    def counted(*args: object, **kwargs: object) -> object:
+        served.append(1)
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(serve_nd.ldft, "serve", counted)
+    assert serve_nd.main(["--quick", "--only", "analytic, compiled", "--dims", "1", "--repeat", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "the least of 3 timed serves of each row" in out
+    assert len(served) == 1 + 3 + 1  # the warm-up, three timed serves, once more on a lattice not seen before
+    with pytest.raises(SystemExit):
+        serve_nd.main(["--quick", "--repeat", "0"])
+    assert "--repeat" in capsys.readouterr().err

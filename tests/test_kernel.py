@@ -459,11 +459,18 @@ def test_a_fresh_jacobians_blocks_come_with_the_gradients(monkeypatch: pytest.Mo
             passes.append("both" if data is self.both_data else "grad") or columns(self, lo, hi, data)
         ),
     )
+    block_columns = _folded.FoldedSlices.block_columns
+    monkeypatch.setattr(
+        _folded.FoldedSlices,
+        "block_columns",
+        lambda self, lo, hi: passes.append("blocks") or block_columns(self, lo, hi),
+    )
     fresh = []
     factorise = _newton._factorise
     monkeypatch.setattr(_newton, "_factorise", lambda *a: fresh.append(1) or factorise(*a))
     served = ldft.serve(model, _field(2, 8), slices=8, progress=False)
-    assert passes.count("both") == len(fresh) >= 1  # each fresh Jacobian's blocks evaluated once
+    # each fresh Jacobian's blocks evaluated once: with the gradients, or alone after a chord step
+    assert passes.count("both") + passes.count("blocks") == len(fresh) >= 1 and passes.count("both") >= 1
     # a pass per iteration and the first slice's older cells, and one of the blocks alone only for a Jacobian
     # refreshed after a chord step (not at the first iteration)
     assert len(passes) < served.newton_iterations + 1 + len(fresh)
@@ -578,6 +585,182 @@ def test_the_folded_range_check_equals_todays_outside_the_range() -> None:
     got = folded.excess(model, values)
     assert got is not None and np.isinf(got).any()
     assert np.allclose(got, want, rtol=1e-12, atol=0.0)
+
+
+def test_the_folded_feature_extremes_equal_numpy_on_every_cell() -> None:
+    """The compiled range pass (``feature_extremes``, no array of the features) gives per slice the least and
+    largest feature over the cells to the bit, as numpy's min and max of every cell's features summed over the
+    points in order, a not-a-number wherever one is; an infinite value reads as itself; over more cells than
+    one chunk, with a last chunk in part."""
+    from latticedft._lattice import as_lattice_field, gather_cells
+    from latticedft._serve._folded import folded_slices
+    from latticedft._serve._slices import _SliceSystem
+
+    model = _polynomial(2)
+    f = as_lattice_field(_field(2, 23), source="init", min_slices=2)  # 529 cells: two chunks and a part
+    rng = np.random.default_rng(3)
+    values = torch.from_numpy(rng.uniform(-2, 2, (5, 23, 23, 1)))
+    values[1, 4, 5, 0] = math.nan
+    values[3, 7, 0, 0] = math.inf
+    values[2] = 0.0  # zeros of both signs: their extremes are equal numbers
+    values[2, 1, 1, 0] = -0.0
+    folded = folded_slices(model, _SliceSystem(model, f), values.reshape(5, -1, 1))
+    assert folded is not None
+    proj = np.ascontiguousarray(model.proj.detach().to(torch.float64).numpy())
+    fmin, fmax = folded._feature_range(values.numpy().reshape(5, -1, 1), proj)
+    cells = gather_cells(values, model.stencil, f.boundary).numpy()  # (slices - 1, *cells, K, 1)
+    feats = np.zeros((4, *cells.shape[1:3], proj.shape[0]))
+    for a in range(proj.shape[1]):  # the points in order, as the kernel sums them
+        feats += proj[:, a] * cells[..., a, 0][..., None]
+    feats = feats.reshape(4, -1, proj.shape[0])
+    assert np.array_equal(fmin, feats.min(axis=1), equal_nan=True)
+    assert np.array_equal(fmax, feats.max(axis=1), equal_nan=True)
+    assert np.isnan(fmin[0]).any() and np.isnan(fmax[1]).any() and np.isinf(fmax[2:]).any()
+    assert not np.isnan(fmin[3]).all() and np.isfinite(fmin[2]).all()
+
+
+@pytest.mark.parametrize("ndim", [1, 2, 3])
+def test_the_folded_forms_find_a_polynomial_not_affine_as_the_probe_does(ndim: int) -> None:
+    """The affine probe's shortcut for a polynomial: its folded Hessian blocks at the probe's states equal
+    autograd's to far below the shortcut's margin; a learned (2, 12) polynomial is found not affine by them
+    (and by the probe without them), one learned from Klein-Gordon is not, and the probe then answers as
+    before."""
+    from latticedft._kernel_folded import folded_kernels
+    from latticedft._serve._affine import _AffineSlices
+    from latticedft._serve._folded import _ALL_PAIRS, NOT_AFFINE_MARGIN, not_affine_by_forms
+
+    model = _polynomial(ndim)
+    k = model.stencil.size
+    gen = torch.Generator().manual_seed(12345)
+    x = 0.8 * (2 * torch.rand(12, k, 1, generator=gen, dtype=torch.float64) - 1)
+    x[0] = 0.0
+    pairs = [(a, b) for a in range(k) for b in range(k)]
+    want = torch.stack([cell_derivatives(model, x, pairs)[1][p] for p in pairs], 1).numpy().reshape(12, -1)
+    assert not_affine_by_forms(model, x.numpy())
+    data = _ALL_PAIRS[model][2]  # the folded forms of every pair it evaluated
+    out, flat = np.empty((12, data[3].shape[1])), np.ascontiguousarray(x.numpy().reshape(12 * k, 1))
+    site_of = np.ascontiguousarray(np.arange(12 * k).reshape(12, k).T)
+    folded_kernels().folded_cells(flat, flat, site_of, np.zeros(k, dtype=np.int64), *data, out)
+    big = np.abs(want[0]).max()
+    assert np.abs(out[:, k:] - want).max() <= 1e-4 * NOT_AFFINE_MARGIN * big  # round-off, far below the margin
+    assert np.abs(want - want[0]).max() > NOT_AFFINE_MARGIN * big
+    assert _AffineSlices.probe(model, model.stencil, 1, 0.8) is None
+    with ldft.set_options(compiled_kernels=False):  # the probe alone: the same answer
+        assert not not_affine_by_forms(model, x.numpy())
+        assert _AffineSlices.probe(model, model.stencil, 1, 0.8) is None
+    quad = ldft.PolynomialLagrangian(orders=(2, 2))  # learned from Klein-Gordon: its DEL affine
+    ldft.learn(quad, ldft.serve(lagrangians.klein_gordon(1.0), _field(ndim, 8), slices=8, progress=False).field)
+    assert not not_affine_by_forms(quad, x.numpy())
+    found = _AffineSlices.probe(quad, quad.stencil, 1, 0.8)
+    with ldft.set_options(compiled_kernels=False):
+        alone = _AffineSlices.probe(quad, quad.stencil, 1, 0.8)
+    assert found is not None and alone is not None
+    assert all(np.array_equal(a, b) for a, b in zip(found, alone))
+
+
+@pytest.mark.parametrize("ndim", [1, 2, 3])
+def test_the_earlier_cells_gradients_are_the_later_points_columns_to_the_bit(ndim: int) -> None:
+    """The first Newton slice's earlier cells: ``FoldedSlices.grad`` runs the chains of the columns of the points
+    on the later slice only; those columns equal the whole gradients' to the bit, the others are zero, and the
+    slice's residual from them is the same. A second field of the same model state reuses the Horner forms; a
+    changed state builds its own."""
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._folded import FoldedCells, folded_slices
+    from latticedft._serve._slices import _SliceSystem
+
+    model, m = _polynomial(ndim), 1
+    f = as_lattice_field(_field(ndim, {1: 40, 2: 9, 3: 5}[ndim]), source="init", min_slices=2)
+    sys_ = _SliceSystem(model, f)
+    flat = (f.values * torch.tensor([1.0, 1.01], dtype=torch.float64).reshape(2, *[1] * (ndim + 1))).reshape(2, -1, m)
+    flat = flat.contiguous()
+    folded = folded_slices(model, sys_, flat)
+    assert folded is not None
+    whole = FoldedCells(folded, flat[0].numpy(), flat[1].numpy()).grad
+    got = folded.grad(flat, 0)
+    later = np.repeat(folded.upper.astype(bool), m)
+    assert later.any() and not later.all()
+    assert np.array_equal(got[:, later], whole[:, later]) and not got[:, ~later].any()
+    assert np.abs(whole[:, ~later]).max() > 0  # the columns left out are not zero themselves
+    _, r_got = folded.evaluate(flat, 0.01, 0, got)
+    _, r_whole = folded.evaluate(flat, 0.01, 0, whole)
+    assert np.array_equal(r_got, r_whole)
+    again = folded_slices(model, sys_, flat)
+    assert again is not None and again.kept is folded.kept and folded.kept["later"] is not None
+    with torch.no_grad():
+        model.coef.mul_(1.0)  # the same values, a new state
+    changed = folded_slices(model, sys_, flat)
+    assert changed is not None and changed.horner is not folded.horner
+    assert np.array_equal(changed.grad(flat, 0), got)
+
+
+@pytest.mark.parametrize("every", [True, False])
+def test_the_folded_predictor_measures_the_step_scale_as_slices_scale(every: bool) -> None:
+    """The folded predictor writes ``2 psi_i - psi_{i-1}`` (plus the older slice's term) on the unknown sites and
+    returns ``_slices._scale`` of the slice at its predictor, equal to it in every case: finite values (over more
+    sites than its lanes, with a remainder), an infinity, a not-a-number on each slice (``_scale`` keeps one on
+    the earliest slice only, as Python's ``max`` does); every site unknown, or some (a Dirichlet frame)."""
+    from latticedft._kernel_folded import folded_kernels
+    from latticedft._serve._slices import _scale
+
+    mod = folded_kernels()
+    rng = np.random.default_rng(5)
+    nsite = 203
+    rows = np.arange(nsite) if every else np.arange(3, nsite - 3)
+    unk = torch.from_numpy(rows)
+    for case in range(6):
+        flat = torch.from_numpy(rng.uniform(-2, 2, (4, nsite, 1)))
+        if case == 1:
+            flat[2, 50, 0] = -math.inf
+        elif case in (2, 3, 4):
+            flat[case - 1, 7 if case != 4 else 0, 0] = math.nan  # slices 1, 2; an older slice's on the predictor
+        elif case == 5:
+            flat[:3] = 0.0
+        older = flat[0].clone()
+        want_next = flat[3].clone()
+        want_next[unk] = (2 * flat[2, unk] - flat[1, unk]) + (flat[2, unk] - 2 * flat[1, unk] + older[unk])
+        got = mod.predict(flat[1].numpy(), flat[2].numpy(), flat[3].numpy(), older.numpy(), rows)
+        assert np.array_equal(flat[3].numpy(), want_next.numpy(), equal_nan=True)
+        scale = max(float(got[0]), float(got[1]), float(got[2]), 1e-300)
+        want = _scale(flat, 2, unk)
+        assert scale == want or (math.isnan(scale) and math.isnan(want)), case
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_a_fresh_folded_jacobian_is_read_from_its_columns_as_from_its_blocks(ndim: int) -> None:
+    """A fresh Jacobian on the folded kernels: the slice matrix read from the evaluated columns in CSR order and
+    the diagonal kept with the blocks (summed once for the singular values and the factorisation) equal those
+    of the blocks as a plain dict to the bit, and blocks evaluated by the pass of their columns alone (a fresh
+    Jacobian after an iteration evaluated without them) equal those evaluated with the gradients; on a
+    Dirichlet frame too (fewer unknowns than cells)."""
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._folded import FoldedCells, folded_slices
+    from latticedft._serve._slices import Blocks, _SliceSystem
+
+    model = _polynomial(ndim)
+    init = _field(ndim, {2: 9, 3: 5}[ndim])
+    frame = init.copy()
+    for d in frame.dims[1:]:
+        frame[d].attrs = {}  # no periodic attribute: a Dirichlet frame
+    for f0 in (init, frame):
+        f = as_lattice_field(f0, source="init", min_slices=2)
+        sys_ = _SliceSystem(model, f)
+        flat = (f.values * torch.tensor([1.0, 1.02], dtype=torch.float64).reshape(2, *[1] * (ndim + 1))).contiguous()
+        flat = flat.reshape(2, -1, 1)
+        folded = folded_slices(model, sys_, flat)
+        assert folded is not None
+        blocks = FoldedCells(folded, flat[0].numpy(), flat[1].numpy(), with_blocks=True).blocks(sys_.pairs)
+        assert isinstance(blocks, Blocks) and blocks.columns is not None
+        alone = FoldedCells(folded, flat[0].numpy(), flat[1].numpy()).blocks(sys_.pairs)  # the blocks' pass alone
+        assert alone.columns is not None and alone.columns[1] == 0 and folded.kept["blocks"] is not None
+        assert all(torch.equal(alone[p], blocks[p]) for p in sys_.pairs)
+        assert np.array_equal(sys_.csr(alone, 0.003).data, sys_.csr(blocks, 0.003).data)
+        plain = dict(blocks)
+        got, want = sys_.csr(blocks, 0.003), sys_.csr(plain, 0.003)
+        assert np.array_equal(got.indptr, want.indptr) and np.array_equal(got.indices, want.indices)
+        assert np.array_equal(got.data, want.data) and np.abs(want.data).max() > 0
+        diag = sys_.diagonal(blocks)
+        assert sys_.diagonal(blocks) is diag and torch.equal(diag, sys_.diagonal(plain))
+        assert sys_.site_singular_values(blocks) == sys_.site_singular_values(plain)
 
 
 def test_the_folded_kernels_are_on_by_default_and_not_for_other_models() -> None:

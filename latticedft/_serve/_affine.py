@@ -14,6 +14,7 @@ from .._action import cell_derivatives, compiled_closed_forms, del_residual
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
 from .._options import option
+from ._folded import not_affine_by_forms
 from ._potential import not_affine
 from ._slices import _SliceSystem, is_singular
 
@@ -103,6 +104,8 @@ class _AffineSlices:
         gen = torch.Generator().manual_seed(12345)
         x = scale * (2 * torch.rand(3, 4, k, m, generator=gen, dtype=torch.float64) - 1)
         x[0, 0] = 0.0  # the constant term is the gradient at zero itself (g - H x there would carry round-off)
+        if not_affine_by_forms(model, x.reshape(-1, k, m).numpy()):  # a polynomial's compiled forms decide
+            return None
         pairs = [(a, b) for a in range(k) for b in range(k)]
         try:
             g, blocks = cell_derivatives(model, x, pairs)

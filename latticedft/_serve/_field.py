@@ -98,8 +98,9 @@ def solve_and_tally(
         _tallied(run, *done)
         return None
     folded = _folded_of(run) if run.mode == "newton" and not on_device(run) else None
+    scale = None  # _slices._scale at the predictor, where the folded predictor measured it
     if folded is not None:
-        folded.predict(flat, i, older)
+        scale = folded.predict(flat, i, older)
     else:
         flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
     if run.mode == "newton" and older is not None and folded is None:
@@ -124,6 +125,7 @@ def solve_and_tally(
             run.cells_at,
             run.cache,
             evaluate=evaluate,
+            scale=scale,
         )
     else:
         it, res, g_prev, err = _sweep_slice(run.model, run.sys, psi, flat, i, run.vol, rtol, max_newton, run.f)

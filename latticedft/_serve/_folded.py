@@ -26,9 +26,9 @@ from .._kernel_folded import folded_cells_kernel, folded_kernels, horner_cells_k
 from .._models import PolynomialLagrangian
 from .._models._polynumpy import _numpy_forms
 from .._options import option
-from ._slices import _SliceSystem
+from ._slices import Blocks, _SliceSystem
 
-__all__ = ["FoldedSlices", "folded_slices"]
+__all__ = ["FoldedSlices", "folded_slices", "not_affine_by_forms"]
 
 log = logging.getLogger("latticedft")
 
@@ -97,11 +97,12 @@ def per_model_state(
     return built, True
 
 
-def _data_of(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[Any, Any]:
-    """``(_data(model, []), _data(model, pairs))``, built once per model state, pairs and ``folded_max_powers``
-    (the option that decides whether the coefficients fold)."""
+def _data_of(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[Any, Any, dict[str, Any]]:
+    """``(_data(model, []), _data(model, pairs), kept)``, built once per model state, pairs and
+    ``folded_max_powers`` (the option that decides whether the coefficients fold); ``kept``: what
+    :class:`FoldedSlices` derives from them (Horner forms, kernels), for later fields of the same state."""
     key = (tuple(pairs), option("folded_max_powers"))
-    built, fresh = per_model_state(_DATA, model, key, lambda: (_data(model, []), _data(model, pairs)))
+    built, fresh = per_model_state(_DATA, model, key, lambda: (_data(model, []), _data(model, pairs), {}))
     if fresh and (built[0] is None or built[1] is None):  # once per model state
         log.info(
             "compiled polynomial kernels unavailable for %s (its coefficients do not fold onto few monomials): "
@@ -157,32 +158,60 @@ class FoldedCells:
             self.grad = owner.columns(lo, hi, owner.grad_data)
 
     def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
-        """The Hessian blocks ``(cells, m, m)`` of ``pairs`` (the slice system's pairs)."""
+        """The Hessian blocks ``(cells, m, m)`` of ``pairs`` (the slice system's pairs): from the columns evaluated
+        with the gradients, else from a pass of the blocks' columns alone (:meth:`FoldedSlices.block_columns`)."""
         o = self.owner
-        out = self.both if self.both is not None else o.columns(self.lo, self.hi, o.both_data)
         km, mm = o.k * o.m, o.m * o.m
-        return {
-            p: torch.from_numpy(np.ascontiguousarray(out[:, km + q * mm : km + (q + 1) * mm]).reshape(-1, o.m, o.m))
+        if self.both is not None:
+            out, first = self.both, km
+        else:
+            out, first = o.block_columns(self.lo, self.hi)
+        blocks = Blocks(
+            (
+                p,
+                torch.from_numpy(
+                    np.ascontiguousarray(out[:, first + q * mm : first + (q + 1) * mm]).reshape(-1, o.m, o.m)
+                ),
+            )
             for q, p in enumerate(pairs)
-        }
+        )
+        if list(pairs) == list(o.sys.pairs):  # the slice Jacobian's entries read from the columns themselves
+            blocks.columns = (out, first)
+        return blocks
 
 
 class FoldedSlices:
     """The folded kernels of one served field: the model's folded coefficients and the slice's index maps."""
 
     def __init__(
-        self, mod: Any, sys: _SliceSystem, grad_data: tuple[np.ndarray, ...], both_data: tuple[np.ndarray, ...]
+        self,
+        mod: Any,
+        sys: _SliceSystem,
+        grad_data: tuple[np.ndarray, ...],
+        both_data: tuple[np.ndarray, ...],
+        kept: dict[str, Any] | None = None,
     ):
         self.mod = mod
         self.k, self.m = len(sys.st.offsets), sys.m
-        self.site_of = np.ascontiguousarray(np.stack(sys.site_of), dtype=np.int64)  # (K, cells)
-        self.upper = np.array([o[0] for o in sys.st.offsets], dtype=np.int64)  # 1: the point is on the next slice
-        self.rows = np.ascontiguousarray(np.nonzero(sys.interior)[0], dtype=np.int64)
+        if "folded_maps" not in sys.kept:  # per lattice
+            site_of = np.ascontiguousarray(np.stack(sys.site_of), dtype=np.int64)  # (K, cells)
+            upper = np.array([o[0] for o in sys.st.offsets], dtype=np.int64)  # 1: the point is on the next slice
+            sys.kept["folded_maps"] = (
+                site_of,
+                upper,
+                np.ascontiguousarray(np.nonzero(sys.interior)[0], dtype=np.int64),
+            )
+        self.site_of, self.upper, self.rows = sys.kept["folded_maps"]
         self.grad_data, self.both_data = grad_data, both_data
         self.el = np.empty((sys.nsite, sys.m))
-        self.cells: dict[tuple[int, int], Any] = {}  # the folded_cells kernel per (variables, columns)
-        self.horner: dict[int, tuple[Any, ...] | None] = {}  # per data (its id): its Horner forms, if chosen
-        self.horner_kernel: dict[int, Any] = {}  # per data (its id): the Horner kernel of its forms
+        # what is derived from the data, kept per model state (``kept``, from _data_of) for this module's kernels
+        self.kept = {} if kept is None else kept
+        if self.kept.get("mod") is not mod:
+            self.kept.clear()
+            self.kept["mod"] = mod
+        self.cells: dict[tuple[int, int], Any] = self.kept.setdefault("cells", {})  # folded_cells per (V, columns)
+        self.horner: dict[int, tuple[Any, ...] | None] = self.kept.setdefault("horner", {})  # per data (id): forms
+        self.horner_kernel: dict[int, Any] = self.kept.setdefault("kernel", {})  # per data (id): their kernel
         self.sys = sys
 
     @property
@@ -199,12 +228,7 @@ class FoldedSlices:
         by the monomial kernel of the polynomial's class where it builds, else the generic one."""
         nvar, cols = data[0].shape[1], data[3].shape[1]
         out = np.empty((self.site_of.shape[1], cols))
-        if id(data) not in self.horner:
-            built = _horner(data)
-            fewer = int((built[5] + 1).sum()) <= data[2].shape[0] * (cols + nvar)
-            self.horner[id(data)] = built if fewer else None
-            self.horner_kernel[id(data)] = _horner_kernel(built, self.mod) if fewer else None
-        forms = self.horner[id(data)]
+        forms = self._horner_forms(data)
         if forms is not None:
             self.horner_kernel[id(data)](lo, hi, self.site_of, self.upper, *forms, out)
             return out
@@ -213,14 +237,70 @@ class FoldedSlices:
         self.cells[(nvar, cols)](lo, hi, self.site_of, self.upper, *data, out)
         return out
 
-    def grad(self, flat: torch.Tensor, i: int) -> np.ndarray:
-        """The gradients ``(cells, K m)`` of the cells anchored on slice ``i``."""
-        return FoldedCells(self, flat[i].numpy(), flat[i + 1].numpy()).grad
+    def _horner_forms(self, data: tuple[np.ndarray, ...]) -> tuple[Any, ...] | None:
+        """The Horner forms of ``data`` where they take fewer products than its monomials (their kernel in
+        ``horner_kernel``), else ``None``; chosen once per model state."""
+        if id(data) not in self.horner:
+            nvar, cols = data[0].shape[1], data[3].shape[1]
+            built = _horner(data)
+            fewer = int((built[5] + 1).sum()) <= data[2].shape[0] * (cols + nvar)
+            self.horner[id(data)] = built if fewer else None
+            self.horner_kernel[id(data)] = _horner_kernel(built, self.mod) if fewer else None
+        return self.horner[id(data)]
 
-    def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> None:
-        """Slice-Newton's predictor on the unknown sites of slice ``i + 1`` (``_field.solve_and_tally``'s)."""
+    def grad(self, flat: torch.Tensor, i: int) -> np.ndarray:
+        """The gradients ``(cells, K m)`` of the cells anchored on slice ``i`` as slice ``i + 1``'s residual reads
+        them: the columns of the points on slice ``i + 1`` (``upper``: ``gather_residual`` and ``scatter`` read
+        no other column of the earlier cells), the others zero. Where the gradients run by Horner's rule, the
+        chains of those columns alone run (each column's chain is the same, so are its values to the bit)."""
+        lo, hi = flat[i].numpy(), flat[i + 1].numpy()
+        up = [a for a in range(self.k) if self.upper[a]]
+        later = self._subset_forms("later", self.grad_data, [a * self.m + c for a in up for c in range(self.m)])
+        if later is None:
+            return FoldedCells(self, lo, hi).grad
+        forms, kernel, cols = later
+        part = np.empty((self.site_of.shape[1], cols.size))
+        kernel(lo, hi, self.site_of, self.upper, *forms, part)
+        out = np.zeros((self.site_of.shape[1], self.k * self.m))
+        out[:, cols] = part
+        return out
+
+    def block_columns(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, int]:
+        """``(columns, first)``: the Hessian blocks' columns of the cells anchored on ``lo`` from ``first`` on: where
+        the forms run by Horner's rule, by the chains of those columns alone (``first`` 0; the same values to the
+        bit as with the gradients' columns), else every column of ``both_data``."""
+        km, width = self.k * self.m, self.both_data[3].shape[1]
+        blocks = self._subset_forms("blocks", self.both_data, list(range(km, width)))
+        if blocks is None:
+            return self.columns(lo, hi, self.both_data), km
+        forms, kernel, cols = blocks
+        out = np.empty((self.site_of.shape[1], cols.size))
+        kernel(lo, hi, self.site_of, self.upper, *forms, out)
+        return out, 0
+
+    def _subset_forms(
+        self, name: str, data: tuple[np.ndarray, ...], columns: list[int]
+    ) -> tuple[tuple[Any, ...], Any, np.ndarray] | None:
+        """``(forms, kernel, columns)``: the Horner forms of ``data`` restricted to ``columns`` (the same head and
+        tails, so each column's chain is the same), and their kernel; ``None`` where ``data`` does not run by
+        Horner's rule. Kept per model state under ``name``."""
+        if name not in self.kept:
+            full = self._horner_forms(data)
+            subset = None
+            if full is not None:
+                cols = np.array(columns, dtype=np.int64)
+                forms = (*full[:4], np.ascontiguousarray(full[4][:, cols]), np.ascontiguousarray(full[5][:, cols]))
+                subset = (forms, _horner_kernel(forms, self.mod), cols)
+            self.kept[name] = subset
+        kept: tuple[tuple[Any, ...], Any, np.ndarray] | None = self.kept[name]
+        return kept
+
+    def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> float:
+        """Slice-Newton's predictor on the unknown sites of slice ``i + 1`` (``_field.solve_and_tally``'s); returns
+        ``_slices._scale(flat, i, unknowns)`` at the predictor, from the magnitudes the same pass measured."""
         old = older.numpy() if older is not None else np.zeros((0, self.m))
-        self.mod.predict(flat[i - 1].numpy(), flat[i].numpy(), flat[i + 1].numpy(), old, self.rows)
+        a, b, c = self.mod.predict(flat[i - 1].numpy(), flat[i].numpy(), flat[i + 1].numpy(), old, self.rows)
+        return max(float(a), float(b), float(c), 1e-300)  # as _scale, in its order (a NaN first stays)
 
     def excess(self, model: Any, values: torch.Tensor) -> np.ndarray | None:
         """``(slices - 1, features)``: ``_range._excess`` of the served ``values`` ``(slices, *sites, m)``: the cells'
@@ -244,16 +324,11 @@ class FoldedSlices:
 
     def _feature_range(self, flat: np.ndarray, proj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per slice but the last and feature (``(slices - 1, features)``), the least and largest value of the
-        feature over the cells anchored on the slice (a not-a-number wherever one is), a few slices a pass."""
-        nq, ncell = proj.shape[0] * self.m, self.site_of.shape[1]
+        feature over the cells anchored on the slice (a not-a-number wherever one is), in one compiled pass
+        (``feature_extremes``: no array of the features themselves)."""
+        nq = proj.shape[0] * self.m
         fmin, fmax = np.empty((flat.shape[0] - 1, nq)), np.empty((flat.shape[0] - 1, nq))
-        rows = max(1, (1 << 21) // max(1, nq * ncell))
-        buf = np.empty((min(rows, fmin.shape[0]), nq, ncell))
-        for start in range(0, fmin.shape[0], rows):
-            part = buf[: min(rows, fmin.shape[0] - start)]
-            self.mod.features(flat, self.site_of, self.upper, proj, start, part)
-            fmin[start : start + part.shape[0]] = part.min(axis=2)
-            fmax[start : start + part.shape[0]] = part.max(axis=2)
+        self.mod.feature_extremes(flat, self.site_of, self.upper, proj, fmin, fmax)
         return fmin, fmax
 
     def evaluate(
@@ -274,18 +349,61 @@ class FoldedSlices:
         return ev, r
 
 
+def _foldable(model: Any) -> bool:
+    """Whether ``model`` may be served on the folded kernels: a polynomial ready for its numpy forms, on the
+    CPU, where the ``compiled_kernels`` option is on (the default)."""
+    if not option("compiled_kernels") or not isinstance(model, PolynomialLagrangian) or not model.numpy_ready:
+        return False
+    return all(t.device.type == "cpu" for t in [*model.parameters(), *model.buffers()])
+
+
 def folded_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FoldedSlices | None:
     """The folded kernels for ``model`` on ``sys``, or ``None``: for a polynomial whose numpy forms fold its
     coefficients, with the values on the CPU in double precision, where the ``compiled_kernels`` option is on
     (the default) and numba builds the kernels."""
-    if not option("compiled_kernels") or not isinstance(model, PolynomialLagrangian):
+    if not _foldable(model):
         return None
-    if flat.dtype != torch.float64 or flat.device.type != "cpu" or not flat.is_contiguous() or not model.numpy_ready:
+    if flat.dtype != torch.float64 or flat.device.type != "cpu" or not flat.is_contiguous():
         return None
-    if any(t.device.type != "cpu" for t in [*model.parameters(), *model.buffers()]):
-        return None
-    grad_data, both_data = _data_of(model, list(sys.pairs))
+    grad_data, both_data, kept = _data_of(model, list(sys.pairs))
     if grad_data is None or both_data is None:
         return None
     mod = folded_kernels()
-    return None if mod is None else FoldedSlices(mod, sys, grad_data, both_data)
+    return None if mod is None else FoldedSlices(mod, sys, grad_data, both_data, kept)
+
+
+#: The affine probe (``._affine._AffineSlices.probe``) leaves a polynomial without its autograd pass where the
+#: Hessian blocks of its folded forms at the probe's states differ from those at the first state by more than
+#: this share of the largest entry there: 1e4 times the probe's own tolerance (1e-10), far beyond the round-off
+#: by which the two evaluations of one polynomial differ, so the probe would find the same.
+NOT_AFFINE_MARGIN = 1e-6
+
+#: Per model, the folded forms of every pair of stencil points (the probe's Hessian), with the state they are of.
+_ALL_PAIRS: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()
+
+
+def not_affine_by_forms(model: Any, states: np.ndarray) -> bool:
+    """Whether the DEL of ``model`` is found not affine on its folded kernels: its Hessian blocks of every pair
+    of stencil points on the cells ``states`` ``(cells, K, m)`` (the affine probe's, the first one the state
+    the others are compared with) vary by more than :data:`NOT_AFFINE_MARGIN` of the largest entry on the
+    first. ``False`` where they do not, or where the model is not served on the folded kernels (the probe
+    decides then)."""
+    if not _foldable(model):
+        return False
+    k, m = states.shape[1], states.shape[2]
+    pairs = [(a, b) for a in range(k) for b in range(k)]
+    key = (k, m, option("folded_max_powers"))
+    data, _ = per_model_state(_ALL_PAIRS, model, key, lambda: _data(model, pairs))
+    mod = folded_kernels() if data is not None else None
+    if mod is None:
+        return False
+    ncell = states.shape[0]
+    x = np.ascontiguousarray(states.reshape(ncell * k, m), dtype=np.float64)
+    site_of = np.ascontiguousarray(np.arange(ncell * k, dtype=np.int64).reshape(ncell, k).T)  # each cell its own
+    out = np.empty((ncell, data[3].shape[1]))
+    mod.folded_cells(x, x, site_of, np.zeros(k, dtype=np.int64), *data, out)
+    hess = out[:, k * m :]
+    if not hess.size or not np.isfinite(hess).all():
+        return False
+    big = float(np.abs(hess[0]).max())
+    return big > 0.0 and float(np.abs(hess - hess[0]).max()) > NOT_AFFINE_MARGIN * big

@@ -92,6 +92,7 @@ def _newton_slice(
     cache,
     allmax: AllMax = _local,
     evaluate: Callable[[int, Any, bool], tuple[Any, np.ndarray]] | None = None,
+    scale: float | None = None,
 ):
     """Newton on one slice. Steps reuse the cached factorised Jacobian (chord steps, exact for quadratic
     ``L_d``) while each cuts the residual a hundredfold; fresh Hessian blocks are assembled only when one did not.
@@ -102,7 +103,8 @@ def _newton_slice(
     when the slice is split over processes (one part each in ``flat``): they then stop at the same iteration.
     ``evaluate(i, g_prev, blocks) -> (cells, residual)`` replaces the gathering of the cells anchored on slice
     ``i``, their derivatives (``CellDerivatives``: ``grad``, ``blocks(pairs)``; ``blocks``: this iteration reads
-    the blocks unless it converges) and the residual (``._folded``).
+    the blocks unless it converges) and the residual (``._folded``). ``scale``: ``_slices._scale(flat, i, unk)``
+    at the predictor (the first iteration's), where the predictor measured it.
 
     A slice whose chord steps took :data:`FRESH_FIRST_ON` evaluations or more has the next ones assemble a fresh
     Jacobian at their first iteration (``cache["fresh_first"]``: how many slices since; every
@@ -132,7 +134,7 @@ def _newton_slice(
         if blocks is not None and cache["singular"]:
             return it, res, ev.grad, (*cache["singular"], res)
         if rscale is None:
-            rscale = vol * cache["dmax"] * allmax(_scale(flat, i, unk))[0]
+            rscale = vol * cache["dmax"] * allmax(_scale(flat, i, unk) if scale is None else scale)[0]
         if res <= rtol * rscale or small:
             # converged (or the last step was below rtol times the values: the residual stalls at round-off);
             # the cells anchored at slice i are evaluated at the solution: reuse them for slice i + 1

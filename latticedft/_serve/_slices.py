@@ -23,6 +23,17 @@ from .._models import AbstractLagrangian
 SINGULAR_RTOL = 1e-10
 
 
+class Blocks(dict):
+    """Hessian blocks ``(cells, m, m)`` per pair that keep the slice Jacobian's diagonal once
+    :meth:`_SliceSystem.diagonal` has summed it (with the slice system it is of): the singular values of a
+    fresh Jacobian and its factorisation read the same sum."""
+
+    diag: tuple[Any, torch.Tensor] | None = None
+    #: ``(columns, first)``: the blocks are read from these ``(cells, ...)`` columns, pair ``q``'s ``m x m`` entries
+    #: at ``first + q m m`` on (the folded kernels' evaluation), for :meth:`_SliceSystem.csr`; ``None``: not
+    columns: tuple[np.ndarray, int] | None = None
+
+
 class _SliceSystem:
     """Index maps of one slice's equations and unknowns, built once per lattice."""
 
@@ -183,16 +194,36 @@ class _SliceSystem:
             rows, cols, vals = self.matrix_entries(blocks, vol)
             return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(size, size))
         order, indices, indptr = pattern
-        vals = self._entry_values(blocks, vol)[order]
+        columns = getattr(blocks, "columns", None)
+        if columns is not None:  # the entries read from the columns in CSR order at once: the same products
+            vals = columns[0].reshape(-1)[self._column_places(columns[0].shape[1], columns[1])] * vol
+        else:
+            vals = self._entry_values(blocks, vol)[order]
         return scipy.sparse.csr_matrix((vals, indices, indptr), shape=(size, size), copy=False)
+
+    def _column_places(self, width: int, first: int) -> np.ndarray:
+        """Where each entry of the Jacobian, in CSR order, lies in the flat ``(cells, width)`` columns of
+        :attr:`Blocks.columns` (pair ``q`` of :attr:`pairs` from ``first + q m m``), kept per layout."""
+        key = f"column_places {width} {first}"
+        if key not in self.kept:
+            mm = self.m * self.m
+            q_of = {p: q for q, p in enumerate(self.pairs)}
+            within = np.arange(mm, dtype=np.int64)
+            places = [
+                ((cells.astype(np.int64) * width + first + q_of[key2] * mm)[:, None] + within).reshape(-1)
+                for key2, (cells, _, _) in self.jac.items()
+            ]
+            pattern = self._csr_pattern
+            assert pattern is not None
+            self.kept[key] = np.concatenate(places)[pattern[0]]
+        places_kept: np.ndarray = self.kept[key]
+        return places_kept
 
     def site_singular_values(self, blocks: dict[tuple[int, int], torch.Tensor]) -> tuple[float, float, int]:
         """``(smallest, largest, row)``: the extreme singular values of the Jacobian's diagonal blocks (the mixed
         Hessian at each unknown site, without the cell volume) and the equation row of the smallest."""
         m = self.m
-        diag = torch.zeros(self.n, m, m, dtype=torch.float64)
-        for key, cells, rows in self.diag_entries:
-            diag.index_add_(0, rows, blocks[key].reshape(-1, m, m)[cells])
+        diag = self.diagonal(blocks)
         if self.n == 0:
             return math.inf, 0.0, 0
         sv = diag.abs().reshape(-1, 1) if m == 1 else torch.linalg.svdvals(diag)
@@ -200,6 +231,21 @@ class _SliceSystem:
         low = sv[:, -1]
         worst = int(torch.argmin(low))
         return float(low[worst]), float(sv[:, 0].max()), worst * m
+
+    def diagonal(self, blocks: dict[tuple[int, int], torch.Tensor]) -> torch.Tensor:
+        """The Jacobian's diagonal ``m x m`` blocks ``(n, m, m)`` without the cell volume: per unknown site the mixed
+        Hessian summed over the cells that hold it; kept on ``blocks`` where they are :class:`Blocks`."""
+        kept = getattr(blocks, "diag", None)
+        if kept is not None and kept[0] is self:
+            diag_kept: torch.Tensor = kept[1]
+            return diag_kept
+        m = self.m
+        diag = torch.zeros(self.n, m, m, dtype=torch.float64)
+        for key, cells, rows in self.diag_entries:
+            diag.index_add_(0, rows, blocks[key].reshape(-1, m, m)[cells])
+        if isinstance(blocks, Blocks):
+            blocks.diag = (self, diag)
+        return diag
 
     def factor(self, blocks, vol: float):
         """Assemble and factorise the slice Jacobian; returns ``solve(rhs)``."""

@@ -66,9 +66,7 @@ def _diag_and_offdiag(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Ten
     """The diagonal ``m x m`` blocks ``(n, m, m)`` of the Jacobian (without the cell volume) and the largest
     off-diagonal entry."""
     m = sys.m
-    diag = torch.zeros(sys.n, m, m, dtype=torch.float64)
-    for key, cells, rows in sys.diag_entries:
-        diag.index_add_(0, rows, blocks[key].reshape(-1, m, m)[cells])
+    diag = sys.diagonal(blocks)
     off = 0.0
     for key, where in sys.offdiag_cells:
         held = blocks[key].reshape(-1, m, m)
