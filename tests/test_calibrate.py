@@ -346,3 +346,26 @@ def test_a_degenerate_law_is_a_failed_calibration(tmp_path: Path, capsys, monkey
     assert "calibration" not in summary["train"]
     with xr.open_dataset(tmp_path / "r" / "test.nc") as ds:
         assert "psi_err_est" not in ds.data_vars
+
+
+def test_a_trial_takes_the_ridge_the_models_fit_chose(tmp_path: Path, capsys, monkeypatch) -> None:
+    """``ridge = "auto"`` without model selection: the trial learns with the weight the served model's fit chose
+    (as selection's trials and an ensemble's members do), not a weight chosen again on its 70 % of the data."""
+    import latticedft._calibrate as calibration
+
+    seen: list[object] = []
+    trial = calibration._trial
+
+    def record(fresh: object, train: object, boundary: object, kwargs: dict) -> object:
+        seen.append(kwargs["ridge"])
+        return trial(fresh, train, boundary, kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(calibration, "_trial", record)
+    case = tiny_wave(tmp_path)
+    sets = ["train.calibrate=true", 'train.ridge="auto"', "export.paraview=false"]
+    code, _, err = run_cli(capsys, "run", case, "--out", tmp_path / "r", *[x for s in sets for x in ("--set", s)])
+    assert code == 0, err
+    chosen = json.loads((tmp_path / "r" / "summary.json").read_text())["train"]["ridge"]
+    assert isinstance(chosen, float) and seen == [chosen]
+    assert calibration.trial_keywords({"ridge": 0.5}, 1e-4) == {"ridge": 0.5}  # a weight given is kept
+    assert calibration.trial_keywords({"ridge": "auto"}, None) == {"ridge": "auto"}
