@@ -48,7 +48,7 @@ import xarray as xr
 
 import latticedft as ldft
 from latticedft import systems
-from latticedft._calibrate import Calibration, calibrate, disagreement, runner_up
+from latticedft._calibrate import Calibration, calibrate, disagreement, runner_up, trial_keywords
 from latticedft._learn._noise import denoised_start
 from latticedft._select import _build, select
 
@@ -193,7 +193,8 @@ def _learned(s: Setup, train: list[xr.DataArray], kw: dict[str, Any]) -> tuple[A
         model = s.model()
         t0 = time.perf_counter()
         ldft.learn(model, train, boundary=s.boundary, progress=False, **kw)
-        return model, (s.model(), kw, None, None), 0.0, time.perf_counter() - t0
+        own = trial_keywords(kw, model.report_.ridge if model.report_ is not None else None)
+        return model, (s.model(), own, None, None), 0.0, time.perf_counter() - t0
     t0 = time.perf_counter()
     sel = select(s.model(), train, "auto", boundary=s.boundary, **kw)
     t_sel = time.perf_counter() - t0
@@ -223,7 +224,8 @@ def measure(s: Setup, sigma: float) -> list[Any]:
     if s.ensemble and not s.select:  # member 0 is the single model: learned once (a noisy fit corrects once)
         ens = ldft.EnsembleLagrangian(s.model(), members=MEMBERS, seed=0)
         ldft.learn(ens, train, boundary=s.boundary, progress=False, **kw)
-        model, fresh, own, runner, learned, t_sel = ens.member(0), s.model(), kw, None, None, 0.0
+        model, fresh, runner, learned, t_sel = ens.member(0), s.model(), None, None, 0.0
+        own = trial_keywords(kw, model.report_.ridge if model.report_ is not None else None)
     else:
         model, (fresh, own, runner, learned), t_sel, _ = _learned(s, train, kw)
         ens = None

@@ -90,7 +90,7 @@ def test_the_scale_follows_the_measured_error_not_the_runner_up() -> None:
     from latticedft._calibrate import _fit, _Sample
 
     k = np.arange(2.0, 22.0)
-    rel = 1e-6 * k
+    rel = 1e-6 * (k - 1)  # linear in the steps served
     held = k >= 16
     own = _fit([_Sample(k, held, rel, rel, False)], 0.95)
     wide = _fit([_Sample(k, held, rel, 100 * rel, True)], 0.95)
@@ -106,7 +106,7 @@ def test_a_trial_that_stops_on_many_held_out_slices_keeps_a_band_and_warns() -> 
 
     k = np.arange(2.0, 22.0)
     held = k >= 16
-    rel = 1e-6 * k
+    rel = 1e-6 * (k - 1)
     stopped = np.where(k < 10, rel, np.nan)
     samples = [_Sample(k, held, rel, rel, False) for _ in range(9)] + [_Sample(k, held, stopped, stopped, False)]
     law = _fit(samples, 0.95)
@@ -132,6 +132,21 @@ def test_the_law_round_trips_and_warns_beyond_its_windows() -> None:
     two = xr.DataArray([[0.0, 0.0], [3.0, 1.0], [0.2, 0.2]], dims=("t", "x"))
     out = scaled.band(two, np.array([9.0, 9.0, 9.0]), np.array([1.0, 1.0, 0.5]))
     np.testing.assert_allclose(out.values, [[1, 1], [1.5, 0.5], [0.5, 0.5]])  # members that agree: the floor
+
+
+def test_the_law_counts_the_steps_served() -> None:
+    """A law measured now grows in the steps served, ``k - 1`` (slice 2 is the first step, error ``A * scale``); a
+    law recorded before it (no ``origin``) keeps the slice index ``k``; the fit recovers an error ``c (k - 1)^p``."""
+    from latticedft._calibrate import ORIGIN, _fit, _Sample
+
+    k = np.arange(2.0, 42.0)
+    rel = 1e-6 * (k - 1) ** 1.5
+    cal = _fit([_Sample(k, k >= 30, rel, rel, False)], 0.95)
+    assert cal.origin == ORIGIN == 1.0 and "(k - 1)^exponent" in cal.law
+    assert cal.exponent == pytest.approx(1.5, abs=1e-9) and 2 * cal.scale == pytest.approx(1e-6, rel=1e-9)
+    np.testing.assert_allclose(cal.estimate(np.array([0, 1, 2, 5]), 2.0), [0, 0, 2 * cal.scale, 2 * cal.scale * 8])
+    old = {k: v for k, v in _law(exponent=2.0).to_dict().items() if k != "origin"}
+    np.testing.assert_allclose(Calibration.from_dict(old).estimate(np.array([2, 5]), 1.0), [4e-3, 25e-3])
 
 
 def test_a_task_of_another_amplitude_than_the_training_fields_is_told() -> None:
@@ -346,3 +361,26 @@ def test_a_degenerate_law_is_a_failed_calibration(tmp_path: Path, capsys, monkey
     assert "calibration" not in summary["train"]
     with xr.open_dataset(tmp_path / "r" / "test.nc") as ds:
         assert "psi_err_est" not in ds.data_vars
+
+
+def test_a_trial_takes_the_ridge_the_models_fit_chose(tmp_path: Path, capsys, monkeypatch) -> None:
+    """``ridge = "auto"`` without model selection: the trial learns with the weight the served model's fit chose
+    (as selection's trials and an ensemble's members do), not a weight chosen again on its 70 % of the data."""
+    import latticedft._calibrate as calibration
+
+    seen: list[object] = []
+    trial = calibration._trial
+
+    def record(fresh: object, train: object, boundary: object, kwargs: dict) -> object:
+        seen.append(kwargs["ridge"])
+        return trial(fresh, train, boundary, kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(calibration, "_trial", record)
+    case = tiny_wave(tmp_path)
+    sets = ["train.calibrate=true", 'train.ridge="auto"', "export.paraview=false"]
+    code, _, err = run_cli(capsys, "run", case, "--out", tmp_path / "r", *[x for s in sets for x in ("--set", s)])
+    assert code == 0, err
+    chosen = json.loads((tmp_path / "r" / "summary.json").read_text())["train"]["ridge"]
+    assert isinstance(chosen, float) and seen == [chosen]
+    assert calibration.trial_keywords({"ridge": 0.5}, 1e-4) == {"ridge": 0.5}  # a weight given is kept
+    assert calibration.trial_keywords({"ridge": "auto"}, None) == {"ridge": "auto"}

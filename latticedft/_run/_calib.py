@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from .._calibrate import Calibration, calibrate, runner_up, too_short
+from .._calibrate import Calibration, calibrate, runner_up, too_short, trial_keywords
 from .._case import Case
 from .._collective import alone
 from .._contract import AbstractLagrangian
@@ -94,8 +94,8 @@ def _candidates(
     kwargs = {k: v for k, v in case.train.learn.items() if k not in ("ensemble", "ensemble_seed")}
     hand = case.model.build(len(data.dims))
     sel = getattr(report, "selection", None)
-    if not sel:
-        return hand, kwargs, None, None
+    if not sel:  # the trial takes the weight the model's fit chose where ridge = "auto"
+        return hand, trial_keywords(kwargs, getattr(report, "ridge", None)), None, None
     rows, at = sel["candidates"], sel["chosen"]
     chosen = rows[at]
     fresh = _build(hand, chosen["kind"], dict(chosen["options"]))
