@@ -100,10 +100,27 @@ def coefficient_error(learned: SymbolicLd, true: SymbolicLd) -> tuple[float, int
     return term_error(normalised_terms(learned), normalised_terms(true))
 
 
+def _split_phases(expr: Any) -> Any:
+    """``sin(a + c)``, ``cos(a + c)`` with a constant ``c`` written in ``sin a`` and ``cos a``, so that a potential
+    such as ``cos(q^2 - 1)`` and a library's ``sin(q^2)``, ``cos(q^2)`` are compared on the same terms (other
+    arguments, ``sin(2 q)`` or ``cos(q1 - q2)``, are kept as they are)."""
+
+    def phased(e: Any) -> bool:
+        return isinstance(e, (sympy.sin, sympy.cos)) and e.args[0].is_Add and e.args[0].as_coeff_Add()[0] != 0
+
+    def split(e: Any) -> Any:
+        c, a = e.args[0].as_coeff_Add()
+        if isinstance(e, sympy.sin):
+            return sympy.sin(a) * sympy.cos(c) + sympy.cos(a) * sympy.sin(c)
+        return sympy.cos(a) * sympy.cos(c) - sympy.sin(a) * sympy.sin(c)
+
+    return expr.replace(phased, split)
+
+
 def expanded_terms(expr: Any) -> dict[Any, Any]:
     """``expr`` expanded into a sum of terms, ``{term: coefficient}``; powers with a non-integer exponent
     (``(x^2 + y^2)^(-3/2)``) are kept whole."""
-    expr = _rational_powers(sympy.sympify(expr).evalf())
+    expr = _rational_powers(_split_phases(sympy.sympify(expr)).evalf())
     whole = {p: sympy.Dummy() for p in expr.atoms(sympy.Pow) if not p.exp.is_Integer}
     terms = sympy.expand(expr.xreplace(whole)).as_coefficients_dict()
     back = {d: p for p, d in whole.items()}

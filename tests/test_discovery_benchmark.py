@@ -67,6 +67,25 @@ def test_term_recovery_of_a_hand_made_kepler_form_with_float_powers():
     assert discovery.recovery(_Closed(SymbolicLd(kinetic, ((0,), (1,)), 2, (h,))), system)[0] == "6/8"
 
 
+def test_term_recovery_splits_a_constant_phase_of_a_trig_potential():
+    """Paper Example 2's ``cos(q^2 - 1)`` written as a library writes it, ``cos 1 cos q^2 + sin 1 sin q^2``, has the
+    same terms and coefficients; ``cos q^2`` alone does not."""
+    system = systems.build("oscillator-wells", quick=True)
+    (u0,), (u1,) = cell_symbols(2, 1)
+
+    def well(potential: object) -> SymbolicLd:
+        kinetic = (u1 - u0) ** 2 / 2
+        return SymbolicLd(
+            kinetic + 0.0075 * (potential(u0) + potential(u1)) + 0.0015 * (u0 + u1), ((0,), (1,)), 1, (1.0,)
+        )
+
+    split = well(lambda q: math.cos(1) * sympy.cos(q**2) + math.sin(1) * sympy.sin(q**2))
+    err, n_got, n_want = coefficient_error(split, system.true_ld)
+    assert (n_got, n_want) == (6, 6) and err < 1e-12
+    err, _, _ = coefficient_error(well(lambda q: sympy.cos(q**2)), system.true_ld)
+    assert err > 0.1
+
+
 def test_true_forms_of_every_system_agree_with_themselves_and_keep_unit_mass():
     for name in systems.SYSTEMS:
         true = systems.build(name, quick=True).true_ld

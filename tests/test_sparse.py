@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+import sympy
 import torch
 import xarray as xr
 from scipy.integrate import solve_ivp
@@ -13,6 +14,7 @@ from scipy.integrate import solve_ivp
 import latticedft as ldft
 from latticedft import Library, systems
 from latticedft._lattice import gather_cells
+from latticedft._models._terms import term_forms, term_values
 from latticedft._select import COUPLED_LIBRARY, sparse_candidates
 
 
@@ -80,6 +82,44 @@ def test_library_union_products_and_shorthands():
     assert names == ["Dtq**2", "sin(q)", "cos(q)", "sin(q**2)", "cos(q**2)"]
 
 
+def test_trig_and_exp_of_a_power_of_each_component():
+    names = [t.name for t in Library.parse("trig:2@2 + exp@3 + exp:0.5@2 + trig:1:0.5@3").expand(1, 1)]
+    assert names == [
+        "sin(q**2)",
+        "cos(q**2)",
+        "sin(2*q**2)",
+        "cos(2*q**2)",
+        "exp(q**3)",
+        "exp(0.5*q**2)",
+        "sin(0.5*q**3)",
+        "cos(0.5*q**3)",
+    ]
+    assert [t.name for t in Library.parse("trig:1@2").expand(2, 2)] == [
+        "sin(q1**2)",
+        "cos(q1**2)",
+        "sin(q2**2)",
+        "cos(q2**2)",
+    ]
+    assert [t.name for t in Library.parse("trig:1@1 + exp@1").expand(1, 1)] == ["sin(q)", "cos(q)", "exp(q)"]
+
+
+def test_trig_of_a_power_has_the_values_of_its_closed_form():
+    terms = Library.parse("trig:2:0.5@2 + exp:0.5@3 + kinetic*trig:1@2").expand(1, 2)
+    z = torch.rand(5, 2, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(3)) - 0.5
+    got = term_values(terms, z, [0.1]).numpy()
+    q1, q2, v1 = z[:, 0, 0].numpy(), z[:, 0, 1].numpy(), z[:, 1, 0].numpy() / 0.1
+    v2 = z[:, 1, 1].numpy() / 0.1
+    names = [t.name for t in terms]
+    np.testing.assert_allclose(got[:, names.index("sin(0.5*q1**2)")], np.sin(0.5 * q1**2), rtol=1e-15)
+    np.testing.assert_allclose(got[:, names.index("cos(q2**2)")], np.cos(q2**2), rtol=1e-15)
+    np.testing.assert_allclose(got[:, names.index("exp(0.5*q2**3)")], np.exp(0.5 * q2**3), rtol=1e-15)
+    kinetic_sin = names.index("(Dtq1**2+Dtq2**2)*sin(q1**2)")
+    np.testing.assert_allclose(got[:, kinetic_sin], (v1**2 + v2**2) * np.sin(q1**2), rtol=1e-13)
+    u = sympy.Symbol("u", real=True)
+    forms = term_forms(terms, [u, u], [[u, u]])
+    assert forms is not None and forms[names.index("cos(q2**2)")] == sympy.cos(u**2)
+
+
 @pytest.mark.parametrize(
     ("spec", "n", "m", "words"),
     [
@@ -93,6 +133,13 @@ def test_library_union_products_and_shorthands():
         ("norm:0", 1, 2, "power 0"),
         ("trig:1(wobble)", 1, 1, "unknown term 'wobble'"),
         ("trig:0(poly:2)", 1, 1, "K >= 1"),
+        ("trig:1@0", 1, 1, "power P >= 1 after '@' in 'trig:1@0'"),
+        ("exp:0.5@0", 1, 1, "power P >= 1 after '@' in 'exp:0.5@0'"),
+        ("trig:1@x", 1, 1, "expected trig:K\\[:w\\]@P or exp\\[:w\\]@P .* got 'trig:1@x'"),
+        ("exp@-2", 1, 1, "got 'exp@-2'"),
+        ("trig:1(poly:2)@2", 1, 1, "got 'trig:1\\(poly:2\\)@2'"),
+        ("trig:0@2", 1, 1, "K >= 1"),
+        ("trig:1:0@2", 1, 1, "positive frequency"),
     ],
 )
 def test_library_bad_inputs_name_the_key(spec, n, m, words):
@@ -194,6 +241,7 @@ def test_symbolic_matches_the_model_to_round_off():
         ldft.SparseLagrangian(
             "kinetic + poly:2*kinetic + gradient + trig:1(poly:2)", threshold=0.0, bags=0, at="average"
         ),
+        ldft.SparseLagrangian("kinetic + gradient + trig:2@2 + exp:0.5@2 + kinetic*trig:1@3", threshold=0.0, bags=0),
         ldft.FeatureLagrangian(["poly:3", "trig:1"], differences=2),
     ):
         ldft.learn(model, data, progress=False)
@@ -211,6 +259,18 @@ def test_print_shows_the_equation_and_the_del():
     assert "L_d = 0.5" in text and "cos(q)" in text and "LaTeX:" in text and "DEL:" in text
     assert "q[t+1]" in text and "inclusion 1.00" in text
     assert model.equation_text()["latex"].startswith("0.5")
+
+
+def test_a_trig_of_a_power_prints_in_closed_form():
+    model = ldft.SparseLagrangian("kinetic + poly:1 + trig:1@2", threshold=0.0, bags=0)
+    model.bind(1, 1, (1.0,))
+    with torch.no_grad():
+        model.coef.copy_(torch.tensor([0.5, 0.003, 0.0126, 0.0081], dtype=torch.float64))
+    text = model.equation_text()
+    assert "sin(q**2)" in text["L_d"] and "cos(q**2)" in text["L_d"]
+    assert r"\sin{\left(q^{2} \right)}" in text["latex"]
+    u0 = sympy.Symbol("u0_0", real=True)
+    assert model.to_sympy().has(sympy.sin(u0**2))
 
 
 def test_model_file_round_trip(tmp_path):

@@ -15,6 +15,7 @@ from latticedft._select import (
     BEATEN,
     BEYOND_CEILING,
     COUPLED_LIBRARY,
+    SQUARE_TRIG_LIBRARY,
     _choose,
     auto_candidates,
     exact_step_candidates,
@@ -125,6 +126,26 @@ def test_auto_tries_the_sparse_libraries_first():
     assert all(c.get("at") is None for c in sparse_candidates(2, 2) + sparse_candidates(2, 1))
     assert any(c.get("at") == "average" for c in sparse_candidates(1, 1))
     assert {c["threshold"] for c in ldft.SparseLagrangian().auto_candidates(1)} >= {0.1, 0.0}
+
+
+def test_the_trig_of_q_squared_is_a_candidate_on_a_time_only_scalar_lattice_only():
+    square = {"kind": "sparse", "library": SQUARE_TRIG_LIBRARY, "threshold": "auto"}
+    assert square in sparse_candidates(1, 1)
+    assert not any(c["library"] == SQUARE_TRIG_LIBRARY for n, m in ((2, 1), (1, 2)) for c in sparse_candidates(n, m))
+
+
+def test_select_finds_the_double_well_of_paper_example_2_by_the_trig_of_q_squared():
+    """``L = q'^2/2 + 0.015 (cos(q^2 - 1) + 0.2 q)``, dt = 1, from 1.7: the polynomial with time symmetry scores
+    lowest, and among the sparse candidates near it the four terms of ``kinetic + poly:4 + trig:1@2`` are preferred
+    to the seven wrong ones of the corrections library, which score lower."""
+    q = _ode(lambda y: [y[1], 0.015 * (0.2 - 2 * y[0] * np.sin(y[0] ** 2 - 1))], [1.7, 0.0], 51, 1.0)[0]
+    data = xr.DataArray(q, dims="t", coords={"t": np.arange(51.0)}, name="q")
+    corrections = next(c for c in sparse_candidates(1, 1) if "kinetic*kinetic" in c["library"] and "at" not in c)
+    square = {"kind": "sparse", "library": SQUARE_TRIG_LIBRARY, "threshold": "auto"}
+    cands = [corrections, square, {"time_symmetric": True}]
+    sel = ldft.select(ldft.PolynomialLagrangian((4, 8)), data, cands, progress=False)
+    assert sel.rows[3]["score"] < sel.rows[1]["score"] < sel.rows[2]["score"] and len(sel.rows[1]["terms"]) > 4
+    assert sel.chosen == 2 and sel.rows[2]["terms"] == ["Dtq**2", "q", "sin(q**2)", "cos(q**2)"]
 
 
 def test_select_takes_progress_and_chooses_the_sparse_pendulum():

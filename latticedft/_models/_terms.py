@@ -10,8 +10,10 @@ namespace, so the same code gives its torch values on cells and its sympy form (
 The shorthands (usable in case.toml, joined into libraries by :mod:`latticedft._models._library`):
 
 - on-site functions of the field: ``poly:K`` (the monomials of the components of total degree ``1 .. K``),
-  ``trig:K`` / ``trig:K:w`` (``sin(j w q_i)``, ``cos(j w q_i)``, ``j = 1 .. K``), ``trig:K(F)`` (the same of
-  every term of one family ``F``: ``trig:1(poly:2)`` holds ``sin(q**2)``), ``exp`` / ``exp:w`` (``exp(w q_i)``);
+  ``trig:K`` / ``trig:K:w`` (``sin(j w q_i)``, ``cos(j w q_i)``, ``j = 1 .. K``), ``trig:K@P`` / ``trig:K:w@P``
+  (the same of the power ``q_i^P``: ``trig:1@2`` holds ``sin(q**2)``, ``cos(q**2)``), ``trig:K(F)`` (the same of
+  every term of one family ``F``: ``trig:1(poly:2)`` holds ``sin(q)`` and ``sin(q**2)``), ``exp`` / ``exp:w``
+  (``exp(w q_i)``), ``exp@P`` / ``exp:w@P`` (``exp(w q_i^P)``);
 - squared derivatives: ``kinetic`` (``|D_t q|^2``), ``gradient`` (``|D_x q|^2`` per space axis),
   ``velocities`` (every product ``D_t q_i D_t q_j``, for unequal masses);
 - vector fields: ``norm:k1,k2,...`` (``|q|^k``, negative ``k`` too), ``log`` (``log|q|``), ``cross``
@@ -20,6 +22,8 @@ The shorthands (usable in case.toml, joined into libraries by :mod:`latticedft._
 
 >>> [t.name for t in named("trig:2").expand(1, 1)]
 ['sin(q)', 'cos(q)', 'sin(2*q)', 'cos(2*q)']
+>>> [t.name for t in named("trig:1@2").expand(1, 2)]
+['sin(q1**2)', 'cos(q1**2)', 'sin(q2**2)', 'cos(q2**2)']
 """
 
 from __future__ import annotations
@@ -195,8 +199,8 @@ def named(spec: str) -> Family:
             return make(match, spec)
     raise InputError.at(
         "library",
-        f"unknown term {spec!r}; expected poly:K, trig:K[:w], trig:K(F), exp[:w], kinetic, gradient, velocities, "
-        "norm:k1,k2,..., log, cross, radial, cosdiff, sindiff, joined by '+' and '*'",
+        f"unknown term {spec!r}; expected poly:K, trig:K[:w][@P], trig:K(F), exp[:w][@P], kinetic, gradient, "
+        "velocities, norm:k1,k2,..., log, cross, radial, cosdiff, sindiff, joined by '+' and '*'",
     )
 
 
@@ -244,9 +248,26 @@ def _scaled(w: float, j: int, name: str) -> str:
     return name if c == 1 else f"{c:g}*{name}"
 
 
-@_family(rf"trig:(\d+)(?::{_NUMBER})?")
+_POWER = r"(?:@(\d+))?"
+
+
+def _power(text: str | None, label: str) -> int:
+    """The ``P`` of ``...@P`` (1 without it); an ``InputError`` about ``library`` for ``P < 1``."""
+    p = int(text) if text else 1
+    if p < 1:
+        raise InputError.at("library", f"expected a power P >= 1 after '@' in {label!r}")
+    return p
+
+
+def _argument(m: int, i: int, p: int) -> str:
+    """The name of ``q_i^p``: ``q``, ``q**2``, ``q1**3`` ..."""
+    return component_name(m, i) + (f"**{p}" if p > 1 else "")
+
+
+@_family(rf"trig:(\d+)(?::{_NUMBER})?{_POWER}")
 def _trig(match: re.Match[str], label: str) -> Family:
-    k, w = int(match.group(1)), _frequency(match.group(2), label)
+    """``trig:K[:w][@P]``: ``sin(j w q_i^P)``, ``cos(j w q_i^P)``, ``j = 1 .. K``, of each component."""
+    k, w, p = int(match.group(1)), _frequency(match.group(2), label), _power(match.group(3), label)
     if k < 1:
         raise InputError.at("library", f"expected K >= 1 in {label!r}")
 
@@ -254,11 +275,11 @@ def _trig(match: re.Match[str], label: str) -> Family:
         out = []
         for i in range(m):
             for j in range(1, k + 1):
-                arg = _scaled(w, j, component_name(m, i))
+                arg = _scaled(w, j, _argument(m, i, p))
                 c = _number(j * w)
                 out += [
-                    Term(f"sin({arg})", partial(_onsite, "sin", i, c)),
-                    Term(f"cos({arg})", partial(_onsite, "cos", i, c)),
+                    Term(f"sin({arg})", partial(_onsite, "sin", i, c, p)),
+                    Term(f"cos({arg})", partial(_onsite, "cos", i, c, p)),
                 ]
         return out
 
@@ -296,15 +317,24 @@ def _trig_short(match: re.Match[str], label: str) -> Family:
     return named("trig:1")
 
 
-@_family(rf"exp(?::{_NUMBER})?")
+@_family(rf"exp(?::{_NUMBER})?{_POWER}")
 def _exp(match: re.Match[str], label: str) -> Family:
-    w = _frequency(match.group(1), label)
+    """``exp[:w][@P]``: ``exp(w q_i^P)`` of each component."""
+    w, p = _frequency(match.group(1), label), _power(match.group(2), label)
 
     def build(n: int, m: int) -> list[Term]:
         c = _number(w)
-        return [Term(f"exp({_scaled(w, 1, component_name(m, i))})", partial(_onsite, "exp", i, c)) for i in range(m)]
+        return [Term(f"exp({_scaled(w, 1, _argument(m, i, p))})", partial(_onsite, "exp", i, c, p)) for i in range(m)]
 
     return Family(label, build)
+
+
+@_family(r"(?:trig|exp)[^@]*@.*")
+def _bad_power(match: re.Match[str], label: str) -> Family:
+    """A ``@`` that none of the forms above read (``trig:1@x``, ``trig:1(poly:2)@2``): one line naming the form."""
+    raise InputError.at(
+        "library", f"expected trig:K[:w]@P or exp[:w]@P with a power P >= 1 (an integer), got {label!r}"
+    )
 
 
 def _squared(axis: int, m: int) -> Term:
@@ -357,9 +387,9 @@ def _times(c: float, x: Any) -> Any:
     return x if c == 1 else c * x
 
 
-def _onsite(name: str, i: int, c: float, v: Vars) -> Any:
-    """``name(c q_i)``: ``sin``, ``cos`` or ``exp`` of a scaled component."""
-    return getattr(v.xp, name)(_times(c, v.q[i]))
+def _onsite(name: str, i: int, c: float, p: int, v: Vars) -> Any:
+    """``name(c q_i^p)``: ``sin``, ``cos`` or ``exp`` of a scaled power of a component."""
+    return getattr(v.xp, name)(_times(c, v.q[i] if p == 1 else v.q[i] ** p))
 
 
 def _velocity_product(i: int, j: int, v: Vars) -> Any:
