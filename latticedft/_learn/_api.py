@@ -45,7 +45,9 @@ AUTO_RULE = (
     "fit unit-mass; keep it when the field has one component (the two gauges are then the same condition), "
     "when the model has a unit mass by construction, or when its rel_res <= 1e-8; otherwise fit trace from "
     "the same start and choose it when its rel_res is below a tenth of unit-mass's and its mixed Hessian stays "
-    "invertible (min sv of h0^2 M >= 1e-8); else keep unit-mass"
+    "invertible (min sv of h0^2 M >= 1e-8); else keep unit-mass. Under noise (the fields corrected), a model of "
+    "several components that kept unit-mass is learned again, correction included, in trace, and the same rule "
+    "compares the two corrected fits"
 )
 
 
