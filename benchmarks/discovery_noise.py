@@ -1,6 +1,7 @@
 """Discovery from noisy samples: ``select = "auto"`` with ``noise = "auto"`` on the systems of the discovery table.
 
     python -m benchmarks.discovery_noise [--only SYSTEM ...] [--sigmas S ...] [--seed N] [--threads N]
+    python -m benchmarks.discovery_noise --gauges LIBRARY [--at average] [--only SYSTEM ...] [--sigmas S ...]
 
 Each system of :mod:`benchmarks._discovery_systems` is learned from its training samples with Gaussian noise
 added (standard deviation ``sigma`` times the training fields' largest magnitude, seeded), the model chosen as a
@@ -19,6 +20,11 @@ from the clean test's first two slices (and boundary strips). Columns:
   (resampled time blocks) relative to the coefficient (``n/a`` for another model);
 - ``warned``: the learning report's warnings, shortened (``-`` for none): the run saying its fit may not hold;
 - ``select (s)``: the time of the selection with the noise correction.
+
+``--gauges LIBRARY`` measures instead how ``gauge = "auto"`` decides on those noisy samples: the sparse library at
+threshold 0.1 learned on every training field, with ``noise`` ``"none"`` and ``"auto"``, in each gauge; per fit the
+gauge used, its training ``rel_res`` (for ``auto``: the ``rel_res`` of each gauge the rule compared, ``gauge_scores``),
+the terms kept and the served error over 50 steps of the test in noise standard deviations.
 
 Targets (the noise part of term discovery): at ``sigma = 1e-3`` the right terms recovered (the true terms and
 no other, coefficients within 5 %) and the served error within 10 sigma over 50 steps; at ``sigma = 1e-2`` the
@@ -181,6 +187,31 @@ def run(cfg: Config, names: tuple[str, ...] | None = None, sigmas: tuple[float, 
     return table
 
 
+GAUGE_COLUMNS = ["system", "sigma", "noise", "gauge asked", "gauge used", "rel_res", "gauge_scores", "kept", "/ sigma"]
+
+
+def gauges(cfg: Config, names: tuple[str, ...], sigmas: tuple[float, ...], library: str, at: str, seed: int) -> Table:
+    """How ``gauge = "auto"`` decides on the noisy samples: ``library`` (threshold 0.1) in each gauge (``--gauges``)."""
+    table = Table(NAME + "-gauges", f"gauge = 'auto' on noisy samples: {library}", list(GAUGE_COLUMNS))
+    table.notes.append(f"load average (uptime) at the start: {load_average()}")
+    for name in names:
+        system = systems_mod.build(name, cfg.quick)
+        ref = np.asarray(system.test.values, dtype=float)
+        slices = min(STEPS + 2, system.slices)
+        for sigma in sigmas:
+            train, scale = noisy(system.train, sigma, seed)
+            for mode in ("none", "auto"):
+                for gauge in ("auto", "unit-mass", "trace"):
+                    model = ldft.SparseLagrangian(library, threshold=0.1, at=at)
+                    rep = ldft.learn(model, train, boundary=system.boundary, noise=mode, gauge=gauge, progress=False)
+                    err = systems_mod.max_errors(_served(model, system, STEPS), ref, slices)[0]
+                    scores = ", ".join(f"{k} {v:.2g}" for k, v in rep.gauge_scores.items()) or "-"
+                    kept = ", ".join(model.kept_terms())
+                    table.rows.append([name, sigma, mode, gauge, rep.gauge, rep.rel_res, scores, kept, err / scale])
+    table.notes.append(f"load average (uptime) at the end: {load_average()}")
+    return table
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.discovery_noise", description=__doc__.split("\n\n")[0])
     p.add_argument("--only", action="append", default=[], metavar="SYSTEM", help=", ".join(systems_mod.SYSTEMS))
@@ -188,6 +219,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="seed of the noise (default 0)")
     p.add_argument("--quick", action="store_true", help="the systems' small sizes")
     p.add_argument("--threads", type=int, default=1, help="threads of torch and BLAS (default 1)")
+    p.add_argument("--gauges", metavar="LIBRARY", help="measure gauge = 'auto' on LIBRARY instead of the table")
+    p.add_argument("--at", default="anchor", help="the sparse model's 'at' for --gauges (default anchor)")
     args = p.parse_args(argv)
     names = systems_mod.chosen(p, args.only)
     if any(not s > 0 for s in args.sigmas):
@@ -196,7 +229,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"# python -m benchmarks.discovery_noise {' '.join(argv if argv is not None else sys.argv[1:])}")
     print(f"# load average (uptime) before: {load_average()}", flush=True)
     t0 = time.perf_counter()
-    table = run(Config(quick=args.quick, threads=args.threads), names or None, tuple(args.sigmas), args.seed)
+    cfg = Config(quick=args.quick, threads=args.threads)
+    if args.gauges:
+        table = gauges(cfg, tuple(names or systems_mod.SYSTEMS), tuple(args.sigmas), args.gauges, args.at, args.seed)
+    else:
+        table = run(cfg, names or None, tuple(args.sigmas), args.seed)
     table.seconds = time.perf_counter() - t0
     print_table(table)
     print(f"# load average (uptime) after: {load_average()}", flush=True)

@@ -209,3 +209,19 @@ def test_weak_rows_are_test_function_sums_that_average_out_second_difference_noi
     assert out[:sites, 0] == pytest.approx(phi @ rows.reshape(nt, sites)[: 2 * w + 1])
     # summed by parts the differences fall on phi: the noise shrinks far below that of a plain row (sqrt(6))
     assert np.std(out) < 0.2 * np.std(rows)
+
+
+def test_gauges_mode_reads_the_gauge_auto_chose_on_noisy_samples():
+    """``--gauges``: the library in each gauge, without and with the noise correction; on the charged particle at
+    1e-3 ``auto`` takes trace after the correction (its row's scores name both gauges) and keeps ``q x Dq``."""
+    from benchmarks._common import Config
+    from benchmarks.discovery_noise import GAUGE_COLUMNS, gauges
+
+    table = gauges(Config(quick=True), ("charged-particle",), (1e-3,), "kinetic + poly:2 + cross", "anchor", 0)
+    rows = {(r[2], r[3]): dict(zip(GAUGE_COLUMNS, r, strict=True)) for r in table.rows}
+    assert len(rows) == 6
+    chosen = rows["auto", "auto"]
+    assert chosen["gauge used"] == "trace" and "unit-mass" in chosen["gauge_scores"]
+    assert chosen["kept"] == "(Dtq1**2+Dtq2**2), (q1*Dtq2-q2*Dtq1)"
+    assert "(q1*Dtq2-q2*Dtq1)" not in rows["auto", "unit-mass"]["kept"]
+    assert chosen["rel_res"] == rows["auto", "trace"]["rel_res"]

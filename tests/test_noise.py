@@ -132,6 +132,31 @@ def test_selection_scores_a_noise_corrected_candidate_from_denoised_starts() -> 
     assert from_noisy > 3 * rep.rows[0]["score"]
 
 
+def test_gauge_auto_under_noise_compares_the_gauges_after_the_correction() -> None:
+    """sigma = 1e-3 on two orbits of a charged particle: the noise floor of both gauges' dense fits (0.38 and 0.15)
+    hides that unit-mass cannot hold the magnetic term, and the correction then pulls the data toward unit-mass's
+    wrong equations. After the correction trace fits 70x better, so ``gauge="auto"`` takes it and recovers
+    ``q x Dq``; on Kepler orbits (equal masses) the two fit alike after the correction and unit-mass is kept."""
+    rng = np.random.default_rng(0)
+    starts = (((0.0, 0.0), (1.0, 0.5)), ((1.0, -1.0), (-0.3, 0.8)))
+    orbits = [systems.charged_particle(q0=q, v0=v, B=0.8, n=60, dt=0.1) for q, v in starts]
+    data = [noisy(f, 1e-3, rng) for f in orbits]
+    fixed = ldft.SparseLagrangian("kinetic + poly:2 + cross", threshold=0.1)
+    rep_unit = ldft.learn(fixed, data, progress=False, noise="auto", gauge="unit-mass")
+    assert "(q1*Dtq2-q2*Dtq1)" not in fixed.kept_terms()  # unit-mass: an isotropic oscillator in its place
+    model = ldft.SparseLagrangian("kinetic + poly:2 + cross", threshold=0.1)
+    rep = ldft.learn(model, data, progress=False, noise="auto")
+    assert rep.noise is not None and rep.noise["method"] == "errors in variables"
+    assert rep.gauge == "trace" and "after the noise correction" in rep.gauge_choice
+    assert rep.gauge_scores["unit-mass"] == rep_unit.rel_res and rep.gauge_scores["trace"] == rep.rel_res
+    assert model.kept_terms() == ["(Dtq1**2+Dtq2**2)", "(q1*Dtq2-q2*Dtq1)"]
+    kin, mag = model.coef.detach().numpy()[model.coef.detach().numpy() != 0]
+    assert mag / (2 * kin) == pytest.approx(0.4, rel=1e-2)  # B / 2
+    kepler = [noisy(systems.kepler_orbit(1.0, v, dt=0.1, n=80), 1e-3, rng) for v in (0.9, 1.1)]
+    rep_kepler = ldft.learn(ldft.SparseLagrangian("kinetic + norm:-1", threshold=0.1), kepler, noise="auto")
+    assert rep_kepler.gauge == "unit-mass" and "after the noise correction" in rep_kepler.gauge_choice
+
+
 def test_noise_correction_of_a_neural_model() -> None:
     """An iterative model is corrected too (refits from its previous weights): at sigma = 1e-3 a small
     kinetic-potential MLP serves 50 steps within 10 sigma and several times better than fitted plainly."""
