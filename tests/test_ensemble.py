@@ -239,17 +239,106 @@ def test_bad_calibration_warns(tmp_path: Path) -> None:
     assert calibration_warning(ldft.calibration(ref + 1.0, ref + 1.0, ref)) is None
 
 
-def test_a_member_that_stops_leaves_member_0_served(quartic: ldft.EnsembleLagrangian) -> None:
-    """A resampled member that cannot step (here: a degenerate one) stops the stacked run; member 0 is served
-    alone, and the spread covers only the slices every member reached, with a warning."""
-    broken = copy.deepcopy(quartic)
+def _broken(ens: ldft.EnsembleLagrangian, *members: int) -> ldft.EnsembleLagrangian:
+    """A copy of ``ens`` whose ``members`` are degenerate (L_d = 0: a singular mixed Hessian from the first step)."""
+    out = copy.deepcopy(ens)
     with torch.no_grad():
-        broken.member(2).coef.zero_()  # L_d = 0: a singular mixed Hessian from the first step
+        for k in members:
+            out.member(k).coef.zero_()
+    return out
+
+
+def test_a_member_that_stops_leaves_the_others_served(quartic: ldft.EnsembleLagrangian) -> None:
+    """A resampled member that cannot step stops the stacked run; every member is then served alone: member 0
+    is the model served alone, the spread is over the members still served, and the result names the member
+    that stopped, where and why."""
+    broken = _broken(quartic, 2)
     _, (ref,) = oscillator_data(amplitudes=(0.75,), steps=60)
     out = ldft.serve(broken, ref)
     assert out.complete and out.field.sizes["t"] == 60
     np.testing.assert_array_equal(out.field.values, ldft.serve(quartic.member(0), ref).field.values)
-    assert np.isnan(out.std.values[-1]) and any(w.startswith("ensemble: the spread covers") for w in out.warnings)
+    (stop,) = out.members_stopped
+    assert stop["member"] == 2 and stop["slice"] == 2 and "singular" in stop["reason"]
+    assert out.to_dict()["members_stopped"] == [stop]
+    survivors = np.stack([ldft.serve(quartic.member(k), ref).field.values for k in (0, 1, 3, 4)])
+    np.testing.assert_allclose(out.std.values[2:], survivors.std(axis=0, ddof=1)[2:], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(out.mean.values[2:], survivors.mean(axis=0)[2:], rtol=1e-12, atol=1e-15)
+    assert np.isfinite(out.std.values).all() and np.isnan(out.members.values[2, 2:]).all()
+    (warning,) = [w for w in out.warnings if w.startswith("ensemble:")]
+    assert "1 of 5 members stopped: member 2 at slice 2" in warning and "singular" in warning
+    assert list(out.std.attrs["stopped_members"]) == [2] and list(out.std.attrs["stopped_at_slice"]) == [2]
+
+
+def test_fewer_than_two_members_leave_no_spread(quartic: ldft.EnsembleLagrangian) -> None:
+    """With one member left the spread is undefined: NaN from the slice where the second-to-last one stopped."""
+    _, (ref,) = oscillator_data(amplitudes=(0.75,), steps=40)
+    out = ldft.serve(_broken(quartic, 1, 2, 3, 4), ref)
+    assert out.complete and [s["member"] for s in out.members_stopped] == [1, 2, 3, 4]
+    assert np.isnan(out.std.values[2:]).all() and np.isfinite(out.std.values[:2]).all()
+    assert "(NaN: fewer than 2)" in out.warnings[-1]
+
+
+def test_a_member_that_goes_non_finite_leaves_the_spread() -> None:
+    """A member whose field goes non-finite without a ServeError leaves the spread from that slice on."""
+    from latticedft._serve._ensemble import _spread, _stops
+
+    rng = np.random.default_rng(0)
+    full = rng.normal(size=(4, 8, 3, 1))
+    full[1, 5, 2, 0] = np.inf  # one site of one slice is enough
+    lost = _stops(full, [""] * 4)
+    assert lost == [{"member": 1, "slice": 5, "reason": "its field is not finite there"}]
+    mean, std = _spread(full)
+    keep = full[[0, 2, 3], 5:]
+    np.testing.assert_allclose(std[5:], keep.std(axis=0, ddof=1), rtol=1e-12)
+    np.testing.assert_allclose(mean[:5], full[:, :5].mean(axis=0), rtol=1e-12)
+
+
+def test_batched_serve_reports_the_stop_per_field(quartic: ldft.EnsembleLagrangian) -> None:
+    _, refs = oscillator_data(amplitudes=(0.5, 0.75), steps=40)
+    outs = ldft.serve(_broken(quartic, 3), list(refs))
+    alone = ldft.serve(quartic.member(0), list(refs))
+    for out, own in zip(outs, alone, strict=True):
+        assert [s["member"] for s in out.members_stopped] == [3] and np.isfinite(out.std.values).all()
+        np.testing.assert_array_equal(out.field.values, own.field.values)
+
+
+def test_every_member_served_reports_none_stopped(quartic: ldft.EnsembleLagrangian) -> None:
+    _, (ref,) = oscillator_data(amplitudes=(0.75,), steps=40)
+    out = ldft.serve(quartic, ref)
+    assert out.members_stopped is None and out.to_dict()["members_stopped"] == []
+    assert "stopped_members" not in out.std.attrs and not out.warnings
+
+
+def test_run_reports_a_member_that_stopped(tmp_path: Path, capsys, monkeypatch) -> None:
+    """A run whose ensemble loses a member: the task is complete, the warning is in the console, run.log and
+    summary.json (``members_stopped``), ``--strict`` makes the exit status 4, and the spread is written."""
+    import latticedft._serve as serving
+
+    real = serving.serve_ensemble
+
+    def breaking(ens, fs, run, batch):  # member 2 degenerate when served (learned as usual)
+        return real(_broken(ens, 2), fs, run, batch)
+
+    monkeypatch.setattr(serving, "serve_ensemble", breaking)
+    case = tiny_wave(tmp_path)
+    text = (case / "case.toml").read_text()
+    (case / "case.toml").write_text(text.replace('data = ["data/train.nc"]', 'data = ["data/train.nc"]\nensemble = 3'))
+    code, _, err = run_cli(capsys, "run", case, "--strict")
+    assert code == 4, err
+    assert (
+        "members stopped: member 2" in err
+        and "complete, 30 slices" in err
+        and "(1 of 3 ensemble members stopped)" in err
+    )
+    res = case / "results"
+    assert "members stopped: member 2" in (res / "run.log").read_text()
+    summary = json.loads((res / "summary.json").read_text())
+    task = summary["tasks"]["test"]
+    assert task["complete"] and [s["member"] for s in task["members_stopped"]] == [2]
+    assert any("members stopped" in w for w in summary["warnings"]) and summary["exit_status"] == 4
+    with xr.open_dataset(res / "test.nc") as ds:
+        assert np.isfinite(ds["psi_std"].values[2:]).all()
+        assert list(np.atleast_1d(ds["psi_std"].attrs["stopped_members"])) == [2]
 
 
 def test_members_take_member_0s_ridge() -> None:

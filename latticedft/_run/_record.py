@@ -56,6 +56,8 @@ class TaskRecord:
     source: str  # the key ``from``
     start: str
     ensemble_members: int | None = None
+    #: an ensemble's members that stopped short: ``{member, slice, reason}`` each (empty when none did)
+    members_stopped: list[dict[str, Any]] | None = None
     reference: str | None = None
     max_error: float | None = None  # with the next three: present when the task has a reference
     rms_error: float | None = None
@@ -78,7 +80,12 @@ class TaskRecord:
     def served(cls, result: dict[str, Any], **rest: Any) -> TaskRecord:
         """A record from a result's numbers (``ServeResult.to_dict()``) and the task's other fields."""
         own = {k: result[k] for k in SERVED_KEYS}
-        return cls(**own, ensemble_members=result.get("ensemble_members"), **rest)
+        return cls(
+            **own,
+            ensemble_members=result.get("ensemble_members"),
+            members_stopped=result.get("members_stopped"),
+            **rest,
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """The task's entry of ``summary.json``, its keys in order (those of the result first)."""
@@ -86,6 +93,7 @@ class TaskRecord:
         out["warnings"] = list(self.warnings)
         if self.ensemble_members is not None:
             out["ensemble_members"] = self.ensemble_members
+            out["members_stopped"] = list(self.members_stopped or [])
         out.update(
             every=self.every,
             kept_slices=self.kept_slices,

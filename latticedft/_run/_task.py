@@ -382,6 +382,8 @@ def _task_line(served: _Served, t: ServeTask, rec: TaskRecord) -> str:
         f"task {t.name}: {'complete' if result.complete else 'INCOMPLETE'}, {result.slices} slices, {how}, "
         f"{served.wall:.2f} s"
     )
+    if rec.members_stopped:  # complete, but the error bar is over fewer members (a warning says which)
+        msg += f" ({len(rec.members_stopped)} of {rec.ensemble_members} ensemble members stopped)"
     if t.cadence.thins:
         msg += f"{t.cadence.describe()}: {rec.kept_slices} slices kept"
     if rec.max_error is not None:

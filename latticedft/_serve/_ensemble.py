@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -18,7 +19,14 @@ from .._models._ensemble import stacked
 from ._range import assess
 from ._result import ServeResult
 
-__all__ = ["serve_ensemble", "calibration", "calibration_warning", "CALIBRATION_MIN_WITHIN_2STD"]
+__all__ = [
+    "serve_ensemble",
+    "calibration",
+    "calibration_warning",
+    "stopped_warning",
+    "CALIBRATION_MIN_WITHIN_2STD",
+    "MIN_MEMBERS",
+]
 
 #: A task whose error lies within 2 standard deviations of the ensemble on fewer than this fraction of its
 #: slices gets a warning: the spread understates the error (a Gaussian error bar holds 95 %).
@@ -47,10 +55,12 @@ def _member_values(r: ServeResult, members: int, m: int) -> np.ndarray:
 def serve_ensemble(ens: EnsembleLagrangian, fs: list[LatticeField], run: Run, batch: bool) -> list[ServeResult]:
     """Serve every member of ``ens`` on each field of ``fs`` in one stacked run; ``run(model, fields)`` serves.
 
-    Each result's ``field`` is member 0's (the full-data model's) field, with ``mean``, ``std`` (over all
-    members, ``ddof = 1``) and ``members``. When the stacked run stops (some member stops converging), member 0
-    is served alone for ``field``, and the spread covers only the slices every member reached (NaN after, with
-    a warning). A ServeError from member 0 itself carries the results so far.
+    Each result's ``field`` is member 0's (the full-data model's) field, with ``mean``, ``std`` (over the
+    members, ``ddof = 1``) and ``members``. When the stacked run stops (some member stops converging), every
+    member is served alone: member 0 for ``field``, the others as far as each goes. A member that stops, or
+    whose field goes non-finite, leaves the spread from that slice on: ``mean`` and ``std`` are over the members
+    still finite on each slice, NaN where fewer than :data:`MIN_MEMBERS` are; the result names the members that
+    stopped (``members_stopped``) with a warning. A ServeError from member 0 itself carries the results so far.
     """
     n, m = len(ens), ens.m
     labels = _labels(ens, fs[0])
@@ -60,25 +70,64 @@ def serve_ensemble(ens: EnsembleLagrangian, fs: list[LatticeField], run: Run, ba
         joint = run(model, [_stack(f, n, labels) for f in fs])
     except ServeError as err:
         stopped = err
-        joint = err.result if isinstance(err.result, list) else [err.result]
-    solo: list[ServeResult] | None = None
+        joint = _partial(err)
+    solo: list[list[ServeResult | None]] | None = None
+    reasons: list[list[str]] = [[""] * n for _ in fs]
     failure: ServeError | None = None
     if stopped is not None:
-        try:
-            solo = run(ens.member(0), fs)
-        except ServeError as err:
-            failure = err
-            solo = err.result if isinstance(err.result, list) else [err.result]
+        solo, failure = _alone(ens, fs, run, reasons)
     out = []
     for i, f in enumerate(fs):
         r = joint[i] if i < len(joint) else None
         vals = _member_values(r, n, m) if r is not None else np.full((n, 2, *f.values.shape[1:]), math.nan)
-        own = solo[i] if solo is not None and i < len(solo) else None
-        out.append(_result(ens, f, r, vals, own, stopped))
+        own = solo[0][i] if solo is not None else None
+        if solo is not None:  # each member's own field, as far as it went
+            vals = _joined([s[i] for s in solo], vals)
+        out.append(_result(ens, f, r, vals, own, reasons[i]))
     if failure is not None:
         raise ServeError(
             str(failure), result=out if batch else out[0], slice=failure.slice, residual=failure.residual
         ) from None
+    return out
+
+
+#: The fewest members still finite on a slice that give it a spread (a standard deviation with ``ddof = 1``).
+MIN_MEMBERS = 2
+
+
+def _partial(err: ServeError) -> list[ServeResult]:
+    """The results a ServeError carries, as a list."""
+    return err.result if isinstance(err.result, list) else [err.result]
+
+
+def _alone(
+    ens: EnsembleLagrangian, fs: list[LatticeField], run: Run, reasons: list[list[str]]
+) -> tuple[list[list[ServeResult | None]], ServeError | None]:
+    """Every member served alone on ``fs``: ``(results per member, member 0's ServeError or None)``; a member's
+    stop reason on field ``i`` goes to ``reasons[i][k]``."""
+    out: list[list[ServeResult | None]] = []
+    failure = None
+    for k in range(len(ens)):
+        try:
+            got = run(ens.member(k), fs)
+        except ServeError as err:
+            failure = err if k == 0 else failure
+            got = _partial(err)
+            for i in range(len(fs)):
+                done = i < len(got) and got[i] is not None and got[i].complete
+                reasons[i][k] = "" if done else str(err)
+        out.append([got[i] if i < len(got) else None for i in range(len(fs))])
+    return out, failure
+
+
+def _joined(results: list[ServeResult | None], like: np.ndarray) -> np.ndarray:
+    """The members' own fields ``(members, nt, *sites, m)`` (NaN beyond where each stopped)."""
+    nt = max([like.shape[1], *(r.field.sizes[r.field.dims[0]] for r in results if r is not None)])
+    out = np.full((len(results), nt, *like.shape[2:]), math.nan)
+    for k, r in enumerate(results):
+        if r is not None:
+            v = np.asarray(r.field.values, dtype=np.float64).reshape(r.field.shape[0], *like.shape[2:])
+            out[k, : v.shape[0]] = v
     return out
 
 
@@ -88,7 +137,7 @@ def _result(
     joint: ServeResult | None,
     vals: np.ndarray,
     own: ServeResult | None,
-    stopped: ServeError | None,
+    reasons: list[str],
 ) -> ServeResult:
     """The result of one field: member 0's field and run, the ensemble's spread beside it."""
     if own is None:
@@ -105,21 +154,69 @@ def _result(
     full = np.full((vals.shape[0], nt, *vals.shape[2:]), math.nan)
     reach = min(nt, vals.shape[1])
     full[:, :reach] = vals[:, :reach]
-    if stopped is not None:
-        base.warnings.append(
-            f"ensemble: the spread covers slices 0..{reach - 1} only: the stacked members stopped there ({stopped}); "
-            "a member stopping is itself a sign that the prediction is uncertain"
-        )
+    lost = _stops(full, reasons)
+    mean, std = _spread(full)
+    base.members_stopped = lost or None
+    if lost:
+        base.warnings.append(stopped_warning(lost, len(ens)))
     members = xr.concat([base.field.copy(data=_layout(base.field, v)) for v in full], dim="member")
     members = members.assign_coords(member=np.arange(len(ens))).rename("members")
-    with np.errstate(invalid="ignore"):
-        mean = base.field.copy(data=_layout(base.field, full.mean(axis=0)))
-        std = base.field.copy(data=_layout(base.field, full.std(axis=0, ddof=1)))
-    mean.attrs = {**mean.attrs, "long_name": f"ensemble mean of {base.field.name or 'psi'}"}
-    std.attrs = {**std.attrs, "long_name": f"ensemble standard deviation of {base.field.name or 'psi'}"}
-    mean.attrs.pop("source", None)
-    std.attrs.pop("source", None)
-    return replace(base, mean=mean, std=std, members=members)
+    mean_da = base.field.copy(data=_layout(base.field, mean))
+    std_da = base.field.copy(data=_layout(base.field, std))
+    name = base.field.name or "psi"
+    mean_da.attrs = {**mean_da.attrs, "long_name": f"ensemble mean of {name}"}
+    std_da.attrs = {**std_da.attrs, "long_name": f"ensemble standard deviation of {name}"}
+    if lost:  # read by the figure, which marks where members stopped
+        std_da.attrs["stopped_members"] = np.array([s["member"] for s in lost], dtype=np.int64)
+        std_da.attrs["stopped_at_slice"] = np.array([s["slice"] for s in lost], dtype=np.int64)
+    mean_da.attrs.pop("source", None)
+    std_da.attrs.pop("source", None)
+    return replace(base, mean=mean_da, std=std_da, members=members)
+
+
+def _stops(full: np.ndarray, reasons: list[str]) -> list[dict[str, Any]]:
+    """The members that stop short of the last slice, or go non-finite: ``{member, slice, reason}`` each, where
+    ``slice`` is the first slice the member does not hold finite (its values there and after are set to NaN)."""
+    nt = full.shape[1]
+    finite = np.isfinite(full.reshape(full.shape[0], nt, -1)).all(axis=2)
+    out = []
+    for k in range(full.shape[0]):
+        if finite[k].all():
+            continue
+        at = int(np.argmin(finite[k]))
+        full[k, at:] = math.nan
+        why = reasons[k] if k < len(reasons) and reasons[k] else "its field is not finite there"
+        out.append({"member": k, "slice": at, "reason": why})
+    return out
+
+
+def _spread(full: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard deviation (``ddof = 1``) over the members finite on each slice; NaN on a slice with
+    fewer than :data:`MIN_MEMBERS` of them."""
+    if np.isfinite(full).all():  # every member on every slice
+        return full.mean(axis=0), full.std(axis=0, ddof=1)
+    count = np.isfinite(full).sum(axis=0)
+    few = count < MIN_MEMBERS
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices
+        mean = np.nanmean(full, axis=0)
+        std = np.nanstd(full, axis=0, ddof=1)
+    mean[few], std[few] = math.nan, math.nan
+    return mean, std
+
+
+def stopped_warning(lost: list[dict[str, Any]], members: int) -> str:
+    """The one-line warning of members that stopped (``{member, slice, reason}`` each) in an ensemble of
+    ``members``."""
+    first = min(s["slice"] for s in lost)
+    left = members - len(lost)
+    each = "; ".join(f"member {s['member']} at slice {s['slice']} ({s['reason']})" for s in lost)
+    return (
+        f"ensemble: {len(lost)} of {members} members stopped: {each}; from slice {first} on the spread is over the "
+        f"{left} member(s) still served"
+        + (f" (NaN: fewer than {MIN_MEMBERS})" if left < MIN_MEMBERS else "")
+        + ", and a member stopping is itself a sign that the prediction is uncertain"
+    )
 
 
 def _layout(like: xr.DataArray, v: np.ndarray) -> np.ndarray:

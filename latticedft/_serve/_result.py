@@ -70,6 +70,9 @@ class ServeResult:
     mean: xr.DataArray | None = dataclasses.field(default=None, repr=False)
     std: xr.DataArray | None = dataclasses.field(default=None, repr=False)
     members: xr.DataArray | None = dataclasses.field(default=None, repr=False)
+    #: An ensemble's members that stopped (or went non-finite) before the last slice: ``{"member", "slice",
+    #: "reason"}`` each, ``slice`` the first one the member does not hold; None when every member served it all.
+    members_stopped: list[dict[str, Any]] | None = None
 
     def extrapolation_summary(self) -> dict[str, Any] | None:
         """The largest excess per feature and the first slice beyond the tolerance (None without a range)."""
@@ -82,6 +85,7 @@ class ServeResult:
         out["warnings"] = list(self.warnings)
         if self.members is not None:
             out["ensemble_members"] = int(self.members.sizes["member"])
+            out["members_stopped"] = list(self.members_stopped or [])
         return out
 
     def to_dataset(self) -> xr.Dataset:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import textwrap
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import xarray as xr
@@ -301,6 +301,7 @@ def _plot_errors(
     if spread is not None and spread.shape == pred.shape:
         calibrated = "calibrated" in str(spread.attrs.get("long_name", ""))
         _plot_band(ax, t, np.asarray(spread.transpose(*pred.dims).values), rms, calibrated=calibrated)
+        _mark_stopped_members(ax, t, spread.attrs)
     elif estimate is not None and estimate.shape == (len(t),):
         _plot_band(ax, t, np.asarray(estimate.values), rms, label="calibrated error estimate")
     base_max, base_rms = series.get("baseline_err_max"), series.get("baseline_err_rms")
@@ -355,6 +356,24 @@ def _plot_band(
     ax.fill_between(t, floor, np.where(np.isfinite(two), two, floor), color="tab:blue", alpha=0.25, lw=0)
     what = label or ("ensemble (calibrated)" if calibrated else "ensemble")
     ax.semilogy(t, two, "-", color="tab:blue", lw=1, label=f"{what}: 2 std (3 std lighter), rms over sites")
+
+
+def _mark_stopped_members(ax: Axes, t: np.ndarray, attrs: Mapping[str, Any]) -> None:
+    """A dotted line where members of an ensemble stopped (the spread is over fewer members from there)."""
+    members = np.atleast_1d(np.asarray(attrs.get("stopped_members", []), dtype=np.int64))
+    at = np.atleast_1d(np.asarray(attrs.get("stopped_at_slice", []), dtype=np.int64))
+    for k, i in enumerate(sorted(set(int(i) for i in at if 0 <= i < len(t)))):
+        who = ", ".join(str(int(m)) for m, j in zip(members, at, strict=False) if j == i)
+        ax.axvline(t[i], color="tab:blue", ls=":", lw=1, label="member(s) stopped" if k == 0 else None)
+        ax.annotate(
+            f"member {who} stops",
+            (t[i], 0.02),
+            xycoords=("data", "axes fraction"),
+            fontsize="x-small",
+            rotation=90,
+            color="tab:blue",
+            va="bottom",
+        )
 
 
 def drift_series(series: Mapping[str, xr.DataArray]) -> dict[str, xr.DataArray]:
