@@ -201,3 +201,35 @@ def test_a_coupled_analytic_ld_served_in_its_band_equals_the_sparse_lu(
     a, b = np.asarray(fast.field.values), np.asarray(slow.field.values)
     assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max()
     assert fast.newton_iterations == slow.newton_iterations and fast.complete
+
+
+def test_a_singular_periodic_jacobian_is_left_to_the_sparse_lu_and_reported_as_before(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``L = u1 (u0 - u2) + cos u0``: each mixed-Hessian block is 1 (the sites' singular values pass), but the
+    periodic slice Jacobian ``I - shift`` is singular (constants). The band refuses it (its last Schur complement
+    vanishes) and the sparse LU reports the slice as it does without the band, to the letter."""
+
+    def fn(c, h):
+        return c[..., 1, 0] * (c[..., 0, 0] - c[..., 2, 0]) + torch.cos(c[..., 0, 0])
+
+    model = ldft.AnalyticLagrangian(fn, name="shift")
+    init = smooth_start(1, 12, True)
+    used: list[bool] = []
+    real = _band.band_factor
+
+    def counted(*a):
+        solve = real(*a)
+        used.append(solve is not None)
+        return solve
+
+    monkeypatch.setattr(_slices_module, "band_factor", counted)
+    messages = []
+    for flag in (True, False):
+        monkeypatch.setattr(_band, "BAND_KERNEL", flag)
+        with pytest.raises(ldft.ServeError) as err:
+            ldft.serve(model, init, slices=6, progress=False)
+        messages.append(str(err.value))
+        if flag:
+            assert used and not any(used)  # the band was asked and refused
+    assert messages[0] == messages[1] and "singular Jacobian" in messages[0] and "slice 2" in messages[0]
