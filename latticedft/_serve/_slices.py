@@ -16,6 +16,7 @@ import torch
 from .._boundary import axis_kinds
 from .._lattice import LatticeField, interior_slices
 from .._models import AbstractLagrangian
+from ._band import band_factor
 
 #: A slice whose mixed Hessian has a smallest singular value below ``SINGULAR_RTOL`` times its scale (the
 #: largest singular value met on the served field so far) is singular: serving stops there with a
@@ -248,7 +249,11 @@ class _SliceSystem:
         return diag
 
     def factor(self, blocks, vol: float):
-        """Assemble and factorise the slice Jacobian; returns ``solve(rhs)``."""
+        """Assemble and factorise the slice Jacobian; returns ``solve(rhs)``. On one spatial axis, a block-tridiagonal
+        Jacobian is solved by the compiled kernels of ``._band`` where they serve it, else by the LU below."""
+        solve = band_factor(self, blocks, vol)
+        if solve is not None:
+            return solve
         rows, cols, vals = self.matrix_entries(blocks, vol)
         size = self.n * self.m
         if self.banded:

@@ -14,7 +14,9 @@ over the cells that couple an equation's site to an unknown site.
 - ``"krylov"``: restarted GMRES (``scipy.sparse.linalg.gmres``) on the
   assembled sparse Jacobian, preconditioned by those inverted diagonal blocks
   (block Jacobi): no fill-in, cost linear in the sites per iteration.
-- ``"lu"``: the sparse (1+1D Dirichlet: banded) LU factorisation.
+- ``"lu"``: the sparse (1+1D Dirichlet: banded) LU factorisation; in 1+1D a block-tridiagonal Jacobian (a
+  stencil one site wide along space), periodic or not, is factorised by the compiled block LU of ``._band``
+  where it needs no pivoting between blocks (the sparse LU serves it otherwise).
 - ``"auto"``: site-wise when the off-diagonal blocks are below
   ``OFFDIAG_RTOL`` of the diagonal ones (measured on every fresh Jacobian);
   otherwise LU in 1+1D (a banded or nearly banded matrix: cheap to factorise)
