@@ -40,11 +40,11 @@ from .._options import option
 from ._affine import _AffineSlices, _slice_residuals, passing_prefix
 from ._checkpoint import keep_factored, restore_stream, stream_state
 from ._edges import known_slices
-from ._field import served_where, slice_error, solve_and_tally, solve_run, solver_name
 from ._options import Cadence, ServeOptions, kept_slices
 from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
 from ._result import ServeResult, _bar
 from ._slices import _SliceSystem, is_singular
+from ._stepper import served_where, slice_error, solve_and_tally, solve_run, solver_name
 
 __all__ = ["kept_slices", "thin_result", "SliceSource", "lazy_field"]
 
@@ -168,7 +168,7 @@ class _Stream:
         self.total_it, self.max_it, self.worst = 0, 0, 0.0
         self.affine_slices = 0
         self.cache: dict[str, Any] = {"solver": options.solver}
-        self.where = served_where(options.device)  # where the slice solves run (``_field.on_device``)
+        self.where = served_where(options.device)  # where the slice solves run (``_stepper.on_device``)
         self.before: torch.Tensor | None = None  # the slice before buffer position 0 (Newton's predictor)
         self.bar = _bar(steps - 2, f"serve ({self.mode}, every {every})", options.progress)
         self.buf[:2] = f.values[:2]
