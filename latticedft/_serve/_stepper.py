@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any
+from typing import Any, Protocol
 
 import torch
 
@@ -13,6 +13,7 @@ from .._action import CellDerivatives
 from .._device import resolve_device
 from .._errors import ServeError
 from .._lattice import LatticeField
+from .._models import AbstractLagrangian
 from . import _ondevice
 from ._folded import FoldedSlices, folded_slices
 from ._fused import FusedSlices, fused_slices
@@ -22,6 +23,57 @@ from ._result import ServeResult
 from ._slices import _site_label, _SliceSystem, is_singular
 from ._solvers import OFFDIAG_RTOL
 from ._sweep import _sweep_slice
+
+
+class Progress(Protocol):
+    """A run's progress bar, as the stepper moves it: one step a slice solved."""
+
+    def update(self, n: int = 1) -> object: ...
+
+
+class SliceRun(Protocol):
+    """What a run must provide for the stepper to solve its slices: the model and lattice, the slices it holds
+    (``flat``: ``(slices, sites, m)``, a view of the values passed beside the run as ``psi``; position ``0`` holds
+    slice ``base`` of the field: ``0`` for the whole field, the window's first slice for a rolling window),
+    where the solves run, the Newton cache, and the counters and progress bar it tallies on.
+
+    ``_field._FieldRun`` (the whole field) and ``_stream._Stream`` (a rolling window) are the two; mypy checks
+    both against it where they are passed to the stepper's functions."""
+
+    @property
+    def model(self) -> AbstractLagrangian: ...
+    @property
+    def f(self) -> LatticeField: ...
+    @property
+    def sys(self) -> _SliceSystem: ...
+    @property
+    def mode(self) -> str: ...
+    @property
+    def flat(self) -> torch.Tensor: ...
+    @property
+    def unk(self) -> torch.Tensor: ...
+    @property
+    def vol(self) -> float: ...
+    @property
+    def where(self) -> torch.device: ...
+    @property
+    def base(self) -> int: ...
+    @property
+    def cache(self) -> dict[str, Any]: ...
+    @property
+    def bar(self) -> Progress: ...
+
+    total_it: int
+    max_it: int
+    worst: float
+
+    def cells_at(self, i: int) -> torch.Tensor:
+        """The cells anchored on position ``i``."""
+        ...
+
+    def fail(self, i: int, msg: str, row: int | None, res: float) -> ServeError:
+        """The error for position ``i``'s equations failing (at equation ``row``), with the partial result."""
+        ...
 
 
 def slice_error(
@@ -40,7 +92,13 @@ def slice_error(
 
 
 def solve_and_tally(
-    run: Any, psi: torch.Tensor, i: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int, older: Any
+    run: SliceRun,
+    psi: torch.Tensor,
+    i: int,
+    g_prev: torch.Tensor | None,
+    rtol: float,
+    max_newton: int,
+    older: torch.Tensor | None,
 ) -> torch.Tensor | None:
     """Solve the equations of slice ``i`` of ``run`` (a whole-field or a windowed run: ``psi``/``run.flat`` its
     slices) for slice ``i + 1``; the iterations are counted on ``run``, a failure raised by ``run.fail``.
@@ -98,7 +156,9 @@ def solve_and_tally(
     return g_prev
 
 
-def _sitewise(run: Any, i: int, older: Any, rtol: float, max_newton: int) -> tuple[int, float] | None:
+def _sitewise(
+    run: SliceRun, i: int, older: torch.Tensor | None, rtol: float, max_newton: int
+) -> tuple[int, float] | None:
     """Slice ``i`` of ``run`` solved by the device slice Newton (a run on a device, :func:`on_device`) or the
     compiled one, where either serves it: ``(evaluations, residual)``; ``None`` where neither does (or a site
     failed: slice-Newton then solves the slice)."""
@@ -115,7 +175,9 @@ def _sitewise(run: Any, i: int, older: Any, rtol: float, max_newton: int) -> tup
     return None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, cache)
 
 
-def solve_run(run: Any, i: int, stop: int, rtol: float, max_newton: int, before: torch.Tensor | None = None) -> int:
+def solve_run(
+    run: SliceRun, i: int, stop: int, rtol: float, max_newton: int, before: torch.Tensor | None = None
+) -> int:
     """Slices ``i .. stop - 1`` of ``run`` (a whole-field or a windowed run: ``run.flat`` its slices, slice
     ``j - 2`` the older one of slice ``j`` from ``j = 2`` on, ``before`` that of slice 1 where given) solved in
     one call of the compiled slice Newton once it serves the run (as :func:`_sitewise` would call it slice by
@@ -135,7 +197,7 @@ def solve_run(run: Any, i: int, stop: int, rtol: float, max_newton: int, before:
     return int(j - i)
 
 
-def _tallied(run: Any, it: int, res: float) -> None:
+def _tallied(run: SliceRun, it: int, res: float) -> None:
     """Count a solved slice's iterations and residual on ``run`` (and its progress bar)."""
     run.total_it += it
     run.max_it = max(run.max_it, it)
@@ -143,7 +205,7 @@ def _tallied(run: Any, it: int, res: float) -> None:
     run.bar.update(1)
 
 
-def _choose_fused(run: Any, i: int, older: Any) -> None:
+def _choose_fused(run: SliceRun, i: int, older: torch.Tensor | None) -> None:
     """Before the first Newton slice, where the compiled slice Newton could serve: the site-wise solver chosen
     and the scales set from the Hessian blocks at the predictor, as slice-Newton's first iteration would
     (``_newton._fresh_blocks``; ``_solvers.choose_solver`` chooses site-wise for a Jacobian block diagonal by
@@ -187,7 +249,7 @@ def served_where(device: str | None) -> torch.device:
     return resolve_device(device)
 
 
-def on_device(run: Any) -> bool:
+def on_device(run: SliceRun) -> bool:
     """Whether ``run``'s Newton slices are solved on its device (:mod:`._ondevice`) once the site-wise solver
     is chosen: on CUDA (or on the CPU where the tests ask), for Newton on a run not checkpointed."""
     where: torch.device = run.where
@@ -195,7 +257,7 @@ def on_device(run: Any) -> bool:
     return wanted and run.mode == "newton" and not run.cache.get("keep_factored")
 
 
-def _choose_device(run: Any, i: int, at: int, older: Any) -> None:
+def _choose_device(run: SliceRun, i: int, at: int, older: torch.Tensor | None) -> None:
     """Before the first Newton slice of a run on a device: the site-wise solver chosen and the scales set from
     the Hessian blocks at the predictor, as slice-Newton's first iteration would (``_choose_fused`` on the
     CPU), so that the device serves the first slice too. A Jacobian that is not block diagonal (to
@@ -217,7 +279,7 @@ def _choose_device(run: Any, i: int, at: int, older: Any) -> None:
     cache["on_device"] = device
 
 
-def _device_of(run: Any) -> _ondevice.DeviceSlices | None:
+def _device_of(run: SliceRun) -> _ondevice.DeviceSlices | None:
     """The device slice Newton of ``run`` once slice-Newton has chosen the site-wise solver (and only that
     one) for it; ``None`` before, or where the field is not scalar."""
     cache = run.cache
@@ -229,7 +291,7 @@ def _device_of(run: Any) -> _ondevice.DeviceSlices | None:
     return device
 
 
-def _folded_of(run: Any) -> FoldedSlices | None:
+def _folded_of(run: SliceRun) -> FoldedSlices | None:
     """The folded polynomial kernels of ``run`` (:mod:`._folded`) or a kinetic-potential MLP's closed forms on
     them (:mod:`._potential`), or ``None`` where neither serves it."""
     cache = run.cache
@@ -239,7 +301,7 @@ def _folded_of(run: Any) -> FoldedSlices | None:
     return folded
 
 
-def _fused_of(run: Any) -> FusedSlices | None:
+def _fused_of(run: SliceRun) -> FusedSlices | None:
     """The compiled slice Newton of ``run`` (:mod:`._fused`) once slice-Newton has chosen the site-wise solver
     (and only that one) for it; ``None`` before, or where the model or lattice has none."""
     cache = run.cache
