@@ -21,7 +21,7 @@ from ._options import ServeOptions
 from ._range import assess
 from ._result import ServeResult, _bar
 from ._slices import _SliceSystem
-from ._stepper import served_where, slice_error, solve_and_tally, solve_run, solver_name
+from ._stepper import served_where, slice_error, solver_name, step_slices
 
 
 def _initial_values(
@@ -125,10 +125,14 @@ class _FieldRun:
         """The ``solver`` name of the result."""
         return solver_name(self.mode, self.affine_slices, self.steps)
 
-    def solve_slice(self, i: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int) -> torch.Tensor | None:
-        """Solve slice ``i``'s equations for slice ``i + 1``; returns the gradients of the cells anchored at ``i``."""
-        older = self.flat[i - 2] if i >= 2 else None
-        return solve_and_tally(self, self.psi, i, g_prev, rtol, max_newton, older)
+    @property
+    def values(self) -> torch.Tensor:
+        """The whole field's slices, ``(steps, *spatial, m)``."""
+        return self.psi
+
+    def older(self, i: int) -> torch.Tensor | None:
+        """Slice ``i - 2`` of slice ``i`` (Newton's predictor)."""
+        return self.flat[i - 2] if i >= 2 else None
 
     def _result(
         self, field: LatticeField, complete: bool, reason: str, slices: int, wall: float, rate: float, residual: float
@@ -181,13 +185,6 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options
     run = _FieldRun(model, f, steps, mode, options.progress, options.solver, options.boundary_value, where)
     if mode == "newton" and options.affine and steps > 2:
         run.serve_affine(rtol)
-    g_prev: torch.Tensor | None = None  # the first Newton slice evaluates them (the compiled kernel needs none)
-    i = run.start
-    while i < steps - 1:
-        solved = solve_run(run, i, steps - 1, rtol, max_newton)  # the compiled slice Newton: many slices a call
-        if solved:
-            i, g_prev = i + solved, None
-            continue
-        g_prev = run.solve_slice(i, g_prev, rtol, max_newton)
-        i += 1
+    # the first Newton slice evaluates the gradients of its older cells (the compiled kernel needs none)
+    step_slices(run, run.start, steps - 1, None, rtol, max_newton)
     return run.finish()

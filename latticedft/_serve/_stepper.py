@@ -33,9 +33,10 @@ class Progress(Protocol):
 
 class SliceRun(Protocol):
     """What a run must provide for the stepper to solve its slices: the model and lattice, the slices it holds
-    (``flat``: ``(slices, sites, m)``, a view of the values passed beside the run as ``psi``; position ``0`` holds
-    slice ``base`` of the field: ``0`` for the whole field, the window's first slice for a rolling window),
-    where the solves run, the Newton cache, and the counters and progress bar it tallies on.
+    (``values``: ``(slices, *spatial, m)``, and ``flat``, its view ``(slices, sites, m)``), where they lie in
+    the field (position ``0`` holds slice ``base``: ``0`` for the whole field, the window's first slice for a
+    rolling window) and the older slice of each position (:meth:`older`), where the solves run, the Newton
+    cache, and the counters and progress bar it tallies on.
 
     ``_field._FieldRun`` (the whole field) and ``_stream._Stream`` (a rolling window) are the two; mypy checks
     both against it where they are passed to the stepper's functions."""
@@ -48,6 +49,8 @@ class SliceRun(Protocol):
     def sys(self) -> _SliceSystem: ...
     @property
     def mode(self) -> str: ...
+    @property
+    def values(self) -> torch.Tensor: ...
     @property
     def flat(self) -> torch.Tensor: ...
     @property
@@ -71,6 +74,10 @@ class SliceRun(Protocol):
         """The cells anchored on position ``i``."""
         ...
 
+    def older(self, i: int) -> torch.Tensor | None:
+        """Slice ``i - 2`` of position ``i`` (Newton's predictor), ``None`` for the field's first two slices."""
+        ...
+
     def fail(self, i: int, msg: str, row: int | None, res: float) -> ServeError:
         """The error for position ``i``'s equations failing (at equation ``row``), with the partial result."""
         ...
@@ -92,26 +99,20 @@ def slice_error(
 
 
 def solve_and_tally(
-    run: SliceRun,
-    psi: torch.Tensor,
-    i: int,
-    g_prev: torch.Tensor | None,
-    rtol: float,
-    max_newton: int,
-    older: torch.Tensor | None,
+    run: SliceRun, i: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int
 ) -> torch.Tensor | None:
-    """Solve the equations of slice ``i`` of ``run`` (a whole-field or a windowed run: ``psi``/``run.flat`` its
-    slices) for slice ``i + 1``; the iterations are counted on ``run``, a failure raised by ``run.fail``.
+    """Solve the equations of slice ``i`` of ``run`` (a whole-field or a windowed run: ``run.values``/``run.flat``
+    its slices) for slice ``i + 1``; the iterations are counted on ``run``, a failure raised by ``run.fail``.
 
     The predictor on the unknown sites is ``2 psi_i - psi_{i-1}`` plus, for Newton with ``older`` (slice
-    ``i - 2``), the previous slice's correction to its own such predictor
+    ``i - 2``: ``run.older(i)``), the previous slice's correction to its own such predictor
     (``3 psi_i - 3 psi_{i-1} + psi_{i-2}``: the next term of the extrapolation).
 
     Where the device or the compiled slice Newton serves (:func:`_sitewise`) it solves the slice and ``None``
     is returned for the gradients (``g_prev``: the cells anchored at ``i - 1``; ``None`` has them evaluated
     afresh).
     """
-    flat, unk = run.flat, run.unk
+    flat, unk, psi, older = run.flat, run.unk, run.values, run.older(i)
     done = _sitewise(run, i, older, rtol, max_newton)
     if done is not None:  # the compiled or device slice Newton: no per-cell gradients are carried to the next slice
         _tallied(run, *done)
@@ -175,11 +176,9 @@ def _sitewise(
     return None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, cache)
 
 
-def solve_run(
-    run: SliceRun, i: int, stop: int, rtol: float, max_newton: int, before: torch.Tensor | None = None
-) -> int:
+def solve_run(run: SliceRun, i: int, stop: int, rtol: float, max_newton: int) -> int:
     """Slices ``i .. stop - 1`` of ``run`` (a whole-field or a windowed run: ``run.flat`` its slices, slice
-    ``j - 2`` the older one of slice ``j`` from ``j = 2`` on, ``before`` that of slice 1 where given) solved in
+    ``j - 2`` the older one of slice ``j`` from ``j = 2`` on, ``run.older(1)`` that of slice 1) solved in
     one call of the compiled slice Newton once it serves the run (as :func:`_sitewise` would call it slice by
     slice; at most :data:`RUN_SITES` unknowns a call, so that the progress bar moves), tallied as
     :func:`solve_and_tally` tallies them: how many (``0``: none; a slice a site could not finish is left to
@@ -188,6 +187,7 @@ def solve_run(
     if fused is None or not fused.rows.size or run.mode != "newton" or on_device(run):
         return 0
     stop = min(stop, i + max(1, RUN_SITES // fused.rows.size))
+    before = run.older(1) if i == 1 else None
     j, its, res = fused.solve_many(run.flat, i, stop, run.vol, rtol, max_newton, run.cache, before)
     if its:
         run.total_it += sum(its)
@@ -195,6 +195,23 @@ def solve_run(
         run.worst = max(run.worst, *res)
         run.bar.update(len(its))
     return int(j - i)
+
+
+def step_slices(
+    run: SliceRun, i: int, stop: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int
+) -> torch.Tensor | None:
+    """The equations of positions ``i .. stop - 1`` of ``run`` solved one after the other, each for the next
+    position: runs of slices by the compiled slice Newton where it serves (:func:`solve_run`), the others one
+    by one (:func:`solve_and_tally`, from ``g_prev``, the gradients of the cells anchored at ``i - 1`` where
+    known); returns the gradients of the cells anchored at the last position solved (``None``: not known)."""
+    while i < stop:
+        solved = solve_run(run, i, stop, rtol, max_newton)  # the compiled slice Newton: many slices a call
+        if solved:
+            i, g_prev = i + solved, None
+            continue
+        g_prev = solve_and_tally(run, i, g_prev, rtol, max_newton)
+        i += 1
+    return g_prev
 
 
 def _tallied(run: SliceRun, it: int, res: float) -> None:

@@ -44,7 +44,7 @@ from ._options import Cadence, ServeOptions, kept_slices
 from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
 from ._result import ServeResult, _bar
 from ._slices import _SliceSystem, is_singular
-from ._stepper import served_where, slice_error, solve_and_tally, solve_run, solver_name
+from ._stepper import served_where, slice_error, solver_name, step_slices
 
 __all__ = ["kept_slices", "thin_result", "SliceSource", "lazy_field"]
 
@@ -252,12 +252,16 @@ class _Stream:
             self.worst = max(self.worst, float(np.nanmax(res[:k], initial=0.0)))
         return k
 
-    def solve(self, p: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int) -> torch.Tensor | None:
-        """Solve the equations of buffer position ``p`` for position ``p + 1`` (as ``_FieldRun.solve_slice``)."""
-        older = None
-        if self.base + p >= 2:  # slice p - 2 of the whole field: in the window, or the one before it
-            older = self.flat[p - 2] if p >= 2 else self.before
-        return solve_and_tally(self, self.buf, p, g_prev, rtol, max_newton, older)
+    @property
+    def values(self) -> torch.Tensor:
+        """The window's slices, ``(chunk + 2, *spatial, m)``."""
+        return self.buf
+
+    def older(self, p: int) -> torch.Tensor | None:
+        """Slice ``p - 2`` of buffer position ``p`` (Newton's predictor): in the window, or the one before it."""
+        if self.base + p < 2:
+            return None
+        return self.flat[p - 2] if p >= 2 else self.before
 
     # -- the result ------------------------------------------------------------------------------------------
     def solver(self) -> str:
@@ -360,15 +364,7 @@ def _serve_stream(
                     run.total_it, run.max_it = run.affine_slices, 1
                     run.cache["dmax"], run.cache["mscale"] = op.dmax, mscale
                 g_prev = None
-        p = start
-        while p <= n_new:
-            before = run.before if p == 1 and run.base else None  # position 1's older slice: before the window
-            solved = solve_run(run, p, n_new + 1, rtol, max_newton, before)
-            if solved:
-                p, g_prev = p + solved, None
-                continue
-            g_prev = run.solve(p, g_prev, rtol, max_newton)
-            p += 1
+        g_prev = step_slices(run, start, n_new + 1, g_prev, rtol, max_newton)
         run.emit(n_new + 1)
         if run.base + n_new + 2 >= steps:
             break
