@@ -4,7 +4,6 @@ slice-Newton or the site-by-site sweep."""
 from __future__ import annotations
 
 import math
-import time
 from typing import Any
 
 import numpy as np
@@ -19,9 +18,9 @@ from ._edges import known_slices
 from ._fused import KEPT_BYTES
 from ._options import ServeOptions
 from ._range import assess
-from ._result import ServeResult, _bar
+from ._result import ServeResult
 from ._slices import _SliceSystem
-from ._stepper import served_where, slice_error, solver_name, step_slices
+from ._stepper import SteppedRun, served_where, slice_error, step_slices
 
 
 def _initial_values(
@@ -74,7 +73,7 @@ def slice_system(model: AbstractLagrangian, f: LatticeField) -> _SliceSystem:
     return sys
 
 
-class _FieldRun:
+class _FieldRun(SteppedRun):
     """One n-D field being served: its slice system, values, iteration counters and progress bar."""
 
     def __init__(
@@ -88,20 +87,18 @@ class _FieldRun:
         boundary_value: Any = None,
         where: torch.device | None = None,
     ):
-        self.model, self.f, self.steps, self.mode = model, f, steps, mode
-        self.where = where or torch.device("cpu")  # where the slice solves run (:func:`on_device`)
         self.sys = slice_system(model, f)
         self.psi = _initial_values(f, self.sys, steps, boundary_value, nan=mode != "newton")
         self.flat = self.psi.reshape(steps, self.sys.nsite, f.ncomp)  # (steps, site, m): a view of psi
         self.unk = torch.from_numpy(np.nonzero(self.sys.interior)[0])
-        self.vol = math.prod(model.spacing)
-        self.t0 = time.perf_counter()
-        self.total_it, self.max_it, self.worst = 0, 0, 0.0
-        self.bar = _bar(steps - 2, f"serve ({mode})", progress)
-        self.cache: dict[str, Any] = {"solver": solver}
+        # where the slice solves run: ``_stepper.on_device``
+        super().__init__(model, f, steps, mode, solver, where or torch.device("cpu"), progress)
         self.start = 1  # first slice whose equations Newton (or the sweep) solves
-        self.base = 0  # the slice held at position 0 (the whole field: the first)
-        self.affine_slices = 0
+
+    @property
+    def values(self) -> torch.Tensor:
+        """The whole field's slices, ``(steps, *spatial, m)``."""
+        return self.psi
 
     def cells_at(self, i: int) -> torch.Tensor:
         """The cells anchored on slice ``i``."""
@@ -116,23 +113,10 @@ class _FieldRun:
         self.start = 1 + self.affine_slices
         if self.affine_slices:
             self.worst = worst
-            self.total_it, self.max_it = self.affine_slices, 1
+            self.count_affine()
             self.cache["dmax"] = dmax
             self.cache["mscale"] = mscale
         self.bar.update(self.affine_slices)
-
-    def solver(self) -> str:
-        """The ``solver`` name of the result."""
-        return solver_name(self.mode, self.affine_slices, self.steps)
-
-    @property
-    def values(self) -> torch.Tensor:
-        """The whole field's slices, ``(steps, *spatial, m)``."""
-        return self.psi
-
-    def older(self, i: int) -> torch.Tensor | None:
-        """Slice ``i - 2`` of slice ``i`` (Newton's predictor)."""
-        return self.flat[i - 2] if i >= 2 else None
 
     def _result(
         self, field: LatticeField, complete: bool, reason: str, slices: int, wall: float, rate: float, residual: float
@@ -144,16 +128,12 @@ class _FieldRun:
             complete=complete,
             reason=reason,
             slices=slices,
-            newton_iterations=self.total_it,
-            max_newton_iterations=self.max_it,
             wall_time=wall,
             sites_per_second=rate,
             max_residual=residual,
-            mode=self.mode,
-            solver=self.solver(),
-            slice_solver="+".join(self.cache.get("used", [])) or None,
             extrapolation=ext,
             warnings=warnings,
+            **self.counts(),
         )
 
     def fail(self, i: int, msg: str, row: int | None, res: float) -> ServeError:
@@ -161,20 +141,14 @@ class _FieldRun:
         f, sys = self.f, self.sys
         self.bar.close()
         part = LatticeField.with_values(f, self.psi[: i + 1].clone())
-        wall = time.perf_counter() - self.t0
-        solved = (i + 1 - 2) * sys.n
-        result = self._result(part, False, msg, i + 1, wall, solved / wall if wall > 0 else 0.0, res)
+        result = self._result(part, False, msg, i + 1, *self.timed(i + 1), res)
         return slice_error(f, sys, i, msg, row, res, result)
 
     def finish(self) -> ServeResult:
         """The complete served field."""
         self.bar.close()
-        wall = time.perf_counter() - self.t0
         out = LatticeField.with_values(self.f, self.psi)
-        solved = (self.steps - 2) * self.sys.n
-        return self._result(
-            out, True, "complete", self.steps, wall, solved / wall if wall > 0 else math.inf, self.worst
-        )
+        return self._result(out, True, "complete", self.steps, *self.timed(self.steps), self.worst)
 
 
 def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options: ServeOptions) -> ServeResult:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import math
+import time
 from typing import Any, Protocol
 
 import torch
@@ -19,7 +20,7 @@ from ._folded import FoldedSlices, folded_slices
 from ._fused import FusedSlices, fused_slices
 from ._newton import _newton_slice
 from ._potential import potential_slices
-from ._result import ServeResult
+from ._result import ServeResult, _bar
 from ._slices import _site_label, _SliceSystem, is_singular
 from ._solvers import OFFDIAG_RTOL
 from ._sweep import _sweep_slice
@@ -38,8 +39,8 @@ class SliceRun(Protocol):
     rolling window) and the older slice of each position (:meth:`older`), where the solves run, the Newton
     cache, and the counters and progress bar it tallies on.
 
-    ``_field._FieldRun`` (the whole field) and ``_stream._Stream`` (a rolling window) are the two; mypy checks
-    both against it where they are passed to the stepper's functions."""
+    ``_field._FieldRun`` (the whole field) and ``_stream._Stream`` (a rolling window) are the two, both
+    :class:`SteppedRun`; mypy checks them against it where they are passed to the stepper's functions."""
 
     @property
     def model(self) -> AbstractLagrangian: ...
@@ -81,6 +82,70 @@ class SliceRun(Protocol):
     def fail(self, i: int, msg: str, row: int | None, res: float) -> ServeError:
         """The error for position ``i``'s equations failing (at equation ``row``), with the partial result."""
         ...
+
+
+class SteppedRun:
+    """What the whole-field run and the rolling window share around the stepper: the model, lattice and mode,
+    where the solves run, the Newton cache, the counters, the clock and the progress bar, the older slice of
+    each position (from the slices held, or ``before`` the window's first), and the figures of the result
+    that every run reports. A subclass holds the slices (``values``, ``flat``, ``unk``), ``sys`` and
+    ``cells_at`` and ``fail``, and calls ``__init__`` once they are set up (the clock starts there)."""
+
+    sys: _SliceSystem
+    flat: torch.Tensor
+
+    def __init__(
+        self,
+        model: AbstractLagrangian,
+        f: LatticeField,
+        steps: int,
+        mode: str,
+        solver: str,
+        where: torch.device,
+        progress: bool | None,
+        label: str = "",
+    ):
+        self.model, self.f, self.steps, self.mode, self.where = model, f, steps, mode, where
+        self.vol = math.prod(model.spacing)
+        self.t0 = time.perf_counter()
+        self.total_it, self.max_it, self.worst = 0, 0, 0.0
+        self.affine_slices = 0  # slices the affine recurrence served (after the two given ones)
+        self.cache: dict[str, Any] = {"solver": solver}
+        self.base = 0  # the slice held at position 0 (the whole field: the first)
+        self.before: torch.Tensor | None = None  # the slice before position 0 (a window's; Newton's predictor)
+        self.bar = _bar(steps - 2, f"serve ({mode}{label})", progress)
+
+    def older(self, i: int) -> torch.Tensor | None:
+        """Slice ``i - 2`` of position ``i`` (Newton's predictor): held, or the one before position 0."""
+        if self.base + i < 2:
+            return None
+        return self.flat[i - 2] if i >= 2 else self.before
+
+    def count_affine(self) -> None:
+        """The slices of the affine recurrence counted as one evaluation each."""
+        self.total_it, self.max_it = self.affine_slices, 1
+
+    def solver(self) -> str:
+        """The ``solver`` name of the result."""
+        return solver_name(self.mode, self.affine_slices, self.steps)
+
+    def timed(self, slices: int) -> tuple[float, float]:
+        """The wall time since the clock started and the sites a second it makes over the first ``slices``
+        slices (the two given ones not counted; no time: ``0`` for a run stopped early, ``inf`` for a whole
+        one)."""
+        wall = time.perf_counter() - self.t0
+        solved = (slices - 2) * self.sys.n
+        return wall, solved / wall if wall > 0 else (math.inf if slices == self.steps else 0.0)
+
+    def counts(self) -> dict[str, Any]:
+        """The figures of the result that the stepper counted: evaluations, mode and solvers."""
+        return {
+            "newton_iterations": self.total_it,
+            "max_newton_iterations": self.max_it,
+            "mode": self.mode,
+            "solver": self.solver(),
+            "slice_solver": "+".join(self.cache.get("used", [])) or None,
+        }
 
 
 def slice_error(
