@@ -8,6 +8,7 @@ import math
 import time
 from typing import Any, Protocol
 
+import numpy as np
 import torch
 
 from .._action import CellDerivatives
@@ -146,6 +147,37 @@ class SteppedRun:
             "solver": self.solver(),
             "slice_solver": "+".join(self.cache.get("used", [])) or None,
         }
+
+
+class MemberBatch(Protocol):
+    """What a batch of 1D trajectories gives the stepper (``_batch._Batch``, ``_fast1d.FastBatch``): its
+    longest member's slices and the step of one group of members."""
+
+    @property
+    def fs(self) -> list[LatticeField]: ...
+    @property
+    def nmax(self) -> int: ...
+
+    def advance(self, group: np.ndarray, i: int, rtol: float, max_newton: int, box: float | None) -> None:
+        """Slice ``i + 1`` of the members of ``group`` still running: solved, stored, the failed ones retired."""
+        ...
+
+
+def step_members(
+    batch: MemberBatch, mode: str, rtol: float, max_newton: int, box: float | None, progress: bool | None
+) -> None:
+    """The slices of a batch of ``b`` 1D trajectories, one slice of every member at a time: all members in one
+    batched Newton (``mode="newton"``), or one member after the other (``"sweep"``: in 1D the site-by-site
+    sweep is that same Newton on the one site)."""
+    b = len(batch.fs)
+    members = np.arange(b)
+    groups = [members] if mode == "newton" else [members[k : k + 1] for k in range(b)]
+    bar = _bar(batch.nmax - 2, f"serve ({mode}, {b} trajectories)", progress)
+    for i in range(1, batch.nmax - 1):
+        for group in groups:
+            batch.advance(group, i, rtol, max_newton, box)
+        bar.update(1)
+    bar.close()
 
 
 def slice_error(
