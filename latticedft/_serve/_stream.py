@@ -323,7 +323,7 @@ def _serve_stream(
         state = saver.load()
         on_affine = restore_stream(run, state) if state is not None else on_affine
     saved = run.base
-    g_prev: Any = None  # the first Newton slice evaluates them (by the folded kernels where those serve)
+    g_prev: torch.Tensor | None = None  # the first Newton slice evaluates them (the folded kernels where they serve)
     run.emit(1)
     while run.base + 2 < steps:
         n_new = min(run.chunk, steps - run.base - 2)
