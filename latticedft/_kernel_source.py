@@ -368,7 +368,7 @@ def tally(res, its):
 def _slice_step_source() -> list[str]:
     """``predict``: slice-Newton's predictor on the unknown sites (``2 psi_i - psi_{i-1}``, plus
     ``psi_i - 2 psi_{i-1} + psi_{i-2}`` where ``older``, slice ``i - 2``, is given), in the order of
-    ``_field.solve_and_tally``, returning the scale of a Newton step (``_slices._scale``: the largest value
+    ``_stepper.solve_and_tally``, returning the scale of a Newton step (``_slices._scale``: the largest value
     in size of the two slices and the predictor), in one pass over the sites (``interior``: those with an
     equation), the maxima of each in its own chain; ``tally``: the least and most evaluations of the sites
     and their largest residual, in a pass of its own (a running maximum inside the Newton loop waits on

@@ -478,17 +478,17 @@ def test_a_fresh_jacobians_blocks_come_with_the_gradients(monkeypatch: pytest.Mo
 
 def _served_with_states(monkeypatch: pytest.MonkeyPatch, model, init, **keywords) -> tuple[object, list]:
     """The serve and, per Newton slice, its evaluations and ``cache["fresh_first"]`` after it."""
-    from latticedft._serve import _field as field_module
+    from latticedft._serve import _stepper
 
     states = []
-    newton = field_module._newton_slice
+    newton = _stepper._newton_slice
 
     def recorded(*a, **k):
         out = newton(*a, **k)
         states.append((out[0], a[11].get("fresh_first", 0)))
         return out
 
-    monkeypatch.setattr(field_module, "_newton_slice", recorded)
+    monkeypatch.setattr(_stepper, "_newton_slice", recorded)
     return ldft.serve(model, init, slices=24, progress=False, **keywords), states
 
 

@@ -7,6 +7,7 @@ import math
 import time
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import xarray as xr
 
@@ -106,6 +107,12 @@ class _Batch:
         if self.const_model:
             self.jac_const = jac[0].clone()
         return g, jac
+
+    def advance(self, group: np.ndarray, i: int, rtol: float, max_newton: int, box: float | None) -> None:
+        """Slice ``i + 1`` of the members of ``group`` still running: one batched Newton, stored (:meth:`record`)."""
+        act_list = self.members(group.tolist(), i)
+        if act_list:
+            self.record(act_list, i, self.newton(act_list, i, rtol, max_newton), max_newton, box)
 
     def newton(self, act_list: list[int], i: int, rtol: float, max_newton: int) -> _GroupStep:
         """Newton with backtracking for slice ``i + 1`` of the members ``act_list``, from the predictor."""

@@ -183,7 +183,7 @@ class _SlabNewton:
 
 
 def _site_text(init: xr.DataArray, dims: tuple[str, ...], site: tuple[int, ...]) -> str:
-    """``index t=12, x=5 (x = 0.3125)``, as one process says it (``_field._site_text``), from ``init``'s axes."""
+    """``index t=12, x=5 (x = 0.3125)``, as one process says it (``_stepper._site_text``), from ``init``'s axes."""
     idx = ", ".join(f"{d}={i}" for d, i in zip(dims, site))
     coords = ", ".join(f"{d} = {float(init[d].values[i]):.6g}" for d, i in zip(dims[1:], site[1:]) if d in init.coords)
     return f"index {idx}" + (f" ({coords})" if coords else "")

@@ -28,6 +28,7 @@ from ._batch import _Batch, failure_text
 from ._range import assess_batch
 from ._result import ServeResult, _bar
 from ._slices import SINGULAR_RTOL
+from ._stepper import step_members
 
 __all__ = ["numpy_derivatives_of", "FastBatch", "serve_fast"]
 
@@ -270,6 +271,17 @@ class FastBatch(_Batch):
         one = np.array([k])
         return _Step(one, np.array([[u]]), g, np.array([rabs]), np.array([ok]), np.array([sing]), it, np.array([smin]))
 
+    def advance(self, group: np.ndarray, i: int, rtol: float, max_newton: int, box: float | None) -> None:
+        """:meth:`_Batch.advance` in numpy; one scalar member (no box) by Python floats (:meth:`step_one`)."""
+        act = self.active(group, i)
+        if act.size:
+            if act.size == 1 and self.m == 1 and box is None:  # one scalar member: Python floats
+                one = self.step_one(int(act[0]), i, rtol, max_newton)
+                if one is not None:
+                    self.store(i, one, max_newton, box)
+            else:
+                self.store(i, self.step(act, i, rtol, max_newton), max_newton, box)
+
     def store(self, i: int, s: _Step, max_newton: int, box: float | None) -> None:
         """:meth:`_Batch.record` in numpy: store slice ``i + 1``; retire the members that failed or left the box."""
         act = s.act
@@ -310,22 +322,8 @@ def serve_fast(
             serve_trajectory(batch, kernel, rtol, max_newton, box)
         _bar(batch.nmax - 2, f"serve ({mode}, 1 trajectory, compiled)", progress).close()
         return batch.results(time.perf_counter() - batch.t0, mode)
-    members = np.arange(len(fs))
-    groups = [members] if mode == "newton" else [members[k : k + 1] for k in range(len(fs))]
-    bar = _bar(batch.nmax - 2, f"serve ({mode}, {len(fs)} trajectories)", progress)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # non-finite values are tested for
-        for i in range(1, batch.nmax - 1):
-            for group in groups:
-                act = batch.active(group, i)
-                if act.size:
-                    if act.size == 1 and batch.m == 1 and box is None:  # one scalar member: Python floats
-                        one = batch.step_one(int(act[0]), i, rtol, max_newton)
-                        if one is not None:
-                            batch.store(i, one, max_newton, box)
-                    else:
-                        batch.store(i, batch.step(act, i, rtol, max_newton), max_newton, box)
-            bar.update(1)
-    bar.close()
+        step_members(batch, mode, rtol, max_newton, box, progress)
     return batch.results(time.perf_counter() - batch.t0, mode)
 
 

@@ -3,33 +3,24 @@ slice-Newton or the site-by-site sweep."""
 
 from __future__ import annotations
 
-import functools
 import math
-import time
 from typing import Any
 
 import numpy as np
 import torch
 
-from .._action import CellDerivatives
 from .._boundary import axis_kinds, missing_edges
-from .._device import resolve_device
 from .._errors import InputError, ServeError
 from .._lattice import LatticeField, gather_cells, to_dataarrays
 from .._models import AbstractLagrangian
-from . import _ondevice
 from ._affine import _affine_prefix
 from ._edges import known_slices
-from ._folded import FoldedSlices, folded_slices
-from ._fused import KEPT_BYTES, FusedSlices, fused_slices
-from ._newton import _newton_slice
+from ._fused import KEPT_BYTES
 from ._options import ServeOptions
-from ._potential import potential_slices
 from ._range import assess
-from ._result import ServeResult, _bar
-from ._slices import _site_label, _SliceSystem, is_singular
-from ._solvers import OFFDIAG_RTOL
-from ._sweep import _sweep_slice
+from ._result import ServeResult
+from ._slices import _SliceSystem
+from ._stepper import SteppedRun, served_where, slice_error, step_slices
 
 
 def _initial_values(
@@ -63,236 +54,6 @@ def _initial_values(
     return psi
 
 
-def slice_error(
-    f: LatticeField, sys: _SliceSystem, i: int, msg: str, row: int | None, res: float, result: ServeResult
-) -> ServeError:
-    """The error for slice ``i``'s equations failing (at equation ``row``): slice, time, site and residual in
-    one line, with the partial ``result``."""
-    site = _site_label(f, sys, i, row) if row is not None else None
-    tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
-    text = (
-        f"slice {i + 1} (t = {tval:.6g}): {msg}"
-        + (f" in the DEL equation of site {_site_text(f, site)}" if site else "")
-        + (f", residual {res:.3e}" if math.isfinite(res) else "")
-    )
-    return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
-
-
-def solve_and_tally(
-    run: Any, psi: torch.Tensor, i: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int, older: Any
-) -> torch.Tensor | None:
-    """Solve the equations of slice ``i`` of ``run`` (a whole-field or a windowed run: ``psi``/``run.flat`` its
-    slices) for slice ``i + 1``; the iterations are counted on ``run``, a failure raised by ``run.fail``.
-
-    The predictor on the unknown sites is ``2 psi_i - psi_{i-1}`` plus, for Newton with ``older`` (slice
-    ``i - 2``), the previous slice's correction to its own such predictor
-    (``3 psi_i - 3 psi_{i-1} + psi_{i-2}``: the next term of the extrapolation).
-
-    Where the device or the compiled slice Newton serves (:func:`_sitewise`) it solves the slice and ``None``
-    is returned for the gradients (``g_prev``: the cells anchored at ``i - 1``; ``None`` has them evaluated
-    afresh).
-    """
-    flat, unk = run.flat, run.unk
-    done = _sitewise(run, i, older, rtol, max_newton)
-    if done is not None:  # the compiled or device slice Newton: no per-cell gradients are carried to the next slice
-        _tallied(run, *done)
-        return None
-    folded = _folded_of(run) if run.mode == "newton" and not on_device(run) else None
-    scale = None  # _slices._scale at the predictor, where the folded predictor measured it
-    if folded is not None:
-        scale = folded.predict(flat, i, older)
-    else:
-        flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
-    if run.mode == "newton" and older is not None and folded is None:
-        flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + older[unk]
-    if run.mode == "newton":
-        if g_prev is None and folded is not None:
-            g_prev = torch.from_numpy(folded.grad(flat, i - 1))
-        elif g_prev is None:
-            g_prev = CellDerivatives(run.model, run.cells_at(i - 1)).grad
-        evaluate = functools.partial(folded.evaluate, flat, run.vol) if folded else None
-        it, res, g_prev, err = _newton_slice(
-            run.model,
-            run.sys,
-            psi,
-            flat,
-            unk,
-            i,
-            g_prev,
-            run.vol,
-            rtol,
-            max_newton,
-            run.cells_at,
-            run.cache,
-            evaluate=evaluate,
-            scale=scale,
-        )
-    else:
-        it, res, g_prev, err = _sweep_slice(run.model, run.sys, psi, flat, i, run.vol, rtol, max_newton, run.f)
-    if err is not None:
-        _tallied(run, it, res)
-        msg, row, rval = err
-        raise run.fail(i, msg, row, rval)
-    _tallied(run, it, res)
-    return g_prev
-
-
-def _sitewise(run: Any, i: int, older: Any, rtol: float, max_newton: int) -> tuple[int, float] | None:
-    """Slice ``i`` of ``run`` solved by the device slice Newton (a run on a device, :func:`on_device`) or the
-    compiled one, where either serves it: ``(evaluations, residual)``; ``None`` where neither does (or a site
-    failed: slice-Newton then solves the slice)."""
-    if run.mode != "newton":
-        return None
-    flat, cache = run.flat, run.cache
-    if on_device(run):
-        at = run.base + i  # the slice's index in the whole field
-        _choose_device(run, i, at, older)
-        device = _device_of(run)
-        return None if device is None else device.solve(flat, i, at, older, run.vol, rtol, max_newton, cache)
-    _choose_fused(run, i, older)
-    fused = _fused_of(run)
-    return None if fused is None else fused.solve(flat, i, older, run.vol, rtol, max_newton, cache)
-
-
-def solve_run(run: Any, i: int, stop: int, rtol: float, max_newton: int, before: torch.Tensor | None = None) -> int:
-    """Slices ``i .. stop - 1`` of ``run`` (a whole-field or a windowed run: ``run.flat`` its slices, slice
-    ``j - 2`` the older one of slice ``j`` from ``j = 2`` on, ``before`` that of slice 1 where given) solved in
-    one call of the compiled slice Newton once it serves the run (as :func:`_sitewise` would call it slice by
-    slice; at most :data:`RUN_SITES` unknowns a call, so that the progress bar moves), tallied as
-    :func:`solve_and_tally` tallies them: how many (``0``: none; a slice a site could not finish is left to
-    :func:`solve_and_tally`)."""
-    fused = run.cache.get("fused")
-    if fused is None or not fused.rows.size or run.mode != "newton" or on_device(run):
-        return 0
-    stop = min(stop, i + max(1, RUN_SITES // fused.rows.size))
-    j, its, res = fused.solve_many(run.flat, i, stop, run.vol, rtol, max_newton, run.cache, before)
-    if its:
-        run.total_it += sum(its)
-        run.max_it = max(run.max_it, *its)
-        run.worst = max(run.worst, *res)
-        run.bar.update(len(its))
-    return int(j - i)
-
-
-def _tallied(run: Any, it: int, res: float) -> None:
-    """Count a solved slice's iterations and residual on ``run`` (and its progress bar)."""
-    run.total_it += it
-    run.max_it = max(run.max_it, it)
-    run.worst = max(run.worst, res)
-    run.bar.update(1)
-
-
-def _choose_fused(run: Any, i: int, older: Any) -> None:
-    """Before the first Newton slice, where the compiled slice Newton could serve: the site-wise solver chosen
-    and the scales set from the Hessian blocks at the predictor, as slice-Newton's first iteration would
-    (``_newton._fresh_blocks``; ``_solvers.choose_solver`` chooses site-wise for a Jacobian block diagonal by
-    the L_d's form), so that the kernel serves the first slice too. Anything else (a singular Jacobian,
-    another solver asked for, a checkpointed run) is left to slice-Newton, which reports it as before."""
-    cache = run.cache
-    if "fused" in cache or "dmax" in cache or cache.get("keep_factored"):
-        return
-    fused = fused_slices(run.model, run.sys, run.flat) if cache.get("solver") in ("auto", "sitewise") else None
-    if fused is None:
-        return
-    fused.predict(run.flat, i, older)  # solve_and_tally's predictor, to the bit
-    found = fused.scales(run.flat, i)
-    if found is None:
-        return
-    dmax, smin, smax, _ = found
-    scale = max(cache.get("mscale", 0.0), smax)
-    if is_singular(smin, scale):
-        return
-    cache["dmax"], cache["mscale"] = dmax, scale
-    cache["used"] = ["sitewise"]
-    cache["fused"] = fused
-
-
-def solver_name(mode: str, affine_slices: int, steps: int) -> str:
-    """The ``solver`` of a served field's result: ``"sweep"``, ``"newton"``, ``"affine"`` (every slice by the
-    affine recurrence) or ``"affine+newton"`` (the recurrence first, then Newton), from ``steps`` slices of
-    which ``affine_slices`` the recurrence served (after the two given ones)."""
-    if mode == "sweep":
-        return "sweep"
-    if not affine_slices:
-        return "newton"
-    return "affine" if affine_slices >= steps - 2 else "affine+newton"
-
-
-def served_where(device: str | None) -> torch.device:
-    """The device of a field's slice solves: CUDA where ``device`` asks for it and it is here (the request was
-    checked, and a fallback said, when serving began), else the CPU."""
-    if device in (None, "cpu") or not torch.cuda.is_available():
-        return torch.device("cpu")
-    return resolve_device(device)
-
-
-def on_device(run: Any) -> bool:
-    """Whether ``run``'s Newton slices are solved on its device (:mod:`._ondevice`) once the site-wise solver
-    is chosen: on CUDA (or on the CPU where the tests ask), for Newton on a run not checkpointed."""
-    where: torch.device = run.where
-    wanted = where.type == "cuda" or _ondevice.ON_CPU
-    return wanted and run.mode == "newton" and not run.cache.get("keep_factored")
-
-
-def _choose_device(run: Any, i: int, at: int, older: Any) -> None:
-    """Before the first Newton slice of a run on a device: the site-wise solver chosen and the scales set from
-    the Hessian blocks at the predictor, as slice-Newton's first iteration would (``_choose_fused`` on the
-    CPU), so that the device serves the first slice too. A Jacobian that is not block diagonal (to
-    ``OFFDIAG_RTOL``) or is singular, another solver asked for, or scales already set are left to
-    slice-Newton (which may still choose the site-wise solver, the device then serving the later slices)."""
-    cache = run.cache
-    if "probed" in cache or "used" in cache or "dmax" in cache or cache.get("solver") not in ("auto", "sitewise"):
-        return
-    cache["probed"] = True
-    device = _ondevice.device_slices(run.model, run.sys, run.flat, run.where)
-    if device is None:
-        return
-    found = device.probe(run.flat, i, at, older)
-    mscale = max(cache.get("mscale", 0.0), found["smax"])
-    if not found["off"] <= OFFDIAG_RTOL * found["smax"] or is_singular(found["smin"], mscale):
-        return
-    cache["dmax"], cache["mscale"] = found["dmax"], mscale
-    cache["used"] = ["sitewise"]
-    cache["on_device"] = device
-
-
-def _device_of(run: Any) -> _ondevice.DeviceSlices | None:
-    """The device slice Newton of ``run`` once slice-Newton has chosen the site-wise solver (and only that
-    one) for it; ``None`` before, or where the field is not scalar."""
-    cache = run.cache
-    if "on_device" not in cache:
-        if cache.get("used") != ["sitewise"] or "dmax" not in cache or "mscale" not in cache:
-            return None
-        cache["on_device"] = _ondevice.device_slices(run.model, run.sys, run.flat, run.where)
-    device: _ondevice.DeviceSlices | None = cache["on_device"]
-    return device
-
-
-def _folded_of(run: Any) -> FoldedSlices | None:
-    """The folded polynomial kernels of ``run`` (:mod:`._folded`) or a kinetic-potential MLP's closed forms on
-    them (:mod:`._potential`), or ``None`` where neither serves it."""
-    cache = run.cache
-    if "folded" not in cache:
-        cache["folded"] = folded_slices(run.model, run.sys, run.flat) or potential_slices(run.model, run.sys, run.flat)
-    folded: FoldedSlices | None = cache["folded"]
-    return folded
-
-
-def _fused_of(run: Any) -> FusedSlices | None:
-    """The compiled slice Newton of ``run`` (:mod:`._fused`) once slice-Newton has chosen the site-wise solver
-    (and only that one) for it; ``None`` before, or where the model or lattice has none."""
-    cache = run.cache
-    if "fused" not in cache:
-        if cache.get("used") != ["sitewise"] or "dmax" not in cache or "mscale" not in cache:
-            return None
-        cache["fused"] = fused_slices(run.model, run.sys, run.flat)
-    fused: FusedSlices | None = cache["fused"]
-    return fused
-
-
-#: The unknowns (sites times slices) the compiled slice Newton solves in one call at most.
-RUN_SITES = 1 << 22
-
 #: The slice system of the lattice served last, by stencil offsets, spatial shape, components and boundary
 #: kinds (which fix it): the next field on that lattice reuses its index maps.
 _SYSTEMS: dict[tuple[Any, ...], _SliceSystem] = {}
@@ -312,7 +73,7 @@ def slice_system(model: AbstractLagrangian, f: LatticeField) -> _SliceSystem:
     return sys
 
 
-class _FieldRun:
+class _FieldRun(SteppedRun):
     """One n-D field being served: its slice system, values, iteration counters and progress bar."""
 
     def __init__(
@@ -326,20 +87,18 @@ class _FieldRun:
         boundary_value: Any = None,
         where: torch.device | None = None,
     ):
-        self.model, self.f, self.steps, self.mode = model, f, steps, mode
-        self.where = where or torch.device("cpu")  # where the slice solves run (:func:`on_device`)
         self.sys = slice_system(model, f)
         self.psi = _initial_values(f, self.sys, steps, boundary_value, nan=mode != "newton")
         self.flat = self.psi.reshape(steps, self.sys.nsite, f.ncomp)  # (steps, site, m): a view of psi
         self.unk = torch.from_numpy(np.nonzero(self.sys.interior)[0])
-        self.vol = math.prod(model.spacing)
-        self.t0 = time.perf_counter()
-        self.total_it, self.max_it, self.worst = 0, 0, 0.0
-        self.bar = _bar(steps - 2, f"serve ({mode})", progress)
-        self.cache: dict[str, Any] = {"solver": solver}
+        # where the slice solves run: ``_stepper.on_device``
+        super().__init__(model, f, steps, mode, solver, where or torch.device("cpu"), progress)
         self.start = 1  # first slice whose equations Newton (or the sweep) solves
-        self.base = 0  # the slice held at position 0 (the whole field: the first)
-        self.affine_slices = 0
+
+    @property
+    def values(self) -> torch.Tensor:
+        """The whole field's slices, ``(steps, *spatial, m)``."""
+        return self.psi
 
     def cells_at(self, i: int) -> torch.Tensor:
         """The cells anchored on slice ``i``."""
@@ -354,19 +113,10 @@ class _FieldRun:
         self.start = 1 + self.affine_slices
         if self.affine_slices:
             self.worst = worst
-            self.total_it, self.max_it = self.affine_slices, 1
+            self.count_affine()
             self.cache["dmax"] = dmax
             self.cache["mscale"] = mscale
         self.bar.update(self.affine_slices)
-
-    def solver(self) -> str:
-        """The ``solver`` name of the result."""
-        return solver_name(self.mode, self.affine_slices, self.steps)
-
-    def solve_slice(self, i: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int) -> torch.Tensor | None:
-        """Solve slice ``i``'s equations for slice ``i + 1``; returns the gradients of the cells anchored at ``i``."""
-        older = self.flat[i - 2] if i >= 2 else None
-        return solve_and_tally(self, self.psi, i, g_prev, rtol, max_newton, older)
 
     def _result(
         self, field: LatticeField, complete: bool, reason: str, slices: int, wall: float, rate: float, residual: float
@@ -378,16 +128,12 @@ class _FieldRun:
             complete=complete,
             reason=reason,
             slices=slices,
-            newton_iterations=self.total_it,
-            max_newton_iterations=self.max_it,
             wall_time=wall,
             sites_per_second=rate,
             max_residual=residual,
-            mode=self.mode,
-            solver=self.solver(),
-            slice_solver="+".join(self.cache.get("used", [])) or None,
             extrapolation=ext,
             warnings=warnings,
+            **self.counts(),
         )
 
     def fail(self, i: int, msg: str, row: int | None, res: float) -> ServeError:
@@ -395,27 +141,14 @@ class _FieldRun:
         f, sys = self.f, self.sys
         self.bar.close()
         part = LatticeField.with_values(f, self.psi[: i + 1].clone())
-        wall = time.perf_counter() - self.t0
-        solved = (i + 1 - 2) * sys.n
-        result = self._result(part, False, msg, i + 1, wall, solved / wall if wall > 0 else 0.0, res)
+        result = self._result(part, False, msg, i + 1, *self.timed(i + 1), res)
         return slice_error(f, sys, i, msg, row, res, result)
 
     def finish(self) -> ServeResult:
         """The complete served field."""
         self.bar.close()
-        wall = time.perf_counter() - self.t0
         out = LatticeField.with_values(self.f, self.psi)
-        solved = (self.steps - 2) * self.sys.n
-        return self._result(
-            out, True, "complete", self.steps, wall, solved / wall if wall > 0 else math.inf, self.worst
-        )
-
-
-def _site_text(f: LatticeField, site: tuple[int, ...]) -> str:
-    """``index t=12, x=5 (x = 0.3125)``: a lattice index, and apart the spatial coordinates it stands for."""
-    idx = ", ".join(f"{d}={i}" for d, i in zip(f.dims, site))
-    coords = ", ".join(f"{d} = {float(f.coords[d][i]):.6g}" for d, i in zip(f.dims[1:], site[1:]) if d in f.coords)
-    return f"index {idx}" + (f" ({coords})" if coords else "")
+        return self._result(out, True, "complete", self.steps, *self.timed(self.steps), self.worst)
 
 
 def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options: ServeOptions) -> ServeResult:
@@ -426,13 +159,6 @@ def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options
     run = _FieldRun(model, f, steps, mode, options.progress, options.solver, options.boundary_value, where)
     if mode == "newton" and options.affine and steps > 2:
         run.serve_affine(rtol)
-    g_prev: torch.Tensor | None = None  # the first Newton slice evaluates them (the compiled kernel needs none)
-    i = run.start
-    while i < steps - 1:
-        solved = solve_run(run, i, steps - 1, rtol, max_newton)  # the compiled slice Newton: many slices a call
-        if solved:
-            i, g_prev = i + solved, None
-            continue
-        g_prev = run.solve_slice(i, g_prev, rtol, max_newton)
-        i += 1
+    # the first Newton slice evaluates the gradients of its older cells (the compiled kernel needs none)
+    step_slices(run, run.start, steps - 1, None, rtol, max_newton)
     return run.finish()

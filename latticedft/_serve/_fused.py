@@ -44,7 +44,7 @@ class FusedSlices:
         ]
 
     def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> None:
-        """Slice-Newton's predictor (``_field.solve_and_tally``'s) on the unknown sites of slice ``i + 1``."""
+        """Slice-Newton's predictor (``_stepper.solve_and_tally``'s) on the unknown sites of slice ``i + 1``."""
         values = flat.numpy()
         old = older.numpy()[:, 0] if older is not None else self.none
         self.compiled.module.predict(

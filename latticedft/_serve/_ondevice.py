@@ -4,7 +4,7 @@ runs on one (``serve(device="cuda")``).
 It serves a scalar ``L_d`` whose slice Jacobian is diagonal (each unknown's equation involves that unknown
 alone: the site-wise solver). Before the first Newton slice a probe at the predictor measures the
 Jacobian's off-diagonal blocks and the conditioning of its diagonal as slice-Newton's first iteration would
-(``_field._choose_device``); where slice-Newton solved the first slice instead, the device takes over once
+(``_stepper._choose_device``); where slice-Newton solved the first slice instead, the device takes over once
 it has chosen the site-wise solver. The derivatives are sympy's of the model's closed form, generated once
 as one torch function of the cells' columns (:func:`closed_terms`), or autograd's where it has none. The
 last slices stay on the device between slices (a window keyed by the slice's index in the whole field), so
@@ -143,7 +143,7 @@ class DeviceSlices:
         self, flat: torch.Tensor, i: int, at: int, older: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(prev, cur, nxt, pred)``: slices ``i - 1`` and ``i`` on the device, slice ``i + 1`` with slice-Newton's
-        predictor on its unknown sites (``_field.solve_and_tally``'s, in its order), and those values alone."""
+        predictor on its unknown sites (``_stepper.solve_and_tally``'s, in its order), and those values alone."""
         prev, cur = self._slice(flat, i - 1, at - 1), self._slice(flat, i, at)
         pred = 2 * self._at(cur) - self._at(prev)
         if older is not None:

@@ -10,7 +10,8 @@ from .._models import AbstractLagrangian
 from ._batch import _Batch
 from ._fast1d import numpy_derivatives_of, serve_fast
 from ._options import ServeOptions
-from ._result import ServeResult, _bar
+from ._result import ServeResult
+from ._stepper import step_members
 
 
 def _serve_batch(
@@ -31,14 +32,5 @@ def _serve_batch(
     if derivatives is not None:
         return serve_fast(model, fs, steps, mode, rtol, max_newton, box, progress, derivatives)
     batch = _Batch(model, fs, steps)
-    members = list(range(len(fs)))
-    groups = [members] if mode == "newton" else [[k] for k in members]
-    bar = _bar(batch.nmax - 2, f"serve ({mode}, {len(fs)} trajectories)", progress)
-    for i in range(1, batch.nmax - 1):
-        for group in groups:
-            act_list = batch.members(group, i)
-            if act_list:
-                batch.record(act_list, i, batch.newton(act_list, i, rtol, max_newton), max_newton, box)
-        bar.update(1)
-    bar.close()
+    step_members(batch, mode, rtol, max_newton, box, progress)
     return batch.results(time.perf_counter() - batch.t0, mode)

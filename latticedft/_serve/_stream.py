@@ -40,11 +40,11 @@ from .._options import option
 from ._affine import _AffineSlices, _slice_residuals, passing_prefix
 from ._checkpoint import keep_factored, restore_stream, stream_state
 from ._edges import known_slices
-from ._field import served_where, slice_error, solve_and_tally, solve_run, solver_name
 from ._options import Cadence, ServeOptions, kept_slices
 from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
-from ._result import ServeResult, _bar
+from ._result import ServeResult
 from ._slices import _SliceSystem, is_singular
+from ._stepper import SteppedRun, served_where, slice_error, step_slices
 
 __all__ = ["kept_slices", "thin_result", "SliceSource", "lazy_field"]
 
@@ -115,7 +115,7 @@ def lazy_field(da: xr.DataArray, source: str, boundary: Any) -> tuple[LatticeFie
     return head, SliceSource(da, head.components is not None)
 
 
-class _Stream:
+class _Stream(SteppedRun):
     """One n-D field served through a rolling window; the kept slices collected in one preallocated array."""
 
     def __init__(
@@ -127,7 +127,6 @@ class _Stream:
         on_slice: SliceCallback | None,
         source: SliceSource | None = None,
     ):
-        self.model, self.f, self.steps, self.mode = model, f, steps, options.mode
         self.source = source  # the input's slices left in its file (then ``f`` holds the first two)
         self.on_slice = on_slice
         self.on_block = getattr(on_slice, "on_block", None)
@@ -153,25 +152,24 @@ class _Stream:
         known[sys_.interior] = False
         self.kidx = torch.from_numpy(np.nonzero(known)[0]) if known.any() else None
         self.unk = torch.from_numpy(np.nonzero(sys_.interior)[0])
-        self.vol = math.prod(model.spacing)
         self.kept = options.cadence.kept(steps)
         self.kept_values = np.empty((len(self.kept), *f.shape[1:], m))
         self.nkept = 0
         rng = model.trained_range()
         self.rng = rng.to(torch.float64) if rng is not None and tuple(rng.shape[1:]) == (f.ndim + 1, m) else None
         self.per_anchor = np.zeros((steps - 1, self.rng[0].numel())) if self.rng is not None else None
-        self.base = 0  # the slice held at buffer position 0
         self.done = 0  # slices handed out (0 .. done - 1)
         self.trimmed = 0
         self.slice_bytes = slice_bytes
-        self.t0 = time.perf_counter()
-        self.total_it, self.max_it, self.worst = 0, 0, 0.0
-        self.affine_slices = 0
-        self.cache: dict[str, Any] = {"solver": options.solver}
-        self.where = served_where(options.device)  # where the slice solves run (``_field.on_device``)
-        self.before: torch.Tensor | None = None  # the slice before buffer position 0 (Newton's predictor)
-        self.bar = _bar(steps - 2, f"serve ({self.mode}, every {every})", options.progress)
+        # ``base``: the slice held at buffer position 0; ``before``: the one before it (Newton's predictor)
+        where = served_where(options.device)  # where the slice solves run (``_stepper.on_device``)
+        super().__init__(model, f, steps, options.mode, options.solver, where, options.progress, f", every {every}")
         self.buf[:2] = f.values[:2]
+
+    @property
+    def values(self) -> torch.Tensor:
+        """The window's slices, ``(chunk + 2, *spatial, m)``."""
+        return self.buf
 
     # -- the window ------------------------------------------------------------------------------------------
     def fill(self, n_new: int) -> None:
@@ -252,18 +250,7 @@ class _Stream:
             self.worst = max(self.worst, float(np.nanmax(res[:k], initial=0.0)))
         return k
 
-    def solve(self, p: int, g_prev: torch.Tensor | None, rtol: float, max_newton: int) -> torch.Tensor | None:
-        """Solve the equations of buffer position ``p`` for position ``p + 1`` (as ``_FieldRun.solve_slice``)."""
-        older = None
-        if self.base + p >= 2:  # slice p - 2 of the whole field: in the window, or the one before it
-            older = self.flat[p - 2] if p >= 2 else self.before
-        return solve_and_tally(self, self.buf, p, g_prev, rtol, max_newton, older)
-
     # -- the result ------------------------------------------------------------------------------------------
-    def solver(self) -> str:
-        """The ``solver`` name of the result."""
-        return solver_name(self.mode, self.affine_slices, self.steps)
-
     def result(self, nt: int, complete: bool, reason: str, rate: float, residual: float) -> ServeResult:
         """The result over the ``nt`` slices served: the kept ones (the last slice among them)."""
         n = self.nkept
@@ -299,16 +286,12 @@ class _Stream:
             complete=complete,
             reason=reason,
             slices=nt,
-            newton_iterations=self.total_it,
-            max_newton_iterations=self.max_it,
             wall_time=time.perf_counter() - self.t0,
             sites_per_second=rate,
             max_residual=residual,
-            mode=self.mode,
-            solver=self.solver(),
-            slice_solver="+".join(self.cache.get("used", [])) or None,
             extrapolation=ext,
             warnings=[warning] if warning else [],
+            **self.counts(),
         )
 
     def fail(self, p: int, msg: str, row: int | None, res: float) -> ServeError:
@@ -316,9 +299,7 @@ class _Stream:
         self.bar.close()
         i = self.base + p
         self.emit(p)
-        wall = time.perf_counter() - self.t0
-        solved = (i + 1 - 2) * self.sys.n
-        result = self.result(i + 1, False, msg, solved / wall if wall > 0 else 0.0, res)
+        result = self.result(i + 1, False, msg, self.timed(i + 1)[1], res)
         return slice_error(self.f, self.sys, i, msg, row, res, result)
 
 
@@ -342,7 +323,7 @@ def _serve_stream(
         state = saver.load()
         on_affine = restore_stream(run, state) if state is not None else on_affine
     saved = run.base
-    g_prev: Any = None  # the first Newton slice evaluates them (by the folded kernels where those serve)
+    g_prev: torch.Tensor | None = None  # the first Newton slice evaluates them (the folded kernels where they serve)
     run.emit(1)
     while run.base + 2 < steps:
         n_new = min(run.chunk, steps - run.base - 2)
@@ -357,18 +338,10 @@ def _serve_stream(
             if k < n_new:  # Newton takes over from the first slice the recurrence fails
                 on_affine = False
                 if run.affine_slices:
-                    run.total_it, run.max_it = run.affine_slices, 1
+                    run.count_affine()
                     run.cache["dmax"], run.cache["mscale"] = op.dmax, mscale
                 g_prev = None
-        p = start
-        while p <= n_new:
-            before = run.before if p == 1 and run.base else None  # position 1's older slice: before the window
-            solved = solve_run(run, p, n_new + 1, rtol, max_newton, before)
-            if solved:
-                p, g_prev = p + solved, None
-                continue
-            g_prev = run.solve(p, g_prev, rtol, max_newton)
-            p += 1
+        g_prev = step_slices(run, start, n_new + 1, g_prev, rtol, max_newton)
         run.emit(n_new + 1)
         if run.base + n_new + 2 >= steps:
             break
@@ -379,8 +352,7 @@ def _serve_stream(
             saver.save(stream_state(run, on_affine))
             saved = run.base
     run.bar.close()
-    wall = time.perf_counter() - run.t0
-    solved = (steps - 2) * run.sys.n
+    _, rate = run.timed(steps)
     if on_affine and run.affine_slices:
-        run.total_it, run.max_it = run.affine_slices, 1
-    return run.result(steps, True, "complete", solved / wall if wall > 0 else math.inf, run.worst)
+        run.count_affine()
+    return run.result(steps, True, "complete", rate, run.worst)
