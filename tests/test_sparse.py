@@ -466,3 +466,30 @@ def test_a_report_prints_the_equation_learned_even_after_the_model_changes():
     with torch.no_grad():
         model.coef.mul_(2.0)
     assert model.report_.sparse["equation"] == text != model.equation_text()
+
+
+# -- serving by the numpy closed forms ------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("library", "at", "data"),
+    [
+        ("kinetic + poly:2 + trig:1", "average", lambda: [pendulum(2.0, 60), pendulum(2.6, 60)]),
+        ("velocities + cosdiff*velocities + trig:1", "average", lambda: [double_pendulum([0.8, -0.5, 0.0, 0.0], 60)]),
+        ("kinetic + poly:2 + cross", "anchor", lambda: [systems.charged_particle(q0=(0.0, 0.0), v0=(1.0, 0.5), n=60)]),
+        ("kinetic + norm:-1 + exp:0.5", "mean", lambda: [kepler_one_orbit()]),
+    ],
+)
+def test_numpy_loop_serves_a_sparse_model_as_the_torch_loop(library, at, data, monkeypatch):
+    from latticedft._serve._fast1d import numpy_derivatives_of
+
+    fields = data()
+    model = ldft.SparseLagrangian(library, at=at, threshold=0.0, bags=0)
+    ldft.learn(model, fields, gauge="trace", progress=False)
+    assert numpy_derivatives_of(model) is not None  # served by the numpy loop
+    fast = ldft.serve(model, fields[0], progress=False)
+    monkeypatch.setattr(ldft.SparseLagrangian, "numpy_derivatives", lambda self, pairs: None)
+    assert numpy_derivatives_of(model) is None  # served by the torch loop
+    slow = ldft.serve(model, fields[0], progress=False)
+    assert fast.complete and slow.complete
+    assert fast.newton_iterations == slow.newton_iterations
+    scale = np.abs(slow.field.values).max()
+    np.testing.assert_allclose(fast.field.values, slow.field.values, rtol=0, atol=1e-12 * scale)

@@ -68,3 +68,33 @@ def test_serving_derivatives_of_the_kept_terms_equal_autograd(library: str, n: i
     torch.testing.assert_close(closed[0], grad.detach(), rtol=1e-13, atol=1e-13)
     for p in pairs:
         torch.testing.assert_close(closed[1][p], blocks[p].detach(), rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize(("library", "n", "m", "at"), CASES)
+def test_numpy_forms_equal_the_torch_closed_forms(library: str, n: int, m: int, at: str) -> None:
+    model = _bound(library, n, m, at)
+    coef = torch.rand(model.n_terms, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        model.coef.copy_(torch.where(torch.arange(model.n_terms) % 3 == 2, 0.0, coef - 0.5))
+    k = model.stencil.size
+    x = 0.5 + torch.rand(7, k, m, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    pairs = [(a, b) for a in range(k) for b in range(k)]
+    closed = model.fast_derivatives(x, pairs)
+    forms = model.numpy_derivatives(pairs)
+    assert closed is not None and forms is not None
+    grad, blocks = forms(x.numpy())
+    assert grad.shape == (7, k, m) and len(blocks) == len(pairs)
+    torch.testing.assert_close(torch.from_numpy(grad), closed[0], rtol=1e-13, atol=1e-13 * float(closed[0].abs().max()))
+    for p, b in zip(pairs, blocks):
+        ref = closed[1][p]
+        torch.testing.assert_close(torch.from_numpy(b), ref, rtol=1e-13, atol=1e-13 * float(ref.abs().max()))
+    only, none = model.numpy_derivatives(())(x.numpy())  # the gradient alone
+    assert none == [] and (only == grad).all()
+
+
+def test_a_user_term_has_no_numpy_forms() -> None:
+    model = _bound(Library.parse("kinetic") + Library.function(lambda q: q[..., 0] ** 3, "cube"), 1, 1, "anchor")
+    with torch.no_grad():
+        model.coef.fill_(1.0)
+    assert model.numpy_derivatives([(0, 1)]) is None
+    assert model.fast_derivatives(torch.rand(3, 2, 1, dtype=torch.float64), [(0, 1)]) is None

@@ -10,12 +10,14 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from .._contract import NumpyForms
 from .._errors import InputError
 from .._stencil import Stencil
 from .._symbolic import SymbolicLd, cell_symbols, del_equations
 from ._library import Library, cell_variables, readable_variables
 from ._linear import LinearLagrangian
 from ._termderiv import TermDerivatives, closed_derivatives, term_derivatives
+from ._termnumpy import numpy_forms, numpy_term_derivatives
 from ._terms import Term, axis_name, term_forms, term_values
 
 __all__ = ["SparseLagrangian", "LazyEquation", "default_library", "exact_step_libraries", "THRESHOLDS"]
@@ -209,6 +211,20 @@ class SparseLagrangian(LinearLagrangian):
             d, blocks = closed_derivatives(rule, self._input_maps(), cells, self.spacing, pairs, True, len(kept))
         assert d is not None
         return d @ coef, {p: b @ coef for p, b in blocks.items()}
+
+    def numpy_derivatives(self, pairs: Sequence[tuple[int, int]]) -> NumpyForms | None:
+        """:meth:`fast_derivatives` in numpy (:mod:`latticedft._models._termnumpy`), for the coefficients as they
+        are now; None where a user term has no sympy form."""
+        self._require_bound()
+        if self.has_functions:
+            return None
+        kept = self._kept()
+        rule = numpy_term_derivatives([self.terms[c] for c in kept], self.n, self.m)
+        if rule is None:
+            return None
+        coef = self.coef.detach().cpu().numpy()[kept]
+        maps = [a.detach().cpu().numpy() for a in self._input_maps()]
+        return numpy_forms(rule, maps, self.spacing, pairs, coef)
 
     def _closed_rule(self, terms: list[Term]) -> TermDerivatives | None:
         """The closed-form derivatives of ``terms`` (None where the library holds a user function: no sympy

@@ -40,6 +40,18 @@ class TermDerivatives:
     fn: Callable[..., Sequence[Any]]
 
 
+@dataclass(frozen=True)
+class _Derived:
+    """What sympy made of a list of terms: the inputs ``w``, the indices of :class:`TermDerivatives`, and the
+    derivatives' expressions in that order."""
+
+    w: list[Any]
+    first: list[tuple[int, int]]
+    second: list[tuple[int, int, int]]
+    exprs: list[Any]
+    hessians: list[Any]
+
+
 _CACHE: dict[tuple[tuple[str, ...], int, int], TermDerivatives | None] = {}
 
 
@@ -52,7 +64,8 @@ def term_derivatives(terms: Sequence[Term], n: int, m: int) -> TermDerivatives |
     return _CACHE[key]
 
 
-def _build(terms: Sequence[Term], n: int, m: int) -> TermDerivatives | None:
+def _derive(terms: Sequence[Term], n: int, m: int) -> _Derived | None:
+    """The symbols ``w``, the nonzero first and second derivatives' indices and their sympy expressions."""
     import sympy
 
     q = [sympy.Symbol(f"q_{i}", real=True) for i in range(m)]
@@ -76,8 +89,17 @@ def _build(terms: Sequence[Term], n: int, m: int) -> TermDerivatives | None:
             if h != 0:
                 second.append((v, u, c))
                 hessians.append(h)
-    fn = sympy.lambdify(w, exprs + hessians, modules=[_TORCH, "math"])
-    return TermDerivatives(len(w), first, second, fn)
+    return _Derived(w, first, second, exprs, hessians)
+
+
+def _build(terms: Sequence[Term], n: int, m: int) -> TermDerivatives | None:
+    import sympy
+
+    got = _derive(terms, n, m)
+    if got is None:
+        return None
+    fn = sympy.lambdify(got.w, got.exprs + got.hessians, modules=[_TORCH, "math"])
+    return TermDerivatives(len(got.w), got.first, got.second, fn)
 
 
 def closed_derivatives(

@@ -1,8 +1,8 @@
 """1D serving in numpy: the batched Newton loop of ``_batch`` for models with numpy closed forms.
 
 A 1D step solves a handful of ``m x m`` systems, where a torch call per operation costs far more than the
-arithmetic. A linear model that offers :meth:`LinearLagrangian.numpy_derivatives` (the polynomial does), and
-an ensemble of such models stacked as components, is served here: the same Newton iteration as
+arithmetic. A linear model that offers :meth:`LinearLagrangian.numpy_derivatives` (the polynomial and the sparse
+model do), and an ensemble of such models stacked as components, is served here: the same Newton iteration as
 :meth:`_Batch.newton` (predictor, backtracking, the same convergence, conditioning and non-convergence tests,
 in the same order), on numpy arrays that share memory with the batch's torch tensors, so the results, reports
 and partial fields are built exactly as before.
