@@ -296,7 +296,7 @@ class FoldedSlices:
         return kept
 
     def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> float:
-        """Slice-Newton's predictor on the unknown sites of slice ``i + 1`` (``_field.solve_and_tally``'s); returns
+        """Slice-Newton's predictor on the unknown sites of slice ``i + 1`` (``_stepper.solve_and_tally``'s); returns
         ``_slices._scale(flat, i, unknowns)`` at the predictor, from the magnitudes the same pass measured."""
         old = older.numpy() if older is not None else np.zeros((0, self.m))
         a, b, c = self.mod.predict(flat[i - 1].numpy(), flat[i].numpy(), flat[i + 1].numpy(), old, self.rows)
