@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import warnings
+
+import numpy as np
 import pytest
 import torch
 
@@ -98,3 +101,17 @@ def test_a_user_term_has_no_numpy_forms() -> None:
         model.coef.fill_(1.0)
     assert model.numpy_derivatives([(0, 1)]) is None
     assert model.fast_derivatives(torch.rand(3, 2, 1, dtype=torch.float64), [(0, 1)]) is None
+
+
+def test_numpy_forms_of_a_diverging_cell_are_non_finite_without_a_warning() -> None:
+    model = _bound(Library.parse("kinetic + gradient + poly:4 + trig:1"), 2, 1, "anchor")
+    with torch.no_grad():
+        model.coef.fill_(1.0)
+    k = model.stencil.size
+    forms = model.numpy_derivatives([(0, 0)])
+    assert forms is not None
+    cells = np.full((3, k, 1), 1e200)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a numpy RuntimeWarning would fail the test
+        grad, blocks = forms(cells)
+    assert not np.isfinite(grad).all() and not np.isfinite(blocks[0]).all()
