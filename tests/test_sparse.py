@@ -416,12 +416,13 @@ def test_held_out_serving_stops_early_and_chooses_as_serving_whole(monkeypatch):
 
     data = [pendulum(2.6, n=30)]
     served = []
+    by_values = _sparse.served_values
 
-    def counting(model, init, **kw):
-        served.append(init.sizes["t"] - 2)
-        return ldft.serve(model, init, **kw)
+    def counting(model, fs, options, derivatives):
+        served.extend(f.shape[0] - 2 for f in fs)
+        return by_values(model, fs, options, derivatives)
 
-    monkeypatch.setattr(_sparse, "serve", counting)
+    monkeypatch.setattr(_sparse, "served_values", counting)  # how 1D tails are served
     whole = _sparse._Serving.advance
     for floor in (_sparse.SERVE_FLOOR, 0.0):  # 0: no support within the floor, the best decides
         monkeypatch.setattr(_sparse, "SERVE_FLOOR", floor)
@@ -448,6 +449,37 @@ def test_held_out_serving_in_chunks_matches_serving_whole():
     run = _Serving(model.coef.detach().numpy().copy(), tails, None)
     assert run.advance(model, math.inf) == pytest.approx(held_out_score(model, tails, None), rel=1e-8)
     assert run.finished
+
+
+@pytest.mark.parametrize(
+    "library, data",
+    [("kinetic + poly:2 + trig:1", lambda: [pendulum(2.0), pendulum(2.6)]), (None, lambda: [kepler_one_orbit()])],
+    ids=["scalar", "vector"],
+)
+def test_held_out_serving_without_results_equals_the_public_serve(monkeypatch, library, data):
+    # 1D tails are served by the numpy loop without serve's results (training range, DataArrays, warnings):
+    # the held-out errors are those of serving each chunk by the public serve, to the bit; a support whose
+    # serving stops (no kinetic term: a singular mixed Hessian) scores inf on both
+    from latticedft._learn import _sparse
+
+    model = ldft.SparseLagrangian(*[library] if library else [], bags=0, threshold=1e-2)
+    fields = data()
+    ldft.learn(model, fields, progress=False)
+    theta = model.coef.detach().numpy().copy()
+    smallest = np.where(theta != 0, np.abs(theta), np.inf).argmin()
+    kinetic = [k for k, name in enumerate(model.kept_terms()) if name.startswith(("Dtq", "(Dtq"))]
+    supports = [theta, np.where(np.arange(theta.size) == smallest, 0.0, theta), theta.copy()]
+    supports[2][np.flatnonzero(theta)[kinetic]] = 0.0
+    tails = [f.isel(t=slice(f.sizes["t"] // 3, None)) for f in fields]
+    errors = []
+    for public in (False, True):
+        if public:
+            monkeypatch.setattr(_sparse._Serving, "_numpy_forms", lambda self, model: None)
+        runs = [_sparse._Serving(s, tails, None) for s in supports]
+        errors.append([run.advance(model, math.inf) for run in runs])
+        assert all(run.finished and (run._forms is None) == public for run in runs)
+    assert errors[0] == errors[1]
+    assert math.isfinite(errors[0][0]) and errors[0][0] < errors[0][1] and errors[0][2] == math.inf
 
 
 def test_only_the_kept_model_prints_its_equation():

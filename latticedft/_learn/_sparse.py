@@ -24,11 +24,15 @@ import numpy as np
 import torch
 import xarray as xr
 
+from .._contract import NumpyForms
 from .._errors import InputError, LatticeDFTError
-from .._lattice import BoundaryKinds, LatticeField, interior_slices
+from .._lattice import BoundaryKinds, LatticeField, as_lattice_fields, interior_slices
 from .._models import SparseLagrangian
 from .._models._sparse import THRESHOLDS
 from .._serve import serve
+from .._serve._fast1d import numpy_derivatives_of
+from .._serve._onedim import served_values
+from .._serve._options import ServeOptions
 from ._exact import _constrained_lstsq, _qr_r, mean_mixed_hessian, residual_matrix
 from ._gauge import Gauge
 from ._heldout import HOLD_OUT, held_in, held_out_score
@@ -237,6 +241,12 @@ class _Serving:
         self._field = 0
         self._served: np.ndarray | None = None
         self._chunk = FIRST_CHUNK
+        # 1D tails: served by the numpy loop without building serve's results (:func:`served_values`)
+        self._fields: list[LatticeField] | None = None
+        self._forms: NumpyForms | None = (
+            None  # the numpy closed forms of the support being served (None: the public serve)
+        )
+        self._options = ServeOptions.from_keywords(None, progress=False)
 
     @property
     def finished(self) -> bool:
@@ -258,9 +268,36 @@ class _Serving:
                 self.error = math.inf
             self._field = len(self.tails)
             return self.error
+        self._forms = self._numpy_forms(model)
         while not self.finished and self.error <= bound:
             self._chunk_on(model)
         return self.error
+
+    def _numpy_forms(self, model: SparseLagrangian) -> NumpyForms | None:
+        """The model's numpy closed forms where every tail is 1D (with their lattice fields), else None."""
+        if self._fields is None:
+            names = [f"tails[{k}]" for k in range(len(self.tails))]
+            self._fields = as_lattice_fields(self.tails, names, boundary=self.boundary, min_slices=2)
+        return numpy_derivatives_of(model) if all(f.ndim == 1 for f in self._fields) else None
+
+    def _serve_window(self, model: SparseLagrangian, i0: int, start: np.ndarray) -> np.ndarray | None:
+        """Slices ``i0, ...`` of the current tail served from the first two of ``start`` (the tail's slices from
+        ``i0`` on, in its layout), or None where serving stopped: for 1D tails by :func:`served_values` (what
+        :func:`serve` serves, without building its results), else by :func:`serve`."""
+        tail = self.tails[self._field]
+        try:
+            if self._forms is None:
+                window = tail.isel({tail.dims[0]: slice(i0, i0 + start.shape[0])})
+                out = serve(model, window.copy(data=start), boundary=self.boundary, progress=False)
+                return np.asarray(out.field.values)
+            assert self._fields is not None
+            f = self._fields[self._field]
+            values = torch.from_numpy(start.reshape(start.shape[0], f.ncomp))
+            t0 = float(f.coords[f.dims[0]][i0])
+            ((served, failed),) = served_values(model, [f.with_values(values, t0)], self._options, self._forms)
+        except LatticeDFTError:
+            return None
+        return None if failed else served.reshape((served.shape[0], *start.shape[1:]))
 
     def _chunk_on(self, model: SparseLagrangian) -> None:
         """Serve the next chunk of the current tail."""
@@ -268,22 +305,20 @@ class _Serving:
         ref = np.asarray(tail.values)
         served = ref[:2] if self._served is None else self._served
         i0, nt = served.shape[0] - 2, ref.shape[0]
-        window = tail.isel({tail.dims[0]: slice(i0, min(nt, i0 + 2 + self._chunk))})
-        start = ref[i0 : i0 + window.sizes[tail.dims[0]]].copy()
+        start = ref[i0 : min(nt, i0 + 2 + self._chunk)].copy()
         start[:2] = served[-2:]
-        try:
-            out = serve(model, window.copy(data=start), boundary=self.boundary, progress=False)
-        except LatticeDFTError:
+        out = self._serve_window(model, i0, start)
+        if out is None:
             self.error = math.inf
             return
-        new = np.asarray(out.field.values)[2:]
+        new = out[2:]
         scale = max(float(np.max(np.abs(ref))), np.finfo(float).tiny)
         if new.size:
             err = float(np.max(np.abs(new - ref[i0 + 2 : i0 + 2 + new.shape[0]]))) / scale
             self.error = max(self.error, err if math.isfinite(err) else math.inf)
         self._served = np.concatenate([served, new])
         self._chunk *= 2
-        if self._served.shape[0] >= nt or new.shape[0] < window.sizes[tail.dims[0]] - 2:
+        if self._served.shape[0] >= nt or new.shape[0] < start.shape[0] - 2:
             self._field, self._served, self._chunk = self._field + 1, None, FIRST_CHUNK
 
 

@@ -30,7 +30,7 @@ from ._result import ServeResult, _bar
 from ._slices import SINGULAR_RTOL
 from ._stepper import step_members
 
-__all__ = ["numpy_derivatives_of", "FastBatch", "serve_fast"]
+__all__ = ["numpy_derivatives_of", "FastBatch", "serve_fast", "step_fast"]
 
 
 def numpy_derivatives_of(model: AbstractLagrangian) -> NumpyForms | None:
@@ -316,15 +316,23 @@ def serve_fast(
 ) -> list[ServeResult]:
     """``_serve_batch`` with the numpy Newton loop (``derivatives`` from :func:`numpy_derivatives_of`)."""
     batch = FastBatch(model, fs, steps, derivatives)
-    kernel = trajectory_kernel(model) if len(fs) == 1 and batch.m == 1 else None
+    step_fast(batch, mode, rtol, max_newton, box, progress)
+    return batch.results(time.perf_counter() - batch.t0, mode)
+
+
+def step_fast(
+    batch: FastBatch, mode: str, rtol: float, max_newton: int, box: float | None, progress: bool | None
+) -> None:
+    """Serve every member of ``batch`` to its end: one scalar trajectory by the compiled ``trajectory`` where
+    :func:`trajectory_kernel` offers it, else by the numpy loop (:func:`step_members`)."""
+    kernel = trajectory_kernel(batch.model) if len(batch.fs) == 1 and batch.m == 1 else None
     if kernel is not None:  # one scalar trajectory: every slice in one compiled call
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             serve_trajectory(batch, kernel, rtol, max_newton, box)
         _bar(batch.nmax - 2, f"serve ({mode}, 1 trajectory, compiled)", progress).close()
-        return batch.results(time.perf_counter() - batch.t0, mode)
+        return
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # non-finite values are tested for
         step_members(batch, mode, rtol, max_newton, box, progress)
-    return batch.results(time.perf_counter() - batch.t0, mode)
 
 
 def trajectory_kernel(model: AbstractLagrangian) -> CompiledForms | None:

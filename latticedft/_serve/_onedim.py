@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
+
+from .._contract import NumpyForms
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
 from ._batch import _Batch
-from ._fast1d import numpy_derivatives_of, serve_fast
+from ._fast1d import FastBatch, numpy_derivatives_of, serve_fast, step_fast
 from ._options import ServeOptions
 from ._result import ServeResult
 from ._stepper import step_members
@@ -34,3 +37,16 @@ def _serve_batch(
     batch = _Batch(model, fs, steps)
     step_members(batch, mode, rtol, max_newton, box, progress)
     return batch.results(time.perf_counter() - batch.t0, mode)
+
+
+def served_values(
+    model: AbstractLagrangian, fs: list[LatticeField], options: ServeOptions, derivatives: NumpyForms
+) -> list[tuple[np.ndarray, bool]]:
+    """What :func:`_serve_batch` serves on the 1D fields ``fs`` (each to its own length) for a model with numpy
+    closed forms (``derivatives``: :func:`numpy_derivatives_of` of the model as it is now, reused by a caller
+    that serves several times with the same coefficients), without building the results: per member the
+    slices served, ``(slices, m)`` (a view of the batch's values), and whether it failed. No training-range
+    check, no DataArrays, no warnings: for the held-out serving of a fit, which reads the values alone."""
+    batch = FastBatch(model, fs, [f.shape[0] for f in fs], derivatives)
+    step_fast(batch, options.mode, options.rtol, options.max_newton, options.box, options.progress)
+    return [(batch.npsi[k, : batch.nlength[k]], batch.failed[k]) for k in range(len(fs))]
