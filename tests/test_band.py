@@ -154,8 +154,9 @@ def test_the_band_is_left_where_the_jacobian_is_not_block_tridiagonal_on_one_axi
     assert band_places(_SliceSystem(model, f)) is None
 
 
-def _serve_both(model, init, monkeypatch: pytest.MonkeyPatch, **kw):
-    """``model`` served from ``init`` with the compiled band (counting its factorisations) and without it."""
+def _count_band(monkeypatch: pytest.MonkeyPatch) -> list[bool]:
+    """The slice factorisations' band answers from now on: ``True`` where the band factorised, ``False`` where
+    it refused."""
     used: list[bool] = []
     real = _band.band_factor
 
@@ -165,6 +166,12 @@ def _serve_both(model, init, monkeypatch: pytest.MonkeyPatch, **kw):
         return solve
 
     monkeypatch.setattr(_slices_module, "band_factor", counted)
+    return used
+
+
+def _serve_both(model, init, monkeypatch: pytest.MonkeyPatch, **kw):
+    """``model`` served from ``init`` with the compiled band (counting its factorisations) and without it."""
+    used = _count_band(monkeypatch)
     fast = ldft.serve(model, init, progress=False, **kw)
     fast_used = list(used)
     monkeypatch.setattr(_band, "BAND_KERNEL", False)
@@ -215,15 +222,7 @@ def test_a_singular_periodic_jacobian_is_left_to_the_sparse_lu_and_reported_as_b
 
     model = ldft.AnalyticLagrangian(fn, name="shift")
     init = smooth_start(1, 12, True)
-    used: list[bool] = []
-    real = _band.band_factor
-
-    def counted(*a):
-        solve = real(*a)
-        used.append(solve is not None)
-        return solve
-
-    monkeypatch.setattr(_slices_module, "band_factor", counted)
+    used = _count_band(monkeypatch)
     messages = []
     for flag in (True, False):
         monkeypatch.setattr(_band, "BAND_KERNEL", flag)
