@@ -303,7 +303,7 @@ class CellDerivatives:
         self._closed = False
         self._compiled = None if fn is not None else compiled_closed_forms(model, self.cells)
         if fn is not None:
-            self.grad = torch.from_numpy(fn(self._flat())[0].reshape(self.cells.shape))
+            self.grad = torch.from_numpy(self._numpy_forms(fn)[0].reshape(self.cells.shape))
             return
         if self._compiled is not None:
             self.grad = torch.from_numpy(self._compiled.grad(self._flat()).reshape(self.cells.shape))
@@ -323,10 +323,16 @@ class CellDerivatives:
         c = self.cells
         return np.ascontiguousarray(c.numpy()).reshape(-1, c.shape[-2], c.shape[-1])
 
+    def _numpy_forms(self, fn: NumpyForms) -> tuple[np.ndarray, list[np.ndarray]]:
+        """``fn`` (numpy closed forms) on the cells. A diverging serve overflows there: its values turn non-finite,
+        which serving tests for (as it does for the torch forms, which are silent), with no numpy warning."""
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            return fn(self._flat())
+
     def blocks(self, pairs: list[tuple[int, int]]) -> dict[tuple[int, int], torch.Tensor]:
         if self._numpy and (fn := numpy_closed_forms(self.model, self.cells, pairs)) is not None:
             lead, m = self.cells.shape[:-2], self.cells.shape[-1]
-            out = fn(self._flat())[1]
+            out = self._numpy_forms(fn)[1]
             return {p: torch.from_numpy(b.reshape(*lead, m, m)) for p, b in zip(pairs, out)}
         if self._compiled is not None and list(pairs) == serving_pairs(self.model.stencil):
             lead, m = self.cells.shape[:-2], self.cells.shape[-1]

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import warnings
 
-import numpy as np
 import pytest
 import torch
 
 import latticedft as ldft
 from latticedft import Library
-from latticedft._action import cell_derivatives
+from latticedft._action import CellDerivatives, cell_derivatives, numpy_closed_forms
 from latticedft._models._linear import LinearLagrangian
 from latticedft._stencil import Stencil
 
@@ -103,15 +102,23 @@ def test_a_user_term_has_no_numpy_forms() -> None:
     assert model.fast_derivatives(torch.rand(3, 2, 1, dtype=torch.float64), [(0, 1)]) is None
 
 
-def test_numpy_forms_of_a_diverging_cell_are_non_finite_without_a_warning() -> None:
-    model = _bound(Library.parse("kinetic + gradient + poly:4 + trig:1"), 2, 1, "anchor")
+@pytest.mark.parametrize("kind", ["sparse", "polynomial"])
+def test_numpy_forms_on_diverging_cells_are_non_finite_without_a_warning(kind: str) -> None:
+    """Serving evaluates numpy closed forms (``CellDerivatives``) on a diverging field silently: the values turn
+    non-finite, which serving tests for, as with the torch forms."""
+    if kind == "sparse":
+        model = _bound(Library.parse("kinetic + gradient + poly:4 + trig:1"), 2, 1, "anchor")
+    else:
+        model = ldft.PolynomialLagrangian(orders=[2, 4], stencil=Stencil.first_order(2))
+        model.bind(2, 1, (0.1, 0.1), None)
     with torch.no_grad():
-        model.coef.fill_(1.0)
+        for p in model.parameters():
+            p.fill_(1.0)
     k = model.stencil.size
-    forms = model.numpy_derivatives([(0, 0)])
-    assert forms is not None
-    cells = np.full((3, k, 1), 1e200)
+    cells = torch.full((3, k, 1), 1e200, dtype=torch.float64)
+    assert numpy_closed_forms(model, cells, [(0, 0)]) is not None  # the numpy forms serve these cells
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a numpy RuntimeWarning would fail the test
-        grad, blocks = forms(cells)
-    assert not np.isfinite(grad).all() and not np.isfinite(blocks[0]).all()
+        derivatives = CellDerivatives(model, cells)
+        blocks = derivatives.blocks([(0, 0)])
+    assert not torch.isfinite(derivatives.grad).all() and not torch.isfinite(blocks[(0, 0)]).all()

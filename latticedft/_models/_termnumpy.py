@@ -83,12 +83,6 @@ def numpy_forms(
     nf, ns, mm = len(rule.first), len(rule.second), m * m
 
     def derivatives(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-        # a diverging serve overflows here: its values turn non-finite, which serving tests for (as it does
-        # for the torch forms, which are silent), rather than numpy warning on the console
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            return _evaluate(cells)
-
-    def _evaluate(cells: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
         b = cells.shape[0]
         x = cells.reshape(b, k * m)
         first = np.empty((b, count * nf))
