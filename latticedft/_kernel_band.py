@@ -87,18 +87,24 @@ def band_add(band, dest, held, cells, vol):
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
+def largest(band):
+    # the largest entry of band in size, inf where one is not finite
+    top = 0.0
+    for v in band.reshape(-1):
+        a = abs(v)
+        if not a < np.inf:  # not finite
+            return np.inf
+        top = max(top, a)
+    return top
+
+
+@numba.njit(cache=True, error_model='numpy', nogil=True)
 def band_factor(band, wrap, rtol):
     # band (3, n, m, m): per row x the blocks of unknowns x - 1, x, x + 1 (wrap: band[0, 0] couples row 0 with
     # unknown n - 1 and band[2, n - 1] row n - 1 with unknown 0). Returns (status, inv, low, z, sinv): status 0
     # factorised, 1 a pivot below rtol times the largest entry (or not finite), 2 a multiplier above 1
     n, m = band.shape[1], band.shape[2]
-    top = 0.0
-    for v in band.reshape(-1):
-        a = abs(v)
-        if not a < np.inf:  # not finite
-            top = np.inf
-            break
-        top = max(top, a)
+    top = largest(band)
     tol = rtol * top
     nb = n - 1 if wrap else n
     inv = np.zeros((n, m, m))
@@ -213,13 +219,7 @@ def band_solve(band, wrap, inv, low, z, sinv, rhs):
 def band_factor1(band, wrap, rtol):
     # band_factor for m = 1 on band (3, n): the same elimination in scalars (inv, low, z (n,), sinv (1,))
     n = band.shape[1]
-    top = 0.0
-    for v in band.reshape(-1):
-        a = abs(v)
-        if not a < np.inf:
-            top = np.inf
-            break
-        top = max(top, a)
+    top = largest(band)
     tol = rtol * top
     nb = n - 1 if wrap else n
     inv = np.zeros(n)
