@@ -241,11 +241,10 @@ class _Serving:
         self._field = 0
         self._served: np.ndarray | None = None
         self._chunk = FIRST_CHUNK
-        # 1D tails: served by the numpy loop without building serve's results (:func:`served_values`)
+        # 1D tails: served by the numpy loop without building serve's results (:func:`served_values`), from
+        # the numpy closed forms of the support being served (None: by the public serve)
         self._fields: list[LatticeField] | None = None
-        self._forms: NumpyForms | None = (
-            None  # the numpy closed forms of the support being served (None: the public serve)
-        )
+        self._forms: NumpyForms | None = None
         self._options = ServeOptions.from_keywords(None, progress=False)
 
     @property
