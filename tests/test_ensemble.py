@@ -390,3 +390,34 @@ def test_the_box_measures_member_0s_own_field(m: int) -> None:
     assert "left the box" in alone.reason and 2 < alone.field.sizes["t"] < init.sizes["t"]
     assert together.field.sizes["t"] == alone.field.sizes["t"]
     np.testing.assert_allclose(together.field.values, alone.field.values, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("power", [-40, 40])
+def test_each_member_is_judged_on_its_own_scale(quartic: ldft.EnsembleLagrangian, monkeypatch, power: int) -> None:
+    """A member whose L_d is ``2**power`` times its own (the same equations; a mixed Hessian and residual of another
+    size) is served in the stacked run as alone: neither it nor another member is declared singular, or converged,
+    on another member's scale (the stacked run declared the smaller ones singular, and every member was served
+    again alone). Every member's field equals the member served alone, with the same warnings."""
+    import latticedft._serve._ensemble as ensemble_serving
+
+    scaled = copy.deepcopy(quartic)
+    with torch.no_grad():
+        scaled.member(2).coef.mul_(2.0**power)  # a power of 2: the member alone serves bit for bit as before
+
+    def alone(*args):
+        raise AssertionError("the stacked run stopped: its members were served alone")
+
+    monkeypatch.setattr(ensemble_serving, "_alone", alone)
+    _, refs = oscillator_data(amplitudes=(0.75, 0.5), steps=80)
+    for init in (refs[0], list(refs)):
+        outs = ldft.serve(scaled, init)
+        own = [ldft.serve(quartic.member(k), init) for k in range(len(quartic))]
+        for i, out in enumerate(outs if isinstance(init, list) else [outs]):
+            assert out.complete and out.members_stopped is None
+            for k in range(len(quartic)):
+                mine = own[k][i] if isinstance(init, list) else own[k]
+                assert mine.complete and mine.field.sizes["t"] == out.members.sizes["t"]
+                np.testing.assert_allclose(out.members.values[k], mine.field.values, rtol=0, atol=1e-12)
+            first = own[0][i] if isinstance(init, list) else own[0]
+            np.testing.assert_array_equal(out.field.values, first.field.values)
+            assert out.warnings == first.warnings
