@@ -421,3 +421,31 @@ def test_each_member_is_judged_on_its_own_scale(quartic: ldft.EnsembleLagrangian
             first = own[0][i] if isinstance(init, list) else own[0]
             np.testing.assert_array_equal(out.field.values, first.field.values)
             assert out.warnings == first.warnings
+
+
+@pytest.mark.parametrize("orders", [(2, 0), (2, 4)])  # (2, 0): the affine recurrence; (2, 4): slice-Newton
+def test_each_member_of_a_field_is_judged_on_its_own_scale(orders: tuple[int, int], monkeypatch) -> None:
+    """On a 1+1D lattice too, the singularity test of the stacked slice solve takes each member on its own
+    scale: a member whose L_d is ``2**-40`` or ``2**40`` times its own is served by the stacked run, and every
+    member's field equals the member served alone (it was declared singular on another member's scale)."""
+    import latticedft._serve._ensemble as ensemble_serving
+
+    train = systems.wave_string([(1, 1.0), (2, 0.4)], nx=13, nt=20)
+    test = systems.wave_string([(1, 0.5, 0.3), (3, 0.2)], nx=13, nt=30)
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian(orders), members=3, seed=0)
+    ldft.learn(ens, [train])
+    own = [ldft.serve(ens.member(k), test) for k in range(3)]
+
+    def alone(*args):
+        raise AssertionError("the stacked run stopped: its members were served alone")
+
+    monkeypatch.setattr(ensemble_serving, "_alone", alone)
+    for power in (-40, 40):
+        scaled = copy.deepcopy(ens)
+        with torch.no_grad():
+            scaled.member(2).coef.mul_(2.0**power)
+        out = ldft.serve(scaled, test)
+        assert out.complete and out.members_stopped is None and out.warnings == own[0].warnings
+        for k in range(3):
+            assert own[k].complete
+            np.testing.assert_allclose(out.members.values[k], own[k].field.values, rtol=0, atol=1e-12)
