@@ -316,8 +316,8 @@ def test_run_reports_a_member_that_stopped(tmp_path: Path, capsys, monkeypatch) 
 
     real = serving.serve_ensemble
 
-    def breaking(ens, fs, run, batch):  # member 2 degenerate when served (learned as usual)
-        return real(_broken(ens, 2), fs, run, batch)
+    def breaking(ens, fs, run, batch, *rest):  # member 2 degenerate when served (learned as usual)
+        return real(_broken(ens, 2), fs, run, batch, *rest)
 
     monkeypatch.setattr(serving, "serve_ensemble", breaking)
     case = tiny_wave(tmp_path)
@@ -339,6 +339,16 @@ def test_run_reports_a_member_that_stopped(tmp_path: Path, capsys, monkeypatch) 
     with xr.open_dataset(res / "test.nc") as ds:
         assert np.isfinite(ds["psi_std"].values[2:]).all()
         assert list(np.atleast_1d(ds["psi_std"].attrs["stopped_members"])) == [2]
+    # the figure the run drew marks it on the error panel (a dotted line and its label)
+    from matplotlib.text import Text
+
+    from latticedft.io.figures import task_figure
+
+    assert (res / "test.png").stat().st_size > 0
+    fig = task_figure(res / "test.nc")
+    panel = [ax for ax in fig.axes if "error against the reference" in ax.get_title()][0]
+    assert "member 2 stops" in [t.get_text() for t in panel.findobj(Text)]
+    assert "member(s) stopped" in [str(line.get_label()) for line in panel.get_lines()]
 
 
 def test_members_take_member_0s_ridge() -> None:
@@ -449,3 +459,45 @@ def test_each_member_of_a_field_is_judged_on_its_own_scale(orders: tuple[int, in
         for k in range(3):
             assert own[k].complete
             np.testing.assert_allclose(out.members.values[k], own[k].field.values, rtol=0, atol=1e-12)
+
+
+def _served(model: ldft.AbstractLagrangian, init: xr.DataArray, **kw) -> ldft.ServeResult:
+    """``model`` serving ``init``: its result, or the one its ServeError carries."""
+    try:
+        return ldft.serve(model, init, **kw)
+    except ldft.ServeError as err:
+        return err.result
+
+
+@pytest.mark.parametrize("broken", [False, True])  # True: another member stops the stacked run (served alone)
+def test_the_box_stops_each_member_where_it_stops_alone(quartic: ldft.EnsembleLagrangian, broken: bool) -> None:
+    """A box that one resampled member leaves and member 0 does not: that member's field ends where it ends
+    served alone (the slice that left the box its last), the result names it with the box's reason, and the
+    spread after it is over the others (the stacked run tested member 0's components alone, and the member
+    went on past the box)."""
+    _, (ref,) = oscillator_data(amplitudes=(0.75,), steps=60)
+    peaks = [float(np.abs(ldft.serve(quartic.member(k), ref).field.values[2:]).max()) for k in range(5)]
+    k = int(np.argmax(peaks[1:])) + 1
+    others = max(p for j, p in enumerate(peaks) if j != k)
+    assert peaks[k] > others
+    box = (peaks[k] + others) / 2  # member k alone leaves it
+    ens = _broken(quartic, 4 if k != 4 else 3) if broken else quartic
+    out = ldft.serve(ens, ref, box=box)
+    alone = [_served(ens.member(j), ref, box=box) for j in range(5)]
+    own = alone[k]
+    assert own.reason.startswith("left the box") and 2 < own.field.sizes["t"] < 60
+    assert out.complete and out.field.sizes["t"] == 60
+    assert [w for w in out.warnings if not w.startswith("ensemble:")] == alone[0].warnings
+    assert f"member {k} at slice {own.field.sizes['t']} ({own.reason})" in out.warnings[-1]
+    np.testing.assert_array_equal(out.field.values, alone[0].field.values)
+    stops = {s["member"]: s for s in out.members_stopped}
+    assert stops[k] == {"member": k, "slice": own.field.sizes["t"], "reason": own.reason}
+    assert sorted(stops) == sorted([k, *([4 if k != 4 else 3] if broken else [])])
+    end = own.field.sizes["t"]
+    np.testing.assert_allclose(out.members.values[k, :end], own.field.values, rtol=0, atol=1e-12)
+    assert np.isnan(out.members.values[k, end:]).all()
+    kept = [j for j in range(5) if j not in stops]
+    for j in kept:
+        np.testing.assert_allclose(out.members.values[j], alone[j].field.values, rtol=0, atol=1e-12)
+    survivors = np.stack([alone[j].field.values for j in kept])
+    np.testing.assert_allclose(out.std.values[end:], survivors.std(axis=0, ddof=1)[end:], rtol=1e-12, atol=1e-15)
