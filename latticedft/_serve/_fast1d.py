@@ -118,7 +118,7 @@ class FastBatch(_Batch):
         self.nlength = np.array(self.length, dtype=np.int64)
         self.running = np.ones(len(fs), dtype=bool)
         #: A stacked ensemble's largest singular value met per trajectory and member (set on its first step).
-        self.member_mscale: np.ndarray | None = None
+        self.nmember_mscale: np.ndarray | None = None
 
     def retire(self, k: int, slices: int, why: str, bad: bool, res: float = math.nan) -> None:
         super().retire(k, slices, why, bad, res)
@@ -145,13 +145,13 @@ class FastBatch(_Batch):
 
     def step(self, act: np.ndarray, i: int, rtol: float, max_newton: int) -> _Step:
         """Newton with backtracking for slice ``i + 1`` of the members ``act``: :meth:`_Batch.newton` and its
-        :meth:`_Batch.conditioning`, the same tests in the same order, with shortcuts where every member takes
+        its conditioning test, the same tests in the same order, with shortcuts where every member takes
         its full Newton step (no halving, no member stopped). A stacked ensemble's members are solved as rows
         of their own (:meth:`_step_members`)."""
         if self.model.n_members > 1:
             return self._step_members(act, i, rtol, max_newton)
         q_now, q_old = self.npsi[act, i], self.npsi[act, i - 1]
-        u, g, rabs, ok, sing, it, smin, mscale, count = self._newton(
+        u, g, rabs, ok, sing, it, smin, mscale, count = self._newton_np(
             q_now, q_old, self.ngprev[act], self.nmscale[act], self.fn, rtol, max_newton, False
         )
         self.nmscale[act] = mscale
@@ -178,20 +178,20 @@ class FastBatch(_Batch):
             own = np.arange(nm)
             return rows(g), (b[:, own, :, own, :].transpose(1, 0, 2, 3).reshape(n * nm, w, w),)
 
-        if self.member_mscale is None:
-            self.member_mscale = np.zeros((len(self.fs), nm))
+        if self.nmember_mscale is None:
+            self.nmember_mscale = np.zeros((len(self.fs), nm))
         q_now, q_old = self.npsi[act, i], self.npsi[act, i - 1]
-        u, g, rabs, ok, sing, it, smin, mscale, count = self._newton(
+        u, g, rabs, ok, sing, it, smin, mscale, count = self._newton_np(
             rows(q_now),
             rows(q_old),
             rows(self.ngprev[act]),
-            self.member_mscale[act].reshape(-1),
+            self.nmember_mscale[act].reshape(-1),
             fn,
             rtol,
             max_newton,
             True,
         )
-        self.member_mscale[act] = mscale.reshape(n, nm)
+        self.nmember_mscale[act] = mscale.reshape(n, nm)
         self.niters[act] += count.reshape(n, nm).max(axis=1)
         # per trajectory: the first member that did not converge (else member 0) reports its conditioning
         bad = ~ok.reshape(n, nm)
@@ -203,7 +203,7 @@ class FastBatch(_Batch):
         solved = np.asarray(~bad.any(axis=1))
         return _Step(act, back, gb, rabs.reshape(n, nm).max(axis=1), solved, sing[pick], it, smin[pick])
 
-    def _newton(
+    def _newton_np(
         self,
         q_now: np.ndarray,
         q_old: np.ndarray,
