@@ -447,7 +447,9 @@ def _spread_scale(
 ) -> float | None:
     """The factor on an ensemble's spread: the ``quantile`` quantile over the held-out slices of the trial's
     error over the spread (RMS over the lattice of the members' standard deviation, the ensemble serving the
-    same training field from the same start), halved; slices where the members agree exactly, or a serve
+    same training field from the same start), halved. The spread is ``psi_std``'s: on a slice where members
+    stopped, over those still served there; slices where the members agree exactly, where fewer than
+    :data:`latticedft._serve._ensemble.MIN_MEMBERS` are still served, or where the trial's or member 0's serve
     stopped, are left out. None when the ensemble gives no spread."""
     z = []
     for x in samples:

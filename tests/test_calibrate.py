@@ -61,6 +61,43 @@ def test_an_ensembles_spread_is_scaled_by_the_held_out_error() -> None:
     assert alone.spread_scale is None and alone.scale == cal.scale
 
 
+def test_the_spread_scale_takes_the_members_still_served_on_each_slice() -> None:
+    """A member that stops while the ensemble serves a training field leaves the spread scale's samples as it
+    leaves ``psi_std``: on each held-out slice the trial's error is measured against the spread of the members
+    still served there (each served alone), and a slice with fewer than 2 of them gives no sample (no spread
+    at all: no factor)."""
+    import copy
+
+    from latticedft._serve._ensemble import MIN_MEMBERS
+
+    _, data = oscillator_data(amplitudes=(0.4, 0.8, 1.2), steps=40)
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 4)), members=4, seed=0)
+    ldft.learn(ens, data, progress=False)
+
+    def broken(*members: int) -> ldft.EnsembleLagrangian:  # L_d = 0: singular from the first step
+        out = copy.deepcopy(ens)
+        with torch.no_grad():
+            for k in members:
+                out.member(k).coef.zero_()
+        return out
+
+    record: list[dict] = []
+    cal, _, _ = calibrate(ldft.PolynomialLagrangian((2, 4)), data, ensemble_model=broken(2), record=record)
+    z = []
+    for r in record:
+        f = data[r["field"]]
+        kept = [ldft.serve(ens.member(k), f.isel(t=slice(0, 2)), slices=f.sizes["t"]).field.values for k in (0, 1, 3)]
+        assert len(kept) >= MIN_MEMBERS
+        spread = np.sqrt(np.mean(np.stack(kept).std(axis=0, ddof=1).reshape(f.sizes["t"], -1) ** 2, axis=1))
+        k = np.asarray(r["k"], dtype=int)[np.asarray(r["held"])]
+        rel = np.asarray(r["rel"])[np.asarray(r["held"])]
+        z.append(rel / (spread[k] / float(np.abs(f.values).max())))
+    expected = float(np.quantile(np.concatenate(z), 0.95, method="higher")) / 2
+    assert cal.spread_scale == pytest.approx(expected, rel=1e-9)
+    lone, _, _ = calibrate(ldft.PolynomialLagrangian((2, 4)), data, ensemble_model=broken(1, 2, 3))
+    assert lone.spread_scale is None
+
+
 def test_the_trials_selection_learned_are_taken_as_they_are() -> None:
     """Selection learns every candidate on the held-in slices: given those of the chosen one and the runner-up,
     the calibration takes them instead of learning them again, and measures the same law and samples."""

@@ -255,7 +255,7 @@ def serve(
             raise InputError.at(
                 "every", "an ensemble is served whole (every member on every slice): give every=1 and no on_slice"
             )
-        out = serve_ensemble(model, fs, plan.run, batch)
+        out = serve_ensemble(model, fs, plan.run, batch, opts.box)
     else:
         out = plan.run(model, fs)
     return out if batch else out[0]

@@ -16,7 +16,7 @@ from .._models import AbstractLagrangian
 from .._options import option
 from ._folded import not_affine_by_forms
 from ._potential import not_affine
-from ._slices import _SliceSystem, is_singular
+from ._slices import _SliceSystem, first_singular
 
 log = logging.getLogger("latticedft")
 
@@ -190,13 +190,13 @@ def _affine_prefix(
     flat: torch.Tensor,
     rtol: float,
     vol: float,
-) -> tuple[int, float, float, float] | None:
+) -> tuple[int, float, float, float | np.ndarray] | None:
     """Serve every slice of ``psi`` by the affine recurrence, if the model's DEL is affine, and check them.
 
     Returns ``(slices, worst, dmax, mscale)``: how many leading slices pass the residual test (Newton serves
     the rest), the largest residual among them, the Hessian scale of that test and the largest singular value
-    of the mixed Hessian at a site; ``None`` when the DEL is not affine or its mixed Hessian is singular
-    (Newton then reports it with the slice and site).
+    of the mixed Hessian at a site (per member of a stacked ensemble, each judged on its own); ``None`` when the
+    DEL is not affine or its mixed Hessian is singular (Newton then reports it with the slice and site).
     """
     steps, m = psi.shape[0], sys.m
     compiled = compiled_closed_forms(model, psi[:0])
@@ -210,9 +210,10 @@ def _affine_prefix(
         return None
     hess = torch.from_numpy(probe[0])
     ncell = int(sys.site_of[0].size)
-    smin, mscale, _ = sys.site_singular_values({(a, b): hess[a, b].expand(ncell, m, m) for a, b in sys.jac})
-    if is_singular(smin, mscale):
+    lows, highs, _ = sys.member_singular_values({(a, b): hess[a, b].expand(ncell, m, m) for a, b in sys.jac})
+    if first_singular(lows, highs) is not None:  # a stacked ensemble's members each on their own scale
         return None
+    mscale: float | np.ndarray = float(highs[0]) if sys.members == 1 else highs
     try:
         op = _AffineSlices(sys, probe[0], probe[1])
     except np.linalg.LinAlgError:

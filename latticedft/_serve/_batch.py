@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -76,15 +77,8 @@ class _Batch:
         # per member: the largest singular value of the mixed Hessian met so far (the scale a singular one is
         # measured against)
         self.mscale = torch.zeros(b, dtype=torch.float64)
-
-    def conditioning(self, act: torch.Tensor, jac: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(smin, singular)`` per member of ``act``: the smallest singular value of its Jacobian (the mixed
-        Hessian) and whether it is singular relative to the largest met on that member so far."""
-        sv = jac.abs().reshape(-1, 1) if self.m == 1 else torch.linalg.svdvals(jac)
-        sv = torch.nan_to_num(sv, nan=0.0)
-        self.mscale[act] = torch.maximum(self.mscale[act], sv[:, 0])
-        scale, smin = self.mscale[act], sv[:, -1]
-        return smin, ~((scale > 0) & (smin > SINGULAR_RTOL * scale))  # vectorised is_singular
+        #: A stacked ensemble's largest singular value met per trajectory and member (set on its first step).
+        self.member_mscale: torch.Tensor | None = None
 
     def retire(self, k: int, slices: int, why: str, bad: bool, res: float = math.nan) -> None:
         """Member ``k`` stops after ``slices`` slices; ``bad``: it failed (with residual ``res``)."""
@@ -115,16 +109,94 @@ class _Batch:
             self.record(act_list, i, self.newton(act_list, i, rtol, max_newton), max_newton, box)
 
     def newton(self, act_list: list[int], i: int, rtol: float, max_newton: int) -> _GroupStep:
-        """Newton with backtracking for slice ``i + 1`` of the members ``act_list``, from the predictor."""
+        """Newton with backtracking for slice ``i + 1`` of the members ``act_list``, from the predictor; a stacked
+        ensemble's members as rows of their own (:meth:`_newton_members`)."""
         act = torch.tensor(act_list, dtype=torch.long)
         n = len(act_list)
+        if self.model.n_members > 1:
+            return self._newton_members(act, i, rtol, max_newton)
         q_now, q_old = self.psi[act, i], self.psi[act, i - 1]
-        g_prev = self.g_prev[act]
+        u, g, rabs, ok, sing, it, smin, mscale, count = self._newton(
+            q_now, q_old, self.g_prev[act], self.mscale[act], lambda c: self.derivatives(c, n), rtol, max_newton, False
+        )
+        self.mscale[act] = mscale
+        self.iters[act] += count
+        return _GroupStep(act, u, g, rabs, ok, sing, it, smin)
+
+    def _newton_members(self, act: torch.Tensor, i: int, rtol: float, max_newton: int) -> _GroupStep:
+        """:meth:`newton` of a stacked ensemble (``n_members`` models side by side, never coupled): every member
+        of every trajectory a row of its own, judged on its own (its residual against its own scale, its mixed
+        Hessian's conditioning against the largest singular value it met, its step against its own values) and
+        left as it is once converged, as serving that member alone does (``_fast1d.FastBatch._step_members``)."""
+        n, nm, m = act.numel(), self.model.n_members, self.m
+        w = m // nm
+
+        def rows(a: torch.Tensor) -> torch.Tensor:  # (n, ..., nm * w) -> (n * nm, ..., w)
+            return a.unflatten(-1, (nm, w)).movedim(-2, 1).reshape(n * nm, *a.shape[1:-1], w)
+
+        def back(a: torch.Tensor) -> torch.Tensor:  # (n * nm, ..., w) -> (n, ..., nm * w)
+            return a.reshape(n, nm, *a.shape[1:]).movedim(1, -2).flatten(-2)
+
+        own = torch.arange(nm)
+
+        def derivatives(cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            g, jac = self.derivatives(back(cells), n)
+            blocks = jac.reshape(n, nm, w, nm, w)[:, own, :, own, :]  # (members, n, w, w)
+            return rows(g), blocks.transpose(0, 1).reshape(n * nm, w, w)
+
+        if self.member_mscale is None:
+            self.member_mscale = torch.zeros(len(self.fs), nm, dtype=torch.float64)
+        q_now, q_old = self.psi[act, i], self.psi[act, i - 1]
+        u, g, rabs, ok, sing, it, smin, mscale, count = self._newton(
+            rows(q_now),
+            rows(q_old),
+            rows(self.g_prev[act]),
+            self.member_mscale[act].reshape(-1),
+            derivatives,
+            rtol,
+            max_newton,
+            True,
+        )
+        self.member_mscale[act] = mscale.reshape(n, nm)
+        self.iters[act] += count.reshape(n, nm).amax(1)
+        bad = ~ok.reshape(n, nm)
+        pick = torch.arange(n) * nm + torch.argmax(bad.long(), dim=1)  # the first member that did not converge
+        self.mscale[act] = mscale[pick]
+        solved = ~bad.any(1)
+        return _GroupStep(act, back(u), back(g), rabs.reshape(n, nm).amax(1), solved, sing[pick], it, smin[pick])
+
+    def _newton(
+        self,
+        q_now: torch.Tensor,
+        q_old: torch.Tensor,
+        g_prev: torch.Tensor,
+        mscale: torch.Tensor,
+        derivatives: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
+        rtol: float,
+        max_newton: int,
+        freeze: bool,
+    ) -> tuple[
+        torch.Tensor,
+        torch.Tensor,
+        torch.Tensor,
+        torch.Tensor,
+        torch.Tensor,
+        int,
+        torch.Tensor,
+        torch.Tensor,
+        torch.Tensor,
+    ]:
+        """The Newton loop of :meth:`newton` on rows ``(n, w)`` (``derivatives(cells)``: their gradients and
+        Jacobians): ``(u, g, rabs, ok, sing, iterations, smin, mscale, count)``, ``mscale`` the largest singular
+        value met per row. ``freeze``: a row that converged is left as it is while the others go on."""
+        n = q_now.shape[0]
         u = 2 * q_now - q_old
         mag = torch.maximum(torch.maximum(q_now.abs().amax(-1), q_old.abs().amax(-1)), u.abs().amax(-1))
         rscale = None
         ok = torch.zeros(n, dtype=torch.bool)
+        done = torch.zeros(n, dtype=torch.bool)
         sing = torch.zeros(n, dtype=torch.bool)
+        count = torch.zeros(n, dtype=torch.long)
         # Backtracking: a Newton step that does not lower the residual (a poor predictor at a stiff
         # turning point, say) is halved instead, so Newton finds the root near the predictor rather
         # than a spurious one far away. A step below rtol times the values counts as converged, as
@@ -135,16 +207,23 @@ class _Batch:
         small = torch.zeros(n, dtype=torch.bool)
         smin = torch.full((n,), math.inf, dtype=torch.float64)
         for it in range(1, max_newton + 1):
-            g, jac = self.derivatives(torch.stack([q_now, u], dim=1), n)
+            g, jac = derivatives(torch.stack([q_now, u], dim=1))
             r = self.vol * (g[:, self.a0] + g_prev)
             rabs = r.abs().amax(-1)
             if rscale is None:  # size of the kinetic terms, per trajectory
                 rscale = torch.linalg.matrix_norm(jac, ord=math.inf).clamp_min(1e-300) * mag.clamp_min(1e-300)
-            s_now, degenerate = self.conditioning(act, jac)
+            sv = jac.abs().reshape(-1, 1) if jac.shape[-1] == 1 else torch.linalg.svdvals(jac)
+            sv = torch.nan_to_num(sv, nan=0.0)
+            mscale = torch.maximum(mscale, sv[:, 0])
+            s_now = sv[:, -1]
             smin = torch.minimum(smin, s_now)
-            sing = sing | degenerate  # a singular mixed Hessian is refused, whatever the residual says
+            # a singular mixed Hessian is refused, whatever the residual says (vectorised is_singular)
+            sing = sing | ~((mscale > 0) & (s_now > SINGULAR_RTOL * mscale))
             ok = ((rabs <= rtol * rscale) | (small & torch.isfinite(rabs))) & ~sing
-            self.iters[act] += (~ok).long() if it > 1 else 1
+            if freeze:
+                ok = ok | done
+                done = ok
+            count += (~ok).long() if it > 1 else 1
             if bool(ok.all()) or it == max_newton:
                 break
             worse = ~ok & ~sing & ~(rabs < prev) & (halved < 12)
@@ -157,7 +236,7 @@ class _Batch:
             last = torch.where(take[:, None], step, last)
             halved = torch.where(take, 0, halved + worse.long())
             small = (take | worse) & (last.abs().amax(-1) <= rtol * mag)
-        return _GroupStep(act, u, g, rabs, ok, sing, it, smin)
+        return u, g, rabs, ok, sing, it, smin, mscale, count
 
     def record(self, act_list: list[int], i: int, s: _GroupStep, max_newton: int, box: float | None) -> None:
         """Store slice ``i + 1`` of the members solved; retire those that failed or left the box."""

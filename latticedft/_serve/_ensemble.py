@@ -52,7 +52,9 @@ def _member_values(r: ServeResult, members: int, m: int) -> np.ndarray:
     return np.moveaxis(v, -2, 0)
 
 
-def serve_ensemble(ens: EnsembleLagrangian, fs: list[LatticeField], run: Run, batch: bool) -> list[ServeResult]:
+def serve_ensemble(
+    ens: EnsembleLagrangian, fs: list[LatticeField], run: Run, batch: bool, box: float | None = None
+) -> list[ServeResult]:
     """Serve every member of ``ens`` on each field of ``fs`` in one stacked run; ``run(model, fields)`` serves.
 
     Each result's ``field`` is member 0's (the full-data model's) field, with ``mean``, ``std`` (over the
@@ -61,6 +63,9 @@ def serve_ensemble(ens: EnsembleLagrangian, fs: list[LatticeField], run: Run, ba
     whose field goes non-finite, leaves the spread from that slice on: ``mean`` and ``std`` are over the members
     still finite on each slice, NaN where fewer than :data:`MIN_MEMBERS` are; the result names the members that
     stopped (``members_stopped``) with a warning. A ServeError from member 0 itself carries the results so far.
+    With a ``box`` (the serve's, 1D), the stacked run stops where member 0 leaves it, and every other member
+    stops where it leaves it itself, as alone: its field ends at that slice and the result names it among the
+    members that stopped.
     """
     n, m = len(ens), ens.m
     labels = _labels(ens, fs[0])
@@ -83,6 +88,9 @@ def serve_ensemble(ens: EnsembleLagrangian, fs: list[LatticeField], run: Run, ba
         own = solo[0][i] if solo is not None else None
         if solo is not None:  # each member's own field, as far as it went
             vals = _joined([s[i] for s in solo], vals)
+        elif box is not None:
+            vals = vals.copy()  # not the stacked result's own values
+            _boxed(vals, box, reasons[i])
         out.append(_result(ens, f, r, vals, own, reasons[i]))
     if failure is not None:
         raise ServeError(
@@ -116,8 +124,31 @@ def _alone(
             for i in range(len(fs)):
                 done = i < len(got) and got[i] is not None and got[i].complete
                 reasons[i][k] = "" if done else str(err)
+        for i in range(min(len(fs), len(got))):  # stopped short without an error: it left the box
+            r = got[i]
+            if r is not None and not reasons[i][k] and r.reason.startswith(_LEFT_THE_BOX):
+                reasons[i][k] = r.reason
         out.append([got[i] if i < len(got) else None for i in range(len(fs))])
     return out, failure
+
+
+#: How a 1D trajectory's reason begins when it stopped leaving the serve's box (``_batch``, ``_fast1d``).
+_LEFT_THE_BOX = "left the box"
+
+
+def _boxed(vals: np.ndarray, box: float, reasons: list[str]) -> None:
+    """Every member but member 0 (whose own box test ends the stacked run) stopped where it leaves ``box`` itself,
+    as served alone: the first solved slice ``s`` whose ``|psi|`` over the member's own components exceeds it is
+    its last (the values after it set to NaN), and ``reasons[k]`` says so. ``vals``: ``(members, nt, m)``."""
+    for k in range(1, vals.shape[0]):
+        own = vals[k].reshape(vals.shape[1], -1)
+        out = np.sqrt((own * own).sum(-1)) > box
+        out[:2] = False  # the given slices are not tested
+        if out.any():
+            at = int(np.argmax(out))
+            if at + 1 < vals.shape[1]:
+                vals[k, at + 1 :] = math.nan
+                reasons[k] = f"{_LEFT_THE_BOX} |psi| <= {box:g} at slice {at}"
 
 
 def _joined(results: list[ServeResult | None], like: np.ndarray) -> np.ndarray:

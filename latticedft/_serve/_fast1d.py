@@ -117,6 +117,8 @@ class FastBatch(_Batch):
         self.nmscale = self.mscale.numpy()
         self.nlength = np.array(self.length, dtype=np.int64)
         self.running = np.ones(len(fs), dtype=bool)
+        #: A stacked ensemble's largest singular value met per trajectory and member (set on its first step).
+        self.nmember_mscale: np.ndarray | None = None
 
     def retire(self, k: int, slices: int, why: str, bad: bool, res: float = math.nan) -> None:
         super().retire(k, slices, why, bad, res)
@@ -133,7 +135,7 @@ class FastBatch(_Batch):
 
     def singular_values(self, jac: np.ndarray) -> np.ndarray:
         """``(n, m)``: the singular values of each member's Jacobian (the mixed Hessian), NaN read as 0."""
-        if self.m == 1:
+        if jac.shape[-1] == 1:
             sv = np.abs(jac.reshape(-1, 1))
             return sv if np.isfinite(sv[:, 0]).all() else np.nan_to_num(sv, nan=0.0)
         bad = ~np.isfinite(jac).all(axis=(-2, -1))
@@ -143,17 +145,87 @@ class FastBatch(_Batch):
 
     def step(self, act: np.ndarray, i: int, rtol: float, max_newton: int) -> _Step:
         """Newton with backtracking for slice ``i + 1`` of the members ``act``: :meth:`_Batch.newton` and its
-        :meth:`_Batch.conditioning`, the same tests in the same order, with shortcuts where every member takes
-        its full Newton step (no halving, no member stopped)."""
-        n, vol, a0, m = act.size, self.vol, self.a0, self.m
+        its conditioning test, the same tests in the same order, with shortcuts where every member takes
+        its full Newton step (no halving, no member stopped). A stacked ensemble's members are solved as rows
+        of their own (:meth:`_step_members`)."""
+        if self.model.n_members > 1:
+            return self._step_members(act, i, rtol, max_newton)
         q_now, q_old = self.npsi[act, i], self.npsi[act, i - 1]
-        g_prev = self.ngprev[act]
+        u, g, rabs, ok, sing, it, smin, mscale, count = self._newton_np(
+            q_now, q_old, self.ngprev[act], self.nmscale[act], self.fn, rtol, max_newton, False
+        )
+        self.nmscale[act] = mscale
+        self.niters[act] += count
+        return _Step(act, u, g, rabs, ok, sing, it, smin)
+
+    def _step_members(self, act: np.ndarray, i: int, rtol: float, max_newton: int) -> _Step:
+        """:meth:`step` of a stacked ensemble (``n_members`` models side by side, never coupled): every member of
+        every trajectory is a row of its own, judged on its own (its residual against its own scale, its mixed
+        Hessian's conditioning against the largest singular value it met, its step against its own values) and
+        left as it is once converged, as serving that member alone does: a member with smaller values is neither
+        converged nor declared singular on another member's scale. A trajectory's slice is solved when every
+        member's is; it stops where one member's does (the ensemble then serves each member alone)."""
+        n, nm, m = act.size, self.model.n_members, self.m
+        w = m // nm
+
+        def rows(a: np.ndarray) -> np.ndarray:  # (n, ..., nm * w) -> (n * nm, ..., w)
+            return np.moveaxis(a.reshape(*a.shape[:-1], nm, w), -2, 1).reshape(n * nm, *a.shape[1:-1], w)
+
+        def fn(cells: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray]]:
+            c = np.moveaxis(cells.reshape(n, nm, *cells.shape[1:]), 1, -2).reshape(n, *cells.shape[1:-1], m)
+            g, (block,) = self.fn(c)
+            b = block.reshape(n, nm, w, nm, w)
+            own = np.arange(nm)
+            return rows(g), (b[:, own, :, own, :].transpose(1, 0, 2, 3).reshape(n * nm, w, w),)
+
+        if self.nmember_mscale is None:
+            self.nmember_mscale = np.zeros((len(self.fs), nm))
+        q_now, q_old = self.npsi[act, i], self.npsi[act, i - 1]
+        u, g, rabs, ok, sing, it, smin, mscale, count = self._newton_np(
+            rows(q_now),
+            rows(q_old),
+            rows(self.ngprev[act]),
+            self.nmember_mscale[act].reshape(-1),
+            fn,
+            rtol,
+            max_newton,
+            True,
+        )
+        self.nmember_mscale[act] = mscale.reshape(n, nm)
+        self.niters[act] += count.reshape(n, nm).max(axis=1)
+        # per trajectory: the first member that did not converge (else member 0) reports its conditioning
+        bad = ~ok.reshape(n, nm)
+        at = np.argmax(bad, axis=1)
+        pick = np.arange(n) * nm + at
+        self.nmscale[act] = mscale[pick]
+        back = np.moveaxis(u.reshape(n, nm, w), 1, -2).reshape(n, m)
+        gb = np.moveaxis(g.reshape(n, nm, *g.shape[1:]), 1, -2).reshape(n, *g.shape[1:-1], m)
+        solved = np.asarray(~bad.any(axis=1))
+        return _Step(act, back, gb, rabs.reshape(n, nm).max(axis=1), solved, sing[pick], it, smin[pick])
+
+    def _newton_np(
+        self,
+        q_now: np.ndarray,
+        q_old: np.ndarray,
+        g_prev: np.ndarray,
+        mscale: np.ndarray,
+        fn,
+        rtol: float,
+        max_newton: int,
+        freeze: bool,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, np.ndarray]:
+        """The Newton loop of :meth:`step` on rows ``(n, w)`` (``fn`` their derivatives): ``(u, g, rabs, ok, sing,
+        iterations, smin, mscale, count)``. ``freeze``: a row that converged is left as it is (as if it had
+        stopped iterating there) while the others go on."""
+        vol, a0 = self.vol, self.a0
+        n, m = q_now.shape
         u = 2 * q_now - q_old
         rowmax = _first if m == 1 else _rowmax  # the largest entry of each row
         mag = np.maximum(np.maximum(rowmax(np.abs(q_now)), rowmax(np.abs(q_old))), rowmax(np.abs(u)))
         rtol_mag = rtol * mag
         rscale = None
-        mscale = self.nmscale[act]  # the largest singular value met per member (written back at the end)
+        mscale = mscale.copy()  # the largest singular value met per row (given back at the end)
+        done = np.zeros(n, dtype=bool)
         count = np.ones(n, dtype=np.int64)  # Newton iterations counted per member
         sing = np.zeros(n, dtype=bool)
         prev = np.full(n, math.inf)
@@ -166,7 +238,7 @@ class FastBatch(_Batch):
         cells[:, 0] = q_now
         for it in range(1, max_newton + 1):
             cells[:, 1] = u
-            g, (block,) = self.fn(cells)
+            g, (block,) = fn(cells)
             jac = vol * block
             r = vol * (g[:, a0] + g_prev)
             rabs = rowmax(np.abs(r))
@@ -180,6 +252,9 @@ class FastBatch(_Batch):
             if small is not None:
                 ok |= small & np.isfinite(rabs)
             ok &= ~sing
+            if freeze:
+                ok |= done
+                done = ok
             if it > 1:
                 count += ~ok
             if ok.all() or it == max_newton:
@@ -204,9 +279,7 @@ class FastBatch(_Batch):
             halved = np.where(take, 0, halved + worse)
             any_halved = bool(halved.any())
             small = (take | worse) & (rowmax(np.abs(last)) <= rtol_mag)
-        self.nmscale[act] = mscale
-        self.niters[act] += count
-        return _Step(act, u, g, rabs, ok, sing, it, smin)
+        return u, g, rabs, ok, sing, it, smin, mscale, count
 
     def step_one(self, k: int, i: int, rtol: float, max_newton: int) -> _Step | None:
         """:meth:`step` for one scalar member ``k`` in Python floats (the same IEEE operations in the same

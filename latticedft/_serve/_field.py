@@ -115,6 +115,9 @@ class _FieldRun(SteppedRun):
             self.worst = worst
             self.count_affine()
             self.cache["dmax"] = dmax
+            if isinstance(mscale, np.ndarray):  # a stacked ensemble's, per member
+                self.cache["member_mscale"] = mscale
+                mscale = float(mscale.max())
             self.cache["mscale"] = mscale
         self.bar.update(self.affine_slices)
 

@@ -42,6 +42,9 @@ class _SliceSystem:
         st = model.stencil
         self.st = st
         self.m = f.ncomp
+        #: Models side by side on the components (a stacked ensemble's members, ``m // members`` components each):
+        #: their conditioning is judged one by one (:meth:`member_singular_values`).
+        self.members = model.n_members
         spatial = f.shape[1:]
         self.spatial = spatial
         self.kinds = axis_kinds(f.boundary)[1:]  # the boundary kind of each spatial axis
@@ -233,6 +236,31 @@ class _SliceSystem:
         worst = int(torch.argmin(low))
         return float(low[worst]), float(sv[:, 0].max()), worst * m
 
+    def member_singular_values(
+        self, blocks: dict[tuple[int, int], torch.Tensor]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`site_singular_values` per model side by side on the components (:attr:`members`; one for a
+        single model): ``(smallest, largest, row)`` each of shape ``(members,)``, of each member's own diagonal
+        blocks (the Jacobian of a stacked ensemble is block diagonal in its members: each is judged on its own
+        scale, as when served alone)."""
+        if self.members == 1:
+            low, high, row = self.site_singular_values(blocks)
+            return np.array([low]), np.array([high]), np.array([row])
+        nm, m = self.members, self.m
+        w = m // nm
+        if self.n == 0:
+            return np.full(nm, math.inf), np.zeros(nm), np.zeros(nm, dtype=np.int64)
+        diag = self.diagonal(blocks).reshape(self.n, nm, w, nm, w)
+        own = torch.arange(nm)
+        per = diag[:, own, :, own, :]  # (members, n, w, w)
+        sv = per.abs().reshape(nm, -1, 1) if w == 1 else torch.linalg.svdvals(per)
+        sv = torch.nan_to_num(sv, nan=0.0)
+        lowest = sv[..., -1]  # (members, n)
+        worst = torch.argmin(lowest, dim=1)
+        rows = worst.numpy() * m + np.arange(nm) * w
+        smallest = lowest.gather(1, worst[:, None])[:, 0]
+        return smallest.numpy().astype(np.float64), sv[..., 0].amax(dim=1).numpy().astype(np.float64), rows
+
     def diagonal(self, blocks: dict[tuple[int, int], torch.Tensor]) -> torch.Tensor:
         """The Jacobian's diagonal ``m x m`` blocks ``(n, m, m)`` without the cell volume: per unknown site the mixed
         Hessian summed over the cells that hold it; kept on ``blocks`` where they are :class:`Blocks`."""
@@ -283,6 +311,15 @@ def singular_message(smin: float, scale: float) -> str:
 def is_singular(smin: float, scale: float) -> bool:
     """Whether a smallest singular value ``smin`` is singular relative to ``scale`` (a zero scale is)."""
     return not (scale > 0 and smin > SINGULAR_RTOL * scale)
+
+
+def first_singular(smin: np.ndarray, scale: np.ndarray) -> int | None:
+    """The first member whose smallest singular value ``smin[k]`` is singular relative to its own ``scale[k]``
+    (:func:`is_singular`), or None."""
+    for k in range(len(smin)):
+        if is_singular(float(smin[k]), float(scale[k])):
+            return k
+    return None
 
 
 def _site_label(f: LatticeField, sys: _SliceSystem, tslice: int, row: int) -> tuple[int, ...]:
