@@ -33,7 +33,15 @@ from .._serve import serve
 from .._serve._fast1d import numpy_derivatives_of
 from .._serve._onedim import served_values
 from .._serve._options import ServeOptions
-from ._exact import _constrained_lstsq, _qr_r, mean_mixed_hessian, residual_matrix
+from ._exact import (
+    _constrained_lstsq,
+    _gauge_split,
+    _no_hessian,
+    _null_solve,
+    _qr_r,
+    mean_mixed_hessian,
+    residual_matrix,
+)
 from ._gauge import Gauge
 from ._heldout import HOLD_OUT, held_in, held_out_score
 
@@ -89,10 +97,6 @@ def _stack(factors: list[np.ndarray]) -> np.ndarray:
     return factors[0] if len(factors) == 1 else _qr_r(np.vstack(factors))
 
 
-def _columns(g: _Gauge, keep: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
-    return (None, None) if g is None else (g[0][:, keep], g[1])
-
-
 def _feasible(g: tuple[np.ndarray, np.ndarray], keep: np.ndarray) -> bool:
     """True when the terms ``keep`` can satisfy the gauge rows ``G coef = g`` (to round-off)."""
     if not keep.any():
@@ -102,39 +106,80 @@ def _feasible(g: tuple[np.ndarray, np.ndarray], keep: np.ndarray) -> bool:
     return bool(np.linalg.norm(a @ x - g[1]) <= 1e-9 * max(float(np.linalg.norm(g[1])), 1e-300))
 
 
-def _gauge_safe(keep: np.ndarray, weight: np.ndarray, g: _Gauge) -> np.ndarray:
+class _Constraint:
+    """The gauge rows ``G coef = g`` (or none) and what the solve and the feasibility test take of them per
+    support, kept: they do not depend on the rows ``t``, and the same supports recur over the thresholds, the
+    passes of thresholding, the backward path and the bags."""
+
+    def __init__(self, g: _Gauge):
+        self.g = g
+        self._split: dict[bytes, tuple[np.ndarray, np.ndarray] | None] = {}
+        self._feasible: dict[bytes, bool] = {}
+
+    def feasible(self, keep: np.ndarray) -> bool:
+        """True without a gauge, else when the terms ``keep`` can satisfy its rows (:func:`_feasible`)."""
+        if self.g is None:
+            return True
+        key = keep.tobytes()
+        if key not in self._feasible:
+            self._feasible[key] = _feasible(self.g, keep)
+        return self._feasible[key]
+
+    def fit(self, t: np.ndarray, active: np.ndarray, ridge: float) -> np.ndarray:
+        """The gauge-fixed least-squares coefficients of the terms ``active`` on the rows ``t`` (zero elsewhere):
+        :func:`latticedft._learn._exact._constrained_lstsq`, with the gauge's part kept per support."""
+        theta = np.zeros(t.shape[1])
+        r = t[:, active]
+        if self.g is None:
+            theta[active] = _constrained_lstsq(r, None, None, ridge)
+            return theta
+        key = active.tobytes()
+        if key not in self._split:
+            self._split[key] = _gauge_split(self.g[0][:, active], self.g[1])
+        split = self._split[key]
+        if split is None:
+            raise _no_hessian()
+        lam = ridge * (float((r**2).sum(0).mean()) or 1.0) if ridge else 0.0
+        theta[active] = _null_solve(r, *split, lam)
+        return theta
+
+
+def _constraint(g: _Gauge | _Constraint) -> _Constraint:
+    return g if isinstance(g, _Constraint) else _Constraint(g)
+
+
+def _gauge_safe(keep: np.ndarray, weight: np.ndarray, con: _Constraint) -> np.ndarray:
     """``keep`` with the gauge's terms added back, largest first, until the gauge can be met."""
-    if g is None:
+    if con.g is None:
         return keep
     keep = keep.copy()
     for c in np.argsort(-weight):
-        if _feasible(g, keep):
+        if con.feasible(keep):
             break
-        if not keep[c] and np.any(g[0][:, c] != 0):
+        if not keep[c] and np.any(con.g[0][:, c] != 0):
             keep[c] = True
     return keep
 
 
-def stlsq(t: np.ndarray, g: _Gauge, threshold: float, ridge: float) -> np.ndarray:
+def stlsq(t: np.ndarray, g: _Gauge | _Constraint, threshold: float, ridge: float) -> np.ndarray:
     """Sequential thresholding on the rows ``t`` under the gauge ``g``: the coefficients, zero off the support."""
+    con = _constraint(g)
     c = t.shape[1]
     norms = np.sqrt((t**2).sum(0))
-    active = _gauge_safe(np.ones(c, dtype=bool), norms, g)
+    active = _gauge_safe(np.ones(c, dtype=bool), norms, con)
     theta = np.zeros(c)
     for _ in range(c + 1):
-        theta = np.zeros(c)
-        gm, gv = _columns(g, active)
-        theta[active] = _constrained_lstsq(t[:, active], gm, gv, ridge)
+        theta = con.fit(t, active, ridge)
         weight = np.abs(theta) * norms
         keep = active & (weight > threshold * weight.max()) if weight.max() > 0 else active
-        keep = _gauge_safe(keep, weight, g)
+        keep = _gauge_safe(keep, weight, con)
         if (keep == active).all():
             break
         active = keep
     return theta
 
 
-def _pick(blocks: list[np.ndarray], g: _Gauge, ridge: float) -> tuple[float, dict[str, float]]:
+def _pick(blocks: list[np.ndarray], g: _Gauge | _Constraint, ridge: float) -> tuple[float, dict[str, float]]:
     """The threshold of :data:`THRESHOLDS` with the sparsest support held out within :data:`SLACK` of the best."""
     folds = [(_stack([b for j, b in enumerate(blocks) if j != i]), blocks[i]) for i in range(len(blocks))]
     if len(blocks) < 2:
@@ -168,7 +213,7 @@ def _head(model: SparseLagrangian, f: LatticeField, r: np.ndarray, keep: int) ->
 def _pick_served(
     model: SparseLagrangian,
     fields: list[LatticeField],
-    g: _Gauge,
+    g: _Gauge | _Constraint,
     ridge: float,
     nsites: int,
     rs: list[np.ndarray] | None = None,
@@ -321,27 +366,20 @@ class _Serving:
             self._field, self._served, self._chunk = self._field + 1, None, FIRST_CHUNK
 
 
-def _fit(t: np.ndarray, g: _Gauge, ridge: float, active: np.ndarray) -> np.ndarray:
-    """The gauge-fixed least-squares coefficients on the terms ``active`` (zero elsewhere)."""
-    theta = np.zeros(t.shape[1])
-    gm, gv = _columns(g, active)
-    theta[active] = _constrained_lstsq(t[:, active], gm, gv, ridge)
-    return theta
-
-
-def backward(t: np.ndarray, g: _Gauge, ridge: float, stop: int = 0) -> list[np.ndarray]:
+def backward(t: np.ndarray, g: _Gauge | _Constraint, ridge: float, stop: int = 0) -> list[np.ndarray]:
     """Backward elimination on the rows ``t`` under the gauge ``g``: from every term, drop one at a time the term
     whose removal raises the residual ``|t coef|`` least (the gauge kept feasible); the coefficients of every
     support on the path, the densest first, down to ``stop`` terms. Unlike thresholding by share, it is not
     misled by near-collinear terms (powers and trig functions of a field far from 0) whose large coefficients
     cancel."""
+    con = _constraint(g)
     active = np.ones(t.shape[1], dtype=bool)
-    if g is not None and not _feasible(g, active):
+    if not con.feasible(active):
         return []
     path = []
     while active.any():
         try:
-            path.append(_fit(t, g, ridge, active))
+            path.append(con.fit(t, active, ridge))
         except (InputError, np.linalg.LinAlgError):
             break
         if np.count_nonzero(active) <= stop:
@@ -350,10 +388,10 @@ def backward(t: np.ndarray, g: _Gauge, ridge: float, stop: int = 0) -> list[np.n
         for j in np.flatnonzero(active):
             trial = active.copy()
             trial[j] = False
-            if not trial.any() or (g is not None and not _feasible(g, trial)):
+            if not trial.any() or not con.feasible(trial):
                 continue
             try:
-                res = float(np.linalg.norm(t @ _fit(t, g, ridge, trial)))
+                res = float(np.linalg.norm(t @ con.fit(t, trial, ridge)))
             except (InputError, np.linalg.LinAlgError):
                 continue
             if best is None or res < best[0]:
@@ -364,7 +402,7 @@ def backward(t: np.ndarray, g: _Gauge, ridge: float, stop: int = 0) -> list[np.n
     return path
 
 
-def _supports(t: np.ndarray, g: _Gauge, ridge: float) -> list[tuple[str, np.ndarray]]:
+def _supports(t: np.ndarray, g: _Gauge | _Constraint, ridge: float) -> list[tuple[str, np.ndarray]]:
     """``(rule, coefficients)`` for each distinct support over :data:`THRESHOLDS` (the rule the largest threshold
     giving it, ``"0.01"``) and then on the :func:`backward` path (``"4 terms"``), fitted on the rows ``t``."""
     out: dict[bytes, tuple[str, np.ndarray]] = {}
@@ -379,7 +417,7 @@ def _supports(t: np.ndarray, g: _Gauge, ridge: float) -> list[tuple[str, np.ndar
     return list(out.values())
 
 
-def _refit(rule: str, t: np.ndarray, g: _Gauge, ridge: float) -> np.ndarray:
+def _refit(rule: str, t: np.ndarray, g: _Gauge | _Constraint, ridge: float) -> np.ndarray:
     """The coefficients of ``rule`` (a threshold, or ``"k terms"`` on the backward path) on the rows ``t``."""
     if not rule.endswith(" terms"):
         return stlsq(t, g, float(rule), ridge)
@@ -391,7 +429,7 @@ def _refit(rule: str, t: np.ndarray, g: _Gauge, ridge: float) -> np.ndarray:
 
 
 def _bagged(
-    blocks: list[np.ndarray], g: _Gauge, rule: str, ridge: float, bags: int, theta: np.ndarray
+    blocks: list[np.ndarray], g: _Gauge | _Constraint, rule: str, ridge: float, bags: int, theta: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each term's share of ``bags`` fits of ``rule`` on blocks drawn with replacement, and the standard
     deviation of its coefficient over them relative to its coefficient ``theta`` (0 where ``theta`` is 0);
@@ -445,7 +483,7 @@ def learn_sparse(
     unbatched = not any(f.batch for f in fields)  # then the held-out threshold reuses these rows
     if gauge.fixes and shared.get("mean") is None:
         shared["mean"] = mean_mixed_hessian(model, fields)
-    g = gauge.constraint(shared["mean"], model.spacing[0]) if gauge.fixes else None
+    g = _Constraint(gauge.constraint(shared["mean"], model.spacing[0]) if gauge.fixes else None)
     blocks = _blocks(rs, model.n_terms)
     validation: dict[str, float] = {}
     if model.threshold == "auto":
