@@ -43,9 +43,13 @@ def residual_matrix(model: LinearLagrangian, f: LatticeField) -> np.ndarray:
     Per-cell derivatives of every basis function (:meth:`LinearLagrangian.feature_derivatives`), then the
     adjoint of the cell gather puts them on the sites.
     """
+    d, _ = model.feature_derivatives(gather_cells(f.values, model.stencil, f.boundary))
+    return _site_rows(model, f, d)
+
+
+def _site_rows(model: LinearLagrangian, f: LatticeField, d: torch.Tensor) -> np.ndarray:
+    """:func:`residual_matrix` from the per-cell first derivatives ``d`` of the basis functions on ``f``."""
     st = model.stencil
-    x = gather_cells(f.values, st, f.boundary)
-    d, _ = model.feature_derivatives(x)  # (*cells, K, m, C)
     c = d.shape[-1]
     z = torch.zeros(*f.values.shape, c, dtype=torch.float64, requires_grad=True)
     with torch.enable_grad():
@@ -53,6 +57,27 @@ def residual_matrix(model: LinearLagrangian, f: LatticeField) -> np.ndarray:
     sites = math.prod(model.spacing) * sites  # (*N, m, C)
     inner = interior_slices(f.shape, st, f.boundary)
     return sites[inner].reshape(-1, c).numpy()
+
+
+def residual_matrices(
+    model: LinearLagrangian, fields: list[LatticeField], mean: bool
+) -> tuple[list[np.ndarray], np.ndarray | None]:
+    """:func:`residual_matrix` of every field and, if ``mean``, :func:`mean_mixed_hessian` (else None), the
+    basis functions differentiated once per field for both (the same numbers as the two apart)."""
+    st = model.stencil
+    pair = (st.anchor, st.forward)
+    m, c = model.m, model.n_terms
+    total = torch.zeros(c, m, m, dtype=torch.float64)
+    ncells = 0
+    rows = []
+    for f in fields:
+        x = gather_cells(f.values, st, f.boundary)
+        d, blocks = model.feature_derivatives(x, [pair] if mean else [])
+        rows.append(_site_rows(model, f, d))
+        if mean:
+            ncells += x[..., 0, 0].numel()
+            total += blocks[pair].reshape(-1, m, m, c).sum(0).permute(2, 0, 1)
+    return rows, (total / ncells).numpy() if mean else None
 
 
 def gauge_matrix(

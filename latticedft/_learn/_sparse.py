@@ -40,6 +40,7 @@ from ._exact import (
     _null_solve,
     _qr_r,
     mean_mixed_hessian,
+    residual_matrices,
     residual_matrix,
 )
 from ._gauge import Gauge
@@ -150,7 +151,7 @@ def _constraint(g: _Gauge | _Constraint) -> _Constraint:
 
 def _gauge_safe(keep: np.ndarray, weight: np.ndarray, con: _Constraint) -> np.ndarray:
     """``keep`` with the gauge's terms added back, largest first, until the gauge can be met."""
-    if con.g is None:
+    if con.g is None or con.feasible(keep):
         return keep
     keep = keep.copy()
     for c in np.argsort(-weight):
@@ -240,7 +241,8 @@ def _pick_served(
     heads = [_head(model, f, r, k) for f, r, k in zip(single, rs, keep)]
     tails = [w.isel({w.dims[0]: slice(min(k, w.sizes[w.dims[0]] - 3), None)}) for w, k in zip(whole, keep)]
     fits = sorted(_supports(_stack(_blocks(heads, model.n_terms)), g, ridge), key=lambda f: np.count_nonzero(f[1]))
-    runs = {label: _Serving(theta, tails, boundary) for label, theta in fits}  # stable: thresholds first
+    shared: dict[str, list[LatticeField]] = {}  # the tails' lattice fields, made once for every support
+    runs = {label: _Serving(theta, tails, boundary, shared) for label, theta in fits}  # stable: thresholds first
     saved = model.coef.detach().clone()
     try:
         chosen = _serve_supports(model, runs, [r[h.shape[0] :] for r, h in zip(rs, heads)])
@@ -277,10 +279,17 @@ class _Serving:
     served, so that it stops as soon as its error passes a bound (Newton's method restarted on each chunk, so
     the slices agree with serving a tail in one call to within Newton's tolerance). ``error``: the largest
     relative error so far (:func:`latticedft._learn._heldout.held_out_score`'s measure; ``inf`` once serving
-    stops)."""
+    stops). ``shared``: where the tails' lattice fields are kept for the other supports serving the same tails."""
 
-    def __init__(self, theta: np.ndarray, tails: list[xr.DataArray], boundary: BoundaryKinds | None):
+    def __init__(
+        self,
+        theta: np.ndarray,
+        tails: list[xr.DataArray],
+        boundary: BoundaryKinds | None,
+        shared: dict[str, list[LatticeField]] | None = None,
+    ):
         self.theta, self.tails, self.boundary = theta, tails, boundary
+        self._shared = {} if shared is None else shared
         self.error = 0.0
         self.started = False
         self._field = 0
@@ -320,8 +329,10 @@ class _Serving:
     def _numpy_forms(self, model: SparseLagrangian) -> NumpyForms | None:
         """The model's numpy closed forms where every tail is 1D (with their lattice fields), else None."""
         if self._fields is None:
-            names = [f"tails[{k}]" for k in range(len(self.tails))]
-            self._fields = as_lattice_fields(self.tails, names, boundary=self.boundary, min_slices=2)
+            if "fields" not in self._shared:
+                names = [f"tails[{k}]" for k in range(len(self.tails))]
+                self._shared["fields"] = as_lattice_fields(self.tails, names, boundary=self.boundary, min_slices=2)
+            self._fields = self._shared["fields"]
         return numpy_derivatives_of(model) if all(f.ndim == 1 for f in self._fields) else None
 
     def _serve_window(self, model: SparseLagrangian, i0: int, start: np.ndarray) -> np.ndarray | None:
@@ -476,9 +487,13 @@ def learn_sparse(
     lam = 0.0 if ridge == "auto" else float(ridge)
     shared = {} if shared is None else shared
     if "rs" not in shared:
-        rows = [residual_matrix(model, f) / math.sqrt(nsites) for f in fields]
+        mean = gauge.fixes and shared.get("mean") is None  # the mean mixed Hessian from the same derivatives
+        rows, shared_mean = residual_matrices(model, fields, mean)
+        rows = [r / math.sqrt(nsites) for r in rows]
         _finite_columns(model, rows)
         shared["rs"] = rows
+        if mean:
+            shared["mean"] = shared_mean
     rs: list[np.ndarray] = shared["rs"]
     unbatched = not any(f.batch for f in fields)  # then the held-out threshold reuses these rows
     if gauge.fixes and shared.get("mean") is None:
