@@ -98,6 +98,15 @@ def _stack(factors: list[np.ndarray]) -> np.ndarray:
     return factors[0] if len(factors) == 1 else _qr_r(np.vstack(factors))
 
 
+def _stacks(blocks: list[np.ndarray], picks: list[np.ndarray]) -> list[np.ndarray]:
+    """:func:`_stack` of the blocks of each pick; blocks of one shape in one batched QR (LAPACK's factor of
+    each matrix, the same as one at a time)."""
+    if len({b.shape for b in blocks}) > 1 or any(len(p) < 2 for p in picks):
+        return [_stack([blocks[i] for i in pick]) for pick in picks]
+    rows = np.asarray(blocks)[np.asarray(picks)]  # (bags, picks, rows, C)
+    return list(_qr_r(rows.reshape(len(picks), -1, rows.shape[-1])))
+
+
 def _feasible(g: tuple[np.ndarray, np.ndarray], keep: np.ndarray) -> bool:
     """True when the terms ``keep`` can satisfy the gauge rows ``G coef = g`` (to round-off)."""
     if not keep.any():
@@ -110,12 +119,15 @@ def _feasible(g: tuple[np.ndarray, np.ndarray], keep: np.ndarray) -> bool:
 class _Constraint:
     """The gauge rows ``G coef = g`` (or none) and what the solve and the feasibility test take of them per
     support, kept: they do not depend on the rows ``t``, and the same supports recur over the thresholds, the
-    passes of thresholding, the backward path and the bags."""
+    passes of thresholding, the backward path and the bags. The fits on the last rows met are kept too (every
+    threshold's thresholding and the backward path start from the same supports)."""
 
     def __init__(self, g: _Gauge):
         self.g = g
         self._split: dict[bytes, tuple[np.ndarray, np.ndarray] | None] = {}
         self._feasible: dict[bytes, bool] = {}
+        self._rows: np.ndarray | None = None
+        self._fits: dict[tuple[bytes, float], np.ndarray] = {}
 
     def feasible(self, keep: np.ndarray) -> bool:
         """True without a gauge, else when the terms ``keep`` can satisfy its rows (:func:`_feasible`)."""
@@ -129,15 +141,23 @@ class _Constraint:
     def fit(self, t: np.ndarray, active: np.ndarray, ridge: float) -> np.ndarray:
         """The gauge-fixed least-squares coefficients of the terms ``active`` on the rows ``t`` (zero elsewhere):
         :func:`latticedft._learn._exact._constrained_lstsq`, with the gauge's part kept per support."""
+        if t is not self._rows:
+            self._rows, self._fits = t, {}
+        key = (active.tobytes(), ridge)
+        if key not in self._fits:
+            self._fits[key] = self._solve(t, active, ridge)
+        return self._fits[key].copy()
+
+    def _solve(self, t: np.ndarray, active: np.ndarray, ridge: float) -> np.ndarray:
         theta = np.zeros(t.shape[1])
         r = t[:, active]
         if self.g is None:
             theta[active] = _constrained_lstsq(r, None, None, ridge)
             return theta
-        key = active.tobytes()
-        if key not in self._split:
-            self._split[key] = _gauge_split(self.g[0][:, active], self.g[1])
-        split = self._split[key]
+        support = active.tobytes()
+        if support not in self._split:
+            self._split[support] = _gauge_split(self.g[0][:, active], self.g[1])
+        split = self._split[support]
         if split is None:
             raise _no_hessian()
         lam = ridge * (float((r**2).sum(0).mean()) or 1.0) if ridge else 0.0
@@ -449,11 +469,11 @@ def _bagged(
     if bags == 0 or len(blocks) < 2:
         return np.full(c, math.nan), np.full(c, math.nan)
     rng = np.random.default_rng(0)
+    picks = [rng.integers(0, len(blocks), len(blocks)) for _ in range(bags)]
     fits = []
-    for _ in range(bags):
-        pick = rng.integers(0, len(blocks), len(blocks))
+    for t in _stacks(blocks, picks):
         try:
-            fits.append(_refit(rule, _stack([blocks[i] for i in pick]), g, ridge))
+            fits.append(_refit(rule, t, g, ridge))
         except (InputError, np.linalg.LinAlgError):
             continue
     if not fits:
