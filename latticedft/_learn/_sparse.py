@@ -397,6 +397,11 @@ class _Serving:
             self._field, self._served, self._chunk = self._field + 1, None, FIRST_CHUNK
 
 
+def _fit(t: np.ndarray, g: _Gauge | _Constraint, ridge: float, active: np.ndarray) -> np.ndarray:
+    """The gauge-fixed least-squares coefficients on the terms ``active`` (zero elsewhere)."""
+    return _constraint(g).fit(t, active, ridge)
+
+
 def backward(t: np.ndarray, g: _Gauge | _Constraint, ridge: float, stop: int = 0) -> list[np.ndarray]:
     """Backward elimination on the rows ``t`` under the gauge ``g``: from every term, drop one at a time the term
     whose removal raises the residual ``|t coef|`` least (the gauge kept feasible); the coefficients of every
