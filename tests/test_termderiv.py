@@ -47,6 +47,52 @@ def test_closed_form_derivatives_equal_forward_mode(library: str, n: int, m: int
     assert only.keys() == {pairs[0]}
 
 
+def _term_by_term(model: LinearLagrangian, x: torch.Tensor, pairs: list[tuple[int, int]]) -> tuple[torch.Tensor, dict]:
+    """The closed-form derivatives written into place one derivative and pair at a time (the order of summation
+    that :func:`closed_derivatives` keeps)."""
+    rule = model._closed_rule(model.terms)  # type: ignore[operator]
+    maps, spacing, c = model._input_maps(), model.spacing, model.n_terms  # type: ignore[operator]
+    k, m = x.shape[-2], x.shape[-1]
+    scale = [1.0] + [1.0 / h for h in spacing]
+    d_out = x.new_zeros(*x.shape[:-2], k, m, c)
+    blocks = {p: x.new_zeros(*x.shape[:-2], m, m, c) for p in pairs}
+    for a_map in maps:
+        w = torch.einsum("rk,...km->...rm", a_map, x)
+        args = [w[..., r, i] / spacing[r - 1] if r else w[..., r, i] for r in range(len(scale)) for i in range(m)]
+        values = rule.fn(*args)
+        nf = len(rule.first)
+        grad = x.new_zeros(*x.shape[:-2], rule.n_vars, c)
+        for (v, t), val in zip(rule.first, values[:nf]):
+            grad[..., v, t] = val * scale[v // m]
+        d_out += torch.einsum("ra,...ric->...aic", a_map, grad.unflatten(-2, (len(scale), m)))
+        for (v, u, t), val in zip(rule.second, values[nf:]):
+            (rv, iv), (ru, iu) = divmod(v, m), divmod(u, m)
+            h = val * (scale[rv] * scale[ru])
+            for a, b in pairs:
+                blocks[(a, b)][..., iv, iu, t] += (a_map[rv, a] * a_map[ru, b]).item() * h
+                if v != u:
+                    blocks[(a, b)][..., iu, iv, t] += (a_map[ru, a] * a_map[rv, b]).item() * h
+    if len(maps) > 1:
+        d_out = d_out / len(maps)
+        blocks = {p: b / len(maps) for p, b in blocks.items()}
+    return d_out, blocks
+
+
+@pytest.mark.parametrize(("library", "n", "m", "at"), CASES)
+def test_closed_form_derivatives_equal_the_term_by_term_sum_to_the_bit(library: str, n: int, m: int, at: str) -> None:
+    model = _bound(library, n, m, at)
+    k = model.stencil.size
+    x = 0.5 + torch.rand(5, k, m, dtype=torch.float64, generator=torch.Generator().manual_seed(7 + n + m))
+    x[..., 0, 0] *= -1.3
+    pairs = [(a, b) for a in range(k) for b in range(k)]
+    want_d, want_blocks = _term_by_term(model, x, pairs)
+    got_d, got_blocks = model.feature_derivatives(x, pairs)
+    assert torch.equal(got_d, want_d)
+    assert all(torch.equal(got_blocks[p], want_blocks[p]) for p in pairs)
+    alone, _ = model.feature_derivatives(x)  # without the Hessian blocks: the same first derivatives
+    assert torch.equal(alone, want_d)
+
+
 def test_a_user_term_is_differentiated_in_forward_mode() -> None:
     model = _bound(Library.parse("kinetic") + Library.function(lambda q: q[..., 0] ** 3, "cube"), 1, 1, "anchor")
     x = torch.rand(5, 2, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0))

@@ -43,9 +43,13 @@ def residual_matrix(model: LinearLagrangian, f: LatticeField) -> np.ndarray:
     Per-cell derivatives of every basis function (:meth:`LinearLagrangian.feature_derivatives`), then the
     adjoint of the cell gather puts them on the sites.
     """
+    d, _ = model.feature_derivatives(gather_cells(f.values, model.stencil, f.boundary))
+    return _site_rows(model, f, d)
+
+
+def _site_rows(model: LinearLagrangian, f: LatticeField, d: torch.Tensor) -> np.ndarray:
+    """:func:`residual_matrix` from the per-cell first derivatives ``d`` of the basis functions on ``f``."""
     st = model.stencil
-    x = gather_cells(f.values, st, f.boundary)
-    d, _ = model.feature_derivatives(x)  # (*cells, K, m, C)
     c = d.shape[-1]
     z = torch.zeros(*f.values.shape, c, dtype=torch.float64, requires_grad=True)
     with torch.enable_grad():
@@ -53,6 +57,27 @@ def residual_matrix(model: LinearLagrangian, f: LatticeField) -> np.ndarray:
     sites = math.prod(model.spacing) * sites  # (*N, m, C)
     inner = interior_slices(f.shape, st, f.boundary)
     return sites[inner].reshape(-1, c).numpy()
+
+
+def residual_matrices(
+    model: LinearLagrangian, fields: list[LatticeField], mean: bool
+) -> tuple[list[np.ndarray], np.ndarray | None]:
+    """:func:`residual_matrix` of every field and, if ``mean``, :func:`mean_mixed_hessian` (else None), the
+    basis functions differentiated once per field for both (the same numbers as the two apart)."""
+    st = model.stencil
+    pair = (st.anchor, st.forward)
+    m, c = model.m, model.n_terms
+    total = torch.zeros(c, m, m, dtype=torch.float64)
+    ncells = 0
+    rows = []
+    for f in fields:
+        x = gather_cells(f.values, st, f.boundary)
+        d, blocks = model.feature_derivatives(x, [pair] if mean else [])
+        rows.append(_site_rows(model, f, d))
+        if mean:
+            ncells += x[..., 0, 0].numel()
+            total += blocks[pair].reshape(-1, m, m, c).sum(0).permute(2, 0, 1)
+    return rows, (total / ncells).numpy() if mean else None
 
 
 def gauge_matrix(
@@ -88,15 +113,34 @@ def _constrained_lstsq(r: np.ndarray, g_mat: np.ndarray | None, g_vec: np.ndarra
         a = np.vstack([r, math.sqrt(lam) * np.eye(c)]) if lam > 0 else r
         _, _, vt = np.linalg.svd(a, full_matrices=True)
         return vt[-1]
+    assert g_vec is not None
+    split = _gauge_split(g_mat, g_vec)
+    if split is None:
+        raise _no_hessian()
+    return _null_solve(r, *split, lam)
+
+
+def _no_hessian() -> InputError:
+    return InputError(
+        "model: no basis function gives a mixed time Hessian, so no L_d of this class can "
+        "describe dynamics (raise the orders)"
+    )
+
+
+def _gauge_split(g_mat: np.ndarray, g_vec: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(theta_p, null)``: the minimum-norm solution of the gauge rows ``G coef = g`` and an orthonormal basis
+    of their null space (columns), every solution being ``theta_p + null @ z``; None where ``G`` is zero. They
+    depend on the gauge rows alone, so a sparse fit keeps them per support."""
     u, s, vt = np.linalg.svd(g_mat, full_matrices=True)
     if s.size == 0 or s[0] == 0:
-        raise InputError(
-            "model: no basis function gives a mixed time Hessian, so no L_d of this class can "
-            "describe dynamics (raise the orders)"
-        )
+        return None
     rank = int((s > 1e-12 * s[0]).sum())
     theta_p = vt[:rank].T @ ((u[:, :rank].T @ g_vec) / s[:rank])
-    null = vt[rank:].T
+    return theta_p, vt[rank:].T
+
+
+def _null_solve(r: np.ndarray, theta_p: np.ndarray, null: np.ndarray, lam: float) -> np.ndarray:
+    """The coefficients ``theta_p + null @ z`` minimising ``|r coef|^2 + lam |coef|^2`` (:func:`_gauge_split`)."""
     if null.shape[1] == 0:
         return theta_p
     a = r @ null
@@ -107,8 +151,37 @@ def _constrained_lstsq(r: np.ndarray, g_mat: np.ndarray | None, g_vec: np.ndarra
     # Null Lagrangians (discrete divergences, e.g. a term linear in one difference) have zero columns in
     # exact arithmetic but round-off ones in practice: without a cutoff they get huge coefficients that
     # swamp L_d and break the gauge (seen on the 1+1D wave string). Drop directions below 1e-10 relative.
-    z, *_ = scipy.linalg.lstsq(a, b, cond=1e-10, lapack_driver="gelsd")
-    return theta_p + null @ z
+    return theta_p + null @ _gelsd(a, b, 1e-10)
+
+
+_DGELSD, _DGELSD_LWORK = scipy.linalg.lapack.get_lapack_funcs(("gelsd", "gelsd_lwork"), (np.zeros(1),))
+_GELSD_WORK: dict[tuple[int, int, float], tuple[int, int]] = {}
+
+
+def _gelsd(a: np.ndarray, b: np.ndarray, cond: float) -> np.ndarray:
+    """``scipy.linalg.lstsq(a, b, cond, lapack_driver="gelsd")[0]`` for a vector ``b``, the same LAPACK call
+    without the wrapper's per-call set-up (the workspace query is kept per shape): a sparse fit solves some
+    hundred systems of a few columns, where that set-up outweighed the arithmetic."""
+    m, n = a.shape
+    if not (np.isfinite(a).all() and np.isfinite(b).all()):
+        raise ValueError("array must not contain infs or NaNs")
+    if m == 0 or n == 0:
+        return np.zeros(n)
+    key = (m, n, cond)
+    if key not in _GELSD_WORK:
+        work, iwork, info = _DGELSD_LWORK(m, n, 1, cond)
+        if info != 0:
+            raise ValueError(f"internal work array size computation failed: {info}")
+        _GELSD_WORK[key] = (int(work.real), int(iwork))
+    lwork, liwork = _GELSD_WORK[key]
+    if m < n:  # room for the solution
+        b = np.concatenate([b, np.zeros(n - m)])
+    x, _, _, info = _DGELSD(a, b, lwork, liwork, cond, False, False)
+    if info > 0:
+        raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
+    if info < 0:
+        raise ValueError(f"illegal value in {-info}-th argument of internal gelsd")
+    return np.asarray(x[:n])
 
 
 def _ridge_folds(

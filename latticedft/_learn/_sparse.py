@@ -33,7 +33,16 @@ from .._serve import serve
 from .._serve._fast1d import numpy_derivatives_of
 from .._serve._onedim import served_values
 from .._serve._options import ServeOptions
-from ._exact import _constrained_lstsq, _qr_r, mean_mixed_hessian, residual_matrix
+from ._exact import (
+    _constrained_lstsq,
+    _gauge_split,
+    _no_hessian,
+    _null_solve,
+    _qr_r,
+    mean_mixed_hessian,
+    residual_matrices,
+    residual_matrix,
+)
 from ._gauge import Gauge
 from ._heldout import HOLD_OUT, held_in, held_out_score
 
@@ -89,8 +98,13 @@ def _stack(factors: list[np.ndarray]) -> np.ndarray:
     return factors[0] if len(factors) == 1 else _qr_r(np.vstack(factors))
 
 
-def _columns(g: _Gauge, keep: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
-    return (None, None) if g is None else (g[0][:, keep], g[1])
+def _stacks(blocks: list[np.ndarray], picks: list[np.ndarray]) -> list[np.ndarray]:
+    """:func:`_stack` of the blocks of each pick; blocks of one shape in one batched QR (LAPACK's factor of
+    each matrix, the same as one at a time)."""
+    if len({b.shape for b in blocks}) > 1 or any(len(p) < 2 for p in picks):
+        return [_stack([blocks[i] for i in pick]) for pick in picks]
+    rows = np.asarray(blocks)[np.asarray(picks)]  # (bags, picks, rows, C)
+    return list(_qr_r(rows.reshape(len(picks), -1, rows.shape[-1])))
 
 
 def _feasible(g: tuple[np.ndarray, np.ndarray], keep: np.ndarray) -> bool:
@@ -102,39 +116,91 @@ def _feasible(g: tuple[np.ndarray, np.ndarray], keep: np.ndarray) -> bool:
     return bool(np.linalg.norm(a @ x - g[1]) <= 1e-9 * max(float(np.linalg.norm(g[1])), 1e-300))
 
 
-def _gauge_safe(keep: np.ndarray, weight: np.ndarray, g: _Gauge) -> np.ndarray:
+class _Constraint:
+    """The gauge rows ``G coef = g`` (or none) and what the solve and the feasibility test take of them per
+    support, kept: they do not depend on the rows ``t``, and the same supports recur over the thresholds, the
+    passes of thresholding, the backward path and the bags. The fits on the last rows met are kept too (every
+    threshold's thresholding and the backward path start from the same supports)."""
+
+    def __init__(self, g: _Gauge):
+        self.g = g
+        self._split: dict[bytes, tuple[np.ndarray, np.ndarray] | None] = {}
+        self._feasible: dict[bytes, bool] = {}
+        self._rows: np.ndarray | None = None
+        self._fits: dict[tuple[bytes, float], np.ndarray] = {}
+
+    def feasible(self, keep: np.ndarray) -> bool:
+        """True without a gauge, else when the terms ``keep`` can satisfy its rows (:func:`_feasible`)."""
+        if self.g is None:
+            return True
+        key = keep.tobytes()
+        if key not in self._feasible:
+            self._feasible[key] = _feasible(self.g, keep)
+        return self._feasible[key]
+
+    def fit(self, t: np.ndarray, active: np.ndarray, ridge: float) -> np.ndarray:
+        """The gauge-fixed least-squares coefficients of the terms ``active`` on the rows ``t`` (zero elsewhere):
+        :func:`latticedft._learn._exact._constrained_lstsq`, with the gauge's part kept per support."""
+        if t is not self._rows:
+            self._rows, self._fits = t, {}
+        key = (active.tobytes(), ridge)
+        if key not in self._fits:
+            self._fits[key] = self._solve(t, active, ridge)
+        return self._fits[key].copy()
+
+    def _solve(self, t: np.ndarray, active: np.ndarray, ridge: float) -> np.ndarray:
+        theta = np.zeros(t.shape[1])
+        r = t[:, active]
+        if self.g is None:
+            theta[active] = _constrained_lstsq(r, None, None, ridge)
+            return theta
+        support = active.tobytes()
+        if support not in self._split:
+            self._split[support] = _gauge_split(self.g[0][:, active], self.g[1])
+        split = self._split[support]
+        if split is None:
+            raise _no_hessian()
+        lam = ridge * (float((r**2).sum(0).mean()) or 1.0) if ridge else 0.0
+        theta[active] = _null_solve(r, *split, lam)
+        return theta
+
+
+def _constraint(g: _Gauge | _Constraint) -> _Constraint:
+    return g if isinstance(g, _Constraint) else _Constraint(g)
+
+
+def _gauge_safe(keep: np.ndarray, weight: np.ndarray, con: _Constraint) -> np.ndarray:
     """``keep`` with the gauge's terms added back, largest first, until the gauge can be met."""
-    if g is None:
+    if con.g is None or con.feasible(keep):
         return keep
     keep = keep.copy()
     for c in np.argsort(-weight):
-        if _feasible(g, keep):
+        if con.feasible(keep):
             break
-        if not keep[c] and np.any(g[0][:, c] != 0):
+        if not keep[c] and np.any(con.g[0][:, c] != 0):
             keep[c] = True
     return keep
 
 
-def stlsq(t: np.ndarray, g: _Gauge, threshold: float, ridge: float) -> np.ndarray:
+def stlsq(t: np.ndarray, g: _Gauge | _Constraint, threshold: float, ridge: float) -> np.ndarray:
     """Sequential thresholding on the rows ``t`` under the gauge ``g``: the coefficients, zero off the support."""
+    con = _constraint(g)
     c = t.shape[1]
     norms = np.sqrt((t**2).sum(0))
-    active = _gauge_safe(np.ones(c, dtype=bool), norms, g)
+    active = _gauge_safe(np.ones(c, dtype=bool), norms, con)
     theta = np.zeros(c)
     for _ in range(c + 1):
-        theta = np.zeros(c)
-        gm, gv = _columns(g, active)
-        theta[active] = _constrained_lstsq(t[:, active], gm, gv, ridge)
+        theta = con.fit(t, active, ridge)
         weight = np.abs(theta) * norms
         keep = active & (weight > threshold * weight.max()) if weight.max() > 0 else active
-        keep = _gauge_safe(keep, weight, g)
+        keep = _gauge_safe(keep, weight, con)
         if (keep == active).all():
             break
         active = keep
     return theta
 
 
-def _pick(blocks: list[np.ndarray], g: _Gauge, ridge: float) -> tuple[float, dict[str, float]]:
+def _pick(blocks: list[np.ndarray], g: _Gauge | _Constraint, ridge: float) -> tuple[float, dict[str, float]]:
     """The threshold of :data:`THRESHOLDS` with the sparsest support held out within :data:`SLACK` of the best."""
     folds = [(_stack([b for j, b in enumerate(blocks) if j != i]), blocks[i]) for i in range(len(blocks))]
     if len(blocks) < 2:
@@ -168,7 +234,7 @@ def _head(model: SparseLagrangian, f: LatticeField, r: np.ndarray, keep: int) ->
 def _pick_served(
     model: SparseLagrangian,
     fields: list[LatticeField],
-    g: _Gauge,
+    g: _Gauge | _Constraint,
     ridge: float,
     nsites: int,
     rs: list[np.ndarray] | None = None,
@@ -195,7 +261,8 @@ def _pick_served(
     heads = [_head(model, f, r, k) for f, r, k in zip(single, rs, keep)]
     tails = [w.isel({w.dims[0]: slice(min(k, w.sizes[w.dims[0]] - 3), None)}) for w, k in zip(whole, keep)]
     fits = sorted(_supports(_stack(_blocks(heads, model.n_terms)), g, ridge), key=lambda f: np.count_nonzero(f[1]))
-    runs = {label: _Serving(theta, tails, boundary) for label, theta in fits}  # stable: thresholds first
+    shared: dict[str, list[LatticeField]] = {}  # the tails' lattice fields, made once for every support
+    runs = {label: _Serving(theta, tails, boundary, shared) for label, theta in fits}  # stable: thresholds first
     saved = model.coef.detach().clone()
     try:
         chosen = _serve_supports(model, runs, [r[h.shape[0] :] for r, h in zip(rs, heads)])
@@ -232,10 +299,17 @@ class _Serving:
     served, so that it stops as soon as its error passes a bound (Newton's method restarted on each chunk, so
     the slices agree with serving a tail in one call to within Newton's tolerance). ``error``: the largest
     relative error so far (:func:`latticedft._learn._heldout.held_out_score`'s measure; ``inf`` once serving
-    stops)."""
+    stops). ``shared``: where the tails' lattice fields are kept for the other supports serving the same tails."""
 
-    def __init__(self, theta: np.ndarray, tails: list[xr.DataArray], boundary: BoundaryKinds | None):
+    def __init__(
+        self,
+        theta: np.ndarray,
+        tails: list[xr.DataArray],
+        boundary: BoundaryKinds | None,
+        shared: dict[str, list[LatticeField]] | None = None,
+    ):
         self.theta, self.tails, self.boundary = theta, tails, boundary
+        self._shared = {} if shared is None else shared
         self.error = 0.0
         self.started = False
         self._field = 0
@@ -275,8 +349,10 @@ class _Serving:
     def _numpy_forms(self, model: SparseLagrangian) -> NumpyForms | None:
         """The model's numpy closed forms where every tail is 1D (with their lattice fields), else None."""
         if self._fields is None:
-            names = [f"tails[{k}]" for k in range(len(self.tails))]
-            self._fields = as_lattice_fields(self.tails, names, boundary=self.boundary, min_slices=2)
+            if "fields" not in self._shared:
+                names = [f"tails[{k}]" for k in range(len(self.tails))]
+                self._shared["fields"] = as_lattice_fields(self.tails, names, boundary=self.boundary, min_slices=2)
+            self._fields = self._shared["fields"]
         return numpy_derivatives_of(model) if all(f.ndim == 1 for f in self._fields) else None
 
     def _serve_window(self, model: SparseLagrangian, i0: int, start: np.ndarray) -> np.ndarray | None:
@@ -321,27 +397,25 @@ class _Serving:
             self._field, self._served, self._chunk = self._field + 1, None, FIRST_CHUNK
 
 
-def _fit(t: np.ndarray, g: _Gauge, ridge: float, active: np.ndarray) -> np.ndarray:
+def _fit(t: np.ndarray, g: _Gauge | _Constraint, ridge: float, active: np.ndarray) -> np.ndarray:
     """The gauge-fixed least-squares coefficients on the terms ``active`` (zero elsewhere)."""
-    theta = np.zeros(t.shape[1])
-    gm, gv = _columns(g, active)
-    theta[active] = _constrained_lstsq(t[:, active], gm, gv, ridge)
-    return theta
+    return _constraint(g).fit(t, active, ridge)
 
 
-def backward(t: np.ndarray, g: _Gauge, ridge: float, stop: int = 0) -> list[np.ndarray]:
+def backward(t: np.ndarray, g: _Gauge | _Constraint, ridge: float, stop: int = 0) -> list[np.ndarray]:
     """Backward elimination on the rows ``t`` under the gauge ``g``: from every term, drop one at a time the term
     whose removal raises the residual ``|t coef|`` least (the gauge kept feasible); the coefficients of every
     support on the path, the densest first, down to ``stop`` terms. Unlike thresholding by share, it is not
     misled by near-collinear terms (powers and trig functions of a field far from 0) whose large coefficients
     cancel."""
+    con = _constraint(g)
     active = np.ones(t.shape[1], dtype=bool)
-    if g is not None and not _feasible(g, active):
+    if not con.feasible(active):
         return []
     path = []
     while active.any():
         try:
-            path.append(_fit(t, g, ridge, active))
+            path.append(con.fit(t, active, ridge))
         except (InputError, np.linalg.LinAlgError):
             break
         if np.count_nonzero(active) <= stop:
@@ -350,10 +424,10 @@ def backward(t: np.ndarray, g: _Gauge, ridge: float, stop: int = 0) -> list[np.n
         for j in np.flatnonzero(active):
             trial = active.copy()
             trial[j] = False
-            if not trial.any() or (g is not None and not _feasible(g, trial)):
+            if not trial.any() or not con.feasible(trial):
                 continue
             try:
-                res = float(np.linalg.norm(t @ _fit(t, g, ridge, trial)))
+                res = float(np.linalg.norm(t @ con.fit(t, trial, ridge)))
             except (InputError, np.linalg.LinAlgError):
                 continue
             if best is None or res < best[0]:
@@ -364,7 +438,7 @@ def backward(t: np.ndarray, g: _Gauge, ridge: float, stop: int = 0) -> list[np.n
     return path
 
 
-def _supports(t: np.ndarray, g: _Gauge, ridge: float) -> list[tuple[str, np.ndarray]]:
+def _supports(t: np.ndarray, g: _Gauge | _Constraint, ridge: float) -> list[tuple[str, np.ndarray]]:
     """``(rule, coefficients)`` for each distinct support over :data:`THRESHOLDS` (the rule the largest threshold
     giving it, ``"0.01"``) and then on the :func:`backward` path (``"4 terms"``), fitted on the rows ``t``."""
     out: dict[bytes, tuple[str, np.ndarray]] = {}
@@ -379,7 +453,7 @@ def _supports(t: np.ndarray, g: _Gauge, ridge: float) -> list[tuple[str, np.ndar
     return list(out.values())
 
 
-def _refit(rule: str, t: np.ndarray, g: _Gauge, ridge: float) -> np.ndarray:
+def _refit(rule: str, t: np.ndarray, g: _Gauge | _Constraint, ridge: float) -> np.ndarray:
     """The coefficients of ``rule`` (a threshold, or ``"k terms"`` on the backward path) on the rows ``t``."""
     if not rule.endswith(" terms"):
         return stlsq(t, g, float(rule), ridge)
@@ -391,7 +465,7 @@ def _refit(rule: str, t: np.ndarray, g: _Gauge, ridge: float) -> np.ndarray:
 
 
 def _bagged(
-    blocks: list[np.ndarray], g: _Gauge, rule: str, ridge: float, bags: int, theta: np.ndarray
+    blocks: list[np.ndarray], g: _Gauge | _Constraint, rule: str, ridge: float, bags: int, theta: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each term's share of ``bags`` fits of ``rule`` on blocks drawn with replacement, and the standard
     deviation of its coefficient over them relative to its coefficient ``theta`` (0 where ``theta`` is 0);
@@ -400,11 +474,11 @@ def _bagged(
     if bags == 0 or len(blocks) < 2:
         return np.full(c, math.nan), np.full(c, math.nan)
     rng = np.random.default_rng(0)
+    picks = [rng.integers(0, len(blocks), len(blocks)) for _ in range(bags)]
     fits = []
-    for _ in range(bags):
-        pick = rng.integers(0, len(blocks), len(blocks))
+    for t in _stacks(blocks, picks):
         try:
-            fits.append(_refit(rule, _stack([blocks[i] for i in pick]), g, ridge))
+            fits.append(_refit(rule, t, g, ridge))
         except (InputError, np.linalg.LinAlgError):
             continue
     if not fits:
@@ -438,14 +512,18 @@ def learn_sparse(
     lam = 0.0 if ridge == "auto" else float(ridge)
     shared = {} if shared is None else shared
     if "rs" not in shared:
-        rows = [residual_matrix(model, f) / math.sqrt(nsites) for f in fields]
+        mean = gauge.fixes and shared.get("mean") is None  # the mean mixed Hessian from the same derivatives
+        rows, shared_mean = residual_matrices(model, fields, mean)
+        rows = [r / math.sqrt(nsites) for r in rows]
         _finite_columns(model, rows)
         shared["rs"] = rows
+        if mean:
+            shared["mean"] = shared_mean
     rs: list[np.ndarray] = shared["rs"]
     unbatched = not any(f.batch for f in fields)  # then the held-out threshold reuses these rows
     if gauge.fixes and shared.get("mean") is None:
         shared["mean"] = mean_mixed_hessian(model, fields)
-    g = gauge.constraint(shared["mean"], model.spacing[0]) if gauge.fixes else None
+    g = _Constraint(gauge.constraint(shared["mean"], model.spacing[0]) if gauge.fixes else None)
     blocks = _blocks(rs, model.n_terms)
     validation: dict[str, float] = {}
     if model.threshold == "auto":

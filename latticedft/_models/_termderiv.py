@@ -113,31 +113,126 @@ def closed_derivatives(
 ) -> tuple[torch.Tensor | None, dict[tuple[int, int], torch.Tensor]]:
     """:meth:`LinearLagrangian.feature_derivatives` of ``mean over A in maps of T(A x)``: each map ``A``
     ``(n + 1, K)`` gives the terms' inputs on the cells ``x`` ``(..., K, m)`` (before dividing the derivative
-    rows by the spacing)."""
+    rows by the spacing).
+
+    The derivatives are scattered into place by a few indexed operations over all of them (:class:`_Plan`), each
+    entry of a Hessian block summed in the order of the maps and of ``rule.second``, as one addition per term
+    would sum them."""
     k, m = cells.shape[-2], cells.shape[-1]
+    lead = cells.shape[:-2]
     scale = [1.0] + [1.0 / h for h in spacing]
-    d_out = cells.new_zeros(*cells.shape[:-2], k, m, n_terms) if first else None
-    blocks = {p: cells.new_zeros(*cells.shape[:-2], m, m, n_terms) for p in pairs}
+    plan = _plan(rule, maps, scale, pairs, m, n_terms, cells)
+    d_out = cells.new_zeros(*lead, k, m, n_terms) if first else None
+    hessians = []
+    nf = len(rule.first)
     for a_map in maps:
         w = torch.einsum("rk,...km->...rm", a_map, cells)
         args = [w[..., r, i] / spacing[r - 1] if r else w[..., r, i] for r in range(len(scale)) for i in range(m)]
         values = rule.fn(*args)
-        nf = len(rule.first)
         if d_out is not None:
-            grad = cells.new_zeros(*cells.shape[:-2], rule.n_vars, n_terms)
-            for (v, c), val in zip(rule.first, values[:nf]):
-                grad[..., v, c] = val * scale[v // m]
-            grad = grad.unflatten(-2, (len(scale), m))
-            d_out += torch.einsum("ra,...ric->...aic", a_map, grad)
-        for (v, u, c), val in zip(rule.second, values[nf:]):
-            (rv, iv), (ru, iu) = divmod(v, m), divmod(u, m)
-            h = val * (scale[rv] * scale[ru])
-            for a, b in pairs:
-                blocks[(a, b)][..., iv, iu, c] += (a_map[rv, a] * a_map[ru, b]).item() * h
-                if v != u:
-                    blocks[(a, b)][..., iu, iv, c] += (a_map[ru, a] * a_map[rv, b]).item() * h
+            grad = cells.new_zeros(*lead, rule.n_vars * n_terms)
+            if nf:
+                grad[..., plan.first_at] = _stacked(values[:nf], lead, cells) * plan.first_scale
+            d_out += torch.einsum("ra,...ric->...aic", a_map, grad.unflatten(-1, (len(scale), m, n_terms)))
+        if pairs and len(values) > nf:
+            hessians.append(_stacked(values[nf:], lead, cells) * plan.second_scale)
+    blocks = {}
+    for p in pairs:
+        flat = cells.new_zeros(*lead, m * m * n_terms)
+        if hessians:
+            h = hessians[0] if len(hessians) == 1 else torch.cat(hessians, -1)
+            for src, coef, at in plan.scatter[p]:  # each round adds to distinct entries
+                flat.index_add_(-1, at, h[..., src] * coef)
+        blocks[p] = flat.unflatten(-1, (m, m, n_terms))
     count = len(maps)
     if count > 1:
         d_out = None if d_out is None else d_out / count
         blocks = {p: b / count for p, b in blocks.items()}
     return d_out, blocks
+
+
+def _stacked(values: Sequence[Any], lead: torch.Size, like: torch.Tensor) -> torch.Tensor:
+    """The derivative values (tensors over the cells, or numbers where a derivative is constant) stacked along a
+    last axis."""
+    full = [
+        like.new_full(lead, v) if not isinstance(v, torch.Tensor) else v if v.shape == lead else v.expand(lead)
+        for v in values
+    ]
+    return torch.stack(full, -1)
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """Where :func:`closed_derivatives` puts each derivative: ``first_at`` the flat index ``v C + c`` of each of
+    ``rule.first`` (scaled by ``first_scale``, the spacing's factor of its row), ``second_scale`` the factor of
+    each of ``rule.second``; per pair, ``scatter``: rounds of ``(source, coefficient, entry)``, the sources
+    indexing the second derivatives of every map in turn and the entries the flat ``(m, m, C)`` block, each
+    round's entries distinct and the rounds in the order in which a term-by-term sum adds them."""
+
+    first_at: torch.Tensor
+    first_scale: torch.Tensor
+    second_scale: torch.Tensor
+    scatter: dict[tuple[int, int], list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]]
+
+
+_PLANS: dict[tuple[Any, ...], tuple[TermDerivatives, _Plan]] = {}
+
+
+def _plan(
+    rule: TermDerivatives,
+    maps: Sequence[torch.Tensor],
+    scale: list[float],
+    pairs: Sequence[tuple[int, int]],
+    m: int,
+    n_terms: int,
+    like: torch.Tensor,
+) -> _Plan:
+    """The :class:`_Plan` of ``rule`` on ``maps`` (kept: a few per library)."""
+    values = [a.detach().cpu().tolist() for a in maps]
+    key = (id(rule), str(values), tuple(scale), tuple(pairs), m, n_terms, like.dtype, str(like.device))
+    if key not in _PLANS:  # the rule is held with its plan, so its id stays its own
+        _PLANS[key] = (rule, _make_plan(rule, values, scale, pairs, m, n_terms, like))
+    return _PLANS[key][1]
+
+
+def _make_plan(
+    rule: TermDerivatives,
+    maps: list[list[list[float]]],
+    scale: list[float],
+    pairs: Sequence[tuple[int, int]],
+    m: int,
+    n_terms: int,
+    like: torch.Tensor,
+) -> _Plan:
+    def index(x: list[int]) -> torch.Tensor:
+        return torch.tensor(x, dtype=torch.long, device=like.device)
+
+    def real(x: list[float]) -> torch.Tensor:
+        return torch.tensor(x, dtype=like.dtype, device=like.device)
+
+    ns = len(rule.second)
+    scatter = {}
+    for a, b in pairs:
+        rounds: list[tuple[list[int], list[float], list[int]]] = []
+        seen: dict[int, int] = {}
+        for j, a_map in enumerate(maps):
+            for s, (v, u, c) in enumerate(rule.second):
+                (rv, iv), (ru, iu) = divmod(v, m), divmod(u, m)
+                adds = [(a_map[rv][a] * a_map[ru][b], (iv * m + iu) * n_terms + c)]
+                if v != u:
+                    adds.append((a_map[ru][a] * a_map[rv][b], (iu * m + iv) * n_terms + c))
+                for coef, at in adds:
+                    r = seen.get(at, 0)
+                    seen[at] = r + 1
+                    if r == len(rounds):
+                        rounds.append(([], [], []))
+                    rounds[r][0].append(j * ns + s)
+                    rounds[r][1].append(coef)
+                    rounds[r][2].append(at)
+        scatter[(a, b)] = [(index(src), real(coef), index(at)) for src, coef, at in rounds]
+    return _Plan(
+        index([v * n_terms + c for v, c in rule.first]),
+        real([scale[v // m] for v, _ in rule.first]),
+        real([scale[v // m] * scale[u // m] for v, u, _ in rule.second]),
+        scatter,
+    )
