@@ -16,7 +16,7 @@ from .._lattice import LatticeField, to_dataarrays
 from .._models import AbstractLagrangian
 from ._range import assess
 from ._result import ServeResult
-from ._slices import SINGULAR_RTOL, is_singular, singular_message
+from ._slices import SINGULAR_RTOL, is_singular, singular_message, slice_message
 
 
 @dataclass
@@ -35,12 +35,11 @@ class _GroupStep:
 
 def failure_text(f: LatticeField, i: int, singular: bool, smin: float, scale: float, max_newton: int) -> str:
     """Why a trajectory stopped on slice ``i + 1``: Newton did not converge, or its mixed Hessian is singular."""
-    tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
     if not singular:
         why = f"Newton did not converge in {max_newton} iterations"
     else:
         why = singular_message(smin, scale) if is_singular(smin, scale) else "singular mixed Hessian"
-    return f"slice {i + 1} (t = {tval:.6g}): {why}"
+    return slice_message(f, i, why)
 
 
 class _Batch:

@@ -19,10 +19,10 @@ from .._models import AbstractLagrangian
 from . import _ondevice
 from ._folded import FoldedSlices, folded_slices
 from ._fused import FusedSlices, fused_slices
-from ._newton import _newton_slice
+from ._newton import _newton_slice, predict
 from ._potential import potential_slices
 from ._result import ServeResult, _bar
-from ._slices import _site_label, _SliceSystem, is_singular
+from ._slices import _site_label, _SliceSystem, is_singular, site_text, slice_message
 from ._solvers import OFFDIAG_RTOL
 from ._sweep import _sweep_slice
 
@@ -184,14 +184,9 @@ def slice_error(
     f: LatticeField, sys: _SliceSystem, i: int, msg: str, row: int | None, res: float, result: ServeResult
 ) -> ServeError:
     """The error for slice ``i``'s equations failing (at equation ``row``): slice, time, site and residual in
-    one line, with the partial ``result``."""
+    one line (:func:`._slices.slice_message`), with the partial ``result``."""
     site = _site_label(f, sys, i, row) if row is not None else None
-    tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
-    text = (
-        f"slice {i + 1} (t = {tval:.6g}): {msg}"
-        + (f" in the DEL equation of site {_site_text(f, site)}" if site else "")
-        + (f", residual {res:.3e}" if math.isfinite(res) else "")
-    )
+    text = slice_message(f, i, msg, site_text(f.dims, site, f.coords) if site else None, res)
     return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
 
 
@@ -201,9 +196,9 @@ def solve_and_tally(
     """Solve the equations of slice ``i`` of ``run`` (a whole-field or a windowed run: ``run.values``/``run.flat``
     its slices) for slice ``i + 1``; the iterations are counted on ``run``, a failure raised by ``run.fail``.
 
-    The predictor on the unknown sites is ``2 psi_i - psi_{i-1}`` plus, for Newton with ``older`` (slice
-    ``i - 2``: ``run.older(i)``), the previous slice's correction to its own such predictor
-    (``3 psi_i - 3 psi_{i-1} + psi_{i-2}``: the next term of the extrapolation).
+    The predictor on the unknown sites is :func:`._newton.predict`'s: ``2 psi_i - psi_{i-1}`` plus, for Newton
+    with ``older`` (slice ``i - 2``: ``run.older(i)``), the previous slice's correction to its own such
+    predictor (``3 psi_i - 3 psi_{i-1} + psi_{i-2}``: the next term of the extrapolation).
 
     Where the device or the compiled slice Newton serves (:func:`_sitewise`) it solves the slice and ``None``
     is returned for the gradients (``g_prev``: the cells anchored at ``i - 1``; ``None`` has them evaluated
@@ -218,10 +213,8 @@ def solve_and_tally(
     scale = None  # _slices._scale at the predictor, where the folded predictor measured it
     if folded is not None:
         scale = folded.predict(flat, i, older)
-    else:
-        flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
-    if run.mode == "newton" and older is not None and folded is None:
-        flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + older[unk]
+    else:  # the sweep predicts from the two slices before alone
+        predict(flat, unk, i, older if run.mode == "newton" else None)
     if run.mode == "newton":
         if g_prev is None and folded is not None:
             g_prev = torch.from_numpy(folded.grad(flat, i - 1))
@@ -429,10 +422,3 @@ def _fused_of(run: SliceRun) -> FusedSlices | None:
 
 #: The unknowns (sites times slices) the compiled slice Newton solves in one call at most.
 RUN_SITES = 1 << 22
-
-
-def _site_text(f: LatticeField, site: tuple[int, ...]) -> str:
-    """``index t=12, x=5 (x = 0.3125)``: a lattice index, and apart the spatial coordinates it stands for."""
-    idx = ", ".join(f"{d}={i}" for d, i in zip(f.dims, site))
-    coords = ", ".join(f"{d} = {float(f.coords[d][i]):.6g}" for d, i in zip(f.dims[1:], site[1:]) if d in f.coords)
-    return f"index {idx}" + (f" ({coords})" if coords else "")
