@@ -32,7 +32,7 @@ import math
 import time
 from collections.abc import Callable
 from functools import partial
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import numpy as np
 import torch
@@ -55,6 +55,9 @@ from ._newton import _newton_slice, predict
 from ._options import kept_slices
 from ._slabkrylov import SlabSolver, lu_refusal
 from ._slices import _site_label, _SliceSystem, site_text, slice_message
+
+if TYPE_CHECKING:  # _slabstate reads and restores the slab run (no import at run time)
+    from ._slabstate import SlabCheckpoint
 
 __all__ = ["ROUNDOFF", "Block", "Slab", "plan_grid", "plan_slabs", "serve_slabs"]
 
@@ -189,7 +192,7 @@ def serve_slabs(
     report: dict[str, Any] | None = None,
     solver: str = "auto",
     on_slice: Callable[[int, np.ndarray], None] | None = None,
-    checkpoint: Any = None,
+    checkpoint: SlabCheckpoint | None = None,
     grid: tuple[int, int] | None = None,
 ) -> xr.DataArray | None:
     """Serve ``init`` (every slice held for Dirichlet strips; a periodic field needs two) over the processes of
@@ -285,7 +288,7 @@ class _SlabRun:
         self.done, self.worst = 1, 0.0
         self.on_done: Callable[[_SlabRun], None] | None = None
 
-    def checkpointed(self, checkpoint: Any) -> None:
+    def checkpointed(self, checkpoint: SlabCheckpoint) -> None:
         """Write checkpoints by ``checkpoint`` (after each slice) and go on from the state it holds."""
         if self.newton is not None:
             keep_factored(self.newton.cache)
