@@ -31,6 +31,7 @@ class Progress(Protocol):
     """A run's progress bar, as the stepper moves it: one step a slice solved."""
 
     def update(self, n: int = 1) -> object: ...
+    def close(self) -> object: ...
 
 
 class SliceRun(Protocol):
@@ -85,12 +86,44 @@ class SliceRun(Protocol):
         ...
 
 
-class SteppedRun:
+class Stepping:
+    """What every stepped run has, the whole field, the rolling window and the 1D batch alike: its mode and
+    slices, the clock, the progress bar (``steps - 2`` slices, ``label`` after the mode), the slices the
+    affine recurrence served, the solver name and the figures of its results. The clock starts here."""
+
+    def __init__(self, mode: str, steps: int, progress: bool | None, label: str = ""):
+        self.mode, self.steps = mode, steps
+        self.affine_slices = 0  # slices the affine recurrence served (after the two given ones)
+        self.t0 = time.perf_counter()
+        self.bar = _bar(steps - 2, f"serve ({mode}{label})", progress)
+
+    def solver(self) -> str:
+        """The ``solver`` name of the result."""
+        return solver_name(self.mode, self.affine_slices, self.steps)
+
+    def rate(self, solved: int, whole: bool = True) -> tuple[float, float]:
+        """The wall time since the clock started and the sites a second it makes over ``solved`` sites (no
+        time: ``inf`` for a ``whole`` run, ``0`` for one stopped early)."""
+        wall = time.perf_counter() - self.t0
+        return wall, solved / wall if wall > 0 else (math.inf if whole else 0.0)
+
+    def figures(self, total_it: int, max_it: int, slice_solver: str | None = None) -> dict[str, Any]:
+        """The figures of a result that the stepping counted: evaluations, mode and solvers."""
+        return {
+            "newton_iterations": total_it,
+            "max_newton_iterations": max_it,
+            "mode": self.mode,
+            "solver": self.solver(),
+            "slice_solver": slice_solver,
+        }
+
+
+class SteppedRun(Stepping):
     """What the whole-field run and the rolling window share around the stepper: the model, lattice and mode,
-    where the solves run, the Newton cache, the counters, the clock and the progress bar, the older slice of
-    each position (from the slices held, or ``before`` the window's first), and the figures of the result
-    that every run reports. A subclass holds the slices (``values``, ``flat``, ``unk``), ``sys`` and
-    ``cells_at`` and ``fail``, and calls ``__init__`` once they are set up (the clock starts there)."""
+    where the solves run, the Newton cache, the counters, the clock and the progress bar (:class:`Stepping`),
+    the older slice of each position (from the slices held, or ``before`` the window's first), and the figures
+    of the result that every run reports. A subclass holds the slices (``values``, ``flat``, ``unk``), ``sys``
+    and ``cells_at`` and ``fail``, and calls ``__init__`` once they are set up (the clock starts there)."""
 
     sys: _SliceSystem
     flat: torch.Tensor
@@ -106,15 +139,13 @@ class SteppedRun:
         progress: bool | None,
         label: str = "",
     ):
-        self.model, self.f, self.steps, self.mode, self.where = model, f, steps, mode, where
+        self.model, self.f, self.where = model, f, where
         self.vol = math.prod(model.spacing)
-        self.t0 = time.perf_counter()
         self.total_it, self.max_it, self.worst = 0, 0, 0.0
-        self.affine_slices = 0  # slices the affine recurrence served (after the two given ones)
         self.cache: dict[str, Any] = {"solver": solver}
         self.base = 0  # the slice held at position 0 (the whole field: the first)
         self.before: torch.Tensor | None = None  # the slice before position 0 (a window's; Newton's predictor)
-        self.bar = _bar(steps - 2, f"serve ({mode}{label})", progress)
+        super().__init__(mode, steps, progress, label)
 
     def older(self, i: int) -> torch.Tensor | None:
         """Slice ``i - 2`` of position ``i`` (Newton's predictor): held, or the one before position 0."""
@@ -126,53 +157,44 @@ class SteppedRun:
         """The slices of the affine recurrence counted as one evaluation each."""
         self.total_it, self.max_it = self.affine_slices, 1
 
-    def solver(self) -> str:
-        """The ``solver`` name of the result."""
-        return solver_name(self.mode, self.affine_slices, self.steps)
-
     def timed(self, slices: int) -> tuple[float, float]:
         """The wall time since the clock started and the sites a second it makes over the first ``slices``
         slices (the two given ones not counted; no time: ``0`` for a run stopped early, ``inf`` for a whole
         one)."""
-        wall = time.perf_counter() - self.t0
-        solved = (slices - 2) * self.sys.n
-        return wall, solved / wall if wall > 0 else (math.inf if slices == self.steps else 0.0)
+        return self.rate((slices - 2) * self.sys.n, slices == self.steps)
 
     def counts(self) -> dict[str, Any]:
         """The figures of the result that the stepper counted: evaluations, mode and solvers."""
-        return {
-            "newton_iterations": self.total_it,
-            "max_newton_iterations": self.max_it,
-            "mode": self.mode,
-            "solver": self.solver(),
-            "slice_solver": "+".join(self.cache.get("used", [])) or None,
-        }
+        return self.figures(self.total_it, self.max_it, "+".join(self.cache.get("used", [])) or None)
 
 
 class MemberBatch(Protocol):
-    """What a batch of 1D trajectories gives the stepper (``_batch._Batch``, ``_fast1d.FastBatch``): its
-    longest member's slices and the step of one group of members."""
+    """What a batch of 1D trajectories gives the stepper (``_batch._Batch``, ``_fast1d.FastBatch``, both
+    :class:`Stepping`): its members' fields, its longest member's slices, its mode and progress bar, and the
+    step of one group of members."""
 
     @property
     def fs(self) -> list[LatticeField]: ...
     @property
     def nmax(self) -> int: ...
+    @property
+    def mode(self) -> str: ...
+    @property
+    def bar(self) -> Progress: ...
 
     def advance(self, group: np.ndarray, i: int, rtol: float, max_newton: int, box: float | None) -> None:
         """Slice ``i + 1`` of the members of ``group`` still running: solved, stored, the failed ones retired."""
         ...
 
 
-def step_members(
-    batch: MemberBatch, mode: str, rtol: float, max_newton: int, box: float | None, progress: bool | None
-) -> None:
+def step_members(batch: MemberBatch, rtol: float, max_newton: int, box: float | None) -> None:
     """The slices of a batch of ``b`` 1D trajectories, one slice of every member at a time: all members in one
     batched Newton (``mode="newton"``), or one member after the other (``"sweep"``: in 1D the site-by-site
-    sweep is that same Newton on the one site)."""
+    sweep is that same Newton on the one site); the batch's progress bar moves a slice at a time."""
     b = len(batch.fs)
     members = np.arange(b)
-    groups = [members] if mode == "newton" else [members[k : k + 1] for k in range(b)]
-    bar = _bar(batch.nmax - 2, f"serve ({mode}, {b} trajectories)", progress)
+    groups = [members] if batch.mode == "newton" else [members[k : k + 1] for k in range(b)]
+    bar = batch.bar
     for i in range(1, batch.nmax - 1):
         for group in groups:
             batch.advance(group, i, rtol, max_newton, box)
