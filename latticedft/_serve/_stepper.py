@@ -14,7 +14,7 @@ import torch
 from .._action import CellDerivatives
 from .._device import resolve_device
 from .._errors import ServeError
-from .._lattice import LatticeField
+from .._lattice import LatticeField, gather_cells
 from .._models import AbstractLagrangian
 from . import _ondevice
 from ._folded import FoldedSlices, folded_slices
@@ -152,6 +152,15 @@ class SteppedRun(Stepping):
         if self.base + i < 2:
             return None
         return self.flat[i - 2] if i >= 2 else self.before
+
+    @property
+    def values(self) -> torch.Tensor:
+        """The slices held, ``(slices, *spatial, m)`` (a subclass's)."""
+        raise NotImplementedError
+
+    def cells_at(self, i: int) -> torch.Tensor:
+        """The cells anchored on position ``i``."""
+        return gather_cells(self.values[i : i + 2], self.model.stencil, self.f.boundary)
 
     def count_affine(self) -> None:
         """The slices of the affine recurrence counted as one evaluation each."""
