@@ -10,7 +10,6 @@ import numpy as np
 import torch
 
 from .._boundary import axis_kinds
-from .._errors import ServeError
 from .._lattice import LatticeField, to_dataarrays
 from .._models import AbstractLagrangian
 from ._affine import _affine_prefix
@@ -20,7 +19,7 @@ from ._options import ServeOptions
 from ._range import assess
 from ._result import ServeResult
 from ._slices import _SliceSystem
-from ._stepper import SteppedRun, served_where, slice_error, step_slices
+from ._stepper import SteppedRun, served_where, step_slices
 
 
 def _initial_values(
@@ -125,13 +124,10 @@ class _FieldRun(SteppedRun):
             **self.counts(),
         )
 
-    def fail(self, i: int, msg: str, row: int | None, res: float) -> ServeError:
-        """The error for slice ``i``'s equations failing (at equation ``row``), holding the slices solved."""
-        f, sys = self.f, self.sys
-        self.bar.close()
-        part = LatticeField.with_values(f, self.psi[: i + 1].clone())
-        result = self._result(part, False, msg, i + 1, *self.timed(i + 1), res)
-        return slice_error(f, sys, i, msg, row, res, result)
+    def partial(self, i: int, msg: str, res: float) -> ServeResult:
+        """The result of a run stopped by slice ``i``'s equations: the slices solved."""
+        part = LatticeField.with_values(self.f, self.psi[: i + 1].clone())
+        return self._result(part, False, msg, i + 1, *self.timed(i + 1), res)
 
     def finish(self) -> ServeResult:
         """The complete served field."""

@@ -162,6 +162,17 @@ class SteppedRun(Stepping):
         """The cells anchored on position ``i``."""
         return gather_cells(self.values[i : i + 2], self.model.stencil, self.f.boundary)
 
+    def partial(self, p: int, msg: str, res: float) -> ServeResult:
+        """The result of a run stopped by position ``p``'s equations (``msg``, residual ``res``): the slices
+        served up to there (a subclass's)."""
+        raise NotImplementedError
+
+    def fail(self, p: int, msg: str, row: int | None, res: float) -> ServeError:
+        """The error for position ``p``'s equations failing (at equation ``row``): the bar closed, the run's
+        :meth:`partial` result and the one line of :func:`slice_error`."""
+        self.bar.close()
+        return slice_error(self.f, self.sys, self.base + p, msg, row, res, self.partial(p, msg, res))
+
     def count_affine(self) -> None:
         """The slices of the affine recurrence counted as one evaluation each."""
         self.total_it, self.max_it = self.affine_slices, 1

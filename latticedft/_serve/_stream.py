@@ -31,7 +31,6 @@ import numpy as np
 import torch
 import xarray as xr
 
-from .._errors import ServeError
 from .._lattice import LatticeField, as_lattice_field
 from .._layout import validate_field
 from .._models import AbstractLagrangian
@@ -43,7 +42,7 @@ from ._options import Cadence, ServeOptions, kept_slices
 from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
 from ._result import ServeResult
 from ._slices import _SliceSystem
-from ._stepper import SteppedRun, served_where, slice_error, step_slices
+from ._stepper import SteppedRun, served_where, step_slices
 
 __all__ = ["kept_slices", "thin_result", "SliceSource", "lazy_field"]
 
@@ -269,13 +268,11 @@ class _Stream(SteppedRun):
             **self.counts(),
         )
 
-    def fail(self, p: int, msg: str, row: int | None, res: float) -> ServeError:
-        """The error for position ``p``'s equations failing, holding the kept slices up to there."""
-        self.bar.close()
+    def partial(self, p: int, msg: str, res: float) -> ServeResult:
+        """The result of a run stopped by position ``p``'s equations: the kept slices up to there."""
         i = self.base + p
         self.emit(p)
-        result = self.result(i + 1, False, msg, self.timed(i + 1)[1], res)
-        return slice_error(self.f, self.sys, i, msg, row, res, result)
+        return self.result(i + 1, False, msg, self.timed(i + 1)[1], res)
 
 
 def _serve_stream(
