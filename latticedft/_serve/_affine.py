@@ -205,6 +205,28 @@ def _affine_prefix(
     scale = float(f.values[:2].abs().max()) or 1.0
     if not_affine(model, sys.st.size, m, scale):  # a kinetic-potential MLP's closed forms answer the probe
         return None
+    found = affine_recurrence(model, f, sys)
+    if found is None:
+        return None
+    op, mscale = found
+    v = flat.reshape(steps, sys.nsite * m).numpy()
+    op.run(v, 1, steps - 1)
+    res = _slice_residuals(model, f, psi, 1, steps - 1)
+    if option("affine_check_every") > 1:
+        log.info("affine recurrence checked against the model's DEL on every %d-th slice", option("affine_check_every"))
+    affine_slices, worst = passing_slices(v, res, rtol * vol * op.dmax)
+    return affine_slices, worst, op.dmax, mscale
+
+
+def affine_recurrence(
+    model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem
+) -> tuple[_AffineSlices, float] | None:
+    """The affine recurrence of ``model``'s DEL on ``sys`` (probed at the size of ``f``'s first two slices) and
+    the largest singular value of the mixed Hessian at a site; ``None`` where the DEL is not affine, its mixed
+    Hessian is singular or the slice matrix is (Newton then reports it with the slice and site). The whole
+    field's (:func:`_affine_prefix`) and the window's (``_stream``)."""
+    m = sys.m
+    scale = float(f.values[:2].abs().max()) or 1.0
     probe = _AffineSlices.probe(model, sys.st, m, scale)
     if probe is None:
         return None
@@ -215,16 +237,17 @@ def _affine_prefix(
         return None
     mscale: float | np.ndarray = float(highs[0]) if sys.members == 1 else highs
     try:
-        op = _AffineSlices(sys, probe[0], probe[1])
+        return _AffineSlices(sys, probe[0], probe[1]), mscale
     except np.linalg.LinAlgError:
         return None  # singular slice matrix: Newton reports it with the slice and site
-    v = flat.reshape(steps, sys.nsite * m).numpy()
-    op.run(v, 1, steps - 1)
-    res = _slice_residuals(model, f, psi, 1, steps - 1)
-    if option("affine_check_every") > 1:
-        log.info("affine recurrence checked against the model's DEL on every %d-th slice", option("affine_check_every"))
+
+
+def passing_slices(v: np.ndarray, res: np.ndarray, bound: float) -> tuple[int, float]:
+    """``(slices, worst)``: how many leading slices of the recurrence's values ``v`` (``(slices, values)``, the
+    two given ones first) pass the DEL test of their residuals ``res`` (one a slice's equations), each held to
+    ``bound`` times the largest value of its three slices (:func:`passing_prefix`), and the largest residual
+    among them (``0`` for none)."""
     absmax = np.array([np.abs(row).max() for row in v])  # per slice, without a copy of the field
     scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), absmax[2:]).clip(1e-300)
-    affine_slices = passing_prefix(res, rtol * vol * op.dmax * scl)
-    worst = float(np.nanmax(res[:affine_slices], initial=0.0)) if affine_slices else 0.0
-    return affine_slices, worst, op.dmax, mscale
+    k = passing_prefix(res, bound * scl)
+    return k, float(np.nanmax(res[:k], initial=0.0)) if k else 0.0

@@ -4,7 +4,6 @@ dense ``m x m`` Newton solve, batched over the members still running."""
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -17,7 +16,8 @@ from .._lattice import LatticeField, to_dataarrays
 from .._models import AbstractLagrangian
 from ._range import assess
 from ._result import ServeResult
-from ._slices import SINGULAR_RTOL, is_singular, singular_message
+from ._slices import SINGULAR_RTOL, is_singular, singular_message, slice_message
+from ._stepper import Stepping
 
 
 @dataclass
@@ -36,18 +36,28 @@ class _GroupStep:
 
 def failure_text(f: LatticeField, i: int, singular: bool, smin: float, scale: float, max_newton: int) -> str:
     """Why a trajectory stopped on slice ``i + 1``: Newton did not converge, or its mixed Hessian is singular."""
-    tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
     if not singular:
         why = f"Newton did not converge in {max_newton} iterations"
     else:
         why = singular_message(smin, scale) if is_singular(smin, scale) else "singular mixed Hessian"
-    return f"slice {i + 1} (t = {tval:.6g}): {why}"
+    return slice_message(f, i, why)
 
 
-class _Batch:
-    """The values of a batch of 1D trajectories and each member's bookkeeping (length, reason, iterations)."""
+class _Batch(Stepping):
+    """The values of a batch of 1D trajectories and each member's bookkeeping (length, reason, iterations);
+    its mode, clock, progress bar (``label`` after the mode: the members by default) and solver name are
+    those of every stepped run (:class:`._stepper.Stepping`), its slices stepped by
+    :func:`._stepper.step_members`."""
 
-    def __init__(self, model: AbstractLagrangian, fs: list[LatticeField], steps: list[int]):
+    def __init__(
+        self,
+        model: AbstractLagrangian,
+        fs: list[LatticeField],
+        steps: list[int],
+        mode: str,
+        progress: bool | None,
+        label: str | None = None,
+    ):
         st = model.stencil
         self.model, self.fs = model, fs
         self.a0, self.a1 = st.anchor, st.forward
@@ -65,7 +75,7 @@ class _Batch:
         self.worst = torch.zeros(b, dtype=torch.float64)
         self.iters = torch.zeros(b, dtype=torch.long)
         self.max_iters = torch.zeros(b, dtype=torch.long)
-        self.t0 = time.perf_counter()
+        super().__init__(mode, self.nmax, progress, f", {b} trajectories" if label is None else label)
         g_prev, _ = cell_derivatives(model, self.psi[:, 0:2], [])
         self.g_prev = g_prev[:, self.a1].clone()  # d L(q_{i-1}, q_i) / d q_i, per member
         # A model whose mixed Hessian is constant by construction (the kinetic-potential MLP) has the same
@@ -247,24 +257,36 @@ class _Batch:
         self.worst[act] = torch.maximum(self.worst[act], torch.where(s.ok, s.rabs, self.worst[act]))
         bad = ~s.ok
         if bool(bad.any()):
-            for j in torch.nonzero(bad).flatten().tolist():
-                k = act_list[j]
-                res = float(s.rabs[j])
-                why = failure_text(self.fs[k], i, bool(s.sing[j]), float(s.smin[j]), float(self.mscale[k]), max_newton)
-                self.retire(k, i + 1, f"{why}, residual {res:.3e}", True, res)
-                self.worst[k] = max(float(self.worst[k]), res)
+            j = torch.nonzero(bad).flatten()
+            ks = [act_list[int(k)] for k in j]
+            self.stop_failed(ks, i, s.rabs[j].tolist(), s.sing[j].tolist(), s.smin[j].tolist(), max_newton)
         if box is not None:  # member 0's own components (a stacked ensemble stops where member 0 alone would)
             out = (s.u[..., : self.m // self.model.n_members].norm(dim=-1) > box) & s.ok
-            for j in torch.nonzero(out).flatten().tolist():
-                self.retire(act_list[j], i + 2, f"left the box |psi| <= {box:g} at slice {i + 1}", False)
+            self.leave_box([act_list[j] for j in torch.nonzero(out).flatten().tolist()], i, box)
+
+    def stop_failed(
+        self, ks: list[int], i: int, rabs: list[float], sing: list[bool], smin: list[float], max_newton: int
+    ) -> None:
+        """The members ``ks`` failed on slice ``i``'s equations (their residuals ``rabs``, whether their mixed
+        Hessian is singular, ``sing``, and its smallest singular value met, ``smin``): each retires with its one
+        line and residual (the torch and the numpy loop alike)."""
+        for k, res, singular, small in zip(ks, rabs, sing, smin):
+            why = failure_text(self.fs[k], i, bool(singular), float(small), float(self.mscale[k]), max_newton)
+            self.retire(k, i + 1, f"{why}, residual {res:.3e}", True, res)
+            self.worst[k] = max(float(self.worst[k]), res)
+
+    def leave_box(self, ks: list[int], i: int, box: float) -> None:
+        """The members ``ks`` left the box on slice ``i + 1``: each retires (complete) after that slice."""
+        for k in ks:
+            self.retire(k, i + 2, f"left the box |psi| <= {box:g} at slice {i + 1}", False)
 
     def assess(self, fields: list[LatticeField]) -> list[tuple[xr.DataArray | None, list[str]]]:
         """``(extrapolation, warnings)`` of each member's served field."""
         return [assess(self.model, lf) for lf in fields]
 
-    def results(self, wall: float, mode: str) -> list[ServeResult]:
+    def results(self) -> list[ServeResult]:
         """One result per member; a failed member's ``fail_at`` is ``(slice, residual)``."""
-        solved = sum(max(n - 2, 0) for n in self.length)
+        wall, rate = self.rate(sum(max(n - 2, 0) for n in self.length))
         out = []
         fields = [LatticeField.with_values(f, self.psi[k, : self.length[k]].clone()) for k, f in enumerate(self.fs)]
         arrays = to_dataarrays(fields)  # members of one lattice share their coordinates' construction
@@ -276,16 +298,13 @@ class _Batch:
                     complete=not self.failed[k],
                     reason=self.reason[k],
                     slices=n,
-                    newton_iterations=int(self.iters[k]),
-                    max_newton_iterations=int(self.max_iters[k]),
                     wall_time=wall,
-                    sites_per_second=solved / wall if wall > 0 else math.inf,
+                    sites_per_second=rate,
                     max_residual=float(self.worst[k]),
-                    mode=mode,
-                    solver=mode,
                     extrapolation=ext,
                     warnings=warnings,
                     fail_at=self.fail_at.get(k),
+                    **self.figures(int(self.iters[k]), int(self.max_iters[k])),
                 )
             )
         return out

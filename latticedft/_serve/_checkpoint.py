@@ -16,11 +16,21 @@ from __future__ import annotations
 from typing import Any, Protocol
 
 import numpy as np
+import torch
 
 from .._errors import InputError
 from ._solvers import factor_step
+from ._stepper import SliceRun
 
-__all__ = ["CACHE_KEYS", "STATE_VERSION", "Checkpointer", "keep_factored", "restore_stream", "stream_state"]
+__all__ = [
+    "CACHE_KEYS",
+    "STATE_VERSION",
+    "Checkpointer",
+    "WindowRun",
+    "keep_factored",
+    "restore_stream",
+    "stream_state",
+]
 
 #: The layout of the state; a checkpoint of another layout is refused.
 STATE_VERSION = 2
@@ -38,12 +48,32 @@ class Checkpointer(Protocol):
     def load(self) -> dict[str, Any] | None: ...
 
 
-def _shape_key(run: Any) -> dict[str, Any]:
+class WindowRun(SliceRun, Protocol):
+    """A windowed run as its state is taken and put back (``_stream._Stream``): the stepper's run
+    (:class:`._stepper.SliceRun`, whose slice held at position 0, ``base``, moves on window by window) with
+    the window (``buf``: ``chunk + 2`` slices), the slices of the field (``steps``) and handed out so far
+    (``done``), the one before the window (``before``), the kept slices (``kept_values``, the first ``nkept``
+    filled), the training-range excess per anchor slice (``per_anchor``) and the slices the affine recurrence
+    served (``affine_slices``)."""
+
+    steps: int
+    chunk: int
+    buf: torch.Tensor
+    base: int
+    done: int
+    nkept: int
+    before: torch.Tensor | None
+    kept_values: np.ndarray
+    per_anchor: np.ndarray | None
+    affine_slices: int
+
+
+def _shape_key(run: WindowRun) -> dict[str, Any]:
     """What a state must agree with to be put into ``run``: the slices, the window and the lattice."""
     return {"steps": int(run.steps), "chunk": int(run.chunk), "shape": [int(s) for s in run.buf.shape[1:]]}
 
 
-def stream_state(run: Any, on_affine: bool) -> dict[str, Any]:
+def stream_state(run: WindowRun, on_affine: bool) -> dict[str, Any]:
     """The state of the windowed run ``run`` (a ``_stream._Stream``) just after its window moved on."""
     cache = {k: run.cache[k] for k in CACHE_KEYS if k in run.cache}
     if "solve" not in run.cache:
@@ -64,7 +94,7 @@ def stream_state(run: Any, on_affine: bool) -> dict[str, Any]:
     }
 
 
-def restore_stream(run: Any, state: dict[str, Any]) -> bool:
+def restore_stream(run: WindowRun, state: dict[str, Any]) -> bool:
     """Put ``state`` (with ``kept_values``, the kept slices so far) into the fresh run ``run``; returns whether
     the affine recurrence was still serving."""
     if state.get("version") != STATE_VERSION or any(state.get(k) != v for k, v in _shape_key(run).items()):

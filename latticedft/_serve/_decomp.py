@@ -32,7 +32,7 @@ import math
 import time
 from collections.abc import Callable
 from functools import partial
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import numpy as np
 import torch
@@ -51,10 +51,13 @@ from ._checkpoint import keep_factored
 from ._edges import known_slices
 from ._flag import Failure, Flag, SlabError
 from ._grid import Block, Slab, assemble, exchange, grid_text, plan_grid, plan_slabs
-from ._newton import _newton_slice
+from ._newton import _newton_slice, predict
 from ._options import kept_slices
 from ._slabkrylov import SlabSolver, lu_refusal
-from ._slices import _site_label, _SliceSystem
+from ._slices import _site_label, _SliceSystem, site_text, slice_message
+
+if TYPE_CHECKING:  # _slabstate reads and restores the slab run (no import at run time)
+    from ._slabstate import SlabCheckpoint
 
 __all__ = ["ROUNDOFF", "Block", "Slab", "plan_grid", "plan_slabs", "serve_slabs"]
 
@@ -147,9 +150,7 @@ class _SlabNewton:
     def step(self, i: int, rtol: float, max_newton: int) -> float:
         """Solve slice ``i``'s equations for slice ``i + 1`` (row 3); its residual."""
         flat, unk = self.flat, self.unk
-        flat[3, unk] = 2 * flat[2, unk] - flat[1, unk]
-        if i >= 2:  # the predictor of one process (``solve_and_tally``)
-            flat[3, unk] += flat[2, unk] - 2 * flat[1, unk] + flat[0, unk]
+        predict(flat, unk, 2, flat[0] if i >= 2 else None)  # the predictor of one process (``solve_and_tally``)
         if self.g_prev is None:
             self.g_prev = CellDerivatives(self.model, self.cells_at(1)).grad
         g_prev = self.g_prev
@@ -172,21 +173,10 @@ class _SlabNewton:
             split = len(self.block.parts)
             at = [(local[1 + k] + p.start) % p.n for k, p in enumerate(self.block.parts)]
             site = (i, *at, *local[1 + split :])
-        f, dims = self.f, lattice_dims(self.init)
-        text = (
-            f"slice {i + 1} (t = {float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0]):.6g}): {msg}"
-            + (f" in the DEL equation of site {_site_text(self.init, dims, site)}" if site else "")
-            + (f", residual {res:.3e}" if math.isfinite(res) else "")
-        )
+        where = site_text(lattice_dims(self.init), site, self.init.coords) if site else None
+        text = slice_message(self.f, i, msg, where, res)  # as one process says it, the site in the whole lattice
         weight = float(np.abs(r).max()) if r.size else 0.0
         self.flag.fail(Failure(text, weight, slice=i + 1, site=site, residual=res))
-
-
-def _site_text(init: xr.DataArray, dims: tuple[str, ...], site: tuple[int, ...]) -> str:
-    """``index t=12, x=5 (x = 0.3125)``, as one process says it (``_stepper._site_text``), from ``init``'s axes."""
-    idx = ", ".join(f"{d}={i}" for d, i in zip(dims, site))
-    coords = ", ".join(f"{d} = {float(init[d].values[i]):.6g}" for d, i in zip(dims[1:], site[1:]) if d in init.coords)
-    return f"index {idx}" + (f" ({coords})" if coords else "")
 
 
 def serve_slabs(
@@ -202,7 +192,7 @@ def serve_slabs(
     report: dict[str, Any] | None = None,
     solver: str = "auto",
     on_slice: Callable[[int, np.ndarray], None] | None = None,
-    checkpoint: Any = None,
+    checkpoint: SlabCheckpoint | None = None,
     grid: tuple[int, int] | None = None,
 ) -> xr.DataArray | None:
     """Serve ``init`` (every slice held for Dirichlet strips; a periodic field needs two) over the processes of
@@ -298,7 +288,7 @@ class _SlabRun:
         self.done, self.worst = 1, 0.0
         self.on_done: Callable[[_SlabRun], None] | None = None
 
-    def checkpointed(self, checkpoint: Any) -> None:
+    def checkpointed(self, checkpoint: SlabCheckpoint) -> None:
         """Write checkpoints by ``checkpoint`` (after each slice) and go on from the state it holds."""
         if self.newton is not None:
             keep_factored(self.newton.cache)

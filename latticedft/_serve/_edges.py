@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from .._boundary import missing_edges
 from .._errors import InputError
 from .._lattice import LatticeField
 
@@ -68,3 +69,17 @@ def known_slices(f: LatticeField, data: Callable[[int, int], Any], nt: int, valu
 
 
 __all__ = ["edge_function", "edge_slices", "known_slices"]
+
+
+def require_edges(f: LatticeField, nt: int, steps: int, boundary_value: Any) -> None:
+    """Refuse, in one line, a field whose Dirichlet strips are needed on ``steps`` slices when its data holds
+    ``nt`` (``f``'s, or its file's) and no ``boundary_value`` gives the others (the whole field's and the
+    window's check)."""
+    missing = missing_edges(f.boundary, f.dims, nt, steps)
+    if missing and boundary_value is None:
+        axis, kind = missing
+        raise InputError(
+            f"init: holds {nt} time slices but the {kind.title} boundary along "
+            f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
+            "fewer slices, a boundary_value, or a periodic boundary"
+        )

@@ -11,7 +11,6 @@ and partial fields are built exactly as before.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,9 +23,9 @@ from .._kernel import CompiledForms
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
 from .._options import option
-from ._batch import _Batch, failure_text
+from ._batch import _Batch
 from ._range import assess_batch
-from ._result import ServeResult, _bar
+from ._result import ServeResult
 from ._slices import SINGULAR_RTOL
 from ._stepper import step_members
 
@@ -106,10 +105,21 @@ def _solve(jac: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray | b
 
 
 class FastBatch(_Batch):
-    """:class:`_Batch` with the Newton loop and the bookkeeping of each slice in numpy."""
+    """:class:`_Batch` with the Newton loop and the bookkeeping of each slice in numpy; one scalar trajectory
+    by the compiled ``trajectory`` where :func:`trajectory_kernel` offers it (``kernel``)."""
 
-    def __init__(self, model: AbstractLagrangian, fs: list[LatticeField], steps: list[int], derivatives):
-        super().__init__(model, fs, steps)
+    def __init__(
+        self,
+        model: AbstractLagrangian,
+        fs: list[LatticeField],
+        steps: list[int],
+        derivatives: NumpyForms,
+        mode: str,
+        progress: bool | None,
+    ):
+        self.kernel = trajectory_kernel(model) if len(fs) == 1 and fs[0].ncomp == 1 else None
+        label = ", 1 trajectory, compiled" if self.kernel is not None else None
+        super().__init__(model, fs, steps, mode, progress, label)
         self.fn = derivatives
         # numpy views of the batch's tensors: what is written here is what ``results`` reads
         self.npsi, self.ngprev = self.psi.numpy(), self.g_prev.numpy()
@@ -363,17 +373,12 @@ class FastBatch(_Batch):
         self.nmax_iters[act] = np.maximum(self.nmax_iters[act], s.it)
         self.nworst[act] = np.maximum(self.nworst[act], np.where(s.ok, s.rabs, self.nworst[act]))
         if not s.ok.all():
-            for j in np.nonzero(~s.ok)[0].tolist():
-                k = int(act[j])
-                res = float(s.rabs[j])
-                why = failure_text(self.fs[k], i, bool(s.sing[j]), float(s.smin[j]), float(self.nmscale[k]), max_newton)
-                self.retire(k, i + 1, f"{why}, residual {res:.3e}", True, res)
-                self.nworst[k] = max(float(self.nworst[k]), res)
+            j = np.nonzero(~s.ok)[0]
+            self.stop_failed(act[j].tolist(), i, s.rabs[j].tolist(), s.sing[j].tolist(), s.smin[j].tolist(), max_newton)
         if box is not None:  # member 0's own components (a stacked ensemble stops where member 0 alone would)
             own = s.u[..., : self.m // self.model.n_members]
             out = (np.sqrt((own * own).sum(-1)) > box) & s.ok
-            for j in np.nonzero(out)[0].tolist():
-                self.retire(int(act[j]), i + 2, f"left the box |psi| <= {box:g} at slice {i + 1}", False)
+            self.leave_box(act[out].tolist(), i, box)
 
 
 def serve_fast(
@@ -388,24 +393,21 @@ def serve_fast(
     derivatives,
 ) -> list[ServeResult]:
     """``_serve_batch`` with the numpy Newton loop (``derivatives`` from :func:`numpy_derivatives_of`)."""
-    batch = FastBatch(model, fs, steps, derivatives)
-    step_fast(batch, mode, rtol, max_newton, box, progress)
-    return batch.results(time.perf_counter() - batch.t0, mode)
+    batch = FastBatch(model, fs, steps, derivatives, mode, progress)
+    step_fast(batch, rtol, max_newton, box)
+    return batch.results()
 
 
-def step_fast(
-    batch: FastBatch, mode: str, rtol: float, max_newton: int, box: float | None, progress: bool | None
-) -> None:
+def step_fast(batch: FastBatch, rtol: float, max_newton: int, box: float | None) -> None:
     """Serve every member of ``batch`` to its end: one scalar trajectory by the compiled ``trajectory`` where
-    :func:`trajectory_kernel` offers it, else by the numpy loop (:func:`step_members`)."""
-    kernel = trajectory_kernel(batch.model) if len(batch.fs) == 1 and batch.m == 1 else None
-    if kernel is not None:  # one scalar trajectory: every slice in one compiled call
+    :func:`trajectory_kernel` offers it (``batch.kernel``), else by the numpy loop (:func:`step_members`)."""
+    if batch.kernel is not None:  # one scalar trajectory: every slice in one compiled call
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            serve_trajectory(batch, kernel, rtol, max_newton, box)
-        _bar(batch.nmax - 2, f"serve ({mode}, 1 trajectory, compiled)", progress).close()
+            serve_trajectory(batch, batch.kernel, rtol, max_newton, box)
+        batch.bar.close()
         return
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # non-finite values are tested for
-        step_members(batch, mode, rtol, max_newton, box, progress)
+        step_members(batch, rtol, max_newton, box)
 
 
 def trajectory_kernel(model: AbstractLagrangian) -> CompiledForms | None:
@@ -442,5 +444,6 @@ def serve_trajectory(batch: FastBatch, kernel: CompiledForms, rtol: float, max_n
         one = np.zeros(1, dtype=bool)
         step = _Step(np.array([0]), fail[None, :1], g, fail[1:2], one, fail[2:3] != 0, int(fail[4]), fail[3:4])
         batch.store(int(i), step, max_newton, None)
-    elif status == 2:
-        batch.retire(0, int(i) + 1, f"left the box |psi| <= {box:g} at slice {int(i)}", False)
+    elif status == 2:  # the new slice ``i`` left the box
+        assert box is not None
+        batch.leave_box([0], int(i) - 1, box)

@@ -9,18 +9,17 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._boundary import axis_kinds, missing_edges
-from .._errors import InputError, ServeError
-from .._lattice import LatticeField, gather_cells, to_dataarrays
+from .._boundary import axis_kinds
+from .._lattice import LatticeField, to_dataarrays
 from .._models import AbstractLagrangian
 from ._affine import _affine_prefix
-from ._edges import known_slices
+from ._edges import known_slices, require_edges
 from ._fused import KEPT_BYTES
 from ._options import ServeOptions
 from ._range import assess
 from ._result import ServeResult
 from ._slices import _SliceSystem
-from ._stepper import SteppedRun, served_where, slice_error, step_slices
+from ._stepper import SteppedRun, served_where, step_slices
 
 
 def _initial_values(
@@ -32,14 +31,7 @@ def _initial_values(
     ``boundary_value`` when given."""
     nt_given = f.shape[0]
     m = f.ncomp
-    missing = missing_edges(f.boundary, f.dims, nt_given, steps)
-    if missing and boundary_value is None:
-        axis, kind = missing
-        raise InputError(
-            f"init: holds {nt_given} time slices but the {kind.title} boundary along "
-            f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
-            "fewer slices, a boundary_value, or a periodic boundary"
-        )
+    require_edges(f, nt_given, steps, boundary_value)
     psi = torch.empty((steps, *f.shape[1:], m), dtype=torch.float64)
     if nan:
         psi[2:] = math.nan
@@ -100,10 +92,6 @@ class _FieldRun(SteppedRun):
         """The whole field's slices, ``(steps, *spatial, m)``."""
         return self.psi
 
-    def cells_at(self, i: int) -> torch.Tensor:
-        """The cells anchored on slice ``i``."""
-        return gather_cells(self.psi[i : i + 2], self.model.stencil, self.f.boundary)
-
     def serve_affine(self, rtol: float) -> None:
         """Fill the leading slices that the affine recurrence serves to within ``rtol``; Newton starts after."""
         out = _affine_prefix(self.model, self.f, self.sys, self.psi, self.flat, rtol, self.vol)
@@ -139,13 +127,10 @@ class _FieldRun(SteppedRun):
             **self.counts(),
         )
 
-    def fail(self, i: int, msg: str, row: int | None, res: float) -> ServeError:
-        """The error for slice ``i``'s equations failing (at equation ``row``), holding the slices solved."""
-        f, sys = self.f, self.sys
-        self.bar.close()
-        part = LatticeField.with_values(f, self.psi[: i + 1].clone())
-        result = self._result(part, False, msg, i + 1, *self.timed(i + 1), res)
-        return slice_error(f, sys, i, msg, row, res, result)
+    def partial(self, i: int, msg: str, res: float) -> ServeResult:
+        """The result of a run stopped by slice ``i``'s equations: the slices solved."""
+        part = LatticeField.with_values(self.f, self.psi[: i + 1].clone())
+        return self._result(part, False, msg, i + 1, *self.timed(i + 1), res)
 
     def finish(self) -> ServeResult:
         """The complete served field."""

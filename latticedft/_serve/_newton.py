@@ -39,6 +39,17 @@ def _local(*values: float) -> tuple[float, ...]:
     return values
 
 
+def predict(flat: torch.Tensor, unk: torch.Tensor, i: int, older: torch.Tensor | None) -> None:
+    """Slice-Newton's predictor on the unknown sites ``unk`` of slice ``i + 1`` of ``flat`` (``(slices, sites,
+    m)``): ``2 psi_i - psi_{i-1}``, plus, with ``older`` (slice ``i - 2``, ``(sites, m)``), the previous slice's
+    correction to its own such predictor (``3 psi_i - 3 psi_{i-1} + psi_{i-2}``: the next term of the
+    extrapolation), in this order. One process's run (``_stepper.solve_and_tally``) and a slab of a split one
+    (``_decomp``) predict by it; the compiled, folded and device kernels repeat it to the bit."""
+    flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
+    if older is not None:
+        flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + older[unk]
+
+
 def _chord_pays(res: float, prev: float, target: float) -> bool:
     """Whether the next step reuses the last Jacobian (a chord step): the last step cut the residual by at least
     :data:`CHORD_DROP` and, cutting it again by as much, one more step is predicted to reach ``target``;

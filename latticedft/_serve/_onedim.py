@@ -3,8 +3,6 @@ closed forms, else by torch (``_batch``)."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from .._contract import NumpyForms
@@ -34,9 +32,9 @@ def _serve_batch(
     derivatives = numpy_derivatives_of(model)
     if derivatives is not None:
         return serve_fast(model, fs, steps, mode, rtol, max_newton, box, progress, derivatives)
-    batch = _Batch(model, fs, steps)
-    step_members(batch, mode, rtol, max_newton, box, progress)
-    return batch.results(time.perf_counter() - batch.t0, mode)
+    batch = _Batch(model, fs, steps, mode, progress)
+    step_members(batch, rtol, max_newton, box)
+    return batch.results()
 
 
 def served_values(
@@ -47,6 +45,6 @@ def served_values(
     that serves several times with the same coefficients), without building the results: per member the
     slices served, ``(slices, m)`` (a view of the batch's values), and whether it failed. No training-range
     check, no DataArrays, no warnings: for the held-out serving of a fit, which reads the values alone."""
-    batch = FastBatch(model, fs, [f.shape[0] for f in fs], derivatives)
-    step_fast(batch, options.mode, options.rtol, options.max_newton, options.box, options.progress)
+    batch = FastBatch(model, fs, [f.shape[0] for f in fs], derivatives, options.mode, options.progress)
+    step_fast(batch, options.rtol, options.max_newton, options.box)
     return [(batch.npsi[k, : batch.nlength[k]], batch.failed[k]) for k in range(len(fs))]

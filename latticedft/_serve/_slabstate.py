@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -28,7 +28,10 @@ from .._collective import world
 from .._layout import lattice_dims
 from .._options import option
 from ._checkpoint import CACHE_KEYS, STATE_VERSION
-from ._grid import assemble
+from ._grid import Block, assemble
+
+if TYPE_CHECKING:  # _decomp holds the slab run and takes a SlabCheckpoint (no import at run time)
+    from ._decomp import _SlabRun
 
 __all__ = ["SlabCheckpoint", "restore", "stream_chunk"]
 
@@ -59,7 +62,7 @@ class SlabCheckpoint:
     saved: int = 0
     chunk: int = field(default=0)
 
-    def start(self, run: Any) -> None:
+    def start(self, run: _SlabRun) -> None:
         """Hand every process its part of :attr:`state` (rank 0's) and put it into its slab ``run``."""
         rank, size = world()
         sites = int(np.prod([run.init.sizes[d] for d in lattice_dims(run.init)[1:]]))
@@ -74,7 +77,7 @@ class SlabCheckpoint:
             self.put(restore(run, got[0]))
             self.saved = run.done - 1
 
-    def __call__(self, run: Any) -> None:
+    def __call__(self, run: _SlabRun) -> None:
         """After slice ``run.done``: the checkpoint, when one is due (every process takes part)."""
         base = run.done - 1
         if base - self.saved < self.every or base % self.chunk or run.done + 1 >= run.slices:
@@ -92,7 +95,7 @@ class SlabCheckpoint:
             self.save(_state(run, self.chunk, parts))
 
 
-def _state(run: Any, chunk: int, parts: list[Any]) -> dict[str, Any]:
+def _state(run: _SlabRun, chunk: int, parts: list[Any]) -> dict[str, Any]:
     """One process's windowed-run state of the split run ``run`` (rank 0), from every process's ``parts``."""
     rows = torch.from_numpy(assemble([p[0] for p in parts], run.block.grid, 1))  # (3, planes, ..., components)
     s, newton = run.done, run.newton
@@ -122,7 +125,7 @@ def _state(run: Any, chunk: int, parts: list[Any]) -> dict[str, Any]:
     }
 
 
-def _part(state: dict[str, Any], run: Any, block: Any) -> dict[str, Any]:
+def _part(state: dict[str, Any], run: _SlabRun, block: Block) -> dict[str, Any]:
     """The part of ``state`` (with its ``kept_values``) of the process holding ``block``."""
     split = state.get("split") or {}
     grid = split.get("grid", [split.get("processes")])  # a state of slabs may not say its grid
@@ -144,7 +147,7 @@ def _part(state: dict[str, Any], run: Any, block: Any) -> dict[str, Any]:
     }
 
 
-def restore(run: Any, part: dict[str, Any]) -> Any:
+def restore(run: _SlabRun, part: dict[str, Any]) -> Any:
     """Put ``part`` into the slab run ``run``; this process's own figures (None when the state was written by
     another decomposition)."""
     n = part["rows"].shape[0]

@@ -328,6 +328,27 @@ def _site_label(f: LatticeField, sys: _SliceSystem, tslice: int, row: int) -> tu
     return (tslice, *[int(v) for v in np.unravel_index(site, sys.spatial)])
 
 
+def slice_message(f: LatticeField, i: int, msg: str, site: str | None = None, res: float = math.nan) -> str:
+    """``slice 12 (t = 0.12): msg``: why the equations of slice ``i`` of ``f`` gave no slice ``i + 1``, then
+    `` in the DEL equation of site ...`` where the text of the ``site`` is given (:func:`site_text`) and
+    ``, residual ...`` where ``res`` is finite: the one line of a whole field, a window, a slab of a split
+    field and a 1D trajectory."""
+    tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
+    return (
+        f"slice {i + 1} (t = {tval:.6g}): {msg}"
+        + (f" in the DEL equation of site {site}" if site else "")
+        + (f", residual {res:.3e}" if math.isfinite(res) else "")
+    )
+
+
+def site_text(dims: tuple[str, ...], site: tuple[int, ...], coords: Any) -> str:
+    """``index t=12, x=5 (x = 0.3125)``: a lattice index along ``dims``, and apart the spatial coordinates it
+    stands for (``coords[d][i]``, for the axes ``d`` that ``coords`` holds)."""
+    idx = ", ".join(f"{d}={i}" for d, i in zip(dims, site))
+    where = ", ".join(f"{d} = {float(coords[d][i]):.6g}" for d, i in zip(dims[1:], site[1:]) if d in coords)
+    return f"index {idx}" + (f" ({where})" if where else "")
+
+
 def _scale(flat: torch.Tensor, i: int, unk: torch.Tensor) -> float:
     """Size of the values on slices ``i - 1``, ``i`` and the unknowns of ``i + 1``: the scale of a Newton step
     (``unk``, distinct sites, holding every site: the whole slice, not gathered)."""

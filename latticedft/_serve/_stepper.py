@@ -14,15 +14,15 @@ import torch
 from .._action import CellDerivatives
 from .._device import resolve_device
 from .._errors import ServeError
-from .._lattice import LatticeField
+from .._lattice import LatticeField, gather_cells
 from .._models import AbstractLagrangian
 from . import _ondevice
 from ._folded import FoldedSlices, folded_slices
 from ._fused import FusedSlices, fused_slices
-from ._newton import _newton_slice
+from ._newton import _newton_slice, predict
 from ._potential import potential_slices
 from ._result import ServeResult, _bar
-from ._slices import _site_label, _SliceSystem, is_singular
+from ._slices import _site_label, _SliceSystem, is_singular, site_text, slice_message
 from ._solvers import OFFDIAG_RTOL
 from ._sweep import _sweep_slice
 
@@ -31,6 +31,7 @@ class Progress(Protocol):
     """A run's progress bar, as the stepper moves it: one step a slice solved."""
 
     def update(self, n: int = 1) -> object: ...
+    def close(self) -> object: ...
 
 
 class SliceRun(Protocol):
@@ -85,12 +86,44 @@ class SliceRun(Protocol):
         ...
 
 
-class SteppedRun:
+class Stepping:
+    """What every stepped run has, the whole field, the rolling window and the 1D batch alike: its mode and
+    slices, the clock, the progress bar (``steps - 2`` slices, ``label`` after the mode), the slices the
+    affine recurrence served, the solver name and the figures of its results. The clock starts here."""
+
+    def __init__(self, mode: str, steps: int, progress: bool | None, label: str = ""):
+        self.mode, self.steps = mode, steps
+        self.affine_slices = 0  # slices the affine recurrence served (after the two given ones)
+        self.t0 = time.perf_counter()
+        self.bar = _bar(steps - 2, f"serve ({mode}{label})", progress)
+
+    def solver(self) -> str:
+        """The ``solver`` name of the result."""
+        return solver_name(self.mode, self.affine_slices, self.steps)
+
+    def rate(self, solved: int, whole: bool = True) -> tuple[float, float]:
+        """The wall time since the clock started and the sites a second it makes over ``solved`` sites (no
+        time: ``inf`` for a ``whole`` run, ``0`` for one stopped early)."""
+        wall = time.perf_counter() - self.t0
+        return wall, solved / wall if wall > 0 else (math.inf if whole else 0.0)
+
+    def figures(self, total_it: int, max_it: int, slice_solver: str | None = None) -> dict[str, Any]:
+        """The figures of a result that the stepping counted: evaluations, mode and solvers."""
+        return {
+            "newton_iterations": total_it,
+            "max_newton_iterations": max_it,
+            "mode": self.mode,
+            "solver": self.solver(),
+            "slice_solver": slice_solver,
+        }
+
+
+class SteppedRun(Stepping):
     """What the whole-field run and the rolling window share around the stepper: the model, lattice and mode,
-    where the solves run, the Newton cache, the counters, the clock and the progress bar, the older slice of
-    each position (from the slices held, or ``before`` the window's first), and the figures of the result
-    that every run reports. A subclass holds the slices (``values``, ``flat``, ``unk``), ``sys`` and
-    ``cells_at`` and ``fail``, and calls ``__init__`` once they are set up (the clock starts there)."""
+    where the solves run, the Newton cache, the counters, the clock and the progress bar (:class:`Stepping`),
+    the older slice of each position (from the slices held, or ``before`` the window's first), and the figures
+    of the result that every run reports. A subclass holds the slices (``values``, ``flat``, ``unk``), ``sys``
+    and ``cells_at`` and ``fail``, and calls ``__init__`` once they are set up (the clock starts there)."""
 
     sys: _SliceSystem
     flat: torch.Tensor
@@ -106,15 +139,13 @@ class SteppedRun:
         progress: bool | None,
         label: str = "",
     ):
-        self.model, self.f, self.steps, self.mode, self.where = model, f, steps, mode, where
+        self.model, self.f, self.where = model, f, where
         self.vol = math.prod(model.spacing)
-        self.t0 = time.perf_counter()
         self.total_it, self.max_it, self.worst = 0, 0, 0.0
-        self.affine_slices = 0  # slices the affine recurrence served (after the two given ones)
         self.cache: dict[str, Any] = {"solver": solver}
         self.base = 0  # the slice held at position 0 (the whole field: the first)
         self.before: torch.Tensor | None = None  # the slice before position 0 (a window's; Newton's predictor)
-        self.bar = _bar(steps - 2, f"serve ({mode}{label})", progress)
+        super().__init__(mode, steps, progress, label)
 
     def older(self, i: int) -> torch.Tensor | None:
         """Slice ``i - 2`` of position ``i`` (Newton's predictor): held, or the one before position 0."""
@@ -122,57 +153,68 @@ class SteppedRun:
             return None
         return self.flat[i - 2] if i >= 2 else self.before
 
+    @property
+    def values(self) -> torch.Tensor:
+        """The slices held, ``(slices, *spatial, m)`` (a subclass's)."""
+        raise NotImplementedError
+
+    def cells_at(self, i: int) -> torch.Tensor:
+        """The cells anchored on position ``i``."""
+        return gather_cells(self.values[i : i + 2], self.model.stencil, self.f.boundary)
+
+    def partial(self, p: int, msg: str, res: float) -> ServeResult:
+        """The result of a run stopped by position ``p``'s equations (``msg``, residual ``res``): the slices
+        served up to there (a subclass's)."""
+        raise NotImplementedError
+
+    def fail(self, p: int, msg: str, row: int | None, res: float) -> ServeError:
+        """The error for position ``p``'s equations failing (at equation ``row``): the bar closed, the run's
+        :meth:`partial` result and the one line of :func:`slice_error`."""
+        self.bar.close()
+        return slice_error(self.f, self.sys, self.base + p, msg, row, res, self.partial(p, msg, res))
+
     def count_affine(self) -> None:
         """The slices of the affine recurrence counted as one evaluation each."""
         self.total_it, self.max_it = self.affine_slices, 1
-
-    def solver(self) -> str:
-        """The ``solver`` name of the result."""
-        return solver_name(self.mode, self.affine_slices, self.steps)
 
     def timed(self, slices: int) -> tuple[float, float]:
         """The wall time since the clock started and the sites a second it makes over the first ``slices``
         slices (the two given ones not counted; no time: ``0`` for a run stopped early, ``inf`` for a whole
         one)."""
-        wall = time.perf_counter() - self.t0
-        solved = (slices - 2) * self.sys.n
-        return wall, solved / wall if wall > 0 else (math.inf if slices == self.steps else 0.0)
+        return self.rate((slices - 2) * self.sys.n, slices == self.steps)
 
     def counts(self) -> dict[str, Any]:
         """The figures of the result that the stepper counted: evaluations, mode and solvers."""
-        return {
-            "newton_iterations": self.total_it,
-            "max_newton_iterations": self.max_it,
-            "mode": self.mode,
-            "solver": self.solver(),
-            "slice_solver": "+".join(self.cache.get("used", [])) or None,
-        }
+        return self.figures(self.total_it, self.max_it, "+".join(self.cache.get("used", [])) or None)
 
 
 class MemberBatch(Protocol):
-    """What a batch of 1D trajectories gives the stepper (``_batch._Batch``, ``_fast1d.FastBatch``): its
-    longest member's slices and the step of one group of members."""
+    """What a batch of 1D trajectories gives the stepper (``_batch._Batch``, ``_fast1d.FastBatch``, both
+    :class:`Stepping`): its members' fields, its longest member's slices, its mode and progress bar, and the
+    step of one group of members."""
 
     @property
     def fs(self) -> list[LatticeField]: ...
     @property
     def nmax(self) -> int: ...
+    @property
+    def mode(self) -> str: ...
+    @property
+    def bar(self) -> Progress: ...
 
     def advance(self, group: np.ndarray, i: int, rtol: float, max_newton: int, box: float | None) -> None:
         """Slice ``i + 1`` of the members of ``group`` still running: solved, stored, the failed ones retired."""
         ...
 
 
-def step_members(
-    batch: MemberBatch, mode: str, rtol: float, max_newton: int, box: float | None, progress: bool | None
-) -> None:
+def step_members(batch: MemberBatch, rtol: float, max_newton: int, box: float | None) -> None:
     """The slices of a batch of ``b`` 1D trajectories, one slice of every member at a time: all members in one
     batched Newton (``mode="newton"``), or one member after the other (``"sweep"``: in 1D the site-by-site
-    sweep is that same Newton on the one site)."""
+    sweep is that same Newton on the one site); the batch's progress bar moves a slice at a time."""
     b = len(batch.fs)
     members = np.arange(b)
-    groups = [members] if mode == "newton" else [members[k : k + 1] for k in range(b)]
-    bar = _bar(batch.nmax - 2, f"serve ({mode}, {b} trajectories)", progress)
+    groups = [members] if batch.mode == "newton" else [members[k : k + 1] for k in range(b)]
+    bar = batch.bar
     for i in range(1, batch.nmax - 1):
         for group in groups:
             batch.advance(group, i, rtol, max_newton, box)
@@ -184,14 +226,9 @@ def slice_error(
     f: LatticeField, sys: _SliceSystem, i: int, msg: str, row: int | None, res: float, result: ServeResult
 ) -> ServeError:
     """The error for slice ``i``'s equations failing (at equation ``row``): slice, time, site and residual in
-    one line, with the partial ``result``."""
+    one line (:func:`._slices.slice_message`), with the partial ``result``."""
     site = _site_label(f, sys, i, row) if row is not None else None
-    tval = float(f.coords[f.dims[0]][0] + (i + 1) * f.spacing[0])
-    text = (
-        f"slice {i + 1} (t = {tval:.6g}): {msg}"
-        + (f" in the DEL equation of site {_site_text(f, site)}" if site else "")
-        + (f", residual {res:.3e}" if math.isfinite(res) else "")
-    )
+    text = slice_message(f, i, msg, site_text(f.dims, site, f.coords) if site else None, res)
     return ServeError(text, result=result, slice=i + 1, site=site, residual=res)
 
 
@@ -201,9 +238,9 @@ def solve_and_tally(
     """Solve the equations of slice ``i`` of ``run`` (a whole-field or a windowed run: ``run.values``/``run.flat``
     its slices) for slice ``i + 1``; the iterations are counted on ``run``, a failure raised by ``run.fail``.
 
-    The predictor on the unknown sites is ``2 psi_i - psi_{i-1}`` plus, for Newton with ``older`` (slice
-    ``i - 2``: ``run.older(i)``), the previous slice's correction to its own such predictor
-    (``3 psi_i - 3 psi_{i-1} + psi_{i-2}``: the next term of the extrapolation).
+    The predictor on the unknown sites is :func:`._newton.predict`'s: ``2 psi_i - psi_{i-1}`` plus, for Newton
+    with ``older`` (slice ``i - 2``: ``run.older(i)``), the previous slice's correction to its own such
+    predictor (``3 psi_i - 3 psi_{i-1} + psi_{i-2}``: the next term of the extrapolation).
 
     Where the device or the compiled slice Newton serves (:func:`_sitewise`) it solves the slice and ``None``
     is returned for the gradients (``g_prev``: the cells anchored at ``i - 1``; ``None`` has them evaluated
@@ -218,10 +255,8 @@ def solve_and_tally(
     scale = None  # _slices._scale at the predictor, where the folded predictor measured it
     if folded is not None:
         scale = folded.predict(flat, i, older)
-    else:
-        flat[i + 1, unk] = 2 * flat[i, unk] - flat[i - 1, unk]
-    if run.mode == "newton" and older is not None and folded is None:
-        flat[i + 1, unk] += flat[i, unk] - 2 * flat[i - 1, unk] + older[unk]
+    else:  # the sweep predicts from the two slices before alone
+        predict(flat, unk, i, older if run.mode == "newton" else None)
     if run.mode == "newton":
         if g_prev is None and folded is not None:
             g_prev = torch.from_numpy(folded.grad(flat, i - 1))
@@ -429,10 +464,3 @@ def _fused_of(run: SliceRun) -> FusedSlices | None:
 
 #: The unknowns (sites times slices) the compiled slice Newton solves in one call at most.
 RUN_SITES = 1 << 22
-
-
-def _site_text(f: LatticeField, site: tuple[int, ...]) -> str:
-    """``index t=12, x=5 (x = 0.3125)``: a lattice index, and apart the spatial coordinates it stands for."""
-    idx = ", ".join(f"{d}={i}" for d, i in zip(f.dims, site))
-    coords = ", ".join(f"{d} = {float(f.coords[d][i]):.6g}" for d, i in zip(f.dims[1:], site[1:]) if d in f.coords)
-    return f"index {idx}" + (f" ({coords})" if coords else "")

@@ -31,20 +31,18 @@ import numpy as np
 import torch
 import xarray as xr
 
-from .._boundary import missing_edges
-from .._errors import InputError, ServeError
-from .._lattice import LatticeField, as_lattice_field, gather_cells
+from .._lattice import LatticeField, as_lattice_field
 from .._layout import validate_field
 from .._models import AbstractLagrangian
 from .._options import option
-from ._affine import _AffineSlices, _slice_residuals, passing_prefix
+from ._affine import _AffineSlices, _slice_residuals, affine_recurrence, passing_slices
 from ._checkpoint import keep_factored, restore_stream, stream_state
-from ._edges import known_slices
+from ._edges import known_slices, require_edges
 from ._options import Cadence, ServeOptions, kept_slices
 from ._range import EXTRAPOLATION_TOL, _excess, extrapolation_warning, feature_labels
 from ._result import ServeResult
-from ._slices import _SliceSystem, is_singular
-from ._stepper import SteppedRun, served_where, slice_error, step_slices
+from ._slices import _SliceSystem
+from ._stepper import SteppedRun, served_where, step_slices
 
 __all__ = ["kept_slices", "thin_result", "SliceSource", "lazy_field"]
 
@@ -133,14 +131,7 @@ class _Stream(SteppedRun):
         self.every = every = options.every
         self.nt = nt = f.shape[0] if source is None else source.nt
         self.boundary_value = options.boundary_value
-        missing = missing_edges(f.boundary, f.dims, nt, steps)
-        if missing and self.boundary_value is None:
-            axis, kind = missing
-            raise InputError(
-                f"init: holds {nt} time slices but the {kind.title} boundary along "
-                f"{axis!r} needs its strips on all {steps} slices; give the whole field, "
-                "fewer slices, a boundary_value, or a periodic boundary"
-            )
+        require_edges(f, nt, steps, self.boundary_value)
         self.sys = sys_ = _SliceSystem(model, f)
         m = f.ncomp
         slice_bytes = sys_.nsite * m * 8
@@ -184,10 +175,6 @@ class _Stream(SteppedRun):
         for p in range(2, n_new + 2):
             self.flat[p, self.kidx] = known[p - 2].reshape(self.sys.nsite, m)[self.kidx]
 
-    def cells_at(self, p: int) -> torch.Tensor:
-        """The cells anchored on buffer position ``p``."""
-        return gather_cells(self.buf[p : p + 2], self.model.stencil, self.f.boundary)
-
     def emit(self, upto: int) -> None:
         """Hand out the slices up to buffer position ``upto``: extrapolation, callbacks, the kept ones stored."""
         first = self.done - self.base  # the first position not handed out yet
@@ -221,33 +208,20 @@ class _Stream(SteppedRun):
 
     # -- solving ---------------------------------------------------------------------------------------------
     def affine_setup(self) -> tuple[_AffineSlices, float] | None:
-        """The affine recurrence and the mixed Hessian's scale, when the DEL is affine (as ``_affine_prefix``)."""
-        sys_, m = self.sys, self.f.ncomp
-        scale = float(self.f.values[:2].abs().max()) or 1.0
-        probe = _AffineSlices.probe(self.model, sys_.st, m, scale)
-        if probe is None:
-            return None
-        hess = torch.from_numpy(probe[0])
-        ncell = int(sys_.site_of[0].size)
-        smin, mscale, _ = sys_.site_singular_values({(a, b): hess[a, b].expand(ncell, m, m) for a, b in sys_.jac})
-        if is_singular(smin, mscale):
-            return None
-        try:
-            return _AffineSlices(sys_, probe[0], probe[1]), mscale
-        except np.linalg.LinAlgError:
-            return None
+        """The affine recurrence and the mixed Hessian's scale, when the DEL is affine (:func:`affine_recurrence`,
+        as the whole field's)."""
+        return affine_recurrence(self.model, self.f, self.sys)
 
     def affine_chunk(self, op: _AffineSlices, n_new: int, rtol: float) -> int:
-        """Serve positions ``2 .. n_new + 1`` by the affine recurrence; how many leading ones pass the DEL test."""
+        """Serve positions ``2 .. n_new + 1`` by the affine recurrence; how many leading ones pass the DEL test
+        (:func:`passing_slices`, as the whole field's)."""
         w = n_new + 2
         v = self.flat[:w].reshape(w, -1).numpy()
         op.run(v, 1, n_new + 1)
         res = _slice_residuals(self.model, self.f, self.buf[:w], 1, n_new + 1)
-        absmax = np.array([np.abs(row).max() for row in v])
-        scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), absmax[2:]).clip(1e-300)
-        k = passing_prefix(res, rtol * self.vol * op.dmax * scl)
+        k, worst = passing_slices(v, res, rtol * self.vol * op.dmax)
         if k:
-            self.worst = max(self.worst, float(np.nanmax(res[:k], initial=0.0)))
+            self.worst = max(self.worst, worst)
         return k
 
     # -- the result ------------------------------------------------------------------------------------------
@@ -294,13 +268,11 @@ class _Stream(SteppedRun):
             **self.counts(),
         )
 
-    def fail(self, p: int, msg: str, row: int | None, res: float) -> ServeError:
-        """The error for position ``p``'s equations failing, holding the kept slices up to there."""
-        self.bar.close()
+    def partial(self, p: int, msg: str, res: float) -> ServeResult:
+        """The result of a run stopped by position ``p``'s equations: the kept slices up to there."""
         i = self.base + p
         self.emit(p)
-        result = self.result(i + 1, False, msg, self.timed(i + 1)[1], res)
-        return slice_error(self.f, self.sys, i, msg, row, res, result)
+        return self.result(i + 1, False, msg, self.timed(i + 1)[1], res)
 
 
 def _serve_stream(
