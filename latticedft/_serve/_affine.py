@@ -220,11 +220,12 @@ def _affine_prefix(
 
 def affine_recurrence(
     model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem
-) -> tuple[_AffineSlices, float] | None:
+) -> tuple[_AffineSlices, float | np.ndarray] | None:
     """The affine recurrence of ``model``'s DEL on ``sys`` (probed at the size of ``f``'s first two slices) and
-    the largest singular value of the mixed Hessian at a site; ``None`` where the DEL is not affine, its mixed
-    Hessian is singular or the slice matrix is (Newton then reports it with the slice and site). The whole
-    field's (:func:`_affine_prefix`) and the window's (``_stream``)."""
+    the largest singular value of the mixed Hessian at a site (per member of a stacked ensemble, each judged on
+    its own); ``None`` where the DEL is not affine, its mixed Hessian is singular or the slice matrix is (Newton
+    then reports it with the slice and site). The whole field's (:func:`_affine_prefix`) and the window's
+    (``_stream``)."""
     m = sys.m
     scale = float(f.values[:2].abs().max()) or 1.0
     probe = _AffineSlices.probe(model, sys.st, m, scale)

@@ -209,8 +209,9 @@ class _Stream(SteppedRun):
     # -- solving ---------------------------------------------------------------------------------------------
     def affine_setup(self) -> tuple[_AffineSlices, float] | None:
         """The affine recurrence and the mixed Hessian's scale, when the DEL is affine (:func:`affine_recurrence`,
-        as the whole field's)."""
-        return affine_recurrence(self.model, self.f, self.sys)
+        as the whole field's). A window serves one model (an ensemble is served whole), so the scale is one number."""
+        found = affine_recurrence(self.model, self.f, self.sys)
+        return None if found is None else (found[0], float(np.max(found[1])))
 
     def affine_chunk(self, op: _AffineSlices, n_new: int, rtol: float) -> int:
         """Serve positions ``2 .. n_new + 1`` by the affine recurrence; how many leading ones pass the DEL test
