@@ -179,7 +179,9 @@ def _many_cells(
 @dataclass(frozen=True)
 class _Folded:
     """What a folded evaluation needs: ``z = x.flat @ w - shift`` (``(K m, V)``, ``(V,)``), the powers of each
-    variable that occur (``widths``), the matrix from the monomials to ``[dL/dx | blocks]`` and the shape."""
+    variable that occur (``widths``), the matrix from the monomials to ``[dL/dx | blocks]`` and the shape; that
+    matrix's two factors: ``g`` from the monomials to the derivatives in the scaled variables ``[dL/dz |
+    d2L/dz_v dz_w]`` and ``chain`` from those to ``[dL/dx | blocks]`` (``g_chain = g @ chain``)."""
 
     w: np.ndarray
     shift: np.ndarray
@@ -187,6 +189,8 @@ class _Folded:
     g_chain: np.ndarray
     k: int
     m: int
+    g: np.ndarray | None = None
+    chain: np.ndarray | None = None
 
 
 def stacked_numpy_derivatives(
@@ -345,7 +349,7 @@ def _folded_forms(
         grad = out[:, : k * m].reshape(b, k, m)
         return grad, [out[:, k * m + q * m * m : k * m + (q + 1) * m * m].reshape(b, m, m) for q in range(npairs)]
 
-    return folded, _Folded(w, shift, tuple(widths), g_chain, k, m)
+    return folded, _Folded(w, shift, tuple(widths), g_chain, k, m, g, chain)
 
 
 def _term_forms(

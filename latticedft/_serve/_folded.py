@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._kernel_folded import folded_cells_kernel, folded_kernels, horner_cells_kernel
+from .._kernel_folded import folded_cells_kernel, folded_kernels, horner_cells_kernel, zchain_kernel
 from .._models import PolynomialLagrangian
 from .._models._polynumpy import _numpy_forms
 from .._options import option
@@ -97,12 +97,80 @@ def per_model_state(
     return built, True
 
 
-def _data_of(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[Any, Any, dict[str, Any]]:
-    """``(_data(model, []), _data(model, pairs), kept)``, built once per model state, pairs and
-    ``folded_max_powers`` (the option that decides whether the coefficients fold); ``kept``: what
+def _zsource(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[np.ndarray, ...] | None:
+    """``(w, shift, expo, g, chain)``: the folded forms for ``pairs`` in the scaled variables, the exponents
+    ``(monomials, V)`` of every monomial, ``g`` from them to ``[dL/dz | d2L/dz_v dz_w]`` and ``chain`` from those
+    to ``[dL/dx | blocks]`` (:func:`_zforms`); ``None`` where the model does not fold."""
+    folded = _numpy_forms(model, pairs)[1]
+    if folded is None or folded.g is None or folded.chain is None:
+        return None
+    size = int(np.prod(folded.widths)) if folded.widths else 1
+    expo = np.stack(np.unravel_index(np.arange(size), folded.widths)).T if folded.widths else np.zeros((1, 0))
+    return (
+        np.ascontiguousarray(folded.w, dtype=np.float64),
+        np.ascontiguousarray(folded.shift, dtype=np.float64),
+        np.ascontiguousarray(expo, dtype=np.int64),
+        np.asarray(folded.g, dtype=np.float64),
+        np.asarray(folded.chain, dtype=np.float64),
+    )
+
+
+def _zforms(source: tuple[np.ndarray, ...], columns: np.ndarray) -> tuple[tuple[Any, ...], tuple[Any, ...], int]:
+    """``(forms, pattern, madds)``: the ``columns`` of ``[dL/dx | blocks]`` as ``zchain_cells`` evaluates them
+    (``latticedft._kernel_folded.zchain_kernel``): the derivatives in the scaled variables that those columns read
+    (``d``, in the order of ``g``'s columns), each a sum over its tails (the monomials of the variables but the
+    head, the variable of highest degree; in ``np.unique``'s order) of the tail times a polynomial in the head
+    (a Horner chain of the chain's own degree), then each column ``sum_d cmat[d, column] * d``. ``forms``:
+    ``(w, shift, coef, cmat)`` (``coef[chain, e]``: the coefficient of ``z_head^e``); ``pattern``: ``(head,
+    tails, chains, outputs, derivatives)``, :func:`zchain_kernel`'s arguments; ``madds``: its multiply-adds per
+    cell. A derivative's chains, and a column's sum, are the same whatever else ``columns`` holds: each column
+    is the same to the bit in every subset."""
+    w, shift, expo, g, chain = source
+    nvar = expo.shape[1]
+    used = np.any(g != 0, axis=1)
+    head = int(np.argmax(expo[used].max(axis=0))) if used.any() and nvar else 0
+    sub = chain[:, columns]
+    ds = [q for q in range(g.shape[1]) if np.any(sub[q] != 0) and np.any(g[:, q] != 0)]
+    keep = np.nonzero(np.any(g[:, ds] != 0, axis=1))[0] if ds else np.zeros(0, dtype=np.int64)
+    rest = expo[keep].copy()
+    if nvar:
+        rest[:, head] = 0
+    tails, which = np.unique(rest, axis=0, return_inverse=True)
+    deg = int(expo[keep, head].max()) if keep.size and nvar else 0
+    per = np.zeros((tails.shape[0], len(ds), deg + 1))
+    if keep.size:
+        per[which.reshape(-1), :, expo[keep, head] if nvar else 0] = g[keep][:, ds]
+    chains, rows = [], []
+    for d in range(len(ds)):
+        for t in range(tails.shape[0]):
+            nonzero = np.nonzero(per[t, d])[0]
+            if nonzero.size:
+                top = int(nonzero.max())
+                chains.append((t, d, top))
+                rows.append(per[t, d, : top + 1])
+    coef = np.zeros((max(len(chains), 1), deg + 1))
+    for i, row in enumerate(rows):
+        coef[i, : row.size] = row
+    cmat = np.ascontiguousarray(sub[ds] if ds else np.zeros((1, len(columns))))
+    outputs = tuple(tuple(d for d in range(len(ds)) if cmat[d, c] != 0) for c in range(len(columns)))
+    pattern = (head, tuple(tuple(int(e) for e in t) for t in tails), tuple(chains), outputs, len(ds))
+    madds = sum(c[2] + 1 for c in chains) + sum(len(o) for o in outputs)
+    return (w, shift, coef, cmat), pattern, madds
+
+
+#: Columns are evaluated in the scaled variables (:func:`_zforms`) where that takes fewer multiply-adds than the
+#: Horner forms of the columns themselves (``ZFORMS = False``: never; the Horner forms serve).
+ZFORMS = True
+
+
+def _data_of(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple[Any, Any, dict[str, Any], Any]:
+    """``(_data(model, []), _data(model, pairs), kept, _zsource(model, pairs))``, built once per model state,
+    pairs and ``folded_max_powers`` (the option that decides whether the coefficients fold); ``kept``: what
     :class:`FoldedSlices` derives from them (Horner forms, kernels), for later fields of the same state."""
     key = (tuple(pairs), option("folded_max_powers"))
-    built, fresh = per_model_state(_DATA, model, key, lambda: (_data(model, []), _data(model, pairs), {}))
+    built, fresh = per_model_state(
+        _DATA, model, key, lambda: (_data(model, []), _data(model, pairs), {}, _zsource(model, pairs))
+    )
     if fresh and (built[0] is None or built[1] is None):  # once per model state
         log.info(
             "compiled polynomial kernels unavailable for %s (its coefficients do not fold onto few monomials): "
@@ -150,10 +218,10 @@ class FoldedCells:
 
     def __init__(self, owner: FoldedSlices, lo: np.ndarray, hi: np.ndarray, with_blocks: bool = False):
         self.owner, self.lo, self.hi = owner, lo, hi
-        self.both: np.ndarray | None = None
+        self.both: tuple[np.ndarray, int] | None = None  # the blocks' columns (cells, ...) from the index given on
         if with_blocks:
-            self.both = owner.columns(lo, hi, owner.both_data)
-            self.grad = np.ascontiguousarray(self.both[:, : owner.k * owner.m])
+            self.grad, held, first = owner.both_columns(lo, hi)
+            self.both = (held, first)
         else:
             self.grad = owner.columns(lo, hi, owner.grad_data)
 
@@ -161,9 +229,9 @@ class FoldedCells:
         """The Hessian blocks ``(cells, m, m)`` of ``pairs`` (the slice system's pairs): from the columns evaluated
         with the gradients, else from a pass of the blocks' columns alone (:meth:`FoldedSlices.block_columns`)."""
         o = self.owner
-        km, mm = o.k * o.m, o.m * o.m
+        mm = o.m * o.m
         if self.both is not None:
-            out, first = self.both, km
+            out, first = self.both
         else:
             out, first = o.block_columns(self.lo, self.hi)
         blocks = Blocks(
@@ -190,8 +258,10 @@ class FoldedSlices:
         grad_data: tuple[np.ndarray, ...],
         both_data: tuple[np.ndarray, ...],
         kept: dict[str, Any] | None = None,
+        zsource: tuple[np.ndarray, ...] | None = None,
     ):
         self.mod = mod
+        self.zsource = zsource
         self.k, self.m = len(sys.st.offsets), sys.m
         if "folded_maps" not in sys.kept:  # per lattice
             site_of = np.ascontiguousarray(np.stack(sys.site_of), dtype=np.int64)  # (K, cells)
@@ -227,6 +297,9 @@ class FoldedSlices:
         rule in the head variable (``horner_cells``) where that takes fewer products than the monomials, else
         by the monomial kernel of the polynomial's class where it builds, else the generic one."""
         nvar, cols = data[0].shape[1], data[3].shape[1]
+        zpass = self._zpass("grad", list(range(cols)), cols) if data is self.grad_data else None
+        if zpass is not None:
+            return self._run(zpass, lo, hi)[0]
         out = np.empty((self.site_of.shape[1], cols))
         forms = self._horner_forms(data)
         if forms is not None:
@@ -236,6 +309,19 @@ class FoldedSlices:
             self.cells[(nvar, cols)] = folded_cells_kernel(nvar, cols) or self.mod.folded_cells
         self.cells[(nvar, cols)](lo, hi, self.site_of, self.upper, *data, out)
         return out
+
+    def both_columns(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """``(grad, columns, first)``: the gradients ``(cells, K m)`` of the cells anchored on ``lo`` and their Hessian
+        blocks' columns in one pass, the blocks in ``columns`` ``(cells, ...)`` from ``first`` on (in the scaled
+        variables: ``first`` 0, a view of one contiguous row per column; else the whole pass's columns, ``first``
+        ``K m``)."""
+        km, width = self.k * self.m, self.both_data[3].shape[1]
+        zpass = self._zpass("both", list(range(width)), km)
+        if zpass is not None:
+            grad, rest = self._run(zpass, lo, hi)
+            return grad, rest.T, 0
+        both = self.columns(lo, hi, self.both_data)
+        return np.ascontiguousarray(both[:, :km]), both, km
 
     def _horner_forms(self, data: tuple[np.ndarray, ...]) -> tuple[Any, ...] | None:
         """The Horner forms of ``data`` where they take fewer products than its monomials (their kernel in
@@ -255,12 +341,17 @@ class FoldedSlices:
         chains of those columns alone run (each column's chain is the same, so are its values to the bit)."""
         lo, hi = flat[i].numpy(), flat[i + 1].numpy()
         up = [a for a in range(self.k) if self.upper[a]]
-        later = self._subset_forms("later", self.grad_data, [a * self.m + c for a in up for c in range(self.m)])
+        columns = [a * self.m + c for a in up for c in range(self.m)]
+        zpass = self._zpass("later", columns, len(columns))
+        later = zpass or self._subset_forms("later", self.grad_data, columns)
         if later is None:
             return FoldedCells(self, lo, hi).grad
-        forms, kernel, cols = later
-        part = np.empty((self.site_of.shape[1], cols.size))
-        kernel(lo, hi, self.site_of, self.upper, *forms, part)
+        cols = later[2]
+        if zpass is not None:
+            part = self._run(zpass, lo, hi)[0]
+        else:
+            part = np.empty((self.site_of.shape[1], cols.size))
+            later[1](lo, hi, self.site_of, self.upper, *later[0], part)
         out = np.zeros((self.site_of.shape[1], self.k * self.m))
         out[:, cols] = part
         return out
@@ -270,13 +361,53 @@ class FoldedSlices:
         the forms run by Horner's rule, by the chains of those columns alone (``first`` 0; the same values to the
         bit as with the gradients' columns), else every column of ``both_data``."""
         km, width = self.k * self.m, self.both_data[3].shape[1]
-        blocks = self._subset_forms("blocks", self.both_data, list(range(km, width)))
+        columns = list(range(km, width))
+        zpass = self._zpass("blocks", columns, 0)
+        if zpass is not None:
+            return self._run(zpass, lo, hi)[1].T, 0
+        blocks = self._subset_forms("blocks", self.both_data, columns)
         if blocks is None:
             return self.columns(lo, hi, self.both_data), km
         forms, kernel, cols = blocks
         out = np.empty((self.site_of.shape[1], cols.size))
         kernel(lo, hi, self.site_of, self.upper, *forms, out)
         return out, 0
+
+    def _run(self, zpass: tuple[Any, ...], lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(out, rest)``: the columns of ``zpass`` (``_zpass``'s) on every cell anchored on ``lo``, the first
+        ``split`` as ``(cells, split)``, the others as ``(columns - split, cells)``."""
+        forms, kernel, cols, split = zpass
+        ncell = self.site_of.shape[1]
+        out, rest = np.empty((ncell, split)), np.empty((cols.size - split, ncell))
+        kernel(lo, hi, self.site_of, self.upper, *forms, out, rest)
+        return out, rest
+
+    def _zpass(self, name: str, columns: list[int], split: int) -> tuple[Any, ...] | None:
+        """``(forms, kernel, columns, split)``: the ``columns`` of ``[dL/dx | blocks]`` evaluated in the scaled
+        variables (:func:`_zforms`, ``zchain_kernel``; those from ``split`` on written one contiguous row per
+        column) where :data:`ZFORMS` is on and, for every column of the blocks' pass,
+        that takes fewer multiply-adds than the Horner forms of the columns themselves (decided once per model
+        state, so that every pass evaluates its columns the same way: each to the bit as in the others);
+        ``None`` otherwise (or where the kernel does not build). Kept per model state under ``name``."""
+        if "zchain" not in self.kept:
+            every = self.both_data[3].shape[1]
+            self.kept["zchain"] = False
+            if ZFORMS and self.zsource is not None and self.zsource[4].shape[1] == every:
+                _, _, madds = _zforms(self.zsource, np.arange(every))
+                full = self._horner_forms(self.both_data)
+                horner = int((full[5] + 1).sum()) if full is not None else self.both_data[2].shape[0] * every
+                self.kept["zchain"] = madds < horner
+        if not self.kept["zchain"]:
+            return None
+        key = "z " + name
+        if key not in self.kept:
+            cols = np.array(columns, dtype=np.int64)
+            forms, pattern, _ = _zforms(self.zsource, cols)  # type: ignore[arg-type]
+            head, tails, chains, outputs, ncomb = pattern
+            kernel = zchain_kernel(head, tails, chains, outputs, ncomb, split)
+            self.kept[key] = None if kernel is None else (forms, kernel, cols, split)
+        got: tuple[Any, ...] | None = self.kept[key]
+        return got
 
     def _subset_forms(
         self, name: str, data: tuple[np.ndarray, ...], columns: list[int]
@@ -365,11 +496,11 @@ def folded_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FoldedSl
         return None
     if flat.dtype != torch.float64 or flat.device.type != "cpu" or not flat.is_contiguous():
         return None
-    grad_data, both_data, kept = _data_of(model, list(sys.pairs))
+    grad_data, both_data, kept, zsource = _data_of(model, list(sys.pairs))
     if grad_data is None or both_data is None:
         return None
     mod = folded_kernels()
-    return None if mod is None else FoldedSlices(mod, sys, grad_data, both_data, kept)
+    return None if mod is None else FoldedSlices(mod, sys, grad_data, both_data, kept, zsource)
 
 
 #: The affine probe (``._affine._AffineSlices.probe``) leaves a polynomial without its autograd pass where the

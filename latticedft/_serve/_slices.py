@@ -200,21 +200,29 @@ class _SliceSystem:
         order, indices, indptr = pattern
         columns = getattr(blocks, "columns", None)
         if columns is not None:  # the entries read from the columns in CSR order at once: the same products
-            vals = columns[0].reshape(-1)[self._column_places(columns[0].shape[1], columns[1])] * vol
+            held, first = columns
+            if held.flags.c_contiguous:
+                vals = held.reshape(-1)[self._column_places(held.shape[1], first)] * vol
+            else:  # one contiguous row per column (its transpose)
+                vals = held.T.reshape(-1)[self._column_places(held.shape[1], first, held.shape[0])] * vol
         else:
             vals = self._entry_values(blocks, vol)[order]
         return scipy.sparse.csr_matrix((vals, indices, indptr), shape=(size, size), copy=False)
 
-    def _column_places(self, width: int, first: int) -> np.ndarray:
+    def _column_places(self, width: int, first: int, ncell: int | None = None) -> np.ndarray:
         """Where each entry of the Jacobian, in CSR order, lies in the flat ``(cells, width)`` columns of
-        :attr:`Blocks.columns` (pair ``q`` of :attr:`pairs` from ``first + q m m``), kept per layout."""
-        key = f"column_places {width} {first}"
+        :attr:`Blocks.columns` (pair ``q`` of :attr:`pairs` from ``first + q m m``), kept per layout; with
+        ``ncell``, in their flat transpose ``(width, ncell)``."""
+        key = f"column_places {width} {first} {ncell}"
         if key not in self.kept:
             mm = self.m * self.m
             q_of = {p: q for q, p in enumerate(self.pairs)}
             within = np.arange(mm, dtype=np.int64)
+            cell_step, col_step = (width, 1) if ncell is None else (1, ncell)
             places = [
-                ((cells.astype(np.int64) * width + first + q_of[key2] * mm)[:, None] + within).reshape(-1)
+                ((cells.astype(np.int64) * cell_step)[:, None] + (first + q_of[key2] * mm + within) * col_step).reshape(
+                    -1
+                )
                 for key2, (cells, _, _) in self.jac.items()
             ]
             pattern = self._csr_pattern
