@@ -47,7 +47,9 @@ def failure_text(f: LatticeField, i: int, singular: bool, smin: float, scale: fl
 class _Batch:
     """The values of a batch of 1D trajectories and each member's bookkeeping (length, reason, iterations)."""
 
-    def __init__(self, model: AbstractLagrangian, fs: list[LatticeField], steps: list[int]):
+    def __init__(self, model: AbstractLagrangian, fs: list[LatticeField], steps: list[int], first: bool = True):
+        """``first``: take each member's first gradient ``g_prev`` by :func:`cell_derivatives` (else left at
+        zero for a subclass to set)."""
         st = model.stencil
         self.model, self.fs = model, fs
         self.a0, self.a1 = st.anchor, st.forward
@@ -66,8 +68,11 @@ class _Batch:
         self.iters = torch.zeros(b, dtype=torch.long)
         self.max_iters = torch.zeros(b, dtype=torch.long)
         self.t0 = time.perf_counter()
-        g_prev, _ = cell_derivatives(model, self.psi[:, 0:2], [])
-        self.g_prev = g_prev[:, self.a1].clone()  # d L(q_{i-1}, q_i) / d q_i, per member
+        if first:
+            g_prev, _ = cell_derivatives(model, self.psi[:, 0:2], [])
+            self.g_prev = g_prev[:, self.a1].clone()  # d L(q_{i-1}, q_i) / d q_i, per member
+        else:
+            self.g_prev = torch.zeros((b, self.m), dtype=torch.float64)
         # A model whose mixed Hessian is constant by construction (the kinetic-potential MLP) has the same
         # Jacobian d r / d u at every state: it is assembled once, and Newton needs only gradients after that
         # (an exact Newton step, not a chord). Other models get fresh Hessian blocks every iteration: a chord

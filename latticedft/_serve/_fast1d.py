@@ -108,11 +108,24 @@ def _solve(jac: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray | b
 class FastBatch(_Batch):
     """:class:`_Batch` with the Newton loop and the bookkeeping of each slice in numpy."""
 
-    def __init__(self, model: AbstractLagrangian, fs: list[LatticeField], steps: list[int], derivatives):
-        super().__init__(model, fs, steps)
+    def __init__(
+        self,
+        model: AbstractLagrangian,
+        fs: list[LatticeField],
+        steps: list[int],
+        derivatives,
+        numpy_first: bool = False,
+    ):
+        """``numpy_first``: each member's first gradient from the numpy closed forms ``derivatives`` (equal to
+        the torch one of :class:`_Batch` to round-off; the held-out serving of a fit, which serves many short
+        windows, each from its own first gradient)."""
+        super().__init__(model, fs, steps, first=not numpy_first)
         self.fn = derivatives
         # numpy views of the batch's tensors: what is written here is what ``results`` reads
         self.npsi, self.ngprev = self.psi.numpy(), self.g_prev.numpy()
+        if numpy_first:
+            g, _ = derivatives(self.npsi[:, 0:2])
+            self.ngprev[:] = g[:, self.a1]
         self.nworst, self.niters, self.nmax_iters = self.worst.numpy(), self.iters.numpy(), self.max_iters.numpy()
         self.nmscale = self.mscale.numpy()
         self.nlength = np.array(self.length, dtype=np.int64)
