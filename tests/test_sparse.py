@@ -458,8 +458,10 @@ def test_held_out_serving_in_chunks_matches_serving_whole():
 )
 def test_held_out_serving_without_results_equals_the_public_serve(monkeypatch, library, data):
     # 1D tails are served by the numpy loop without serve's results (training range, DataArrays, warnings):
-    # the held-out errors are those of serving each chunk by the public serve, to the bit; a support whose
-    # serving stops (no kinetic term: a singular mixed Hessian) scores inf on both
+    # the held-out errors are those of serving each chunk by the public serve, to round-off (each chunk's first
+    # gradient from the numpy closed forms, the public serve's from torch's; the errors are relative to the
+    # tail's scale, so 1e-12 here is 1e-12 of the field); a support whose serving stops (no kinetic term: a
+    # singular mixed Hessian) scores inf on both
     from latticedft._learn import _sparse
 
     model = ldft.SparseLagrangian(*[library] if library else [], bags=0, threshold=1e-2)
@@ -478,7 +480,8 @@ def test_held_out_serving_without_results_equals_the_public_serve(monkeypatch, l
         runs = [_sparse._Serving(s, tails, None) for s in supports]
         errors.append([run.advance(model, math.inf) for run in runs])
         assert all(run.finished and (run._forms is None) == public for run in runs)
-    assert errors[0] == errors[1]
+    assert [math.isfinite(e) for e in errors[0]] == [math.isfinite(e) for e in errors[1]]
+    assert all(a == b or abs(a - b) <= 1e-12 for a, b in zip(*errors))
     assert math.isfinite(errors[0][0]) and errors[0][0] < errors[0][1] and errors[0][2] == math.inf
 
 
@@ -525,3 +528,24 @@ def test_numpy_loop_serves_a_sparse_model_as_the_torch_loop(library, at, data, m
     assert fast.newton_iterations == slow.newton_iterations
     scale = np.abs(slow.field.values).max()
     np.testing.assert_allclose(fast.field.values, slow.field.values, rtol=0, atol=1e-12 * scale)
+
+
+@pytest.mark.parametrize("library", ["kinetic + poly:2 + trig:1", None], ids=["scalar", "vector"])
+def test_numpy_first_gradient_equals_torch(library):
+    # the held-out serving's batches take each member's first gradient from the numpy closed forms: what the
+    # torch closed forms give, to round-off
+    from latticedft._lattice import as_lattice_fields
+    from latticedft._serve._fast1d import FastBatch, numpy_derivatives_of
+
+    model = ldft.SparseLagrangian(*[library] if library else [], bags=0, threshold=1e-2)
+    fields = [pendulum(2.0), pendulum(2.6)] if library else [kepler_one_orbit()]
+    ldft.learn(model, fields, progress=False)
+    fs = as_lattice_fields(
+        [f.isel(t=slice(k, None)) for f in fields for k in (0, 7)], ["f"] * (2 * len(fields)), min_slices=2
+    )
+    forms = numpy_derivatives_of(model)
+    steps = [f.shape[0] for f in fs]
+    torch_first = FastBatch(model, fs, steps, forms, "newton", False).ngprev
+    numpy_first = FastBatch(model, fs, steps, forms, "newton", False, numpy_first=True).ngprev
+    assert np.all(np.isfinite(numpy_first)) and np.abs(torch_first).max() > 0
+    np.testing.assert_allclose(numpy_first, torch_first, rtol=1e-12, atol=1e-14 * np.abs(torch_first).max())

@@ -57,7 +57,10 @@ class _Batch(Stepping):
         mode: str,
         progress: bool | None,
         label: str | None = None,
+        first: bool = True,
     ):
+        """``first``: take each member's first gradient ``g_prev`` by :func:`cell_derivatives` (else left at
+        zero for a subclass to set)."""
         st = model.stencil
         self.model, self.fs = model, fs
         self.a0, self.a1 = st.anchor, st.forward
@@ -76,8 +79,11 @@ class _Batch(Stepping):
         self.iters = torch.zeros(b, dtype=torch.long)
         self.max_iters = torch.zeros(b, dtype=torch.long)
         super().__init__(mode, self.nmax, progress, f", {b} trajectories" if label is None else label)
-        g_prev, _ = cell_derivatives(model, self.psi[:, 0:2], [])
-        self.g_prev = g_prev[:, self.a1].clone()  # d L(q_{i-1}, q_i) / d q_i, per member
+        if first:
+            g_prev, _ = cell_derivatives(model, self.psi[:, 0:2], [])
+            self.g_prev = g_prev[:, self.a1].clone()  # d L(q_{i-1}, q_i) / d q_i, per member
+        else:
+            self.g_prev = torch.zeros((b, self.m), dtype=torch.float64)
         # A model whose mixed Hessian is constant by construction (the kinetic-potential MLP) has the same
         # Jacobian d r / d u at every state: it is assembled once, and Newton needs only gradients after that
         # (an exact Newton step, not a chord). Other models get fresh Hessian blocks every iteration: a chord

@@ -116,13 +116,20 @@ class FastBatch(_Batch):
         derivatives: NumpyForms,
         mode: str,
         progress: bool | None,
+        numpy_first: bool = False,
     ):
+        """``numpy_first``: each member's first gradient from the numpy closed forms ``derivatives`` (equal to
+        the torch one of :class:`_Batch` to round-off; the held-out serving of a fit, which serves many short
+        windows, each from its own first gradient)."""
         self.kernel = trajectory_kernel(model) if len(fs) == 1 and fs[0].ncomp == 1 else None
         label = ", 1 trajectory, compiled" if self.kernel is not None else None
-        super().__init__(model, fs, steps, mode, progress, label)
+        super().__init__(model, fs, steps, mode, progress, label, first=not numpy_first)
         self.fn = derivatives
         # numpy views of the batch's tensors: what is written here is what ``results`` reads
         self.npsi, self.ngprev = self.psi.numpy(), self.g_prev.numpy()
+        if numpy_first:
+            g, _ = derivatives(self.npsi[:, 0:2])
+            self.ngprev[:] = g[:, self.a1]
         self.nworst, self.niters, self.nmax_iters = self.worst.numpy(), self.iters.numpy(), self.max_iters.numpy()
         self.nmscale = self.mscale.numpy()
         self.nlength = np.array(self.length, dtype=np.int64)

@@ -44,7 +44,11 @@ def served_values(
     closed forms (``derivatives``: :func:`numpy_derivatives_of` of the model as it is now, reused by a caller
     that serves several times with the same coefficients), without building the results: per member the
     slices served, ``(slices, m)`` (a view of the batch's values), and whether it failed. No training-range
-    check, no DataArrays, no warnings: for the held-out serving of a fit, which reads the values alone."""
-    batch = FastBatch(model, fs, [f.shape[0] for f in fs], derivatives, options.mode, options.progress)
+    check, no DataArrays, no warnings: for the held-out serving of a fit, which reads the values alone. Each
+    member's first gradient is taken from ``derivatives`` (what :func:`_serve_batch` takes from torch's closed
+    forms, equal to round-off)."""
+    batch = FastBatch(
+        model, fs, [f.shape[0] for f in fs], derivatives, options.mode, options.progress, numpy_first=True
+    )
     step_fast(batch, options.rtol, options.max_newton, options.box)
     return [(batch.npsi[k, : batch.nlength[k]], batch.failed[k]) for k in range(len(fs))]
