@@ -26,6 +26,7 @@ from .._learn._noise import DENOISE_SLICES, denoised_start
 from .._part_file import PartFile
 from .._serve import ServeResult, calibration, compare, serve
 from .._serve._ensemble import calibration_warning
+from .._serve._result import LEFT_THE_BOX
 from ._calib import TaskBand, task_band
 from ._charges import drift_text, task_charges
 from ._data import TaskData
@@ -407,7 +408,7 @@ def stop_verdict(stopped: str, written: int, requested: int) -> str:
             f"verdict: stopped: the learned L_d cannot step the field there (its mixed Hessian is singular); {kept}; "
             "next: check the training verdict, train on data that reach this state, or try another model kind"
         )
-    if "left the box" in stopped:
+    if LEFT_THE_BOX in stopped:
         return f"verdict: stopped: the field left the box the task sets (box); {kept}; next: widen the box if intended"
     return (
         "verdict: stopped: the solver found no next slice that obeys the learned equations (Newton did not "

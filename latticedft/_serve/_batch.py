@@ -15,7 +15,7 @@ from .._action import CellDerivatives, cell_derivatives
 from .._lattice import LatticeField, to_dataarrays
 from .._models import AbstractLagrangian
 from ._range import assess
-from ._result import ServeResult
+from ._result import ServeResult, box_reason
 from ._slices import SINGULAR_RTOL, is_singular, singular_message, slice_message
 from ._stepper import Stepping
 
@@ -284,7 +284,7 @@ class _Batch(Stepping):
     def leave_box(self, ks: list[int], i: int, box: float) -> None:
         """The members ``ks`` left the box on slice ``i + 1``: each retires (complete) after that slice."""
         for k in ks:
-            self.retire(k, i + 2, f"left the box |psi| <= {box:g} at slice {i + 1}", False)
+            self.retire(k, i + 2, box_reason(box, i + 1), False)
 
     def assess(self, fields: list[LatticeField]) -> list[tuple[xr.DataArray | None, list[str]]]:
         """``(extrapolation, warnings)`` of each member's served field."""

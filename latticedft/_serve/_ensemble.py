@@ -17,7 +17,7 @@ from .._lattice import LatticeField
 from .._models import AbstractLagrangian, EnsembleLagrangian
 from .._models._ensemble import stacked
 from ._range import assess
-from ._result import ServeResult
+from ._result import LEFT_THE_BOX, ServeResult, box_reason
 
 __all__ = [
     "serve_ensemble",
@@ -126,14 +126,10 @@ def _alone(
                 reasons[i][k] = "" if done else str(err)
         for i in range(min(len(fs), len(got))):  # stopped short without an error: it left the box
             r = got[i]
-            if r is not None and not reasons[i][k] and r.reason.startswith(_LEFT_THE_BOX):
+            if r is not None and not reasons[i][k] and r.reason.startswith(LEFT_THE_BOX):
                 reasons[i][k] = r.reason
         out.append([got[i] if i < len(got) else None for i in range(len(fs))])
     return out, failure
-
-
-#: How a 1D trajectory's reason begins when it stopped leaving the serve's box (``_batch``, ``_fast1d``).
-_LEFT_THE_BOX = "left the box"
 
 
 def _boxed(vals: np.ndarray, box: float, reasons: list[str]) -> None:
@@ -148,7 +144,7 @@ def _boxed(vals: np.ndarray, box: float, reasons: list[str]) -> None:
             at = int(np.argmax(out))
             if at + 1 < vals.shape[1]:
                 vals[k, at + 1 :] = math.nan
-                reasons[k] = f"{_LEFT_THE_BOX} |psi| <= {box:g} at slice {at}"
+                reasons[k] = box_reason(box, at)
 
 
 def _joined(results: list[ServeResult | None], like: np.ndarray) -> np.ndarray:

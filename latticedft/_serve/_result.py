@@ -14,6 +14,15 @@ from .._errors import InputError
 from .._progress import progress_bar
 from ._range import extrapolation_summary
 
+#: How a 1D trajectory's reason begins when it stopped leaving the serve's box.
+LEFT_THE_BOX = "left the box"
+
+
+def box_reason(box: float, at: int) -> str:
+    """The reason of a 1D trajectory (or an ensemble member) whose slice ``at`` left the serve's ``box``."""
+    return f"{LEFT_THE_BOX} |psi| <= {box:g} at slice {at}"
+
+
 #: The figures of a serving run that :meth:`ServeResult.to_dict` starts with, in their order (then the
 #: extrapolation summary and the warnings).
 RUN_KEYS = (
