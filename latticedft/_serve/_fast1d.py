@@ -188,9 +188,11 @@ class FastBatch(_Batch):
         def rows(a: np.ndarray) -> np.ndarray:  # (n, ..., nm * w) -> (n * nm, ..., w)
             return np.moveaxis(a.reshape(*a.shape[:-1], nm, w), -2, 1).reshape(n * nm, *a.shape[1:-1], w)
 
+        def back(a: np.ndarray) -> np.ndarray:  # (n * nm, ..., w) -> (n, ..., nm * w)
+            return np.moveaxis(a.reshape(n, nm, *a.shape[1:]), 1, -2).reshape(n, *a.shape[1:-1], m)
+
         def fn(cells: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray]]:
-            c = np.moveaxis(cells.reshape(n, nm, *cells.shape[1:]), 1, -2).reshape(n, *cells.shape[1:-1], m)
-            g, (block,) = self.fn(c)
+            g, (block,) = self.fn(back(cells))
             b = block.reshape(n, nm, w, nm, w)
             own = np.arange(nm)
             return rows(g), (b[:, own, :, own, :].transpose(1, 0, 2, 3).reshape(n * nm, w, w),)
@@ -215,10 +217,8 @@ class FastBatch(_Batch):
         at = np.argmax(bad, axis=1)
         pick = np.arange(n) * nm + at
         self.nmscale[act] = mscale[pick]
-        back = np.moveaxis(u.reshape(n, nm, w), 1, -2).reshape(n, m)
-        gb = np.moveaxis(g.reshape(n, nm, *g.shape[1:]), 1, -2).reshape(n, *g.shape[1:-1], m)
         solved = np.asarray(~bad.any(axis=1))
-        return _Step(act, back, gb, rabs.reshape(n, nm).max(axis=1), solved, sing[pick], it, smin[pick])
+        return _Step(act, back(u), back(g), rabs.reshape(n, nm).max(axis=1), solved, sing[pick], it, smin[pick])
 
     def _newton_np(
         self,
