@@ -105,10 +105,15 @@ def mean_mixed_hessian(model: LinearLagrangian, fields: list[LatticeField]) -> n
     return (total / ncells).numpy()
 
 
+def ridge_weight(r: np.ndarray, ridge: float) -> float:
+    """The weight of the ridge term: ``ridge`` times the mean squared column norm of the rows ``r`` (1 for zero
+    rows), so that ``ridge`` is relative to the data's own scale."""
+    return ridge * (float((r**2).sum(0).mean()) or 1.0)
+
+
 def _constrained_lstsq(r: np.ndarray, g_mat: np.ndarray | None, g_vec: np.ndarray | None, ridge: float) -> np.ndarray:
     c = r.shape[1]
-    colsq = float((r**2).sum(0).mean()) or 1.0
-    lam = ridge * colsq
+    lam = ridge_weight(r, ridge)
     if g_mat is None:  # no gauge: the unit-norm minimiser (what an unconstrained trainer drifts to)
         a = np.vstack([r, math.sqrt(lam) * np.eye(c)]) if lam > 0 else r
         _, _, vt = np.linalg.svd(a, full_matrices=True)

@@ -42,6 +42,7 @@ from ._exact import (
     mean_mixed_hessian,
     residual_matrices,
     residual_matrix,
+    ridge_weight,
 )
 from ._gauge import Gauge
 from ._heldout import HOLD_OUT, held_in, held_out_score
@@ -160,7 +161,7 @@ class _Constraint:
         split = self._split[support]
         if split is None:
             raise _no_hessian()
-        lam = ridge * (float((r**2).sum(0).mean()) or 1.0) if ridge else 0.0
+        lam = ridge_weight(r, ridge) if ridge else 0.0
         theta[active] = _null_solve(r, *split, lam)
         return theta
 
