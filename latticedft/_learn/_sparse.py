@@ -31,7 +31,7 @@ from .._models import SparseLagrangian
 from .._models._sparse import THRESHOLDS
 from .._serve import serve
 from .._serve._fast1d import numpy_derivatives_of
-from .._serve._onedim import served_values
+from .._serve._onedim import WindowServing
 from .._serve._options import ServeOptions
 from ._exact import (
     _constrained_lstsq,
@@ -120,21 +120,35 @@ def _feasible(g: tuple[np.ndarray, np.ndarray], keep: np.ndarray) -> bool:
 class _Constraint:
     """The gauge rows ``G coef = g`` (or none) and what the solve and the feasibility test take of them per
     support, kept: they do not depend on the rows ``t``, and the same supports recur over the thresholds, the
-    passes of thresholding, the backward path and the bags. The fits on the last rows met are kept too (every
-    threshold's thresholding and the backward path start from the same supports)."""
+    passes of thresholding, the backward path and the bags. Both are kept by the gauge rows' columns on the
+    support (:meth:`_columns`), not by the support itself: supports whose columns hold the same numbers (a gauge
+    that fixes one term's coefficient has zero columns everywhere else, so the backward path's trial supports of
+    one size all meet it the same way) get the same arrays, computed once. The fits on the last rows met are kept
+    too (every threshold's thresholding and the backward path start from the same supports)."""
 
     def __init__(self, g: _Gauge):
         self.g = g
         self._split: dict[bytes, tuple[np.ndarray, np.ndarray] | None] = {}
         self._feasible: dict[bytes, bool] = {}
+        self._columns: dict[bytes, tuple[np.ndarray, bytes]] = {}
         self._rows: np.ndarray | None = None
         self._fits: dict[tuple[bytes, float], np.ndarray] = {}
+
+    def columns(self, keep: np.ndarray) -> tuple[np.ndarray, bytes]:
+        """The gauge rows' columns on the support ``keep`` (a gauge is needed) and a key of their shape and
+        numbers: the same key, the same input to :func:`_feasible` and :func:`_gauge_split`, so the same result."""
+        assert self.g is not None
+        support = keep.tobytes()
+        if support not in self._columns:
+            a = np.ascontiguousarray(self.g[0][:, keep])
+            self._columns[support] = (a, repr(a.shape).encode() + a.tobytes())
+        return self._columns[support]
 
     def feasible(self, keep: np.ndarray) -> bool:
         """True without a gauge, else when the terms ``keep`` can satisfy its rows (:func:`_feasible`)."""
         if self.g is None:
             return True
-        key = keep.tobytes()
+        _, key = self.columns(keep)
         if key not in self._feasible:
             self._feasible[key] = _feasible(self.g, keep)
         return self._feasible[key]
@@ -155,10 +169,10 @@ class _Constraint:
         if self.g is None:
             theta[active] = _constrained_lstsq(r, None, None, ridge)
             return theta
-        support = active.tobytes()
-        if support not in self._split:
-            self._split[support] = _gauge_split(self.g[0][:, active], self.g[1])
-        split = self._split[support]
+        a, key = self.columns(active)
+        if key not in self._split:
+            self._split[key] = _gauge_split(a, self.g[1])
+        split = self._split[key]
         if split is None:
             raise _no_hessian()
         lam = ridge_weight(r, ridge) if ridge else 0.0
@@ -262,7 +276,7 @@ def _pick_served(
     heads = [_head(model, f, r, k) for f, r, k in zip(single, rs, keep)]
     tails = [w.isel({w.dims[0]: slice(min(k, w.sizes[w.dims[0]] - 3), None)}) for w, k in zip(whole, keep)]
     fits = sorted(_supports(_stack(_blocks(heads, model.n_terms)), g, ridge), key=lambda f: np.count_nonzero(f[1]))
-    shared: dict[str, list[LatticeField]] = {}  # the tails' lattice fields, made once for every support
+    shared: dict[str, Any] = {}  # the tails' lattice fields and their batch, made once for every support
     runs = {label: _Serving(theta, tails, boundary, shared) for label, theta in fits}  # stable: thresholds first
     saved = model.coef.detach().clone()
     try:
@@ -300,14 +314,15 @@ class _Serving:
     served, so that it stops as soon as its error passes a bound (Newton's method restarted on each chunk, so
     the slices agree with serving a tail in one call to within Newton's tolerance). ``error``: the largest
     relative error so far (:func:`latticedft._learn._heldout.held_out_score`'s measure; ``inf`` once serving
-    stops). ``shared``: where the tails' lattice fields are kept for the other supports serving the same tails."""
+    stops). ``shared``: where the tails' lattice fields and the batch serving 1D tails (:class:`WindowServing`)
+    are kept for the other supports serving the same tails."""
 
     def __init__(
         self,
         theta: np.ndarray,
         tails: list[xr.DataArray],
         boundary: BoundaryKinds | None,
-        shared: dict[str, list[LatticeField]] | None = None,
+        shared: dict[str, Any] | None = None,
     ):
         self.theta, self.tails, self.boundary = theta, tails, boundary
         self._shared = {} if shared is None else shared
@@ -316,11 +331,10 @@ class _Serving:
         self._field = 0
         self._served: np.ndarray | None = None
         self._chunk = FIRST_CHUNK
-        # 1D tails: served by the numpy loop without building serve's results (:func:`served_values`), from
+        # 1D tails: served by the numpy loop without building serve's results (:class:`WindowServing`), from
         # the numpy closed forms of the support being served (None: by the public serve)
         self._fields: list[LatticeField] | None = None
         self._forms: NumpyForms | None = None
-        self._options = ServeOptions.from_keywords(None, progress=False)
 
     @property
     def finished(self) -> bool:
@@ -356,9 +370,17 @@ class _Serving:
             self._fields = self._shared["fields"]
         return numpy_derivatives_of(model) if all(f.ndim == 1 for f in self._fields) else None
 
+    def _window(self, model: SparseLagrangian) -> WindowServing:
+        """What serves a window of a 1D tail: one batch for every support serving the same tails, restarted on
+        each window (:func:`latticedft._serve._onedim.served_values` without building the batch again)."""
+        if "window" not in self._shared:
+            self._shared["window"] = WindowServing(model, ServeOptions.from_keywords(None, progress=False))
+        window: WindowServing = self._shared["window"]
+        return window
+
     def _serve_window(self, model: SparseLagrangian, i0: int, start: np.ndarray) -> np.ndarray | None:
         """Slices ``i0, ...`` of the current tail served from the first two of ``start`` (the tail's slices from
-        ``i0`` on, in its layout), or None where serving stopped: for 1D tails by :func:`served_values` (what
+        ``i0`` on, in its layout), or None where serving stopped: for 1D tails by :class:`WindowServing` (what
         :func:`serve` serves, without building its results), else by :func:`serve`."""
         tail = self.tails[self._field]
         try:
@@ -370,7 +392,7 @@ class _Serving:
             f = self._fields[self._field]
             values = torch.from_numpy(start.reshape(start.shape[0], f.ncomp))
             t0 = float(f.coords[f.dims[0]][i0])
-            ((served, failed),) = served_values(model, [f.with_values(values, t0)], self._options, self._forms)
+            served, failed = self._window(model)(f.with_values(values, t0), self._forms)
         except LatticeDFTError:
             return None
         return None if failed else served.reshape((served.shape[0], *start.shape[1:]))
