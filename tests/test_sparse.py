@@ -554,6 +554,28 @@ def test_gauge_parts_kept_by_their_columns_equal_each_supports_own(gauge):
     assert shared > 0  # some supports met a split computed for another
 
 
+def test_held_out_tails_as_lattice_fields_and_dataarrays(monkeypatch):
+    # the tails' lattice fields are the fields sliced, as the DataArrays' (made only where serve needs them)
+    # read back; 1D tails are served from the lattice fields, without making a DataArray
+    from latticedft._lattice import as_lattice_fields
+    from latticedft._learn import _sparse
+
+    fields = as_lattice_fields([pendulum(2.0), kepler_one_orbit()], ["a", "b"])
+    tails = _sparse._Tails(fields, [30, 40])
+    back = as_lattice_fields(list(tails), ["a", "b"], min_slices=2)
+    for got, want in zip(tails.fields(), back):
+        assert torch.equal(got.values, want.values) and got.dims == want.dims and got.boundary == want.boundary
+        assert all(np.array_equal(got.coords[d], want.coords[d]) for d in want.coords)
+
+    def no_arrays(self, i):
+        raise AssertionError("a DataArray made for a 1D tail")
+
+    monkeypatch.setattr(_sparse._Tails, "__getitem__", no_arrays)
+    model = ldft.SparseLagrangian("kinetic + poly:2 + trig:1", bags=0)
+    report = ldft.learn(model, [pendulum(2.0), pendulum(2.6)], progress=False)
+    assert report.validation
+
+
 def test_only_the_kept_model_prints_its_equation():
     data = [pendulum(2.0, 40), pendulum(2.6, 40)]
     sel = ldft.select(ldft.PolynomialLagrangian((2, 2)), data, sparse_candidates(1, 1)[:2], progress=False)
