@@ -416,13 +416,13 @@ def test_held_out_serving_stops_early_and_chooses_as_serving_whole(monkeypatch):
 
     data = [pendulum(2.6, n=30)]
     served = []
-    by_values = _sparse.served_values
+    by_window = _sparse.WindowServing.__call__
 
-    def counting(model, fs, options, derivatives):
-        served.extend(f.shape[0] - 2 for f in fs)
-        return by_values(model, fs, options, derivatives)
+    def counting(self, f, derivatives):
+        served.append(f.shape[0] - 2)
+        return by_window(self, f, derivatives)
 
-    monkeypatch.setattr(_sparse, "served_values", counting)  # how 1D tails are served
+    monkeypatch.setattr(_sparse.WindowServing, "__call__", counting)  # how 1D tails are served
     whole = _sparse._Serving.advance
     for floor in (_sparse.SERVE_FLOOR, 0.0):  # 0: no support within the floor, the best decides
         monkeypatch.setattr(_sparse, "SERVE_FLOOR", floor)
@@ -483,6 +483,97 @@ def test_held_out_serving_without_results_equals_the_public_serve(monkeypatch, l
     assert [math.isfinite(e) for e in errors[0]] == [math.isfinite(e) for e in errors[1]]
     assert all(a == b or abs(a - b) <= 1e-12 for a, b in zip(*errors))
     assert math.isfinite(errors[0][0]) and errors[0][0] < errors[0][1] and errors[0][2] == math.inf
+
+
+@pytest.mark.parametrize("library", ["kinetic + poly:2 + trig:1", None], ids=["scalar", "vector"])
+def test_a_restarted_window_batch_serves_as_a_new_one(library):
+    # the held-out serving restarts one batch on every window (other supports' coefficients, longer and shorter
+    # windows, a support whose serving stops): the same values, to the bit, and the same failures as a new batch
+    from latticedft._lattice import as_lattice_fields
+    from latticedft._serve._fast1d import numpy_derivatives_of
+    from latticedft._serve._onedim import WindowServing, served_values
+    from latticedft._serve._options import ServeOptions
+
+    model = ldft.SparseLagrangian(*[library] if library else [], bags=0, threshold=1e-2)
+    fields = [pendulum(2.0), pendulum(2.6)] if library else [kepler_one_orbit()]
+    ldft.learn(model, fields, progress=False)
+    theta = model.coef.detach().clone()
+    no_kinetic = theta.clone()
+    no_kinetic[[k for k, t in enumerate(model.terms) if t.name.startswith(("Dtq", "(Dtq"))]] = 0.0
+    windows = as_lattice_fields(
+        [f.isel(t=slice(i0, i0 + n)) for f in fields for i0, n in ((0, 6), (3, 18), (10, 3), (20, 10))],
+        ["f"] * (4 * len(fields)),
+        min_slices=2,
+    )
+    options = ServeOptions.from_keywords(None, progress=False)
+    window = WindowServing(model, options)
+    outcomes = []
+    for coef in (theta, no_kinetic, 0.5 * theta, theta):
+        with torch.no_grad():
+            model.coef.copy_(coef)
+        forms = numpy_derivatives_of(model)
+        for f in windows:
+            ((fresh, fresh_failed),) = served_values(model, [f], options, forms)
+            again, failed = window(f, forms)
+            assert failed == fresh_failed and np.array_equal(again, fresh, equal_nan=True)
+            outcomes.append(failed)
+    assert any(outcomes) and not all(outcomes)
+
+
+@pytest.mark.parametrize(
+    "gauge",
+    [
+        ([[-2.0, 0.0, 0.0, 0.0, 0.0, 0.0]], [-1.0]),  # unit mass: zero columns but one
+        ([[1.0, 0.0, 2.0, 2.0, 0.0, 1.0], [0.0, 3.0, 1.0, 1.0, 0.0, 0.0]], [1.0, 2.0]),  # repeated columns
+    ],
+    ids=["one-row", "two-rows"],
+)
+def test_gauge_parts_kept_by_their_columns_equal_each_supports_own(gauge):
+    # the feasibility test and the gauge's split are kept by the gauge rows' columns on a support (supports
+    # whose columns hold the same numbers share them): every support's fit and feasibility as computed for it
+    from itertools import product
+
+    from latticedft._learn._exact import _gauge_split, _null_solve
+    from latticedft._learn._sparse import _Constraint, _feasible
+
+    g = (np.array(gauge[0]), np.array(gauge[1]))
+    t = np.random.default_rng(3).normal(size=(9, 6))
+    con = _Constraint(g)
+    for bits in product([False, True], repeat=6):
+        keep = np.array(bits)
+        assert con.feasible(keep) == _feasible(g, keep)
+        if not con.feasible(keep):
+            continue
+        split = _gauge_split(g[0][:, keep], g[1])
+        if split is None:
+            continue
+        own = np.zeros(6)
+        own[keep] = _null_solve(t[:, keep], *split, 0.0)
+        assert np.array_equal(con.fit(t, keep, 0.0), own)
+    shared = len(con._columns) - len(con._split)
+    assert shared > 0  # some supports met a split computed for another
+
+
+def test_held_out_tails_as_lattice_fields_and_dataarrays(monkeypatch):
+    # the tails' lattice fields are the fields sliced, as the DataArrays' (made only where serve needs them)
+    # read back; 1D tails are served from the lattice fields, without making a DataArray
+    from latticedft._lattice import as_lattice_fields
+    from latticedft._learn import _sparse
+
+    fields = as_lattice_fields([pendulum(2.0), kepler_one_orbit()], ["a", "b"])
+    tails = _sparse._Tails(fields, [30, 40])
+    back = as_lattice_fields(list(tails), ["a", "b"], min_slices=2)
+    for got, want in zip(tails.fields(), back):
+        assert torch.equal(got.values, want.values) and got.dims == want.dims and got.boundary == want.boundary
+        assert all(np.array_equal(got.coords[d], want.coords[d]) for d in want.coords)
+
+    def no_arrays(self, i):
+        raise AssertionError("a DataArray made for a 1D tail")
+
+    monkeypatch.setattr(_sparse._Tails, "__getitem__", no_arrays)
+    model = ldft.SparseLagrangian("kinetic + poly:2 + trig:1", bags=0)
+    report = ldft.learn(model, [pendulum(2.0), pendulum(2.6)], progress=False)
+    assert report.validation
 
 
 def test_only_the_kept_model_prints_its_equation():

@@ -17,7 +17,7 @@ from .._models import AbstractLagrangian
 from .._serve import serve
 from ._noise import denoised_start
 
-__all__ = ["HOLD_OUT", "held_in", "held_out_score"]
+__all__ = ["HOLD_OUT", "held_in", "held_in_slices", "held_out_score"]
 
 #: The share of each field's time slices held out.
 HOLD_OUT = 0.3
@@ -25,15 +25,20 @@ HOLD_OUT = 0.3
 
 def held_in(fields: list[xr.DataArray], hold_out: float) -> list[xr.DataArray]:
     """The first ``1 - hold_out`` of every field's slices (at least 3, and at least one slice held out)."""
+    keep = held_in_slices([f.sizes[f.dims[0]] for f in fields], hold_out)
+    return [f.isel({f.dims[0]: slice(0, k)}) for f, k in zip(fields, keep)]
+
+
+def held_in_slices(slices: list[int], hold_out: float) -> list[int]:
+    """How many of each field's ``slices`` :func:`held_in` keeps."""
     out = []
-    for i, f in enumerate(fields):
-        nt = f.sizes[f.dims[0]]
+    for i, nt in enumerate(slices):
         keep = max(3, int(round(nt * (1.0 - hold_out))))
         if keep >= nt:
             raise InputError.at(
                 "data", f"field {i} holds {nt} time slices; selection needs at least 4 (3 to learn from, 1 held out)"
             )
-        out.append(f.isel({f.dims[0]: slice(0, keep)}))
+        out.append(keep)
     return out
 
 

@@ -17,8 +17,9 @@ fits on blocks drawn with replacement give each term an inclusion probability.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import replace
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 import torch
@@ -31,7 +32,7 @@ from .._models import SparseLagrangian
 from .._models._sparse import THRESHOLDS
 from .._serve import serve
 from .._serve._fast1d import numpy_derivatives_of
-from .._serve._onedim import served_values
+from .._serve._onedim import WindowServing
 from .._serve._options import ServeOptions
 from ._exact import (
     _constrained_lstsq,
@@ -45,7 +46,7 @@ from ._exact import (
     ridge_weight,
 )
 from ._gauge import Gauge
-from ._heldout import HOLD_OUT, held_in, held_out_score
+from ._heldout import HOLD_OUT, held_in_slices, held_out_score
 
 __all__ = ["learn_sparse", "stlsq", "backward", "BLOCKS", "SLACK", "SERVE_SLACK", "SERVE_FLOOR"]
 
@@ -120,21 +121,35 @@ def _feasible(g: tuple[np.ndarray, np.ndarray], keep: np.ndarray) -> bool:
 class _Constraint:
     """The gauge rows ``G coef = g`` (or none) and what the solve and the feasibility test take of them per
     support, kept: they do not depend on the rows ``t``, and the same supports recur over the thresholds, the
-    passes of thresholding, the backward path and the bags. The fits on the last rows met are kept too (every
-    threshold's thresholding and the backward path start from the same supports)."""
+    passes of thresholding, the backward path and the bags. Both are kept by the gauge rows' columns on the
+    support (:meth:`_columns`), not by the support itself: supports whose columns hold the same numbers (a gauge
+    that fixes one term's coefficient has zero columns everywhere else, so the backward path's trial supports of
+    one size all meet it the same way) get the same arrays, computed once. The fits on the last rows met are kept
+    too (every threshold's thresholding and the backward path start from the same supports)."""
 
     def __init__(self, g: _Gauge):
         self.g = g
         self._split: dict[bytes, tuple[np.ndarray, np.ndarray] | None] = {}
         self._feasible: dict[bytes, bool] = {}
+        self._columns: dict[bytes, tuple[np.ndarray, bytes]] = {}
         self._rows: np.ndarray | None = None
         self._fits: dict[tuple[bytes, float], np.ndarray] = {}
+
+    def columns(self, keep: np.ndarray) -> tuple[np.ndarray, bytes]:
+        """The gauge rows' columns on the support ``keep`` (a gauge is needed) and a key of their shape and
+        numbers: the same key, the same input to :func:`_feasible` and :func:`_gauge_split`, so the same result."""
+        assert self.g is not None
+        support = keep.tobytes()
+        if support not in self._columns:
+            a = np.ascontiguousarray(self.g[0][:, keep])
+            self._columns[support] = (a, repr(a.shape).encode() + a.tobytes())
+        return self._columns[support]
 
     def feasible(self, keep: np.ndarray) -> bool:
         """True without a gauge, else when the terms ``keep`` can satisfy its rows (:func:`_feasible`)."""
         if self.g is None:
             return True
-        key = keep.tobytes()
+        _, key = self.columns(keep)
         if key not in self._feasible:
             self._feasible[key] = _feasible(self.g, keep)
         return self._feasible[key]
@@ -155,10 +170,10 @@ class _Constraint:
         if self.g is None:
             theta[active] = _constrained_lstsq(r, None, None, ridge)
             return theta
-        support = active.tobytes()
-        if support not in self._split:
-            self._split[support] = _gauge_split(self.g[0][:, active], self.g[1])
-        split = self._split[support]
+        a, key = self.columns(active)
+        if key not in self._split:
+            self._split[key] = _gauge_split(a, self.g[1])
+        split = self._split[key]
         if split is None:
             raise _no_hessian()
         lam = ridge_weight(r, ridge) if ridge else 0.0
@@ -251,18 +266,17 @@ def _pick_served(
     chosen). A support stopped early is reported with its error where it stopped (a lower bound). ``rs``: the
     residual matrices of the unbatched fields (scaled by ``1 / sqrt(nsites)``), when at hand."""
     single = _unbatched(fields)
-    whole = [f.to_dataarray() for f in single]
     boundary = dict(zip(single[0].dims[1:], single[0].boundary[1:])) or None
     try:
-        keep = [p.sizes[p.dims[0]] for p in held_in(whole, HOLD_OUT)]
+        keep = held_in_slices([f.shape[0] for f in single], HOLD_OUT)
     except InputError:  # too few slices to hold any out
         return None
     if rs is None:
         rs = [residual_matrix(model, f) / math.sqrt(nsites) for f in single]
     heads = [_head(model, f, r, k) for f, r, k in zip(single, rs, keep)]
-    tails = [w.isel({w.dims[0]: slice(min(k, w.sizes[w.dims[0]] - 3), None)}) for w, k in zip(whole, keep)]
+    tails = _Tails(single, [min(k, f.shape[0] - 3) for f, k in zip(single, keep)])
     fits = sorted(_supports(_stack(_blocks(heads, model.n_terms)), g, ridge), key=lambda f: np.count_nonzero(f[1]))
-    shared: dict[str, list[LatticeField]] = {}  # the tails' lattice fields, made once for every support
+    shared: dict[str, Any] = {}  # the tails' lattice fields and their batch, made once for every support
     runs = {label: _Serving(theta, tails, boundary, shared) for label, theta in fits}  # stable: thresholds first
     saved = model.coef.detach().clone()
     try:
@@ -295,19 +309,52 @@ def _serve_supports(model: SparseLagrangian, runs: dict[str, _Serving], rest: li
 FIRST_CHUNK = 4
 
 
+class _Tails(Sequence[xr.DataArray]):
+    """The held-out tails of the unbatched fields ``single``, each from its slice ``starts[k]`` on: their lattice
+    fields (:meth:`fields`, the time axis sliced), and as DataArrays (each field's, sliced) made when first read,
+    which only serving by :func:`serve` does (n-D tails, a denoised start): 1D tails are served from their
+    lattice fields alone."""
+
+    def __init__(self, single: list[LatticeField], starts: list[int]):
+        self._single, self._starts = single, starts
+        self._arrays: list[xr.DataArray] | None = None
+
+    def __len__(self) -> int:
+        return len(self._single)
+
+    @overload
+    def __getitem__(self, i: int) -> xr.DataArray: ...
+    @overload
+    def __getitem__(self, i: slice) -> Sequence[xr.DataArray]: ...
+    def __getitem__(self, i: int | slice) -> xr.DataArray | Sequence[xr.DataArray]:
+        if self._arrays is None:
+            whole = [f.to_dataarray() for f in self._single]
+            self._arrays = [w.isel({w.dims[0]: slice(k, None)}) for w, k in zip(whole, self._starts)]
+        return self._arrays[i]
+
+    def fields(self) -> list[LatticeField]:
+        """The tails' lattice fields."""
+        out = []
+        for f, k in zip(self._single, self._starts):
+            t = f.dims[0]
+            out.append(replace(f, values=f.values[k:], coords={**f.coords, t: f.coords[t][k:]}))
+        return out
+
+
 class _Serving:
     """One support's held-out serving of every tail, advanced a few slices at a time from the last two slices
     served, so that it stops as soon as its error passes a bound (Newton's method restarted on each chunk, so
     the slices agree with serving a tail in one call to within Newton's tolerance). ``error``: the largest
     relative error so far (:func:`latticedft._learn._heldout.held_out_score`'s measure; ``inf`` once serving
-    stops). ``shared``: where the tails' lattice fields are kept for the other supports serving the same tails."""
+    stops). ``shared``: where the tails' lattice fields and the batch serving 1D tails (:class:`WindowServing`)
+    are kept for the other supports serving the same tails."""
 
     def __init__(
         self,
         theta: np.ndarray,
-        tails: list[xr.DataArray],
+        tails: Sequence[xr.DataArray],
         boundary: BoundaryKinds | None,
-        shared: dict[str, list[LatticeField]] | None = None,
+        shared: dict[str, Any] | None = None,
     ):
         self.theta, self.tails, self.boundary = theta, tails, boundary
         self._shared = {} if shared is None else shared
@@ -316,11 +363,10 @@ class _Serving:
         self._field = 0
         self._served: np.ndarray | None = None
         self._chunk = FIRST_CHUNK
-        # 1D tails: served by the numpy loop without building serve's results (:func:`served_values`), from
+        # 1D tails: served by the numpy loop without building serve's results (:class:`WindowServing`), from
         # the numpy closed forms of the support being served (None: by the public serve)
         self._fields: list[LatticeField] | None = None
         self._forms: NumpyForms | None = None
-        self._options = ServeOptions.from_keywords(None, progress=False)
 
     @property
     def finished(self) -> bool:
@@ -337,7 +383,7 @@ class _Serving:
         noise = (model.report_.noise if model.report_ is not None else None) or {}
         if noise.get("method", "none") != "none":  # a denoised start: the tails served whole
             try:
-                self.error = held_out_score(model, self.tails, self.boundary)
+                self.error = held_out_score(model, list(self.tails), self.boundary)
             except LatticeDFTError:
                 self.error = math.inf
             self._field = len(self.tails)
@@ -350,19 +396,29 @@ class _Serving:
     def _numpy_forms(self, model: SparseLagrangian) -> NumpyForms | None:
         """The model's numpy closed forms where every tail is 1D (with their lattice fields), else None."""
         if self._fields is None:
-            if "fields" not in self._shared:
+            if "fields" not in self._shared and isinstance(self.tails, _Tails):
+                self._shared["fields"] = self.tails.fields()
+            elif "fields" not in self._shared:
                 names = [f"tails[{k}]" for k in range(len(self.tails))]
                 self._shared["fields"] = as_lattice_fields(self.tails, names, boundary=self.boundary, min_slices=2)
             self._fields = self._shared["fields"]
         return numpy_derivatives_of(model) if all(f.ndim == 1 for f in self._fields) else None
 
+    def _window(self, model: SparseLagrangian) -> WindowServing:
+        """What serves a window of a 1D tail: one batch for every support serving the same tails, restarted on
+        each window (:func:`latticedft._serve._onedim.served_values` without building the batch again)."""
+        if "window" not in self._shared:
+            self._shared["window"] = WindowServing(model, ServeOptions.from_keywords(None, progress=False))
+        window: WindowServing = self._shared["window"]
+        return window
+
     def _serve_window(self, model: SparseLagrangian, i0: int, start: np.ndarray) -> np.ndarray | None:
         """Slices ``i0, ...`` of the current tail served from the first two of ``start`` (the tail's slices from
-        ``i0`` on, in its layout), or None where serving stopped: for 1D tails by :func:`served_values` (what
+        ``i0`` on, in its layout), or None where serving stopped: for 1D tails by :class:`WindowServing` (what
         :func:`serve` serves, without building its results), else by :func:`serve`."""
-        tail = self.tails[self._field]
         try:
             if self._forms is None:
+                tail = self.tails[self._field]
                 window = tail.isel({tail.dims[0]: slice(i0, i0 + start.shape[0])})
                 out = serve(model, window.copy(data=start), boundary=self.boundary, progress=False)
                 return np.asarray(out.field.values)
@@ -370,15 +426,22 @@ class _Serving:
             f = self._fields[self._field]
             values = torch.from_numpy(start.reshape(start.shape[0], f.ncomp))
             t0 = float(f.coords[f.dims[0]][i0])
-            ((served, failed),) = served_values(model, [f.with_values(values, t0)], self._options, self._forms)
+            served, failed = self._window(model)(f.with_values(values, t0), self._forms)
         except LatticeDFTError:
             return None
         return None if failed else served.reshape((served.shape[0], *start.shape[1:]))
 
+    def _reference(self) -> np.ndarray:
+        """The current tail's values: its lattice field's (slices, ..., components) where 1D tails are served by
+        the numpy loop (the same numbers), else the DataArray's (the layout :func:`serve` takes)."""
+        if self._forms is not None:
+            assert self._fields is not None
+            return self._fields[self._field].values.detach().numpy()
+        return np.asarray(self.tails[self._field].values)
+
     def _chunk_on(self, model: SparseLagrangian) -> None:
         """Serve the next chunk of the current tail."""
-        tail = self.tails[self._field]
-        ref = np.asarray(tail.values)
+        ref = self._reference()
         served = ref[:2] if self._served is None else self._served
         i0, nt = served.shape[0] - 2, ref.shape[0]
         start = ref[i0 : min(nt, i0 + 2 + self._chunk)].copy()

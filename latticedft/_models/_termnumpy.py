@@ -74,9 +74,7 @@ def numpy_forms(
     rows by the spacing; ``coef`` one per term of ``rule``)."""
     k = maps[0].shape[1]
     m = rule.n_vars // (len(spacing) + 1)
-    scale = np.array([1.0] + [1.0 / h for h in spacing])
-    inputs = [np.kron(a.T, np.eye(m)) for a in maps]  # (K m, V): the inputs before dividing by the spacing
-    spaced = np.repeat(np.array([1.0, *spacing]), m)
+    scale, inputs, spaced = _inputs(maps, tuple(spacing), m)
     count = len(maps)
     gmat = np.concatenate([_first_matrix(rule, a, scale, m, coef) for a in maps]) / count
     hmat = np.concatenate([_second_matrix(rule, a, scale, m, coef, pairs) for a in maps]) / count
@@ -99,6 +97,31 @@ def numpy_forms(
         return grad, [out[:, q * mm : (q + 1) * mm].reshape(b, m, m) for q in range(len(pairs))]
 
     return derivatives
+
+
+#: :func:`_inputs` of the last input maps met (a sparse fit builds the closed forms of every support it serves on
+#: the same maps), at most :data:`INPUTS_KEPT`.
+_INPUTS: dict[tuple[Any, ...], tuple[np.ndarray, list[np.ndarray], np.ndarray]] = {}
+INPUTS_KEPT = 8
+
+
+def _inputs(
+    maps: Sequence[np.ndarray], spacing: tuple[float, ...], m: int
+) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """``(scale, inputs, spaced)`` of :func:`numpy_forms`: the derivative rows' scale, each map's inputs ``(K m,
+    V)`` before dividing by the spacing, and that spacing per input; kept by the maps' numbers (the same maps,
+    the same arrays; read only)."""
+    key = (tuple((a.shape, a.tobytes()) for a in maps), spacing, m)
+    if key not in _INPUTS:
+        if len(_INPUTS) >= INPUTS_KEPT:
+            del _INPUTS[next(iter(_INPUTS))]
+        scale = np.array([1.0] + [1.0 / h for h in spacing])
+        inputs = [np.kron(a.T, np.eye(m)) for a in maps]
+        spaced = np.repeat(np.array([1.0, *spacing]), m)
+        for a in (scale, spaced, *inputs):
+            a.setflags(write=False)
+        _INPUTS[key] = (scale, inputs, spaced)
+    return _INPUTS[key]
 
 
 def _fill(dst: np.ndarray, start: int, values: Sequence[Any]) -> None:

@@ -11,6 +11,7 @@ and partial fields are built exactly as before.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +28,7 @@ from ._batch import _Batch
 from ._range import assess_batch
 from ._result import ServeResult
 from ._slices import SINGULAR_RTOL
-from ._stepper import step_members
+from ._stepper import Stepping, step_members
 
 __all__ = ["numpy_derivatives_of", "FastBatch", "serve_fast", "step_fast"]
 
@@ -125,17 +126,54 @@ class FastBatch(_Batch):
         label = ", 1 trajectory, compiled" if self.kernel is not None else None
         super().__init__(model, fs, steps, mode, progress, label, first=not numpy_first)
         self.fn = derivatives
-        # numpy views of the batch's tensors: what is written here is what ``results`` reads
-        self.npsi, self.ngprev = self.psi.numpy(), self.g_prev.numpy()
+        self._views()
         if numpy_first:
             g, _ = derivatives(self.npsi[:, 0:2])
             self.ngprev[:] = g[:, self.a1]
-        self.nworst, self.niters, self.nmax_iters = self.worst.numpy(), self.iters.numpy(), self.max_iters.numpy()
-        self.nmscale = self.mscale.numpy()
         self.nlength = np.array(self.length, dtype=np.int64)
         self.running = np.ones(len(fs), dtype=bool)
         #: A stacked ensemble's largest singular value met per trajectory and member (set on its first step).
         self.nmember_mscale: np.ndarray | None = None
+        self._progress = progress
+
+    def _views(self) -> None:
+        """Numpy views of the batch's tensors: what is written there is what ``results`` reads."""
+        self.npsi, self.ngprev = self.psi.numpy(), self.g_prev.numpy()
+        self.nworst, self.niters, self.nmax_iters = self.worst.numpy(), self.iters.numpy(), self.max_iters.numpy()
+        self.nmscale = self.mscale.numpy()
+
+    def restart(self, fs: list[LatticeField], derivatives: NumpyForms) -> None:
+        """Serve ``fs`` (as many fields as the batch holds members, of the same components, each to its own
+        length) with the closed forms ``derivatives`` (the model's coefficients may have changed since), each
+        member's first gradient from them: the state a new ``FastBatch(model, fs, lengths, derivatives, mode,
+        progress, numpy_first=True)`` starts from, without building one (its tensors are reused, grown where a
+        field is longer than the batch's). For many short windows served one after another (the held-out
+        serving of a sparse fit)."""
+        if len(fs) != len(self.fs) or any(f.ncomp != self.m for f in fs):
+            raise ValueError("restart: the fields must match the batch's members and components")
+        steps = [f.shape[0] for f in fs]
+        b, self.fs, self.nmax = len(fs), fs, max(steps)
+        if self.nmax > self.psi.shape[1]:
+            self.psi = torch.empty((b, self.nmax, self.m), dtype=torch.float64)
+            self.npsi = self.psi.numpy()
+        self.kernel = trajectory_kernel(self.model) if b == 1 and self.m == 1 else None
+        label = ", 1 trajectory, compiled" if self.kernel is not None else f", {b} trajectories"
+        self.length, self.reason, self.failed, self.fail_at = list(steps), ["complete"] * b, [False] * b, {}
+        for a in (self.nworst, self.niters, self.nmax_iters, self.nmscale):  # views of the tensors
+            a[:] = 0
+        self.member_mscale = self.nmember_mscale = None
+        if self._progress is False:  # the bar is never shown (a disabled bar holds no count): only the clock
+            self.steps, self.affine_slices, self.t0 = self.nmax, 0, time.perf_counter()
+        else:
+            Stepping.__init__(self, self.mode, self.nmax, self._progress, label)
+        self.fn = derivatives
+        self.npsi[:, : self.nmax] = math.nan
+        for k, f in enumerate(fs):
+            self.npsi[k, :2] = f.values.detach()[:2].numpy()
+        g, _ = derivatives(self.npsi[:, 0:2])
+        self.ngprev[:] = g[:, self.a1]
+        self.nlength = np.array(steps, dtype=np.int64)
+        self.running = np.ones(b, dtype=bool)
 
     def retire(self, k: int, slices: int, why: str, bad: bool, res: float = math.nan) -> None:
         super().retire(k, slices, why, bad, res)

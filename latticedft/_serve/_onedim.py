@@ -52,3 +52,26 @@ def served_values(
     )
     step_fast(batch, options.rtol, options.max_newton, options.box)
     return [(batch.npsi[k, : batch.nlength[k]], batch.failed[k]) for k in range(len(fs))]
+
+
+class WindowServing:
+    """:func:`served_values` of one 1D field at a time, called many times with the same model (whose coefficients,
+    and so closed forms, may change between calls) and options: one batch, restarted on each call
+    (:meth:`FastBatch.restart`) instead of built again, each call's values copied out of it. The held-out serving
+    of a sparse fit serves every support a few slices at a time."""
+
+    def __init__(self, model: AbstractLagrangian, options: ServeOptions):
+        self.model, self.options = model, options
+        self._batch: FastBatch | None = None
+
+    def __call__(self, f: LatticeField, derivatives: NumpyForms) -> tuple[np.ndarray, bool]:
+        """``served_values(model, [f], options, derivatives)[0]``, the values a copy."""
+        batch, options = self._batch, self.options
+        if batch is None or batch.m != f.ncomp:
+            batch = self._batch = FastBatch(
+                self.model, [f], [f.shape[0]], derivatives, options.mode, options.progress, numpy_first=True
+            )
+        else:
+            batch.restart([f], derivatives)
+        step_fast(batch, options.rtol, options.max_newton, options.box)
+        return batch.npsi[0, : batch.nlength[0]].copy(), batch.failed[0]
