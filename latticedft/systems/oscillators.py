@@ -15,6 +15,7 @@ Sci. Rep. 10, 19329 (2020). Solutions are DOP853 solves with
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -45,6 +46,42 @@ __all__ = [
 # ----------------------------------------------------------------------------
 
 _SIN_K = math.pi**2 / 400.0  # potential coefficient: L = (1 + sin psi) psi'^2 - K psi^2
+
+
+def _ode_fields(
+    rhs: Callable[[float, _FloatArray], list[float]],
+    start: tuple[float, float],
+    n: int,
+    dt: float,
+    t0: float,
+    what: str,
+    equation: str,
+    long_name: str,
+    return_velocity: bool,
+) -> xr.DataArray | tuple[xr.DataArray, xr.DataArray]:
+    """A one-degree-of-freedom ODE ``(psi, psi')' = rhs`` solved from ``start`` and sampled at
+    ``t0 + i dt``: ``psi`` (and ``psi'`` with ``return_velocity``) as fields whose ``source`` names the
+    function ``what``, its ``equation`` and the solver."""
+    t = t0 + dt * np.arange(n, dtype=np.float64)
+    sol = _solve(rhs, list(start), t, what=what)
+    src = (
+        f"latticedft.systems.{what}: {equation}, psi0={start[0]!r}, dpsi0={start[1]!r}; "
+        f"solve_ivp DOP853 rtol={ODE_RTOL:g} atol={ODE_ATOL:g}"
+    )
+    psi = make_field(
+        sol.y[0], ("t",), spacing=dt, origin=t0, attrs={"long_name": long_name, "units": "1", "source": src}
+    )
+    if not return_velocity:
+        return psi
+    vel = make_field(
+        sol.y[1],
+        ("t",),
+        spacing=dt,
+        origin=t0,
+        name="dpsi",
+        attrs={"long_name": "d psi / d t", "units": "1", "source": src},
+    )
+    return psi, vel
 
 
 def _sin_rhs(t: float, y: _FloatArray) -> list[float]:
@@ -124,30 +161,17 @@ def oscillator_sin(
             f"psi0, dpsi0: energy {energy:.4g} reaches the singular point psi = -pi/2 "
             f"(need |psi| < pi/2 throughout, i.e. E < {_SIN_K * (0.5 * math.pi) ** 2:.4g})"
         )
-    t = t0 + dt * np.arange(n, dtype=np.float64)
-    sol = _solve(_sin_rhs, [psi0, dpsi0], t, what="oscillator_sin")
-    src = (
-        f"latticedft.systems.oscillator_sin: 2(sin psi+1)psi''+psi'^2 cos psi+pi^2/200 psi=0, "
-        f"psi0={psi0!r}, dpsi0={dpsi0!r}; solve_ivp DOP853 rtol={ODE_RTOL:g} atol={ODE_ATOL:g}"
+    return _ode_fields(
+        _sin_rhs,
+        (psi0, dpsi0),
+        n,
+        dt,
+        t0,
+        "oscillator_sin",
+        "2(sin psi+1)psi''+psi'^2 cos psi+pi^2/200 psi=0",
+        "oscillator displacement (Qin 2020 Example 1)",
+        return_velocity,
     )
-    psi = make_field(
-        sol.y[0],
-        ("t",),
-        spacing=dt,
-        origin=t0,
-        attrs={"long_name": "oscillator displacement (Qin 2020 Example 1)", "units": "1", "source": src},
-    )
-    if not return_velocity:
-        return psi
-    vel = make_field(
-        sol.y[1],
-        ("t",),
-        spacing=dt,
-        origin=t0,
-        name="dpsi",
-        attrs={"long_name": "d psi / d t", "units": "1", "source": src},
-    )
-    return psi, vel
 
 
 # ----------------------------------------------------------------------------
@@ -223,27 +247,14 @@ def oscillator_wells(
     dpsi0 = _check_finite(dpsi0, "dpsi0")
     t0 = _check_finite(t0, "t0")
     _check_lattice_1d(n, dt)
-    t = t0 + dt * np.arange(n, dtype=np.float64)
-    sol = _solve(_wells_rhs, [psi0, dpsi0], t, what="oscillator_wells")
-    src = (
-        f"latticedft.systems.oscillator_wells: psi''-0.03[sin(1-psi^2)psi+0.1]=0, "
-        f"psi0={psi0!r}, dpsi0={dpsi0!r}; solve_ivp DOP853 rtol={ODE_RTOL:g} atol={ODE_ATOL:g}"
+    return _ode_fields(
+        _wells_rhs,
+        (psi0, dpsi0),
+        n,
+        dt,
+        t0,
+        "oscillator_wells",
+        "psi''-0.03[sin(1-psi^2)psi+0.1]=0",
+        "oscillator displacement (Qin 2020 Example 2)",
+        return_velocity,
     )
-    psi = make_field(
-        sol.y[0],
-        ("t",),
-        spacing=dt,
-        origin=t0,
-        attrs={"long_name": "oscillator displacement (Qin 2020 Example 2)", "units": "1", "source": src},
-    )
-    if not return_velocity:
-        return psi
-    vel = make_field(
-        sol.y[1],
-        ("t",),
-        spacing=dt,
-        origin=t0,
-        name="dpsi",
-        attrs={"long_name": "d psi / d t", "units": "1", "source": src},
-    )
-    return psi, vel
