@@ -697,3 +697,33 @@ def test_run_reports_the_members_outside_their_training_range(tmp_path: Path, ca
     fig = task_figure(res / "test.nc")
     panel = [ax for ax in fig.axes if "error against the reference" in ax.get_title()][0]
     assert "member 2 leaves its range" in [t.get_text() for t in panel.findobj(Text)]
+
+
+def test_the_solver_choice_takes_each_members_off_diagonal_share(breathers) -> None:
+    """``solver = "auto"`` solves a stacked slice site-wise only where every member's off-diagonal blocks are
+    negligible beside its own diagonal: member 0's coupling (1e-9 of its diagonal: LU, served alone) was
+    measured against member 1's diagonal, ``2**40`` times larger, and the stacked slice was solved site-wise
+    (member 0 then took quasi-Newton steps)."""
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._ensemble import _labels, _stack
+    from latticedft._serve._field import slice_system
+    from latticedft._serve._solvers import factor_step
+
+    ens, test = breathers
+    f = as_lattice_field(test)
+    labels = _labels(ens, f)
+    sys = slice_system(stacked(ens, labels), _stack(f, 3, labels))
+    size, share = [1.0, 2.0**40, 1.0], [1e-9, 0.0, 0.0]  # per member: diagonal, off-diagonal share
+    ncell = sys.site_of[0].size
+    blocks = {}
+    for p in sys.pairs:
+        b = torch.zeros(ncell, 3, 3, dtype=torch.float64)
+        for k in range(3):
+            b[:, k, k] = size[k] * (1.0 if p in sys.diag_pairs else share[k])
+        blocks[p] = b
+    assert factor_step(sys, blocks, 1.0, "auto", 1e-10)[1] == "lu"
+    share[0] = 0.0  # no member coupled: site-wise
+    for p in sys.pairs:
+        if p not in sys.diag_pairs:
+            blocks[p][:, 0, 0] = 0.0
+    assert factor_step(sys, blocks, 1.0, "auto", 1e-10)[1] == "sitewise"

@@ -29,12 +29,16 @@ __all__ = ["newton_members"]
 
 
 def _per_member(a: np.ndarray | torch.Tensor, nm: int, w: int) -> np.ndarray:
-    """The largest ``|a|`` of each member over its own components (``a``: ``(..., nm * w)`` flattened or not)."""
+    """The largest ``|a|`` of each member over its own components (``a``: ``(..., nm * w)`` flattened or not; NaN
+    where a member's entries hold one)."""
     if isinstance(a, torch.Tensor):
         a = a.numpy()
     if a.size == 0:
         return np.zeros(nm)
-    return np.abs(a.reshape(-1, nm, w)).max(axis=(0, 2))
+    cols = np.ascontiguousarray(a.reshape(-1, nm * w).T)  # each component's entries contiguous: a fast reduce
+    np.abs(cols, out=cols)
+    out: np.ndarray = cols.max(axis=1).reshape(nm, w).max(axis=1)
+    return out
 
 
 def _member_scales(flat: torch.Tensor, i: int, unk: torch.Tensor, nm: int, w: int) -> np.ndarray:
@@ -157,15 +161,16 @@ class _Slice:
         its member where it is, to take a fresh Jacobian next (as alone). ``False``: a fresh Jacobian's step is
         not finite (the slice fails)."""
         nm, w = self.nm, self.w
-        d = delta.reshape(-1, nm, w).copy()
-        finite = np.isfinite(d).all(axis=(0, 2)) if d.size else np.ones(nm, dtype=bool)
-        bad = self.active & ~finite
+        d = delta.reshape(-1, nm, w)  # the solve's own array
+        step = _per_member(d, nm, w)  # not finite where a member's step is not
+        bad = self.active & ~np.isfinite(step)
         if (bad & ~stale).any():
             return False
         self.has &= ~bad
         moved = self.active & ~bad
-        d[:, ~moved] = 0.0
-        step = _per_member(d, nm, w)
+        if not moved.all():
+            d[:, ~moved] = 0.0
+            step = np.where(moved, step, 0.0)
         if unk.numel() == flat.shape[1]:
             flat[i + 1] += torch.from_numpy(d.reshape(-1, self.sys.m))
         else:
