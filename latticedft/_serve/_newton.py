@@ -121,10 +121,6 @@ def _newton_slice(
     A slice whose chord steps took :data:`FRESH_FIRST_ON` evaluations or more has the next ones assemble a fresh
     Jacobian at their first iteration (``cache["fresh_first"]``: how many slices since; every
     :data:`FRESH_FIRST_RETRY`-th starts with the chord again, which decides anew)."""
-    if sys.members > 1:  # a stacked ensemble: every member judged on its own, as served alone
-        from ._members import newton_members
-
-        return newton_members(model, sys, flat, unk, i, g_prev, vol, rtol, max_newton, cells_at, cache, evaluate)
     m = sys.m
     res = math.inf
     prev = math.inf
