@@ -156,6 +156,39 @@ class Calibration:
         out.attrs = {**std.attrs, "long_name": "calibrated standard deviation (ensemble and held-out error)"}
         return out
 
+    def members_warning(self, members: np.ndarray) -> str | None:
+        """The warning of an ensemble's members whose own fields (``members``: ``(members, slices, ...)``) leave
+        the training fields' range or amplitudes as :meth:`warnings` measures them on the task's field (member
+        0's): one line naming each such member and how (None when none does)."""
+        margin = RANGE_MARGIN * max(self.high - self.low, np.finfo(float).tiny)
+        out = []
+        for k in range(members.shape[0]):
+            finite = members[k][np.isfinite(members[k])]
+            if not finite.size:
+                continue
+            why = []
+            low, high = float(finite.min()), float(finite.max())
+            if low < self.low - margin or high > self.high + margin:
+                why.append(f"values [{low:.3g}, {high:.3g}]")
+            if self.span_low is not None and self.span_high is not None:
+                span = high - low
+                if span < (1 - RANGE_MARGIN) * self.span_low or span > (1 + RANGE_MARGIN) * self.span_high:
+                    why.append(f"amplitude {span:.3g}")
+            if why:
+                out.append(f"member {k} ({', '.join(why)})")
+        if not out:
+            return None
+        spans = (
+            f", amplitudes [{self.span_low:.3g}, {self.span_high:.3g}]"
+            if self.span_low is not None and self.span_high is not None
+            else ""
+        )
+        return (
+            f"calibration: {len(out)} of {members.shape[0]} ensemble members serve outside the training fields "
+            f"the error bar was measured along (range [{self.low:.3g}, {self.high:.3g}]{spans}): {'; '.join(out)}; "
+            "the band does not bound their fields there"
+        )
+
     def warnings(self, served_slices: int, values: np.ndarray) -> list[str]:
         """Why a task's estimate is extrapolated: it serves more slices than the longest window measured, its
         values leave the training fields' range (by more than :data:`RANGE_MARGIN` of its width), or its

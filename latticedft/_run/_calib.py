@@ -123,11 +123,16 @@ class TaskBand:
 
 
 def task_band(
-    cal: dict[str, Any], field: xr.DataArray, std: xr.DataArray | None, other: np.ndarray | None = None
+    cal: dict[str, Any],
+    field: xr.DataArray,
+    std: xr.DataArray | None,
+    other: np.ndarray | None = None,
+    members: xr.DataArray | None = None,
 ) -> TaskBand:
     """The calibrated error bar of a served ``field`` (an ensemble's raw ``std`` beside it, or None): the larger
     of the law and ``other``, the trial model's disagreement with the field per slice (None without one); an
-    ensemble's calibrated standard deviation by :meth:`Calibration.band`."""
+    ensemble's calibrated standard deviation by :meth:`Calibration.band`. ``members``: an ensemble's fields
+    (``member`` first), each checked against the training fields' range (:meth:`Calibration.members_warning`)."""
     law = Calibration.from_dict(cal)
     tdim = field.dims[0]
     k = np.asarray(field["slice"].values if "slice" in field.coords else np.arange(field.sizes[tdim]))
@@ -156,4 +161,8 @@ def task_band(
         "last": float(est[-1]) if est.size else None,
         "amplitude": amplitude,
     }
-    return TaskBand(err_est, calibrated, record, law.warnings(served, values))
+    warnings = law.warnings(served, values)
+    if members is not None:
+        warning = law.members_warning(np.asarray(members.values, dtype=np.float64))
+        warnings += [warning] if warning else []
+    return TaskBand(err_est, calibrated, record, warnings)

@@ -58,6 +58,9 @@ class TaskRecord:
     ensemble_members: int | None = None
     #: an ensemble's members that stopped short: ``{member, slice, reason}`` each (empty when none did)
     members_stopped: list[dict[str, Any]] | None = None
+    #: an ensemble's members whose fields leave their own training range: ``{member, slice, feature, excess}``
+    #: each (empty when none does)
+    members_outside: list[dict[str, Any]] | None = None
     reference: str | None = None
     max_error: float | None = None  # with the next three: present when the task has a reference
     rms_error: float | None = None
@@ -84,6 +87,7 @@ class TaskRecord:
             **own,
             ensemble_members=result.get("ensemble_members"),
             members_stopped=result.get("members_stopped"),
+            members_outside=result.get("members_outside"),
             **rest,
         )
 
@@ -94,6 +98,7 @@ class TaskRecord:
         if self.ensemble_members is not None:
             out["ensemble_members"] = self.ensemble_members
             out["members_stopped"] = list(self.members_stopped or [])
+            out["members_outside"] = list(self.members_outside or [])
         out.update(
             every=self.every,
             kept_slices=self.kept_slices,

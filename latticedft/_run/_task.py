@@ -232,7 +232,7 @@ def _band(calibration: dict[str, Any], trial: AbstractLagrangian | None, served:
         other = disagreement(
             trial, served.init, field, slices=td.task.slices, boundary=td.task.boundary, options=options
         )
-    return task_band(calibration, field, served.result.std, other)
+    return task_band(calibration, field, served.result.std, other, served.result.members)
 
 
 # -- measure --------------------------------------------------------------------------------------------------
@@ -385,6 +385,8 @@ def _task_line(served: _Served, t: ServeTask, rec: TaskRecord) -> str:
     )
     if rec.members_stopped:  # complete, but the error bar is over fewer members (a warning says which)
         msg += f" ({len(rec.members_stopped)} of {rec.ensemble_members} ensemble members stopped)"
+    if rec.members_outside:  # their fields leave their own training range (a warning says which)
+        msg += f" ({len(rec.members_outside)} of {rec.ensemble_members} ensemble members left their training range)"
     if t.cadence.thins:
         msg += f"{t.cadence.describe()}: {rec.kept_slices} slices kept"
     if rec.max_error is not None:

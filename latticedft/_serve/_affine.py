@@ -87,6 +87,15 @@ class _AffineSlices:
             )
         self.c = cvec[rows_in]
         self.dmax = max((float(np.abs(hess[a, b]).max()) for a, b in sys.diag_pairs), default=1.0)
+        #: A stacked ensemble's: each member's own :attr:`dmax` (its own ``w x w`` blocks; None for one model).
+        self.member_dmax: np.ndarray | None = None
+        if sys.members > 1:
+            nm, w = sys.members, m // sys.members
+            own = np.arange(nm)
+            sizes = [
+                np.abs(hess[a, b].reshape(nm, w, nm, w)[own, :, own, :]).max(axis=(1, 2)) for a, b in sys.diag_pairs
+            ]
+            self.member_dmax = np.max(sizes, axis=0) if sizes else np.ones(nm)
         diag = nu.diagonal()
         if nu.nnz == np.count_nonzero(diag) and nu.nnz == nu.shape[0]:  # diagonal (first-order stencil)
             inv = 1.0 / diag
@@ -145,12 +154,15 @@ class _AffineSlices:
 
 
 def _slice_residuals(
-    model: AbstractLagrangian, f: LatticeField, psi: torch.Tensor, start: int, stop: int
+    model: AbstractLagrangian, f: LatticeField, psi: torch.Tensor, start: int, stop: int, members: int = 1
 ) -> np.ndarray:
     """Max |DEL residual| on slices ``start .. stop - 1`` of ``psi``: on every slice (one vectorised pass per
     chunk of slices), or with the ``affine_check_every`` option ``k > 1`` on slices ``start + k - 1``,
-    ``start + 2 k - 1`` ... and the last one only (each from its three slices), NaN on the others."""
+    ``start + 2 k - 1`` ... and the last one only (each from its three slices), NaN on the others. With
+    ``members > 1`` (a stacked ensemble's), per member over its own components: ``(slices, members)``."""
     every = int(option("affine_check_every"))
+    if members > 1:
+        return _member_residuals(model, f, psi, start, stop, members, every)
     if every > 1:
         out = np.full(stop - start, np.nan)
         for s in sorted({*range(start + every - 1, stop, every), stop - 1} if stop > start else set()):
@@ -167,6 +179,27 @@ def _slice_residuals(
         el = del_residual(model, chunk)
         out[j + 1 - start : hi - 1 - start] = el.abs().reshape(el.shape[0], -1).amax(1).numpy()
         j = hi - 2
+    return out
+
+
+def _member_residuals(
+    model: AbstractLagrangian, f: LatticeField, psi: torch.Tensor, start: int, stop: int, members: int, every: int
+) -> np.ndarray:
+    """:func:`_slice_residuals` of a stacked ensemble: ``(slices, members)``, each member's largest |DEL
+    residual| over its own components (the members never couple), on the slices checked (NaN on the others)."""
+    nsite = max(int(np.prod(psi.shape[1:-1])), 1)
+    out = np.full((stop - start, members), np.nan)
+    checked = sorted({*range(start + every - 1, stop, every), stop - 1}) if every > 1 and stop > start else None
+    width = 3 if checked is not None else max(3, min(stop - start + 2, 250_000 // nsite + 2))
+    anchors = checked if checked is not None else list(range(start, stop, width - 2))
+    for s in anchors:
+        hi = min(s - 1 + width, stop + 1)
+        el = del_residual(model, f.with_values(psi[s - 1 : hi]))
+        if el.numel():
+            per = el.abs().reshape(el.shape[0], -1, members, psi.shape[-1] // members).amax(dim=(1, 3))
+            out[s - start : hi - 1 - start] = per.numpy()
+        else:
+            out[s - start : hi - 1 - start] = 0.0
     return out
 
 
@@ -190,12 +223,12 @@ def _affine_prefix(
     flat: torch.Tensor,
     rtol: float,
     vol: float,
-) -> tuple[int, float, float, float | np.ndarray] | None:
+) -> tuple[int, float, float | np.ndarray, float | np.ndarray] | None:
     """Serve every slice of ``psi`` by the affine recurrence, if the model's DEL is affine, and check them.
 
     Returns ``(slices, worst, dmax, mscale)``: how many leading slices pass the residual test (Newton serves
     the rest), the largest residual among them, the Hessian scale of that test and the largest singular value
-    of the mixed Hessian at a site (per member of a stacked ensemble, each judged on its own); ``None`` when the
+    of the mixed Hessian at a site (both per member of a stacked ensemble, each judged on its own); ``None`` when the
     DEL is not affine or its mixed Hessian is singular (Newton then reports it with the slice and site).
     """
     steps, m = psi.shape[0], sys.m
@@ -211,9 +244,12 @@ def _affine_prefix(
     op, mscale = found
     v = flat.reshape(steps, sys.nsite * m).numpy()
     op.run(v, 1, steps - 1)
-    res = _slice_residuals(model, f, psi, 1, steps - 1)
+    res = _slice_residuals(model, f, psi, 1, steps - 1, sys.members)
     if option("affine_check_every") > 1:
         log.info("affine recurrence checked against the model's DEL on every %d-th slice", option("affine_check_every"))
+    if op.member_dmax is not None:  # a stacked ensemble: each member against its own scale
+        affine_slices, worst = passing_members(v, res, rtol * vol * op.member_dmax, m)
+        return affine_slices, worst, op.member_dmax, mscale
     affine_slices, worst = passing_slices(v, res, rtol * vol * op.dmax)
     return affine_slices, worst, op.dmax, mscale
 
@@ -251,4 +287,16 @@ def passing_slices(v: np.ndarray, res: np.ndarray, bound: float) -> tuple[int, f
     absmax = np.array([np.abs(row).max() for row in v])  # per slice, without a copy of the field
     scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), absmax[2:]).clip(1e-300)
     k = passing_prefix(res, bound * scl)
+    return k, float(np.nanmax(res[:k], initial=0.0)) if k else 0.0
+
+
+def passing_members(v: np.ndarray, res: np.ndarray, bounds: np.ndarray, m: int) -> tuple[int, float]:
+    """:func:`passing_slices` of a stacked ensemble (``m`` components a site, ``bounds.size`` members side by side
+    on them): each member's residuals ``res[:, k]`` held to its own ``bounds[k]`` times the largest of its own
+    values on the three slices, as when served alone; the slices kept are those every member passes (Newton
+    serves the rest), the worst residual each member's largest among them."""
+    nm = bounds.size
+    absmax = np.stack([np.abs(row.reshape(-1, nm, m // nm)).max(axis=(0, 2)) for row in v])  # (slices, members)
+    scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), absmax[2:]).clip(1e-300)
+    k = min(passing_prefix(res[:, j], bounds[j] * scl[:, j]) for j in range(nm))
     return k, float(np.nanmax(res[:k], initial=0.0)) if k else 0.0

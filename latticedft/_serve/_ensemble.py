@@ -16,7 +16,7 @@ from .._errors import ServeError
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian, EnsembleLagrangian
 from .._models._ensemble import stacked
-from ._range import assess
+from ._range import EXTRAPOLATION_TOL, assess, extrapolation
 from ._result import LEFT_THE_BOX, ServeResult, box_reason
 
 __all__ = [
@@ -24,6 +24,7 @@ __all__ = [
     "calibration",
     "calibration_warning",
     "stopped_warning",
+    "outside_warning",
     "CALIBRATION_MIN_WITHIN_2STD",
     "MIN_MEMBERS",
 ]
@@ -183,7 +184,10 @@ def _result(
     full[:, :reach] = vals[:, :reach]
     lost = _stops(full, reasons)
     mean, std = _spread(full)
-    base.members_stopped = lost or None
+    outside = _outside(ens, f, full, base.extrapolation)
+    base.members_stopped, base.members_outside = lost or None, outside or None
+    if outside:
+        base.warnings.append(outside_warning(outside, len(ens)))
     if lost:
         base.warnings.append(stopped_warning(lost, len(ens)))
     members = xr.concat([base.field.copy(data=_layout(base.field, v)) for v in full], dim="member")
@@ -196,6 +200,9 @@ def _result(
     if lost:  # read by the figure, which marks where members stopped
         std_da.attrs["stopped_members"] = np.array([s["member"] for s in lost], dtype=np.int64)
         std_da.attrs["stopped_at_slice"] = np.array([s["slice"] for s in lost], dtype=np.int64)
+    if outside:  # and where members left their training range
+        std_da.attrs["outside_members"] = np.array([s["member"] for s in outside], dtype=np.int64)
+        std_da.attrs["outside_from_slice"] = np.array([s["slice"] for s in outside], dtype=np.int64)
     mean_da.attrs.pop("source", None)
     std_da.attrs.pop("source", None)
     return replace(base, mean=mean_da, std=std_da, members=members)
@@ -215,6 +222,53 @@ def _stops(full: np.ndarray, reasons: list[str]) -> list[dict[str, Any]]:
         why = reasons[k] if k < len(reasons) and reasons[k] else "its field is not finite there"
         out.append({"member": k, "slice": at, "reason": why})
     return out
+
+
+def _outside(
+    ens: EnsembleLagrangian, f: LatticeField, full: np.ndarray, first: xr.DataArray | None
+) -> list[dict[str, Any]]:
+    """The members whose served field leaves their own training range (each member learned on its own data):
+    ``{member, slice, feature, excess}`` each, ``slice`` the first where some feature's excess passes
+    :data:`._range.EXTRAPOLATION_TOL`, ``feature`` and ``excess`` the largest excess (relative to the feature's
+    training span) over the slices the member served. ``full``: the members' fields ``(members, nt, *sites, m)``,
+    NaN from where each stopped (not tested there); ``first``: member 0's extrapolation, already measured."""
+    out = []
+    nt = full.shape[1]
+    for k in range(full.shape[0]):
+        finite = np.isfinite(full[k].reshape(nt, -1)).all(axis=1)
+        reach = nt if finite.all() else int(np.argmin(finite))
+        if reach < 2:
+            continue
+        if k == 0 and first is not None and first.sizes[first.dims[0]] == reach:
+            ext: xr.DataArray | None = first
+        else:
+            values = torch.from_numpy(np.ascontiguousarray(full[k, :reach]))
+            ext = extrapolation(ens.member(k), f.with_values(values))
+        if ext is None:
+            continue
+        vals = np.asarray(ext.values, dtype=np.float64)
+        beyond = np.nonzero((vals > EXTRAPOLATION_TOL).any(axis=1))[0]
+        if not beyond.size:
+            continue
+        peak = vals.max(axis=0)
+        j = int(np.argmax(peak))
+        feature = str(ext["feature"].values[j])
+        out.append({"member": k, "slice": int(beyond[0]), "feature": feature, "excess": float(peak[j])})
+    return out
+
+
+def outside_warning(outside: list[dict[str, Any]], members: int) -> str:
+    """The one-line warning of members whose fields leave their own training range (``{member, slice, feature,
+    excess}`` each) in an ensemble of ``members``."""
+    each = "; ".join(
+        f"member {s['member']} from slice {s['slice']} (by up to {s['excess']:.3g} of the training span in "
+        f"{s['feature']})"
+        for s in outside
+    )
+    return (
+        f"ensemble: {len(outside)} of {members} members leave their own training range (tolerance "
+        f"{EXTRAPOLATION_TOL:g}): {each}; their L_d is not known there, and the spread there is extrapolated"
+    )
 
 
 def _spread(full: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -102,10 +102,10 @@ class _FieldRun(SteppedRun):
         if self.affine_slices:
             self.worst = worst
             self.count_affine()
+            if isinstance(mscale, np.ndarray) and isinstance(dmax, np.ndarray):  # a stacked ensemble's, per member
+                self.cache["member_mscale"], self.cache["member_dmax"] = mscale, dmax.copy()
+                mscale, dmax = float(mscale.max()), float(dmax.max())
             self.cache["dmax"] = dmax
-            if isinstance(mscale, np.ndarray):  # a stacked ensemble's, per member
-                self.cache["member_mscale"] = mscale
-                mscale = float(mscale.max())
             self.cache["mscale"] = mscale
         self.bar.update(self.affine_slices)
 

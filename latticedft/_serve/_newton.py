@@ -11,7 +11,7 @@ import torch
 
 from .._action import CellDerivatives
 from .._contract import AbstractLagrangian
-from ._slices import _scale, _SliceSystem, first_singular, is_singular, singular_message
+from ._slices import _scale, _SliceSystem, is_singular, singular_message
 from ._solvers import SolverRefused, factor_step
 
 #: A chord step (the factorisation or preconditioner of an earlier Jacobian reused) is followed by another
@@ -63,21 +63,11 @@ def _fresh_blocks(ev: CellDerivatives, sys: _SliceSystem, cache: dict[str, Any],
 
     Also checks the mixed Hessian's conditioning at every unknown site: ``cache["singular"]`` is
     ``(message, row)`` when its smallest singular value is singular relative to the largest met on this
-    field so far (``cache["mscale"]``), else None. The sizes are the whole slice's (``allmax``). A stacked
-    ensemble's members (``sys.members``, served whole by one process) are judged one by one, each against the
-    largest singular value met on its own blocks (``cache["member_mscale"]``), as each is when served alone.
+    field so far (``cache["mscale"]``), else None. The sizes are the whole slice's (``allmax``). (A stacked
+    ensemble's members are judged one by one, by ``._members``.)
     """
     blocks = ev.blocks(sys.pairs)
     dmax = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
-    if sys.members > 1:  # a stacked ensemble: each member on its own scale, as served alone
-        lows, highs, rows = sys.member_singular_values(blocks)
-        cache["dmax"] = allmax(dmax)[0]
-        scales = np.maximum(cache.get("member_mscale", 0.0), highs)
-        cache["member_mscale"] = scales
-        cache["mscale"] = float(scales.max())
-        k = first_singular(lows, scales)
-        cache["singular"] = None if k is None else (singular_message(lows[k], scales[k]), int(rows[k]))
-        return blocks
     smin, smax, row = sys.site_singular_values(blocks)
     cache["dmax"], low, smax = allmax(dmax, -smin, smax)
     smin = -low

@@ -82,6 +82,9 @@ class ServeResult:
     #: An ensemble's members that stopped (or went non-finite) before the last slice: ``{"member", "slice",
     #: "reason"}`` each, ``slice`` the first one the member does not hold; None when every member served it all.
     members_stopped: list[dict[str, Any]] | None = None
+    #: An ensemble's members whose fields leave their own training range: ``{"member", "slice", "feature",
+    #: "excess"}`` each, ``slice`` the first beyond the tolerance; None when none does.
+    members_outside: list[dict[str, Any]] | None = None
 
     def extrapolation_summary(self) -> dict[str, Any] | None:
         """The largest excess per feature and the first slice beyond the tolerance (None without a range)."""
@@ -95,6 +98,7 @@ class ServeResult:
         if self.members is not None:
             out["ensemble_members"] = int(self.members.sizes["member"])
             out["members_stopped"] = list(self.members_stopped or [])
+            out["members_outside"] = list(self.members_outside or [])
         return out
 
     def to_dataset(self) -> xr.Dataset:

@@ -66,14 +66,39 @@ class SolverRefused(Exception):
 
 def _diag_and_offdiag(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Tensor]) -> tuple[torch.Tensor, float]:
     """The diagonal ``m x m`` blocks ``(n, m, m)`` of the Jacobian (without the cell volume) and the largest
-    off-diagonal entry."""
+    off-diagonal entry. A stacked ensemble's members are measured each on its own: the largest over the members
+    of a member's off-diagonal entries relative to its own diagonal blocks, times the largest diagonal entry
+    (so that :func:`choose_solver` compares each member's share, as when served alone)."""
     m = sys.m
     diag = sys.diagonal(blocks)
+    if sys.members > 1:
+        return diag, _member_offdiag(sys, blocks, diag)
     off = 0.0
     for key, where in sys.offdiag_cells:
         held = blocks[key].reshape(-1, m, m)
         off = max(off, float((held if where is None else held[where]).abs().max()))
     return diag, off
+
+
+def _member_offdiag(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Tensor], diag: torch.Tensor) -> float:
+    """:func:`_diag_and_offdiag`'s off-diagonal size of a stacked ensemble (members never couple: only each
+    member's own ``w x w`` entries can be non-zero)."""
+    nm, m = sys.members, sys.m
+    w = m // nm
+    own = torch.arange(nm)
+    scale = np.zeros(nm)
+    if diag.numel():
+        scale = diag.reshape(-1, nm, w, nm, w)[:, own, :, own, :].abs().amax(dim=(1, 2, 3)).numpy()
+    off = np.zeros(nm)
+    for key, where in sys.offdiag_cells:
+        held = blocks[key].reshape(-1, m, m)
+        part = (held if where is None else held[where]).reshape(-1, nm, w, nm, w)[:, own, :, own, :]
+        if part.numel():
+            off = np.maximum(off, part.abs().amax(dim=(1, 2, 3)).numpy())
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(off > 0, off / scale, 0.0)
+    top = float(scale.max()) if scale.size else 0.0
+    return float(share.max()) * top if top > 0 else float(off.max())
 
 
 def choose_solver(sys: _SliceSystem, requested: str, diag: torch.Tensor, off: float) -> str:

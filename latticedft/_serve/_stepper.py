@@ -19,6 +19,7 @@ from .._models import AbstractLagrangian
 from . import _ondevice
 from ._folded import FoldedSlices, folded_slices
 from ._fused import FusedSlices, fused_slices
+from ._members import newton_members
 from ._newton import _newton_slice, predict
 from ._potential import potential_slices
 from ._result import ServeResult, _bar
@@ -263,22 +264,27 @@ def solve_and_tally(
         elif g_prev is None:
             g_prev = CellDerivatives(run.model, run.cells_at(i - 1)).grad
         evaluate = functools.partial(folded.evaluate, flat, run.vol) if folded else None
-        it, res, g_prev, err = _newton_slice(
-            run.model,
-            run.sys,
-            psi,
-            flat,
-            unk,
-            i,
-            g_prev,
-            run.vol,
-            rtol,
-            max_newton,
-            run.cells_at,
-            run.cache,
-            evaluate=evaluate,
-            scale=scale,
-        )
+        if run.sys.members > 1:  # a stacked ensemble: every member judged on its own, as served alone
+            it, res, g_prev, err = newton_members(
+                run.model, run.sys, flat, unk, i, g_prev, run.vol, rtol, max_newton, run.cells_at, run.cache, evaluate
+            )
+        else:
+            it, res, g_prev, err = _newton_slice(
+                run.model,
+                run.sys,
+                psi,
+                flat,
+                unk,
+                i,
+                g_prev,
+                run.vol,
+                rtol,
+                max_newton,
+                run.cells_at,
+                run.cache,
+                evaluate=evaluate,
+                scale=scale,
+            )
     else:
         it, res, g_prev, err = _sweep_slice(run.model, run.sys, psi, flat, i, run.vol, rtol, max_newton, run.f)
     if err is not None:

@@ -302,6 +302,7 @@ def _plot_errors(
         calibrated = "calibrated" in str(spread.attrs.get("long_name", ""))
         _plot_band(ax, t, np.asarray(spread.transpose(*pred.dims).values), rms, calibrated=calibrated)
         _mark_stopped_members(ax, t, spread.attrs)
+        _mark_stopped_members(ax, t, spread.attrs, "outside_members", "outside_from_slice", "leaves its range")
     elif estimate is not None and estimate.shape == (len(t),):
         _plot_band(ax, t, np.asarray(estimate.values), rms, label="calibrated error estimate")
     base_max, base_rms = series.get("baseline_err_max"), series.get("baseline_err_rms")
@@ -358,20 +359,30 @@ def _plot_band(
     ax.semilogy(t, two, "-", color="tab:blue", lw=1, label=f"{what}: 2 std (3 std lighter), rms over sites")
 
 
-def _mark_stopped_members(ax: Axes, t: np.ndarray, attrs: Mapping[str, Any]) -> None:
-    """A dotted line where members of an ensemble stopped (the spread is over fewer members from there)."""
-    members = np.atleast_1d(np.asarray(attrs.get("stopped_members", []), dtype=np.int64))
-    at = np.atleast_1d(np.asarray(attrs.get("stopped_at_slice", []), dtype=np.int64))
+def _mark_stopped_members(
+    ax: Axes,
+    t: np.ndarray,
+    attrs: Mapping[str, Any],
+    who_key: str = "stopped_members",
+    at_key: str = "stopped_at_slice",
+    what: str = "stops",
+) -> None:
+    """A dotted line where members of an ensemble stopped (the spread is over fewer members from there); with
+    ``outside_members``/``outside_from_slice``, where members' fields leave their own training range."""
+    members = np.atleast_1d(np.asarray(attrs.get(who_key, []), dtype=np.int64))
+    at = np.atleast_1d(np.asarray(attrs.get(at_key, []), dtype=np.int64))
+    stopped = at_key == "stopped_at_slice"
     for k, i in enumerate(sorted(set(int(i) for i in at if 0 <= i < len(t)))):
         who = ", ".join(str(int(m)) for m, j in zip(members, at, strict=False) if j == i)
-        ax.axvline(t[i], color="tab:blue", ls=":", lw=1, label="member(s) stopped" if k == 0 else None)
+        label = ("member(s) stopped" if stopped else "member(s) left their training range") if k == 0 else None
+        ax.axvline(t[i], color="tab:blue" if stopped else "tab:orange", ls=":", lw=1, label=label)
         ax.annotate(
-            f"member {who} stops",
+            f"member {who} {what}",
             (t[i], 0.02),
             xycoords=("data", "axes fraction"),
             fontsize="x-small",
             rotation=90,
-            color="tab:blue",
+            color="tab:blue" if stopped else "tab:orange",
             va="bottom",
         )
 
