@@ -157,12 +157,13 @@ class Calibration:
         return out
 
     def members_warning(self, members: np.ndarray) -> str | None:
-        """The warning of an ensemble's members whose own fields (``members``: ``(members, slices, ...)``) leave
-        the training fields' range or amplitudes as :meth:`warnings` measures them on the task's field (member
-        0's): one line naming each such member and how (None when none does)."""
+        """The warning of an ensemble's resampled members (1 .. N - 1) whose own fields (``members``: ``(members,
+        slices, ...)``) leave the training fields' range or amplitudes as :meth:`warnings` measures them on the
+        task's field (member 0's, so member 0 is not repeated here): one line naming each such member and how
+        (None when none does)."""
         margin = RANGE_MARGIN * max(self.high - self.low, np.finfo(float).tiny)
         out = []
-        for k in range(members.shape[0]):
+        for k in range(1, members.shape[0]):
             finite = members[k][np.isfinite(members[k])]
             if not finite.size:
                 continue
@@ -184,8 +185,9 @@ class Calibration:
             else ""
         )
         return (
-            f"calibration: {len(out)} of {members.shape[0]} ensemble members serve outside the training fields "
-            f"the error bar was measured along (range [{self.low:.3g}, {self.high:.3g}]{spans}): {'; '.join(out)}; "
+            f"calibration: {len(out)} of {members.shape[0] - 1} resampled ensemble members serve outside the "
+            f"training fields the error bar was measured along (range [{self.low:.3g}, {self.high:.3g}]{spans}): "
+            f"{'; '.join(out)}; "
             "the band does not bound their fields there"
         )
 

@@ -635,7 +635,7 @@ def test_every_member_is_checked_against_its_own_training_range(quartic: ldft.En
     assert [s["member"] for s in out.members_outside] == leave
     assert [s["slice"] for s in out.members_outside] == [first[k] for k in leave]
     line = out.warnings[-1]
-    assert line.startswith(f"ensemble: {len(leave)} of 5 members leave their own training range")
+    assert line.startswith(f"ensemble: {len(leave)} of 4 resampled members leave their own training range")
     assert f"member 3 from slice {first[3]} (by up to" in line
     assert out.to_dict()["members_outside"] == out.members_outside
     assert list(np.atleast_1d(out.std.attrs["outside_members"])) == leave
@@ -656,10 +656,11 @@ def test_the_calibration_names_the_members_outside_the_training_fields() -> None
     fields = np.stack([0.8 * np.sin(t), 0.9 * np.sin(t), 1.3 * np.sin(t), 0.3 * np.sin(t)])
     assert law.warnings(40, fields[0]) == []  # member 0 inside: the task's own check says nothing
     line = law.members_warning(fields)
-    assert line is not None and line.startswith("calibration: 2 of 4 ensemble members serve outside")
+    assert line is not None and line.startswith("calibration: 2 of 3 resampled ensemble members serve outside")
     assert "member 2 (values [-1.3, 1.3], amplitude 2.6)" in line and "member 3 (amplitude 0.599)" in line
     assert "member 0" not in line and "member 1" not in line
     assert law.members_warning(fields[:2]) is None
+    assert law.members_warning(fields[[2, 1]]) is None  # member 0 outside: the task's own check names it
 
 
 def test_run_reports_the_members_outside_their_training_range(tmp_path: Path, capsys, monkeypatch) -> None:
@@ -685,9 +686,10 @@ def test_run_reports_the_members_outside_their_training_range(tmp_path: Path, ca
     outside = {s["member"]: s for s in task["members_outside"]}
     assert task["complete"] and task["members_stopped"] == [] and 2 in outside
     assert outside[2]["slice"] < min([s["slice"] for k, s in outside.items() if k != 2], default=30)
-    line = f"ensemble: {len(outside)} of 3 members leave their own training range (tolerance 0.05): "
+    line = f"ensemble: {len(outside)} of 2 resampled members leave their own training range (tolerance 0.05): "
     assert line in err and f"member 2 from slice {outside[2]['slice']} (by up to" in err
-    assert f"({len(outside)} of 3 ensemble members left their training range)" in err
+    assert f"({len(outside)} of 2 resampled members left their training range)" in err
+    assert 0 not in outside  # member 0's range is the task's own warning
     assert line in (res / "run.log").read_text()
     assert any("leave their own training range" in w for w in summary["warnings"])
     from matplotlib.text import Text

@@ -386,7 +386,8 @@ def _task_line(served: _Served, t: ServeTask, rec: TaskRecord) -> str:
     if rec.members_stopped:  # complete, but the error bar is over fewer members (a warning says which)
         msg += f" ({len(rec.members_stopped)} of {rec.ensemble_members} ensemble members stopped)"
     if rec.members_outside:  # their fields leave their own training range (a warning says which)
-        msg += f" ({len(rec.members_outside)} of {rec.ensemble_members} ensemble members left their training range)"
+        resampled = (rec.ensemble_members or 1) - 1
+        msg += f" ({len(rec.members_outside)} of {resampled} resampled members left their training range)"
     if t.cadence.thins:
         msg += f"{t.cadence.describe()}: {rec.kept_slices} slices kept"
     if rec.max_error is not None:

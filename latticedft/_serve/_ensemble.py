@@ -184,7 +184,7 @@ def _result(
     full[:, :reach] = vals[:, :reach]
     lost = _stops(full, reasons)
     mean, std = _spread(full)
-    outside = _outside(ens, f, full, base.extrapolation)
+    outside = _outside(ens, f, full)
     base.members_stopped, base.members_outside = lost or None, outside or None
     if outside:
         base.warnings.append(outside_warning(outside, len(ens)))
@@ -224,26 +224,22 @@ def _stops(full: np.ndarray, reasons: list[str]) -> list[dict[str, Any]]:
     return out
 
 
-def _outside(
-    ens: EnsembleLagrangian, f: LatticeField, full: np.ndarray, first: xr.DataArray | None
-) -> list[dict[str, Any]]:
-    """The members whose served field leaves their own training range (each member learned on its own data):
+def _outside(ens: EnsembleLagrangian, f: LatticeField, full: np.ndarray) -> list[dict[str, Any]]:
+    """The resampled members (1 .. N - 1; member 0's range is the task's own, checked as for a single model)
+    whose served field leaves their own training range (each member learned on its own data):
     ``{member, slice, feature, excess}`` each, ``slice`` the first where some feature's excess passes
     :data:`._range.EXTRAPOLATION_TOL`, ``feature`` and ``excess`` the largest excess (relative to the feature's
     training span) over the slices the member served. ``full``: the members' fields ``(members, nt, *sites, m)``,
-    NaN from where each stopped (not tested there); ``first``: member 0's extrapolation, already measured."""
+    NaN from where each stopped (not tested there)."""
     out = []
     nt = full.shape[1]
-    for k in range(full.shape[0]):
+    for k in range(1, full.shape[0]):
         finite = np.isfinite(full[k].reshape(nt, -1)).all(axis=1)
         reach = nt if finite.all() else int(np.argmin(finite))
         if reach < 2:
             continue
-        if k == 0 and first is not None and first.sizes[first.dims[0]] == reach:
-            ext: xr.DataArray | None = first
-        else:
-            values = torch.from_numpy(np.ascontiguousarray(full[k, :reach]))
-            ext = extrapolation(ens.member(k), f.with_values(values))
+        values = torch.from_numpy(np.ascontiguousarray(full[k, :reach]))
+        ext = extrapolation(ens.member(k), f.with_values(values))
         if ext is None:
             continue
         vals = np.asarray(ext.values, dtype=np.float64)
@@ -266,7 +262,7 @@ def outside_warning(outside: list[dict[str, Any]], members: int) -> str:
         for s in outside
     )
     return (
-        f"ensemble: {len(outside)} of {members} members leave their own training range (tolerance "
+        f"ensemble: {len(outside)} of {members - 1} resampled members leave their own training range (tolerance "
         f"{EXTRAPOLATION_TOL:g}): {each}; their L_d is not known there, and the spread there is extrapolated"
     )
 
