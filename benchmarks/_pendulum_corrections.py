@@ -8,7 +8,7 @@ these corrections over the family the coupled library holds for two pendulums, `
 cos(q1 - q2) - V1(q1) - V2(q2)`` with ``V_i`` in ``trig:1``, the factor ``1/det M`` of ``M^-1`` taken as a
 constant: 28 terms, on top of :data:`latticedft._select.COUPLED_LIBRARY`. The library's shorthands cannot write
 these terms without repeating products (``velocities*velocities`` holds ``Dtq1**2*Dtq1*Dtq2`` and
-``Dtq1*Dtq2*Dtq1**2``), so the family is built here (it cannot be saved to a model file).
+``Dtq1*Dtq2*Dtq1**2``), so the family is built here (a model file cannot record it).
 """
 
 from __future__ import annotations
@@ -101,4 +101,7 @@ CORRECTIONS = 28
 
 def correction_library(base: str) -> Library:
     """``base`` (a shorthand string) and the 28 correction terms."""
-    return Library([*Library.parse(base).families, Family("corrections", lambda n, m: _terms(), saveable=False)])
+    # Marked saveable (it is not: its label cannot be parsed back) so that the model takes the closed-form and numpy
+    # derivatives of its terms' sympy forms, as a family of the package would; a library of user functions is
+    # differentiated by autograd instead (about 100x slower to serve). The benchmark never saves it.
+    return Library([*Library.parse(base).families, Family("corrections", lambda n, m: _terms(), saveable=True)])
