@@ -306,3 +306,26 @@ def test_discovery_gap_runs_the_double_pendulum_convergence_check(capsys):
     assert "h = 0.1:" in out and "h = 0.025:" in out and "start moved by 1e-07 in q2" in out
     with pytest.raises(SystemExit):
         discovery_gap.main(["--only", "kepler", "--corrections"])
+
+
+def test_the_coupled_exact_step_library_serves_the_double_pendulum_below_the_leapfrog_and_drops_to_the_true_terms():
+    """``select``'s exact-step candidate of two components, learned on the double pendulum's training samples, serves
+    the (quick) test below the leapfrog's error; learned on the variational integrator's data it keeps exactly the
+    five true terms."""
+    from latticedft._select import COUPLED_LIBRARY, EXACT_STEP_THRESHOLD
+    from latticedft._stencil import Stencil
+
+    system = systems.build("double-pendulum", quick=True)
+    ref = np.asarray(system.test.values)
+    base = systems.max_errors(system.leapfrog(system.test, system.slices), ref, system.slices)[0]
+    options = {"library": f"{COUPLED_LIBRARY} + coupledstep", "at": "average", "threshold": EXACT_STEP_THRESHOLD}
+    kept = {}
+    for label, data in (("samples", system.train), ("variational", systems.variational_data(system))):
+        model = ldft.SparseLagrangian(**options, stencil=Stencil.first_order(1))
+        ldft.learn(model, data, progress=False)
+        kept[label] = model.kept_terms()
+        if label == "samples":
+            err = systems.max_errors(discovery.served(model, system), ref, system.slices)[0]
+            assert err < 0.6 * base, (err, base)
+    true = {"Dtq1**2", "Dtq2**2", "cos(q1)", "cos(q2)", "cos(q1-q2)*Dtq1*Dtq2"}
+    assert set(kept["variational"]) == true and len(kept["samples"]) > 5
