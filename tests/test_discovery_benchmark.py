@@ -225,3 +225,107 @@ def test_gauges_mode_reads_the_gauge_auto_chose_on_noisy_samples():
     assert chosen["kept"] == "(Dtq1**2+Dtq2**2), (q1*Dtq2-q2*Dtq1)"
     assert "(q1*Dtq2-q2*Dtq1)" not in rows["auto", "unit-mass"]["kept"]
     assert chosen["rel_res"] == rows["auto", "trace"]["rel_res"]
+
+
+def test_midpoint_rule_and_exact_step_of_the_pendulum_are_the_documented_forms():
+    """``ode_ld(..., "midpoint")`` is ``h L((u0 + u1)/2, v)``; the exact step's ``L_d`` of ``L = v^2/2 + cos q`` in the
+    trapezoid rule is ``h L_avg + h^3/12 v^2 cos q - h^3/24 sin^2 q`` averaged over the step's ends."""
+    from benchmarks._pendulum_corrections import exact_step_ld
+
+    h = 0.1
+    spec = systems.build("pendulum", quick=True).ode
+    assert spec is not None
+    (u0,), (u1,) = cell_symbols(2, 1)
+    v = (u1 - u0) / h
+    midpoint = systems.ode_ld(spec, h, "midpoint").expr
+    assert sympy.simplify(midpoint - h * (v**2 / 2 + sympy.cos((u0 + u1) / 2))) == 0
+    avg = [
+        (h * (v**2 / 2 + sympy.cos(u)) + h**3 / 12 * v**2 * sympy.cos(u) - h**3 / 24 * sympy.sin(u) ** 2) / 2
+        for u in (u0, u1)
+    ]
+    assert sympy.simplify(exact_step_ld(spec, h).expr - sum(avg)) == 0
+    assert sympy.simplify(systems.ode_ld(spec, h).expr - systems.build("pendulum", quick=True).true_ld.expr) == 0
+
+
+def test_exact_step_of_the_double_pendulum_serves_at_fourth_order_and_its_rules_at_second():
+    """Served by their variational integrators over t <= 4, halving the step divides the error of the exact step to
+    ``O(h^5)`` by about 16 and that of the trapezoid and midpoint rules by about 4."""
+    from benchmarks._pendulum_corrections import exact_step_ld
+
+    spec = systems.build("double-pendulum", quick=True).ode
+    assert spec is not None
+    errs: dict[str, list[float]] = {"trapezoid": [], "midpoint": [], "exact": []}
+    for h in (0.1, 0.05):
+        n = int(round(4.0 / h)) + 1
+        field = systems.ode_field(spec, (0.5, -0.3), (0.2, 0.1), n, h)
+        exact = np.asarray(field.values).reshape(n, -1)
+        forms = {"trapezoid": systems.ode_ld(spec, h), "midpoint": systems.ode_ld(spec, h, "midpoint")}
+        forms["exact"] = exact_step_ld(spec, h)
+        for rule, form in forms.items():
+            errs[rule].append(float(np.abs(systems.variational_served(form, field, n).reshape(n, -1) - exact).max()))
+    assert 3.3 < errs["trapezoid"][0] / errs["trapezoid"][1] < 4.7, errs
+    assert 3.3 < errs["midpoint"][0] / errs["midpoint"][1] < 4.7, errs
+    assert 12 < errs["exact"][0] / errs["exact"][1] < 20, errs
+
+
+def test_correction_library_spans_the_double_pendulum_exact_step_with_a_constant_determinant():
+    """The 28 correction terms with the coupled library hold ``-v.L_qq.v/12 - E.adj(M).E/24`` of the double pendulum
+    (``M^-1 = adj(M)/det M``, ``det M`` taken constant): a least-squares fit at random points leaves round-off."""
+    from benchmarks._pendulum_corrections import CORRECTIONS, correction_library
+    from latticedft._models._terms import term_forms
+
+    spec = systems.build("double-pendulum", quick=True).ode
+    assert spec is not None
+    q, v, lag = spec.q, spec.v, spec.lagrangian
+    terms = correction_library("velocities + trig:1 + cosdiff*velocities").expand(1, 2)
+    assert len(terms) == 10 + CORRECTIONS and len({t.name for t in terms}) == len(terms)
+    forms = term_forms(terms, list(q), [list(v)])
+    assert forms is not None
+    vv = sympy.Matrix(v)
+    mass = sympy.Matrix(2, 2, lambda i, j: sympy.diff(lag, v[i], v[j]))
+    e = sympy.Matrix([sympy.diff(lag, s) for s in q]) - sympy.Matrix([sympy.diff(lag, s) for s in v]).jacobian(q) * vv
+    lqq = sympy.Matrix(2, 2, lambda i, j: sympy.diff(lag, q[i], q[j]))
+    target = -(vv.T * lqq * vv)[0] / 12 - (e.T * mass.adjugate() * e)[0] / 24
+    cols = sympy.lambdify([*q, *v], forms, "numpy")
+    want = sympy.lambdify([*q, *v], target, "numpy")
+    points = np.random.default_rng(0).uniform(-1.5, 1.5, size=(200, 4))
+    a = np.array([np.broadcast_to(np.asarray(cols(*p), dtype=float), (len(terms),)) for p in points])
+    b = np.array([want(*p) for p in points])
+    coef = np.linalg.lstsq(a, b, rcond=None)[0]
+    assert np.abs(a @ coef - b).max() < 1e-10 * np.abs(b).max()
+    assert np.abs(np.linalg.lstsq(a[:, :10], b, rcond=None)[0] @ a[:, :10].T - b).max() > 1e-2 * np.abs(b).max()
+
+
+def test_discovery_gap_runs_the_double_pendulum_convergence_check(capsys):
+    """``--convergence`` prints the three steps and the drift of a moved start; ``--corrections`` is refused for
+    another system."""
+    from benchmarks import discovery_gap
+
+    assert discovery_gap.main(["--only", "double-pendulum", "--convergence"]) == 0
+    out = capsys.readouterr().out
+    assert "h = 0.1:" in out and "h = 0.025:" in out and "start moved by 1e-07 in q2" in out
+    with pytest.raises(SystemExit):
+        discovery_gap.main(["--only", "kepler", "--corrections"])
+
+
+def test_the_coupled_exact_step_library_serves_the_double_pendulum_below_the_leapfrog_and_drops_to_the_true_terms():
+    """``select``'s exact-step candidate of two components, learned on the double pendulum's training samples, serves
+    the (quick) test below the leapfrog's error; learned on the variational integrator's data it keeps exactly the
+    five true terms."""
+    from latticedft._select import COUPLED_LIBRARY, EXACT_STEP_THRESHOLD
+    from latticedft._stencil import Stencil
+
+    system = systems.build("double-pendulum", quick=True)
+    ref = np.asarray(system.test.values)
+    base = systems.max_errors(system.leapfrog(system.test, system.slices), ref, system.slices)[0]
+    options = {"library": f"{COUPLED_LIBRARY} + coupledstep", "at": "average", "threshold": EXACT_STEP_THRESHOLD}
+    kept = {}
+    for label, data in (("samples", system.train), ("variational", systems.variational_data(system))):
+        model = ldft.SparseLagrangian(**options, stencil=Stencil.first_order(1))
+        ldft.learn(model, data, progress=False)
+        kept[label] = model.kept_terms()
+        if label == "samples":
+            err = systems.max_errors(discovery.served(model, system), ref, system.slices)[0]
+            assert err < 0.6 * base, (err, base)
+    true = {"Dtq1**2", "Dtq2**2", "cos(q1)", "cos(q2)", "cos(q1-q2)*Dtq1*Dtq2"}
+    assert set(kept["variational"]) == true and len(kept["samples"]) > 5

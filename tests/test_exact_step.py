@@ -36,7 +36,10 @@ def test_the_radial_term_is_the_squared_projection_of_the_velocity_on_q():
 
 
 def test_the_exact_step_libraries_expand_to_the_correction_terms():
-    (kepler,) = exact_step_libraries(1, 2)
+    kepler, coupled = exact_step_libraries(1, 2)
+    assert coupled == "velocities + trig:1 + cosdiff*velocities + coupledstep"
+    assert len(ldft.Library.parse(coupled).expand(1, 2)) == 10 + 28
+    assert exact_step_libraries(1, 3) == [kepler]  # coupledstep is for two components
     names = [t.name for t in ldft.Library.parse(kepler).expand(1, 2)]
     assert names == [
         "(Dtq1**2+Dtq2**2)",

@@ -15,10 +15,12 @@ from latticedft._select import (
     BEATEN,
     BEYOND_CEILING,
     COUPLED_LIBRARY,
+    EXACT_STEP_THRESHOLD,
     SQUARE_TRIG_LIBRARY,
     _choose,
     auto_candidates,
     exact_step_candidates,
+    is_exact_step,
     largest_field,
     sparse_candidates,
 )
@@ -128,6 +130,20 @@ def test_auto_tries_the_sparse_libraries_first():
     assert {c["threshold"] for c in ldft.SparseLagrangian().auto_candidates(1)} >= {0.1, 0.0}
 
 
+def test_the_coupled_pendulums_exact_step_is_a_candidate_on_a_time_only_lattice_of_two_components_only():
+    """``coupledstep`` (28 distinct terms with closed forms) on top of the coupled library, in the trapezoid rule at the
+    exact-step threshold: an exact-step candidate of two components, not of three nor on a field lattice."""
+    from latticedft._models._library import Library
+
+    coupled = {"kind": "sparse", "library": f"{COUPLED_LIBRARY} + coupledstep", "at": "average"}
+    coupled["threshold"] = EXACT_STEP_THRESHOLD
+    assert coupled in exact_step_candidates(1, 2) and coupled in sparse_candidates(1, 2)
+    assert is_exact_step({"kind": "sparse", "options": {**coupled, "bags": 20}})
+    assert not any("coupledstep" in c["library"] for n, m in ((1, 3), (2, 2), (1, 1)) for c in sparse_candidates(n, m))
+    terms = Library.parse("coupledstep").expand(1, 2)
+    assert len(terms) == 28 and len({t.name for t in terms}) == 28 and all(t.form for t in terms)
+
+
 def test_the_trig_of_q_squared_is_a_candidate_on_a_time_only_scalar_lattice_only():
     square = {"kind": "sparse", "library": SQUARE_TRIG_LIBRARY, "threshold": "auto"}
     assert square in sparse_candidates(1, 1)
@@ -187,6 +203,7 @@ def test_a_sparse_case_prints_its_equation(tmp_path, capsys):
     [
         (False, "kinetic + norm:-1", "'norm:-1' needs a vector field"),
         (False, "kinetic + cross", "'cross' needs a field of 2 components"),
+        (False, "kinetic + coupledstep", "'coupledstep' needs a field of 2 components"),
         (False, "kinetic + gradient", "'gradient' needs a space axis"),
         (True, "kinetic + gradient + norm:-1", "'gradient' needs a space axis"),
     ],

@@ -55,15 +55,17 @@ def exact_step_libraries(n: int, m: int, order: int = 3) -> list[str]:
     (docs/discovery.md). Each library holds a family of potentials ``V`` and the terms that its corrections
     span to ``O(h^order)``: at ``order = 3``, for ``V`` in ``trig:1``, ``V'^2`` in ``trig:2`` and ``V''`` in
     ``trig:1``; for ``V`` in ``poly:4``, ``V'^2`` to degree 6 and ``V''`` to degree 2; for ``V = c/|q|``,
-    ``|q|^-4``, ``|Dq|^2 |q|^-3`` and ``(q . Dq)^2 |q|^-5``. At ``order = 5`` (the trig potentials only) also
-    ``V'^2 V''`` (in ``trig:3``), ``V''^2 v^2`` and ``V' V''' v^2`` (in ``kinetic*trig:2``) and ``V'''' v^4``.
+    ``|q|^-4``, ``|Dq|^2 |q|^-3`` and ``(q . Dq)^2 |q|^-5``; for two components coupled through ``cos(q1 - q2)``
+    (``velocities + trig:1 + cosdiff*velocities``, a mass that depends on the positions), ``coupledstep``. At
+    ``order = 5`` (the trig potentials only) also ``V'^2 V''`` (in ``trig:3``), ``V''^2 v^2`` and ``V' V''' v^2`` (in
+    ``kinetic*trig:2``) and ``V'''' v^4``.
 
     >>> exact_step_libraries(1, 1)
     ['kinetic + trig:2 + kinetic*trig:1', 'kinetic + poly:6 + kinetic*poly:2']
     >>> exact_step_libraries(1, 1, order=5)
     ['kinetic + trig:3 + kinetic*trig:2 + kinetic*kinetic*trig:1']
-    >>> exact_step_libraries(1, 2)
-    ['kinetic + norm:-1,-4 + kinetic*norm:-3 + radial*norm:-5']
+    >>> exact_step_libraries(1, 2)[1]
+    'velocities + trig:1 + cosdiff*velocities + coupledstep'
     """
     if n != 1:
         return []
@@ -71,7 +73,9 @@ def exact_step_libraries(n: int, m: int, order: int = 3) -> list[str]:
         return ["kinetic + trig:3 + kinetic*trig:2 + kinetic*kinetic*trig:1"] if m == 1 else []
     if m == 1:
         return ["kinetic + trig:2 + kinetic*trig:1", "kinetic + poly:6 + kinetic*poly:2"]
-    return ["kinetic + norm:-1,-4 + kinetic*norm:-3 + radial*norm:-5"]
+    return ["kinetic + norm:-1,-4 + kinetic*norm:-3 + radial*norm:-5"] + (
+        ["velocities + trig:1 + cosdiff*velocities + coupledstep"] if m == 2 else []
+    )
 
 
 class SparseLagrangian(LinearLagrangian):

@@ -18,7 +18,9 @@ The shorthands (usable in case.toml, joined into libraries by :mod:`latticedft._
   ``velocities`` (every product ``D_t q_i D_t q_j``, for unequal masses);
 - vector fields: ``norm:k1,k2,...`` (``|q|^k``, negative ``k`` too), ``log`` (``log|q|``), ``cross``
   (``q_1 D_t q_2 - q_2 D_t q_1``, a magnetic term), ``radial`` (``(q . D_t q)^2``), ``cosdiff`` / ``sindiff``
-  (``cos(q_i - q_j)``, ``sin(q_i - q_j)``, ``i < j``).
+  (``cos(q_i - q_j)``, ``sin(q_i - q_j)``, ``i < j``), ``coupledstep`` (two components: the exact step's
+  corrections of two pendulums coupled through ``cos(q1 - q2)``, 28 terms, with ``velocities + trig:1 +
+  cosdiff*velocities``).
 
 >>> [t.name for t in named("trig:2").expand(1, 1)]
 ['sin(q)', 'cos(q)', 'sin(2*q)', 'cos(2*q)']
@@ -200,7 +202,7 @@ def named(spec: str) -> Family:
     raise InputError.at(
         "library",
         f"unknown term {spec!r}; expected poly:K, trig:K[:w][@P], trig:K(F), exp[:w][@P], kinetic, gradient, "
-        "velocities, norm:k1,k2,..., log, cross, radial, cosdiff, sindiff, joined by '+' and '*'",
+        "velocities, norm:k1,k2,..., log, cross, radial, cosdiff, sindiff, coupledstep, joined by '+' and '*'",
     )
 
 
@@ -445,6 +447,83 @@ def _radial(match: re.Match[str], label: str) -> Family:
 
 def _radial_value(v: Vars) -> Any:
     return _total([qi * di for qi, di in zip(v.q, v.d[0])]) ** 2
+
+
+@_family(r"coupledstep")
+def _coupledstep(match: re.Match[str], label: str) -> Family:
+    """The exact step's ``O(h^2)`` corrections of two pendulums coupled through ``cos(q1 - q2)`` (28 terms): for
+    ``L = a Dtq1^2 + b Dtq2^2 + c cos(q1 - q2) Dtq1 Dtq2 - V1(q1) - V2(q2)`` with ``V_i`` in ``trig:1``, the terms
+    of ``v.L_qq.v`` and of ``E.adj(M).E`` (``E = L_q - (d L_v/dq) v``), ``1/det M`` taken as a constant
+    (docs/discovery.md: the double pendulum)."""
+
+    def build(n: int, m: int) -> list[Term]:
+        _need(label, n, m, pair=True)
+        return _coupled_step_terms()
+
+    return Family(label, build)
+
+
+def _cd(v: Vars) -> Any:
+    return v.xp.cos(v.q[0] - v.q[1])
+
+
+def _sd(v: Vars) -> Any:
+    return v.xp.sin(v.q[0] - v.q[1])
+
+
+def _sd2(v: Vars) -> Any:
+    return _sd(v) ** 2
+
+
+def _site_trig(f: str, i: int, v: Vars) -> Any:
+    return v.xp.sin(v.q[i]) if f == "sin" else v.xp.cos(v.q[i])
+
+
+def _dt(i: int, k: int, v: Vars) -> Any:
+    return v.d[0][i] ** k if k > 1 else v.d[0][i]
+
+
+def _mul(*factors: Callable[[Vars], Any]) -> Callable[[Vars], Any]:
+    """The product of ``factors`` (left to right)."""
+
+    def value(v: Vars) -> Any:
+        out = factors[0](v)
+        for f in factors[1:]:
+            out = out * f(v)
+        return out
+
+    return value
+
+
+def _coupled_step_terms() -> list[Term]:
+    def vel(i: int, k: int) -> str:
+        return f"Dtq{i + 1}" + (f"**{k}" if k > 1 else "")
+
+    def trig(f: str, i: int) -> Callable[[Vars], Any]:
+        return partial(_site_trig, f, i)
+
+    def dt(i: int, k: int) -> Callable[[Vars], Any]:
+        return partial(_dt, i, k)
+
+    trigs = ("sin", "cos")
+    out = []
+    # v.L_qq.v: the mass's cos(q1 - q2) v1 v2 (v1 - v2)^2 and the potentials' V_i'' v_i^2
+    for p, r in ((3, 1), (2, 2), (1, 3)):
+        out.append(Term(f"cos(q1-q2)*{vel(0, p)}*{vel(1, r)}", _mul(_cd, dt(0, p), dt(1, r))))
+    out += [Term(f"{f}(q{i + 1})*{vel(i, 2)}", _mul(trig(f, i), dt(i, 2))) for i in range(2) for f in trigs]
+    # E.adj(M).E: E_1 = -c v2^2 sin(q1 - q2) - V1'(q1), E_2 = c v1^2 sin(q1 - q2) - V2'(q2); the squares ...
+    for i, j in ((0, 1), (1, 0)):
+        out.append(Term(f"sin(q1-q2)**2*{vel(j, 4)}", _mul(_sd2, dt(j, 4))))
+        out += [Term(f"sin(q1-q2)*{f}(q{i + 1})*{vel(j, 2)}", _mul(_sd, trig(f, i), dt(j, 2))) for f in trigs]
+        pairs = (("sin", "sin"), ("sin", "cos"), ("cos", "cos"))
+        out += [Term(f"{f}(q{i + 1})*{g}(q{i + 1})", _mul(trig(f, i), trig(g, i))) for f, g in pairs]
+    # ... and the cross product E_1 E_2 cos(q1 - q2)
+    out.append(Term(f"cos(q1-q2)*sin(q1-q2)**2*{vel(0, 2)}*{vel(1, 2)}", _mul(_cd, _sd2, dt(0, 2), dt(1, 2))))
+    for i in (1, 0):
+        name = "cos(q1-q2)*sin(q1-q2)*{}(q{})*{}"
+        out += [Term(name.format(f, i + 1, vel(i, 2)), _mul(_cd, _sd, trig(f, i), dt(i, 2))) for f in trigs]
+    out += [Term(f"cos(q1-q2)*{f}(q1)*{g}(q2)", _mul(_cd, trig(f, 0), trig(g, 1))) for f in trigs for g in trigs]
+    return out
 
 
 @_family(r"cross")
