@@ -11,7 +11,16 @@ import torch
 
 from .._action import CellDerivatives
 from .._contract import AbstractLagrangian
-from ._slices import _scale, _SliceSystem, first_singular, is_singular, singular_message
+from ._slices import (
+    _scale,
+    _SliceSystem,
+    abs_max,
+    finite_step,
+    first_singular,
+    is_singular,
+    singular_message,
+    values_abs_max,
+)
 from ._solvers import SolverRefused, factor_step
 
 #: A chord step (the factorisation or preconditioner of an earlier Jacobian reused) is followed by another
@@ -68,7 +77,7 @@ def _fresh_blocks(ev: CellDerivatives, sys: _SliceSystem, cache: dict[str, Any],
     largest singular value met on its own blocks (``cache["member_mscale"]``), as each is when served alone.
     """
     blocks = ev.blocks(sys.pairs)
-    dmax = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
+    dmax = max((abs_max(blocks[p]) for p in sys.diag_pairs), default=1.0)
     if sys.members > 1:  # a stacked ensemble: each member on its own scale, as served alone
         lows, highs, rows = sys.member_singular_values(blocks)
         cache["dmax"] = allmax(dmax)[0]
@@ -147,7 +156,7 @@ def _newton_slice(
             r = sys.residual(g_prev, ev.grad, vol)
         else:
             ev, r = evaluate(i, g_prev, "dmax" not in cache or (it == 1 and not first_stale))
-        (res,) = allmax(float(np.abs(r).max()) if r.size else 0.0)
+        (res,) = allmax(values_abs_max(r) if r.size else 0.0)
         if not math.isfinite(res):
             return it, res, ev.grad, ("residual is not finite", None, res)
         stale = "solve" in cache and (first_stale if it == 1 else _chord_pays(res, prev, rtol * (rscale or 0.0)))
@@ -179,8 +188,8 @@ def _newton_slice(
             cache.pop("solve", None)
             row = int(np.argmax(np.abs(r)))
             return it, res, ev.grad, (f"singular Jacobian (mixed Hessian) of the slice: {exc}", row, res)
-        finite = bool(np.all(np.isfinite(delta)))
-        bad, step = allmax(0.0 if finite else 1.0, float(np.abs(delta).max()) if finite and delta.size else 0.0)
+        finite, size = finite_step(delta)
+        bad, step = allmax(0.0 if finite else 1.0, size)
         if bad:
             cache.pop("solve", None)
             if stale:
