@@ -11,7 +11,15 @@ import torch
 
 from .._action import CellDerivatives
 from .._contract import AbstractLagrangian
-from ._slices import _scale, _SliceSystem, is_singular, singular_message
+from ._slices import (
+    _scale,
+    _SliceSystem,
+    abs_max,
+    finite_step,
+    is_singular,
+    singular_message,
+    values_abs_max,
+)
 from ._solvers import SolverRefused, factor_step
 
 #: A chord step (the factorisation or preconditioner of an earlier Jacobian reused) is followed by another
@@ -67,7 +75,7 @@ def _fresh_blocks(ev: CellDerivatives, sys: _SliceSystem, cache: dict[str, Any],
     ensemble's members are judged one by one, by ``._members``.)
     """
     blocks = ev.blocks(sys.pairs)
-    dmax = max((float(blocks[p].abs().max()) for p in sys.diag_pairs), default=1.0)
+    dmax = max((abs_max(blocks[p]) for p in sys.diag_pairs), default=1.0)
     smin, smax, row = sys.site_singular_values(blocks)
     cache["dmax"], low, smax = allmax(dmax, -smin, smax)
     smin = -low
@@ -137,7 +145,7 @@ def _newton_slice(
             r = sys.residual(g_prev, ev.grad, vol)
         else:
             ev, r = evaluate(i, g_prev, "dmax" not in cache or (it == 1 and not first_stale))
-        (res,) = allmax(float(np.abs(r).max()) if r.size else 0.0)
+        (res,) = allmax(values_abs_max(r) if r.size else 0.0)
         if not math.isfinite(res):
             return it, res, ev.grad, ("residual is not finite", None, res)
         stale = "solve" in cache and (first_stale if it == 1 else _chord_pays(res, prev, rtol * (rscale or 0.0)))
@@ -169,8 +177,8 @@ def _newton_slice(
             cache.pop("solve", None)
             row = int(np.argmax(np.abs(r)))
             return it, res, ev.grad, (f"singular Jacobian (mixed Hessian) of the slice: {exc}", row, res)
-        finite = bool(np.all(np.isfinite(delta)))
-        bad, step = allmax(0.0 if finite else 1.0, float(np.abs(delta).max()) if finite and delta.size else 0.0)
+        finite, size = finite_step(delta)
+        bad, step = allmax(0.0 if finite else 1.0, size)
         if bad:
             cache.pop("solve", None)
             if stale:

@@ -14,6 +14,7 @@ import scipy.sparse.linalg
 import torch
 
 from .._boundary import axis_kinds
+from .._kernel_krylov import krylov_kernels
 from .._lattice import LatticeField, interior_slices
 from .._models import AbstractLagrangian
 from ._band import band_factor
@@ -22,6 +23,12 @@ from ._band import band_factor
 #: largest singular value met on the served field so far) is singular: serving stops there with a
 #: ``ServeError`` instead of accepting whatever Newton's method makes of it.
 SINGULAR_RTOL = 1e-10
+
+#: Whether a fresh Jacobian's diagonal sum, its site-wise extremes (one component), its CSR values from the
+#: evaluated columns and the largest sizes slice-Newton reads (:func:`abs_max`: the step's scale, the largest
+#: off-diagonal entry) run as compiled loops (``latticedft._kernel_krylov``: the same values to the bit;
+#: ``False``: torch's ``index_add_`` and reductions, numpy's gather).
+COMPILED_ASSEMBLY = True
 
 
 class Blocks(dict):
@@ -193,21 +200,36 @@ class _SliceSystem:
         """The slice Jacobian of ``blocks`` as scipy builds it from :meth:`matrix_entries` (columns sorted within
         each row, the same values), its structure sorted once per lattice."""
         size = self.n * self.m
+        data, indices, indptr = self.csr_arrays(blocks, vol)
+        return scipy.sparse.csr_matrix((data, indices, indptr), shape=(size, size), copy=False)
+
+    def csr_arrays(
+        self, blocks: dict[tuple[int, int], torch.Tensor], vol: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(data, indices, indptr)`` of :meth:`csr`."""
+        size = self.n * self.m
         pattern = self._csr_pattern
         if pattern is None:
             rows, cols, vals = self.matrix_entries(blocks, vol)
-            return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(size, size))
+            mat = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(size, size))
+            return mat.data, mat.indices, mat.indptr
         order, indices, indptr = pattern
         columns = getattr(blocks, "columns", None)
         if columns is not None:  # the entries read from the columns in CSR order at once: the same products
             held, first = columns
             if held.flags.c_contiguous:
-                vals = held.reshape(-1)[self._column_places(held.shape[1], first)] * vol
+                src, places = held.reshape(-1), self._column_places(held.shape[1], first)
             else:  # one contiguous row per column (its transpose)
-                vals = held.T.reshape(-1)[self._column_places(held.shape[1], first, held.shape[0])] * vol
+                src, places = held.T.reshape(-1), self._column_places(held.shape[1], first, held.shape[0])
+            mod = krylov_kernels() if COMPILED_ASSEMBLY else None
+            if mod is not None:
+                vals = np.empty(places.size)
+                mod.take_scaled(src, places, vol, vals)
+            else:
+                vals = src[places] * vol
         else:
             vals = self._entry_values(blocks, vol)[order]
-        return scipy.sparse.csr_matrix((vals, indices, indptr), shape=(size, size), copy=False)
+        return vals, indices, indptr
 
     def _column_places(self, width: int, first: int, ncell: int | None = None) -> np.ndarray:
         """Where each entry of the Jacobian, in CSR order, lies in the flat ``(cells, width)`` columns of
@@ -238,6 +260,10 @@ class _SliceSystem:
         diag = self.diagonal(blocks)
         if self.n == 0:
             return math.inf, 0.0, 0
+        mod = krylov_kernels() if COMPILED_ASSEMBLY and m == 1 else None
+        if mod is not None:  # the same extremes by one compiled pass
+            low1, worst1, high1 = mod.abs_extremes(diag.reshape(-1).numpy())
+            return float(low1), float(high1), int(worst1) * m
         sv = diag.abs().reshape(-1, 1) if m == 1 else torch.linalg.svdvals(diag)
         sv = torch.nan_to_num(sv, nan=0.0)
         low = sv[:, -1]
@@ -278,8 +304,13 @@ class _SliceSystem:
             return diag_kept
         m = self.m
         diag = torch.zeros(self.n, m, m, dtype=torch.float64)
+        mod = krylov_kernels() if COMPILED_ASSEMBLY else None
         for key, cells, rows in self.diag_entries:
-            diag.index_add_(0, rows, blocks[key].reshape(-1, m, m)[cells])
+            held = blocks[key].detach().reshape(-1, m, m)
+            if mod is not None and held.dtype == torch.float64 and held.device.type == "cpu":
+                mod.diag_add(diag.numpy(), rows.numpy(), cells.numpy(), np.ascontiguousarray(held.numpy()))
+            else:
+                diag.index_add_(0, rows, held[cells])
         if isinstance(blocks, Blocks):
             blocks.diag = (self, diag)
         return diag
@@ -361,4 +392,34 @@ def _scale(flat: torch.Tensor, i: int, unk: torch.Tensor) -> float:
     """Size of the values on slices ``i - 1``, ``i`` and the unknowns of ``i + 1``: the scale of a Newton step
     (``unk``, distinct sites, holding every site: the whole slice, not gathered)."""
     nxt = flat[i + 1] if unk.numel() == flat.shape[1] else flat[i + 1, unk]
-    return max(float(flat[i - 1].abs().max()), float(flat[i].abs().max()), float(nxt.abs().max()), 1e-300)
+    return max(abs_max(flat[i - 1]), abs_max(flat[i]), abs_max(nxt), 1e-300)
+
+
+def values_abs_max(a: np.ndarray) -> float:
+    """``float(np.abs(a).max())`` of a non-empty array (a not-a-number wherever one is), by one compiled pass where
+    ``a`` is a contiguous double array."""
+    mod = krylov_kernels() if COMPILED_ASSEMBLY else None
+    if mod is None or a.dtype != np.float64 or not a.flags.c_contiguous:
+        return float(np.abs(a).max())
+    return float(mod.abs_max(a.reshape(-1)))
+
+
+def finite_step(a: np.ndarray) -> tuple[bool, float]:
+    """``(finite, size)``: whether every value of ``a`` is finite and, where so, its largest size (``0.0`` when
+    empty; numpy's ``isfinite().all()`` and ``abs().max()``), by one compiled pass where ``a`` is a contiguous
+    double array."""
+    mod = krylov_kernels() if COMPILED_ASSEMBLY else None
+    if mod is None or a.dtype != np.float64 or not a.flags.c_contiguous or not a.size:
+        finite = bool(np.all(np.isfinite(a)))
+        return finite, float(np.abs(a).max()) if finite and a.size else 0.0
+    finite, top = mod.finite_abs_max(a.reshape(-1))
+    return bool(finite), float(top) if finite else 0.0
+
+
+def abs_max(t: torch.Tensor) -> float:
+    """``float(t.abs().max())`` (a not-a-number wherever one is), by one compiled pass where ``t`` is a non-empty
+    contiguous CPU tensor in double precision (no array of the sizes)."""
+    mod = krylov_kernels() if COMPILED_ASSEMBLY else None
+    if mod is None or not t.numel() or t.dtype != torch.float64 or t.device.type != "cpu" or not t.is_contiguous():
+        return float(t.abs().max())
+    return float(mod.abs_max(t.detach().numpy().reshape(-1)))

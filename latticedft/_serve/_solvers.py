@@ -35,7 +35,8 @@ import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
-from ._slices import _SliceSystem
+from .._kernel_krylov import krylov_kernels
+from ._slices import _SliceSystem, abs_max
 
 __all__ = ["SOLVERS", "OFFDIAG_RTOL", "SolverRefused", "choose_solver", "factor_step"]
 
@@ -57,6 +58,16 @@ GMRES_RTOL = 1e-8
 GMRES_RESTART = 40
 GMRES_MAXITER = 50  # restart cycles
 
+#: Whether GMRES runs compiled (``latticedft._kernel_krylov``: scipy's algorithm, the steps the same to round-off)
+#: where numba builds it (``False``: scipy's ``gmres``).
+COMPILED_GMRES = True
+
+#: The compiled GMRES keeps the first :data:`GMRES_KEPT_ROWS` rows of its Krylov basis (and two work vectors) with
+#: the lattice's slice system where they take at most :data:`GMRES_KEPT_BYTES` (a larger lattice allocates them
+#: per solve, as scipy does); a solve that needs more rows runs again with the whole basis (the same steps).
+GMRES_KEPT_ROWS = 8
+GMRES_KEPT_BYTES = 64 * 2**20
+
 Solve = Callable[[np.ndarray], np.ndarray]
 
 
@@ -76,7 +87,7 @@ def _diag_and_offdiag(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Ten
     off = 0.0
     for key, where in sys.offdiag_cells:
         held = blocks[key].reshape(-1, m, m)
-        off = max(off, float((held if where is None else held[where]).abs().max()))
+        off = max(off, abs_max(held if where is None else held[where]))
     return diag, off
 
 
@@ -103,7 +114,7 @@ def _member_offdiag(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Tenso
 
 def choose_solver(sys: _SliceSystem, requested: str, diag: torch.Tensor, off: float) -> str:
     """The solver of a step: ``requested``, or for ``"auto"`` the one the Jacobian's structure calls for."""
-    scale = float(diag.abs().max()) if diag.numel() else 0.0
+    scale = abs_max(diag) if diag.numel() else 0.0
     if requested == "sitewise" and off > SITEWISE_MAX_OFFDIAG * scale:
         raise SolverRefused(
             f"solver 'sitewise' needs a block-diagonal slice Jacobian, but its off-diagonal blocks reach "
@@ -119,27 +130,67 @@ def choose_solver(sys: _SliceSystem, requested: str, diag: torch.Tensor, off: fl
 
 def _block_inverse(diag: torch.Tensor, vol: float) -> Solve:
     """``rhs -> D^-1 rhs`` for the block-diagonal ``D = vol * diag`` (``(n, m, m)``), vectorised over the sites."""
+    return _inverse_of(diag, vol)[0]
+
+
+def _inverse_of(diag: torch.Tensor, vol: float) -> tuple[Solve, np.ndarray]:
+    """``(rhs -> D^-1 rhs, inv)``: :func:`_block_inverse`'s product and the inverted blocks ``inv`` ``(n, m, m)``
+    it applies."""
     n, m = diag.shape[0], diag.shape[-1]
     if m == 1:
-        d = vol * diag.reshape(-1).numpy()
-        if not np.all(d != 0):
-            raise np.linalg.LinAlgError("zero on the diagonal")
-        inv_d = 1.0 / d
-        return lambda rhs: inv_d * rhs
+        mod = krylov_kernels() if COMPILED_GMRES else None
+        if mod is not None and diag.dtype == torch.float64 and diag.is_contiguous():
+            inv_d = np.empty(n)
+            if not mod.invert_scaled(diag.reshape(-1).numpy(), vol, inv_d):  # the same values, one pass
+                raise np.linalg.LinAlgError("zero on the diagonal")
+        else:
+            d = vol * diag.reshape(-1).numpy()
+            if not np.all(d != 0):
+                raise np.linalg.LinAlgError("zero on the diagonal")
+            inv_d = 1.0 / d
+        return (lambda rhs: inv_d * rhs), inv_d.reshape(n, 1, 1)
     inv, info = torch.linalg.inv_ex(vol * diag)
     if n and bool((info != 0).any()):
         raise np.linalg.LinAlgError("singular diagonal block")
     inv_np = inv.numpy()
-    return lambda rhs: np.einsum("nij,nj->ni", inv_np, rhs.reshape(n, m)).reshape(-1)
+    return (lambda rhs: np.einsum("nij,nj->ni", inv_np, rhs.reshape(n, m)).reshape(-1)), inv_np
 
 
 def _krylov(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Tensor], vol: float, diag, target: float) -> Solve:
-    """GMRES on the assembled Jacobian with the block-Jacobi preconditioner."""
+    """GMRES on the assembled Jacobian with the block-Jacobi preconditioner: compiled (``latticedft._kernel_krylov``,
+    scipy's algorithm in one call, its basis a workspace kept per lattice) where numba builds it, else scipy's."""
     size = sys.n * sys.m
-    mat = sys.csr(blocks, vol)
-    prec = _block_inverse(diag, vol)
-    pre = scipy.sparse.linalg.LinearOperator((size, size), matvec=prec, dtype=np.float64)
+    data, indices, indptr = sys.csr_arrays(blocks, vol)
+    prec, inv = _inverse_of(diag, vol)
     atol = 0.1 * target
+    mod = krylov_kernels() if COMPILED_GMRES else None
+    if mod is not None:
+        inv = np.ascontiguousarray(inv)
+        restart = min(GMRES_RESTART, size)
+        rows = min(restart + 1, GMRES_KEPT_ROWS)  # most solves touch a few rows of the basis
+        work = sys.kept.get("gmres_work")
+        if (work is None or work[0].shape != (rows, size)) and (rows + 2) * size * 8 <= GMRES_KEPT_BYTES:
+            work = sys.kept["gmres_work"] = (np.empty((rows, size)), np.empty(size), np.empty(size))
+
+        def compiled(rhs: np.ndarray) -> np.ndarray:
+            b = np.ascontiguousarray(rhs, dtype=np.float64)
+            x = np.empty(size)
+            held = sys.kept.get("gmres_work")
+            if held is None or held[0].shape != (rows, size):  # a large lattice: allocated per solve, as scipy's
+                held = (np.empty((rows, size)), np.empty(size), np.empty(size))
+            for basis in (held[0], None):  # a solve that needs more of the basis runs again with all of it
+                mod.psolve(inv, b, x)  # the site-wise step: exact where the off-diagonal blocks vanish
+                v = basis if basis is not None else np.empty((restart + 1, size))
+                info, _ = mod.gmres(
+                    indptr, indices, data, inv, b, x, atol, GMRES_RTOL, GMRES_RESTART, GMRES_MAXITER, v, *held[1:]
+                )
+                if info != -1:
+                    break
+            return x  # an inexact step when GMRES stopped early: Newton's residual test decides
+
+        return compiled
+    mat = scipy.sparse.csr_matrix((data, indices, indptr), shape=(size, size), copy=False)
+    pre = scipy.sparse.linalg.LinearOperator((size, size), matvec=prec, dtype=np.float64)
 
     def solve(rhs: np.ndarray) -> np.ndarray:
         x0 = prec(rhs)  # the site-wise step: exact where the off-diagonal blocks vanish
