@@ -92,7 +92,44 @@ def folded_cells(lo, hi, site_of, upper, w, shift, expo, gc, out):
 
 """
 
-_FOLDED = """
+#: The largest |value| of a flat array as torch's ``abs().max()`` takes it (a not-a-number wherever one is), in
+#: eight lanes: a numba function of the folded kernel module, printed into the Krylov module too
+#: (:mod:`latticedft._kernel_krylov`).
+MAGNITUDE = """\
+@numba.njit(cache=True, error_model='numpy', nogil=True, inline='always')
+def magnitude(a):
+    # the largest |value| of a (flat), a not-a-number wherever one is (as torch's abs().max()), 0.0 when empty: in
+    # eight lanes (each lane's select vectorises); a NaN or infinity seen (x - x is not 0) is settled by a
+    # scalar pass
+    lane = np.zeros(8)
+    seen = np.zeros(8)
+    n = a.shape[0]
+    s = 0
+    while s + 8 <= n:
+        for j in range(8):
+            x = abs(a[s + j])
+            lane[j] = x if x > lane[j] else lane[j]
+            seen[j] += x - x
+        s += 8
+    top = 0.0
+    for j in range(8):
+        top = lane[j] if lane[j] > top else top
+    odd = False
+    for j in range(8):
+        odd = odd or seen[j] != 0.0
+    for t in range(s, n):
+        x = abs(a[t])
+        top = x if x > top else top
+        odd = odd or x - x != 0.0
+    if odd:
+        for t in range(n):
+            if a[t] != a[t]:
+                return math.nan
+    return top
+"""
+
+_FOLDED = (
+    """
 import math
 
 import numba
@@ -136,37 +173,9 @@ def gather_residual(gprev, gcur, cell_at, upper, rows, vol, r):
             r[q * m + c] = vol * acc
 
 
-@numba.njit(cache=True, error_model='numpy', nogil=True, inline='always')
-def magnitude(a):
-    # the largest |value| of a (flat), a not-a-number wherever one is (as torch's abs().max()), 0.0 when empty: in
-    # eight lanes (each lane's select vectorises); a NaN or infinity seen (x - x is not 0) is settled by a
-    # scalar pass
-    lane = np.zeros(8)
-    seen = np.zeros(8)
-    n = a.shape[0]
-    s = 0
-    while s + 8 <= n:
-        for j in range(8):
-            x = abs(a[s + j])
-            lane[j] = x if x > lane[j] else lane[j]
-            seen[j] += x - x
-        s += 8
-    top = 0.0
-    for j in range(8):
-        top = lane[j] if lane[j] > top else top
-    odd = False
-    for j in range(8):
-        odd = odd or seen[j] != 0.0
-    for t in range(s, n):
-        x = abs(a[t])
-        top = x if x > top else top
-        odd = odd or x - x != 0.0
-    if odd:
-        for t in range(n):
-            if a[t] != a[t]:
-                return math.nan
-    return top
-
+"""
+    + MAGNITUDE
+    + """
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
 def predict(prev, cur, nxt, older, rows):
@@ -393,6 +402,7 @@ def update(nxt, rows, delta):
             top = max(top, abs(nxt[rows[q], c]))
     return top
 """
+)
 
 #: The generic monomial loop of ``folded_cells``: any number of variables and columns.
 _GENERIC_MONOMIALS = """

@@ -19,10 +19,12 @@ from typing import Any
 import numpy as np
 
 from ._kernel import _VERSION, cached_module, write_module
+from ._kernel_folded import MAGNITUDE
 
 __all__ = ["krylov_kernels"]
 
-_SOURCE = """
+_SOURCE = (
+    """
 import math
 
 import numba
@@ -193,36 +195,14 @@ def invert_scaled(d, vol, out):
     return ok
 
 
+"""
+    + MAGNITUDE
+    + """
+
 @numba.njit(cache=True, error_model='numpy', nogil=True)
 def abs_max(a):
-    # the largest |value| of a (flat), a not-a-number wherever one is (torch's abs().max()), 0.0 when empty: in
-    # eight lanes (each lane's select vectorises); a not-a-number or infinity seen (x - x is not 0) is settled by a
-    # scalar pass
-    lane = np.zeros(8)
-    seen = np.zeros(8)
-    n = a.shape[0]
-    s = 0
-    while s + 8 <= n:
-        for j in range(8):
-            x = abs(a[s + j])
-            lane[j] = x if x > lane[j] else lane[j]
-            seen[j] += x - x
-        s += 8
-    top = 0.0
-    for j in range(8):
-        top = lane[j] if lane[j] > top else top
-    odd = False
-    for j in range(8):
-        odd = odd or seen[j] != 0.0
-    for t in range(s, n):
-        x = abs(a[t])
-        top = x if x > top else top
-        odd = odd or x - x != 0.0
-    if odd:
-        for t in range(n):
-            if a[t] != a[t]:
-                return math.nan
-    return top
+    # the largest |value| of a (flat), a not-a-number wherever one is (torch's abs().max()), 0.0 when empty
+    return magnitude(a)
 
 
 @numba.njit(cache=True, error_model='numpy', nogil=True)
@@ -367,6 +347,7 @@ def gmres(indptr, indices, vals, inv, b, x, atol, rtol, restart, maxiter, v, w, 
         ptol = presid * min(ptol_max_factor, atol / rnorm)
     return (0 if rnorm <= atol else maxiter), rnorm
 """
+)
 
 
 #: The module's key in the kernel cache (hashed once: the kernels are asked for several times a slice).
