@@ -16,7 +16,7 @@ from .._models import AbstractLagrangian
 from .._options import option
 from ._folded import not_affine_by_forms
 from ._potential import not_affine
-from ._slices import _SliceSystem, first_singular
+from ._slices import _SliceSystem, first_singular, member_abs_max
 
 log = logging.getLogger("latticedft")
 
@@ -296,7 +296,7 @@ def passing_members(v: np.ndarray, res: np.ndarray, bounds: np.ndarray, m: int) 
     values on the three slices, as when served alone; the slices kept are those every member passes (Newton
     serves the rest), the worst residual each member's largest among them."""
     nm = bounds.size
-    absmax = np.stack([np.abs(row.reshape(-1, nm, m // nm)).max(axis=(0, 2)) for row in v])  # (slices, members)
+    absmax = np.stack([member_abs_max(row, nm, m // nm) for row in v])  # (slices, members)
     scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), absmax[2:]).clip(1e-300)
     k = min(passing_prefix(res[:, j], bounds[j] * scl[:, j]) for j in range(nm))
     return k, float(np.nanmax(res[:k], initial=0.0)) if k else 0.0

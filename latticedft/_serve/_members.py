@@ -22,47 +22,28 @@ import torch
 from .._action import CellDerivatives
 from .._contract import AbstractLagrangian
 from ._newton import CHORD_PREDICT, FRESH_FIRST_ON, FRESH_FIRST_RETRY, _chord_pays, _factorise
-from ._slices import Blocks, _SliceSystem, first_singular, singular_message
+from ._slices import Blocks, _SliceSystem, first_singular, member_abs_max, member_blocks, singular_message
 from ._solvers import SolverRefused
 
 __all__ = ["newton_members"]
-
-
-def _per_member(a: np.ndarray | torch.Tensor, nm: int, w: int) -> np.ndarray:
-    """The largest ``|a|`` of each member over its own components (``a``: ``(..., nm * w)`` flattened or not; NaN
-    where a member's entries hold one)."""
-    if isinstance(a, torch.Tensor):
-        a = a.numpy()
-    if a.size == 0:
-        return np.zeros(nm)
-    cols = np.ascontiguousarray(a.reshape(-1, nm * w).T)  # each component's entries contiguous: a fast reduce
-    np.abs(cols, out=cols)
-    out: np.ndarray = cols.max(axis=1).reshape(nm, w).max(axis=1)
-    return out
 
 
 def _member_scales(flat: torch.Tensor, i: int, unk: torch.Tensor, nm: int, w: int) -> np.ndarray:
     """:func:`._slices._scale` of each member: the size of its own values on slices ``i - 1``, ``i`` and the
     unknowns of ``i + 1``."""
     nxt = flat[i + 1] if unk.numel() == flat.shape[1] else flat[i + 1, unk]
-    parts = [_per_member(flat[i - 1], nm, w), _per_member(flat[i], nm, w), _per_member(nxt, nm, w)]
+    parts = [member_abs_max(flat[i - 1], nm, w), member_abs_max(flat[i], nm, w), member_abs_max(nxt, nm, w)]
     return np.maximum(np.maximum(np.maximum(parts[0], parts[1]), parts[2]), 1e-300)
-
-
-def _own(block: torch.Tensor, nm: int, w: int) -> torch.Tensor:
-    """Each member's own ``w x w`` blocks of ``(cells, m, m)`` Hessian blocks: ``(members, cells, w, w)``."""
-    own = torch.arange(nm)
-    return block.reshape(-1, nm, w, nm, w)[:, own, :, own, :]
 
 
 def _assess(sys: _SliceSystem, blocks: Any, cache: dict[str, Any], which: np.ndarray) -> tuple[str, int] | None:
     """The members ``which`` (a mask) take fresh Hessian blocks: each one's diagonal size (``member_dmax``) and
     the largest singular value met on its own blocks (``member_mscale``) updated, and its conditioning judged
     against that (``_newton._fresh_blocks`` of a single model); ``(message, row)`` of the first singular one."""
-    nm, w = sys.members, sys.m // sys.members
+    nm = sys.members
     dmax = np.full(nm, 1.0) if not sys.diag_pairs else np.zeros(nm)
     for p in sys.diag_pairs:
-        dmax = np.maximum(dmax, _own(blocks[p], nm, w).abs().amax(dim=(1, 2, 3)).numpy())
+        dmax = np.maximum(dmax, member_blocks(blocks[p], nm).abs().amax(dim=(1, 2, 3)).numpy())
     lows, highs, rows = sys.member_singular_values(blocks)
     mscale = np.array(cache.get("member_mscale", np.zeros(nm)), dtype=np.float64)
     mscale[which] = np.maximum(mscale[which], highs[which])
@@ -162,7 +143,7 @@ class _Slice:
         not finite (the slice fails)."""
         nm, w = self.nm, self.w
         d = delta.reshape(-1, nm, w)  # the solve's own array
-        step = _per_member(d, nm, w)  # not finite where a member's step is not
+        step = member_abs_max(d, nm, w)  # not finite where a member's step is not
         bad = self.active & ~np.isfinite(step)
         if (bad & ~stale).any():
             return False
@@ -219,7 +200,7 @@ def newton_members(
             r = sys.residual(g_prev, ev.grad, vol)
         else:
             ev, r = evaluate(i, g_prev, bool(unset.any()) or (it == 1 and not run.first_stale.all()))
-        res = _per_member(r, nm, w)
+        res = member_abs_max(r, nm, w)
         top = float(np.max(res))
         if not np.isfinite(res[run.active]).all():
             return it, top, ev.grad, ("residual is not finite", None, top)
@@ -253,5 +234,5 @@ def newton_members(
         if not run.step(delta, stale, flat, i, unk):
             cache.pop("solve", None)
             return it, top, ev.grad, ("Newton step is not finite (singular mixed Hessian?)", run.worst_row(r), top)
-    last = float(np.max(_per_member(r, nm, w)[run.active])) if r.size else 0.0
+    last = float(np.max(member_abs_max(r, nm, w)[run.active])) if r.size else 0.0
     return max_newton, last, ev.grad, (f"Newton did not converge in {max_newton} iterations", run.worst_row(r), last)

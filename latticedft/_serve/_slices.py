@@ -284,9 +284,7 @@ class _SliceSystem:
         w = m // nm
         if self.n == 0:
             return np.full(nm, math.inf), np.zeros(nm), np.zeros(nm, dtype=np.int64)
-        diag = self.diagonal(blocks).reshape(self.n, nm, w, nm, w)
-        own = torch.arange(nm)
-        per = diag[:, own, :, own, :]  # (members, n, w, w)
+        per = member_blocks(self.diagonal(blocks), nm)  # (members, n, w, w)
         sv = per.abs().reshape(nm, -1, 1) if w == 1 else torch.linalg.svdvals(per)
         sv = torch.nan_to_num(sv, nan=0.0)
         lowest = sv[..., -1]  # (members, n)
@@ -350,6 +348,27 @@ def singular_message(smin: float, scale: float) -> str:
 def is_singular(smin: float, scale: float) -> bool:
     """Whether a smallest singular value ``smin`` is singular relative to ``scale`` (a zero scale is)."""
     return not (scale > 0 and smin > SINGULAR_RTOL * scale)
+
+
+def member_abs_max(a: np.ndarray | torch.Tensor, nm: int, w: int) -> np.ndarray:
+    """The largest ``|a|`` of each of ``nm`` models side by side on the components (``a``: ``(..., nm * w)``
+    flattened or not; NaN where a member's entries hold one)."""
+    if isinstance(a, torch.Tensor):
+        a = a.numpy()
+    if a.size == 0:
+        return np.zeros(nm)
+    cols = np.ascontiguousarray(a.reshape(-1, nm * w).T)  # each component's entries contiguous: a fast reduce
+    np.abs(cols, out=cols)
+    out: np.ndarray = cols.max(axis=1).reshape(nm, w).max(axis=1)
+    return out
+
+
+def member_blocks(block: torch.Tensor, nm: int) -> torch.Tensor:
+    """Each of ``nm`` stacked members' own ``w x w`` blocks of ``(cells, m, m)`` Hessian blocks (``m = nm * w``):
+    ``(members, cells, w, w)``."""
+    w = block.shape[-1] // nm
+    own = torch.arange(nm)
+    return block.reshape(-1, nm, w, nm, w)[:, own, :, own, :]
 
 
 def first_singular(smin: np.ndarray, scale: np.ndarray) -> int | None:
