@@ -166,6 +166,16 @@ def test_the_compiled_largest_sizes_are_torchs_and_numpys() -> None:
     rng = np.random.default_rng(5)
     cases = [rng.normal(size=1000), -np.abs(rng.normal(size=7)), np.array([-0.0, 0.0]), np.array([1.0, np.inf, -3.0])]
     cases += [np.array([2.0, np.nan, -5.0]), np.array([np.nan, -np.inf]), rng.normal(size=(40, 3))]
+    # a not-a-number or an infinity in the eight-lane body and in the tail, at each lane; sizes whose sum overflows
+    for size in (8, 19, 1003):
+        for bad in (np.nan, np.inf, -np.inf):
+            for at in sorted({0, 3, 7, size // 2 + 5, size - 1} & set(range(size))):
+                a = rng.normal(size=size)
+                a[at] = bad
+                cases.append(a)
+    both = rng.normal(size=200)
+    both[[17, 150]] = [np.inf, -np.inf]
+    cases += [both, np.full(64, 1e308), np.full(64, -1e308), np.concatenate([np.full(64, 1e308), [np.nan]])]
     for a in cases:
         t = torch.from_numpy(a)
         want, got = float(t.abs().max()), abs_max(t)
