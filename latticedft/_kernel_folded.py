@@ -99,24 +99,38 @@ MAGNITUDE = """\
 @numba.njit(cache=True, error_model='numpy', nogil=True, inline='always')
 def magnitude(a):
     # the largest |value| of a (flat), a not-a-number wherever one is (as torch's abs().max()), 0.0 when empty: in
-    # eight lanes (each lane's select vectorises); a NaN or infinity seen (x - x is not 0) is settled by a
-    # scalar pass
-    lane = np.zeros(8)
-    seen = np.zeros(8)
+    # eight running maxima and eight running sums held in scalars (registers: the loop vectorises); a NaN never
+    # enters a maximum (x > top is false) but makes its sum NaN, as an infinity makes it infinite (or an overflow
+    # of finite sizes: then the scalar pass finds no NaN), and such a sum is settled by a scalar pass
     n = a.shape[0]
+    l0 = l1 = l2 = l3 = l4 = l5 = l6 = l7 = 0.0
+    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
     s = 0
     while s + 8 <= n:
-        for j in range(8):
-            x = abs(a[s + j])
-            lane[j] = x if x > lane[j] else lane[j]
-            seen[j] += x - x
+        x0, x1, x2, x3 = abs(a[s]), abs(a[s + 1]), abs(a[s + 2]), abs(a[s + 3])
+        x4, x5, x6, x7 = abs(a[s + 4]), abs(a[s + 5]), abs(a[s + 6]), abs(a[s + 7])
+        l0 = x0 if x0 > l0 else l0
+        l1 = x1 if x1 > l1 else l1
+        l2 = x2 if x2 > l2 else l2
+        l3 = x3 if x3 > l3 else l3
+        l4 = x4 if x4 > l4 else l4
+        l5 = x5 if x5 > l5 else l5
+        l6 = x6 if x6 > l6 else l6
+        l7 = x7 if x7 > l7 else l7
+        s0 += x0
+        s1 += x1
+        s2 += x2
+        s3 += x3
+        s4 += x4
+        s5 += x5
+        s6 += x6
+        s7 += x7
         s += 8
     top = 0.0
-    for j in range(8):
-        top = lane[j] if lane[j] > top else top
-    odd = False
-    for j in range(8):
-        odd = odd or seen[j] != 0.0
+    for v in (l0, l1, l2, l3, l4, l5, l6, l7):
+        top = v if v > top else top
+    total = ((s0 + s1) + (s2 + s3)) + ((s4 + s5) + (s6 + s7))
+    odd = total - total != 0.0
     for t in range(s, n):
         x = abs(a[t])
         top = x if x > top else top

@@ -166,6 +166,16 @@ def test_the_compiled_largest_sizes_are_torchs_and_numpys() -> None:
     rng = np.random.default_rng(5)
     cases = [rng.normal(size=1000), -np.abs(rng.normal(size=7)), np.array([-0.0, 0.0]), np.array([1.0, np.inf, -3.0])]
     cases += [np.array([2.0, np.nan, -5.0]), np.array([np.nan, -np.inf]), rng.normal(size=(40, 3))]
+    # a not-a-number or an infinity in the eight-lane body and in the tail, at each lane; sizes whose sum overflows
+    for size in (8, 19, 1003):
+        for bad in (np.nan, np.inf, -np.inf):
+            for at in sorted({0, 3, 7, size // 2 + 5, size - 1} & set(range(size))):
+                a = rng.normal(size=size)
+                a[at] = bad
+                cases.append(a)
+    both = rng.normal(size=200)
+    both[[17, 150]] = [np.inf, -np.inf]
+    cases += [both, np.full(64, 1e308), np.full(64, -1e308), np.concatenate([np.full(64, 1e308), [np.nan]])]
     for a in cases:
         t = torch.from_numpy(a)
         want, got = float(t.abs().max()), abs_max(t)
@@ -178,3 +188,33 @@ def test_the_compiled_largest_sizes_are_torchs_and_numpys() -> None:
     assert finite_step(np.zeros(0)) == (True, 0.0)
     strided = torch.from_numpy(rng.normal(size=(6, 4)))[:, 1]  # not contiguous: torch's own reduction
     assert abs_max(strided) == float(strided.abs().max())
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_newtons_step_scale_from_the_predictors_sizes_serves_the_same_field(
+    ndim: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Newton's step scale reads the sizes of the two slices before from the folded predictor (one pass a step over
+    the unknowns): the same field to the bit, the same iterations, as each step measuring all three slices."""
+    from latticedft._serve import _newton, _stepper
+
+    lagrangian, start = _polynomial(ndim), _field(ndim, 5 if ndim == 3 else 8)
+    passed = []
+
+    def measuring(*args, **kwargs):
+        passed.append(kwargs.get("sizes") is not None)
+        return _newton._newton_slice(*args, **kwargs)
+
+    monkeypatch.setattr(_stepper, "_newton_slice", measuring)
+    fast = ldft.serve(lagrangian, start, slices=8, solver="krylov", progress=False)
+    assert passed and all(passed)  # the folded predictor measured them on every slice
+    passed.clear()
+
+    def remeasuring(*args, **kwargs):  # the sizes dropped: every step measures the three slices itself
+        kwargs["sizes"] = None
+        return _newton._newton_slice(*args, **kwargs)
+
+    monkeypatch.setattr(_stepper, "_newton_slice", remeasuring)
+    slow = ldft.serve(lagrangian, start, slices=8, solver="krylov", progress=False)
+    assert fast.newton_iterations == slow.newton_iterations
+    assert np.array_equal(np.asarray(fast.field.values), np.asarray(slow.field.values))

@@ -426,12 +426,14 @@ class FoldedSlices:
         kept: tuple[tuple[Any, ...], Any, np.ndarray] | None = self.kept[name]
         return kept
 
-    def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> float:
+    def predict(self, flat: torch.Tensor, i: int, older: torch.Tensor | None) -> tuple[float, float, float]:
         """Slice-Newton's predictor on the unknown sites of slice ``i + 1`` (``_stepper.solve_and_tally``'s); returns
-        ``_slices._scale(flat, i, unknowns)`` at the predictor, from the magnitudes the same pass measured."""
+        the sizes of slices ``i - 1``, ``i`` and the predicted unknowns that the same pass measured: those of
+        ``_slices._scale(flat, i, unknowns)`` at the predictor, in its order (``max(*sizes, 1e-300)``: a NaN first
+        stays)."""
         old = older.numpy() if older is not None else np.zeros((0, self.m))
         a, b, c = self.mod.predict(flat[i - 1].numpy(), flat[i].numpy(), flat[i + 1].numpy(), old, self.rows)
-        return max(float(a), float(b), float(c), 1e-300)  # as _scale, in its order (a NaN first stays)
+        return float(a), float(b), float(c)
 
     def excess(self, model: Any, values: torch.Tensor) -> np.ndarray | None:
         """``(slices - 1, features)``: ``_range._excess`` of the served ``values`` ``(slices, *sites, m)``: the cells'

@@ -12,6 +12,7 @@ import torch
 from .._action import CellDerivatives
 from .._contract import AbstractLagrangian
 from ._slices import (
+    _known_sizes,
     _scale,
     _SliceSystem,
     abs_max,
@@ -112,7 +113,7 @@ def _newton_slice(
     cache,
     allmax: AllMax = _local,
     evaluate: Callable[[int, Any, bool], tuple[Any, np.ndarray]] | None = None,
-    scale: float | None = None,
+    sizes: tuple[float, float, float] | None = None,
 ):
     """Newton on one slice. Steps reuse the cached factorised Jacobian (chord steps, exact for quadratic
     ``L_d``) while each cuts the residual a hundredfold; fresh Hessian blocks are assembled only when one did not.
@@ -123,8 +124,10 @@ def _newton_slice(
     when the slice is split over processes (one part each in ``flat``): they then stop at the same iteration.
     ``evaluate(i, g_prev, blocks) -> (cells, residual)`` replaces the gathering of the cells anchored on slice
     ``i``, their derivatives (``CellDerivatives``: ``grad``, ``blocks(pairs)``; ``blocks``: this iteration reads
-    the blocks unless it converges) and the residual (``._folded``). ``scale``: ``_slices._scale(flat, i, unk)``
-    at the predictor (the first iteration's), where the predictor measured it.
+    the blocks unless it converges) and the residual (``._folded``). ``sizes``: the three sizes of
+    ``_slices._scale(flat, i, unk)`` at the predictor (slices ``i - 1``, ``i`` and the predicted unknowns), where
+    the predictor measured them; the first two serve every later step's scale too (as where they are measured
+    at the first step: the iterations do not move those slices).
 
     A slice whose chord steps took :data:`FRESH_FIRST_ON` evaluations or more has the next ones assemble a fresh
     Jacobian at their first iteration (``cache["fresh_first"]``: how many slices since; every
@@ -139,6 +142,7 @@ def _newton_slice(
     first_stale = "solve" in cache and fresh % FRESH_FIRST_RETRY == 0
     refreshed = False  # a fresh Jacobian assembled after the first iteration
     first = "solve" not in cache  # no Jacobian yet: the field's first slice (or the first after a failed step)
+    known = None if sizes is None else sizes[:2]  # the sizes of slices i - 1 and i in _scale, once measured
     for it in range(1, max_newton + 1):
         if evaluate is None:
             ev = CellDerivatives(model, cells_at(i))
@@ -154,7 +158,12 @@ def _newton_slice(
         if blocks is not None and cache["singular"]:
             return it, res, ev.grad, (*cache["singular"], res)
         if rscale is None:
-            rscale = vol * cache["dmax"] * allmax(_scale(flat, i, unk) if scale is None else scale)[0]
+            if sizes is None:
+                known = _known_sizes(flat, i)
+                size = _scale(flat, i, unk, known)
+            else:
+                size = max(*sizes, 1e-300)
+            rscale = vol * cache["dmax"] * allmax(size)[0]
         if res <= rtol * rscale or small:
             # converged (or the last step was below rtol times the values: the residual stalls at round-off);
             # the cells anchored at slice i are evaluated at the solution: reuse them for slice i + 1
@@ -189,6 +198,6 @@ def _newton_slice(
             flat[i + 1] += torch.from_numpy(delta.reshape(-1, m))
         else:
             flat[i + 1, unk] += torch.from_numpy(delta.reshape(-1, m))
-        small = not stale and step <= rtol * allmax(_scale(flat, i, unk))[0]
+        small = not stale and step <= rtol * allmax(_scale(flat, i, unk, known))[0]
     worst: int | None = int(np.argmax(np.abs(r))) if r.size else None
     return max_newton, res, ev.grad, (f"Newton did not converge in {max_newton} iterations", worst, res)

@@ -407,11 +407,18 @@ def site_text(dims: tuple[str, ...], site: tuple[int, ...], coords: Any) -> str:
     return f"index {idx}" + (f" ({where})" if where else "")
 
 
-def _scale(flat: torch.Tensor, i: int, unk: torch.Tensor) -> float:
+def _scale(flat: torch.Tensor, i: int, unk: torch.Tensor, known: tuple[float, float] | None = None) -> float:
     """Size of the values on slices ``i - 1``, ``i`` and the unknowns of ``i + 1``: the scale of a Newton step
-    (``unk``, distinct sites, holding every site: the whole slice, not gathered)."""
+    (``unk``, distinct sites, holding every site: the whole slice, not gathered). ``known``: the sizes of slices
+    ``i - 1`` and ``i`` (:func:`_known_sizes`), which a slice's Newton iterations do not move."""
     nxt = flat[i + 1] if unk.numel() == flat.shape[1] else flat[i + 1, unk]
-    return max(abs_max(flat[i - 1]), abs_max(flat[i]), abs_max(nxt), 1e-300)
+    older, last = _known_sizes(flat, i) if known is None else known
+    return max(older, last, abs_max(nxt), 1e-300)
+
+
+def _known_sizes(flat: torch.Tensor, i: int) -> tuple[float, float]:
+    """The sizes of slices ``i - 1`` and ``i`` in :func:`_scale`."""
+    return abs_max(flat[i - 1]), abs_max(flat[i])
 
 
 def values_abs_max(a: np.ndarray) -> float:

@@ -253,9 +253,9 @@ def solve_and_tally(
         _tallied(run, *done)
         return None
     folded = _folded_of(run) if run.mode == "newton" and not on_device(run) else None
-    scale = None  # _slices._scale at the predictor, where the folded predictor measured it
+    sizes = None  # _slices._scale's three sizes at the predictor, where the folded predictor measured them
     if folded is not None:
-        scale = folded.predict(flat, i, older)
+        sizes = folded.predict(flat, i, older)
     else:  # the sweep predicts from the two slices before alone
         predict(flat, unk, i, older if run.mode == "newton" else None)
     if run.mode == "newton":
@@ -283,7 +283,7 @@ def solve_and_tally(
                 run.cells_at,
                 run.cache,
                 evaluate=evaluate,
-                scale=scale,
+                sizes=sizes,
             )
     else:
         it, res, g_prev, err = _sweep_slice(run.model, run.sys, psi, flat, i, run.vol, rtol, max_newton, run.f)
