@@ -1,13 +1,13 @@
 """Slice-Newton of a stacked ensemble (``n_members`` models side by side on the components, never coupled):
 every member judged on its own, as it is when served alone.
 
-The slice system of a stacked ensemble is block diagonal in its members, so one sparse solve gives every
-member's own Newton step. What the stacked run must not share is its judgement: each member's residual is
-tested against its own scale (its own kinetic terms and values), its step against its own values, and it is
-left as it is once converged while the others go on; each member takes a chord step (the factorised Jacobian
-of its last fresh one) or a fresh Jacobian by its own residuals, and starts a slice fresh by its own count of
-slow chords, as :func:`._newton._newton_slice` decides for a single model. The Jacobian factorised is each
-member's own last fresh one, side by side (:func:`_mixed`).
+The slice system of a stacked ensemble is block diagonal in its members. What the stacked run must not share
+is its judgement: each member's residual is tested against its own scale (its own kinetic terms and values), its
+step against its own values, and it is left as it is once converged while the others go on; each member takes a
+chord step (the factorisation of its last fresh Jacobian) or a fresh Jacobian by its own residuals, and starts a
+slice fresh by its own count of slow chords, as :func:`._newton._newton_slice` decides for a single model. Each
+member's Jacobian is factorised on its own (``_solvers.factor_members``: its own solver, band LU pivots and
+GMRES stop at its own tolerance), only when it takes a fresh one, and solves its own part of the step.
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ import torch
 
 from .._action import CellDerivatives
 from .._contract import AbstractLagrangian
-from ._newton import CHORD_PREDICT, FRESH_FIRST_ON, FRESH_FIRST_RETRY, _chord_pays, _factorise
-from ._slices import Blocks, _SliceSystem, first_singular, member_abs_max, member_blocks, singular_message
-from ._solvers import SolverRefused
+from ._newton import CHORD_PREDICT, FRESH_FIRST_ON, FRESH_FIRST_RETRY, _chord_pays
+from ._slices import _SliceSystem, first_singular, member_abs_max, member_blocks, singular_message
+from ._solvers import SolverRefused, factor_members, members_solve
 
 __all__ = ["newton_members"]
 
@@ -53,22 +53,6 @@ def _assess(sys: _SliceSystem, blocks: Any, cache: dict[str, Any], which: np.nda
     cache["dmax"] = float(np.nanmax(cache["member_dmax"]))
     k = first_singular(np.where(which, lows, np.inf), np.where(which, mscale, 1.0))
     return None if k is None else (singular_message(lows[k], mscale[k]), int(rows[k]))
-
-
-def _mixed(sys: _SliceSystem, kept: dict, fresh: Any, which: np.ndarray) -> Any:
-    """The stacked Jacobian's blocks with the members ``which`` (a mask) from ``fresh`` and the others from
-    ``kept`` (each member's last fresh ones); ``fresh`` itself where every member takes it."""
-    if which.all():
-        return fresh
-    nm, w = sys.members, sys.m // sys.members
-    out = Blocks()
-    take = torch.from_numpy(np.nonzero(which)[0])
-    for p, old in kept.items():
-        new = old.clone().reshape(-1, nm, w, nm, w)
-        src = fresh[p].reshape(-1, nm, w, nm, w)
-        new[:, take, :, take, :] = src[:, take, :, take, :]
-        out[p] = new.reshape(old.shape)
-    return out
 
 
 class _Slice:
@@ -121,7 +105,8 @@ class _Slice:
 
     def factorise(self, ev: Any, blocks: Any, assessed: np.ndarray, need: np.ndarray, vol: float) -> Any:
         """The members ``need`` take a fresh Jacobian (each judged singular on its own scale: ``(message, row)``
-        returned), factorised beside the others' last fresh ones; ``None`` when factorised."""
+        returned), each factorised on its own with its own tolerance (the others keep theirs); ``None`` when
+        factorised."""
         cache = self.cache
         if blocks is None:
             blocks = ev.blocks(self.sys.pairs)
@@ -129,12 +114,15 @@ class _Slice:
             singular = _assess(self.sys, blocks, cache, need & ~assessed)
             if singular:
                 return singular
-        kept = cache.get("member_blocks")
-        jac = _mixed(self.sys, kept, blocks, need) if kept is not None else blocks
-        cache["member_blocks"] = jac
-        self.has |= need
+        solves = cache.setdefault("member_solves", [None] * self.nm)
         assert self.rscale is not None
-        _factorise(self.sys, jac, vol, cache, float(np.min(self.rtol * self.rscale[self.active])))
+        names = factor_members(
+            self.sys, blocks, vol, cache.get("solver", "auto"), self.rtol * self.rscale, solves, need
+        )
+        used = cache.setdefault("used", [])
+        used.extend(name for name in dict.fromkeys(names) if name not in used)
+        cache["solve"] = members_solve(solves, self.nm, self.w)
+        self.has |= need
         return None
 
     def step(self, delta: np.ndarray, stale: np.ndarray, flat: torch.Tensor, i: int, unk: torch.Tensor) -> bool:
@@ -188,7 +176,8 @@ def newton_members(
     residual is below ``rtol`` times its own scale (or its last step below ``rtol`` times its own values) and
     is then left as it is; the slice is solved when every member is. Each member keeps its own chord state in
     ``cache``: whether it has a factorised Jacobian (``member_solve``), its slices started fresh since a slow
-    chord (``member_fresh``), its Hessian's size (``member_dmax``) and its last fresh blocks (``member_blocks``)."""
+    chord (``member_fresh``), its Hessian's size (``member_dmax``) and the factorisation of its last fresh Jacobian
+    (``member_solves``)."""
     run = _Slice(sys, cache, rtol)
     nm, w = run.nm, run.w
     r = np.zeros(0)
