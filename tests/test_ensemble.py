@@ -776,3 +776,35 @@ def test_each_member_takes_its_own_linear_solve_to_the_bit(breathers, monkeypatc
     for k in range(3):
         own = ldft.serve(scaled.member(k), test, solver=solver)
         np.testing.assert_array_equal(out.members.values[k], own.field.values)
+
+
+@pytest.mark.parametrize("power", [0, 40, -40])
+def test_a_member_failing_the_affine_check_leaves_the_others_affine(monkeypatch, power: int) -> None:
+    """One member's affine recurrence failing its DEL check (member 2 perturbed by 1e-9 of its values from slice 10
+    on, in the stacked run only) sends that member alone to Newton from there: the others keep their recurrence's
+    slices, as served alone, to the bit and with member 0's solver ``"affine"``, also with member 1's L_d ``2**power``
+    times its own (every member went to Newton from slice 10: ``"affine+newton"``); member 2 equals itself served
+    alone to 1e-12."""
+    from latticedft._serve._affine import _AffineSlices
+
+    train = systems.wave_string([(1, 1.0), (2, 0.4)], nx=13, nt=20)
+    test = systems.wave_string([(1, 0.5, 0.3), (3, 0.2)], nx=13, nt=30)
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 0)), members=3, seed=0)
+    ldft.learn(ens, [train])
+    scaled = _scaled(ens, 1, power)
+    own = [ldft.serve(scaled.member(k), test) for k in range(3)]
+    assert all(o.solver == "affine" for o in own)
+    run = _AffineSlices.run
+
+    def faulty(self, v: np.ndarray, start: int, stop: int) -> None:
+        run(self, v, start, stop)
+        if v.shape[1] == 3 * test.sizes["x"] and stop > 10:  # the stacked run: member 2's components (of 3 x 1)
+            v[10 : stop + 1, 2::3] *= 1 + 1e-9
+
+    monkeypatch.setattr(_AffineSlices, "run", faulty)
+    out = ldft.serve(scaled, test)
+    assert out.complete and out.members_stopped is None and out.solver == "affine"
+    for k in (0, 1):
+        np.testing.assert_array_equal(out.members.values[k], own[k].field.values)
+    np.testing.assert_allclose(out.members.values[2], own[2].field.values, rtol=0, atol=1e-12)
+    assert not np.array_equal(out.members.values[2], own[2].field.values)  # Newton served it from slice 10

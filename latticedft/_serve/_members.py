@@ -7,7 +7,9 @@ step against its own values, and it is left as it is once converged while the ot
 chord step (the factorisation of its last fresh Jacobian) or a fresh Jacobian by its own residuals, and starts a
 slice fresh by its own count of slow chords, as :func:`._newton._newton_slice` decides for a single model. Each
 member's Jacobian is factorised on its own (``_solvers.factor_members``: its own solver, band LU pivots and
-GMRES stop at its own tolerance), only when it takes a fresh one, and solves its own part of the step.
+GMRES stop at its own tolerance), only when it takes a fresh one, and solves its own part of the step. A member
+whose affine recurrence passed its own DEL check further than another's keeps its recurrence's slices until its
+own first failing one (:func:`affine_held`), as alone.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from ._newton import CHORD_PREDICT, FRESH_FIRST_ON, FRESH_FIRST_RETRY, _chord_pa
 from ._slices import _SliceSystem, first_singular, member_abs_max, member_blocks, singular_message
 from ._solvers import SolverRefused, factor_members, members_solve
 
-__all__ = ["newton_members"]
+__all__ = ["affine_held", "newton_members"]
 
 
 def _member_scales(flat: torch.Tensor, i: int, unk: torch.Tensor, nm: int, w: int) -> np.ndarray:
@@ -55,11 +57,21 @@ def _assess(sys: _SliceSystem, blocks: Any, cache: dict[str, Any], which: np.nda
     return None if k is None else (singular_message(lows[k], mscale[k]), int(rows[k]))
 
 
+def affine_held(cache: dict[str, Any], flat: torch.Tensor, i: int) -> tuple[np.ndarray, torch.Tensor] | None:
+    """``(held, values)``: the members whose slice ``i + 1`` of ``flat`` the affine recurrence served (it passed
+    their own DEL check: ``cache["member_affine"]``, each member's count of slices served after the two given
+    ones) and a copy of that slice, for :func:`newton_members` to leave them as served alone; ``None`` where no
+    member is held."""
+    counts = cache.get("member_affine")
+    held = None if counts is None else i <= counts
+    return None if held is None or not held.any() else (held, flat[i + 1].clone())
+
+
 class _Slice:
     """One slice of a stacked ensemble's slice-Newton: per member, what :func:`._newton._newton_slice` keeps for
     one model (the chord state across slices in ``cache``, the rest for this slice)."""
 
-    def __init__(self, sys: _SliceSystem, cache: dict[str, Any], rtol: float):
+    def __init__(self, sys: _SliceSystem, cache: dict[str, Any], rtol: float, held: np.ndarray | None = None):
         nm = sys.members
         self.sys, self.cache, self.rtol, self.nm, self.w = sys, cache, rtol, nm, sys.m // nm
         if "member_dmax" not in cache:
@@ -71,7 +83,7 @@ class _Slice:
         self.first_stale = self.has & (self.fresh % FRESH_FIRST_RETRY == 0)
         self.first = ~self.has
         self.refreshed = np.zeros(nm, dtype=bool)
-        self.active = np.ones(nm, dtype=bool)  # not yet converged
+        self.active = np.ones(nm, dtype=bool) if held is None else ~held  # not yet converged (nor held)
         self.small = np.zeros(nm, dtype=bool)
         self.prev = np.full(nm, math.inf)
         self.done = np.zeros(nm)  # the residual each converged member was left at
@@ -170,6 +182,7 @@ def newton_members(
     cells_at: Callable[[int], torch.Tensor],
     cache: dict[str, Any],
     evaluate: Callable[[int, Any, bool], tuple[Any, np.ndarray]] | None = None,
+    held: tuple[np.ndarray, torch.Tensor] | None = None,
 ) -> tuple[int, float, Any, tuple[str, int | None, float] | None]:
     """:func:`._newton._newton_slice` of a stacked ensemble, every member judged on its own: ``(evaluations,
     largest residual, gradients of the cells anchored at i, failure or None)``. A member converges when its own
@@ -177,9 +190,14 @@ def newton_members(
     is then left as it is; the slice is solved when every member is. Each member keeps its own chord state in
     ``cache``: whether it has a factorised Jacobian (``member_solve``), its slices started fresh since a slow
     chord (``member_fresh``), its Hessian's size (``member_dmax``) and the factorisation of its last fresh Jacobian
-    (``member_solves``)."""
-    run = _Slice(sys, cache, rtol)
+    (``member_solves``). ``held``: the members whose slice ``i + 1`` the affine recurrence served and that slice
+    before the predictor (:func:`affine_held`): their values put back and left as they are, their chord state
+    untouched, as when each is served alone (Newton from its own first failing slice on)."""
+    run = _Slice(sys, cache, rtol, None if held is None else held[0])
     nm, w = run.nm, run.w
+    if held is not None:
+        keep = torch.from_numpy(np.repeat(held[0], w))
+        flat[i + 1][:, keep] = held[1][:, keep]
     r = np.zeros(0)
     ev: Any = None
     for it in range(1, max_newton + 1):
