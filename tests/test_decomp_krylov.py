@@ -143,3 +143,19 @@ def test_the_command_refuses_lu_under_workers_naming_the_key_and_writes_nothing(
         assert code == 1 and len(lines) == 1, err
         assert "serve[0].solver: 'lu' is not split across processes" in lines[0] and 'solver = "krylov"' in lines[0]
         assert snapshot(case / "results") == before
+
+
+def test_an_ensemble_is_refused_in_one_line() -> None:
+    """An ensemble (or its members stacked) is not split: its slice tests are each member's own, which the split
+    slice's all-reduced tests are not (the command line serves it whole)."""
+    from latticedft import systems
+    from latticedft._models._ensemble import stacked
+
+    train = systems.wave_string([(1, 1.0), (2, 0.4)], nx=13, nt=20)
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 2)), members=2, seed=0)
+    ldft.learn(ens, [train])
+    for each in (ens, stacked(ens, ("member0", "member1"))):
+        with pytest.raises(InputError) as err:
+            serve_slabs(each, train, 12, boundary="dirichlet")
+        assert str(err.value).startswith("model: an ensemble is served whole, in one process")
+        assert "\n" not in str(err.value)

@@ -702,14 +702,14 @@ def test_run_reports_the_members_outside_their_training_range(tmp_path: Path, ca
 
 
 def test_the_solver_choice_takes_each_members_off_diagonal_share(breathers) -> None:
-    """``solver = "auto"`` solves a stacked slice site-wise only where every member's off-diagonal blocks are
-    negligible beside its own diagonal: member 0's coupling (1e-9 of its diagonal: LU, served alone) was
-    measured against member 1's diagonal, ``2**40`` times larger, and the stacked slice was solved site-wise
-    (member 0 then took quasi-Newton steps)."""
+    """``solver = "auto"`` chooses each stacked member's solver on its own Jacobian, as alone: member 0's
+    coupling (1e-9 of its diagonal: LU, served alone) is not measured against member 1's diagonal, ``2**40``
+    times larger (the stacked slice was solved site-wise: member 0 then took quasi-Newton steps), and the
+    members not coupled are solved site-wise."""
     from latticedft._lattice import as_lattice_field
     from latticedft._serve._ensemble import _labels, _stack
     from latticedft._serve._field import slice_system
-    from latticedft._serve._solvers import factor_step
+    from latticedft._serve._solvers import factor_members, factor_step
 
     ens, test = breathers
     f = as_lattice_field(test)
@@ -723,9 +723,88 @@ def test_the_solver_choice_takes_each_members_off_diagonal_share(breathers) -> N
         for k in range(3):
             b[:, k, k] = size[k] * (1.0 if p in sys.diag_pairs else share[k])
         blocks[p] = b
-    assert factor_step(sys, blocks, 1.0, "auto", 1e-10)[1] == "lu"
+    solves: list = [None] * 3
+    assert factor_members(sys, blocks, 1.0, "auto", np.full(3, 1e-10), solves) == ["lu", "sitewise", "sitewise"]
+    assert factor_step(sys, blocks, 1.0, "auto", 1e-10)[1] == "lu+sitewise"
     share[0] = 0.0  # no member coupled: site-wise
     for p in sys.pairs:
         if p not in sys.diag_pairs:
             blocks[p][:, 0, 0] = 0.0
+    assert factor_members(sys, blocks, 1.0, "auto", np.full(3, 1e-10), solves) == ["sitewise"] * 3
     assert factor_step(sys, blocks, 1.0, "auto", 1e-10)[1] == "sitewise"
+
+
+def _scaled(ens: ldft.EnsembleLagrangian, k: int, power: int) -> ldft.EnsembleLagrangian:
+    """A copy of the polynomial ensemble ``ens`` whose member ``k``'s L_d is ``2**power`` times its own (the same
+    equations; a Jacobian and residual of another size: served alone, bit for bit as before)."""
+    out = copy.deepcopy(ens)
+    with torch.no_grad():
+        out.member(k).coef.mul_(2.0**power)
+    return out
+
+
+@pytest.mark.parametrize("power", [0, -40, 40])
+def test_gmres_stops_on_each_members_own_residual(breathers, power: int) -> None:
+    """``solver = "krylov"`` on a stacked slice runs GMRES on each member's own Jacobian, preconditioner and
+    right-hand side, to its own tolerance, as alone: every member's field equals the member served alone to 1e-12
+    (GMRES on the stacked system, stopped on the stacked linear residual, left members 2.3e-10 (member 0) to
+    6.0e-10 (member 2) from their own fields, at every ``power``)."""
+    ens, test = breathers
+    scaled = _scaled(ens, 2, power)
+    out = ldft.serve(scaled, test, solver="krylov")
+    assert out.complete and out.slice_solver == "krylov"
+    for k in range(3):
+        own = ldft.serve(scaled.member(k), test, solver="krylov")
+        assert own.complete and own.slice_solver == "krylov"
+        np.testing.assert_allclose(out.members.values[k], own.field.values, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("solver", ["lu", "krylov"])
+def test_each_member_takes_its_own_linear_solve_to_the_bit(breathers, monkeypatch, solver: str) -> None:
+    """Where the stacked run and the member alone evaluate the L_d alike (the torch loop: the folded kernels serve
+    one model only), every member's field equals the member served alone to the bit, also with member 2's L_d
+    ``2**-40`` times its own: the 1+1D band LU refuses a pivot against the member's own largest entry (the
+    stacked one's refused member 2's pivots against the others' and the sparse LU served the slice, 2.0e-15 from
+    its own field), and GMRES runs on each member's own system."""
+    import latticedft._serve._stepper as stepper
+
+    monkeypatch.setattr(stepper, "_folded_of", lambda run: None)
+    ens, test = breathers
+    scaled = _scaled(ens, 2, -40)
+    out = ldft.serve(scaled, test, solver=solver)
+    assert out.complete
+    for k in range(3):
+        own = ldft.serve(scaled.member(k), test, solver=solver)
+        np.testing.assert_array_equal(out.members.values[k], own.field.values)
+
+
+@pytest.mark.parametrize("power", [0, 40, -40])
+def test_a_member_failing_the_affine_check_leaves_the_others_affine(monkeypatch, power: int) -> None:
+    """One member's affine recurrence failing its DEL check (member 2 perturbed by 1e-9 of its values from slice 10
+    on, in the stacked run only) sends that member alone to Newton from there: the others keep their recurrence's
+    slices, as served alone, to the bit and with member 0's solver ``"affine"``, also with member 1's L_d ``2**power``
+    times its own (every member went to Newton from slice 10: ``"affine+newton"``); member 2 equals itself served
+    alone to 1e-12."""
+    from latticedft._serve._affine import _AffineSlices
+
+    train = systems.wave_string([(1, 1.0), (2, 0.4)], nx=13, nt=20)
+    test = systems.wave_string([(1, 0.5, 0.3), (3, 0.2)], nx=13, nt=30)
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 0)), members=3, seed=0)
+    ldft.learn(ens, [train])
+    scaled = _scaled(ens, 1, power)
+    own = [ldft.serve(scaled.member(k), test) for k in range(3)]
+    assert all(o.solver == "affine" for o in own)
+    run = _AffineSlices.run
+
+    def faulty(self, v: np.ndarray, start: int, stop: int) -> None:
+        run(self, v, start, stop)
+        if v.shape[1] == 3 * test.sizes["x"] and stop > 10:  # the stacked run: member 2's components (of 3 x 1)
+            v[10 : stop + 1, 2::3] *= 1 + 1e-9
+
+    monkeypatch.setattr(_AffineSlices, "run", faulty)
+    out = ldft.serve(scaled, test)
+    assert out.complete and out.members_stopped is None and out.solver == "affine"
+    for k in (0, 1):
+        np.testing.assert_array_equal(out.members.values[k], own[k].field.values)
+    np.testing.assert_allclose(out.members.values[2], own[2].field.values, rtol=0, atol=1e-12)
+    assert not np.array_equal(out.members.values[2], own[2].field.values)  # Newton served it from slice 10

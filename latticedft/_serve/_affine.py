@@ -223,13 +223,14 @@ def _affine_prefix(
     flat: torch.Tensor,
     rtol: float,
     vol: float,
-) -> tuple[int, float, float | np.ndarray, float | np.ndarray] | None:
+) -> tuple[int | np.ndarray, float, float | np.ndarray, float | np.ndarray] | None:
     """Serve every slice of ``psi`` by the affine recurrence, if the model's DEL is affine, and check them.
 
     Returns ``(slices, worst, dmax, mscale)``: how many leading slices pass the residual test (Newton serves
     the rest), the largest residual among them, the Hessian scale of that test and the largest singular value
-    of the mixed Hessian at a site (both per member of a stacked ensemble, each judged on its own); ``None`` when the
-    DEL is not affine or its mixed Hessian is singular (Newton then reports it with the slice and site).
+    of the mixed Hessian at a site (the three but ``worst`` per member of a stacked ensemble, each judged on its
+    own); ``None`` when the DEL is not affine or its mixed Hessian is singular (Newton then reports it with the
+    slice and site).
     """
     steps, m = psi.shape[0], sys.m
     compiled = compiled_closed_forms(model, psi[:0])
@@ -247,9 +248,9 @@ def _affine_prefix(
     res = _slice_residuals(model, f, psi, 1, steps - 1, sys.members)
     if option("affine_check_every") > 1:
         log.info("affine recurrence checked against the model's DEL on every %d-th slice", option("affine_check_every"))
-    if op.member_dmax is not None:  # a stacked ensemble: each member against its own scale
-        affine_slices, worst = passing_members(v, res, rtol * vol * op.member_dmax, m)
-        return affine_slices, worst, op.member_dmax, mscale
+    if op.member_dmax is not None:  # a stacked ensemble: each member against its own scale, its own count
+        counts, worst = passing_members(v, res, rtol * vol * op.member_dmax, m)
+        return counts, worst, op.member_dmax, mscale
     affine_slices, worst = passing_slices(v, res, rtol * vol * op.dmax)
     return affine_slices, worst, op.dmax, mscale
 
@@ -290,13 +291,14 @@ def passing_slices(v: np.ndarray, res: np.ndarray, bound: float) -> tuple[int, f
     return k, float(np.nanmax(res[:k], initial=0.0)) if k else 0.0
 
 
-def passing_members(v: np.ndarray, res: np.ndarray, bounds: np.ndarray, m: int) -> tuple[int, float]:
+def passing_members(v: np.ndarray, res: np.ndarray, bounds: np.ndarray, m: int) -> tuple[np.ndarray, float]:
     """:func:`passing_slices` of a stacked ensemble (``m`` components a site, ``bounds.size`` members side by side
     on them): each member's residuals ``res[:, k]`` held to its own ``bounds[k]`` times the largest of its own
-    values on the three slices, as when served alone; the slices kept are those every member passes (Newton
-    serves the rest), the worst residual each member's largest among them."""
+    values on the three slices, as when served alone: ``(counts, worst)``, the leading slices each member passes
+    (each keeps its own; Newton serves a member from its own first failing slice on) and the largest residual
+    among the slices kept."""
     nm = bounds.size
     absmax = np.stack([member_abs_max(row, nm, m // nm) for row in v])  # (slices, members)
     scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), absmax[2:]).clip(1e-300)
-    k = min(passing_prefix(res[:, j], bounds[j] * scl[:, j]) for j in range(nm))
-    return k, float(np.nanmax(res[:k], initial=0.0)) if k else 0.0
+    counts = np.array([passing_prefix(res[:, j], bounds[j] * scl[:, j]) for j in range(nm)])
+    return counts, max((float(np.nanmax(res[:k, j], initial=0.0)) for j, k in enumerate(counts)), default=0.0)

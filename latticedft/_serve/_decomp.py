@@ -20,10 +20,11 @@ would; its step site-wise where the slice Jacobian is block-diagonal (one stenci
 sine-Gordon's on the first-order stencil), else by GMRES over the processes (:mod:`._slabkrylov`: global dot
 products, the Krylov vector's halo exchanged at each product). LU is not split (``solver = "lu"`` is refused
 in one line naming ``solver = "krylov"``), nor is an affine recurrence whose new slice couples neighbouring
-sites (refused in one line naming the alternative: one process). A failure, of every process (slice-Newton
-not converging) or of one alone (an exception, a singular block of its part of the slice), stops them all
-with the same one-line error (:mod:`._flag`: an error flag travels with every all-reduce, and one comes
-before each exchange); rank 0 keeps the slices served before it.
+sites (refused in one line naming the alternative: one process), nor an ensemble (its members stacked are each
+judged on their own, which these all-reduced tests are not: :func:`ensemble_refusal`; the command line serves it
+whole). A failure, of every process (slice-Newton not converging) or of one alone (an exception, a singular
+block of its part of the slice), stops them all with the same one-line error (:mod:`._flag`: an error flag
+travels with every all-reduce, and one comes before each exchange); rank 0 keeps the slices served before it.
 """
 
 from __future__ import annotations
@@ -221,6 +222,8 @@ def serve_slabs(
         try:
             if solver == "lu":
                 raise lu_refusal()
+            if model.n_members > 1:
+                raise ensemble_refusal()
             run = _SlabRun(model, init, slices, boundary, every, flag, solver, grid)
             if checkpoint is not None:
                 run.checkpointed(checkpoint)
@@ -241,6 +244,16 @@ def serve_slabs(
     if report is not None:
         report["gather_seconds"] = time.perf_counter() - start
     return field
+
+
+def ensemble_refusal() -> InputError:
+    """The one-line refusal of an ensemble (or its members stacked) under several processes: its slice tests are
+    each member's own (``._members``), which the all-reduced tests of a split slice are not."""
+    return InputError.at(
+        "model",
+        "an ensemble is served whole, in one process (each member's slice solve judged on its own); serve it "
+        "without --workers",
+    )
 
 
 def _failure_text(exc: Exception, run: _SlabRun | None) -> str:

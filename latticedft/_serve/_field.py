@@ -97,17 +97,23 @@ class _FieldRun(SteppedRun):
         out = _affine_prefix(self.model, self.f, self.sys, self.psi, self.flat, rtol, self.vol)
         if out is None:
             return
-        self.affine_slices, worst, dmax, mscale = out
-        self.start = 1 + self.affine_slices
-        if self.affine_slices:
+        counts, worst, dmax, mscale = out
+        if isinstance(counts, np.ndarray):  # a stacked ensemble's: each member keeps its own slices and scales
+            self.cache["member_affine"] = counts  # Newton serves a member from its own first failing slice on
+            own = counts > 0  # a member whose recurrence served no slice takes its scales from Newton, as alone
+            self.cache["member_dmax"] = np.where(own, dmax, math.nan)
+            self.cache["member_mscale"] = np.where(own, mscale, 0.0)
+            kept, self.affine_slices = int(counts.min()), int(counts[0])  # member 0's: the result's solver
+            dmax, mscale = (float(np.max(np.asarray(x)[own])) if own.any() else 0.0 for x in (dmax, mscale))
+        else:
+            kept = self.affine_slices = int(counts)
+        self.start = 1 + kept
+        if np.any(counts):
             self.worst = worst
             self.count_affine()
-            if isinstance(mscale, np.ndarray) and isinstance(dmax, np.ndarray):  # a stacked ensemble's, per member
-                self.cache["member_mscale"], self.cache["member_dmax"] = mscale, dmax.copy()
-                mscale, dmax = float(mscale.max()), float(dmax.max())
             self.cache["dmax"] = dmax
             self.cache["mscale"] = mscale
-        self.bar.update(self.affine_slices)
+        self.bar.update(kept)
 
     def _result(
         self, field: LatticeField, complete: bool, reason: str, slices: int, wall: float, rate: float, residual: float

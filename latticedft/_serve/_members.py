@@ -1,13 +1,15 @@
 """Slice-Newton of a stacked ensemble (``n_members`` models side by side on the components, never coupled):
 every member judged on its own, as it is when served alone.
 
-The slice system of a stacked ensemble is block diagonal in its members, so one sparse solve gives every
-member's own Newton step. What the stacked run must not share is its judgement: each member's residual is
-tested against its own scale (its own kinetic terms and values), its step against its own values, and it is
-left as it is once converged while the others go on; each member takes a chord step (the factorised Jacobian
-of its last fresh one) or a fresh Jacobian by its own residuals, and starts a slice fresh by its own count of
-slow chords, as :func:`._newton._newton_slice` decides for a single model. The Jacobian factorised is each
-member's own last fresh one, side by side (:func:`_mixed`).
+The slice system of a stacked ensemble is block diagonal in its members. What the stacked run must not share
+is its judgement: each member's residual is tested against its own scale (its own kinetic terms and values), its
+step against its own values, and it is left as it is once converged while the others go on; each member takes a
+chord step (the factorisation of its last fresh Jacobian) or a fresh Jacobian by its own residuals, and starts a
+slice fresh by its own count of slow chords, as :func:`._newton._newton_slice` decides for a single model. Each
+member's Jacobian is factorised on its own (``_solvers.factor_members``: its own solver, band LU pivots and
+GMRES stop at its own tolerance), only when it takes a fresh one, and solves its own part of the step. A member
+whose affine recurrence passed its own DEL check further than another's keeps its recurrence's slices until its
+own first failing one (:func:`affine_held`), as alone.
 """
 
 from __future__ import annotations
@@ -21,11 +23,11 @@ import torch
 
 from .._action import CellDerivatives
 from .._contract import AbstractLagrangian
-from ._newton import CHORD_PREDICT, FRESH_FIRST_ON, FRESH_FIRST_RETRY, _chord_pays, _factorise
-from ._slices import Blocks, _SliceSystem, first_singular, member_abs_max, member_blocks, singular_message
-from ._solvers import SolverRefused
+from ._newton import CHORD_PREDICT, FRESH_FIRST_ON, FRESH_FIRST_RETRY, _chord_pays
+from ._slices import _SliceSystem, first_singular, member_abs_max, member_blocks, singular_message
+from ._solvers import SolverRefused, factor_members, members_solve
 
-__all__ = ["newton_members"]
+__all__ = ["affine_held", "newton_members"]
 
 
 def _member_scales(flat: torch.Tensor, i: int, unk: torch.Tensor, nm: int, w: int) -> np.ndarray:
@@ -55,27 +57,21 @@ def _assess(sys: _SliceSystem, blocks: Any, cache: dict[str, Any], which: np.nda
     return None if k is None else (singular_message(lows[k], mscale[k]), int(rows[k]))
 
 
-def _mixed(sys: _SliceSystem, kept: dict, fresh: Any, which: np.ndarray) -> Any:
-    """The stacked Jacobian's blocks with the members ``which`` (a mask) from ``fresh`` and the others from
-    ``kept`` (each member's last fresh ones); ``fresh`` itself where every member takes it."""
-    if which.all():
-        return fresh
-    nm, w = sys.members, sys.m // sys.members
-    out = Blocks()
-    take = torch.from_numpy(np.nonzero(which)[0])
-    for p, old in kept.items():
-        new = old.clone().reshape(-1, nm, w, nm, w)
-        src = fresh[p].reshape(-1, nm, w, nm, w)
-        new[:, take, :, take, :] = src[:, take, :, take, :]
-        out[p] = new.reshape(old.shape)
-    return out
+def affine_held(cache: dict[str, Any], flat: torch.Tensor, i: int) -> tuple[np.ndarray, torch.Tensor] | None:
+    """``(held, values)``: the members whose slice ``i + 1`` of ``flat`` the affine recurrence served (it passed
+    their own DEL check: ``cache["member_affine"]``, each member's count of slices served after the two given
+    ones) and a copy of that slice, for :func:`newton_members` to leave them as served alone; ``None`` where no
+    member is held."""
+    counts = cache.get("member_affine")
+    held = None if counts is None else i <= counts
+    return None if held is None or not held.any() else (held, flat[i + 1].clone())
 
 
 class _Slice:
     """One slice of a stacked ensemble's slice-Newton: per member, what :func:`._newton._newton_slice` keeps for
     one model (the chord state across slices in ``cache``, the rest for this slice)."""
 
-    def __init__(self, sys: _SliceSystem, cache: dict[str, Any], rtol: float):
+    def __init__(self, sys: _SliceSystem, cache: dict[str, Any], rtol: float, held: np.ndarray | None = None):
         nm = sys.members
         self.sys, self.cache, self.rtol, self.nm, self.w = sys, cache, rtol, nm, sys.m // nm
         if "member_dmax" not in cache:
@@ -87,7 +83,7 @@ class _Slice:
         self.first_stale = self.has & (self.fresh % FRESH_FIRST_RETRY == 0)
         self.first = ~self.has
         self.refreshed = np.zeros(nm, dtype=bool)
-        self.active = np.ones(nm, dtype=bool)  # not yet converged
+        self.active = np.ones(nm, dtype=bool) if held is None else ~held  # not yet converged (nor held)
         self.small = np.zeros(nm, dtype=bool)
         self.prev = np.full(nm, math.inf)
         self.done = np.zeros(nm)  # the residual each converged member was left at
@@ -121,7 +117,8 @@ class _Slice:
 
     def factorise(self, ev: Any, blocks: Any, assessed: np.ndarray, need: np.ndarray, vol: float) -> Any:
         """The members ``need`` take a fresh Jacobian (each judged singular on its own scale: ``(message, row)``
-        returned), factorised beside the others' last fresh ones; ``None`` when factorised."""
+        returned), each factorised on its own with its own tolerance (the others keep theirs); ``None`` when
+        factorised."""
         cache = self.cache
         if blocks is None:
             blocks = ev.blocks(self.sys.pairs)
@@ -129,12 +126,15 @@ class _Slice:
             singular = _assess(self.sys, blocks, cache, need & ~assessed)
             if singular:
                 return singular
-        kept = cache.get("member_blocks")
-        jac = _mixed(self.sys, kept, blocks, need) if kept is not None else blocks
-        cache["member_blocks"] = jac
-        self.has |= need
+        solves = cache.setdefault("member_solves", [None] * self.nm)
         assert self.rscale is not None
-        _factorise(self.sys, jac, vol, cache, float(np.min(self.rtol * self.rscale[self.active])))
+        names = factor_members(
+            self.sys, blocks, vol, cache.get("solver", "auto"), self.rtol * self.rscale, solves, need
+        )
+        used = cache.setdefault("used", [])
+        used.extend(name for name in dict.fromkeys(names) if name not in used)
+        cache["solve"] = members_solve(solves, self.nm, self.w)
+        self.has |= need
         return None
 
     def step(self, delta: np.ndarray, stale: np.ndarray, flat: torch.Tensor, i: int, unk: torch.Tensor) -> bool:
@@ -182,15 +182,22 @@ def newton_members(
     cells_at: Callable[[int], torch.Tensor],
     cache: dict[str, Any],
     evaluate: Callable[[int, Any, bool], tuple[Any, np.ndarray]] | None = None,
+    held: tuple[np.ndarray, torch.Tensor] | None = None,
 ) -> tuple[int, float, Any, tuple[str, int | None, float] | None]:
     """:func:`._newton._newton_slice` of a stacked ensemble, every member judged on its own: ``(evaluations,
     largest residual, gradients of the cells anchored at i, failure or None)``. A member converges when its own
     residual is below ``rtol`` times its own scale (or its last step below ``rtol`` times its own values) and
     is then left as it is; the slice is solved when every member is. Each member keeps its own chord state in
     ``cache``: whether it has a factorised Jacobian (``member_solve``), its slices started fresh since a slow
-    chord (``member_fresh``), its Hessian's size (``member_dmax``) and its last fresh blocks (``member_blocks``)."""
-    run = _Slice(sys, cache, rtol)
+    chord (``member_fresh``), its Hessian's size (``member_dmax``) and the factorisation of its last fresh Jacobian
+    (``member_solves``). ``held``: the members whose slice ``i + 1`` the affine recurrence served and that slice
+    before the predictor (:func:`affine_held`): their values put back and left as they are, their chord state
+    untouched, as when each is served alone (Newton from its own first failing slice on)."""
+    run = _Slice(sys, cache, rtol, None if held is None else held[0])
     nm, w = run.nm, run.w
+    if held is not None:
+        keep = torch.from_numpy(np.repeat(held[0], w))
+        flat[i + 1][:, keep] = held[1][:, keep]
     r = np.zeros(0)
     ev: Any = None
     for it in range(1, max_newton + 1):

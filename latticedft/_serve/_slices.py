@@ -3,6 +3,7 @@ factorised Jacobian, shared by the slice solvers (affine recurrence, slice-Newto
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 from typing import Any
@@ -146,6 +147,19 @@ class _SliceSystem:
             for key, (cells, r, c) in self.jac.items()
             if np.any(r == c)
         ]
+
+    @functools.cached_property
+    def member_system(self) -> _SliceSystem:
+        """The slice system of one of the :attr:`members` models side by side (``m // members`` components, the
+        same lattice; itself for one model): each stacked member's own Jacobian is factorised and solved on it,
+        as when the member is served alone (``_solvers.factor_members``)."""
+        if self.members == 1:
+            return self
+        one = copy.copy(self)
+        for name in ("_entry_places", "_csr_pattern", "member_system"):  # what depends on the components
+            one.__dict__.pop(name, None)
+        one.m, one.members, one.kept = self.m // self.members, 1, {}
+        return one
 
     # EL on slice i (equation rows) from the per-cell gradients of the cells anchored at i-1 and i
     def residual(self, g_prev: torch.Tensor, g_cur: torch.Tensor, vol: float) -> np.ndarray:

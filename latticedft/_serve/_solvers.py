@@ -36,9 +36,17 @@ import scipy.sparse.linalg
 import torch
 
 from .._kernel_krylov import krylov_kernels
-from ._slices import _SliceSystem, abs_max
+from ._slices import Blocks, _SliceSystem, abs_max, member_blocks
 
-__all__ = ["SOLVERS", "OFFDIAG_RTOL", "SolverRefused", "choose_solver", "factor_step"]
+__all__ = [
+    "SOLVERS",
+    "OFFDIAG_RTOL",
+    "SolverRefused",
+    "choose_solver",
+    "factor_members",
+    "factor_step",
+    "members_solve",
+]
 
 #: The values of ``serve(..., solver=...)`` and ``[[serve]] solver``.
 SOLVERS = ("auto", "sitewise", "krylov", "lu")
@@ -77,39 +85,15 @@ class SolverRefused(Exception):
 
 def _diag_and_offdiag(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Tensor]) -> tuple[torch.Tensor, float]:
     """The diagonal ``m x m`` blocks ``(n, m, m)`` of the Jacobian (without the cell volume) and the largest
-    off-diagonal entry. A stacked ensemble's members are measured each on its own: the largest over the members
-    of a member's off-diagonal entries relative to its own diagonal blocks, times the largest diagonal entry
-    (so that :func:`choose_solver` compares each member's share, as when served alone)."""
+    off-diagonal entry (of one model: a stacked ensemble's members are each measured on their own system, by
+    :func:`factor_members`)."""
     m = sys.m
     diag = sys.diagonal(blocks)
-    if sys.members > 1:
-        return diag, _member_offdiag(sys, blocks, diag)
     off = 0.0
     for key, where in sys.offdiag_cells:
         held = blocks[key].reshape(-1, m, m)
         off = max(off, abs_max(held if where is None else held[where]))
     return diag, off
-
-
-def _member_offdiag(sys: _SliceSystem, blocks: dict[tuple[int, int], torch.Tensor], diag: torch.Tensor) -> float:
-    """:func:`_diag_and_offdiag`'s off-diagonal size of a stacked ensemble (members never couple: only each
-    member's own ``w x w`` entries can be non-zero)."""
-    nm, m = sys.members, sys.m
-    w = m // nm
-    own = torch.arange(nm)
-    scale = np.zeros(nm)
-    if diag.numel():
-        scale = diag.reshape(-1, nm, w, nm, w)[:, own, :, own, :].abs().amax(dim=(1, 2, 3)).numpy()
-    off = np.zeros(nm)
-    for key, where in sys.offdiag_cells:
-        held = blocks[key].reshape(-1, m, m)
-        part = (held if where is None else held[where]).reshape(-1, nm, w, nm, w)[:, own, :, own, :]
-        if part.numel():
-            off = np.maximum(off, part.abs().amax(dim=(1, 2, 3)).numpy())
-    with np.errstate(divide="ignore", invalid="ignore"):
-        share = np.where(off > 0, off / scale, 0.0)
-    top = float(scale.max()) if scale.size else 0.0
-    return float(share.max()) * top if top > 0 else float(off.max())
 
 
 def choose_solver(sys: _SliceSystem, requested: str, diag: torch.Tensor, off: float) -> str:
@@ -210,6 +194,10 @@ def factor_step(
     ``target`` is Newton's absolute residual tolerance (GMRES aims a tenth below it). Raises
     ``np.linalg.LinAlgError`` for a singular Jacobian (or, site-wise, a singular diagonal block).
     """
+    if sys.members > 1:  # a stacked ensemble: each member factorised on its own, as served alone
+        solves: list[Solve | None] = [None] * sys.members
+        names = factor_members(sys, blocks, vol, requested, np.full(sys.members, target), solves)
+        return members_solve(solves, sys.members, sys.m // sys.members), "+".join(dict.fromkeys(names))
     diag, off = _diag_and_offdiag(sys, blocks)
     name = choose_solver(sys, requested, diag, off)
     if name == "lu":
@@ -217,3 +205,44 @@ def factor_step(
     if name == "sitewise":
         return _block_inverse(diag, vol), name
     return _krylov(sys, blocks, vol, diag, target), name
+
+
+def factor_members(
+    sys: _SliceSystem,
+    blocks: dict[tuple[int, int], torch.Tensor],
+    vol: float,
+    requested: str,
+    targets: np.ndarray,
+    solves: list[Solve | None],
+    which: np.ndarray | None = None,
+) -> list[str]:
+    """The members ``which`` (a mask; every one where None) of a stacked ensemble's slice Jacobian ``blocks``
+    factorised each on its own (:func:`factor_step` on :attr:`._slices._SliceSystem.member_system` with its own
+    blocks and its own Newton tolerance ``targets[k]``): the solver chosen, the band LU's pivots, GMRES's stop
+    and a refusal are each member's, as when it is served alone. ``solves[k]`` is set for each; returns the
+    names of the solvers chosen, member by member."""
+    nm = sys.members
+    one = sys.member_system
+    own = {p: member_blocks(b, nm) for p, b in blocks.items()}  # (members, cells, w, w) per pair
+    names = []
+    for k in np.nonzero(np.ones(nm, dtype=bool) if which is None else which)[0]:
+        solves[k], name = factor_step(one, Blocks({p: b[k] for p, b in own.items()}), vol, requested, float(targets[k]))
+        names.append(name)
+    return names
+
+
+def members_solve(solves: list[Solve | None], nm: int, w: int) -> Solve:
+    """``solve(rhs)`` of a stacked ensemble's slice (``rhs``: ``nm`` members' ``w`` components side by side at
+    each site) by each member's own ``solves[k]`` on its own part; a member whose part is zero (a converged one)
+    is left at zero."""
+
+    def solve(rhs: np.ndarray) -> np.ndarray:
+        parts = rhs.reshape(-1, nm, w)
+        out = np.zeros_like(parts)
+        for k in np.nonzero((parts != 0).any(axis=(0, 2)))[0]:
+            own = solves[k]
+            assert own is not None, "a member's step asked before its Jacobian was factorised"
+            out[:, k] = own(np.ascontiguousarray(parts[:, k]).reshape(-1)).reshape(-1, w)
+        return out.reshape(-1)
+
+    return solve

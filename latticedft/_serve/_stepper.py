@@ -19,7 +19,7 @@ from .._models import AbstractLagrangian
 from . import _ondevice
 from ._folded import FoldedSlices, folded_slices
 from ._fused import FusedSlices, fused_slices
-from ._members import newton_members
+from ._members import affine_held, newton_members
 from ._newton import _newton_slice, predict
 from ._potential import potential_slices
 from ._result import ServeResult, _bar
@@ -253,6 +253,7 @@ def solve_and_tally(
         _tallied(run, *done)
         return None
     folded = _folded_of(run) if run.mode == "newton" and not on_device(run) else None
+    held = affine_held(run.cache, flat, i) if run.sys.members > 1 else None  # its values before the predictor
     sizes = None  # _slices._scale's three sizes at the predictor, where the folded predictor measured them
     if folded is not None:
         sizes = folded.predict(flat, i, older)
@@ -266,8 +267,9 @@ def solve_and_tally(
         evaluate = functools.partial(folded.evaluate, flat, run.vol) if folded else None
         if run.sys.members > 1:  # a stacked ensemble: every member judged on its own, as served alone
             it, res, g_prev, err = newton_members(
-                run.model, run.sys, flat, unk, i, g_prev, run.vol, rtol, max_newton, run.cells_at, run.cache, evaluate
-            )
+                run.model, run.sys, flat, unk, i, g_prev, run.vol, rtol, max_newton, run.cells_at, run.cache, evaluate,
+                held,
+            )  # fmt: skip
         else:
             it, res, g_prev, err = _newton_slice(
                 run.model,
