@@ -117,6 +117,7 @@ class SelectionReport:
         """JSON-compatible (scores of failed candidates as ``None``)."""
         rows = [{**r, "score": _finite(r["score"])} for r in self.rows]
         rows = [{**r, "beyond": _finite(r["beyond"])} if "beyond" in r else r for r in rows]
+        rows = [{**r, "spread": _finite(r["spread"])} if "spread" in r else r for r in rows]
         return {
             "candidates": rows,
             "chosen": self.chosen,
@@ -447,11 +448,13 @@ def _trial(
 
 def _noisy_spread(trial: AbstractLagrangian, noise: dict[str, Any] | None) -> float | None:
     """A sparse candidate's largest relative spread of a kept coefficient over its bagged fits, when its fit
-    corrected the noise of its data (None otherwise: on clean data small corrections are kept on purpose)."""
-    if noise is None or noise.get("method") == "none":
+    handled the noise of its data (corrected it, or fitted its weak form), ``inf`` where it has no bagged fits (too
+    few time blocks: its coefficients are not known to hold); None otherwise (on clean data small corrections are
+    kept on purpose)."""
+    if noise is None or noise.get("method") == "none" or not isinstance(trial, SparseLagrangian):
         return None
     spread = largest_spread(trial)
-    return None if spread is None else spread[0]
+    return math.inf if spread is None else spread[0]
 
 
 def _beyond(
