@@ -1,4 +1,4 @@
-"""A weak form of the sparse fit under noise: rows summed against smooth test functions in time.
+"""A weak form of the sparse fit under noise, tried and not kept: rows summed against smooth test functions in time.
 
     python -m benchmarks.noise_weak [--only SYSTEM ...] [--sigmas S ...] [--widths W ...]
 
@@ -8,7 +8,7 @@ compactly supported test function ``phi(s) = (1 - s^2)^4`` (``s`` in ``(-1, 1)``
 every ``w / 2`` slices, each site on its own): summed by parts, the second time differences fall on ``phi``, whose
 differences are small, so the noise of the data's second differences averages out. The same sparse fit (the
 thresholds, the backward path and the held-out served choice of :mod:`latticedft._learn._sparse`) then runs on
-these rows: ``SparseLagrangian(weak=w)`` (:func:`latticedft._learn._sparse.weak_rows`).
+these rows; this benchmark routes them in by patching the module's ``residual_matrix`` for the run.
 
 Each system of :mod:`benchmarks._discovery_systems` (noise as in :mod:`benchmarks.discovery_noise`, seed 0) is
 learned with the default library of its lattice and ``threshold = "auto"``, and served from the clean test's first
@@ -20,13 +20,13 @@ two slices. Two tables:
   the noisy rows (the sparsest four);
 - *the fit*: terms, coefficient error and served error over 50 steps / sigma (as in
   :mod:`benchmarks.discovery_noise`) for ``noise = "auto"`` (errors in variables), the weak rows alone
-  (``weak = w`` with ``noise = "auto"``, which does not correct them), and both (``weak = w`` with
-  ``noise = "correct"``: the weak rows inside the corrected fit).
+  (``noise = "none"``), and both (the weak rows inside the corrected fit).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 import time
@@ -39,7 +39,6 @@ import latticedft as ldft
 from latticedft._lattice import LatticeField, interior_slices
 from latticedft._learn import _api, _sparse
 from latticedft._learn._exact import mean_mixed_hessian, residual_matrix
-from latticedft._learn._sparse import weak_rows
 from latticedft._models._sparse import SparseLagrangian, default_library
 
 from . import _discovery_systems as systems_mod
@@ -54,16 +53,38 @@ TRUE_TERMS: dict[str, list[str] | None] = {
     "oscillator-wells": None,
     "pendulum": ["Dtq**2", "cos(q)"],
 }
+POWER = 4
 
 
 def weak(r: np.ndarray, nt: int, w: int) -> np.ndarray:
-    """The rows ``r`` (time-major over ``nt`` interior slices) in the weak form of half width ``w`` (``r`` itself
-    for ``w = 0``): :func:`latticedft._learn._sparse.weak_rows`."""
-    return weak_rows(r, nt, w)
+    """The rows ``r`` (time-major over ``nt`` interior slices) summed against the test function of half width ``w``
+    over windows every ``w / 2`` slices (``r`` itself for ``w = 0`` or too few slices)."""
+    w = min(w, (nt - 1) // 2)
+    if w < 1 or r.shape[0] % nt:
+        return r
+    c = r.shape[1]
+    r3 = r.reshape(nt, -1, c)
+    s = np.linspace(-1.0, 1.0, 2 * w + 3)[1:-1]
+    phi = (1 - s**2) ** POWER
+    phi /= np.linalg.norm(phi)
+    rows = [np.tensordot(phi, r3[k : k + 2 * w + 1], axes=(0, 0)) for k in range(0, nt - 2 * w, max(1, w // 2))]
+    return np.concatenate(rows).reshape(-1, c)
 
 
 def _interior_times(model: SparseLagrangian, f: LatticeField) -> int:
     return len(range(f.shape[0])[interior_slices(f.shape, model.stencil, f.boundary)[0]])
+
+
+def _weak_patch(w: int) -> Any:
+    """The sparse fit on weak rows: ``residual_matrix`` and the held-out heads of :mod:`latticedft._learn._sparse`."""
+
+    def rows(model: SparseLagrangian, f: LatticeField) -> np.ndarray:
+        return weak(residual_matrix(model, f), _interior_times(model, f), w)
+
+    def head(model: SparseLagrangian, f: LatticeField, r: np.ndarray, keep: int) -> np.ndarray:
+        return rows(model, f.with_values(f.values[:keep]))
+
+    return mock.patch.multiple(_sparse, residual_matrix=rows, _head=head)
 
 
 def _system_rows(system: systems_mod.System, data: list[Any]) -> tuple[SparseLagrangian, Any, list[Any]]:
@@ -118,14 +139,15 @@ def fits(name: str, sigma: float, width: int) -> None:
     n = sum(1 for d in system.test.dims if d != "component")
     ref = np.asarray(system.test.values, dtype=float)
     slices = min(STEPS + 2, system.slices)
-    for label, mode, w in (
-        ("errors in variables", "auto", 0),
-        ("weak", "auto", width),
-        ("both", "correct", width),
+    for label, mode, weak_rows in (
+        ("errors in variables", "auto", False),
+        ("weak", "none", True),
+        ("both", "auto", True),
     ):
         t0 = time.perf_counter()
-        model = SparseLagrangian(default_library(n, 1), threshold="auto", weak=w)
-        ldft.learn(model, train, boundary=system.boundary, noise=mode)
+        model = SparseLagrangian(default_library(n, 1), threshold="auto")
+        with _weak_patch(width) if weak_rows else contextlib.nullcontext():
+            ldft.learn(model, train, boundary=system.boundary, noise=mode)
         terms, coef, _, _ = _recovery(model, system)
         err = systems_mod.max_errors(_served(model, system, STEPS), ref, slices)[0] / scale
         kept = " + ".join(t.name for t, c in zip(model.terms, model.coef.detach().numpy()) if c != 0)

@@ -20,7 +20,7 @@ from ._learn._data import as_fields
 from ._learn._heldout import HOLD_OUT
 from ._learn._heldout import held_in as _split
 from ._learn._heldout import held_out_score as _score
-from ._learn._noise import SPREAD_WARN, largest_spread, learning_estimate
+from ._learn._noise import SPREAD_WARN, largest_spread
 from ._learn._sparse import SERVE_FLOOR
 from ._models import MODELS, AbstractLagrangian
 from ._models._sparse import SparseLagrangian, default_library, exact_step_libraries
@@ -30,7 +30,6 @@ __all__ = [
     "select",
     "auto_candidates",
     "sparse_candidates",
-    "weak_candidates",
     "HOLD_OUT",
     "FACTOR",
     "KEEP_BELOW",
@@ -76,9 +75,6 @@ COUPLED_LIBRARY = "velocities + trig:1 + cosdiff*velocities"
 #: (``cos(q^2 - 1) = cos 1 cos q^2 + sin 1 sin q^2``, paper Example 2's double well). Without ``trig:1``: with it,
 #: ``q^3 + sin q`` fits the true ``q`` on one orbit (nearly collinear there) and the test is served 2x worse.
 SQUARE_TRIG_LIBRARY = "kinetic + poly:4 + trig:1@2"
-#: The half widths ``w`` of the weak-form candidates (``SparseLagrangian(weak=w)``) that ``"auto"`` adds under
-#: ``noise = "auto"`` when the noise is significant (:func:`weak_candidates`).
-WEAK_WIDTHS = (2, 4)
 #: The thresholds of the sparse candidates ``"auto"`` tries first (with the default library of the lattice).
 SPARSE_THRESHOLDS: tuple[float | str, ...] = (1e-1, 1e-2, "auto")
 #: The threshold of the exact-step corrections candidates (:func:`latticedft._models._sparse.exact_step_libraries`):
@@ -117,7 +113,6 @@ class SelectionReport:
         """JSON-compatible (scores of failed candidates as ``None``)."""
         rows = [{**r, "score": _finite(r["score"])} for r in self.rows]
         rows = [{**r, "beyond": _finite(r["beyond"])} if "beyond" in r else r for r in rows]
-        rows = [{**r, "spread": _finite(r["spread"])} if "spread" in r else r for r in rows]
         return {
             "candidates": rows,
             "chosen": self.chosen,
@@ -185,33 +180,6 @@ def sparse_candidates(n: int, m: int) -> list[dict[str, Any]]:
             coupled = {"kind": "sparse", "library": COUPLED_LIBRARY, "at": "average"}
             out += [{**coupled, "threshold": t} for t in SPARSE_THRESHOLDS]
     return out
-
-
-def weak_candidates(n: int, m: int) -> list[dict[str, Any]]:
-    """The weak-form candidates ``"auto"`` adds on noisy data (``learn``'s ``noise = "auto"`` with the noise
-    significant): the default library of the lattice at ``threshold = "auto"``, and for a scalar field its powers
-    and its trig functions each alone, with the rows summed against smooth test functions in time of each half
-    width of :data:`WEAK_WIDTHS` (``weak = w``; their fits are not corrected for the noise: docs/noise.md).
-
-    >>> weak_candidates(2, 1)[0]
-    {'kind': 'sparse', 'library': 'kinetic + gradient + poly:4 + trig:1', 'threshold': 'auto', 'weak': 2}
-    """
-    libraries = [default_library(n, m)]
-    if m == 1:
-        base = default_library(n, m).replace(" + poly:4 + trig:1", "")
-        libraries += [f"{base} + {f}" for f in ("poly:4", "trig:1")]
-    return [
-        {"kind": "sparse", "library": lib, "threshold": "auto", "weak": w} for lib in libraries for w in WEAK_WIDTHS
-    ]
-
-
-def noisy_learning(fields: Sequence[Any], learn_kwargs: Mapping[str, Any]) -> bool:
-    """Whether ``learn(fields, **learn_kwargs)`` handles noise by ``noise = "auto"`` and finds it significant (the
-    estimate it makes: :func:`latticedft._learn._noise.learning_estimate`)."""
-    if learn_kwargs.get("noise", "none") != "auto":
-        return False
-    sigma = learn_kwargs.get("noise_sigma")
-    return learning_estimate(list(fields), None if sigma is None else float(sigma)).significant
 
 
 def exact_step_candidates(n: int, m: int) -> list[dict[str, Any]]:
@@ -338,14 +306,11 @@ def select(
     items = list(data) if isinstance(data, (list, tuple)) else [data]
     if not all(isinstance(d, xr.DataArray) for d in items):
         raise InputError.at("data", "expected a DataArray or a list of DataArrays (time first)")
-    lattice_fields = as_fields(items, boundary)  # checks the fields (one lattice, one layout)
-    first = lattice_fields[0]
+    first = as_fields(items, boundary)[0]  # checks the fields (one lattice, one layout)
     fields: list[xr.DataArray] = [d.load() for d in items]
     ridge = learn_kwargs.pop("ridge", 0.0)
     learn_kwargs.pop("progress", None)  # every fit here runs without a progress bar
     changes = auto_candidates(model, first.ndim, ridge, first.ncomp) if candidates == "auto" else list(candidates)
-    if candidates == "auto" and noisy_learning(lattice_fields, learn_kwargs):
-        changes += weak_candidates(first.ndim, first.ncomp)
     specs = _candidates(model, changes, ridge)
     held = _split(fields, hold_out)
     done = [_trial(fresh, r, held, fields, boundary, learn_kwargs) for fresh, r, _ in specs]
@@ -448,13 +413,11 @@ def _trial(
 
 def _noisy_spread(trial: AbstractLagrangian, noise: dict[str, Any] | None) -> float | None:
     """A sparse candidate's largest relative spread of a kept coefficient over its bagged fits, when its fit
-    handled the noise of its data (corrected it, or fitted its weak form), ``inf`` where it has no bagged fits (too
-    few time blocks: its coefficients are not known to hold); None otherwise (on clean data small corrections are
-    kept on purpose)."""
-    if noise is None or noise.get("method") == "none" or not isinstance(trial, SparseLagrangian):
+    corrected the noise of its data (None otherwise: on clean data small corrections are kept on purpose)."""
+    if noise is None or noise.get("method") == "none":
         return None
     spread = largest_spread(trial)
-    return math.inf if spread is None else spread[0]
+    return None if spread is None else spread[0]
 
 
 def _beyond(

@@ -47,7 +47,6 @@ __all__ = [
     "STRENGTH",
     "ROUNDS",
     "learn_noisy",
-    "learning_estimate",
     "denoised_start",
 ]
 
@@ -185,20 +184,6 @@ def _estimate(fields: list[LatticeField], nt: int, pooled: bool = False) -> Nois
             sigma = sorted(run)[SPAN // 2]
             return NoiseEstimate(sigma, sigma / amp, True, k, s)
     return NoiseEstimate(0.0, 0.0, False, None, s)
-
-
-def learning_estimate(
-    fields: list[LatticeField], sigma: float | None, nt: int | None = None, pooled: bool = False
-) -> NoiseEstimate:
-    """The noise estimate ``learn(..., noise="auto", noise_sigma=sigma)`` makes of the training ``fields`` (the
-    shortest of all holding ``nt`` slices; ``pooled`` as for :func:`_estimate`): :func:`estimate_noise`, or the
-    given ``sigma`` over the fields' amplitude."""
-    if sigma is None:
-        return _estimate(fields, min(f.shape[0] for f in fields) if nt is None else nt, pooled=pooled)
-    amp = max((float(f.values.abs().max()) for f in fields), default=0.0)
-    if pooled:
-        amp = float(_dist.all_max(torch.tensor([amp], dtype=torch.float64))[0])
-    return NoiseEstimate(float(sigma), float(sigma) / (amp or 1.0), True, None)
 
 
 # -- the correction ---------------------------------------------------------------------------------------
@@ -349,16 +334,18 @@ def learn_noisy(
 ) -> tuple[LearnReport, TrainingData]:
     """``learn(..., noise="auto" | "correct")``: estimate the noise, fit, and when correcting alternate
     :data:`ROUNDS` corrections of the training fields with refits (an exact solve for a linear model; an
-    iterative model's refits start from its previous weights); under ``"auto"`` a sparse model of weak rows
-    (``SparseLagrangian(weak=w)``) is not corrected, its weak form being its noise handling (``method``
-    ``"weak form"``). Returns the report (its ``noise`` records the
+    iterative model's refits start from its previous weights). Returns the report (its ``noise`` records the
     estimate and what was done) and the training data of the last fit (the corrected fields when corrected),
     on which an ensemble's resampled members learn."""
     share = _share(data)
-    est = learning_estimate(share, sigma, min(src.shape[0] for src in data.sources), pooled=True)
+    if sigma is None:
+        est = _estimate(share, min(src.shape[0] for src in data.sources), pooled=True)
+    else:
+        amp = max((float(f.values.abs().max()) for f in share), default=0.0)
+        amp = float(_dist.all_max(torch.tensor([amp], dtype=torch.float64))[0]) or 1.0
+        est = NoiseEstimate(float(sigma), float(sigma) / amp, True, None)
     report = fit(data)
-    weak = mode == "auto" and est.significant and bool(getattr(model, "weak", 0))
-    wanted = mode == "correct" or (mode == "auto" and est.significant and not weak)
+    wanted = mode == "correct" or (mode == "auto" and est.significant)
     info: dict[str, Any] = {
         "mode": mode,
         "sigma": est.sigma,
@@ -372,8 +359,6 @@ def learn_noisy(
         info["second_difference_ratio"] = ratio
     warnings = list(report.warnings)
     used = data
-    if weak:  # a sparse model's weak form (its rows summed against smooth test functions) is its noise handling
-        info.update(method="weak form")
     if wanted:
         report, used, shift = _correct(model, data, share, fit, make, report)
         info.update(method="errors in variables", rounds=ROUNDS, shift=shift)

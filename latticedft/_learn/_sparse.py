@@ -48,17 +48,7 @@ from ._exact import (
 from ._gauge import Gauge
 from ._heldout import HOLD_OUT, held_in_slices, held_out_score
 
-__all__ = [
-    "learn_sparse",
-    "stlsq",
-    "backward",
-    "weak_rows",
-    "BLOCKS",
-    "SLACK",
-    "SERVE_SLACK",
-    "SERVE_FLOOR",
-    "WEAK_POWER",
-]
+__all__ = ["learn_sparse", "stlsq", "backward", "BLOCKS", "SLACK", "SERVE_SLACK", "SERVE_FLOOR"]
 
 #: The training rows are cut into about this many time blocks (for the held-out threshold and the bagging).
 BLOCKS = 8
@@ -72,47 +62,7 @@ SERVE_SLACK = 3.0
 #: measures the lattice's truncation error absorbed by extra terms, not the physics (Kepler from one orbit).
 SERVE_FLOOR = 5e-3
 
-#: The weak form's test function in time (``SparseLagrangian(weak=w)``), ``(1 - s^2)^WEAK_POWER`` on ``s`` in
-#: ``(-1, 1)``: smooth enough that, summed by parts, the second time differences fall on its small differences.
-WEAK_POWER = 4
-
 _Gauge = tuple[np.ndarray, np.ndarray] | None
-
-
-def weak_rows(r: np.ndarray, nt: int, w: int) -> np.ndarray:
-    """The weak form of the residual rows ``r`` (time-major over ``nt`` interior slices, each slice's rows one per
-    site and component): each site's rows summed against the test function ``(1 - s^2)^4`` (normalised to unit
-    norm) over ``2 w + 1`` slices, windows every ``w // 2`` slices (at least 1); window-major, as ``r``. ``w`` is
-    narrowed to ``(nt - 1) // 2`` on a short field; ``r`` itself for ``w = 0`` or fewer than three slices.
-
-    >>> r = np.ones((10 * 3, 2))  # 10 slices of 3 sites, 2 terms
-    >>> weak_rows(r, 10, 2).shape  # windows of 5 slices starting at 0, 1, ..., 5
-    (18, 2)
-    """
-    w = min(w, (nt - 1) // 2)
-    if w < 1:
-        return r
-    if r.shape[0] % nt:
-        raise ValueError(f"weak_rows: {r.shape[0]} rows are not {nt} slices of equal size")
-    c = r.shape[1]
-    r3 = r.reshape(nt, -1, c)
-    s = np.linspace(-1.0, 1.0, 2 * w + 3)[1:-1]
-    phi = (1 - s**2) ** WEAK_POWER
-    phi /= np.linalg.norm(phi)
-    starts = range(0, nt - 2 * w, max(1, w // 2))
-    windows = np.lib.stride_tricks.sliding_window_view(r3, 2 * w + 1, axis=0)[list(starts)]  # (k, sites, c, 2w+1)
-    return np.ascontiguousarray((windows @ phi).reshape(-1, c))
-
-
-def _slice_rows(model: SparseLagrangian, f: LatticeField, r: np.ndarray) -> int:
-    """The rows per interior time slice of ``r``, the residual matrix of the unbatched field ``f``."""
-    nt = len(range(f.shape[0])[interior_slices(f.shape, model.stencil, f.boundary)[0]])
-    return max(1, r.shape[0] // max(nt, 1))
-
-
-def _weak(model: SparseLagrangian, r: np.ndarray, per: int) -> np.ndarray:
-    """The rows ``r`` (``per`` rows a slice) in the model's weak form (``r`` itself for ``weak = 0``)."""
-    return weak_rows(r, r.shape[0] // per, model.weak) if model.weak else r
 
 
 def _finite_columns(model: SparseLagrangian, rs: list[np.ndarray]) -> None:
@@ -325,17 +275,12 @@ def _pick_served(
         rs = [residual_matrix(model, f) / math.sqrt(nsites) for f in single]
     heads = [_head(model, f, r, k) for f, r, k in zip(single, rs, keep)]
     tails = _Tails(single, [min(k, f.shape[0] - 3) for f, k in zip(single, keep)])
-    rest = [r[h.shape[0] :] for r, h in zip(rs, heads)]
-    if model.weak:  # the supports fitted on the heads' weak rows, the tails' weak rows order the second pass
-        per = [_slice_rows(model, f, r) for f, r in zip(single, rs)]
-        rest = [_weak(model, r, p) for r, p in zip(rest, per)]
-        heads = [_weak(model, h, p) for h, p in zip(heads, per)]
     fits = sorted(_supports(_stack(_blocks(heads, model.n_terms)), g, ridge), key=lambda f: np.count_nonzero(f[1]))
     shared: dict[str, Any] = {}  # the tails' lattice fields and their batch, made once for every support
     runs = {label: _Serving(theta, tails, boundary, shared) for label, theta in fits}  # stable: thresholds first
     saved = model.coef.detach().clone()
     try:
-        chosen = _serve_supports(model, runs, rest)
+        chosen = _serve_supports(model, runs, [r[h.shape[0] :] for r, h in zip(rs, heads)])
     finally:
         with torch.no_grad():
             model.coef.copy_(saved)
@@ -630,8 +575,6 @@ def learn_sparse(
     mixed Hessian, kept there for the next fit of the same library on the same fields (in another gauge)."""
     lam = 0.0 if ridge == "auto" else float(ridge)
     shared = {} if shared is None else shared
-    if model.weak:  # the weak form sums each field's own slices: every field on its own
-        fields = _unbatched(fields)
     if "rs" not in shared:
         mean = gauge.fixes and shared.get("mean") is None  # the mean mixed Hessian from the same derivatives
         rows, shared_mean = residual_matrices(model, fields, mean)
@@ -645,8 +588,7 @@ def learn_sparse(
     if gauge.fixes and shared.get("mean") is None:
         shared["mean"] = mean_mixed_hessian(model, fields)
     g = _Constraint(gauge.constraint(shared["mean"], model.spacing[0]) if gauge.fixes else None)
-    fit_rows = [_weak(model, r, _slice_rows(model, f, r)) for f, r in zip(fields, rs)] if model.weak else rs
-    blocks = _blocks(fit_rows, model.n_terms)
+    blocks = _blocks(rs, model.n_terms)
     validation: dict[str, float] = {}
     if model.threshold == "auto":
         served = _pick_served(model, fields, g, lam, nsites, rs if unbatched else None)

@@ -107,12 +107,6 @@ class SparseLagrangian(LinearLagrangian):
         rule, as :class:`FeatureLagrangian`), or at every stencil point with the term averaged over them (on
         the first-order stencil of an ODE, the trapezoid rule ``h (L(q0, Dq) + L(q1, Dq)) / 2``, which a
         position-dependent mass such as ``cos(q1 - q2) Dtq1 Dtq2`` needs to be met exactly).
-    weak : int
-        ``0`` (the default): the fit's rows are the DEL residuals at every interior site and time. ``w >= 1``: the
-        weak form, each site's rows summed over ``2 w + 1`` slices against the smooth test function
-        ``(1 - s^2)^4`` (windows every ``w // 2`` slices, at least 1; ``w`` narrowed to fit a short field), so that
-        the noise of the data's second differences averages out (docs/noise.md). ``learn(..., noise="auto")``
-        does not correct the fields of such a model's data (the weak form is its noise handling).
     stencil : Stencil, optional
         Default: the first-order stencil.
     """
@@ -133,7 +127,6 @@ class SparseLagrangian(LinearLagrangian):
         threshold: float | str = "auto",
         bags: int = 20,
         at: Literal["mean", "anchor", "average"] = "anchor",
-        weak: int = 0,
         stencil: Stencil | None = None,
     ):
         super().__init__(stencil)
@@ -146,10 +139,7 @@ class SparseLagrangian(LinearLagrangian):
             raise InputError.at("bags", f"expected an integer >= 0, got {bags!r}")
         if at not in _AT:
             raise InputError.at("at", f"expected 'anchor', 'mean' or 'average', got {at!r}")
-        if not isinstance(weak, int) or isinstance(weak, bool) or weak < 0:
-            raise InputError.at("weak", f"expected an integer >= 0 (0: the plain rows), got {weak!r}")
         self.at = at
-        self.weak = weak
         self.threshold: float | str = threshold if threshold == "auto" else float(threshold)
         self.bags = bags
         self.terms: list[Term] = []
@@ -160,7 +150,7 @@ class SparseLagrangian(LinearLagrangian):
 
     def options(self) -> dict[str, Any]:
         lib = "auto" if self.library is None else " + ".join(self.library.labels)
-        return {"library": lib, "threshold": self.threshold, "bags": self.bags, "at": self.at, "weak": self.weak}
+        return {"library": lib, "threshold": self.threshold, "bags": self.bags, "at": self.at}
 
     def auto_candidates(self, n: int, ridge: Any = 0.0) -> list[dict[str, Any]]:
         """The other thresholds (chosen by held-out serving)."""
