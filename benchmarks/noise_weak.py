@@ -8,7 +8,8 @@ compactly supported test function ``phi(s) = (1 - s^2)^4`` (``s`` in ``(-1, 1)``
 every ``w / 2`` slices, each site on its own): summed by parts, the second time differences fall on ``phi``, whose
 differences are small, so the noise of the data's second differences averages out. The same sparse fit (the
 thresholds, the backward path and the held-out served choice of :mod:`latticedft._learn._sparse`) then runs on
-these rows; this benchmark routes them in by patching the module's ``residual_matrix`` for the run.
+these rows; this benchmark routes them in by patching the module's ``residual_matrices`` and ``residual_matrix``
+for the run.
 
 Each system of :mod:`benchmarks._discovery_systems` (noise as in :mod:`benchmarks.discovery_noise`, seed 0) is
 learned with the default library of its lattice and ``threshold = "auto"``, and served from the clean test's first
@@ -38,7 +39,7 @@ import numpy as np
 import latticedft as ldft
 from latticedft._lattice import LatticeField, interior_slices
 from latticedft._learn import _api, _sparse
-from latticedft._learn._exact import mean_mixed_hessian, residual_matrix
+from latticedft._learn._exact import mean_mixed_hessian, residual_matrices, residual_matrix
 from latticedft._models._sparse import SparseLagrangian, default_library
 
 from . import _discovery_systems as systems_mod
@@ -76,15 +77,21 @@ def _interior_times(model: SparseLagrangian, f: LatticeField) -> int:
 
 
 def _weak_patch(w: int) -> Any:
-    """The sparse fit on weak rows: ``residual_matrix`` and the held-out heads of :mod:`latticedft._learn._sparse`."""
+    """The sparse fit on weak rows: ``residual_matrices``, ``residual_matrix`` and the held-out heads of
+    :mod:`latticedft._learn._sparse` (the fit's rows come from ``residual_matrices``, the held-out choice's from
+    the other two)."""
 
     def rows(model: SparseLagrangian, f: LatticeField) -> np.ndarray:
         return weak(residual_matrix(model, f), _interior_times(model, f), w)
 
+    def many(model: SparseLagrangian, fields: list[LatticeField], mean: bool) -> tuple[list[np.ndarray], Any]:
+        rs, hessian = residual_matrices(model, fields, mean)
+        return [weak(r, _interior_times(model, f), w) for r, f in zip(rs, fields)], hessian
+
     def head(model: SparseLagrangian, f: LatticeField, r: np.ndarray, keep: int) -> np.ndarray:
         return rows(model, f.with_values(f.values[:keep]))
 
-    return mock.patch.multiple(_sparse, residual_matrix=rows, _head=head)
+    return mock.patch.multiple(_sparse, residual_matrices=many, residual_matrix=rows, _head=head)
 
 
 def _system_rows(system: systems_mod.System, data: list[Any]) -> tuple[SparseLagrangian, Any, list[Any]]:

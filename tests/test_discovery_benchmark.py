@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ import latticedft as ldft
 from benchmarks import _discovery_systems as systems
 from benchmarks import discovery
 from benchmarks._terms import coefficient_error, normalised_terms
+from latticedft._lattice import as_lattice_field
 from latticedft._symbolic import SymbolicLd, cell_symbols
 
 
@@ -209,6 +211,30 @@ def test_weak_rows_are_test_function_sums_that_average_out_second_difference_noi
     assert out[:sites, 0] == pytest.approx(phi @ rows.reshape(nt, sites)[: 2 * w + 1])
     # summed by parts the differences fall on phi: the noise shrinks far below that of a plain row (sqrt(6))
     assert np.std(out) < 0.2 * np.std(rows)
+
+
+def test_weak_patch_reaches_the_rows_the_sparse_fit_uses():
+    """``benchmarks.noise_weak``'s patch makes the sparse fit's blocks (every training field's rows) the weak rows:
+    the fit's rows come from ``residual_matrices``, which a patch of ``residual_matrix`` alone did not reach."""
+    from benchmarks.noise_weak import _interior_times, _weak_patch, weak
+    from latticedft._learn import _sparse
+    from latticedft._learn._exact import residual_matrix
+
+    system = systems.build("pendulum", True)
+    model = ldft.SparseLagrangian("kinetic + trig:1", threshold=0.1, bags=0)
+    seen: list[list[np.ndarray]] = []
+    real = _sparse._blocks
+
+    def spy(rs: list[np.ndarray], c: int) -> list[np.ndarray]:
+        seen.append(rs)
+        return real(rs, c)
+
+    with _weak_patch(4), mock.patch.object(_sparse, "_blocks", spy):
+        ldft.learn(model, system.train, boundary=system.boundary, progress=False)
+    fields = [as_lattice_field(f, boundary=system.boundary) for f in system.train]
+    want = sorted(weak(residual_matrix(model, f), _interior_times(model, f), 4).shape[0] for f in fields)
+    assert want and sorted(r.shape[0] for r in seen[-1]) == want
+    assert want[0] < min(residual_matrix(model, f).shape[0] for f in fields)
 
 
 def test_gauges_mode_reads_the_gauge_auto_chose_on_noisy_samples():
