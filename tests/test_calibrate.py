@@ -377,13 +377,18 @@ def test_serve_again_uses_the_recorded_law_and_trial(tmp_path: Path, capsys) -> 
 
 def test_auto_calibrates_after_selection_with_the_runner_up(tmp_path: Path, capsys, monkeypatch) -> None:
     """``calibrate = "auto"`` is on with ``[model] select``; the runner-up candidate's label is recorded when its
-    score was within reach of the chosen one's. The trial and the runner-up are those selection learned."""
+    score was within reach of the chosen one's. The trial and the runner-up are those selection learned, and the
+    fields they served are those selection served (neither learned nor served again)."""
     import latticedft._calibrate as calibration
 
     def refit(*args: object) -> None:
         raise AssertionError("the calibration learned again a candidate that selection had learned")
 
+    def serve_again(*args: object) -> None:
+        raise AssertionError("the calibration served again a trial that selection had served")
+
     monkeypatch.setattr(calibration, "_trial", refit)
+    monkeypatch.setattr(calibration, "_served", serve_again)
     case = tiny_wave(tmp_path)
     code, _, err = run_cli(
         capsys, "run", case, "--out", tmp_path / "r", "--set", 'model.select="auto"', "--set", "export.paraview=false"
