@@ -187,14 +187,15 @@ class _Pool:
 
 
 def _learned(s: Setup, train: list[xr.DataArray], kw: dict[str, Any]) -> tuple[Any, Any, float, float]:
-    """(chosen model, its fresh copy with learn keywords, the runner-up and the two as selection learned them on
-    the held-in slices (None without selection), selection time, its wall time)."""
+    """(chosen model, (its fresh copy, its learn keywords, the runner-up, the two as selection learned them on
+    the held-in slices and the fields they served when scored, None without selection), selection time, its
+    wall time)."""
     if not s.select:
         model = s.model()
         t0 = time.perf_counter()
         ldft.learn(model, train, boundary=s.boundary, progress=False, **kw)
         own = trial_keywords(kw, model.report_.ridge if model.report_ is not None else None)
-        return model, (s.model(), own, None, None), 0.0, time.perf_counter() - t0
+        return model, (s.model(), own, None, None, None), 0.0, time.perf_counter() - t0
     t0 = time.perf_counter()
     sel = select(s.model(), train, "auto", boundary=s.boundary, **kw)
     t_sel = time.perf_counter() - t0
@@ -202,14 +203,14 @@ def _learned(s: Setup, train: list[xr.DataArray], kw: dict[str, Any]) -> tuple[A
     hand = s.model()
     fresh = _build(hand, rows[chosen]["kind"], dict(rows[chosen]["options"]))
     own = {**kw, "ridge": rows[chosen]["ridge"]}
-    runner, second = None, None
+    runner, second, theirs = None, None, None
     i = runner_up(rows, chosen)
     if i is not None:
         r = rows[i]
         runner = (_build(hand, r["kind"], dict(r["options"])), {**kw, "ridge": r["ridge"]}, r["label"])
-        second = sel.trials[i]
+        second, theirs = sel.trials[i], sel.served[i]
     learned = (sel.trials[chosen], second) if sel.trials[chosen] is not None else None
-    return sel.model, (fresh, own, runner, learned), t_sel, t_sel
+    return sel.model, (fresh, own, runner, learned, (sel.served[chosen], theirs)), t_sel, t_sel
 
 
 def measure(s: Setup, sigma: float) -> list[Any]:
@@ -224,10 +225,10 @@ def measure(s: Setup, sigma: float) -> list[Any]:
     if s.ensemble and not s.select:  # member 0 is the single model: learned once (a noisy fit corrects once)
         ens = ldft.EnsembleLagrangian(s.model(), members=MEMBERS, seed=0)
         ldft.learn(ens, train, boundary=s.boundary, progress=False, **kw)
-        model, fresh, runner, learned, t_sel = ens.member(0), s.model(), None, None, 0.0
+        model, fresh, runner, learned, served, t_sel = ens.member(0), s.model(), None, None, None, 0.0
         own = trial_keywords(kw, model.report_.ridge if model.report_ is not None else None)
     else:
-        model, (fresh, own, runner, learned), t_sel, _ = _learned(s, train, kw)
+        model, (fresh, own, runner, learned, served), t_sel, _ = _learned(s, train, kw)
         ens = None
         if s.ensemble:
             ens = ldft.EnsembleLagrangian(copy.deepcopy(fresh), members=MEMBERS, seed=0)
@@ -235,7 +236,15 @@ def measure(s: Setup, sigma: float) -> list[Any]:
     t0 = time.perf_counter()
     held: list[dict[str, Any]] = []
     cal, _, trial = calibrate(
-        fresh, train, boundary=s.boundary, runner_up=runner, ensemble_model=ens, record=held, learned=learned, **own
+        fresh,
+        train,
+        boundary=s.boundary,
+        runner_up=runner,
+        ensemble_model=ens,
+        record=held,
+        learned=learned,
+        served=served,
+        **own,
     )
     t_cal = time.perf_counter() - t0
     pool = _Pool()

@@ -344,6 +344,7 @@ def calibrate(
     ensemble_model: AbstractLagrangian | None = None,
     record: list[dict[str, Any]] | None = None,
     learned: tuple[AbstractLagrangian, AbstractLagrangian | None] | None = None,
+    served: tuple[list[np.ndarray] | None, list[np.ndarray] | None] | None = None,
     **learn_kwargs: Any,
 ) -> tuple[Calibration, list[str], AbstractLagrangian]:
     """Measure a calibration law by held-out serving (see the module docstring): ``(law, warnings, trial)``,
@@ -358,6 +359,9 @@ def calibrate(
     ``learned``: the trial and the runner-up (None: not learned) as model selection learned them, on the first
     ``1 - hold_out`` of every field with the same keywords (:attr:`latticedft.SelectionReport.trials`): taken as
     they are instead of learning the same fits again (a noise-aware fit repeats its correction), with one fold.
+    ``served``: with ``learned``, the fields the two served from every training field when selection scored them
+    (:attr:`latticedft.SelectionReport.served`, None where it kept none), taken instead of serving the same
+    trials from the same starts again (the same values; one that does not fit the fields is served again).
     A law that could not be measured (no held-out slice served) comes back with :attr:`Calibration.failed` set: it
     is no law, and a caller serves without a calibrated error bar. The random state of torch and numpy is left as
     it was. ``InputError`` when the fields are too short
@@ -375,11 +379,15 @@ def calibrate(
                 reuse = learned if n == 0 and folds == 1 else None
                 trial = reuse[0] if reuse is not None else _trial(fresh, fold.train, boundary, learn_kwargs)
                 first = first or trial
+                taken: tuple[list[np.ndarray] | None, list[np.ndarray] | None] = (None, None)
                 if reuse is not None:
                     other = reuse[1] if runner_up is not None else None
+                    if served is not None:  # one array per training field, or none
+                        mine, theirs = (x if x is not None and len(x) == len(fields) else None for x in served)
+                        taken = (mine, theirs)
                 else:
                     other = _runner_trial(runner_up, fold, boundary) if n == 0 else None
-                found = _measure(trial, other, fold, fields, boundary)
+                found = _measure(trial, other, fold, fields, boundary, taken)
                 warnings = warnings or _noise_warnings(trial, [x.rel[x.held] for x in found])
                 samples += found
         finally:
@@ -437,9 +445,11 @@ def _measure(
     fold: _Fold,
     fields: list[xr.DataArray],
     boundary: BoundaryKinds | None,
+    taken: tuple[list[np.ndarray] | None, list[np.ndarray] | None] = (None, None),
 ) -> list[_Sample]:
     """Every field of the fold with held-out slices, served by ``trial`` (and by ``other``, the learned
-    runner-up): its slices ``k >= 2``."""
+    runner-up): its slices ``k >= 2``. ``taken``: the fields the two served from every field already (or None),
+    taken where they fit the field (:func:`_taken`) instead of serving again."""
     out = []
     for i, (f, start) in enumerate(zip(fields, fold.starts, strict=True)):
         nt = f.sizes[f.dims[0]]
@@ -447,13 +457,26 @@ def _measure(
         if start >= nt or not k.size:
             continue
         amp = max(float(np.max(np.abs(f.values))), np.finfo(float).tiny)
-        mine = _served(trial, f, boundary)
+        mine = _taken(taken[0], i, f)
+        mine = _served(trial, f, boundary) if mine is None else mine
         rel = _rms(mine, np.asarray(f.values, dtype=np.float64), nt)[k] / amp
         target = rel
         if other is not None:
-            target = np.fmax(rel, _rms(_served(other, f, boundary), mine, nt)[k] / amp)
+            theirs = _taken(taken[1], i, f)
+            theirs = _served(other, f, boundary) if theirs is None else theirs
+            target = np.fmax(rel, _rms(theirs, mine, nt)[k] / amp)
         out.append(_Sample(k.astype(np.float64), k >= start, rel, target, other is not None, i))
     return out
+
+
+def _taken(served: list[np.ndarray] | None, i: int, field: xr.DataArray) -> np.ndarray | None:
+    """Field ``i``'s values served already (``served``: one array per training field), when they fit ``field``:
+    as many slices or fewer (a serve that left the box), the same lattice; None otherwise."""
+    if served is None or i >= len(served):
+        return None
+    values = served[i]
+    ok = values.shape[1:] == field.shape[1:] and values.shape[0] <= field.shape[0]
+    return values if ok else None
 
 
 def _served(model: AbstractLagrangian, field: xr.DataArray, boundary: BoundaryKinds | None) -> np.ndarray:

@@ -119,6 +119,12 @@ OPTIONS: dict[str, _Knob] = {
         "what a process of several reads in training: chunk i ('chunks') or every chunk of field i ('fields') "
         "goes to rank i mod N",
     ),
+    "selection_served_bytes": _Knob(
+        256 * 2**20,
+        _non_negative_int,
+        "a non-negative integer",
+        "bytes of the candidates' served fields that model selection keeps for the calibration (beyond: served again)",
+    ),
 }
 
 _values: dict[str, Any] = {name: knob.default for name, knob in OPTIONS.items()}

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
+from ._calibrate import runner_up
 from ._errors import InputError, LatticeDFTError, ServeError
 from ._lattice import BoundaryKinds
 from ._learn import learn
@@ -24,6 +25,7 @@ from ._learn._noise import SPREAD_WARN, largest_spread
 from ._learn._sparse import SERVE_FLOOR
 from ._models import MODELS, AbstractLagrangian
 from ._models._sparse import SparseLagrangian, default_library, exact_step_libraries
+from ._options import option
 
 __all__ = [
     "SelectionReport",
@@ -108,6 +110,12 @@ class SelectionReport:
     #: Every candidate as learned on the first ``1 - hold_out`` of each field (None where its fit failed), in the
     #: order of ``rows``: the calibration's trial and runner-up (:func:`latticedft._calibrate.calibrate`).
     trials: list[AbstractLagrangian | None] = field(default_factory=list, repr=False, compare=False)
+    #: The fields the chosen candidate's and the runner-up's trials (:func:`latticedft._calibrate.runner_up`)
+    #: served when scored, one array per training field (from its first two slices, the slices served), in the
+    #: order of ``rows``: None for the other candidates, and where a fit failed, a serve stopped or the
+    #: candidates' fields so far exceeded ``selection_served_bytes`` (:func:`latticedft.set_options`). The
+    #: calibration takes them instead of serving the same trials again.
+    served: list[list[np.ndarray] | None] = field(default_factory=list, repr=False, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible (scores of failed candidates as ``None``)."""
@@ -313,10 +321,19 @@ def select(
     changes = auto_candidates(model, first.ndim, ridge, first.ncomp) if candidates == "auto" else list(candidates)
     specs = _candidates(model, changes, ridge)
     held = _split(fields, hold_out)
-    done = [_trial(fresh, r, held, fields, boundary, learn_kwargs) for fresh, r, _ in specs]
+    done, served = [], []
+    budget = option("selection_served_bytes")
+    for fresh, r, _ in specs:
+        out: list[np.ndarray] = []
+        done.append(_trial(fresh, r, held, fields, boundary, learn_kwargs, out))
+        size = sum(a.nbytes for a in out)
+        kept = done[-1][1] is not None and len(out) == len(fields) and size <= budget
+        budget -= size if kept else 0
+        served.append(out if kept else None)
     rows = [{**row, **measured} for (_, _, row), (measured, _) in zip(specs, done, strict=True)]
     beyond = _beyond(specs, rows, fields, boundary, learn_kwargs) if len(fields) > 1 else None
     chosen, reason, warnings = _choose(rows, factor, keep_below, beyond)
+    second = runner_up(rows, chosen)
     chosen_model = copy.deepcopy(specs[chosen][0])
     report = learn(chosen_model, fields, boundary=boundary, ridge=specs[chosen][1], progress=False, **learn_kwargs)
     sel = SelectionReport(
@@ -328,6 +345,7 @@ def select(
         warnings=warnings,
         keep_below=float(keep_below),
         trials=[trial for _, trial in done],
+        served=[out if i in (chosen, second) else None for i, out in enumerate(served)],
     )
     report.selection = sel.to_dict()
     report.warnings.extend(warnings)
@@ -383,9 +401,11 @@ def _trial(
     fields: list[xr.DataArray],
     boundary: BoundaryKinds | None,
     learn_kwargs: dict[str, Any],
+    served: list[np.ndarray] | None = None,
 ) -> tuple[dict[str, Any], AbstractLagrangian | None]:
     """One candidate learned on the ``held`` parts and scored on the whole ``fields``: its row's measurements, and
-    the learned candidate (None when its fit failed)."""
+    the learned candidate (None when its fit failed). ``served`` receives the fields it served (one per field
+    until a serve stops: :func:`latticedft._learn._heldout.held_out_score`)."""
     trial = copy.deepcopy(fresh)
     t0 = time.perf_counter()
     n_parameters, kept, spread = None, None, None
@@ -396,7 +416,7 @@ def _trial(
         n_parameters = trial.n_parameters()
         kept = _kept_terms(trial)
         spread = _noisy_spread(trial, rep.noise)
-        score, status = _score(trial, fields, boundary), "ok"
+        score, status = _score(trial, fields, boundary, served), "ok"
         if not math.isfinite(score):
             status = "served field not finite"
     except ServeError as exc:

@@ -12,7 +12,15 @@ import xarray as xr
 
 import latticedft as ldft
 from latticedft import systems
-from latticedft._calibrate import NOISE_FAILED, Calibration, _noise_warnings, calibrate, disagreement, too_short
+from latticedft._calibrate import (
+    NOISE_FAILED,
+    Calibration,
+    _noise_warnings,
+    calibrate,
+    disagreement,
+    runner_up,
+    too_short,
+)
 from latticedft.io import write_field
 
 from case_helpers import run_cli, tiny_wave, write_toml
@@ -114,6 +122,45 @@ def test_the_trials_selection_learned_are_taken_as_they_are() -> None:
     assert same is sel.trials[sel.chosen] and taken == again
     assert {**reused.to_dict(), "wall_time": 0} == {**cal.to_dict(), "wall_time": 0}
     assert all(torch.equal(a, b) for a, b in zip(trial.state_dict().values(), same.state_dict().values()))
+
+
+def test_the_fields_selection_served_are_taken_as_served_again(monkeypatch) -> None:
+    """Selection keeps the fields its chosen candidate's and runner-up's trials served when scored (no other
+    candidate's): each equals the same trial served again from the same field (to the bit), and the calibration
+    given them measures the same law and samples as serving the trials itself, without serving them; a list that
+    does not fit the fields is served again, and with ``selection_served_bytes = 0`` none is kept."""
+    import latticedft._calibrate as calibrate_module
+
+    _, data = oscillator_data(amplitudes=(0.4, 0.8, 1.2), steps=40)
+    orders = [(2, 4), (2, 6), (2, 8)]
+    sel = ldft.select(ldft.PolynomialLagrangian(orders[0]), data, [{"orders": list(o)} for o in orders[1:]])
+    second = runner_up(sel.rows, sel.chosen)
+    assert second is not None
+    (dropped,) = {0, 1, 2} - {sel.chosen, second}
+    assert sel.served[dropped] is None
+    for i in (sel.chosen, second):
+        assert sel.served[i] is not None and len(sel.served[i]) == len(data)
+        for kept, f in zip(sel.served[i], data, strict=True):
+            assert np.array_equal(kept, calibrate_module._served(sel.trials[i], f, None))
+    fresh = ldft.PolynomialLagrangian(orders[sel.chosen])
+    runner = (ldft.PolynomialLagrangian(orders[second]), {"ridge": 0.0}, "other")
+    pair = (sel.trials[sel.chosen], sel.trials[second])
+    again: list[dict] = []
+    cal, _, _ = calibrate(fresh, data, runner_up=runner, record=again, learned=pair, ridge=0.0)
+    calls = []
+    serve_again = calibrate_module._served
+    monkeypatch.setattr(calibrate_module, "_served", lambda *a: calls.append(a) or serve_again(*a))
+    taken: list[dict] = []
+    kept = (sel.served[sel.chosen], sel.served[second])
+    reused, _, _ = calibrate(fresh, data, runner_up=runner, record=taken, learned=pair, served=kept, ridge=0.0)
+    assert not calls and taken == again and reused.runner_up == "other"
+    assert {**reused.to_dict(), "wall_time": 0} == {**cal.to_dict(), "wall_time": 0}
+    unfit: list[dict] = []
+    calibrate(fresh, data, runner_up=runner, record=unfit, learned=pair, served=(kept[0][:2], None), ridge=0.0)
+    assert len(calls) == 2 * len(data) and unfit == again  # the chosen one's list is short: both served again
+    with ldft.set_options(selection_served_bytes=0):
+        none = ldft.select(ldft.PolynomialLagrangian(orders[0]), data, [{"orders": list(o)} for o in orders[1:]])
+    assert none.served == [None, None, None] and none.chosen == sel.chosen
 
 
 def _after_seed(seed: int) -> float:
@@ -330,13 +377,18 @@ def test_serve_again_uses_the_recorded_law_and_trial(tmp_path: Path, capsys) -> 
 
 def test_auto_calibrates_after_selection_with_the_runner_up(tmp_path: Path, capsys, monkeypatch) -> None:
     """``calibrate = "auto"`` is on with ``[model] select``; the runner-up candidate's label is recorded when its
-    score was within reach of the chosen one's. The trial and the runner-up are those selection learned."""
+    score was within reach of the chosen one's. The trial and the runner-up are those selection learned, and the
+    fields they served are those selection served (neither learned nor served again)."""
     import latticedft._calibrate as calibration
 
     def refit(*args: object) -> None:
         raise AssertionError("the calibration learned again a candidate that selection had learned")
 
+    def serve_again(*args: object) -> None:
+        raise AssertionError("the calibration served again a trial that selection had served")
+
     monkeypatch.setattr(calibration, "_trial", refit)
+    monkeypatch.setattr(calibration, "_served", serve_again)
     case = tiny_wave(tmp_path)
     code, _, err = run_cli(
         capsys, "run", case, "--out", tmp_path / "r", "--set", 'model.select="auto"', "--set", "export.paraview=false"

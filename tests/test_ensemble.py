@@ -122,6 +122,42 @@ def test_stacked_networks_evaluate_together_as_one_by_one() -> None:
         np.testing.assert_allclose(out.members.values[k], alone, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("cells_per_call", [1, 7])
+def test_high_degree_members_take_their_tables_together_with_the_same_values(cells_per_call: int, monkeypatch) -> None:
+    """Above degree 12 (the basis by its recurrence) a stacked ensemble of polynomials evaluates the members'
+    basis tables once for all of them: its gradient and blocks equal every member's own closed forms to the bit,
+    for a scalar and a planar field, and serving it equals serving it member by member (the tables one member at
+    a time), to the bit."""
+    import latticedft._models._ensemble as ensemble_module
+    from latticedft._models._polynomial import stacked_fast_derivatives
+
+    _, train = oscillator_data(amplitudes=(0.3, 0.6, 0.9), steps=60)
+    scalar = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 14)), members=3, seed=0)
+    ldft.learn(scalar, train, ridge=1e-10)
+    planar = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 13)), members=3, seed=1)
+    ldft.learn(planar, [systems.kepler_orbit(1.0, 0.9, n=60)], ridge=1e-10)
+    rng = np.random.default_rng(cells_per_call)
+    pairs = [(0, 1), (0, 0), (1, 1)]
+    for ens in (scalar, planar):
+        m, n = ens.m, len(ens)
+        model = stacked(ens, tuple(f"c{i}" for i in range(n * m)))
+        cells = torch.tensor(rng.uniform(-1.0, 1.0, (cells_per_call, 2, n * m)))
+        parts = [cells[..., k * m : (k + 1) * m] for k in range(n)]
+        assert stacked_fast_derivatives([ens.member(k) for k in range(n)], parts, pairs) is not None
+        grad, blocks = model.fast_derivatives(cells, pairs)
+        for k in range(n):
+            g, b = ens.member(k).fast_derivatives(parts[k], pairs)
+            assert torch.equal(grad[..., k * m : (k + 1) * m], g)
+            for pair in pairs:
+                assert torch.equal(blocks[pair][..., k * m : (k + 1) * m, k * m : (k + 1) * m], b[pair])
+    together = ldft.serve(scalar, train[2], slices=40, progress=False)
+    monkeypatch.setattr(ensemble_module, "stacked_fast_derivatives", lambda *args: None)
+    one_by_one = ldft.serve(scalar, train[2], slices=40, progress=False)
+    assert together.slices == one_by_one.slices == 40
+    assert np.array_equal(together.members.values, one_by_one.members.values)
+    assert np.array_equal(together.std.values, one_by_one.std.values)
+
+
 def test_windows_hold_every_equation_once() -> None:
     _, train = oscillator_data(amplitudes=(0.3, 0.9), steps=57)
     windows = time_windows(as_sources(train, None), 1)

@@ -42,10 +42,16 @@ def held_in_slices(slices: list[int], hold_out: float) -> list[int]:
     return out
 
 
-def held_out_score(model: AbstractLagrangian, fields: list[xr.DataArray], boundary: BoundaryKinds | None) -> float:
+def held_out_score(
+    model: AbstractLagrangian,
+    fields: list[xr.DataArray],
+    boundary: BoundaryKinds | None,
+    served: list[np.ndarray] | None = None,
+) -> float:
     """The largest served error over the largest magnitude, field by field; ``ServeError`` when one stops.
     A candidate whose training corrected noisy data serves from denoised initial slices, as a case's task
-    with ``start = "auto"`` would."""
+    with ``start = "auto"`` would. ``served``: a list that receives every field's served values (float64, the
+    slices served), as :func:`latticedft._calibrate.calibrate` serves them."""
     noise = (model.report_.noise if model.report_ is not None else None) or {}
     denoise = noise.get("method", "none") != "none"
     worst = 0.0
@@ -53,6 +59,8 @@ def held_out_score(model: AbstractLagrangian, fields: list[xr.DataArray], bounda
         start = denoised_start(model, f) if denoise else f
         result = serve(model, start, boundary=boundary, progress=False)
         pred = np.asarray(result.field.values)
+        if served is not None:
+            served.append(np.asarray(pred, dtype=np.float64))
         ref = np.asarray(f.values)[: pred.shape[0]]
         err = float(np.max(np.abs(pred - ref))) / max(float(np.max(np.abs(ref))), np.finfo(float).tiny)
         worst = max(worst, err if math.isfinite(err) else math.inf)

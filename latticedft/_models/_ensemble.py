@@ -14,7 +14,7 @@ from .._contract import AbstractLagrangian, NumpyForms
 from .._errors import InputError
 from .._stencil import Stencil
 from . import _polynumpy
-from ._polynomial import PolynomialLagrangian
+from ._polynomial import PolynomialLagrangian, stacked_fast_derivatives
 from ._registry import MODELS
 
 __all__ = ["EnsembleLagrangian", "stacked"]
@@ -210,11 +210,19 @@ class _Stacked(AbstractLagrangian):
     def fast_derivatives(
         self, cells: torch.Tensor, pairs: list[tuple[int, int]]
     ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]] | None:
-        """The members' closed forms side by side (block-diagonal second derivatives); by autograd on all members
-        at once when a member has none (:meth:`_autograd_derivatives`)."""
+        """The members' closed forms side by side (block-diagonal second derivatives); high-degree polynomials'
+        basis tables evaluated for all members together (:func:`._polynomial.stacked_fast_derivatives`, the same
+        values); by autograd on all members at once when a member has none (:meth:`_autograd_derivatives`)."""
         m = self.mm
-        found = []
-        for k, part in enumerate(self._members()):
+        parts = self._members()
+        polys = [p for p in parts if isinstance(p, PolynomialLagrangian)]
+        together = (
+            stacked_fast_derivatives(polys, [cells[..., k * m : (k + 1) * m] for k in range(len(polys))], pairs)
+            if len(polys) == len(parts)
+            else None
+        )
+        found = [] if together is None else together
+        for k, part in enumerate(parts if together is None else []):
             out = part.fast_derivatives(cells[..., k * m : (k + 1) * m], pairs)
             if out is None:
                 return self._autograd_derivatives(cells, pairs)

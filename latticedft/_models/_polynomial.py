@@ -405,10 +405,29 @@ class PolynomialLagrangian(LinearLagrangian):
             (s,) = self._by_chunks(
                 z, self.n_terms * (4 * nvar + 2 * npairs), lambda zc: (self._term_derivatives(zc, bool(pairs)) @ coef,)
             )
-            # s: dL/dz_v, then d^2L/dz_v dz_w (v <= w)
-            grad = (s[..., :nvar] @ aff["W"].T).unflatten(-1, (k, m))
-            blocks = {(a, b): (s[..., nvar:] @ self._pair_matrix(aff, a, b)).unflatten(-1, (m, m)) for a, b in pairs}
+            return self._chained(s, aff, k, m, pairs)
+
+    def _chained(
+        self, s: torch.Tensor, aff: dict[str, Any], k: int, m: int, pairs: Sequence[tuple[int, int]]
+    ) -> tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]]:
+        """:meth:`fast_derivatives` from ``s``, the derivatives of ``L_d`` in the scaled variables (``dL/dz_v``,
+        then ``d^2L/dz_v dz_w``, ``v <= w``): through the chain rule to the cells' values."""
+        nvar = aff["W"].shape[-1]
+        grad = (s[..., :nvar] @ aff["W"].T).unflatten(-1, (k, m))
+        blocks = {(a, b): (s[..., nvar:] @ self._pair_matrix(aff, a, b)).unflatten(-1, (m, m)) for a, b in pairs}
         return grad, blocks
+
+    def _shares_tables(self, other: PolynomialLagrangian) -> bool:
+        """Whether :meth:`_term_derivatives` of ``other`` takes the same recurrence's basis tables (above degree
+        :data:`_VANDERMONDE_MAX_DEGREE`) and the same terms: the same basis, degree and exponents."""
+        deg = int(max(self.orders))
+        return (
+            deg > _VANDERMONDE_MAX_DEGREE
+            and other.basis == self.basis
+            and int(max(other.orders)) == deg
+            and other.exponents.shape == self.exponents.shape
+            and bool(torch.equal(other.exponents, self.exponents))
+        )
 
     def numpy_derivatives(self, pairs: Sequence[tuple[int, int]]) -> NumpyForms | None:
         """The closed forms of :meth:`fast_derivatives` in numpy, with fused basis tables (see ``_polynumpy``)."""
@@ -521,3 +540,33 @@ class PolynomialLagrangian(LinearLagrangian):
             "  where mean = average of the stencil values, D<axis> = difference along <axis> (psi[x + e] - psi[x])"
         )
         return "\n".join(lines)
+
+
+def stacked_fast_derivatives(
+    members: Sequence[PolynomialLagrangian], cells: Sequence[torch.Tensor], pairs: list[tuple[int, int]]
+) -> list[tuple[torch.Tensor, dict[tuple[int, int], torch.Tensor]]] | None:
+    """Every member's :meth:`PolynomialLagrangian.fast_derivatives` on its own ``cells`` (one tensor per member,
+    of one shape), the members' basis tables evaluated together: the recurrence's tables and the terms' products
+    (elementwise operations, the same on every element whatever the batch) once on the members' scaled variables
+    stacked, each member's products with its coefficients and chain rule on its own part, as its own call makes
+    them (a matrix product's rounding may depend on its shape). The same values as the calls one by one, with one
+    evaluation of the tables instead of one per member: a 1D ensemble of high-degree polynomials spends its serving
+    there. None unless the members share the recurrence's tables (:meth:`PolynomialLagrangian._shares_tables`)
+    and their cells, stacked, fit in one chunk (``poly_chunk_elements``)."""
+    first = members[0]
+    if len(members) < 2 or not all(first._shares_tables(p) for p in members):
+        return None
+    k, m = cells[0].shape[-2], cells[0].shape[-1]
+    with torch.no_grad():
+        affs = [p._affine() for p in members]
+        zs = [p._scaled(c, aff) for p, c, aff in zip(members, cells, affs, strict=True)]
+        nvar = zs[0].shape[-1]
+        npairs = nvar * (nvar + 1) // 2 if pairs else 0
+        size = max(1, option("poly_chunk_elements") // max(first.n_terms * (4 * nvar + 2 * npairs), 1))
+        if len(zs) * zs[0].numel() > size * nvar:  # the stacked tables would exceed one chunk
+            return None
+        terms = first._term_derivatives(torch.stack(zs), bool(pairs))
+        return [
+            p._chained(terms[j].clone() @ p.coef.detach(), aff, k, m, pairs)
+            for j, (p, aff) in enumerate(zip(members, affs, strict=True))
+        ]

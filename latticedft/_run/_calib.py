@@ -47,7 +47,7 @@ def case_calibration(
     if short is not None:
         return None, [short], None
     with alone():  # rank 0's alone under --workers: the other processes take no part in it
-        fresh, kwargs, runner_up, learned = _candidates(case, data, model, report)
+        fresh, kwargs, runner_up, learned, served = _candidates(case, data, model, report)
         log.info("calibrating the error bar by held-out serving ...")
         try:
             ens = model if isinstance(model, EnsembleLagrangian) else None
@@ -58,6 +58,7 @@ def case_calibration(
                 runner_up=runner_up,
                 ensemble_model=ens,
                 learned=learned,
+                served=served,
                 **kwargs,
             )
         except LatticeDFTError as exc:
@@ -87,15 +88,17 @@ def _candidates(
     dict[str, Any],
     tuple[AbstractLagrangian, dict[str, Any], str] | None,
     tuple[AbstractLagrangian, AbstractLagrangian | None] | None,
+    tuple[list[np.ndarray] | None, list[np.ndarray] | None] | None,
 ]:
     """The chosen model unlearned with its learn keywords, the runner-up of model selection (None without
-    selection, or without one: :func:`latticedft._calibrate.runner_up`), and the two as selection learned them on
-    the held-in slices where it kept them (``selection_trials_``; else None)."""
+    selection, or without one: :func:`latticedft._calibrate.runner_up`), the two as selection learned them on
+    the held-in slices where it kept them (``selection_trials_``; else None), and the fields they served when
+    selection scored them (``selection_served_``, :attr:`latticedft.SelectionReport.served`; else None)."""
     kwargs = {k: v for k, v in case.train.learn.items() if k not in ("ensemble", "ensemble_seed")}
     hand = case.model.build(len(data.dims))
     sel = getattr(report, "selection", None)
     if not sel:  # the trial takes the weight the model's fit chose where ridge = "auto"
-        return hand, trial_keywords(kwargs, getattr(report, "ridge", None)), None, None
+        return hand, trial_keywords(kwargs, getattr(report, "ridge", None)), None, None, None
     rows, at = sel["candidates"], sel["chosen"]
     chosen = rows[at]
     fresh = _build(hand, chosen["kind"], dict(chosen["options"]))
@@ -104,11 +107,13 @@ def _candidates(
     first = model.member(0) if isinstance(model, EnsembleLagrangian) else model
     trials = getattr(first, "selection_trials_", None)
     learned = (trials[at], None if runner is None else trials[runner]) if trials and trials[at] is not None else None
+    kept = getattr(first, "selection_served_", None)
+    served = (kept[at], None if runner is None else kept[runner]) if learned is not None and kept else None
     if runner is None:
-        return fresh, own, None, learned
+        return fresh, own, None, learned, served
     r = rows[runner]
     up = (_build(hand, r["kind"], dict(r["options"])), {**kwargs, "ridge": r["ridge"]}, r["label"])
-    return fresh, own, up, learned
+    return fresh, own, up, learned, served
 
 
 @dataclass

@@ -93,4 +93,5 @@ def _select_and_learn(case: Case, data: CaseData, model: AbstractLagrangian) -> 
         chosen.report_ = report
     if case.run.device == "cpu" and not is_parallel():  # the calibration's fits would be these, learned alike
         object.__setattr__(chosen, "selection_trials_", sel.trials)  # not submodules: read by the calibration
+        object.__setattr__(chosen, "selection_served_", sel.served)  # the fields two of them served when scored
     return chosen, report
