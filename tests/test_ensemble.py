@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -620,26 +621,11 @@ def test_the_affine_check_takes_each_member_on_its_own_scale(monkeypatch, power:
     only) is caught although member 2's L_d is ``2**power`` times its own, and Newton serves from there, so that
     every member equals itself served alone (the stacked check kept the perturbed slices when member 2's scale
     was the larger, 6.0e-10 from member 0's own field)."""
-    from latticedft._serve._affine import _AffineSlices
-
-    train = systems.wave_string([(1, 1.0), (2, 0.4)], nx=13, nt=20)
-    test = systems.wave_string([(1, 0.5, 0.3), (3, 0.2)], nx=13, nt=30)
-    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 0)), members=3, seed=0)
-    ldft.learn(ens, [train])
+    ens, test = _wave_ensemble()
     own = [ldft.serve(ens.member(k), test) for k in range(3)]
     assert all(o.solver == "affine" for o in own)
-    run = _AffineSlices.run
-
-    def faulty(self, v: np.ndarray, start: int, stop: int) -> None:
-        run(self, v, start, stop)
-        if v.shape[1] == 3 * test.sizes["x"] and stop > 10:  # the stacked run: member 0's components (of 3 x 1)
-            v[10 : stop + 1, 0::3] *= 1 + 1e-9
-
-    monkeypatch.setattr(_AffineSlices, "run", faulty)
-    scaled = copy.deepcopy(ens)
-    with torch.no_grad():
-        scaled.member(2).coef.mul_(2.0**power)
-    out = ldft.serve(scaled, test)
+    _fault_affine(monkeypatch, test, 0)
+    out = ldft.serve(_scaled(ens, 2, power), test)
     assert out.complete and out.members_stopped is None and out.solver == "affine+newton"
     for k in range(3):
         np.testing.assert_allclose(out.members.values[k], own[k].field.values, rtol=0, atol=1e-12)
@@ -770,6 +756,31 @@ def test_the_solver_choice_takes_each_members_off_diagonal_share(breathers) -> N
     assert factor_step(sys, blocks, 1.0, "auto", 1e-10)[1] == "sitewise"
 
 
+def _wave_ensemble() -> tuple[ldft.EnsembleLagrangian, xr.DataArray]:
+    """A 3-member quadratic ensemble learned on a wave string, and a test field that its members serve by the
+    affine recurrence."""
+    train = systems.wave_string([(1, 1.0), (2, 0.4)], nx=13, nt=20)
+    test = systems.wave_string([(1, 0.5, 0.3), (3, 0.2)], nx=13, nt=30)
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 0)), members=3, seed=0)
+    ldft.learn(ens, [train])
+    return ens, test
+
+
+def _fault_affine(monkeypatch: pytest.MonkeyPatch, test: xr.DataArray, member: int) -> None:
+    """Make the affine recurrence go wrong in one member of a stacked 3-member serve of ``test``: that member's
+    values times ``1 + 1e-9`` from slice 10 on (a field served alone is left as it is)."""
+    from latticedft._serve._affine import _AffineSlices
+
+    run = _AffineSlices.run
+
+    def faulty(self: Any, v: np.ndarray, start: int, stop: int) -> None:
+        run(self, v, start, stop)
+        if v.shape[1] == 3 * test.sizes["x"] and stop > 10:  # the stacked run: the member's components (of 3 x 1)
+            v[10 : stop + 1, member::3] *= 1 + 1e-9
+
+    monkeypatch.setattr(_AffineSlices, "run", faulty)
+
+
 def _scaled(ens: ldft.EnsembleLagrangian, k: int, power: int) -> ldft.EnsembleLagrangian:
     """A copy of the polynomial ensemble ``ens`` whose member ``k``'s L_d is ``2**power`` times its own (the same
     equations; a Jacobian and residual of another size: served alone, bit for bit as before)."""
@@ -821,23 +832,11 @@ def test_a_member_failing_the_affine_check_leaves_the_others_affine(monkeypatch,
     slices, as served alone, to the bit and with member 0's solver ``"affine"``, also with member 1's L_d ``2**power``
     times its own (every member went to Newton from slice 10: ``"affine+newton"``); member 2 equals itself served
     alone to 1e-12."""
-    from latticedft._serve._affine import _AffineSlices
-
-    train = systems.wave_string([(1, 1.0), (2, 0.4)], nx=13, nt=20)
-    test = systems.wave_string([(1, 0.5, 0.3), (3, 0.2)], nx=13, nt=30)
-    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 0)), members=3, seed=0)
-    ldft.learn(ens, [train])
+    ens, test = _wave_ensemble()
     scaled = _scaled(ens, 1, power)
     own = [ldft.serve(scaled.member(k), test) for k in range(3)]
     assert all(o.solver == "affine" for o in own)
-    run = _AffineSlices.run
-
-    def faulty(self, v: np.ndarray, start: int, stop: int) -> None:
-        run(self, v, start, stop)
-        if v.shape[1] == 3 * test.sizes["x"] and stop > 10:  # the stacked run: member 2's components (of 3 x 1)
-            v[10 : stop + 1, 2::3] *= 1 + 1e-9
-
-    monkeypatch.setattr(_AffineSlices, "run", faulty)
+    _fault_affine(monkeypatch, test, 2)
     out = ldft.serve(scaled, test)
     assert out.complete and out.members_stopped is None and out.solver == "affine"
     for k in (0, 1):
