@@ -215,18 +215,16 @@ class _Stacked(AbstractLagrangian):
         values); by autograd on all members at once when a member has none (:meth:`_autograd_derivatives`)."""
         m = self.mm
         parts = self._members()
+        own = [cells[..., k * m : (k + 1) * m] for k in range(len(parts))]
         polys = [p for p in parts if isinstance(p, PolynomialLagrangian)]
-        together = (
-            stacked_fast_derivatives(polys, [cells[..., k * m : (k + 1) * m] for k in range(len(polys))], pairs)
-            if len(polys) == len(parts)
-            else None
-        )
-        found = [] if together is None else together
-        for k, part in enumerate(parts if together is None else []):
-            out = part.fast_derivatives(cells[..., k * m : (k + 1) * m], pairs)
-            if out is None:
-                return self._autograd_derivatives(cells, pairs)
-            found.append(out)
+        found = stacked_fast_derivatives(polys, own, pairs) if len(polys) == len(parts) else None
+        if found is None:
+            found = []
+            for part, c in zip(parts, own, strict=True):
+                out = part.fast_derivatives(c, pairs)
+                if out is None:
+                    return self._autograd_derivatives(cells, pairs)
+                found.append(out)
         grad = torch.cat([g for g, _ in found], dim=-1)
         return grad, {pair: _block_diagonal(torch.stack([b[pair] for _, b in found])) for pair in pairs}
 
