@@ -449,7 +449,7 @@ def _measure(
 ) -> list[_Sample]:
     """Every field of the fold with held-out slices, served by ``trial`` (and by ``other``, the learned
     runner-up): its slices ``k >= 2``. ``taken``: the fields the two served from every field already (or None),
-    taken where they fit the field (:func:`_taken`) instead of serving again."""
+    taken where they fit the field (:func:`_served_or_taken`) instead of serving again."""
     out = []
     for i, (f, start) in enumerate(zip(fields, fold.starts, strict=True)):
         nt = f.sizes[f.dims[0]]
@@ -457,26 +457,29 @@ def _measure(
         if start >= nt or not k.size:
             continue
         amp = max(float(np.max(np.abs(f.values))), np.finfo(float).tiny)
-        mine = _taken(taken[0], i, f)
-        mine = _served(trial, f, boundary) if mine is None else mine
+        mine = _served_or_taken(trial, f, boundary, taken[0], i)
         rel = _rms(mine, np.asarray(f.values, dtype=np.float64), nt)[k] / amp
         target = rel
         if other is not None:
-            theirs = _taken(taken[1], i, f)
-            theirs = _served(other, f, boundary) if theirs is None else theirs
+            theirs = _served_or_taken(other, f, boundary, taken[1], i)
             target = np.fmax(rel, _rms(theirs, mine, nt)[k] / amp)
         out.append(_Sample(k.astype(np.float64), k >= start, rel, target, other is not None, i))
     return out
 
 
-def _taken(served: list[np.ndarray] | None, i: int, field: xr.DataArray) -> np.ndarray | None:
-    """Field ``i``'s values served already (``served``: one array per training field), when they fit ``field``:
-    as many slices or fewer (a serve that left the box), the same lattice; None otherwise."""
-    if served is None or i >= len(served):
-        return None
-    values = served[i]
-    ok = values.shape[1:] == field.shape[1:] and values.shape[0] <= field.shape[0]
-    return values if ok else None
+def _served_or_taken(
+    model: AbstractLagrangian,
+    field: xr.DataArray,
+    boundary: BoundaryKinds | None,
+    served: list[np.ndarray] | None,
+    i: int,
+) -> np.ndarray:
+    """:func:`_served` of training field ``i``, or its values served already (``served``: one array per training
+    field) where they fit ``field``: as many slices or fewer (a serve that left the box), the same lattice."""
+    values = served[i] if served is not None and i < len(served) else None
+    if values is not None and values.shape[1:] == field.shape[1:] and values.shape[0] <= field.shape[0]:
+        return values
+    return _served(model, field, boundary)
 
 
 def _served(model: AbstractLagrangian, field: xr.DataArray, boundary: BoundaryKinds | None) -> np.ndarray:
