@@ -490,8 +490,8 @@ def test_a_restarted_window_batch_serves_as_a_new_one(library):
     # the held-out serving restarts one batch on every window (other supports' coefficients, longer and shorter
     # windows, a support whose serving stops): the same values, to the bit, and the same failures as a new batch
     from latticedft._lattice import as_lattice_fields
-    from latticedft._serve._fast1d import numpy_derivatives_of
-    from latticedft._serve._onedim import WindowServing, served_values
+    from latticedft._serve._fast1d import FastBatch, numpy_derivatives_of, step_fast
+    from latticedft._serve._onedim import WindowServing
     from latticedft._serve._options import ServeOptions
 
     model = ldft.SparseLagrangian(*[library] if library else [], bags=0, threshold=1e-2)
@@ -513,7 +513,9 @@ def test_a_restarted_window_batch_serves_as_a_new_one(library):
             model.coef.copy_(coef)
         forms = numpy_derivatives_of(model)
         for f in windows:
-            ((fresh, fresh_failed),) = served_values(model, [f], options, forms)
+            fresh_batch = FastBatch(model, [f], [f.shape[0]], forms, options.mode, False, numpy_first=True)
+            step_fast(fresh_batch, options.rtol, options.max_newton, options.box)
+            fresh, fresh_failed = fresh_batch.npsi[0, : fresh_batch.nlength[0]], fresh_batch.failed[0]
             again, failed = window(f, forms)
             assert failed == fresh_failed and np.array_equal(again, fresh, equal_nan=True)
             outcomes.append(failed)

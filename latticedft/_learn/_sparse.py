@@ -406,7 +406,7 @@ class _Serving:
 
     def _window(self, model: SparseLagrangian) -> WindowServing:
         """What serves a window of a 1D tail: one batch for every support serving the same tails, restarted on
-        each window (:func:`latticedft._serve._onedim.served_values` without building the batch again)."""
+        each window (:class:`latticedft._serve._onedim.WindowServing`) instead of built again."""
         if "window" not in self._shared:
             self._shared["window"] = WindowServing(model, ServeOptions.from_keywords(None, progress=False))
         window: WindowServing = self._shared["window"]

@@ -37,35 +37,23 @@ def _serve_batch(
     return batch.results()
 
 
-def served_values(
-    model: AbstractLagrangian, fs: list[LatticeField], options: ServeOptions, derivatives: NumpyForms
-) -> list[tuple[np.ndarray, bool]]:
-    """What :func:`_serve_batch` serves on the 1D fields ``fs`` (each to its own length) for a model with numpy
-    closed forms (``derivatives``: :func:`numpy_derivatives_of` of the model as it is now, reused by a caller
-    that serves several times with the same coefficients), without building the results: per member the
-    slices served, ``(slices, m)`` (a view of the batch's values), and whether it failed. No training-range
-    check, no DataArrays, no warnings: for the held-out serving of a fit, which reads the values alone. Each
-    member's first gradient is taken from ``derivatives`` (what :func:`_serve_batch` takes from torch's closed
-    forms, equal to round-off)."""
-    batch = FastBatch(
-        model, fs, [f.shape[0] for f in fs], derivatives, options.mode, options.progress, numpy_first=True
-    )
-    step_fast(batch, options.rtol, options.max_newton, options.box)
-    return [(batch.npsi[k, : batch.nlength[k]], batch.failed[k]) for k in range(len(fs))]
-
-
 class WindowServing:
-    """:func:`served_values` of one 1D field at a time, called many times with the same model (whose coefficients,
-    and so closed forms, may change between calls) and options: one batch, restarted on each call
-    (:meth:`FastBatch.restart`) instead of built again, each call's values copied out of it. The held-out serving
-    of a sparse fit serves every support a few slices at a time."""
+    """What :func:`_serve_batch` serves on one 1D field at a time for a model with numpy closed forms, called many
+    times with the same model (whose coefficients, and so closed forms, may change between calls) and options, without
+    building the results: the slices served, ``(slices, m)``, and whether the serve failed. No training-range
+    check, no DataArrays, no warnings: for the held-out serving of a fit, which reads the values alone. One batch,
+    restarted on each call (:meth:`FastBatch.restart`) instead of built again, each call's values copied out of it;
+    each call's first gradient is taken from the closed forms ``derivatives`` (what :func:`_serve_batch` takes from
+    torch's closed forms, equal to round-off). The held-out serving of a sparse fit serves every support a few
+    slices at a time."""
 
     def __init__(self, model: AbstractLagrangian, options: ServeOptions):
         self.model, self.options = model, options
         self._batch: FastBatch | None = None
 
     def __call__(self, f: LatticeField, derivatives: NumpyForms) -> tuple[np.ndarray, bool]:
-        """``served_values(model, [f], options, derivatives)[0]``, the values a copy."""
+        """``(values, failed)`` of ``f`` served with the closed forms ``derivatives`` (:func:`numpy_derivatives_of`
+        of the model as it is now), the values a copy."""
         batch, options = self._batch, self.options
         if batch is None or batch.m != f.ncomp:
             batch = self._batch = FastBatch(
