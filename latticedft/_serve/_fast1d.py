@@ -125,16 +125,21 @@ class FastBatch(_Batch):
         self.kernel = trajectory_kernel(model) if len(fs) == 1 and fs[0].ncomp == 1 else None
         label = ", 1 trajectory, compiled" if self.kernel is not None else None
         super().__init__(model, fs, steps, mode, progress, label, first=not numpy_first)
-        self.fn = derivatives
         self._views()
+        self._begin(derivatives, numpy_first)
+        #: A stacked ensemble's largest singular value met per trajectory and member (set on its first step).
+        self.nmember_mscale: np.ndarray | None = None
+        self._progress = progress
+
+    def _begin(self, derivatives: NumpyForms, numpy_first: bool) -> None:
+        """The numpy side of the batch starting on its fields: the closed forms ``derivatives``, each member's first
+        gradient from them where ``numpy_first``, each member's length and running flag."""
+        self.fn = derivatives
         if numpy_first:
             g, _ = derivatives(self.npsi[:, 0:2])
             self.ngprev[:] = g[:, self.a1]
         self.nlength = np.array(self.length, dtype=np.int64)
-        self.running = np.ones(len(fs), dtype=bool)
-        #: A stacked ensemble's largest singular value met per trajectory and member (set on its first step).
-        self.nmember_mscale: np.ndarray | None = None
-        self._progress = progress
+        self.running = np.ones(len(self.fs), dtype=bool)
 
     def _views(self) -> None:
         """Numpy views of the batch's tensors: what is written there is what ``results`` reads."""
@@ -166,14 +171,10 @@ class FastBatch(_Batch):
             self.steps, self.affine_slices, self.t0 = self.nmax, 0, time.perf_counter()
         else:
             Stepping.__init__(self, self.mode, self.nmax, self._progress, label)
-        self.fn = derivatives
         self.npsi[:, : self.nmax] = math.nan
         for k, f in enumerate(fs):
             self.npsi[k, :2] = f.values.detach()[:2].numpy()
-        g, _ = derivatives(self.npsi[:, 0:2])
-        self.ngprev[:] = g[:, self.a1]
-        self.nlength = np.array(steps, dtype=np.int64)
-        self.running = np.ones(b, dtype=bool)
+        self._begin(derivatives, True)
 
     def retire(self, k: int, slices: int, why: str, bad: bool, res: float = math.nan) -> None:
         super().retire(k, slices, why, bad, res)
