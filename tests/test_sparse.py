@@ -412,24 +412,24 @@ def test_threshold_auto_finds_the_true_terms_alone_on_clean_data(library, data, 
 def test_held_out_serving_stops_early_and_chooses_as_serving_whole(monkeypatch):
     # serving each support only as far as the rule needs keeps its choice (the sparsest within SERVE_FLOOR, or
     # else within SERVE_SLACK of the best) and serves fewer slices
-    from latticedft._learn import _sparse
+    from latticedft._learn import _heldout, _sparse
 
     data = [pendulum(2.6, n=30)]
     served = []
-    by_window = _sparse.WindowServing.__call__
+    by_window = _heldout.WindowServing.__call__
 
     def counting(self, f, derivatives):
         served.append(f.shape[0] - 2)
         return by_window(self, f, derivatives)
 
-    monkeypatch.setattr(_sparse.WindowServing, "__call__", counting)  # how 1D tails are served
-    whole = _sparse._Serving.advance
+    monkeypatch.setattr(_heldout.WindowServing, "__call__", counting)  # how 1D tails are served
+    whole = _heldout.SupportServing.advance
     for floor in (_sparse.SERVE_FLOOR, 0.0):  # 0: no support within the floor, the best decides
         monkeypatch.setattr(_sparse, "SERVE_FLOOR", floor)
         coefs, counts = [], []
         for bounded in (True, False):
             advance = whole if bounded else (lambda self, model, bound: whole(self, model, math.inf))
-            monkeypatch.setattr(_sparse._Serving, "advance", advance)
+            monkeypatch.setattr(_heldout.SupportServing, "advance", advance)
             served.clear()
             model = ldft.SparseLagrangian("kinetic + poly:2 + trig:1", bags=0)
             ldft.learn(model, data, progress=False)
@@ -440,13 +440,12 @@ def test_held_out_serving_stops_early_and_chooses_as_serving_whole(monkeypatch):
 
 
 def test_held_out_serving_in_chunks_matches_serving_whole():
-    from latticedft._learn._heldout import held_out_score
-    from latticedft._learn._sparse import _Serving
+    from latticedft._learn._heldout import SupportServing, held_out_score
 
     model = ldft.SparseLagrangian("kinetic + trig:1", bags=0)
     ldft.learn(model, [pendulum(2.0), pendulum(2.6)], progress=False)
     tails = [pendulum(a).isel(t=slice(50, None)) for a in (2.0, 2.9)]
-    run = _Serving(model.coef.detach().numpy().copy(), tails, None)
+    run = SupportServing(model.coef.detach().numpy().copy(), tails, None)
     assert run.advance(model, math.inf) == pytest.approx(held_out_score(model, tails, None), rel=1e-8)
     assert run.finished
 
@@ -462,7 +461,7 @@ def test_held_out_serving_without_results_equals_the_public_serve(monkeypatch, l
     # gradient from the numpy closed forms, the public serve's from torch's; the errors are relative to the
     # tail's scale, so 1e-12 here is 1e-12 of the field); a support whose serving stops (no kinetic term: a
     # singular mixed Hessian) scores inf on both
-    from latticedft._learn import _sparse
+    from latticedft._learn import _heldout
 
     model = ldft.SparseLagrangian(*[library] if library else [], bags=0, threshold=1e-2)
     fields = data()
@@ -476,8 +475,8 @@ def test_held_out_serving_without_results_equals_the_public_serve(monkeypatch, l
     errors = []
     for public in (False, True):
         if public:
-            monkeypatch.setattr(_sparse._Serving, "_numpy_forms", lambda self, model: None)
-        runs = [_sparse._Serving(s, tails, None) for s in supports]
+            monkeypatch.setattr(_heldout.SupportServing, "_numpy_forms", lambda self, model: None)
+        runs = [_heldout.SupportServing(s, tails, None) for s in supports]
         errors.append([run.advance(model, math.inf) for run in runs])
         assert all(run.finished and (run._forms is None) == public for run in runs)
     assert [math.isfinite(e) for e in errors[0]] == [math.isfinite(e) for e in errors[1]]
@@ -560,10 +559,10 @@ def test_held_out_tails_as_lattice_fields_and_dataarrays(monkeypatch):
     # the tails' lattice fields are the fields sliced, as the DataArrays' (made only where serve needs them)
     # read back; 1D tails are served from the lattice fields, without making a DataArray
     from latticedft._lattice import as_lattice_fields
-    from latticedft._learn import _sparse
+    from latticedft._learn import _heldout
 
     fields = as_lattice_fields([pendulum(2.0), kepler_one_orbit()], ["a", "b"])
-    tails = _sparse._Tails(fields, [30, 40])
+    tails = _heldout.Tails(fields, [30, 40])
     back = as_lattice_fields(list(tails), ["a", "b"], min_slices=2)
     for got, want in zip(tails.fields(), back):
         assert torch.equal(got.values, want.values) and got.dims == want.dims and got.boundary == want.boundary
@@ -572,7 +571,7 @@ def test_held_out_tails_as_lattice_fields_and_dataarrays(monkeypatch):
     def no_arrays(self, i):
         raise AssertionError("a DataArray made for a 1D tail")
 
-    monkeypatch.setattr(_sparse._Tails, "__getitem__", no_arrays)
+    monkeypatch.setattr(_heldout.Tails, "__getitem__", no_arrays)
     model = ldft.SparseLagrangian("kinetic + poly:2 + trig:1", bags=0)
     report = ldft.learn(model, [pendulum(2.0), pendulum(2.6)], progress=False)
     assert report.validation
