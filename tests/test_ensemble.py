@@ -843,3 +843,137 @@ def test_a_member_failing_the_affine_check_leaves_the_others_affine(monkeypatch,
         np.testing.assert_array_equal(out.members.values[k], own[k].field.values)
     np.testing.assert_allclose(out.members.values[2], own[2].field.values, rtol=0, atol=1e-12)
     assert not np.array_equal(out.members.values[2], own[2].field.values)  # Newton served it from slice 10
+
+
+@pytest.fixture(scope="module")
+def membrane() -> tuple[ldft.EnsembleLagrangian, xr.DataArray]:
+    """An ensemble of a nonlinear L_d on a 2+1D periodic membrane (the sine-Gordon class (2, 12), time
+    symmetric, learned on a field at rest: slice-Newton with chord steps) and a longer field to serve."""
+    from test_ndpoly_fast import _field, _sine_gordon
+
+    ens = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 12), time_symmetric=True), members=3, seed=0)
+    ldft.learn(ens, _field(_sine_gordon(2, 10, 24)), progress=False)
+    return ens, _field(_sine_gordon(2, 10, 30))
+
+
+@pytest.mark.parametrize("dims", ["1+1d", "2+1d"])
+@pytest.mark.parametrize("solver", ["lu", "krylov"])
+def test_each_member_on_the_folded_kernels_equals_itself_alone_to_the_bit(
+    breathers, membrane, monkeypatch, dims: str, solver: str
+) -> None:
+    """A stacked ensemble of polynomials is served on the folded kernels, each member's cells evaluated by its own
+    ``FoldedSlices`` on its own components (``_stackfold``): every member's residual, gradients and Hessian
+    blocks are those it has alone, so its field equals the member served alone to the bit, also with member
+    2's L_d ``2**-40`` times its own (the torch evaluation of the stack left members up to 1.0e-14 (1+1D) and
+    1.7e-15 (2+1D) from their own fields)."""
+    import latticedft._serve._stepper as stepper
+    from latticedft._serve._stackfold import StackedFolded
+
+    ens, test = breathers if dims == "1+1d" else membrane
+    scaled = _scaled(ens, 2, -40)
+    kinds = []
+    real = stepper._folded_of
+
+    def spy(run):
+        got = real(run)
+        kinds.append(type(got).__name__)
+        return got
+
+    monkeypatch.setattr(stepper, "_folded_of", spy)
+    out = ldft.serve(scaled, test, solver=solver, progress=False)
+    assert out.complete and out.solver == "newton" and set(kinds) == {StackedFolded.__name__}
+    for k in range(3):
+        own = ldft.serve(scaled.member(k), test, solver=solver, progress=False)
+        assert own.complete
+        np.testing.assert_array_equal(out.members.values[k], own.field.values)
+    assert not np.array_equal(out.members.values[1], out.members.values[0])  # members of their own
+
+
+def test_a_stack_that_cannot_fold_keeps_the_torch_evaluation(breathers) -> None:
+    """The folded kernels serve a stack only where they serve every member: a stack of networks, of polynomials
+    whose coefficients do not fold (``folded_max_powers``), or with ``compiled_kernels=False`` keeps the torch
+    evaluation of ``CellDerivatives`` (``stacked_folded`` gives None); a single model is not a stack."""
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve._ensemble import _labels, _stack
+    from latticedft._serve._field import slice_system
+    from latticedft._serve._stackfold import StackedFolded, stacked_folded
+
+    ens, test = breathers
+    f = as_lattice_field(test)
+
+    def built(e: ldft.EnsembleLagrangian) -> Any:
+        labels = _labels(e, f)
+        model = stacked(e, labels)
+        field = _stack(f, len(e), labels)
+        return stacked_folded(model, slice_system(model, field), field.values.reshape(f.shape[0], -1, len(e)))
+
+    assert isinstance(built(ens), StackedFolded)
+    with ldft.set_options(compiled_kernels=False):
+        assert built(ens) is None
+    with ldft.set_options(folded_max_powers=1):
+        assert built(ens) is None
+    single = ens.member(0)
+    sys = slice_system(single, f)
+    assert stacked_folded(single, sys, f.values.reshape(f.shape[0], -1, 1)) is None
+    net = ldft.MLPLagrangian(hidden=[4])
+    ldft.learn(net, test, progress=False, max_iter=5, ensemble=2)
+    assert built(net.ensemble_) is None
+    with ldft.set_options(compiled_kernels=False):  # served as before: each member on its own scale, to 1e-12
+        out = ldft.serve(ens, test, solver="lu", progress=False)
+        for k in range(3):
+            own = ldft.serve(ens.member(k), test, solver="lu", progress=False)
+            np.testing.assert_allclose(out.members.values[k], own.field.values, rtol=0, atol=1e-12)
+
+
+#: The figures of a served result that a stacked ensemble reports as member 0 served alone reports them.
+FIGURES = ("newton_iterations", "max_newton_iterations", "max_residual", "solver", "slice_solver")
+
+
+def _figures(r: ldft.ServeResult) -> dict[str, Any]:
+    return {k: getattr(r, k) for k in FIGURES}
+
+
+@pytest.mark.parametrize("solver", ["lu", "krylov"])
+def test_a_stacked_field_reports_member_0s_figures(breathers, solver: str) -> None:
+    """A stacked n-D run reports member 0's own figures, as the member served alone reports them: its Newton
+    evaluations (the stacked run counted each slice's evaluations until every member converged: 120 against
+    member 0's 114, the scaled member 2 moving it further), the most on one slice, the largest residual it
+    converged to (the stacked run's was the largest over the members) and its linear solver."""
+    ens, test = breathers
+    scaled = _scaled(ens, 2, -40)
+    out = ldft.serve(scaled, test, solver=solver, progress=False)
+    own = ldft.serve(scaled.member(0), test, solver=solver, progress=False)
+    assert out.complete and _figures(out) == _figures(own)
+    assert out.to_dict()["newton_iterations"] == own.newton_iterations
+
+
+def test_a_member_served_affine_reports_no_other_members_newton(monkeypatch) -> None:
+    """Member 0 served by the affine recurrence throughout while member 2 goes to Newton from slice 10 (its
+    recurrence failed its own check): the stacked result reports member 0's figures, ``"affine"``, one
+    evaluation a slice and no slice solver, as member 0 alone (it reported member 2's Newton evaluations added
+    to member 0's affine slices, and member 2's linear solver)."""
+    ens, test = _wave_ensemble()
+    own = ldft.serve(ens.member(0), test)
+    assert own.solver == "affine" and own.slice_solver is None
+    _fault_affine(monkeypatch, test, 2)
+    out = ldft.serve(ens, test)
+    assert out.complete and out.members_stopped is None
+    assert _figures(out) == _figures(own)
+    assert out.newton_iterations == test.sizes["t"] - 2 and out.max_newton_iterations == 1
+
+
+@pytest.mark.parametrize("loop", ["numpy", "torch"])
+def test_a_stacked_batch_of_trajectories_reports_member_0s_figures(paper, monkeypatch, loop: str) -> None:
+    """A 1D stacked batch (two trajectories) reports each trajectory's member 0 figures, as member 0 served alone
+    on the same batch reports them (the numpy loop and the torch one): its evaluations, the most on one slice and
+    the largest residual it converged to (the stacked batch reported the largest over the members: 1.1e-10
+    against member 0's own 5.6e-11 on the first trajectory)."""
+    import latticedft._serve._onedim as onedim
+
+    if loop == "torch":
+        monkeypatch.setattr(onedim, "numpy_derivatives_of", lambda model: None)
+    inits = [systems.oscillator_sin(1.0), systems.oscillator_sin(0.6)]
+    out = ldft.serve(paper, inits, slices=51, progress=False)
+    own = ldft.serve(paper.member(0), inits, slices=51, progress=False)
+    for r, o in zip(out, own, strict=True):
+        assert r.complete and _figures(r) == _figures(o)

@@ -4,6 +4,7 @@ against the model's own DEL."""
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 import scipy.sparse
@@ -162,7 +163,7 @@ def _slice_residuals(
     ``members > 1`` (a stacked ensemble's), per member over its own components: ``(slices, members)``."""
     every = int(option("affine_check_every"))
     if members > 1:
-        return _member_residuals(model, f, psi, start, stop, members, every)
+        return _member_residuals(model, f, psi, start, stop, members)
     if every > 1:
         out = np.full(stop - start, np.nan)
         for s in sorted({*range(start + every - 1, stop, every), stop - 1} if stop > start else set()):
@@ -183,23 +184,17 @@ def _slice_residuals(
 
 
 def _member_residuals(
-    model: AbstractLagrangian, f: LatticeField, psi: torch.Tensor, start: int, stop: int, members: int, every: int
+    model: AbstractLagrangian, f: LatticeField, psi: torch.Tensor, start: int, stop: int, members: int
 ) -> np.ndarray:
-    """:func:`_slice_residuals` of a stacked ensemble: ``(slices, members)``, each member's largest |DEL
-    residual| over its own components (the members never couple), on the slices checked (NaN on the others)."""
-    nsite = max(int(np.prod(psi.shape[1:-1])), 1)
-    out = np.full((stop - start, members), np.nan)
-    checked = sorted({*range(start + every - 1, stop, every), stop - 1}) if every > 1 and stop > start else None
-    width = 3 if checked is not None else max(3, min(stop - start + 2, 250_000 // nsite + 2))
-    anchors = checked if checked is not None else list(range(start, stop, width - 2))
-    for s in anchors:
-        hi = min(s - 1 + width, stop + 1)
-        el = del_residual(model, f.with_values(psi[s - 1 : hi]))
-        if el.numel():
-            per = el.abs().reshape(el.shape[0], -1, members, psi.shape[-1] // members).amax(dim=(1, 3))
-            out[s - start : hi - 1 - start] = per.numpy()
-        else:
-            out[s - start : hi - 1 - start] = 0.0
+    """:func:`_slice_residuals` of a stacked ensemble: ``(slices, members)``, each member's by its own model on its
+    own components (the members never couple), as the member alone checks its recurrence: the same residuals to
+    the bit (the stack's own evaluation rounded otherwise)."""
+    w = psi.shape[-1] // members
+    out = np.empty((stop - start, members))
+    for k in range(members):
+        own = psi[..., k * w : (k + 1) * w].contiguous()
+        labels = f.components[k * w : (k + 1) * w] if f.components else f.components
+        out[:, k] = _slice_residuals(model.member(k), replace(f, values=own, components=labels), own, start, stop)
     return out
 
 
@@ -223,14 +218,14 @@ def _affine_prefix(
     flat: torch.Tensor,
     rtol: float,
     vol: float,
-) -> tuple[int | np.ndarray, float, float | np.ndarray, float | np.ndarray] | None:
+) -> tuple[int | np.ndarray, float | np.ndarray, float | np.ndarray, float | np.ndarray] | None:
     """Serve every slice of ``psi`` by the affine recurrence, if the model's DEL is affine, and check them.
 
     Returns ``(slices, worst, dmax, mscale)``: how many leading slices pass the residual test (Newton serves
     the rest), the largest residual among them, the Hessian scale of that test and the largest singular value
-    of the mixed Hessian at a site (the three but ``worst`` per member of a stacked ensemble, each judged on its
-    own); ``None`` when the DEL is not affine or its mixed Hessian is singular (Newton then reports it with the
-    slice and site).
+    of the mixed Hessian at a site (each per member of a stacked ensemble, each judged on its own); ``None``
+    when the DEL is not affine or its mixed Hessian is singular (Newton then reports it with the slice and
+    site).
     """
     steps, m = psi.shape[0], sys.m
     compiled = compiled_closed_forms(model, psi[:0])
@@ -249,8 +244,8 @@ def _affine_prefix(
     if option("affine_check_every") > 1:
         log.info("affine recurrence checked against the model's DEL on every %d-th slice", option("affine_check_every"))
     if op.member_dmax is not None:  # a stacked ensemble: each member against its own scale, its own count
-        counts, worst = passing_members(v, res, rtol * vol * op.member_dmax, m)
-        return counts, worst, op.member_dmax, mscale
+        counts, worsts = passing_members(v, res, rtol * vol * op.member_dmax, m)
+        return counts, worsts, op.member_dmax, mscale
     affine_slices, worst = passing_slices(v, res, rtol * vol * op.dmax)
     return affine_slices, worst, op.dmax, mscale
 
@@ -291,14 +286,15 @@ def passing_slices(v: np.ndarray, res: np.ndarray, bound: float) -> tuple[int, f
     return k, float(np.nanmax(res[:k], initial=0.0)) if k else 0.0
 
 
-def passing_members(v: np.ndarray, res: np.ndarray, bounds: np.ndarray, m: int) -> tuple[np.ndarray, float]:
+def passing_members(v: np.ndarray, res: np.ndarray, bounds: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
     """:func:`passing_slices` of a stacked ensemble (``m`` components a site, ``bounds.size`` members side by side
     on them): each member's residuals ``res[:, k]`` held to its own ``bounds[k]`` times the largest of its own
     values on the three slices, as when served alone: ``(counts, worst)``, the leading slices each member passes
-    (each keeps its own; Newton serves a member from its own first failing slice on) and the largest residual
-    among the slices kept."""
+    (each keeps its own; Newton serves a member from its own first failing slice on) and each member's largest
+    residual among the slices it kept (``0`` for none)."""
     nm = bounds.size
     absmax = np.stack([member_abs_max(row, nm, m // nm) for row in v])  # (slices, members)
     scl = np.maximum(np.maximum(absmax[:-2], absmax[1:-1]), absmax[2:]).clip(1e-300)
     counts = np.array([passing_prefix(res[:, j], bounds[j] * scl[:, j]) for j in range(nm)])
-    return counts, max((float(np.nanmax(res[:k, j], initial=0.0)) for j, k in enumerate(counts)), default=0.0)
+    worst = np.array([float(np.nanmax(res[:k, j], initial=0.0)) if k else 0.0 for j, k in enumerate(counts)])
+    return counts, worst

@@ -163,6 +163,7 @@ class _Batch(Stepping):
         if self.member_mscale is None:
             self.member_mscale = torch.zeros(len(self.fs), nm, dtype=torch.float64)
         q_now, q_old = self.psi[act, i], self.psi[act, i - 1]
+        first = torch.zeros(n * nm, dtype=torch.long)
         u, g, rabs, ok, sing, it, smin, mscale, count = self._newton(
             rows(q_now),
             rows(q_old),
@@ -172,14 +173,19 @@ class _Batch(Stepping):
             rtol,
             max_newton,
             True,
+            first,
         )
         self.member_mscale[act] = mscale.reshape(n, nm)
-        self.iters[act] += count.reshape(n, nm).amax(1)
+        # member 0's evaluations, iterations and residual: the result's figures, as member 0's alone
+        self.iters[act] += count.reshape(n, nm)[:, 0]
+        own = first.reshape(n, nm)[:, 0]
         bad = ~ok.reshape(n, nm)
         pick = torch.arange(n) * nm + torch.argmax(bad.long(), dim=1)  # the first member that did not converge
         self.mscale[act] = mscale[pick]
         solved = ~bad.any(1)
-        return _GroupStep(act, back(u), back(g), rabs.reshape(n, nm).amax(1), solved, sing[pick], it, smin[pick])
+        res = torch.where(solved, rabs.reshape(n, nm)[:, 0], rabs.reshape(n, nm).amax(1))
+        iters = int(own.max()) if bool(own.all()) else it
+        return _GroupStep(act, back(u), back(g), res, solved, sing[pick], iters, smin[pick])
 
     def _newton(
         self,
@@ -191,6 +197,7 @@ class _Batch(Stepping):
         rtol: float,
         max_newton: int,
         freeze: bool,
+        first: torch.Tensor | None = None,
     ) -> tuple[
         torch.Tensor,
         torch.Tensor,
@@ -204,7 +211,9 @@ class _Batch(Stepping):
     ]:
         """The Newton loop of :meth:`newton` on rows ``(n, w)`` (``derivatives(cells)``: their gradients and
         Jacobians): ``(u, g, rabs, ok, sing, iterations, smin, mscale, count)``, ``mscale`` the largest singular
-        value met per row. ``freeze``: a row that converged is left as it is while the others go on."""
+        value met per row. ``freeze``: a row that converged is left as it is while the others go on; ``first``
+        (with ``freeze``) is set to the iteration at which each row converged (left at 0 for a row that did
+        not: the loop's own count is its)."""
         n = q_now.shape[0]
         u = 2 * q_now - q_old
         mag = torch.maximum(torch.maximum(q_now.abs().amax(-1), q_old.abs().amax(-1)), u.abs().amax(-1))
@@ -238,6 +247,8 @@ class _Batch(Stepping):
             ok = ((rabs <= rtol * rscale) | (small & torch.isfinite(rabs))) & ~sing
             if freeze:
                 ok = ok | done
+                if first is not None:
+                    first[ok & ~done] = it
                 done = ok
             count += (~ok).long() if it > 1 else 1
             if bool(ok.all()) or it == max_newton:

@@ -239,6 +239,7 @@ class FastBatch(_Batch):
         if self.nmember_mscale is None:
             self.nmember_mscale = np.zeros((len(self.fs), nm))
         q_now, q_old = self.npsi[act, i], self.npsi[act, i - 1]
+        first = np.zeros(n * nm, dtype=np.int64)
         u, g, rabs, ok, sing, it, smin, mscale, count = self._newton_np(
             rows(q_now),
             rows(q_old),
@@ -248,16 +249,21 @@ class FastBatch(_Batch):
             rtol,
             max_newton,
             True,
+            first,
         )
         self.nmember_mscale[act] = mscale.reshape(n, nm)
-        self.niters[act] += count.reshape(n, nm).max(axis=1)
+        # member 0's evaluations, iterations and residual: the result's figures, as member 0's alone
+        self.niters[act] += count.reshape(n, nm)[:, 0]
+        own = first.reshape(n, nm)[:, 0]
         # per trajectory: the first member that did not converge (else member 0) reports its conditioning
         bad = ~ok.reshape(n, nm)
         at = np.argmax(bad, axis=1)
         pick = np.arange(n) * nm + at
         self.nmscale[act] = mscale[pick]
         solved = np.asarray(~bad.any(axis=1))
-        return _Step(act, back(u), back(g), rabs.reshape(n, nm).max(axis=1), solved, sing[pick], it, smin[pick])
+        res = np.where(solved, rabs.reshape(n, nm)[:, 0], rabs.reshape(n, nm).max(axis=1))
+        iters = int(own.max()) if own.all() else it
+        return _Step(act, back(u), back(g), res, solved, sing[pick], iters, smin[pick])
 
     def _newton_np(
         self,
@@ -269,10 +275,12 @@ class FastBatch(_Batch):
         rtol: float,
         max_newton: int,
         freeze: bool,
+        first: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, np.ndarray]:
         """The Newton loop of :meth:`step` on rows ``(n, w)`` (``fn`` their derivatives): ``(u, g, rabs, ok, sing,
         iterations, smin, mscale, count)``. ``freeze``: a row that converged is left as it is (as if it had
-        stopped iterating there) while the others go on."""
+        stopped iterating there) while the others go on; ``first`` (with ``freeze``) is set to the iteration at
+        which each row converged (left at 0 for a row that did not: the loop's own count is its)."""
         vol, a0 = self.vol, self.a0
         n, m = q_now.shape
         u = 2 * q_now - q_old
@@ -310,6 +318,8 @@ class FastBatch(_Batch):
             ok &= ~sing
             if freeze:
                 ok |= done
+                if first is not None:
+                    first[ok & ~done] = it
                 done = ok
             if it > 1:
                 count += ~ok

@@ -15,6 +15,7 @@ from .._models import AbstractLagrangian
 from ._affine import _affine_prefix
 from ._edges import known_slices, require_edges
 from ._fused import KEPT_BYTES
+from ._members import member_figures
 from ._options import ServeOptions
 from ._range import assess
 from ._result import ServeResult
@@ -103,13 +104,15 @@ class _FieldRun(SteppedRun):
             own = counts > 0  # a member whose recurrence served no slice takes its scales from Newton, as alone
             self.cache["member_dmax"] = np.where(own, dmax, math.nan)
             self.cache["member_mscale"] = np.where(own, mscale, 0.0)
+            member_figures(self.cache, counts.size).affine(counts, np.asarray(worst))  # each member's, as alone
             kept, self.affine_slices = int(counts.min()), int(counts[0])  # member 0's: the result's solver
             dmax, mscale = (float(np.max(np.asarray(x)[own])) if own.any() else 0.0 for x in (dmax, mscale))
+            worst = float(np.max(worst))
         else:
             kept = self.affine_slices = int(counts)
         self.start = 1 + kept
         if np.any(counts):
-            self.worst = worst
+            self.worst = float(worst)
             self.count_affine()
             self.cache["dmax"] = dmax
             self.cache["mscale"] = mscale
@@ -142,7 +145,7 @@ class _FieldRun(SteppedRun):
         """The complete served field."""
         self.bar.close()
         out = LatticeField.with_values(self.f, self.psi)
-        return self._result(out, True, "complete", self.steps, *self.timed(self.steps), self.worst)
+        return self._result(out, True, "complete", self.steps, *self.timed(self.steps), self.residual())
 
 
 def _serve_field(model: AbstractLagrangian, f: LatticeField, steps: int, options: ServeOptions) -> ServeResult:

@@ -24,10 +24,51 @@ import torch
 from .._action import CellDerivatives
 from .._contract import AbstractLagrangian
 from ._newton import CHORD_PREDICT, FRESH_FIRST_ON, FRESH_FIRST_RETRY, _chord_pays
-from ._slices import _SliceSystem, first_singular, member_abs_max, member_blocks, singular_message
+from ._slices import _SliceSystem, first_singular, member_abs_max, member_block_sizes, singular_message
 from ._solvers import SolverRefused, factor_members, members_solve
 
-__all__ = ["affine_held", "newton_members"]
+__all__ = ["MemberFigures", "affine_held", "member_figures", "newton_members"]
+
+
+class MemberFigures:
+    """Each stacked member's own figures of a served field, counted as the member counts them served alone: its
+    slice-Newton evaluations (``total``, and ``most`` on one slice; the affine recurrence's slices one each),
+    the largest residual it converged to (``worst``) and the linear solvers chosen for its own Jacobians
+    (``used``, in the order first chosen). A stacked run reports member 0's (``_stepper.SteppedRun.counts``),
+    as its ``field`` is member 0's."""
+
+    def __init__(self, nm: int):
+        self.total = np.zeros(nm, dtype=np.int64)
+        self.most = np.zeros(nm, dtype=np.int64)
+        self.worst = np.zeros(nm)
+        self.used: list[list[str]] = [[] for _ in range(nm)]
+
+    def affine(self, counts: np.ndarray, worst: np.ndarray) -> None:
+        """The slices each member's affine recurrence served (``counts``, after the two given ones) and the
+        largest residual among them (``worst``): one evaluation each, as alone (``SteppedRun.count_affine``)."""
+        served = counts > 0
+        self.total = np.where(served, counts, 0).astype(np.int64)
+        self.most = served.astype(np.int64)
+        self.worst = np.where(served, worst, 0.0)
+
+    def newton(self, its: np.ndarray, res: np.ndarray) -> None:
+        """One slice of slice-Newton: each member's evaluations until it converged (``its``; 0: held, not
+        iterated) and the residual it converged to (``res``)."""
+        took = its > 0
+        self.total += its
+        self.most = np.maximum(self.most, its)
+        self.worst = np.where(took, np.maximum(self.worst, res), self.worst)
+
+    def solver(self, k: int, name: str) -> None:
+        """Member ``k`` took a fresh Jacobian solved by ``name``."""
+        if name not in self.used[k]:
+            self.used[k].append(name)
+
+
+def member_figures(cache: dict[str, Any], nm: int) -> MemberFigures:
+    """The :class:`MemberFigures` of a stacked run's Newton cache (made on first use)."""
+    figures: MemberFigures = cache.setdefault("member_figures", MemberFigures(nm))
+    return figures
 
 
 def _member_scales(flat: torch.Tensor, i: int, unk: torch.Tensor, nm: int, w: int) -> np.ndarray:
@@ -45,7 +86,7 @@ def _assess(sys: _SliceSystem, blocks: Any, cache: dict[str, Any], which: np.nda
     nm = sys.members
     dmax = np.full(nm, 1.0) if not sys.diag_pairs else np.zeros(nm)
     for p in sys.diag_pairs:
-        dmax = np.maximum(dmax, member_blocks(blocks[p], nm).abs().amax(dim=(1, 2, 3)).numpy())
+        dmax = np.maximum(dmax, member_block_sizes(blocks, p, nm))
     lows, highs, rows = sys.member_singular_values(blocks)
     mscale = np.array(cache.get("member_mscale", np.zeros(nm)), dtype=np.float64)
     mscale[which] = np.maximum(mscale[which], highs[which])
@@ -87,6 +128,7 @@ class _Slice:
         self.small = np.zeros(nm, dtype=bool)
         self.prev = np.full(nm, math.inf)
         self.done = np.zeros(nm)  # the residual each converged member was left at
+        self.its = np.zeros(nm, dtype=np.int64)  # the iteration at which each member converged (0: held)
         self.rscale: np.ndarray | None = None
 
     def stale(self, it: int, res: np.ndarray) -> np.ndarray:
@@ -109,10 +151,12 @@ class _Slice:
                 slow = it >= FRESH_FIRST_ON or (CHORD_PREDICT and self.refreshed[k])
                 fresh[k] = fresh[k] + 1 if fresh[k] and not first_stale[k] else int(slow)
             self.done[k] = res[k]
+        self.its[converged] = it
         self.active &= ~converged
         if self.active.any():
             return False
         self.cache["member_fresh"] = fresh
+        member_figures(self.cache, self.nm).newton(self.its, self.done)
         return True
 
     def factorise(self, ev: Any, blocks: Any, assessed: np.ndarray, need: np.ndarray, vol: float) -> Any:
@@ -133,6 +177,9 @@ class _Slice:
         )
         used = cache.setdefault("used", [])
         used.extend(name for name in dict.fromkeys(names) if name not in used)
+        figures = member_figures(cache, self.nm)
+        for k, name in zip(np.nonzero(need)[0], names, strict=True):
+            figures.solver(int(k), name)
         cache["solve"] = members_solve(solves, self.nm, self.w)
         self.has |= need
         return None

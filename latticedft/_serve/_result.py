@@ -61,7 +61,8 @@ class ServeResult:
     solver: str = "newton"
     #: the linear solver of n-D slice-Newton's steps: "sitewise", "krylov" or "lu" ("sitewise+krylov" and the
     #: like when ``solver="auto"`` chose differently on different slices); None when no slice-Newton step was
-    #: taken (1D, the sweep, or the affine recurrence throughout)
+    #: taken (1D, the sweep, or the affine recurrence throughout). An ensemble's run figures (the iterations,
+    #: ``max_residual``, ``solver`` and this) are member 0's own, as member 0 served alone reports them.
     slice_solver: str | None = None
     #: a failed member of a 1D batch: ``(slice, residual)`` where it failed (``None`` otherwise)
     fail_at: tuple[int, float] | None = dataclasses.field(default=None, repr=False, compare=False)

@@ -298,6 +298,11 @@ class _SliceSystem:
         w = m // nm
         if self.n == 0:
             return np.full(nm, math.inf), np.zeros(nm), np.zeros(nm, dtype=np.int64)
+        own = getattr(blocks, "members", None)
+        if own is not None:  # held per member (the folded kernels' of a stack): each member's own, as alone
+            found = [self.member_system.site_singular_values(b) for b in own]
+            rows = np.array([(row // w) * m + k * w for k, (_, _, row) in enumerate(found)], dtype=np.int64)
+            return np.array([f[0] for f in found]), np.array([f[1] for f in found]), rows
         per = member_blocks(self.diagonal(blocks), nm)  # (members, n, w, w)
         sv = per.abs().reshape(nm, -1, 1) if w == 1 else torch.linalg.svdvals(per)
         sv = torch.nan_to_num(sv, nan=0.0)
@@ -374,6 +379,16 @@ def member_abs_max(a: np.ndarray | torch.Tensor, nm: int, w: int) -> np.ndarray:
     cols = np.ascontiguousarray(a.reshape(-1, nm * w).T)  # each component's entries contiguous: a fast reduce
     np.abs(cols, out=cols)
     out: np.ndarray = cols.max(axis=1).reshape(nm, w).max(axis=1)
+    return out
+
+
+def member_block_sizes(blocks: dict[tuple[int, int], torch.Tensor], pair: tuple[int, int], nm: int) -> np.ndarray:
+    """The largest ``|entry|`` of each of ``nm`` stacked members' own blocks of ``pair`` (NaN where one holds
+    one): from the blocks held per member where they are (``blocks.members``), else from the stacked ones."""
+    own = getattr(blocks, "members", None)
+    if own is not None:
+        return np.array([abs_max(b[pair]) for b in own])
+    out: np.ndarray = member_blocks(blocks[pair], nm).abs().amax(dim=(1, 2, 3)).numpy()
     return out
 
 

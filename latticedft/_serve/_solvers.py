@@ -223,10 +223,12 @@ def factor_members(
     names of the solvers chosen, member by member."""
     nm = sys.members
     one = sys.member_system
-    own = {p: member_blocks(b, nm) for p, b in blocks.items()}  # (members, cells, w, w) per pair
+    held = getattr(blocks, "members", None)  # each member's own blocks (the folded kernels' of a stack)
+    own = {} if held is not None else {p: member_blocks(b, nm) for p, b in blocks.items()}  # (members, cells, w, w)
     names = []
     for k in np.nonzero(np.ones(nm, dtype=bool) if which is None else which)[0]:
-        solves[k], name = factor_step(one, Blocks({p: b[k] for p, b in own.items()}), vol, requested, float(targets[k]))
+        mine = held[k] if held is not None else Blocks({p: b[k] for p, b in own.items()})
+        solves[k], name = factor_step(one, mine, vol, requested, float(targets[k]))
         names.append(name)
     return names
 

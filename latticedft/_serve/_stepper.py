@@ -25,6 +25,7 @@ from ._potential import potential_slices
 from ._result import ServeResult, _bar
 from ._slices import _site_label, _SliceSystem, is_singular, site_text, slice_message
 from ._solvers import OFFDIAG_RTOL
+from ._stackfold import StackedFolded, stacked_folded
 from ._sweep import _sweep_slice
 
 
@@ -185,8 +186,19 @@ class SteppedRun(Stepping):
         return self.rate((slices - 2) * self.sys.n, slices == self.steps)
 
     def counts(self) -> dict[str, Any]:
-        """The figures of the result that the stepper counted: evaluations, mode and solvers."""
+        """The figures of the result that the stepper counted: evaluations, mode and solvers. A stacked
+        ensemble's are member 0's own, as it counts them served alone (``_members.MemberFigures``): the
+        result's field is member 0's."""
+        own = self.cache.get("member_figures") if self.sys.members > 1 else None
+        if own is not None:
+            return self.figures(int(own.total[0]), int(own.most[0]), "+".join(own.used[0]) or None)
         return self.figures(self.total_it, self.max_it, "+".join(self.cache.get("used", [])) or None)
+
+    def residual(self) -> float:
+        """The largest residual converged to (``max_residual``): a stacked ensemble's member 0's own, as
+        :meth:`counts`."""
+        own = self.cache.get("member_figures") if self.sys.members > 1 else None
+        return float(own.worst[0]) if own is not None else self.worst
 
 
 class MemberBatch(Protocol):
@@ -448,13 +460,18 @@ def _device_of(run: SliceRun) -> _ondevice.DeviceSlices | None:
     return device
 
 
-def _folded_of(run: SliceRun) -> FoldedSlices | None:
-    """The folded polynomial kernels of ``run`` (:mod:`._folded`) or a kinetic-potential MLP's closed forms on
-    them (:mod:`._potential`), or ``None`` where neither serves it."""
+def _folded_of(run: SliceRun) -> FoldedSlices | StackedFolded | None:
+    """The folded polynomial kernels of ``run`` (:mod:`._folded`; a stacked ensemble's, one member at a time:
+    :mod:`._stackfold`) or a kinetic-potential MLP's closed forms on them (:mod:`._potential`), or ``None`` where
+    none serves it."""
     cache = run.cache
     if "folded" not in cache:
-        cache["folded"] = folded_slices(run.model, run.sys, run.flat) or potential_slices(run.model, run.sys, run.flat)
-    folded: FoldedSlices | None = cache["folded"]
+        cache["folded"] = (
+            folded_slices(run.model, run.sys, run.flat)
+            or stacked_folded(run.model, run.sys, run.flat)
+            or potential_slices(run.model, run.sys, run.flat)
+        )
+    folded: FoldedSlices | StackedFolded | None = cache["folded"]
     return folded
 
 
