@@ -171,6 +171,8 @@ class _Pool:
 
     err: list[np.ndarray] = field(default_factory=list)
     bands: dict[str, list[np.ndarray]] = field(default_factory=dict)
+    #: Per test field: its served slices, value range, amplitude and the calibration's warnings (``--record``).
+    facts: list[dict[str, Any]] = field(default_factory=list)
 
     def add(self, err: np.ndarray, **bands: np.ndarray) -> None:
         self.err.append(err[2:])
@@ -277,11 +279,17 @@ def _record(
 ) -> None:
     """Append one row's per-slice record to the JSON file ``path`` (``--record``): the law, the trial's held-out
     samples (``held``, as :func:`latticedft._calibrate.calibrate` records them), and per test field (the two
-    given slices excluded) the RMS error and every band (``trial``: the trial's disagreement)."""
+    given slices excluded) the RMS error and every band (``trial``: the trial's disagreement), the served field's
+    slices, value range (``low``, ``high``) and largest magnitude (``amplitude``), and the calibration's
+    ``warnings`` on it (:meth:`latticedft._calibrate.Calibration.warnings`)."""
     file = Path(path)
     rows = json.loads(file.read_text()) if file.exists() else []
     tests = [
-        {"error": e.tolist(), **{k: v[i].tolist() for k, v in pool.bands.items() if i < len(v)}}
+        {
+            "error": e.tolist(),
+            **{k: v[i].tolist() for k, v in pool.bands.items() if i < len(v)},
+            **(pool.facts[i] if i < len(pool.facts) else {}),
+        }
         for i, e in enumerate(pool.err)
     ]
     rows.append({"row": label, "noise": sigma, "law": cal.to_dict(), "held_out": held or [], "tests": tests})
@@ -308,9 +316,19 @@ def _serve_test(
     err = _rms(np.asarray(pred.values) - np.asarray(ref.values[:n] if n else ref.values), n)
     values = np.asarray(pred.values, dtype=np.float64)
     other = disagreement(trial, start, pred, slices=slices, boundary=boundary)[:n]
-    est = np.fmax(cal.estimate(np.arange(n), float(np.nanmax(np.abs(values)))), other)
     law = cal.estimate(np.arange(n), float(np.nanmax(np.abs(values))))
+    est = np.fmax(law, other)
     bands = {"single": est, "law": law, "trial": other}
+    finite = values[np.isfinite(values)]
+    pool.facts.append(
+        {
+            "slices": n,
+            "low": float(finite.min()) if finite.size else None,
+            "high": float(finite.max()) if finite.size else None,
+            "amplitude": float(np.nanmax(np.abs(values))),
+            "warnings": cal.warnings(n, values) if cal.failed is None else [],
+        }
+    )
     if ens is not None:
         res = _serve(ens, start, slices, boundary)
         if res.std is not None and res.field.sizes[res.field.dims[0]] >= n:

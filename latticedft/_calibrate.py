@@ -112,6 +112,9 @@ class Calibration:
     #: With an ensemble: the factor on its members' spread, the :data:`QUANTILE` quantile over the held-out
     #: slices of the trial's error over the spread on the same slice, halved (None without an ensemble).
     spread_scale: float | None = None
+    #: With an ensemble: over the same held-out slices, the mean scaled spread over the mean error (the
+    #: spread's :attr:`std_over_error`; None without a :attr:`spread_scale`).
+    spread_std_over_error: float | None = None
     #: Why the law is degenerate (None when it is not): no held-out slice was served, so no scale was measured.
     #: Callers serve without a calibrated error bar and report a failed calibration.
     failed: str | None = None
@@ -395,8 +398,10 @@ def calibrate(
     cal = _fit(samples, quantile)
     if record is not None:
         record += [{k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in asdict(x).items()} for x in samples]
-    cal.spread_scale = (
-        _spread_scale(ensemble_model, samples, fields, boundary, quantile) if ensemble_model is not None else None
+    cal.spread_scale, cal.spread_std_over_error = (
+        _spread_scale(ensemble_model, samples, fields, boundary, quantile)
+        if ensemble_model is not None
+        else (None, None)
     )
     warnings += _stopped(samples, quantile)
     cal.failed = _degenerate(samples)
@@ -505,27 +510,34 @@ def _spread_scale(
     fields: list[xr.DataArray],
     boundary: BoundaryKinds | None,
     quantile: float,
-) -> float | None:
+) -> tuple[float | None, float | None]:
     """The factor on an ensemble's spread: the ``quantile`` quantile over the held-out slices of the trial's
     error over the spread (RMS over the lattice of the members' standard deviation, the ensemble serving the
     same training field from the same start), halved. The spread is ``psi_std``'s: on a slice where members
     stopped, over those still served there; slices where the members agree exactly, where fewer than
     :data:`latticedft._serve._ensemble.MIN_MEMBERS` are still served, or where the trial's or member 0's serve
-    stopped, are left out. None when the ensemble gives no spread."""
-    z = []
+    stopped, are left out. With it, the mean scaled spread over the mean error on those slices. (None, None)
+    when the ensemble gives no spread."""
+    z, rs, ss = [], [], []
     for x in samples:
         f = fields[x.field]
         std = _result(ensemble, f, boundary).std
         if std is None:
-            return None
+            return None, None
         amp = max(float(np.max(np.abs(f.values))), np.finfo(float).tiny)
         s = _rms(np.asarray(std.values, dtype=np.float64), np.zeros(std.shape), f.sizes[f.dims[0]]) / amp
         k = x.k[x.held].astype(int)
         r, sk = x.rel[x.held], s[k]
         ok = np.isfinite(r) & np.isfinite(sk) & (sk > 0)
         z.append(r[ok] / sk[ok])
+        rs.append(r[ok])
+        ss.append(sk[ok])
     zz = np.concatenate(z) if z else np.zeros(0)
-    return float(np.quantile(zz, quantile, method="higher")) / 2 if zz.size else None
+    if not zz.size:
+        return None, None
+    scale = float(np.quantile(zz, quantile, method="higher")) / 2
+    mean_err = float(np.concatenate(rs).mean())
+    return scale, float(scale * np.concatenate(ss).mean() / mean_err) if mean_err > 0 else None
 
 
 def _fit(samples: list[_Sample], quantile: float) -> Calibration:

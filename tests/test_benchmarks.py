@@ -224,6 +224,7 @@ def test_calibration_record_appends_each_rows_per_slice_bands(tmp_path: Path) ->
     law = calibration.Calibration(1e-3, 1.0, 0.95, 1, 4, 9, -1.0, 1.0, 0.9, 0.8, None, 0.0)
     pool = calibration._Pool()
     pool.add(np.arange(6.0), single=np.ones(6), trial=np.full(6, np.nan))
+    pool.facts.append({"slices": 6, "low": -1.0, "high": 2.0, "warnings": ["outside"], "excess": [0.0] * 4})
     path = tmp_path / "rows.json"
     for sigma in (0.0, 1e-3):
         calibration._record(str(path), "a row", sigma, law, pool, [{"k": [2.0], "rel": [0.1]}])
@@ -232,6 +233,7 @@ def test_calibration_record_appends_each_rows_per_slice_bands(tmp_path: Path) ->
     assert rows[1]["held_out"] == [{"k": [2.0], "rel": [0.1]}]
     assert rows[1]["tests"][0]["error"] == [2.0, 3.0, 4.0, 5.0] and rows[1]["tests"][0]["single"] == [1.0] * 4
     assert all(math.isnan(x) for x in rows[0]["tests"][0]["trial"])
+    assert rows[1]["tests"][0]["high"] == 2.0 and rows[1]["tests"][0]["warnings"] == ["outside"]
     assert calibration._part(["--record", "x.json", "--quick"]) == ["--quick"] and calibration.ONLY.pop("record")
 
 

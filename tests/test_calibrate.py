@@ -65,8 +65,9 @@ def test_an_ensembles_spread_is_scaled_by_the_held_out_error() -> None:
     ldft.learn(ens, data, progress=False)
     cal, _, _ = calibrate(ldft.PolynomialLagrangian((2, 4)), data, ensemble_model=ens)
     assert cal.spread_scale is not None and 0 < cal.spread_scale < np.inf
+    assert cal.spread_std_over_error is not None and 0 < cal.spread_std_over_error < np.inf
     alone, _, _ = calibrate(ldft.PolynomialLagrangian((2, 4)), data)
-    assert alone.spread_scale is None and alone.scale == cal.scale
+    assert alone.spread_scale is None and alone.spread_std_over_error is None and alone.scale == cal.scale
 
 
 def test_the_spread_scale_takes_the_members_still_served_on_each_slice() -> None:
@@ -91,7 +92,7 @@ def test_the_spread_scale_takes_the_members_still_served_on_each_slice() -> None
 
     record: list[dict] = []
     cal, _, _ = calibrate(ldft.PolynomialLagrangian((2, 4)), data, ensemble_model=broken(2), record=record)
-    z = []
+    z, errs, spreads = [], [], []
     for r in record:
         f = data[r["field"]]
         kept = [ldft.serve(ens.member(k), f.isel(t=slice(0, 2)), slices=f.sizes["t"]).field.values for k in (0, 1, 3)]
@@ -100,8 +101,13 @@ def test_the_spread_scale_takes_the_members_still_served_on_each_slice() -> None
         k = np.asarray(r["k"], dtype=int)[np.asarray(r["held"])]
         rel = np.asarray(r["rel"])[np.asarray(r["held"])]
         z.append(rel / (spread[k] / float(np.abs(f.values).max())))
+        errs.append(rel)
+        spreads.append(spread[k] / float(np.abs(f.values).max()))
     expected = float(np.quantile(np.concatenate(z), 0.95, method="higher")) / 2
     assert cal.spread_scale == pytest.approx(expected, rel=1e-9)
+    # the scaled spread's mean over the mean error on the same slices (the law's std_over_error, for the spread)
+    sharp = expected * np.concatenate(spreads).mean() / np.concatenate(errs).mean()
+    assert cal.spread_std_over_error == pytest.approx(sharp, rel=1e-9)
     lone, _, _ = calibrate(ldft.PolynomialLagrangian((2, 4)), data, ensemble_model=broken(1, 2, 3))
     assert lone.spread_scale is None
 
