@@ -58,7 +58,7 @@ _FAILED: set[str] = set()
 BUILD_WAIT_S = 120.0
 
 #: Bumped whenever the generated code changes, so that stale cached kernels are not reused.
-_VERSION = 17
+_VERSION = 18
 
 
 def cache_dir() -> Path:

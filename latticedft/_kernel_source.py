@@ -10,6 +10,7 @@ Jacobian, the slice Newton (``slice_newton``, its predictor, scale and tally aro
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Any
 
@@ -140,15 +141,13 @@ def _slice_newton_source(
         text += [f"    {line}" for line in lines] + [f"    return {value}", "", ""]
     constant = {pair for pair, e in hessians.items() if not e.free_symbols & unknowns}
     affine = all((a, b) in constant for a in moving for aa, b in diag if aa == a)
+    fixed = _fixed_body(form, nxt, now, moving)
     plain = _newton_body(form, list(hessians), nxt, now, moving, constant, True, affine)
     mapped = _newton_body(form, list(hessians), nxt, now, moving, constant, False, affine)
     # every site an unknown (a periodic lattice): rows is 0, 1, ... and the loop reads no index per site
-    body = [
-        "        y = q if dense else rows[q]",
-        "        if plain[y]:",
-        *["    " + x for x in plain],
-        "        else:",
-    ]
+    site = ["        y = q if dense else rows[q]", "        if plain[y]:"]
+    first = [*site, *["    " + x for x in fixed]]
+    body = [*site, *["    " + x for x in plain], "        else:"]
     body += ["    " + x for x in mapped]
     # the fixed offsets read once into scalars (the loop writes nxt: loads from delta would not be hoisted)
     hoisted = [f"    d{a}_{p} = delta[{a}, {p}]" for a in range(k) for p in range(k)]
@@ -160,6 +159,8 @@ def _slice_newton_source(
             " smin, maxit, res, its):",
             *hoisted,
             "    dense = rows.shape[0] == plain.shape[0]",
+            f"    for q in {loop}(rows.shape[0]):",
+            *first,
             f"    for q in {loop}(rows.shape[0]):",
             *body,
             "",
@@ -211,28 +212,19 @@ def _newton_body(
     """The loop body of ``slice_newton`` for site ``y``: once, the part of its residual (and of its
     Jacobian: the ``constant`` diagonal pairs) the unknown does not move (the cells anchored on the slice
     before; the gradients of the cells anchored on this slice at the points not ``moving``, and the fixed
-    terms of those ``moving``); then Newton's iterations on the rest.
+    terms of those ``moving``; where ``plain``, summed by the pass before into ``res[q]`` and read back); then
+    Newton's iterations on the rest.
 
     ``plain``: the stencil is read at fixed offsets from ``y`` (``delta[a, p]``: from the site of point ``a``
     to that of point ``p`` of one cell), for the sites where that is what the cell maps say (no wrap, every
     cell present); otherwise through the maps. ``affine`` (the residual is affine in the unknown: every
     Jacobian term constant): after the first step the residual is that of the linear update, not evaluated
     afresh (the evaluation Newton would make, counted as such)."""
-    k = len(form.offsets)
-
-    def term(a: int, fn: str, anchored_before: bool) -> list[str]:
-        low, high = ("prev", "cur") if anchored_before else ("cur", "nxt")
-        if plain:  # unsigned indices: no test for a negative index per load
-            args = ", ".join(f"{high if form.offsets[p][0] else low}[_u(y + d{a}_{p})]" for p in range(k))
-            return [f"{fn}({args})"]
-        args = ", ".join(f"{high if form.offsets[p][0] else low}[_u(site_of[{p}, c])]" for p in range(k))
-        return [f"c = cell_at[{a}, y]", "if c >= 0:", f"    {fn}({args})"]
-
-    body = ["fixed = 0.0", "jac0 = 0.0"]
-    for a in nxt:
-        body += term(a, f"fixed += g{a}", True)
-    for a in now:
-        body += term(a, f"fixed += g{a}_fixed" if a in moving else f"fixed += g{a}", False)
+    term = functools.partial(_term, form, plain)
+    if plain:  # the fixed part, summed by the pass before (:func:`_fixed_body`), read back from ``res``
+        body = ["fixed = res[q]", "jac0 = 0.0"]
+    else:
+        body = ["fixed = 0.0", "jac0 = 0.0", *_fixed_terms(form, nxt, now, moving, term)]
     body += [line for a, b in diag if (a, b) in constant for line in term(a, f"jac0 += h{a}_{b}", False)]
     body += ["it = 0", "small = False", "r = 0.0", "while True:", "    r = fixed", "    jac = jac0"]
     for a in moving:
@@ -258,6 +250,40 @@ def _newton_body(
     if affine:
         body += ["    r += jac * step", "    it += 1", "    break"]
     body += ["res[q] = abs(r) if r == r else math.inf", "its[q] = it"]
+    return ["        " + line for line in body]
+
+
+def _term(form: SymbolicLd, plain: bool, a: int, fn: str, anchored_before: bool) -> list[str]:
+    """The lines that add ``fn`` (``"fixed += g0"``, ...) of the cell whose point ``a`` sits on site ``y``: its
+    stencil read at fixed offsets from ``y`` where ``plain``, else through the cell maps (no cell: nothing)."""
+    k = len(form.offsets)
+    low, high = ("prev", "cur") if anchored_before else ("cur", "nxt")
+    if plain:  # unsigned indices: no test for a negative index per load
+        args = ", ".join(f"{high if form.offsets[p][0] else low}[_u(y + d{a}_{p})]" for p in range(k))
+        return [f"{fn}({args})"]
+    args = ", ".join(f"{high if form.offsets[p][0] else low}[_u(site_of[{p}, c])]" for p in range(k))
+    return [f"c = cell_at[{a}, y]", "if c >= 0:", f"    {fn}({args})"]
+
+
+def _fixed_terms(form: SymbolicLd, nxt: list[int], now: list[int], moving: list[int], term: Any) -> list[str]:
+    """The lines that sum the part of site ``y``'s residual the unknown does not move into ``fixed``: the cells
+    anchored on the slice before, then those anchored on this slice (their fixed terms where ``moving``)."""
+    body = []
+    for a in nxt:
+        body += term(a, f"fixed += g{a}", True)
+    for a in now:
+        body += term(a, f"fixed += g{a}_fixed" if a in moving else f"fixed += g{a}", False)
+    return body
+
+
+def _fixed_body(form: SymbolicLd, nxt: list[int], now: list[int], moving: list[int]) -> list[str]:
+    """The loop body of ``slice_newton``'s first pass for a site read at fixed offsets: the fixed part of its
+    residual (:func:`_fixed_terms`, the same sums in the same order) stored in ``res[q]``, which the Newton
+    pass reads back and overwrites with the residual. A pass of its own: the Newton loop then calls no
+    function (the sine of sine-Gordon), so its values are not spilled around a call, and the loads of the
+    pass run ahead of the calls' latency."""
+    term = functools.partial(_term, form, True)
+    body = ["fixed = 0.0", *_fixed_terms(form, nxt, now, moving, term), "res[q] = fixed"]
     return ["        " + line for line in body]
 
 

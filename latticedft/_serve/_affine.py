@@ -4,7 +4,9 @@ against the model's own DEL."""
 from __future__ import annotations
 
 import logging
+import weakref
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import scipy.sparse
@@ -14,8 +16,8 @@ import torch
 from .._action import cell_derivatives, compiled_closed_forms, del_residual
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian
-from .._options import option
-from ._folded import not_affine_by_forms
+from .._options import get_options, option
+from ._folded import not_affine_by_forms, per_model_state
 from ._potential import not_affine
 from ._slices import _SliceSystem, first_singular, member_abs_max
 
@@ -109,7 +111,24 @@ class _AffineSlices:
 
     @staticmethod
     def probe(model: AbstractLagrangian, st, m: int, scale: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """``(H, g0)``: per-cell Hessian ``(K, K, m, m)`` and gradient at zero, if the DEL is affine; else None."""
+        """``(H, g0)``: per-cell Hessian ``(K, K, m, m)`` and gradient at zero, if the DEL is affine; else None.
+
+        Kept per model state (:func:`._folded.per_model_state`: the same parameters and buffers, unchanged in
+        place) and probe (stencil, components, ``scale``, the model's lattice, the options in effect): serving
+        the same model again asks once; the answer is returned as copies."""
+        key = (
+            tuple(map(tuple, st.offsets)),
+            m,
+            float(scale),
+            getattr(model, "_spacing", None),
+            tuple(get_options().items()),
+        )
+        found, _ = per_model_state(_PROBED, model, key, lambda: _AffineSlices._probe(model, st, m, scale))
+        return None if found is None else (found[0].copy(), found[1].copy())
+
+    @staticmethod
+    def _probe(model: AbstractLagrangian, st, m: int, scale: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """:meth:`probe`'s answer, computed."""
         k = st.size
         gen = torch.Generator().manual_seed(12345)
         x = scale * (2 * torch.rand(3, 4, k, m, generator=gen, dtype=torch.float64) - 1)
@@ -152,6 +171,12 @@ class _AffineSlices:
                     if nk.nnz:
                         rhs += nk @ (v[i + 1, kcols] - pred[kcols])
                     v[i + 1, ucols] = pred[ucols] - solve(rhs)
+
+
+#: Per model, the affine probe's last answer with the parameters, buffers and probe it was found for.
+_PROBED: weakref.WeakKeyDictionary[Any, tuple[list[tuple[torch.Tensor, int]], tuple[Any, ...], Any]] = (
+    weakref.WeakKeyDictionary()
+)
 
 
 def _slice_residuals(
@@ -234,7 +259,7 @@ def _affine_prefix(
     scale = float(f.values[:2].abs().max()) or 1.0
     if not_affine(model, sys.st.size, m, scale):  # a kinetic-potential MLP's closed forms answer the probe
         return None
-    found = affine_recurrence(model, f, sys)
+    found = affine_recurrence(model, f, sys, scale)
     if found is None:
         return None
     op, mscale = found
@@ -251,15 +276,16 @@ def _affine_prefix(
 
 
 def affine_recurrence(
-    model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem
+    model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem, scale: float | None = None
 ) -> tuple[_AffineSlices, float | np.ndarray] | None:
     """The affine recurrence of ``model``'s DEL on ``sys`` (probed at the size of ``f``'s first two slices) and
     the largest singular value of the mixed Hessian at a site (per member of a stacked ensemble, each judged on
     its own); ``None`` where the DEL is not affine, its mixed Hessian is singular or the slice matrix is (Newton
     then reports it with the slice and site). The whole field's (:func:`_affine_prefix`) and the window's
-    (``_stream``)."""
+    (``_stream``); ``scale``: that size, where the caller has measured it."""
     m = sys.m
-    scale = float(f.values[:2].abs().max()) or 1.0
+    if scale is None:
+        scale = float(f.values[:2].abs().max()) or 1.0
     probe = _AffineSlices.probe(model, sys.st, m, scale)
     if probe is None:
         return None
