@@ -149,7 +149,7 @@ def test_the_columns_in_the_scaled_variables_equal_the_horner_forms(ndim: int, m
 def test_the_scaled_variable_kernel_of_a_pattern() -> None:
     """``zchain_cells`` of a small pattern written by hand: two tails, a derivative of two chains and one of one,
     two columns from them, the second into ``rest``; against the same sums in numpy."""
-    from latticedft._kernel_folded import zchain_kernel
+    from latticedft._kernel_zchain import zchain_kernel
 
     tails = ((0, 0), (0, 1))  # 1 and z1 (z0 the head)
     chains = ((0, 0, 2), (1, 0, 1), (1, 1, 0))  # d0 = P(z0) + z1 Q(z0), d1 = z1 * c

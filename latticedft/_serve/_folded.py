@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._kernel_folded import folded_cells_kernel, folded_kernels, horner_cells_kernel, zchain_kernel
+from .._kernel_folded import folded_cells_kernel, folded_kernels, horner_cells_kernel
+from .._kernel_zchain import zchain_kernel
 from .._models import PolynomialLagrangian
 from .._models._polynumpy import _numpy_forms
 from .._options import option
@@ -117,7 +118,7 @@ def _zsource(model: PolynomialLagrangian, pairs: list[tuple[int, int]]) -> tuple
 
 def _zforms(source: tuple[np.ndarray, ...], columns: np.ndarray) -> tuple[tuple[Any, ...], tuple[Any, ...], int]:
     """``(forms, pattern, madds)``: the ``columns`` of ``[dL/dx | blocks]`` as ``zchain_cells`` evaluates them
-    (``latticedft._kernel_folded.zchain_kernel``): the derivatives in the scaled variables that those columns read
+    (``latticedft._kernel_zchain.zchain_kernel``): the derivatives in the scaled variables that those columns read
     (``d``, in the order of ``g``'s columns), each a sum over its tails (the monomials of the variables but the
     head, the variable of highest degree; in ``np.unique``'s order) of the tail times a polynomial in the head
     (a Horner chain of the chain's own degree), then each column ``sum_d cmat[d, column] * d``. ``forms``:
