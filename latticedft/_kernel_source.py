@@ -11,7 +11,7 @@ Jacobian, the slice Newton (``slice_newton``, its predictor, scale and tally aro
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from ._symbolic import SymbolicLd
@@ -265,7 +265,9 @@ def _term(form: SymbolicLd, plain: bool, a: int, fn: str, anchored_before: bool)
     return [f"c = cell_at[{a}, y]", "if c >= 0:", f"    {fn}({args})"]
 
 
-def _fixed_terms(form: SymbolicLd, nxt: list[int], now: list[int], moving: list[int], term: Any) -> list[str]:
+def _fixed_terms(
+    form: SymbolicLd, nxt: list[int], now: list[int], moving: list[int], term: Callable[[int, str, bool], list[str]]
+) -> list[str]:
     """The lines that sum the part of site ``y``'s residual the unknown does not move into ``fixed``: the cells
     anchored on the slice before, then those anchored on this slice (their fixed terms where ``moving``)."""
     body = []

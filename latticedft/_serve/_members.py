@@ -27,7 +27,7 @@ from ._newton import CHORD_PREDICT, FRESH_FIRST_ON, FRESH_FIRST_RETRY, _chord_pa
 from ._slices import _SliceSystem, first_singular, member_abs_max, member_block_sizes, singular_message
 from ._solvers import SolverRefused, factor_members, members_solve
 
-__all__ = ["MemberFigures", "affine_held", "member_figures", "newton_members"]
+__all__ = ["MemberFigures", "affine_held", "counted_figures", "member_figures", "newton_members"]
 
 
 class MemberFigures:
@@ -68,6 +68,13 @@ class MemberFigures:
 def member_figures(cache: dict[str, Any], nm: int) -> MemberFigures:
     """The :class:`MemberFigures` of a stacked run's Newton cache (made on first use)."""
     figures: MemberFigures = cache.setdefault("member_figures", MemberFigures(nm))
+    return figures
+
+
+def counted_figures(cache: dict[str, Any]) -> MemberFigures | None:
+    """The :class:`MemberFigures` of a stacked run's Newton cache where its members were counted (``None``
+    where no affine slice or Newton step was)."""
+    figures: MemberFigures | None = cache.get("member_figures")
     return figures
 
 

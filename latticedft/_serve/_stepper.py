@@ -19,7 +19,7 @@ from .._models import AbstractLagrangian
 from . import _ondevice
 from ._folded import FoldedSlices, folded_slices
 from ._fused import FusedSlices, fused_slices
-from ._members import affine_held, newton_members
+from ._members import MemberFigures, affine_held, counted_figures, newton_members
 from ._newton import _newton_slice, predict
 from ._potential import potential_slices
 from ._result import ServeResult, _bar
@@ -189,7 +189,7 @@ class SteppedRun(Stepping):
         """The figures of the result that the stepper counted: evaluations, mode and solvers. A stacked
         ensemble's are member 0's own, as it counts them served alone (``_members.MemberFigures``): the
         result's field is member 0's."""
-        own = self.cache.get("member_figures") if self.sys.members > 1 else None
+        own = self._members_counted()
         if own is not None:
             return self.figures(int(own.total[0]), int(own.most[0]), "+".join(own.used[0]) or None)
         return self.figures(self.total_it, self.max_it, "+".join(self.cache.get("used", [])) or None)
@@ -197,8 +197,12 @@ class SteppedRun(Stepping):
     def residual(self) -> float:
         """The largest residual converged to (``max_residual``): a stacked ensemble's member 0's own, as
         :meth:`counts`."""
-        own = self.cache.get("member_figures") if self.sys.members > 1 else None
+        own = self._members_counted()
         return float(own.worst[0]) if own is not None else self.worst
+
+    def _members_counted(self) -> MemberFigures | None:
+        """A stacked ensemble's figures counted per member (``None`` for a single model, or where none were)."""
+        return counted_figures(self.cache) if self.sys.members > 1 else None
 
 
 class MemberBatch(Protocol):
