@@ -1,0 +1,290 @@
+"""Calibration rules scored on recorded slices: would another law have met more rows of the calibration table?
+
+    python -m benchmarks.calibration_rules FILE [FILE ...] [--rows]
+
+Reads the JSON files written by ``python -m benchmarks.calibration --record FILE`` (each row's law, the trial's
+held-out samples and, per test field, the per-slice error and every band). Every rule refits the law on the
+recorded held-out samples exactly as :func:`latticedft._calibrate._fit` does, changed where the rule says, and forms
+the bands as the benchmark does: the single band is the larger of the law (``A * scale * (k - 1)^exponent``, ``A``
+the served field's largest magnitude) and the trial's recorded disagreement; an ensemble's band is its members'
+spread times ``spread_scale`` floored at the trial's disagreement (``Calibration.band``; without a
+``spread_scale``, the spread floored at the single band). The rule ``today`` is the code as it is: it must give
+back every recorded band (the largest relative difference is printed, and a difference above ``1e-9`` stops the
+script), so the other rules are scored on the same slices as the table. A row meets when one of its bands meets
+both targets (2-sigma coverage 80-99 %, mean band over mean error 0.5-2), as in the calibration table.
+
+Printed: per rule, the single bands and rows meeting, and each row whose single band (or, for the ensemble
+rules, ensemble band) changed with its coverage and std/error. ``--rows``: the per-row table of ``today`` too.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from latticedft._calibrate import EXPONENT_RANGE, QUANTILE
+
+COVERAGE = (0.8, 0.99)
+RATIO = (0.5, 2.0)
+#: Largest relative difference allowed between a recorded band and the rule ``today``'s.
+REPRODUCED = 1e-9
+
+
+@dataclass
+class Row:
+    """One recorded row: its law (``Calibration.to_dict``), the trial's held-out samples and its test fields."""
+
+    label: str
+    noise: float
+    law: dict[str, Any]
+    held: list[dict[str, np.ndarray]]
+    tests: list[dict[str, Any]]
+
+    @property
+    def name(self) -> str:
+        return f"{self.label} (noise {self.noise:g})"
+
+
+@dataclass
+class Law:
+    """A refitted law: its scale and exponent, and what a rule changes past the longest window."""
+
+    scale: float
+    exponent: float
+    #: The exponent past the longest window (None: the same as before it).
+    beyond: float | None = None
+    #: Per test field, a factor on the law (None: 1).
+    factor: Callable[[Row, dict[str, Any]], float] | None = None
+
+
+@dataclass
+class Rule:
+    """A law and band rule: how the exponent and scale are fitted, and how the bands are formed."""
+
+    name: str
+    exponent_of: str = "target"  # "target" (the trial's error or the runner-up's disagreement) or "rel"
+    held_only: bool = False  # the exponent fitted on the held-out slices only
+    quantile: float = QUANTILE
+    beyond: Callable[[float], float] | None = None  # the exponent past the longest window, from the fitted one
+    factor: Callable[[Row, dict[str, Any]], float] | None = None
+    ensemble: str = "today"  # "today", "widened" (at least the single band), "sharper" (law or spread)
+    notes: list[str] = field(default_factory=list)
+
+
+def read(paths: list[str]) -> list[Row]:
+    """The rows of every record file, in order."""
+    rows = []
+    for p in paths:
+        try:
+            data = json.loads(Path(p).read_text())
+        except (OSError, ValueError) as err:
+            raise SystemExit(f"{p}: not a record of `python -m benchmarks.calibration --record` ({err})") from None
+        for r in data:
+            held = [{k: np.asarray(v, dtype=np.float64) for k, v in s.items() if k != "field"} for s in r["held_out"]]
+            for s in held:
+                s["held"] = s["held"].astype(bool)
+            tests = [
+                {
+                    k: (np.asarray(v, dtype=np.float64) if isinstance(v, list) and k != "warnings" else v)
+                    for k, v in t.items()
+                }
+                for t in r["tests"]
+            ]
+            rows.append(Row(r["row"], float(r["noise"]), r["law"], held, tests))
+    return rows
+
+
+def refit(row: Row, rule: Rule) -> Law:
+    """The law of ``row`` refitted on its held-out samples as :func:`latticedft._calibrate._fit` fits it, with the
+    rule's changes."""
+    origin = float(row.law.get("origin", 0.0))
+    pick = (lambda s: s["held"]) if rule.held_only else (lambda s: np.ones(s["k"].shape, dtype=bool))
+    k_all = np.concatenate([s["k"][pick(s)] for s in row.held]) if row.held else np.zeros(0)
+    y_all = np.concatenate([s[rule.exponent_of][pick(s)] for s in row.held]) if row.held else np.zeros(0)
+    ok = np.isfinite(y_all) & (y_all > 0)
+    p = 0.0
+    if np.unique(k_all[ok]).size >= 2:
+        p = float(np.polyfit(np.log(k_all[ok] - origin), np.log(y_all[ok]), 1)[0])
+    p = float(np.clip(p, *EXPONENT_RANGE))
+    k = np.concatenate([s["k"][s["held"]] for s in row.held]) if row.held else np.zeros(0)
+    r = np.concatenate([s["rel"][s["held"]] for s in row.held]) if row.held else np.zeros(0)
+    z = np.where(np.isfinite(r), r, np.inf) / (k - origin) ** p
+    q = float(np.quantile(z, rule.quantile, method="higher")) if z.size else math.inf
+    if not math.isfinite(q) and np.isfinite(z).any():
+        q = float(np.quantile(z[np.isfinite(z)], rule.quantile, method="higher"))
+    scale = q / 2
+    scale = scale if math.isfinite(scale) and scale > 0 else float(np.finfo(float).tiny)
+    return Law(scale, p, None if rule.beyond is None else rule.beyond(p), rule.factor)
+
+
+def law_band(row: Row, law: Law, test: dict[str, Any]) -> np.ndarray:
+    """The law on a test field's recorded slices (``k >= 2``), as ``Calibration.estimate`` gives it."""
+    origin = float(row.law.get("origin", 0.0))
+    k = np.arange(2, int(test["slices"]), dtype=np.float64)
+    t = np.maximum(k - origin, 1.0)
+    est = float(test["amplitude"]) * law.scale * t**law.exponent
+    if law.beyond is not None:
+        w = max(float(row.law["slices"]) - 1 - origin, 1.0)  # the last slice of the longest window, in steps
+        past = t > w
+        est = np.where(past, float(test["amplitude"]) * law.scale * w**law.exponent * (t / w) ** law.beyond, est)
+    if law.factor is not None:
+        est = est * law.factor(row, test)
+    return est
+
+
+def bands(row: Row, rule: Rule) -> list[dict[str, np.ndarray]]:
+    """Per test field, its single band and (with an ensemble) its ensemble band under ``rule``."""
+    law = refit(row, rule)
+    spread_scale = row.law.get("spread_scale")
+    out = []
+    for t in row.tests:
+        trial = np.asarray(t["trial"], dtype=np.float64)
+        single = np.fmax(law_band(row, law, t), trial)
+        b = {"single": single}
+        if "raw" in t and "ensemble" in t:
+            raw = np.asarray(t["raw"], dtype=np.float64)
+            if spread_scale is None:
+                ens = np.where(raw > 0, np.fmax(raw, single), single)
+            else:
+                floor = np.nan_to_num(trial)
+                s = raw * float(spread_scale)
+                ens = np.where(s > 0, np.fmax(s, floor), floor)
+            if rule.ensemble == "widened":
+                ens = np.fmax(ens, single)
+            elif rule.ensemble == "sharper":
+                sharper_spread = (row.law.get("spread_std_over_error") or math.inf) < row.law["std_over_error"]
+                ens = ens if sharper_spread or spread_scale is None else single
+            b["ensemble"] = ens
+        out.append(b)
+    return out
+
+
+def score(row: Row, per_test: list[dict[str, np.ndarray]], name: str) -> tuple[float, float] | None:
+    """Coverage (share of slices whose error is within twice the band) and mean band over mean error, pooled over
+    the row's test fields as the benchmark pools them (None when the row has no such band)."""
+    if not per_test or any(name not in b for b in per_test):
+        return None
+    e = np.concatenate([np.asarray(t["error"], dtype=np.float64) for t in row.tests])
+    b = np.concatenate([bb[name] for bb in per_test])
+    ok = np.isfinite(e)
+    b = np.where(np.isfinite(b), b, 0.0)
+    return float(np.mean(e[ok] <= 2 * b[ok])), float(b[ok].mean() / max(e[ok].mean(), 1e-300))
+
+
+def meets(s: tuple[float, float] | None) -> bool:
+    return s is not None and COVERAGE[0] <= s[0] <= COVERAGE[1] and RATIO[0] <= s[1] <= RATIO[1]
+
+
+def reproduced(rows: list[Row]) -> float:
+    """The largest relative difference between a recorded law (scale, exponent) or band (single, ensemble) and the
+    rule ``today``'s."""
+    worst = 0.0
+    for row in rows:
+        law = refit(row, RULES[0])
+        for fitted, recorded in ((law.scale, row.law["scale"]), (law.exponent, row.law["exponent"])):
+            worst = max(worst, abs(fitted - recorded) / max(abs(recorded), 1e-300) if fitted != recorded else 0.0)
+        for t, b in zip(row.tests, bands(row, RULES[0]), strict=True):
+            for name in ("single", "ensemble"):
+                if name not in b or name not in t:
+                    continue
+                mine, theirs = b[name], np.asarray(t[name], dtype=np.float64)
+                both = np.isfinite(theirs) & np.isfinite(mine)
+                if not np.array_equal(np.isfinite(theirs), np.isfinite(mine)):
+                    return math.inf
+                d = np.abs(mine[both] - theirs[both]) / np.maximum(np.abs(theirs[both]), 1e-300)
+                worst = max(worst, float(d.max()) if d.size else 0.0)
+    return worst
+
+
+def _span_ratio(row: Row, test: dict[str, Any]) -> float:
+    """How far the served amplitude (range of values) lies outside the training fields' amplitudes, as a ratio
+    (1 inside them)."""
+    lo, hi = row.law.get("span_low"), row.law.get("span_high")
+    span = float(test["high"]) - float(test["low"])
+    if lo is None or hi is None or not span > 0:
+        return 1.0
+    return max(span / hi, lo / span, 1.0)
+
+
+def _range_excess(row: Row, test: dict[str, Any]) -> float:
+    """``1 + d``: ``d`` how far the served field leaves the training fields' value range, over its width."""
+    width = max(float(row.law["high"]) - float(row.law["low"]), 1e-300)
+    d = max(float(row.law["low"]) - float(test["low"]), float(test["high"]) - float(row.law["high"]), 0.0)
+    return 1.0 + d / width
+
+
+RULES: list[Rule] = [
+    Rule("today"),
+    Rule("growth linear past the longest window", beyond=lambda p: 1.0),
+    Rule("exponent capped at 1 past the longest window", beyond=lambda p: min(p, 1.0)),
+    Rule("exponent at least 1 past the longest window", beyond=lambda p: max(p, 1.0)),
+    Rule("exponent fitted to the trial's own error", exponent_of="rel"),
+    Rule("exponent fitted on the held-out slices only", held_only=True),
+    Rule("law x amplitude ratio outside the training amplitudes", factor=_span_ratio),
+    Rule("law x amplitude ratio squared", factor=lambda r, t: _span_ratio(r, t) ** 2),
+    Rule("law x (1 + d), d: distance outside the value range", factor=_range_excess),
+    Rule("law x (1 + d)^2", factor=lambda r, t: _range_excess(r, t) ** 2),
+    Rule("scale from the 90 % quantile", quantile=0.90),
+    Rule("scale from the 80 % quantile", quantile=0.80),
+    Rule("ensemble: spread widened to the single band", ensemble="widened"),
+    Rule("ensemble: the sharper of law and spread on the held-out slices", ensemble="sharper"),
+]
+
+
+def _fmt(s: tuple[float, float] | None) -> str:
+    return "-" if s is None else f"{100 * s[0]:.3g} %, {s[1]:.3g}"
+
+
+def main(argv: list[str]) -> int:
+    paths = [a for a in argv if not a.startswith("--")]
+    if not paths:
+        print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
+        return 2
+    rows = read(paths)
+    diff = reproduced(rows)
+    print(f"# {len(rows)} rows; largest relative difference of the rule `today` from the recorded bands: {diff:.2e}")
+    if not diff <= REPRODUCED:
+        print(
+            f"the rule `today` does not give back the recorded bands (above {REPRODUCED:g}): the records are of "
+            "another law",
+            file=sys.stderr,
+        )
+        return 1
+    base = {row.name: [score(row, bands(row, RULES[0]), n) for n in ("single", "ensemble")] for row in rows}
+    if "--rows" in argv:
+        print("\n| row | single | ensemble |\n|---|---|---|")
+        for row in rows:
+            s, e = base[row.name]
+            tag = {True: " (meets)", False: ""}
+            print(f"| {row.name} | {_fmt(s)}{tag[meets(s)]} | {_fmt(e)}{tag[meets(e)]} |")
+    print("\n| rule | single bands meeting | rows meeting | rows that changed |\n|---|---|---|---|")
+    for rule in RULES:
+        n_single = n_rows = 0
+        changed = []
+        for row in rows:
+            s, e = (score(row, bands(row, rule), n) for n in ("single", "ensemble"))
+            n_single += meets(s)
+            n_rows += meets(s) or meets(e)
+            for name, new, old in (("single", s, base[row.name][0]), ("ensemble", e, base[row.name][1])):
+                if new is not None and old is not None and _fmt(new) != _fmt(old):
+                    gained = (
+                        "gained"
+                        if meets(new) and not meets(old)
+                        else "lost"
+                        if meets(old) and not meets(new)
+                        else "moved"
+                    )
+                    changed.append(f"{row.name} {name} {gained} ({_fmt(old)} -> {_fmt(new)})")
+        print(f"| {rule.name} | {n_single} | {n_rows} | {'; '.join(changed) or 'none'} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
