@@ -15,6 +15,11 @@ both targets (2-sigma coverage 80-99 %, mean band over mean error 0.5-2), as in 
 
 Printed: per rule, the single bands and rows meeting, and each row whose single band (or, for the ensemble
 rules, ensemble band) changed with its coverage and std/error. ``--rows``: the per-row table of ``today`` too.
+``--tests``: per test field of every row, what tells why its band misses: its slices against the longest window
+the law was measured on, its value range and amplitude (largest less smallest value) against the training
+fields', how many of the calibration's warnings it drew, the share of its slices within twice the single band,
+its error over the law and the trial's disagreement over its error (medians over its slices), and the growth
+exponent of its error (least squares of ``log error`` against ``log (k - 1)``) beside the law's.
 """
 
 from __future__ import annotations
@@ -242,6 +247,36 @@ def _fmt(s: tuple[float, float] | None) -> str:
     return "-" if s is None else f"{100 * s[0]:.3g} %, {s[1]:.3g}"
 
 
+def facts(row: Row) -> list[list[Any]]:
+    """Per test field of ``row``: the columns ``--tests`` prints (see the module docstring)."""
+    law, out = refit(row, RULES[0]), []
+    for i, (t, b) in enumerate(zip(row.tests, bands(row, RULES[0]), strict=True)):
+        e = np.asarray(t["error"], dtype=np.float64)
+        lb = law_band(row, law, t)
+        ok = np.isfinite(e) & (e > 0)
+        k = np.arange(2, 2 + e.size, dtype=np.float64) - float(row.law.get("origin", 0.0))
+        grow = float(np.polyfit(np.log(np.maximum(k[ok], 1.0)), np.log(e[ok]), 1)[0]) if ok.sum() >= 2 else math.nan
+        with np.errstate(divide="ignore", invalid="ignore"):
+            over_law = float(np.nanmedian(e / lb)) if e.size else math.nan
+            trial = float(np.nanmedian(np.asarray(t["trial"], dtype=np.float64) / e)) if e.size else math.nan
+        span = float(t["high"]) - float(t["low"])
+        lo, hi = row.law.get("span_low"), row.law.get("span_high")
+        out.append(
+            [
+                i,
+                f"{int(t['slices'])} ({int(row.law['slices'])})",
+                f"[{float(t['low']):.3g}, {float(t['high']):.3g}] ([{row.law['low']:.3g}, {row.law['high']:.3g}])",
+                f"{span:.3g}" + ("" if lo is None or hi is None else f" ([{lo:.3g}, {hi:.3g}])"),
+                len(t.get("warnings") or []),
+                f"{100 * float(np.mean(e[np.isfinite(e)] <= 2 * np.nan_to_num(b['single'])[np.isfinite(e)])):.3g} %",
+                f"{over_law:.3g}",
+                f"{trial:.3g}",
+                f"{grow:.2f} ({law.exponent:.2f})",
+            ]
+        )
+    return out
+
+
 def main(argv: list[str]) -> int:
     paths = [a for a in argv if not a.startswith("--")]
     if not paths:
@@ -264,6 +299,15 @@ def main(argv: list[str]) -> int:
             s, e = base[row.name]
             tag = {True: " (meets)", False: ""}
             print(f"| {row.name} | {_fmt(s)}{tag[meets(s)]} | {_fmt(e)}{tag[meets(e)]} |")
+    if "--tests" in argv:
+        head = (
+            "test | slices (windows) | values (training) | amplitude (training) | warnings | covered | error / law "
+            "| trial / error | error growth (law)"
+        )
+        for row in rows:
+            print(f"\n{row.name}\n\n| {head} |\n|{'---|' * (head.count('|') + 1)}")
+            for f in facts(row):
+                print("| " + " | ".join(str(c) for c in f) + " |")
     print("\n| rule | single bands meeting | rows meeting | rows that changed |\n|---|---|---|---|")
     for rule in RULES:
         n_single = n_rows = 0
