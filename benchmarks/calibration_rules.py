@@ -1,6 +1,6 @@
 """Calibration rules scored on recorded slices: would another law have met more rows of the calibration table?
 
-    python -m benchmarks.calibration_rules FILE [FILE ...] [--rows]
+    python -m benchmarks.calibration_rules FILE [FILE ...] [--rows] [--tests] [--moved]
 
 Reads the JSON files written by ``python -m benchmarks.calibration --record FILE`` (each row's law, the trial's
 held-out samples and, per test field, the per-slice error and every band). Every rule refits the law on the
@@ -13,8 +13,8 @@ back every recorded band (the largest relative difference is printed, and a diff
 script), so the other rules are scored on the same slices as the table. A row meets when one of its bands meets
 both targets (2-sigma coverage 80-99 %, mean band over mean error 0.5-2), as in the calibration table.
 
-Printed: per rule, the single bands and rows meeting, and each row whose single band (or, for the ensemble
-rules, ensemble band) changed with its coverage and std/error. ``--rows``: the per-row table of ``today`` too.
+Printed: per rule, the single bands and rows meeting, and the rows it gains and loses (with their bands);
+``--moved``: every band that moved, from today's to the rule's. ``--rows``: the per-row table of ``today`` too.
 ``--tests``: per test field of every row, what tells why its band misses: its slices against the longest window
 the law was measured on, its value range and amplitude (largest less smallest value) against the training
 fields', how many of the calibration's warnings it drew, the share of its slices within twice the single band,
@@ -28,7 +28,7 @@ import json
 import math
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -80,7 +80,16 @@ class Rule:
     beyond: Callable[[float], float] | None = None  # the exponent past the longest window, from the fitted one
     factor: Callable[[Row, dict[str, Any]], float] | None = None
     ensemble: str = "today"  # "today", "widened" (at least the single band), "sharper" (law or spread)
-    notes: list[str] = field(default_factory=list)
+    #: The exponent's least squares with every slice weighted by ``1/k`` (each factor of time counting the same).
+    per_decade: bool = False
+    #: The finite-sample conformal level ``ceil((n + 1) q) / n`` of ``n`` held-out slices instead of ``q``.
+    conformal: bool = False
+    #: The scale from the mean of the held-out ``r(k) / (k - 1)^exponent`` instead of its quantile (halved).
+    mean_scale: bool = False
+    #: A factor on the trial's disagreement on the task.
+    trial_factor: float = 1.0
+    #: Past the longest window, the single band is the trial's disagreement alone (the law not extrapolated).
+    trial_alone_past: bool = False
 
 
 def read(paths: list[str]) -> list[Row]:
@@ -116,14 +125,18 @@ def refit(row: Row, rule: Rule) -> Law:
     ok = np.isfinite(y_all) & (y_all > 0)
     p = 0.0
     if np.unique(k_all[ok]).size >= 2:
-        p = float(np.polyfit(np.log(k_all[ok] - origin), np.log(y_all[ok]), 1)[0])
+        w = 1 / np.sqrt(k_all[ok] - origin) if rule.per_decade else None
+        p = float(np.polyfit(np.log(k_all[ok] - origin), np.log(y_all[ok]), 1, w=w)[0])
     p = float(np.clip(p, *EXPONENT_RANGE))
     k = np.concatenate([s["k"][s["held"]] for s in row.held]) if row.held else np.zeros(0)
     r = np.concatenate([s["rel"][s["held"]] for s in row.held]) if row.held else np.zeros(0)
     z = np.where(np.isfinite(r), r, np.inf) / (k - origin) ** p
-    q = float(np.quantile(z, rule.quantile, method="higher")) if z.size else math.inf
+    level = min(math.ceil((z.size + 1) * rule.quantile) / z.size, 1.0) if rule.conformal and z.size else rule.quantile
+    q = float(np.quantile(z, level, method="higher")) if z.size else math.inf
     if not math.isfinite(q) and np.isfinite(z).any():
-        q = float(np.quantile(z[np.isfinite(z)], rule.quantile, method="higher"))
+        q = float(np.quantile(z[np.isfinite(z)], level, method="higher"))
+    if rule.mean_scale and np.isfinite(z).any():
+        q = 2 * float(np.mean(z[np.isfinite(z)]))
     scale = q / 2
     scale = scale if math.isfinite(scale) and scale > 0 else float(np.finfo(float).tiny)
     return Law(scale, p, None if rule.beyond is None else rule.beyond(p), rule.factor)
@@ -150,8 +163,11 @@ def bands(row: Row, rule: Rule) -> list[dict[str, np.ndarray]]:
     spread_scale = row.law.get("spread_scale")
     out = []
     for t in row.tests:
-        trial = np.asarray(t["trial"], dtype=np.float64)
+        trial = np.asarray(t["trial"], dtype=np.float64) * rule.trial_factor
         single = np.fmax(law_band(row, law, t), trial)
+        if rule.trial_alone_past:
+            steps = np.arange(2, int(t["slices"]), dtype=np.float64) - float(row.law.get("origin", 0.0))
+            single = np.where(steps > float(row.law["slices"]) - 1 - float(row.law.get("origin", 0.0)), trial, single)
         b = {"single": single}
         if "raw" in t and "ensemble" in t:
             raw = np.asarray(t["raw"], dtype=np.float64)
@@ -236,8 +252,14 @@ RULES: list[Rule] = [
     Rule("law x amplitude ratio squared", factor=lambda r, t: _span_ratio(r, t) ** 2),
     Rule("law x (1 + d), d: distance outside the value range", factor=_range_excess),
     Rule("law x (1 + d)^2", factor=lambda r, t: _range_excess(r, t) ** 2),
+    Rule("exponent fitted with every slice weighted by 1/k", per_decade=True),
+    Rule("finite-sample conformal quantile, ceil((n + 1) 0.95) / n", conformal=True),
+    Rule("scale from the mean held-out error", mean_scale=True),
     Rule("scale from the 90 % quantile", quantile=0.90),
+    Rule("scale from the 85 % quantile", quantile=0.85),
     Rule("scale from the 80 % quantile", quantile=0.80),
+    Rule("trial's disagreement scaled by 1 / sqrt(1 + 1/0.7)", trial_factor=1 / math.sqrt(1 + 1 / 0.7)),
+    Rule("the trial's disagreement alone past the longest window", trial_alone_past=True),
     Rule("ensemble: spread widened to the single band", ensemble="widened"),
     Rule("ensemble: the sharper of law and spread on the held-out slices", ensemble="sharper"),
 ]
@@ -308,25 +330,29 @@ def main(argv: list[str]) -> int:
             print(f"\n{row.name}\n\n| {head} |\n|{'---|' * (head.count('|') + 1)}")
             for f in facts(row):
                 print("| " + " | ".join(str(c) for c in f) + " |")
-    print("\n| rule | single bands meeting | rows meeting | rows that changed |\n|---|---|---|---|")
+    print("\n| rule | single bands meeting | rows meeting | rows gained | rows lost |\n|---|---|---|---|---|")
+    moved = []
     for rule in RULES:
-        n_single = n_rows = 0
-        changed = []
+        n_single, gained, lost = 0, [], []
+        n_rows = 0
         for row in rows:
-            s, e = (score(row, bands(row, rule), n) for n in ("single", "ensemble"))
-            n_single += meets(s)
-            n_rows += meets(s) or meets(e)
-            for name, new, old in (("single", s, base[row.name][0]), ("ensemble", e, base[row.name][1])):
-                if new is not None and old is not None and _fmt(new) != _fmt(old):
-                    gained = (
-                        "gained"
-                        if meets(new) and not meets(old)
-                        else "lost"
-                        if meets(old) and not meets(new)
-                        else "moved"
-                    )
-                    changed.append(f"{row.name} {name} {gained} ({_fmt(old)} -> {_fmt(new)})")
-        print(f"| {rule.name} | {n_single} | {n_rows} | {'; '.join(changed) or 'none'} |")
+            new = [score(row, bands(row, rule), n) for n in ("single", "ensemble")]
+            old = base[row.name]
+            n_single += meets(new[0])
+            n_rows += meets(new[0]) or meets(new[1])
+            was, now = meets(old[0]) or meets(old[1]), meets(new[0]) or meets(new[1])
+            band = ", ".join(f"{n} {_fmt(b)}" for n, b in zip(("single", "ensemble"), new, strict=True) if b)
+            if now and not was:
+                gained.append(f"{row.name} ({band})")
+            elif was and not now:
+                lost.append(f"{row.name} ({band})")
+            for name, a, b in zip(("single", "ensemble"), old, new, strict=True):
+                if a is not None and b is not None and _fmt(a) != _fmt(b):
+                    moved.append(f"- {rule.name}: {row.name}, {name} {_fmt(a)} -> {_fmt(b)}")
+        print(f"| {rule.name} | {n_single} | {n_rows} | {'; '.join(gained) or '-'} | {'; '.join(lost) or '-'} |")
+    if "--moved" in argv:
+        print("\nEvery band that moved (coverage, std/error: today -> the rule):\n")
+        print("\n".join(moved))
     return 0
 
 
