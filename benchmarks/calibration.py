@@ -23,7 +23,12 @@ and widened to at least the trial's disagreement (``psi_std``, :meth:`latticedft
 members' standard deviation alone (the band before calibration); "law only" the held-out law without the
 trial's disagreement. Over the served slices of every test field
 (the two given ones excluded), per slice the RMS error over the lattice: *coverage* is the share within 2 times
-the band's RMS, *std/error* the mean band over the mean error. *cost* is the time of selection plus calibration
+the band's RMS, *std/error* the mean band over the mean error. *silent misses* counts the test fields whose
+single band covers less than half of their slices and that draw no calibration warning (the candidates' check
+included: with a runner-up, its trial is served from each test's start beside the trial, and the test warns when
+the two disagree more than ``CANDIDATES_RATIO`` times as much as on the training fields,
+:meth:`latticedft._calibrate.Calibration.candidates_ratio`); *check cost* the runner-up trial's serves over the
+model's, summed over the test fields (none without a runner-up). *cost* is the time of selection plus calibration
 over selection alone. A failed calibration (no held-out slice served: :attr:`Calibration.failed`) gives no single
 band and leaves the ensemble's raw spread, as a case serves it. ``--quick``: one small case
 (cases/oscillator-sin, clean) for the structure.
@@ -181,7 +186,8 @@ class _Pool:
 
     err: list[np.ndarray] = field(default_factory=list)
     bands: dict[str, list[np.ndarray]] = field(default_factory=dict)
-    #: Per test field: its served slices, value range, amplitude and the calibration's warnings (``--record``).
+    #: Per test field: its served slices, value range, amplitude, the candidates' ratio, the calibration's warnings
+    #: and the seconds of the model's serve and of the runner-up trial's (``--record``).
     facts: list[dict[str, Any]] = field(default_factory=list)
 
     def add(self, err: np.ndarray, **bands: np.ndarray) -> None:
@@ -207,6 +213,13 @@ class _Pool:
             covered = float(np.mean(e[ok] <= 2 * b[ok])) if ok.any() else 0.0
             out += covered < MISSED and not self.facts[i]["warnings"]
         return out
+
+    def check_cost(self) -> float | None:
+        """The runner-up trial's serves over the model's, summed over the test fields (None without a runner-up:
+        the candidates' check costs nothing then)."""
+        runner = [f["runner_s"] for f in self.facts if f.get("runner_s") is not None]
+        served = sum(f["serve_s"] for f in self.facts if f.get("runner_s") is not None)
+        return sum(runner) / served if runner and served > 0 else None
 
 
 def _learned(s: Setup, train: list[xr.DataArray], kw: dict[str, Any]) -> tuple[Any, Any, float, float]:
@@ -294,6 +307,7 @@ def measure(s: Setup, sigma: float) -> list[Any]:
         *raw,
         *law,
         pool.silent() if cal.failed is None else None,
+        pool.check_cost(),
         cal.coverage if cal.failed is None else None,
         t_sel if t_sel else None,
         t_cal,
@@ -307,8 +321,10 @@ def _record(
     """Append one row's per-slice record to the JSON file ``path`` (``--record``): the law, the trial's held-out
     samples (``held``, as :func:`latticedft._calibrate.calibrate` records them), and per test field (the two
     given slices excluded) the RMS error and every band (``trial``: the trial's disagreement), the served field's
-    slices, value range (``low``, ``high``) and largest magnitude (``amplitude``), and the calibration's
-    ``warnings`` on it (:meth:`latticedft._calibrate.Calibration.warnings`)."""
+    slices, value range (``low``, ``high``) and largest magnitude (``amplitude``), the calibration's
+    ``warnings`` on it (:meth:`latticedft._calibrate.Calibration.warnings`, and the candidates' warning), the
+    ``candidates_ratio`` (None without a runner-up) and the seconds of the model's serve and of the runner-up
+    trial's (``serve_s``, ``runner_s``)."""
     file = Path(path)
     rows = json.loads(file.read_text()) if file.exists() else []
     tests = [
@@ -339,7 +355,9 @@ def _serve_test(
     :meth:`~latticedft._calibrate.Calibration.candidates_ratio` and warning."""
     noise = (model.report_.noise if model.report_ is not None else None) or {}
     start = denoised_start(model, init) if noise.get("method", "none") != "none" else init
+    t0 = time.perf_counter()
     out = _serve(model, start, slices, boundary)
+    serve_s = time.perf_counter() - t0
     pred = out.field
     n = min(pred.sizes[pred.dims[0]], ref.sizes[ref.dims[0]])
     err = _rms(np.asarray(pred.values) - np.asarray(ref.values[:n] if n else ref.values), n)
@@ -352,9 +370,11 @@ def _serve_test(
     est = np.fmax(law, other)
     bands = {"single": est, "law": law, "trial": other}
     finite = values[np.isfinite(values)]
-    ratio, warnings = None, cal.warnings(n, values) if cal.failed is None else []
+    ratio, warnings, runner_s = None, cal.warnings(n, values) if cal.failed is None else [], None
     if pair[1] is not None and cal.failed is None:
+        t0 = time.perf_counter()
         theirs = served_along(pair[1], start, pred, slices=slices, boundary=boundary)
+        runner_s = time.perf_counter() - t0
         ratio = cal.candidates_ratio(candidates_disagreement(mine, theirs, nt) / amplitude, np.arange(nt))
         warning = cal.candidates_warning(ratio, min(nt, cal.slices) - 2)
         warnings += [warning] if warning else []
@@ -366,6 +386,8 @@ def _serve_test(
             "amplitude": amplitude,
             "candidates_ratio": ratio,
             "warnings": warnings,
+            "serve_s": serve_s,
+            "runner_s": runner_s,
         }
     )
     if ens is not None:
@@ -395,6 +417,7 @@ def run(cfg: Config) -> Table:
             "coverage, law only",
             "std/error, law only",
             "silent misses",
+            "check cost",
             "held-out coverage",
             "selection (s)",
             "calibration (s)",
