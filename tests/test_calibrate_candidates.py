@@ -141,8 +141,8 @@ def _case(tmp: Path) -> Path:
 def test_a_run_warns_on_the_task_between_the_orbits_and_strict_exits_4(tmp_path: Path, capsys) -> None:  # noqa: ANN001
     """With ``[model] select`` the runner-up's trial is written beside the trial; the launch from -0.6 warns
     (console, run.log, summary.json, the task file, its figure) and ``--strict`` exits 4; the training launch
-    does not. Served again (``latticedft serve``), the same; without the runner-up's file (a run before the check), nothing warns, the exit
-    status is 0 and the band is the same to the bit."""
+    does not. Served again (``latticedft serve``), the same; without the runner-up's file (a run before the
+    check), nothing warns, the exit status is 0 and the band is the same to the bit."""
     case, out = _case(tmp_path), tmp_path / "r"
     code, _, err = run_cli(capsys, "run", case, "--out", out, "--strict")
     assert code == 4 and f"task between: {WARNING}" in err
