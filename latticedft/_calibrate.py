@@ -23,7 +23,11 @@ field on the task itself (the trial, learned on less data, served from the same 
 held-out measurement (:attr:`Calibration.spread_scale`: how the trial's error compares with the members' spread on
 the held-out slices; the scaled spread takes the law's place), widened to the trial's disagreement where
 narrower; :meth:`Calibration.warnings`
-names a task that runs longer than, or outside the value range of, the windows the law was measured on.
+names a task that runs longer than, or outside the value range of, the windows the law was measured on. With a
+runner-up, the law also records the two trials' disagreement per slice on the training fields
+(:attr:`Calibration.candidates`); a task on which they disagree far more (:meth:`Calibration.candidates_ratio`,
+the runner-up's trial served beside the trial) is told that the training data do not pin the model down there
+(:meth:`Calibration.candidates_warning`: a warning, not a band).
 """
 
 from __future__ import annotations
