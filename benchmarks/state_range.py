@@ -12,7 +12,8 @@ distance of a served cell's feature vector to the nearest training cell's (every
 tests served badly from those served well (docs/uncertainty.md, "The state check").
 
 Rows: every repository case (as :mod:`benchmarks.calibration` takes it: its ``case.toml`` model learned with the
-case's keywords, no selection, the MLP fits stopped at 60 s) and the calibration table's extra rows, clean. Per
+case's keywords, no selection, the MLP fits stopped at their 500
+iterations) and the calibration table's extra rows, clean. Per
 test field: its index and served slices, the largest state distance and the first slice past ``--tol`` (0.05),
 the largest excess beyond a feature's training range (``ServeResult.extrapolation``), the largest RMS error of a
 slice (the two given slices excluded) over the reference's largest magnitude, and the time of the state check
