@@ -24,7 +24,12 @@ and widened to at least the trial's disagreement (``psi_std``, :meth:`latticedft
 members' standard deviation alone (the band before calibration); "law only" the held-out law without the
 trial's disagreement. Over the served slices of every test field
 (the two given ones excluded), per slice the RMS error over the lattice: *coverage* is the share within 2 times
-the band's RMS, *std/error* the mean band over the mean error. *cost* is the time of selection plus calibration
+the band's RMS, *std/error* the mean band over the mean error. *silent misses* counts the test fields whose
+single band covers less than half of their slices and that draw no calibration warning (the candidates' check
+included: with a runner-up, its trial is served from each test's start beside the trial, and the test warns when
+the two disagree more than ``CANDIDATES_RATIO`` times as much as on the training fields,
+:meth:`latticedft._calibrate.Calibration.candidates_ratio`); *check cost* the runner-up trial's serves over the
+model's, summed over the test fields (none without a runner-up). *cost* is the time of selection plus calibration
 over selection alone. A failed calibration (no held-out slice served: :attr:`Calibration.failed`) gives no single
 band and leaves the ensemble's raw spread, as a case serves it. ``--quick``: one small case
 (cases/oscillator-sin, clean) for the structure.
@@ -49,7 +54,14 @@ import xarray as xr
 
 import latticedft as ldft
 from latticedft import systems
-from latticedft._calibrate import Calibration, calibrate, disagreement, runner_up, trial_keywords
+from latticedft._calibrate import (
+    Calibration,
+    calibrate,
+    candidates_disagreement,
+    runner_up,
+    served_along,
+    trial_keywords,
+)
 from latticedft._learn._noise import denoised_start
 from latticedft._select import _build, select
 
@@ -61,6 +73,9 @@ ROOT = Path(__file__).resolve().parent.parent
 CASES = ("oscillator-sin", "oscillator-wells", "wave", "klein-gordon-periodic", "sine-gordon", "wave-2d", "kepler")
 NOISE = 1e-3
 MEMBERS = 5
+#: A test field the single band covers on less than this share of its served slices is missed (the table's
+#: "silent misses": those without a calibration warning).
+MISSED = 0.5
 
 
 @dataclass
@@ -168,7 +183,8 @@ class _Pool:
 
     err: list[np.ndarray] = field(default_factory=list)
     bands: dict[str, list[np.ndarray]] = field(default_factory=dict)
-    #: Per test field: its served slices, value range, amplitude and the calibration's warnings (``--record``).
+    #: Per test field: its served slices, value range, amplitude, the candidates' ratio, the calibration's warnings
+    #: and the seconds of the model's serve and of the runner-up trial's (``--record``).
     facts: list[dict[str, Any]] = field(default_factory=list)
 
     def add(self, err: np.ndarray, **bands: np.ndarray) -> None:
@@ -184,17 +200,35 @@ class _Pool:
         b = np.where(np.isfinite(b), b, 0.0)
         return float(np.mean(e[ok] <= 2 * b[ok])), float(b[ok].mean() / max(e[ok].mean(), 1e-300))
 
+    def silent(self) -> int:
+        """The test fields the single band missed (2 std covers less than :data:`MISSED` of their served slices)
+        without a calibration warning (:attr:`facts`' ``warnings``, the candidates' warning included)."""
+        out = 0
+        for i, e in enumerate(self.err):
+            b = np.where(np.isfinite(self.bands["single"][i]), self.bands["single"][i], 0.0)
+            ok = np.isfinite(e)
+            covered = float(np.mean(e[ok] <= 2 * b[ok])) if ok.any() else 0.0
+            out += covered < MISSED and not self.facts[i]["warnings"]
+        return out
+
+    def check_cost(self) -> float | None:
+        """The runner-up trial's serves over the model's, summed over the test fields (None without a runner-up:
+        the candidates' check costs nothing then)."""
+        runner = [f["runner_s"] for f in self.facts if f.get("runner_s") is not None]
+        served = sum(f["serve_s"] for f in self.facts if f.get("runner_s") is not None)
+        return sum(runner) / served if runner and served > 0 else None
+
 
 def _learned(s: Setup, train: list[xr.DataArray], kw: dict[str, Any]) -> tuple[Any, Any, float, float]:
     """(chosen model, (its fresh copy, its learn keywords, the runner-up, the two as selection learned them on
-    the held-in slices and the fields they served when scored, None without selection), selection time, its
-    wall time)."""
+    the held-in slices and the fields they served when scored, None without selection, the chosen candidate's
+    label), selection time, its wall time)."""
     if not s.select:
         model = s.model()
         t0 = time.perf_counter()
         ldft.learn(model, train, boundary=s.boundary, progress=False, **kw)
         own = trial_keywords(kw, model.report_.ridge if model.report_ is not None else None)
-        return model, (s.model(), own, None, None, None), 0.0, time.perf_counter() - t0
+        return model, (s.model(), own, None, None, None, None), 0.0, time.perf_counter() - t0
     t0 = time.perf_counter()
     sel = select(s.model(), train, "auto", boundary=s.boundary, **kw)
     t_sel = time.perf_counter() - t0
@@ -209,7 +243,8 @@ def _learned(s: Setup, train: list[xr.DataArray], kw: dict[str, Any]) -> tuple[A
         runner = (_build(hand, r["kind"], dict(r["options"])), {**kw, "ridge": r["ridge"]}, r["label"])
         second, theirs = sel.trials[i], sel.served[i]
     learned = (sel.trials[chosen], second) if sel.trials[chosen] is not None else None
-    return sel.model, (fresh, own, runner, learned, (sel.served[chosen], theirs)), t_sel, t_sel
+    label = rows[chosen]["label"]
+    return sel.model, (fresh, own, runner, learned, (sel.served[chosen], theirs), label), t_sel, t_sel
 
 
 def measure(s: Setup, sigma: float) -> list[Any]:
@@ -225,15 +260,16 @@ def measure(s: Setup, sigma: float) -> list[Any]:
         ens = ldft.EnsembleLagrangian(s.model(), members=MEMBERS, seed=0)
         ldft.learn(ens, train, boundary=s.boundary, progress=False, **kw)
         model, fresh, runner, learned, served, t_sel = ens.member(0), s.model(), None, None, None, 0.0
-        own = trial_keywords(kw, model.report_.ridge if model.report_ is not None else None)
+        own, label = trial_keywords(kw, model.report_.ridge if model.report_ is not None else None), None
     else:
-        model, (fresh, own, runner, learned, served), t_sel, _ = _learned(s, train, kw)
+        model, (fresh, own, runner, learned, served, label), t_sel, _ = _learned(s, train, kw)
         ens = None
         if s.ensemble:
             ens = ldft.EnsembleLagrangian(copy.deepcopy(fresh), members=MEMBERS, seed=0)
             ldft.learn(ens, train, boundary=s.boundary, progress=False, **own)
     t0 = time.perf_counter()
     held: list[dict[str, Any]] = []
+    second: list[ldft.AbstractLagrangian] = []
     cal, _, trial = calibrate(
         fresh,
         train,
@@ -243,12 +279,15 @@ def measure(s: Setup, sigma: float) -> list[Any]:
         record=held,
         learned=learned,
         served=served,
+        chosen=label,
+        runner_trial=second,
         **own,
     )
     t_cal = time.perf_counter() - t0
     pool = _Pool()
+    pair = (trial, second[0] if second else None)
     for init, ref, slices, boundary in s.tests:
-        _serve_test(pool, model, ens, trial, cal, _noisy(init, sigma, rng), ref, slices, boundary)
+        _serve_test(pool, model, ens, pair, cal, _noisy(init, sigma, rng), ref, slices, boundary)
     single, ensemble, raw, law = (pool.score(k) for k in ("single", "ensemble", "raw", "law"))
     if cal.failed is not None:  # no law: served as a case is, without psi_err_est, the ensemble's spread as it is
         single, law, ensemble = (None, None), (None, None), raw
@@ -264,6 +303,8 @@ def measure(s: Setup, sigma: float) -> list[Any]:
         *ensemble,
         *raw,
         *law,
+        pool.silent() if cal.failed is None else None,
+        pool.check_cost(),
         cal.coverage if cal.failed is None else None,
         t_sel if t_sel else None,
         t_cal,
@@ -277,8 +318,10 @@ def _record(
     """Append one row's per-slice record to the JSON file ``path`` (``--record``): the law, the trial's held-out
     samples (``held``, as :func:`latticedft._calibrate.calibrate` records them), and per test field (the two
     given slices excluded) the RMS error and every band (``trial``: the trial's disagreement), the served field's
-    slices, value range (``low``, ``high``) and largest magnitude (``amplitude``), and the calibration's
-    ``warnings`` on it (:meth:`latticedft._calibrate.Calibration.warnings`)."""
+    slices, value range (``low``, ``high``) and largest magnitude (``amplitude``), the calibration's
+    ``warnings`` on it (:meth:`latticedft._calibrate.Calibration.warnings`, and the candidates' warning), the
+    ``candidates_ratio`` (None without a runner-up) and the seconds of the model's serve and of the runner-up
+    trial's (``serve_s``, ``runner_s``)."""
     file = Path(path)
     rows = json.loads(file.read_text()) if file.exists() else []
     tests = [
@@ -297,33 +340,51 @@ def _serve_test(
     pool: _Pool,
     model: Any,
     ens: Any,
-    trial: Any,
+    pair: tuple[Any, Any],
     cal: Calibration,
     init: xr.DataArray,
     ref: xr.DataArray,
     slices: int,
     boundary: Any,
 ) -> None:
-    """Serve one test field with the single model (and the ensemble); pool its errors and bands."""
+    """Serve one test field with the single model (and the ensemble); pool its errors and bands. ``pair``: the
+    trial and the runner-up's trial (None without one), served from the same start: their disagreement's
+    :meth:`~latticedft._calibrate.Calibration.candidates_ratio` and warning."""
     noise = (model.report_.noise if model.report_ is not None else None) or {}
     start = denoised_start(model, init) if noise.get("method", "none") != "none" else init
+    t0 = time.perf_counter()
     out = _serve(model, start, slices, boundary)
+    serve_s = time.perf_counter() - t0
     pred = out.field
     n = min(pred.sizes[pred.dims[0]], ref.sizes[ref.dims[0]])
     err = _rms(np.asarray(pred.values) - np.asarray(ref.values[:n] if n else ref.values), n)
     values = np.asarray(pred.values, dtype=np.float64)
-    other = disagreement(trial, start, pred, slices=slices, boundary=boundary)[:n]
-    law = cal.estimate(np.arange(n), float(np.nanmax(np.abs(values))))
+    amplitude = float(np.nanmax(np.abs(values)))
+    mine = served_along(pair[0], start, pred, slices=slices, boundary=boundary)
+    nt = pred.sizes[pred.dims[0]]
+    other = candidates_disagreement(values, mine, nt)[:n]  # disagreement(): the trial's with the served field
+    law = cal.estimate(np.arange(n), amplitude)
     est = np.fmax(law, other)
     bands = {"single": est, "law": law, "trial": other}
     finite = values[np.isfinite(values)]
+    ratio, warnings, runner_s = None, cal.warnings(n, values) if cal.failed is None else [], None
+    if pair[1] is not None and cal.failed is None:
+        t0 = time.perf_counter()
+        theirs = served_along(pair[1], start, pred, slices=slices, boundary=boundary)
+        runner_s = time.perf_counter() - t0
+        ratio = cal.candidates_ratio(candidates_disagreement(mine, theirs, nt) / amplitude, np.arange(nt))
+        warning = cal.candidates_warning(ratio, min(nt, cal.slices) - 2)
+        warnings += [warning] if warning else []
     pool.facts.append(
         {
             "slices": n,
             "low": float(finite.min()) if finite.size else None,
             "high": float(finite.max()) if finite.size else None,
-            "amplitude": float(np.nanmax(np.abs(values))),
-            "warnings": cal.warnings(n, values) if cal.failed is None else [],
+            "amplitude": amplitude,
+            "candidates_ratio": ratio,
+            "warnings": warnings,
+            "serve_s": serve_s,
+            "runner_s": runner_s,
         }
     )
     if ens is not None:
@@ -352,6 +413,8 @@ def run(cfg: Config) -> Table:
             "std/error, raw ensemble",
             "coverage, law only",
             "std/error, law only",
+            "silent misses",
+            "check cost",
             "held-out coverage",
             "selection (s)",
             "calibration (s)",

@@ -18,8 +18,11 @@ Printed: per rule, the single bands and rows meeting, and the rows it gains and 
 ``--tests``: per test field of every row, what tells why its band misses: its slices against the longest window
 the law was measured on, its value range and amplitude (largest less smallest value) against the training
 fields', how many of the calibration's warnings it drew, the share of its slices within twice the single band,
-its error over the law and the trial's disagreement over its error (medians over its slices), and the growth
-exponent of its error (least squares of ``log error`` against ``log (k - 1)``) beside the law's.
+its error over the law and the trial's disagreement over its error (medians over its slices), the growth
+exponent of its error (least squares of ``log error`` against ``log (k - 1)``) beside the law's, and the
+candidates' ratio (:meth:`latticedft._calibrate.Calibration.candidates_ratio`: how much more the two best
+candidates' trials disagree on it than on the training fields; ``warned`` when its warning fired; ``-`` without a
+runner-up, or in a record made before it).
 """
 
 from __future__ import annotations
@@ -294,9 +297,19 @@ def facts(row: Row) -> list[list[Any]]:
                 f"{over_law:.3g}",
                 f"{trial:.3g}",
                 f"{grow:.2f} ({law.exponent:.2f})",
+                _candidates(t),
             ]
         )
     return out
+
+
+def _candidates(test: dict[str, Any]) -> str:
+    """The ``candidates`` column of ``--tests``: the test's recorded candidates' ratio, and whether it warned."""
+    ratio = test.get("candidates_ratio")
+    if ratio is None:
+        return "-"
+    warned = any("the two best candidates" in w for w in test.get("warnings") or [])
+    return f"{ratio:.3g}" + (" (warned)" if warned else "")
 
 
 def main(argv: list[str]) -> int:
@@ -324,7 +337,7 @@ def main(argv: list[str]) -> int:
     if "--tests" in argv:
         head = (
             "test | slices (windows) | values (training) | amplitude (training) | warnings | covered | error / law "
-            "| trial / error | error growth (law)"
+            "| trial / error | error growth (law) | candidates"
         )
         for row in rows:
             print(f"\n{row.name}\n\n| {head} |\n|{'---|' * (head.count('|') + 1)}")

@@ -23,7 +23,11 @@ field on the task itself (the trial, learned on less data, served from the same 
 held-out measurement (:attr:`Calibration.spread_scale`: how the trial's error compares with the members' spread on
 the held-out slices; the scaled spread takes the law's place), widened to the trial's disagreement where
 narrower; :meth:`Calibration.warnings`
-names a task that runs longer than, or outside the value range of, the windows the law was measured on.
+names a task that runs longer than, or outside the value range of, the windows the law was measured on. With a
+runner-up, the law also records the two trials' disagreement per slice on the training fields
+(:attr:`Calibration.candidates`); a task on which they disagree far more (:meth:`Calibration.candidates_ratio`,
+the runner-up's trial served beside the trial) is told that the training data do not pin the model down there
+(:meth:`Calibration.candidates_warning`: a warning, not a band).
 """
 
 from __future__ import annotations
@@ -52,8 +56,10 @@ __all__ = [
     "QUANTILE",
     "Calibration",
     "calibrate",
+    "candidates_disagreement",
     "disagreement",
     "runner_up",
+    "served_along",
     "too_short",
     "slice_errors",
     "trial_keywords",
@@ -67,6 +73,14 @@ RANGE_MARGIN = 0.05
 #: The runner-up candidate's disagreement enters only when its selection score is within this factor of the
 #: chosen one's (a far worse candidate says nothing about the chosen model's error).
 RUNNER_UP_WITHIN = 10.0
+#: A task on which the two best candidates' trials (the chosen one's and the runner-up's, served from the task's
+#: start) disagree more than this many times as much as on the training fields (the median over the task's slices
+#: within the windows of the ratio per slice) draws a warning (:meth:`Calibration.candidates_warning`): the task
+#: lies where the training data do not pin the model down. Measured by ``python -m benchmarks.calibration``
+#: (docs/uncertainty.md, "The candidates' check").
+CANDIDATES_RATIO = 10.0
+#: The training disagreement a task's is divided by is at least this (relative to the field's largest magnitude).
+CANDIDATES_FLOOR = 1e-12
 #: A noise-corrected fit whose held-out relative error (RMS over the lattice over the field's largest magnitude,
 #: worst slice) exceeds this is reported as failed: its trial left the data (the limit of an inaccurate task).
 #: At 0.1 the double-well Duffing oscillator at sigma = 1e-2 (0.12 held out, 2.8e-2 served on its tests) warned.
@@ -122,6 +136,13 @@ class Calibration:
     #: largest (None in a law recorded before them).
     span_low: float | None = None
     span_high: float | None = None
+    #: With a runner-up trial measured: per slice ``k`` of the longest training field, the largest over the
+    #: training fields of the two trials' disagreement (RMS over the lattice of the difference of the runner-up's
+    #: trial and the chosen one's, served from the same start, over the field's largest magnitude; None where
+    #: neither was served). None without a runner-up, or in a law recorded before it.
+    candidates: list[float | None] | None = None
+    #: The chosen candidate's label (with a runner-up trial measured; None otherwise).
+    chosen: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -192,6 +213,34 @@ class Calibration:
             f"training fields the error bar was measured along (range [{self.low:.3g}, {self.high:.3g}]{spans}): "
             f"{'; '.join(out)}; "
             "the band does not bound their fields there"
+        )
+
+    def candidates_ratio(self, between: np.ndarray, k: np.ndarray) -> float | None:
+        """How much more the two best candidates' trials disagree on a task than on the training fields: the median
+        over the task's slices ``k`` (indices, ``2 <= k <`` :attr:`slices`) of ``between`` (their disagreement on
+        the task per slice, relative to its largest magnitude; NaN where either trial stopped: an unbounded ratio)
+        over :attr:`candidates` (at least :data:`CANDIDATES_FLOOR`). None without :attr:`candidates` or slices."""
+        if self.candidates is None:
+            return None
+        train = np.array([math.nan if c is None else c for c in self.candidates], dtype=np.float64)
+        kk = np.asarray(k, dtype=np.int64)
+        inside = (kk >= 2) & (kk < train.size)
+        kk, d = kk[inside], np.asarray(between, dtype=np.float64)[inside]
+        ok = np.isfinite(train[kk])
+        if not ok.any():
+            return None
+        ratio = np.where(np.isfinite(d[ok]), d[ok], math.inf) / np.maximum(train[kk][ok], CANDIDATES_FLOOR)
+        return float(np.median(ratio))
+
+    def candidates_warning(self, ratio: float | None, slices: int) -> str | None:
+        """The warning of a task whose :meth:`candidates_ratio` is above :data:`CANDIDATES_RATIO` (None when it
+        is not), the median taken over ``slices`` slices."""
+        if ratio is None or not ratio > CANDIDATES_RATIO:
+            return None
+        return (
+            f"calibration: the two best candidates ({self.chosen}, {self.runner_up}) disagree {ratio:.3g} times more "
+            f"on this task than on the training fields (median over its first {slices} slices): the task lies where "
+            "the training data do not pin the model down, and its error may be far beyond the band"
         )
 
     def warnings(self, served_slices: int, values: np.ndarray) -> list[str]:
@@ -276,17 +325,28 @@ def disagreement(trial: AbstractLagrangian, init: xr.DataArray, field: xr.DataAr
     """The RMS over the lattice, per slice of ``field`` (a served field, its ``slice`` coordinate when thinned),
     of the difference between ``field`` and ``trial`` served from ``init`` with ``serve_kwargs`` (NaN where
     the trial stopped)."""
+    theirs = served_along(trial, init, field, **serve_kwargs)
+    return _rms(theirs, np.asarray(field.values, dtype=np.float64), field.sizes[field.dims[0]])
+
+
+def served_along(model: AbstractLagrangian, init: xr.DataArray, field: xr.DataArray, **serve_kwargs: Any) -> np.ndarray:
+    """``model`` served from ``init`` with ``serve_kwargs``, on the slices of ``field`` (a served field, its
+    ``slice`` coordinate when thinned): the values of the slices it solved (fewer where it stopped)."""
     try:
-        other = serve(trial, init, progress=False, **serve_kwargs).field
+        other = serve(model, init, progress=False, **serve_kwargs).field
     except ServeError as err:
         other = (err.result[0] if isinstance(err.result, list) else err.result).field
-    tdim = field.dims[0]
-    mine = np.asarray(field.values, dtype=np.float64)
     theirs = np.asarray(other.values, dtype=np.float64)
     if "slice" in field.coords and "slice" not in other.coords:
         k = np.asarray(field["slice"].values)
         theirs = theirs[k[k < theirs.shape[0]]]
-    return _rms(theirs, mine, field.sizes[tdim])
+    return theirs
+
+
+def candidates_disagreement(mine: np.ndarray, theirs: np.ndarray, nt: int) -> np.ndarray:
+    """The two trials' disagreement per slice (``nt`` slices): the RMS over the lattice of ``theirs - mine``
+    (NaN past either's end), as :attr:`Calibration.candidates` measures it before dividing by the magnitude."""
+    return _rms(theirs, mine, nt)
 
 
 def _rms(pred: np.ndarray, ref: np.ndarray, nt: int | None = None) -> np.ndarray:
@@ -348,6 +408,8 @@ def calibrate(
     record: list[dict[str, Any]] | None = None,
     learned: tuple[AbstractLagrangian, AbstractLagrangian | None] | None = None,
     served: tuple[list[np.ndarray] | None, list[np.ndarray] | None] | None = None,
+    chosen: str | None = None,
+    runner_trial: list[AbstractLagrangian] | None = None,
     **learn_kwargs: Any,
 ) -> tuple[Calibration, list[str], AbstractLagrangian]:
     """Measure a calibration law by held-out serving (see the module docstring): ``(law, warnings, trial)``,
@@ -365,6 +427,9 @@ def calibrate(
     ``served``: with ``learned``, the fields the two served from every training field when selection scored them
     (:attr:`latticedft.SelectionReport.served`, None where it kept none), taken instead of serving the same
     trials from the same starts again (the same values; one that does not fit the fields is served again).
+    With a runner-up trial measured, the law records the two trials' disagreement per slice on the training
+    fields (:attr:`Calibration.candidates`) and ``chosen``, the chosen candidate's label; a ``runner_trial`` list
+    then receives the runner-up's trial (to serve beside the trial on every task: :meth:`Calibration.candidates_ratio`).
     A law that could not be measured (no held-out slice served) comes back with :attr:`Calibration.failed` set: it
     is no law, and a caller serves without a calibrated error bar. The random state of torch and numpy is left as
     it was. ``InputError`` when the fields are too short
@@ -391,6 +456,8 @@ def calibrate(
                 else:
                     other = _runner_trial(runner_up, fold, boundary) if n == 0 else None
                 found = _measure(trial, other, fold, fields, boundary, taken)
+                if other is not None and runner_trial is not None:
+                    runner_trial.append(other)
                 warnings = warnings or _noise_warnings(trial, [x.rel[x.held] for x in found])
                 samples += found
         finally:
@@ -412,6 +479,8 @@ def calibrate(
     cal.low, cal.high, cal.span_low, cal.span_high = min(lows), max(highs), min(spans), max(spans)
     used = any(x.disagreement for x in samples)
     cal.runner_up = runner_up[2] if runner_up is not None and used else None
+    cal.candidates = _candidates_curve(samples, cal.slices) if used else None
+    cal.chosen = chosen if used else None
     cal.wall_time = time.perf_counter() - t0
     assert first is not None
     return cal, warnings, first
@@ -430,6 +499,22 @@ class _Sample:
     disagreement: bool
     #: The field's index in the training fields.
     field: int = 0
+    #: The runner-up's trial's disagreement with the trial (relative, as ``rel``; None without a runner-up).
+    between: np.ndarray | None = None
+
+
+def _candidates_curve(samples: list[_Sample], slices: int) -> list[float | None]:
+    """:attr:`Calibration.candidates`: per slice ``k < slices``, the largest of the samples' ``between`` at ``k``
+    (None where none is finite; 0 on the two given slices)."""
+    curve = np.full(slices, math.nan)
+    curve[: min(2, slices)] = 0.0
+    for x in samples:
+        if x.between is None:
+            continue
+        k = x.k.astype(np.int64)
+        with np.errstate(invalid="ignore"):
+            curve[k] = np.fmax(curve[k], x.between)
+    return [float(c) if math.isfinite(c) else None for c in curve]
 
 
 def _runner_trial(
@@ -464,11 +549,12 @@ def _measure(
         amp = max(float(np.max(np.abs(f.values))), np.finfo(float).tiny)
         mine = _served_or_taken(trial, f, boundary, taken[0], i)
         rel = _rms(mine, np.asarray(f.values, dtype=np.float64), nt)[k] / amp
-        target = rel
+        target, between = rel, None
         if other is not None:
             theirs = _served_or_taken(other, f, boundary, taken[1], i)
-            target = np.fmax(rel, _rms(theirs, mine, nt)[k] / amp)
-        out.append(_Sample(k.astype(np.float64), k >= start, rel, target, other is not None, i))
+            between = _rms(theirs, mine, nt)[k] / amp
+            target = np.fmax(rel, between)
+        out.append(_Sample(k.astype(np.float64), k >= start, rel, target, other is not None, i, between))
     return out
 
 

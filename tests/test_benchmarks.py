@@ -196,6 +196,22 @@ def test_a_module_alone_prints_its_table(started: Started) -> None:
     assert "== 2+1D serving" in proc.stdout, proc.stdout[-3000:]
 
 
+def test_calibration_counts_silent_misses_and_the_candidates_check_cost() -> None:
+    """A test field whose single band covers less than half of its slices is a silent miss unless a calibration
+    warning (the candidates' among them) fired on it; the check's cost is the runner-up's serves over the model's."""
+    import numpy as np
+
+    from benchmarks import calibration
+
+    pool = calibration._Pool()
+    covered, missed = np.full(6, 1.0), np.full(6, 10.0)
+    for err, warnings, runner in ((covered, [], 0.5), (missed, ["the two best candidates"], 1.5), (missed, [], None)):
+        pool.add(err, single=np.ones(6))
+        pool.facts.append({"warnings": warnings, "serve_s": 1.0, "runner_s": runner})
+    assert pool.silent() == 1 and pool.check_cost() == pytest.approx(1.0)
+    assert calibration._Pool().check_cost() is None
+
+
 @pytest.mark.slow
 def test_calibration_quick_prints_one_row_with_its_columns_and_targets(quick: Quick) -> None:
     """The runner's ``--quick`` calibration table (``benchmarks.calibration.run(Config(quick=True))``): one small

@@ -21,7 +21,7 @@ from .._models import EnsembleLagrangian
 from .._select import _build
 from ._data import CaseData
 
-__all__ = ["TaskBand", "case_calibration", "task_band", "wanted"]
+__all__ = ["CaseCalibration", "TaskBand", "case_calibration", "task_band", "wanted"]
 
 log = logging.getLogger("latticedft")
 
@@ -36,19 +36,30 @@ def wanted(case: Case) -> bool:
     return case.model.select is not None or bool(learn.get("ensemble")) or learn.get("noise", "none") != "none"
 
 
-def case_calibration(
-    case: Case, data: CaseData, model: AbstractLagrangian, report: Any
-) -> tuple[dict[str, Any] | None, list[str], AbstractLagrangian | None]:
-    """Measure the case's calibration law by held-out serving after training: ``(law as a dict or None,
-    warnings, the trial model)``. Training data too short for a held-out window give one warning and no law."""
+@dataclass
+class CaseCalibration:
+    """A case's calibration after training: the law as a dict (None: none measured), its warnings, the trial
+    model and the runner-up candidate's trial (None without one: :attr:`Calibration.candidates`)."""
+
+    law: dict[str, Any] | None
+    warnings: list[str]
+    trial: AbstractLagrangian | None = None
+    runner: AbstractLagrangian | None = None
+
+
+def case_calibration(case: Case, data: CaseData, model: AbstractLagrangian, report: Any) -> CaseCalibration:
+    """Measure the case's calibration law by held-out serving after training. Training data too short for a
+    held-out window give one warning and no law."""
     if not wanted(case):
-        return None, [], None
+        return CaseCalibration(None, [])
     short = too_short(data.train)
     if short is not None:
-        return None, [short], None
+        return CaseCalibration(None, [short])
     with alone():  # rank 0's alone under --workers: the other processes take no part in it
         fresh, kwargs, runner_up, learned, served = _candidates(case, data, model, report)
         log.info("calibrating the error bar by held-out serving ...")
+        second: list[AbstractLagrangian] = []
+        sel = getattr(report, "selection", None)
         try:
             ens = model if isinstance(model, EnsembleLagrangian) else None
             cal, warnings, trial = calibrate(
@@ -59,12 +70,14 @@ def case_calibration(
                 ensemble_model=ens,
                 learned=learned,
                 served=served,
+                chosen=sel["candidates"][sel["chosen"]]["label"] if sel else None,
+                runner_trial=second,
                 **kwargs,
             )
         except LatticeDFTError as exc:
-            return None, [_failed(" ".join(str(exc).split())[:160])], None
+            return CaseCalibration(None, [_failed(" ".join(str(exc).split())[:160])])
         if cal.failed is not None:
-            return None, [*warnings, _failed(cal.failed)], None
+            return CaseCalibration(None, [*warnings, _failed(cal.failed)])
     log.info(
         "calibration: err(k) = A * %.3g * k^%.2f on %d held-out slices (2 std covers %.0f %% of them; %.1f s)",
         cal.scale,
@@ -73,7 +86,8 @@ def case_calibration(
         100 * cal.coverage,
         cal.wall_time,
     )
-    return cal.to_dict(), warnings, trial
+    runner = second[0] if second and cal.candidates is not None else None
+    return CaseCalibration(cal.to_dict(), warnings, trial, runner)
 
 
 def _failed(why: str) -> str:
@@ -133,11 +147,14 @@ def task_band(
     std: xr.DataArray | None,
     other: np.ndarray | None = None,
     members: xr.DataArray | None = None,
+    between: np.ndarray | None = None,
 ) -> TaskBand:
     """The calibrated error bar of a served ``field`` (an ensemble's raw ``std`` beside it, or None): the larger
     of the law and ``other``, the trial model's disagreement with the field per slice (None without one); an
     ensemble's calibrated standard deviation by :meth:`Calibration.band`. ``members``: an ensemble's fields
-    (``member`` first), each checked against the training fields' range (:meth:`Calibration.members_warning`)."""
+    (``member`` first), each checked against the training fields' range (:meth:`Calibration.members_warning`).
+    ``between``: the runner-up's trial's disagreement with the trial per slice (RMS over the lattice; None
+    without a runner-up), compared with the training fields' (:meth:`Calibration.candidates_ratio`)."""
     law = Calibration.from_dict(cal)
     tdim = field.dims[0]
     k = np.asarray(field["slice"].values if "slice" in field.coords else np.arange(field.sizes[tdim]))
@@ -167,6 +184,11 @@ def task_band(
         "amplitude": amplitude,
     }
     warnings = law.warnings(served, values)
+    if between is not None:
+        ratio = law.candidates_ratio(np.asarray(between) / amplitude, k)
+        record["candidates_ratio"] = ratio
+        warning = law.candidates_warning(ratio, int(np.sum((k >= 2) & (k < law.slices))))
+        warnings += [warning] if warning else []
     if members is not None:
         warning = law.members_warning(np.asarray(members.values, dtype=np.float64))
         warnings += [warning] if warning else []

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from .._calibrate import disagreement
+from .._calibrate import candidates_disagreement, served_along
 from .._case import ServeTask
 from .._collective import is_parallel
 from .._contract import AbstractLagrangian
@@ -119,6 +119,7 @@ def serve_task(
     resume: bool = False,
     calibration: dict[str, Any] | None = None,
     trial: AbstractLagrangian | None = None,
+    runner: AbstractLagrangian | None = None,
 ) -> TaskOutcome:
     """Serve one task (the model evaluated on ``device``); a Newton failure gives an incomplete outcome (with a
     warning), not an exception.
@@ -129,7 +130,8 @@ def serve_task(
     checkpoints (``[[serve]] checkpoint``), which with ``resume`` goes on from its checkpoint in ``stage``. A
     ``calibration`` (the law of ``[train] calibrate``) gives the outcome its calibrated error bar; its ``trial``
     model (learned on the held-in part of the data) is served from the same start, and its disagreement enters
-    the bar.
+    the bar; so is the ``runner`` (the runner-up candidate's trial, None without one), whose disagreement with
+    the trial is compared with theirs on the training fields (a warning, not a band).
     """
     t = td.task
     if t.deprecated_steps:
@@ -149,7 +151,7 @@ def serve_task(
     finally:
         if part is not None:
             part.close()
-    band = _band(calibration, trial, served, td) if calibration else None
+    band = _band(calibration, (trial, runner), served, td) if calibration else None
     rec, inv, charges = _measure(model, served, td, band)
     _message(served, td, rec)
     result = served.result
@@ -224,15 +226,25 @@ def _serve(
     return _Served(result=result, wall=wall, stopped=stopped, start=start, meter=meter, split=split, init=init)
 
 
-def _band(calibration: dict[str, Any], trial: AbstractLagrangian | None, served: _Served, td: TaskData) -> TaskBand:
-    """The task's calibrated error bar, with the trial model's disagreement when there is a trial."""
-    field, other = served.result.field, None
+def _band(
+    calibration: dict[str, Any],
+    trials: tuple[AbstractLagrangian | None, AbstractLagrangian | None],
+    served: _Served,
+    td: TaskData,
+) -> TaskBand:
+    """The task's calibrated error bar, with the trial model's disagreement when there is a trial, and the
+    runner-up's trial's disagreement with it when there is one (``trials``: the two, or None)."""
+    field, other, between = served.result.field, None, None
+    trial, runner = trials
     if trial is not None and served.init is not None:
         options = td.task.options.replace(progress=None, device=served.result.device)
-        other = disagreement(
-            trial, served.init, field, slices=td.task.slices, boundary=td.task.boundary, options=options
-        )
-    return task_band(calibration, field, served.result.std, other, served.result.members)
+        kw = {"slices": td.task.slices, "boundary": td.task.boundary, "options": options}
+        mine = served_along(trial, served.init, field, **kw)
+        nt = field.sizes[field.dims[0]]
+        other = candidates_disagreement(np.asarray(field.values, dtype=np.float64), mine, nt)  # disagreement()
+        if runner is not None:
+            between = candidates_disagreement(mine, served_along(runner, served.init, field, **kw), nt)
+    return task_band(calibration, field, served.result.std, other, served.result.members, between)
 
 
 # -- measure --------------------------------------------------------------------------------------------------

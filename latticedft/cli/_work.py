@@ -40,6 +40,8 @@ log = logging.getLogger("latticedft")
 
 #: The calibration's trial model, beside model.pt (``[train] calibrate``).
 TRIAL_FILE = "calibration.pt"
+#: The runner-up candidate's trial model, beside it (``[train] calibrate`` with a runner-up in model selection).
+RUNNER_FILE = "calibration_runner_up.pt"
 
 
 def train_into(folder: Path, case: Case, data: CaseData, argv: list[str]) -> tuple[Any, dict[str, Any]]:
@@ -55,9 +57,13 @@ def train_into(folder: Path, case: Case, data: CaseData, argv: list[str]) -> tup
     }
     record = write_model(folder, model, report, meta)
     log.info("wrote model.pt and model.json")
-    calibration, warnings, trial = case_calibration(case, data, model, report)
-    if trial is not None:  # the held-out trial model: its disagreement on each task enters the error bar
-        save_model(trial, folder / TRIAL_FILE)
+    measured = case_calibration(case, data, model, report)
+    calibration, warnings = measured.law, measured.warnings
+    if measured.trial is not None:  # the held-out trial model: its disagreement on each task enters the error bar
+        save_model(measured.trial, folder / TRIAL_FILE)
+    (folder / RUNNER_FILE).unlink(missing_ok=True)  # a runner-up of an earlier training is not this one's
+    if measured.trial is not None and measured.runner is not None:  # its disagreement with the trial: a warning
+        save_model(measured.runner, folder / RUNNER_FILE)
     for warning in warnings:  # too short for a held-out window, a failed noise-aware fit
         log.warning("%s", warning)
     for rep in {id(r): r for r in (report, getattr(model, "report_", None)) if r is not None}.values():
@@ -107,10 +113,13 @@ def calibration_of(folder: Path) -> dict[str, Any] | None:
     return found if isinstance(found, dict) else None
 
 
-def trial_of(folder: Path, calibration: dict[str, Any] | None) -> AbstractLagrangian | None:
-    """The calibration's trial model in ``folder`` (``calibration.pt``), or None."""
-    path = folder / TRIAL_FILE
-    return load_model(path) if calibration is not None and path.is_file() else None
+def trial_of(folder: Path, calibration: dict[str, Any] | None, name: str = TRIAL_FILE) -> AbstractLagrangian | None:
+    """The calibration's trial model in ``folder`` (``calibration.pt``; ``name``: the runner-up's,
+    ``calibration_runner_up.pt``, read only with a law that records the training disagreement), or None."""
+    path = folder / name
+    if calibration is None or (name == RUNNER_FILE and calibration.get("candidates") is None):
+        return None
+    return load_model(path) if path.is_file() else None
 
 
 def serve_into(
@@ -138,6 +147,7 @@ def serve_into(
     attrs.update(equation_attrs(model))
     calibration = calibration_of(folder) if train is None else train.get("calibration")
     trial = trial_of(folder, calibration)
+    runner = trial_of(folder, calibration, RUNNER_FILE) if trial is not None else None
     owners: dict[str, str] = {}
     for td in tqdm(data.tasks, desc="tasks", disable=None, leave=False):
         if resume and journal is not None and td.task.name in journal.done:  # served before the run stopped
@@ -154,6 +164,7 @@ def serve_into(
             resume=resume,
             calibration=calibration,
             trial=trial,
+            runner=runner,
         )
         path = write_task(
             folder,
