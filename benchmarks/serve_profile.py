@@ -8,23 +8,27 @@ Every time is CPU time (``time.process_time``), the least of several calls, and 
 leapfrog steps of the same lattice measured in the same process (the least CPU time of three runs of the
 in-place leapfrog), so that the load of other work moves them less than it moves absolute times; the load
 average (as ``uptime`` prints it) is printed before and after each part. Where a module-level switch still
-selects the way before a change (``_newton.CHORD_PREDICT``, ``_solvers.COMPILED_GMRES`` with
+selects the way before a change (``_newton.CHORD_PREDICT``, ``FRESH_FIRST_ON``, ``_solvers.COMPILED_GMRES`` with
 ``_slices.COMPILED_ASSEMBLY``, the affine probe's kept answer), both ways are served in one process, in rounds
 of alternating order, and their served fields compared. The parts (``--part``, repeatable; all by default):
 
 - ``slice-work``: slice-Newton's work per slice of the polynomial rows 2+1D 128^2 and 3+1D 32^3 (10 slices):
   evaluations (with and without the Hessian blocks), GMRES solves and fresh Jacobians per solved slice, and
-  each one's cost, by a timer around every call of ``FoldedSlices.evaluate``, ``_newton._fresh_blocks``,
-  ``_newton._factorise`` and the linear solve it returns, over 5 serves after a warm-up.
-- ``chord``: the chord's rate test (``_newton.CHORD_PREDICT``) off and on: evaluations a slice and the CPU time
-  against the leapfrog, 3+1D 32^3 and 64^3, 2+1D 128^2 (3 rounds, the least of 3 serves each way a round).
+  each one's cost (an evaluation's pass over the cells and its residual's gather apart), by a timer around every
+  call of ``FoldedSlices.evaluate`` (and the ``columns`` and ``both_columns`` passes it makes),
+  ``_newton._fresh_blocks``, ``_newton._factorise`` and the linear solve it returns, over 7 serves after a
+  warm-up; the shares of a serve that the evaluations, GMRES solves and fresh Jacobians take.
+- ``chord``: slice-Newton's chord rules, by ``_newton``'s switches: neither, a fresh Jacobian after a slow chord
+  (``FRESH_FIRST_ON``), and with the chord's rate test (``CHORD_PREDICT``, the default): evaluations a slice and
+  the CPU time against the leapfrog, 3+1D 32^3 and 64^3, 2+1D 128^2 (5 rounds, the least of 3 serves each way a
+  round).
 - ``lattice-new``: the analytic rows served with the kept per-lattice tables (slice system, index tables) and
   after dropping them: ``serve`` of 4 slices and of all the row's slices, the least of 5; the solve per slice
   (their difference), the fixed cost per serve, the same with the tables dropped before each call.
 - ``fixed-part``: the compiled ``slice_steps`` of the analytic rows (through ``FusedSlices.solve_many``, timed
   inside 15 serves): ns per site and slice against the leapfrog's ns per site and step, and its share of the serve.
 - ``linalg``: the compiled GMRES and Jacobian assembly (``_solvers.COMPILED_GMRES`` and
-  ``_slices.COMPILED_ASSEMBLY`` together) off and on, the polynomial rows (3 rounds, the least of 3 serves each
+  ``_slices.COMPILED_ASSEMBLY`` together) off and on, the polynomial rows (5 rounds, the least of 3 serves each
   way a round), and a fresh Jacobian's own work after its evaluation each way (3+1D 32^3).
 - ``fit3d``: serves of 1, 2, 4, 8 and 16 solved slices of the polynomial rows (3+1D 32^3 and 64^3, 2+1D 128^2
   and 256^2; the least of 3, the sizes alternated) fitted by a line: the fixed cost per serve and the cost per
@@ -297,52 +301,75 @@ def slice_work(quick: bool) -> Table:
     return table
 
 
+#: The ways of slice-Newton's chord, by ``_newton``'s switches: neither rule (every slice starts with the chord of the
+#: last Jacobian, kept while it cuts the residual a hundredfold), a fresh start after a slow chord
+#: (``FRESH_FIRST_ON``) alone, and with the chord's rate test (``CHORD_PREDICT``): the default.
+CHORD_WAYS: dict[str, dict[str, Any]] = {
+    "neither": {"CHORD_PREDICT": False, "FRESH_FIRST_ON": 1 << 30},
+    "fresh first": {"CHORD_PREDICT": False},
+    "both": {},
+}
+
+
+@contextlib.contextmanager
+def chord_way(name: str) -> Iterator[None]:
+    """``_newton``'s switches of the way ``name`` of :data:`CHORD_WAYS` for a block."""
+    way = CHORD_WAYS[name]
+    before = {k: getattr(_newton, k) for k in way}
+    try:
+        for k, v in way.items():
+            setattr(_newton, k, v)
+        yield
+    finally:
+        for k, v in before.items():
+            setattr(_newton, k, v)
+
+
 def chord(quick: bool) -> Table:
-    """The chord's rate test off and on (``_newton.CHORD_PREDICT``), in rounds of alternating order."""
+    """Slice-Newton's chord rules (:data:`CHORD_WAYS`) one after the other, in rounds of alternating order."""
+    names = list(CHORD_WAYS)
     table = Table(
         "chord",
-        "The chord's rate test (_newton.CHORD_PREDICT) off -> on, learned polynomial (2, 12)",
+        "Slice-Newton's chord: neither rule -> fresh start after a slow chord -> and the chord's rate test (default), "
+        "learned polynomial (2, 12)",
         [
             "lattice",
             "leapfrog step (ms)",
-            "evaluations / slice, off -> on",
-            "CPU / leapfrog, off (rounds)",
-            "CPU / leapfrog, on (rounds)",
-            "least serve off / on (ms)",
-            "fields, max |on - off| / max",
+            "evaluations / slice",
+            *(f"CPU / leapfrog, {k} (rounds)" for k in names),
+            "least serve (ms)",
+            "fields, max |way - both| / max",
         ],
     )
-    rounds, repeat = (2, 1) if quick else (3, 3)
+    rounds, repeat = (2, 1) if quick else (5, 3)
     for ndim, n, nt in _poly_rows(quick, [(3, 32, 10), (3, 64, 9), (2, 128, 10)]):
         s = Setup(ndim, n, nt)
         model = learned_polynomial(ndim, quick)
         s.serve(model, 3)
-        ratios: dict[bool, list[float]] = {False: [], True: []}
-        served: dict[bool, Any] = {}
+        cpu: dict[str, list[float]] = {k: [] for k in names}
+        served: dict[str, Any] = {}
         for r in range(rounds):
-            for on in (False, True) if r % 2 == 0 else (True, False):
-                with switched(_newton, ("CHORD_PREDICT",), on):
-                    cpu, served[on] = s.least(model, repeat=repeat)
-                ratios[on].append(cpu)
+            for name in names if r % 2 == 0 else names[::-1]:
+                with chord_way(name):
+                    t, served[name] = s.least(model, repeat=repeat)
+                cpu[name].append(t)
             s.leapfrog_again()
         lf = s.step * (nt - 2)
-        ratios = {k: [v / lf for v in ratios[k]] for k in ratios}
-        its = [served[k].newton_iterations / (nt - 2) for k in (False, True)]
         table.rows.append(
             [
                 f"{ndim}+1D {s.label}",
                 s.step * 1e3,
-                f"{its[0]:.2f} -> {its[1]:.2f}",
-                " / ".join(f"{v:.1f}" for v in ratios[False]),
-                " / ".join(f"{v:.1f}" for v in ratios[True]),
-                f"{min(ratios[False]) * lf * 1e3:.1f} / {min(ratios[True]) * lf * 1e3:.1f}",
-                field_diff(served[True], served[False]),
+                " -> ".join(f"{served[k].newton_iterations / (nt - 2):.2f}" for k in names),
+                *(" / ".join(f"{v / lf:.1f}" for v in cpu[k]) for k in names),
+                " -> ".join(f"{min(cpu[k]) * 1e3:.1f}" for k in names),
+                " / ".join(f"{field_diff(served['both'], served[k]):.1e}" for k in names[:-1]),
             ]
         )
     table.notes.append(
         f"{rounds} rounds, the order alternated; each way of a round the least CPU time of {repeat} serves after a "
         "warm-up, over the least CPU time of the leapfrog's steps (the row's solved slices) in this process (timed "
-        "again every round)."
+        "again every round). 'neither': `_newton.CHORD_PREDICT = False` and `FRESH_FIRST_ON` never reached; "
+        "'fresh first': `CHORD_PREDICT = False`; 'both': the default."
     )
     return table
 
@@ -475,7 +502,7 @@ def linalg(quick: bool) -> Table:
             "fields, max |on - off| / max",
         ],
     )
-    rounds, repeat = (2, 1) if quick else (3, 3)
+    rounds, repeat = (2, 1) if quick else (5, 3)
     for ndim, n, nt in _poly_rows(quick, [(3, 32, 10), (3, 64, 9), (2, 128, 10), (2, 256, 10), (1, 16384, 10)]):
         s = Setup(ndim, n, nt)
         model = learned_polynomial(ndim, quick)
