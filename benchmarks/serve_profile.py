@@ -31,7 +31,7 @@ of alternating order, and their served fields compared. The parts (``--part``, r
   ``_slices.COMPILED_ASSEMBLY`` together) off and on, the polynomial rows (5 rounds, the least of 3 serves each
   way a round), and a fresh Jacobian's own work after its evaluation each way (3+1D 32^3).
 - ``fit3d``: serves of 1, 2, 4, 8 and 16 solved slices of the polynomial rows (3+1D 32^3 and 64^3, 2+1D 128^2
-  and 256^2; the least of 3, the sizes alternated) fitted by a line: the fixed cost per serve and the cost per
+  and 256^2; the least of 5, the sizes alternated) fitted by a line: the fixed cost per serve and the cost per
   slice, per site and slice against the leapfrog's per site and step.
 - ``affine``: the affine decision per serve (``_field._affine_prefix``: the probe and its scale) with the probe's
   kept answer dropped before each serve and kept (``_affine._PROBED``), the 2+1D polynomial rows and 3+1D 32^3
@@ -43,6 +43,7 @@ of alternating order, and their served fields compared. The parts (``--part``, r
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib
 import math
 import sys
@@ -203,6 +204,22 @@ def slice_newton_timers() -> Iterator[Timers]:
         _newton._factorise = factorise
 
 
+@functools.lru_cache(maxsize=4)
+def untuned_polynomial(ndim: int, orders: tuple[int, int], quick: bool) -> ldft.PolynomialLagrangian:
+    """A polynomial of ``orders``, not time-symmetric, learned as :func:`benchmarks.serve_nd.learned_polynomial`
+    learns the benchmark's (the same field): one the slice-Newton rules were not tuned on."""
+    n = {1: 32, 2: 12, 3: 6}[ndim]
+    nt = 12 if quick else 24
+    u0, h, dt = _initial(ndim, n)
+    u = np.empty((nt, *u0.shape))
+    u[0] = u[1] = u0
+    for i in range(1, nt - 1):
+        u[i + 1] = leapfrog(u[i - 1], u[i], 1, dt, h)
+    model = ldft.PolynomialLagrangian(orders=orders, time_symmetric=False)
+    ldft.learn(model, lattice_field(u, h, dt), progress=False)
+    return model
+
+
 def _poly_rows(quick: bool, rows: list[tuple[int, int, int]]) -> list[tuple[int, int, int]]:
     """(dims, sites per axis, slices) of the rows, tiny when ``quick``."""
     if not quick:
@@ -331,20 +348,26 @@ def chord(quick: bool) -> Table:
     table = Table(
         "chord",
         "Slice-Newton's chord: neither rule -> fresh start after a slow chord -> and the chord's rate test (default), "
-        "learned polynomial (2, 12)",
+        "learned polynomials",
         [
             "lattice",
+            "orders",
             "leapfrog step (ms)",
             "evaluations / slice",
             *(f"CPU / leapfrog, {k} (rounds)" for k in names),
             "least serve (ms)",
-            "fields, max |way - both| / max",
+            "fields, each way against the one before: max difference / max",
+            "field's largest value",
         ],
     )
     rounds, repeat = (2, 1) if quick else (5, 3)
-    for ndim, n, nt in _poly_rows(quick, [(3, 32, 10), (3, 64, 9), (2, 128, 10)]):
+    rows = [(3, 32, 10, (2, 12)), (3, 64, 9, (2, 12)), (2, 128, 10, (2, 12))]
+    rows += [(3, 32, 12, (2, 6)), (2, 128, 12, (2, 6)), (3, 24, 12, (2, 8))]
+    if quick:
+        rows = [(3, 6, 6, (2, 12)), (2, 12, 6, (2, 12))]  # (a new polynomial class builds its kernels: seconds)
+    for ndim, n, nt, orders in rows:
         s = Setup(ndim, n, nt)
-        model = learned_polynomial(ndim, quick)
+        model = learned_polynomial(ndim, quick) if orders == (2, 12) else untuned_polynomial(ndim, orders, quick)
         s.serve(model, 3)
         cpu: dict[str, list[float]] = {k: [] for k in names}
         served: dict[str, Any] = {}
@@ -358,18 +381,22 @@ def chord(quick: bool) -> Table:
         table.rows.append(
             [
                 f"{ndim}+1D {s.label}",
+                f"{orders}" + ("" if orders == (2, 12) else ", not time-symmetric"),
                 s.step * 1e3,
                 " -> ".join(f"{served[k].newton_iterations / (nt - 2):.2f}" for k in names),
                 *(" / ".join(f"{v / lf:.1f}" for v in cpu[k]) for k in names),
                 " -> ".join(f"{min(cpu[k]) * 1e3:.1f}" for k in names),
-                " / ".join(f"{field_diff(served['both'], served[k]):.1e}" for k in names[:-1]),
+                " / ".join(f"{field_diff(served[b], served[a]):.1e}" for a, b in zip(names, names[1:])),
+                float(np.abs(np.asarray(served["both"].field.values)).max()),
             ]
         )
     table.notes.append(
         f"{rounds} rounds, the order alternated; each way of a round the least CPU time of {repeat} serves after a "
         "warm-up, over the least CPU time of the leapfrog's steps (the row's solved slices) in this process (timed "
         "again every round). 'neither': `_newton.CHORD_PREDICT = False` and `FRESH_FIRST_ON` never reached; "
-        "'fresh first': `CHORD_PREDICT = False`; 'both': the default."
+        "'fresh first': `CHORD_PREDICT = False`; 'both': the default. The benchmark's polynomial (2, 12) on its "
+        "rows, and polynomials the rules were not tuned on (orders (2, 6) and (2, 8), not time-symmetric, learned "
+        "on the same field)."
     )
     return table
 
@@ -499,6 +526,7 @@ def linalg(quick: bool) -> Table:
             "least serve off -> on (ms)",
             "CPU / leapfrog off -> on",
             "fresh Jacobian's own work off -> on (ms)",
+            "linear solve off -> on (ms)",
             "fields, max |on - off| / max",
         ],
     )
@@ -509,6 +537,7 @@ def linalg(quick: bool) -> Table:
         s.serve(model, 3)
         cpu: dict[bool, list[float]] = {False: [], True: []}
         own: dict[bool, float] = {False: math.inf, True: math.inf}
+        solve: dict[bool, float] = {False: math.inf, True: math.inf}
         served: dict[bool, Any] = {}
         for r in range(rounds):
             for on in (False, True) if r % 2 == 0 else (True, False):
@@ -518,6 +547,7 @@ def linalg(quick: bool) -> Table:
                         served[on] = s.serve(model)
                     if t.calls.get("fresh"):
                         own[on] = min(own[on], (t.cpu["fresh"] + t.cpu.get("factorise", 0.0)) / t.calls["fresh"])
+                    solve[on] = min(solve[on], t.per_call("solve"))
             s.leapfrog_again()
         lf = s.step * (nt - 2)
         table.rows.append(
@@ -527,15 +557,24 @@ def linalg(quick: bool) -> Table:
                 " / ".join(f"{a / b:.2f}" for a, b in zip(cpu[True], cpu[False])),
                 f"{min(cpu[False]) * 1e3:.1f} -> {min(cpu[True]) * 1e3:.1f}",
                 f"{min(cpu[False]) / lf:.1f} -> {min(cpu[True]) / lf:.1f}",
-                f"{own[False] * 1e3:.2f} -> {own[True] * 1e3:.2f}" if math.isfinite(own[True]) else "-",
+                f"{own[False] * 1e3:.2f} -> {own[True] * 1e3:.2f}",
+                f"{solve[False] * 1e3:.3f} -> {solve[True] * 1e3:.3f}",
                 field_diff(served[True], served[False]),
             ]
         )
+        if ndim == 3 and len(table.rows) == 1:  # the first 3+1D row: how far Newton's tolerance leaves the fields
+            tight = [ldft.serve(model, s.da, slices=nt, rtol=r, progress=False) for r in (1e-11, 1e-12, 1e-13)]
+            table.notes.append(
+                f"{s.label}: the served field (rtol 1e-10, the default) against the same served with rtol 1e-11, "
+                "1e-12 and 1e-13, the largest difference over the largest value: "
+                + ", ".join(f"{field_diff(x, served[True]):.3g}" for x in tight)
+                + "."
+            )
     table.notes.append(
         f"{rounds} rounds, the order alternated; each way of a round the least CPU time of {repeat} serves after a "
         "warm-up, then one serve with timers around a fresh Jacobian's own work (after its evaluation: its blocks' "
         "sizes and singular values, the solver's choice, the assembly and preconditioner), the least mean per "
-        "Jacobian over the rounds. 1+1D: the band LU serves, no GMRES."
+        "Jacobian over the rounds; a linear solve (GMRES, or the band LU's in 1+1D) the same way."
     )
     return table
 
@@ -557,9 +596,9 @@ def fit3d(quick: bool) -> Table:
         ],
     )
     counts = [1, 2, 4] if quick else [1, 2, 4, 8, 16]
-    repeat = 1 if quick else 3
+    repeat = 1 if quick else 5
     setups = []
-    for ndim, n, _ in _poly_rows(quick, [(3, 32, 18), (3, 64, 18), (2, 128, 18), (2, 256, 18)]):
+    for ndim, n in [(3, 6), (3, 8), (2, 12), (2, 16)] if quick else [(3, 32), (3, 64), (2, 128), (2, 256)]:
         s = Setup(ndim, n, 10)
         model = learned_polynomial(ndim, quick)
         s.serve(model, 3)
@@ -590,6 +629,21 @@ def fit3d(quick: bool) -> Table:
         f"Serves of {', '.join(map(str, counts))} solved slices after a warm-up, the least CPU time of {repeat} (one a "
         "round, the order alternated), fitted by a least-squares line; the leapfrog: the least of 5 runs of 8 steps "
         "and one more each round."
+    )
+    by_dims: dict[int, list[tuple[int, float, float]]] = {}  # per dimension: (sites, fixed, per slice) in s
+    for (s, _), row in zip(setups, table.rows):
+        by_dims.setdefault(s.ndim, []).append((s.sites, row[2] / 1e3, row[3] / 1e3))
+    parts = []
+    for ndim, ((n1, f1, p1), (n2, f2, p2)) in ((d, v[:2]) for d, v in by_dims.items() if len(v) >= 2):
+        fixed_lattice = f1 - (f2 - f1) / (n2 - n1) * n1  # a + b N through the two sizes: the part a
+        slice_lattice = p1 - (p2 - p1) / (n2 - n1) * n1
+        parts.append(
+            f"{ndim}+1D {fixed_lattice * 1e3:.2f} ms a serve and {slice_lattice * 1e3:.2f} ms a slice "
+            f"({fixed_lattice / (f1 + p1 * 8):.0%} of a serve of 8 slices of the smaller lattice)"
+        )
+    table.notes.append(
+        "The fixed cost and the cost per slice fitted in turn as a part per site and a part per lattice through "
+        "the two sizes of a dimension; the part that does not grow with the sites: " + "; ".join(parts) + "."
     )
     sizes = [6, 8] if quick else [24, 32, 40, 48, 56, 64]
     steps = {n: Setup(3, n, 10) for n in sizes}  # 5 runs each, then 5 more, the sizes in turn
