@@ -62,7 +62,7 @@ from .serve_nd import _forget_lattices, _initial, leapfrog, learned_polynomial, 
 
 NAME = "serve-profile"
 
-#: The slice system's module (the package's own name ``_slices`` is another object).
+#: The slice system's module (``latticedft._serve`` binds the name ``_slices`` to another object).
 _slices = importlib.import_module("latticedft._serve._slices")
 
 
@@ -132,7 +132,7 @@ def switched(module: Any, names: tuple[str, ...], value: Any) -> Iterator[None]:
 
 
 class Timers:
-    """Calls and CPU seconds per part of a serve, from timers wrapped around functions (:meth:`around`)."""
+    """Calls and CPU seconds per part of a serve, from timers wrapped around functions (:meth:`timed`)."""
 
     def __init__(self) -> None:
         self.calls: dict[str, int] = {}
