@@ -1063,14 +1063,17 @@ def test_members_served_one_by_one_equal_the_stacked_run_to_the_bit(
 
 
 def test_a_batch_and_an_affine_ensemble_one_by_one_equal_the_stacked_run(breathers, monkeypatch) -> None:
-    """A batch of two 1+1D fields, and a quadratic ensemble served by the affine recurrence: the members served
-    one by one give every result as the stacked run does, to the bit."""
+    """A batch of two 1+1D fields, and a quadratic ensemble served by the affine recurrence (``MEMBERWISE_AFFINE``):
+    the members served one by one give every result as the stacked run does, to the bit."""
     ens, test = breathers
     other = systems.sine_gordon_breather(0.7, -0.1, xlim=(-10, 10), nx=41, nt=30, dt=0.1)
     stacked_out, alone_out, _ = _both_ways(monkeypatch, ens, [test, other], solver="lu")
     assert len(stacked_out) == len(alone_out) == 2
     for a, b in zip(stacked_out, alone_out, strict=True):
         _assert_same_result(a, b)
+    import latticedft._serve._ensemble as ensemble_serving
+
+    monkeypatch.setattr(ensemble_serving, "MEMBERWISE_AFFINE", True)  # by default the stacked recurrence serves it
     wave, field = _wave_ensemble()
     stacked_out, alone_out, _ = _both_ways(monkeypatch, wave, field)
     assert stacked_out.solver == "affine"
@@ -1099,31 +1102,34 @@ def test_a_member_that_stops_one_by_one_as_in_the_stacked_run(
     _assert_same_result(stacked_out, alone_out)
 
 
-def test_the_switch_and_the_stacks_served_one_by_one(breathers) -> None:
+def test_the_switch_and_the_stacks_served_one_by_one(breathers, monkeypatch) -> None:
     """``serves_alone`` takes the members one by one only for n-D slice-Newton on the CPU with every member a
     polynomial on the folded kernels, and ``MEMBERWISE`` on: not a 1D field, the sweep, ``compiled_kernels=False``,
-    coefficients that do not fold, nor a stack of networks."""
+    coefficients that do not fold, nor a stack of networks; nor members whose DEL is affine (the stacked
+    recurrence), unless ``affine=False`` or ``MEMBERWISE_AFFINE``."""
     import latticedft._serve._ensemble as ensemble_serving
     from latticedft._lattice import as_lattice_field
+    from latticedft._serve import ServeOptions
 
     ens, test = breathers
-    fs, cpu = [as_lattice_field(test)], torch.device("cpu")
-    assert ensemble_serving.serves_alone(ens, fs, "newton", cpu)
-    assert not ensemble_serving.serves_alone(ens, fs, "sweep", cpu)
+    fs, cpu, newton = [as_lattice_field(test)], torch.device("cpu"), ServeOptions()
+    assert ensemble_serving.serves_alone(ens, fs, newton, cpu)
+    assert not ensemble_serving.serves_alone(ens, fs, ServeOptions(mode="sweep"), cpu)
     with ldft.set_options(compiled_kernels=False):
-        assert not ensemble_serving.serves_alone(ens, fs, "newton", cpu)
+        assert not ensemble_serving.serves_alone(ens, fs, newton, cpu)
     with ldft.set_options(folded_max_powers=1):
-        assert not ensemble_serving.serves_alone(ens, fs, "newton", cpu)
+        assert not ensemble_serving.serves_alone(ens, fs, newton, cpu)
     one_d = [as_lattice_field(systems.oscillator_sin(1.0))]
     paper = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 4)), members=2, seed=0)
     ldft.learn(paper, [systems.oscillator_sin(a) for a in (1.2, 0.6)], progress=False)
-    assert not ensemble_serving.serves_alone(paper, one_d, "newton", cpu)
+    assert not ensemble_serving.serves_alone(paper, one_d, newton, cpu)
     net = ldft.MLPLagrangian(hidden=[4])
     ldft.learn(net, test, progress=False, max_iter=5, ensemble=2)
-    assert not ensemble_serving.serves_alone(net.ensemble_, fs, "newton", cpu)
-    keep = ensemble_serving.MEMBERWISE
-    try:
-        ensemble_serving.MEMBERWISE = False
-        assert not ensemble_serving.serves_alone(ens, fs, "newton", cpu)
-    finally:
-        ensemble_serving.MEMBERWISE = keep
+    assert not ensemble_serving.serves_alone(net.ensemble_, fs, newton, cpu)
+    wave, field = _wave_ensemble()  # an affine DEL: the stacked recurrence, unless asked or affine=False
+    assert not ensemble_serving.serves_alone(wave, [as_lattice_field(field)], newton, cpu)
+    assert ensemble_serving.serves_alone(wave, [as_lattice_field(field)], ServeOptions(affine=False), cpu)
+    monkeypatch.setattr(ensemble_serving, "MEMBERWISE_AFFINE", True)
+    assert ensemble_serving.serves_alone(wave, [as_lattice_field(field)], newton, cpu)
+    monkeypatch.setattr(ensemble_serving, "MEMBERWISE", False)
+    assert not ensemble_serving.serves_alone(ens, fs, newton, cpu)

@@ -255,7 +255,7 @@ def serve(
             raise InputError.at(
                 "every", "an ensemble is served whole (every member on every slice): give every=1 and no on_slice"
             )
-        alone = serves_alone(model, fs, opts.mode, where)
+        alone = serves_alone(model, fs, opts, where)
         out = serve_ensemble(model, fs, plan.run, batch, opts.box, alone)
     else:
         out = plan.run(model, fs)

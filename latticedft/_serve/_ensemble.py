@@ -1,4 +1,6 @@
-"""Serving an ensemble: every member stepped in one run (stacked as components), and its calibration."""
+"""Serving an ensemble: every member stepped in one run (stacked as components), or, where every member is a
+polynomial on the folded kernels, each member served alone one after another (:data:`MEMBERWISE`), the result
+assembled as the stacked run's; and its calibration."""
 
 from __future__ import annotations
 
@@ -16,8 +18,10 @@ from .._errors import ServeError
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian, EnsembleLagrangian
 from .._models._ensemble import stacked
+from ._affine import affine_del
 from ._field import slice_system
 from ._folded import folds
+from ._options import ServeOptions
 from ._range import EXTRAPOLATION_TOL, assess, extrapolation
 from ._result import LEFT_THE_BOX, ServeResult, box_reason, served_source
 
@@ -25,6 +29,7 @@ __all__ = [
     "serve_ensemble",
     "serves_alone",
     "MEMBERWISE",
+    "MEMBERWISE_AFFINE",
     "calibration",
     "calibration_warning",
     "stopped_warning",
@@ -59,18 +64,28 @@ def _member_values(r: ServeResult, members: int, m: int) -> np.ndarray:
 
 #: Serve a stack that folds (:func:`serves_alone`) member by member: every member on its own folded kernels, one
 #: after another, the ensemble's result assembled from theirs (equal to the bit to the stacked run's, cheaper on
-#: every lattice measured: ``python -m benchmarks.ensemble_serve``). ``False``: always the stacked run.
+#: every lattice measured where slice-Newton serves: ``python -m benchmarks.ensemble_serve``). ``False``: always
+#: the stacked run.
 MEMBERWISE = True
 
+#: Serve a stack member by member also where its members' DEL is affine (the affine recurrence serves them: the
+#: stacked run's one recurrence was faster on the small lattices measured, ``benchmarks.ensemble_serve``).
+MEMBERWISE_AFFINE = False
 
-def serves_alone(ens: EnsembleLagrangian, fs: list[LatticeField], mode: str, where: torch.device) -> bool:
+
+def serves_alone(ens: EnsembleLagrangian, fs: list[LatticeField], options: ServeOptions, where: torch.device) -> bool:
     """Whether :func:`serve_ensemble` serves ``ens`` on ``fs`` member by member (:data:`MEMBERWISE` on): n-D
     slice-Newton on the CPU where the stacked run would evaluate every member on its own folded kernels
-    (``._stackfold``: every member a polynomial that :func:`._folded.folds` on each field's lattice)."""
-    if not MEMBERWISE or len(ens) < 2 or mode != "newton" or where.type != "cpu" or fs[0].ndim < 2:
+    (``._stackfold``: every member a polynomial that :func:`._folded.folds` on each field's lattice), and, unless
+    :data:`MEMBERWISE_AFFINE`, no member's DEL affine where ``options.affine`` lets the recurrence serve it."""
+    if not MEMBERWISE or len(ens) < 2 or options.mode != "newton" or where.type != "cpu" or fs[0].ndim < 2:
         return False
     members = [ens.member(k) for k in range(len(ens))]
-    return all(folds(p, slice_system(p, f)) for f in fs for p in members)
+    if not all(folds(p, slice_system(p, f)) for f in fs for p in members):
+        return False
+    if MEMBERWISE_AFFINE or not options.affine:
+        return True
+    return not any(affine_del(p, f, slice_system(p, f)) for f in fs for p in members)
 
 
 def serve_ensemble(
