@@ -3,14 +3,16 @@ each member's difference from itself served alone.
 
     python -m benchmarks.stacked_folded [--quick]
 
-An ensemble is served as one stacked model (its members side by side on the components). Where every member is a
-polynomial that the folded kernels serve, each Newton iteration evaluates every member by its own folded kernels
-on its own components (``latticedft._serve._stackfold``); the torch evaluation of the stack (``CellDerivatives``
-on the stacked model, as before) is the same run with that path turned off (``_stepper.stacked_folded`` giving
-None). The two are timed alternately in one process (the least of ``REPEAT`` calls each); the members' fields are
-compared with the members served alone (on the folded kernels, as a single polynomial is served). The 1D row is
-served by the numpy Newton loop either way (slice-Newton and its kernels are n-D): the two times measure the same
-code, a gauge of the noise. The load average is printed before and after.
+An ensemble is served here as one stacked model (its members side by side on the components;
+``latticedft._serve._ensemble.MEMBERWISE`` off: a serve of such an ensemble takes its members one by one otherwise,
+``benchmarks.ensemble_serve``). Where every member is a polynomial that the folded kernels serve, each Newton
+iteration evaluates every member by its own folded kernels on its own components
+(``latticedft._serve._stackfold``); the torch evaluation of the stack (``CellDerivatives`` on the stacked model, as
+before) is the same run with that path turned off (``_stepper.stacked_folded`` giving None). The two are timed
+alternately in one process (the least of ``REPEAT`` calls each); the members' fields are compared with the members
+served alone (on the folded kernels, as a single polynomial is served). The 1D row is served by the numpy Newton
+loop either way (slice-Newton and its kernels are n-D): the two times measure the same code, a gauge of the noise.
+The load average is printed before and after.
 """
 
 from __future__ import annotations
@@ -81,8 +83,18 @@ def _timed(fn: Callable[[], Any]) -> tuple[float, Any]:
 
 
 def run(cfg: Config) -> Table:
+    import latticedft._serve._ensemble as ensemble
     import latticedft._serve._stepper as stepper
 
+    keep = ensemble.MEMBERWISE
+    ensemble.MEMBERWISE = False  # the stacked run, both ways (its members one by one: benchmarks.ensemble_serve)
+    try:
+        return _run(cfg, stepper)
+    finally:
+        ensemble.MEMBERWISE = keep
+
+
+def _run(cfg: Config, stepper: Any) -> Table:
     folded = stepper.stacked_folded
     table = Table(
         NAME,

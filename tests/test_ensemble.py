@@ -25,6 +25,15 @@ from case_helpers import run_cli, tiny_wave
 from helpers import oscillator_data
 
 
+@pytest.fixture
+def stacked_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stacked run of an n-D polynomial ensemble forced (``MEMBERWISE`` off; its members are served one by
+    one otherwise), for the tests of its own machinery."""
+    import latticedft._serve._ensemble as ensemble_serving
+
+    monkeypatch.setattr(ensemble_serving, "MEMBERWISE", False)
+
+
 @pytest.fixture(scope="module")
 def quartic() -> ldft.EnsembleLagrangian:
     """A quartic oscillator learned with a polynomial that cannot hold it exactly (a fit with an error)."""
@@ -470,6 +479,7 @@ def test_each_member_is_judged_on_its_own_scale(quartic: ldft.EnsembleLagrangian
             assert [w for w in out.warnings if not w.startswith("ensemble:")] == first.warnings
 
 
+@pytest.mark.usefixtures("stacked_run")
 @pytest.mark.parametrize("orders", [(2, 0), (2, 4)])  # (2, 0): the affine recurrence; (2, 4): slice-Newton
 def test_each_member_of_a_field_is_judged_on_its_own_scale(orders: tuple[int, int], monkeypatch) -> None:
     """On a 1+1D lattice too, the singularity test of the stacked slice solve takes each member on its own
@@ -588,6 +598,7 @@ def breathers() -> tuple[ldft.EnsembleLagrangian, xr.DataArray]:
     return ens, test
 
 
+@pytest.mark.usefixtures("stacked_run")
 @pytest.mark.parametrize("power", [0, -40, 40])
 def test_each_member_of_a_field_converges_on_its_own_scale(breathers, monkeypatch, power: int) -> None:
     """n-D slice-Newton judges each stacked member on its own: its residual against its own scale, its step
@@ -614,6 +625,7 @@ def test_each_member_of_a_field_converges_on_its_own_scale(breathers, monkeypatc
         np.testing.assert_allclose(out.members.values[k], own[k].field.values, rtol=0, atol=1e-12)
 
 
+@pytest.mark.usefixtures("stacked_run")
 @pytest.mark.parametrize("power", [40, -40])
 def test_the_affine_check_takes_each_member_on_its_own_scale(monkeypatch, power: int) -> None:
     """The affine recurrence's DEL check holds each stacked member's residual to its own scale: a recurrence
@@ -790,6 +802,7 @@ def _scaled(ens: ldft.EnsembleLagrangian, k: int, power: int) -> ldft.EnsembleLa
     return out
 
 
+@pytest.mark.usefixtures("stacked_run")
 @pytest.mark.parametrize("power", [0, -40, 40])
 def test_gmres_stops_on_each_members_own_residual(breathers, power: int) -> None:
     """``solver = "krylov"`` on a stacked slice runs GMRES on each member's own Jacobian, preconditioner and
@@ -806,6 +819,7 @@ def test_gmres_stops_on_each_members_own_residual(breathers, power: int) -> None
         np.testing.assert_allclose(out.members.values[k], own.field.values, rtol=0, atol=1e-12)
 
 
+@pytest.mark.usefixtures("stacked_run")
 @pytest.mark.parametrize("solver", ["lu", "krylov"])
 def test_each_member_takes_its_own_linear_solve_to_the_bit(breathers, monkeypatch, solver: str) -> None:
     """Where the stacked run and the member alone evaluate the L_d alike (the torch loop: the folded kernels serve
@@ -825,6 +839,7 @@ def test_each_member_takes_its_own_linear_solve_to_the_bit(breathers, monkeypatc
         np.testing.assert_array_equal(out.members.values[k], own.field.values)
 
 
+@pytest.mark.usefixtures("stacked_run")
 @pytest.mark.parametrize("power", [0, 40, -40])
 def test_a_member_failing_the_affine_check_leaves_the_others_affine(monkeypatch, power: int) -> None:
     """One member's affine recurrence failing its DEL check (member 2 perturbed by 1e-9 of its values from slice 10
@@ -856,6 +871,7 @@ def membrane() -> tuple[ldft.EnsembleLagrangian, xr.DataArray]:
     return ens, _field(_sine_gordon(2, 10, 30))
 
 
+@pytest.mark.usefixtures("stacked_run")
 @pytest.mark.parametrize("dims", ["1+1d", "2+1d"])
 @pytest.mark.parametrize("solver", ["lu", "krylov"])
 def test_each_member_on_the_folded_kernels_equals_itself_alone_to_the_bit(
@@ -933,6 +949,7 @@ def _figures(r: ldft.ServeResult) -> dict[str, Any]:
     return {k: getattr(r, k) for k in FIGURES}
 
 
+@pytest.mark.usefixtures("stacked_run")
 @pytest.mark.parametrize("solver", ["lu", "krylov"])
 def test_a_stacked_field_reports_member_0s_figures(breathers, solver: str) -> None:
     """A stacked n-D run reports member 0's own figures, as the member served alone reports them: its Newton
@@ -947,6 +964,7 @@ def test_a_stacked_field_reports_member_0s_figures(breathers, solver: str) -> No
     assert out.to_dict()["newton_iterations"] == own.newton_iterations
 
 
+@pytest.mark.usefixtures("stacked_run")
 def test_a_member_served_affine_reports_no_other_members_newton(monkeypatch) -> None:
     """Member 0 served by the affine recurrence throughout while member 2 goes to Newton from slice 10 (its
     recurrence failed its own check): the stacked result reports member 0's figures, ``"affine"``, one
@@ -977,3 +995,141 @@ def test_a_stacked_batch_of_trajectories_reports_member_0s_figures(paper, monkey
     own = ldft.serve(paper.member(0), inits, slices=51, progress=False)
     for r, o in zip(out, own, strict=True):
         assert r.complete and _figures(r) == _figures(o)
+
+
+def _both_ways(
+    monkeypatch: pytest.MonkeyPatch, model: ldft.EnsembleLagrangian, init: Any, **kw: Any
+) -> tuple[Any, Any, list[str]]:
+    """``model`` serving ``init`` by the stacked run and by its members one by one (``MEMBERWISE`` off, then on):
+    each way's result (or the ServeError it raised) and the kinds of the folded kernels each slice-Newton run
+    took, in order."""
+    import latticedft._serve._ensemble as ensemble_serving
+    import latticedft._serve._stepper as stepper
+
+    kinds: list[str] = []
+    real = stepper._folded_of
+
+    def spy(run):
+        got = real(run)
+        kinds.append(type(got).__name__)
+        return got
+
+    monkeypatch.setattr(stepper, "_folded_of", spy)
+    out = []
+    for memberwise in (False, True):
+        monkeypatch.setattr(ensemble_serving, "MEMBERWISE", memberwise)
+        try:
+            out.append(ldft.serve(model, init, progress=False, **kw))
+        except ldft.ServeError as err:
+            out.append(err)
+        kinds.append("|")
+    return out[0], out[1], kinds
+
+
+def _assert_same_result(a: ldft.ServeResult, b: ldft.ServeResult) -> None:
+    """Every field of two results equal to the bit (NaN where NaN), the times apart."""
+    import dataclasses
+
+    for f in dataclasses.fields(a):
+        if f.name in ("wall_time", "sites_per_second"):
+            continue
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, xr.DataArray):
+            assert x.identical(y), f.name
+            assert np.array_equal(np.asarray(x.values), np.asarray(y.values), equal_nan=True), f.name
+        else:
+            assert x == y, f.name
+
+
+@pytest.mark.parametrize("dims", ["1+1d", "2+1d"])
+@pytest.mark.parametrize("solver", ["lu", "krylov"])
+def test_members_served_one_by_one_equal_the_stacked_run_to_the_bit(
+    breathers, membrane, monkeypatch, dims: str, solver: str
+) -> None:
+    """A polynomial ensemble whose members all fold is served member by member, each on its own folded kernels
+    (``MEMBERWISE``), and its result assembled as the stacked run's: the same field, mean, std, members, figures,
+    extrapolation, warnings and attributes, to the bit, also with member 2's L_d ``2**-40`` times its own; the
+    stacked run (the switch off) evaluated the stack (``StackedFolded``), the members one by one their own
+    ``FoldedSlices``. The wall time is the members' together."""
+    ens, test = breathers if dims == "1+1d" else membrane
+    stacked_out, alone_out, kinds = _both_ways(monkeypatch, _scaled(ens, 2, -40), test, solver=solver)
+    assert set(kinds[: kinds.index("|")]) == {"StackedFolded"}
+    assert set(kinds[kinds.index("|") + 1 : -1]) == {"FoldedSlices"}
+    assert stacked_out.complete and stacked_out.members_stopped is None and stacked_out.slice_solver == solver
+    _assert_same_result(stacked_out, alone_out)
+    assert stacked_out.field.attrs["source"].endswith("by a ensemble-stack L_d")
+    own = [ldft.serve(_scaled(ens, 2, -40).member(k), test, solver=solver, progress=False) for k in range(3)]
+    assert alone_out.wall_time >= sum(o.wall_time for o in own) / 10  # the members' together, not member 0's
+
+
+def test_a_batch_and_an_affine_ensemble_one_by_one_equal_the_stacked_run(breathers, monkeypatch) -> None:
+    """A batch of two 1+1D fields, and a quadratic ensemble served by the affine recurrence (``MEMBERWISE_AFFINE``):
+    the members served one by one give every result as the stacked run does, to the bit."""
+    ens, test = breathers
+    other = systems.sine_gordon_breather(0.7, -0.1, xlim=(-10, 10), nx=41, nt=30, dt=0.1)
+    stacked_out, alone_out, _ = _both_ways(monkeypatch, ens, [test, other], solver="lu")
+    assert len(stacked_out) == len(alone_out) == 2
+    for a, b in zip(stacked_out, alone_out, strict=True):
+        _assert_same_result(a, b)
+    import latticedft._serve._ensemble as ensemble_serving
+
+    monkeypatch.setattr(ensemble_serving, "MEMBERWISE_AFFINE", True)  # by default the stacked recurrence serves it
+    wave, field = _wave_ensemble()
+    stacked_out, alone_out, _ = _both_ways(monkeypatch, wave, field)
+    assert stacked_out.solver == "affine"
+    _assert_same_result(stacked_out, alone_out)
+
+
+@pytest.mark.parametrize("dims", ["1+1d", "2+1d"])
+@pytest.mark.parametrize("broken", [2, 0])  # 2: a resampled member stops; 0: member 0 stops (a ServeError)
+def test_a_member_that_stops_one_by_one_as_in_the_stacked_run(
+    breathers, membrane, monkeypatch, dims: str, broken: int
+) -> None:
+    """A member that cannot step (its L_d zero: a singular mixed Hessian) stops the stacked run, whose members are
+    then served alone; served one by one, the result is the same to the bit: the spread over the others,
+    ``members_stopped`` and its warning, and where member 0 stops, the ServeError's message, slice, residual and
+    result (member 0's slices so far)."""
+    ens, test = breathers if dims == "1+1d" else membrane
+    stacked_out, alone_out, _ = _both_ways(monkeypatch, _broken(ens, broken), test, solver="krylov")
+    if broken == 0:
+        assert isinstance(stacked_out, ldft.ServeError) and isinstance(alone_out, ldft.ServeError)
+        assert str(stacked_out) == str(alone_out) and stacked_out.slice == alone_out.slice
+        assert stacked_out.residual == alone_out.residual
+        stacked_out, alone_out = stacked_out.result, alone_out.result
+        assert not stacked_out.complete  # member 0's slices so far, the others' beside them
+    else:
+        assert [s["member"] for s in stacked_out.members_stopped] == [broken]
+    _assert_same_result(stacked_out, alone_out)
+
+
+def test_the_switch_and_the_stacks_served_one_by_one(breathers, monkeypatch) -> None:
+    """``serves_alone`` takes the members one by one only for n-D slice-Newton on the CPU with every member a
+    polynomial on the folded kernels, and ``MEMBERWISE`` on: not a 1D field, the sweep, ``compiled_kernels=False``,
+    coefficients that do not fold, nor a stack of networks; nor members whose DEL is affine (the stacked
+    recurrence), unless ``affine=False`` or ``MEMBERWISE_AFFINE``."""
+    import latticedft._serve._ensemble as ensemble_serving
+    from latticedft._lattice import as_lattice_field
+    from latticedft._serve import ServeOptions
+
+    ens, test = breathers
+    fs, cpu, newton = [as_lattice_field(test)], torch.device("cpu"), ServeOptions()
+    assert ensemble_serving.serves_alone(ens, fs, newton, cpu)
+    assert not ensemble_serving.serves_alone(ens, fs, ServeOptions(mode="sweep"), cpu)
+    with ldft.set_options(compiled_kernels=False):
+        assert not ensemble_serving.serves_alone(ens, fs, newton, cpu)
+    with ldft.set_options(folded_max_powers=1):
+        assert not ensemble_serving.serves_alone(ens, fs, newton, cpu)
+    one_d = [as_lattice_field(systems.oscillator_sin(1.0))]
+    paper = ldft.EnsembleLagrangian(ldft.PolynomialLagrangian((2, 4)), members=2, seed=0)
+    ldft.learn(paper, [systems.oscillator_sin(a) for a in (1.2, 0.6)], progress=False)
+    assert not ensemble_serving.serves_alone(paper, one_d, newton, cpu)
+    net = ldft.MLPLagrangian(hidden=[4])
+    ldft.learn(net, test, progress=False, max_iter=5, ensemble=2)
+    assert not ensemble_serving.serves_alone(net.ensemble_, fs, newton, cpu)
+    wave, field = _wave_ensemble()  # an affine DEL: the stacked recurrence, unless asked or affine=False
+    assert not ensemble_serving.serves_alone(wave, [as_lattice_field(field)], newton, cpu)
+    assert ensemble_serving.serves_alone(wave, [as_lattice_field(field)], ServeOptions(affine=False), cpu)
+    monkeypatch.setattr(ensemble_serving, "MEMBERWISE_AFFINE", True)
+    assert ensemble_serving.serves_alone(wave, [as_lattice_field(field)], newton, cpu)
+    monkeypatch.setattr(ensemble_serving, "MEMBERWISE", False)
+    assert not ensemble_serving.serves_alone(ens, fs, newton, cpu)

@@ -35,11 +35,11 @@ from .._errors import InputError, ServeError
 from .._lattice import LatticeField, as_lattice_fields
 from .._layout import is_lazy, lattice_dims
 from .._models import AbstractLagrangian, EnsembleLagrangian
-from ._ensemble import calibration, serve_ensemble
+from ._ensemble import calibration, serve_ensemble, serves_alone
 from ._field import _serve_field
 from ._onedim import _serve_batch
 from ._options import MODES, Cadence, ServeOptions
-from ._result import ServeResult, compare, error_vs_time, invariant_vs_time
+from ._result import ServeResult, compare, error_vs_time, invariant_vs_time, served_source
 from ._solvers import SOLVERS
 from ._stream import SliceCallback, SliceSource, _serve_stream, lazy_field, thin_result
 
@@ -94,7 +94,7 @@ def _served_attrs(results: list[ServeResult], model: AbstractLagrangian) -> None
         attrs = r.field.attrs
         if "source" in attrs:
             attrs["latticedft_initial_from"] = attrs.pop("source")
-        attrs["source"] = f"latticedft.serve: predicted from the first two slices by a {model.kind} L_d"
+        attrs["source"] = served_source(model.kind)
 
 
 def _served_on(results: list[ServeResult], where: torch.device) -> None:
@@ -255,7 +255,8 @@ def serve(
             raise InputError.at(
                 "every", "an ensemble is served whole (every member on every slice): give every=1 and no on_slice"
             )
-        out = serve_ensemble(model, fs, plan.run, batch, opts.box)
+        alone = serves_alone(model, fs, opts, where)
+        out = serve_ensemble(model, fs, plan.run, batch, opts.box, alone)
     else:
         out = plan.run(model, fs)
     return out if batch else out[0]

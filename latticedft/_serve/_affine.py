@@ -235,6 +235,18 @@ def passing_prefix(res: np.ndarray, bound: np.ndarray) -> int:
     return int(passed[-1]) + 1 if passed.size else 0
 
 
+def affine_del(model: AbstractLagrangian, f: LatticeField, sys: _SliceSystem) -> bool:
+    """Whether :func:`_affine_prefix` finds the DEL of ``model`` on ``f`` affine (the same tests, probed at the size
+    of ``f``'s first two slices: the probe's answer is kept for the serve that follows)."""
+    compiled = compiled_closed_forms(model, f.values[:0])
+    if compiled is not None and not compiled.quadratic:
+        return False
+    scale = float(f.values[:2].abs().max()) or 1.0
+    if not_affine(model, sys.st.size, sys.m, scale):
+        return False
+    return _AffineSlices.probe(model, sys.st, sys.m, scale) is not None
+
+
 def _affine_prefix(
     model: AbstractLagrangian,
     f: LatticeField,

@@ -1,4 +1,6 @@
-"""Serving an ensemble: every member stepped in one run (stacked as components), and its calibration."""
+"""Serving an ensemble: every member stepped in one run (stacked as components), or, where every member is a
+polynomial on the folded kernels, each member served alone one after another (:data:`MEMBERWISE`), the result
+assembled as the stacked run's; and its calibration."""
 
 from __future__ import annotations
 
@@ -16,11 +18,18 @@ from .._errors import ServeError
 from .._lattice import LatticeField
 from .._models import AbstractLagrangian, EnsembleLagrangian
 from .._models._ensemble import stacked
+from ._affine import affine_del
+from ._field import slice_system
+from ._folded import folds
+from ._options import ServeOptions
 from ._range import EXTRAPOLATION_TOL, assess, extrapolation
-from ._result import LEFT_THE_BOX, ServeResult, box_reason
+from ._result import LEFT_THE_BOX, ServeResult, box_reason, served_source
 
 __all__ = [
     "serve_ensemble",
+    "serves_alone",
+    "MEMBERWISE",
+    "MEMBERWISE_AFFINE",
     "calibration",
     "calibration_warning",
     "stopped_warning",
@@ -53,8 +62,39 @@ def _member_values(r: ServeResult, members: int, m: int) -> np.ndarray:
     return np.moveaxis(v, -2, 0)
 
 
+#: Serve a stack that folds (:func:`serves_alone`) member by member: every member on its own folded kernels, one
+#: after another, the ensemble's result assembled from theirs (equal to the bit to the stacked run's, cheaper on
+#: every lattice measured where slice-Newton serves: ``python -m benchmarks.ensemble_serve``). ``False``: always
+#: the stacked run.
+MEMBERWISE = True
+
+#: Serve a stack member by member also where its members' DEL is affine (the affine recurrence serves them: the
+#: stacked run's one recurrence was faster on the small lattices measured, ``benchmarks.ensemble_serve``).
+MEMBERWISE_AFFINE = False
+
+
+def serves_alone(ens: EnsembleLagrangian, fs: list[LatticeField], options: ServeOptions, where: torch.device) -> bool:
+    """Whether :func:`serve_ensemble` serves ``ens`` on ``fs`` member by member (:data:`MEMBERWISE` on): n-D
+    slice-Newton on the CPU where the stacked run would evaluate every member on its own folded kernels
+    (``._stackfold``: every member a polynomial that :func:`._folded.folds` on each field's lattice), and, unless
+    :data:`MEMBERWISE_AFFINE`, no member's DEL affine where ``options.affine`` lets the recurrence serve it."""
+    if not MEMBERWISE or len(ens) < 2 or options.mode != "newton" or where.type != "cpu" or fs[0].ndim < 2:
+        return False
+    members = [ens.member(k) for k in range(len(ens))]
+    if not all(folds(p, slice_system(p, f)) for f in fs for p in members):
+        return False
+    if MEMBERWISE_AFFINE or not options.affine:
+        return True
+    return not any(affine_del(p, f, slice_system(p, f)) for f in fs for p in members)
+
+
 def serve_ensemble(
-    ens: EnsembleLagrangian, fs: list[LatticeField], run: Run, batch: bool, box: float | None = None
+    ens: EnsembleLagrangian,
+    fs: list[LatticeField],
+    run: Run,
+    batch: bool,
+    box: float | None = None,
+    alone: bool = False,
 ) -> list[ServeResult]:
     """Serve every member of ``ens`` on each field of ``fs`` in one stacked run; ``run(model, fields)`` serves.
 
@@ -66,27 +106,35 @@ def serve_ensemble(
     stopped (``members_stopped``) with a warning. A ServeError from member 0 itself carries the results so far.
     With a ``box`` (the serve's, 1D), the stacked run stops where member 0 leaves it, and every other member
     stops where it leaves it itself, as alone: its field ends at that slice and the result names it among the
-    members that stopped.
+    members that stopped. ``alone`` (:func:`serves_alone`): every member served alone, one after another, in
+    place of the stacked run, the results assembled as the stacked run's (:func:`_as_stacked`).
     """
     n, m = len(ens), ens.m
     labels = _labels(ens, fs[0])
     model = stacked(ens, labels)
-    stopped: ServeError | None = None
-    try:
-        joint = run(model, [_stack(f, n, labels) for f in fs])
-    except ServeError as err:
-        stopped = err
-        joint = _partial(err)
-    solo: list[list[ServeResult | None]] | None = None
     reasons: list[list[str]] = [[""] * n for _ in fs]
+    solo: list[list[ServeResult | None]] | None = None
     failure: ServeError | None = None
-    if stopped is not None:
-        solo, failure = _alone(ens, fs, run, reasons)
+    whole: list[list[ServeResult | None]] | None = None  # the members served alone, every one whole
+    if alone:
+        solo, failure, stopped = _alone(ens, fs, run, reasons)
+        joint: list[ServeResult] = []
+        if not stopped:  # as the stacked run had served
+            joint, whole, solo = _as_stacked(ens, fs, solo, model.kind), solo, None
+    else:
+        try:
+            joint = run(model, [_stack(f, n, labels) for f in fs])
+        except ServeError as err:
+            joint = _partial(err)
+            solo, failure, _ = _alone(ens, fs, run, reasons)
     out = []
     for i, f in enumerate(fs):
         r = joint[i] if i < len(joint) else None
-        vals = _member_values(r, n, m) if r is not None else np.full((n, 2, *f.values.shape[1:]), math.nan)
         own = solo[0][i] if solo is not None else None
+        if whole is not None:  # the members' fields, as the stacked run's
+            vals = _joined([s[i] for s in whole], _blank(n, f))
+        else:
+            vals = _member_values(r, n, m) if r is not None else _blank(n, f)
         if solo is not None:  # each member's own field, as far as it went
             vals = _joined([s[i] for s in solo], vals)
         elif box is not None:
@@ -109,18 +157,26 @@ def _partial(err: ServeError) -> list[ServeResult]:
     return err.result if isinstance(err.result, list) else [err.result]
 
 
+def _blank(n: int, f: LatticeField) -> np.ndarray:
+    """NaN values of ``n`` members' two slices of ``f``: ``(n, 2, *sites, m)``."""
+    return np.full((n, 2, *f.values.shape[1:]), math.nan)
+
+
 def _alone(
     ens: EnsembleLagrangian, fs: list[LatticeField], run: Run, reasons: list[list[str]]
-) -> tuple[list[list[ServeResult | None]], ServeError | None]:
-    """Every member served alone on ``fs``: ``(results per member, member 0's ServeError or None)``; a member's
-    stop reason on field ``i`` goes to ``reasons[i][k]``."""
+) -> tuple[list[list[ServeResult | None]], ServeError | None, bool]:
+    """Every member served alone on ``fs``: ``(results per member, member 0's ServeError or None, whether any
+    member's serve stopped with a ServeError)``; a member's stop reason on field ``i`` goes to
+    ``reasons[i][k]``."""
     out: list[list[ServeResult | None]] = []
     failure = None
+    stopped = False
     for k in range(len(ens)):
         try:
             got = run(ens.member(k), fs)
         except ServeError as err:
             failure = err if k == 0 else failure
+            stopped = True
             got = _partial(err)
             for i in range(len(fs)):
                 done = i < len(got) and got[i] is not None and got[i].complete
@@ -130,7 +186,27 @@ def _alone(
             if r is not None and not reasons[i][k] and r.reason.startswith(LEFT_THE_BOX):
                 reasons[i][k] = r.reason
         out.append([got[i] if i < len(got) else None for i in range(len(fs))])
-    return out, failure
+    return out, failure, stopped
+
+
+def _as_stacked(
+    ens: EnsembleLagrangian, fs: list[LatticeField], solo: list[list[ServeResult | None]], kind: str
+) -> list[ServeResult]:
+    """The results the stacked run (a model of ``kind``) gives on ``fs`` where every member served alone
+    (``solo``, per member per field) went through whole: member 0's own, its field's ``source`` the stacked
+    model's, its ``wall_time`` the members' together and ``sites_per_second`` over that time."""
+    out = []
+    for i, f in enumerate(fs):
+        runs = [s[i] for s in solo]
+        own = runs[0]
+        assert own is not None and all(r is not None for r in runs)
+        wall = sum(r.wall_time for r in runs if r is not None)
+        sites = (own.slices - 2) * slice_system(ens.member(0), f).n
+        rate = sites / wall if wall > 0 else math.inf
+        field = own.field.copy(deep=False)
+        field.attrs = {**own.field.attrs, "source": served_source(kind)}
+        out.append(replace(own, field=field, wall_time=wall, sites_per_second=rate))
+    return out
 
 
 def _boxed(vals: np.ndarray, box: float, reasons: list[str]) -> None:

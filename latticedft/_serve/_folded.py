@@ -29,7 +29,7 @@ from .._models._polynumpy import _numpy_forms
 from .._options import option
 from ._slices import Blocks, _SliceSystem
 
-__all__ = ["FoldedSlices", "folded_slices", "not_affine_by_forms"]
+__all__ = ["FoldedSlices", "folded_slices", "folds", "not_affine_by_forms"]
 
 log = logging.getLogger("latticedft")
 
@@ -489,6 +489,15 @@ def _foldable(model: Any) -> bool:
     if not option("compiled_kernels") or not isinstance(model, PolynomialLagrangian) or not model.numpy_ready:
         return False
     return all(t.device.type == "cpu" for t in [*model.parameters(), *model.buffers()])
+
+
+def folds(model: Any, sys: _SliceSystem) -> bool:
+    """Whether :func:`folded_slices` serves ``model`` on ``sys`` (with its values on the CPU in double precision),
+    without building its kernels' maps on the lattice."""
+    if not _foldable(model):
+        return False
+    grad_data, both_data, _, _ = _data_of(model, list(sys.pairs))
+    return grad_data is not None and both_data is not None and folded_kernels() is not None
 
 
 def folded_slices(model: Any, sys: _SliceSystem, flat: torch.Tensor) -> FoldedSlices | None:

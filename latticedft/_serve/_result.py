@@ -23,6 +23,11 @@ def box_reason(box: float, at: int) -> str:
     return f"{LEFT_THE_BOX} |psi| <= {box:g} at slice {at}"
 
 
+def served_source(kind: str) -> str:
+    """The ``source`` attribute of a field served by a model of ``kind``."""
+    return f"latticedft.serve: predicted from the first two slices by a {kind} L_d"
+
+
 #: The figures of a serving run that :meth:`ServeResult.to_dict` starts with, in their order (then the
 #: extrapolation summary and the warnings).
 RUN_KEYS = (
