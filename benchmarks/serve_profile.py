@@ -27,6 +27,10 @@ of alternating order, and their served fields compared. The parts (``--part``, r
   (their difference), the fixed cost per serve, the same with the tables dropped before each call.
 - ``fixed-part``: the compiled ``slice_steps`` of the analytic rows (through ``FusedSlices.solve_many``, timed
   inside 15 serves): ns per site and slice against the leapfrog's ns per site and step, and its share of the serve.
+- ``faults``: serves of the analytic rows (1+1D 16384 x 66, 2+1D 128^2 x 66, 3+1D 32^3 x 63) with each result
+  held until the next serve returns, as the serve-nd benchmark times them, and dropped before it (3 rounds of 5
+  serves each way, the order alternated): the minor page faults a serve (their median and most) and the least
+  and median CPU time.
 - ``linalg``: the compiled GMRES and Jacobian assembly (``_solvers.COMPILED_GMRES`` and
   ``_slices.COMPILED_ASSEMBLY`` together) off and on, the polynomial rows (5 rounds, the least of 3 serves each
   way a round), and a fresh Jacobian's own work after its evaluation each way (3+1D 32^3).
@@ -46,6 +50,7 @@ import contextlib
 import functools
 import importlib
 import math
+import resource
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -518,6 +523,64 @@ def fixed_part(quick: bool) -> Table:
     return table
 
 
+def faults(quick: bool) -> Table:
+    """Serves of the analytic rows with each result held until the next serve returns (the serve-nd benchmark's
+    pattern) and dropped before it: page faults and CPU time a serve."""
+    table = Table(
+        "faults",
+        "Page faults of serves of the analytic sine-Gordon rows, each result held until the next returns -> dropped",
+        [
+            "lattice",
+            "field (pages)",
+            "faults / serve, held -> dropped: median (most)",
+            "serve, held -> dropped: least / median (ms)",
+            "median difference / leapfrog step and slice",
+        ],
+    )
+    rows = [(1, 256, 12)] if quick else [(1, 16384, 66), (2, 128, 66), (3, 32, 63)]
+    rounds, repeat = (2, 2) if quick else (3, 5)
+    model = sine_gordon()
+    page = resource.getpagesize()
+    for ndim, n, nt in rows:
+        s = Setup(ndim, n, nt)
+        s.serve(model, 3)
+        cpu: dict[bool, list[float]] = {True: [], False: []}
+        counts: dict[bool, list[int]] = {True: [], False: []}
+        pages = 0
+        for r in range(rounds):
+            for held in (True, False) if r % 2 == 0 else (False, True):
+                kept = s.serve(model) if held else None  # the result held while the next serve runs
+                for _ in range(repeat):
+                    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+                    c0 = time.process_time()
+                    out = s.serve(model)
+                    spent = time.process_time() - c0
+                    counts[held].append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+                    cpu[held].append(spent)
+                    pages = -(-np.asarray(out.field.values).nbytes // page)
+                    kept = out if held else None
+                    out = None
+                del kept
+            s.leapfrog_again()
+        table.rows.append(
+            [
+                f"{ndim}+1D {s.label}",
+                pages,
+                " -> ".join(f"{np.median(counts[k]):.0f} ({max(counts[k])})" for k in (True, False)),
+                " -> ".join(f"{min(cpu[k]) * 1e3:.2f} / {np.median(cpu[k]) * 1e3:.2f}" for k in (True, False)),
+                float(np.median(cpu[True]) - np.median(cpu[False])) / (s.step * (nt - 2)),
+            ]
+        )
+    table.notes.append(
+        f"{rounds} rounds, the order alternated; each way of a round {repeat} timed serves after a warm-up (held: "
+        "each served field kept until the next serve returns, as benchmarks.serve_nd times its rows; dropped: freed "
+        f"before the next serve); the median and the most of the minor page faults a serve (getrusage) and the "
+        f"least and median CPU time; the field's size in pages of {page} bytes; the difference of the median serves "
+        "over the leapfrog's least step in the same process times the solved slices."
+    )
+    return table
+
+
 def linalg(quick: bool) -> Table:
     """The compiled GMRES and Jacobian assembly off and on, in rounds of alternating order."""
     table = Table(
@@ -726,6 +789,7 @@ PARTS: dict[str, Callable[[bool], Table]] = {
     "chord": chord,
     "lattice-new": lattice_new,
     "fixed-part": fixed_part,
+    "faults": faults,
     "linalg": linalg,
     "fit3d": fit3d,
     "affine": affine,

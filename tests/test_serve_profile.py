@@ -32,6 +32,7 @@ POSITIVE = {
         "serve (ms)",
         "slice_steps' share of the serve",
     ],
+    "faults": ["field (pages)", "serve, held -> dropped: least / median (ms)"],
     "linalg": ["leapfrog step (ms)"],
     "fit3d": ["leapfrog (ns / site and step)"],
     "affine": [],
@@ -39,8 +40,11 @@ POSITIVE = {
 
 
 def _numbers(text: str) -> list[float]:
-    """The figures of a text cell such as ``"3.00 -> 2.50"`` or ``"0.41 / 0.49"`` (a percent sign dropped)."""
-    return [float(w.rstrip("%")) for w in text.replace("->", " ").replace("/", " ").split()]
+    """The figures of a text cell such as ``"3.00 -> 2.50"``, ``"0.41 / 0.49"`` or ``"0 (2112) -> 0 (2080)"`` (a
+    percent sign and parentheses dropped)."""
+    for mark in ("->", "/", "(", ")"):
+        text = text.replace(mark, " ")
+    return [float(w.rstrip("%")) for w in text.split()]
 
 
 @pytest.fixture(scope="module")
@@ -99,6 +103,10 @@ def test_the_switched_ways_serve_the_same_iterations_and_fields_within_round_off
     for row in tables["affine"].rows:
         assert row[-1] is True  # the kept answer serves the same field to the bit
         assert len(_numbers(row[1])) == len(_numbers(row[2])) == 2  # a figure per round, each way
+    for row in tables["faults"].rows:  # held -> dropped: the median and the most faults a serve each way
+        held, most_held, dropped, most_dropped = _numbers(row[2])
+        assert 0 <= held <= most_held and 0 <= dropped <= most_dropped, row
+        assert all(v == int(v) for v in (held, most_held, dropped, most_dropped)), row  # whole counts
     evals = [_numbers(r[3]) for r in tables["chord"].rows]  # per way of the chord, evaluations a slice
     assert all(len(e) == len(serve_profile.CHORD_WAYS) and all(v >= 1 for v in e) for e in evals)
 
