@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from latticedft._calibrate import EXPONENT_RANGE, QUANTILE
+from latticedft._calibration_law import EXPONENT_RANGE, QUANTILE
 
 COVERAGE = (0.8, 0.99)
 RATIO = (0.5, 2.0)

@@ -130,10 +130,8 @@ def _field(u: np.ndarray, h: float, dt: float) -> Any:
     return systems.make_field(u, dims, spacing=(dt, *[h] * ndim), coord_attrs=attrs)
 
 
-@functools.lru_cache(maxsize=4)
-def learned_polynomial(ndim: int, quick: bool) -> ldft.PolynomialLagrangian:
-    """The sine-Gordon case's polynomial class (orders (2, 12), time-symmetric) learned on a small periodic
-    sine-Gordon field of the dimension."""
+def training_field(ndim: int, quick: bool) -> Any:
+    """The small periodic sine-Gordon field of the dimension that the benchmark's polynomials learn from."""
     n = {1: 32, 2: 12, 3: 6}[ndim]
     nt = 12 if quick else 24
     u0, h, dt = _initial(ndim, n)
@@ -141,8 +139,15 @@ def learned_polynomial(ndim: int, quick: bool) -> ldft.PolynomialLagrangian:
     u[0] = u[1] = u0
     for i in range(1, nt - 1):
         u[i + 1] = leapfrog(u[i - 1], u[i], 1, dt, h)
+    return _field(u, h, dt)
+
+
+@functools.lru_cache(maxsize=4)
+def learned_polynomial(ndim: int, quick: bool) -> ldft.PolynomialLagrangian:
+    """The sine-Gordon case's polynomial class (orders (2, 12), time-symmetric) learned on a small periodic
+    sine-Gordon field of the dimension (:func:`training_field`)."""
     model = ldft.PolynomialLagrangian(orders=(2, 12), time_symmetric=True)
-    ldft.learn(model, _field(u, h, dt), progress=False)
+    ldft.learn(model, training_field(ndim, quick), progress=False)
     return model
 
 

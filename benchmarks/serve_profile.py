@@ -63,7 +63,7 @@ from latticedft._serve import _affine, _field, _folded, _fused, _newton, _solver
 
 from ._common import Table, load_average, print_table
 from .serve_nd import _field as lattice_field
-from .serve_nd import _forget_lattices, _initial, leapfrog, learned_polynomial, sine_gordon
+from .serve_nd import _forget_lattices, _initial, leapfrog, learned_polynomial, sine_gordon, training_field
 
 NAME = "serve-profile"
 
@@ -216,15 +216,8 @@ def slice_newton_timers() -> Iterator[Timers]:
 def untuned_polynomial(ndim: int, orders: tuple[int, int], quick: bool) -> ldft.PolynomialLagrangian:
     """A polynomial of ``orders``, not time-symmetric, learned as :func:`benchmarks.serve_nd.learned_polynomial`
     learns the benchmark's (the same field): one the slice-Newton rules were not tuned on."""
-    n = {1: 32, 2: 12, 3: 6}[ndim]
-    nt = 12 if quick else 24
-    u0, h, dt = _initial(ndim, n)
-    u = np.empty((nt, *u0.shape))
-    u[0] = u[1] = u0
-    for i in range(1, nt - 1):
-        u[i + 1] = leapfrog(u[i - 1], u[i], 1, dt, h)
     model = ldft.PolynomialLagrangian(orders=orders, time_symmetric=False)
-    ldft.learn(model, lattice_field(u, h, dt), progress=False)
+    ldft.learn(model, training_field(ndim, quick), progress=False)
     return model
 
 

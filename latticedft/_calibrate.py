@@ -43,16 +43,7 @@ import numpy as np
 import torch
 import xarray as xr
 
-from ._calibration_law import (
-    CANDIDATES_FLOOR,
-    CANDIDATES_RATIO,
-    EXPONENT_RANGE,
-    LAW,
-    ORIGIN,
-    QUANTILE,
-    RANGE_MARGIN,
-    Calibration,
-)
+from ._calibration_law import EXPONENT_RANGE, LAW, ORIGIN, QUANTILE, Calibration
 from ._errors import LatticeDFTError, ServeError
 from ._lattice import BoundaryKinds
 from ._learn import learn
@@ -63,13 +54,6 @@ from ._models import AbstractLagrangian
 from ._serve import ServeResult, serve
 
 __all__ = [
-    "CANDIDATES_FLOOR",
-    "CANDIDATES_RATIO",
-    "EXPONENT_RANGE",
-    "LAW",
-    "ORIGIN",
-    "QUANTILE",
-    "RANGE_MARGIN",
     "Calibration",
     "calibrate",
     "candidates_disagreement",

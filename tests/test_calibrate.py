@@ -227,7 +227,8 @@ def test_the_law_round_trips_and_warns_beyond_its_windows() -> None:
 def test_the_law_counts_the_steps_served() -> None:
     """A law measured now grows in the steps served, ``k - 1`` (slice 2 is the first step, error ``A * scale``); a
     law recorded before it (no ``origin``) keeps the slice index ``k``; the fit recovers an error ``c (k - 1)^p``."""
-    from latticedft._calibrate import ORIGIN, _fit, _Sample
+    from latticedft._calibrate import _fit, _Sample
+    from latticedft._calibration_law import ORIGIN
 
     k = np.arange(2.0, 42.0)
     rel = 1e-6 * (k - 1) ** 1.5

@@ -14,12 +14,12 @@ import xarray as xr
 import latticedft as ldft
 from latticedft import systems
 from latticedft._calibrate import (
-    CANDIDATES_RATIO,
     Calibration,
     calibrate,
     candidates_disagreement,
     served_along,
 )
+from latticedft._calibration_law import CANDIDATES_RATIO
 from latticedft._run._calib import task_band
 from latticedft.io import write_field
 

@@ -871,6 +871,23 @@ def membrane() -> tuple[ldft.EnsembleLagrangian, xr.DataArray]:
     return ens, _field(_sine_gordon(2, 10, 30))
 
 
+def _spy_folded(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """The kinds of the folded kernels every slice-Newton run takes from now on, in order (``_folded_of`` of
+    ``latticedft._serve._stepper`` spied on)."""
+    import latticedft._serve._stepper as stepper
+
+    kinds: list[str] = []
+    real = stepper._folded_of
+
+    def spy(run):
+        got = real(run)
+        kinds.append(type(got).__name__)
+        return got
+
+    monkeypatch.setattr(stepper, "_folded_of", spy)
+    return kinds
+
+
 @pytest.mark.usefixtures("stacked_run")
 @pytest.mark.parametrize("dims", ["1+1d", "2+1d"])
 @pytest.mark.parametrize("solver", ["lu", "krylov"])
@@ -882,20 +899,11 @@ def test_each_member_on_the_folded_kernels_equals_itself_alone_to_the_bit(
     blocks are those it has alone, so its field equals the member served alone to the bit, also with member
     2's L_d ``2**-40`` times its own (the torch evaluation of the stack left members up to 1.0e-14 (1+1D) and
     1.7e-15 (2+1D) from their own fields)."""
-    import latticedft._serve._stepper as stepper
     from latticedft._serve._stackfold import StackedFolded
 
     ens, test = breathers if dims == "1+1d" else membrane
     scaled = _scaled(ens, 2, -40)
-    kinds = []
-    real = stepper._folded_of
-
-    def spy(run):
-        got = real(run)
-        kinds.append(type(got).__name__)
-        return got
-
-    monkeypatch.setattr(stepper, "_folded_of", spy)
+    kinds = _spy_folded(monkeypatch)
     out = ldft.serve(scaled, test, solver=solver, progress=False)
     assert out.complete and out.solver == "newton" and set(kinds) == {StackedFolded.__name__}
     for k in range(3):
@@ -1004,17 +1012,8 @@ def _both_ways(
     each way's result (or the ServeError it raised) and the kinds of the folded kernels each slice-Newton run
     took, in order."""
     import latticedft._serve._ensemble as ensemble_serving
-    import latticedft._serve._stepper as stepper
 
-    kinds: list[str] = []
-    real = stepper._folded_of
-
-    def spy(run):
-        got = real(run)
-        kinds.append(type(got).__name__)
-        return got
-
-    monkeypatch.setattr(stepper, "_folded_of", spy)
+    kinds = _spy_folded(monkeypatch)
     out = []
     for memberwise in (False, True):
         monkeypatch.setattr(ensemble_serving, "MEMBERWISE", memberwise)

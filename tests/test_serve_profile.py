@@ -47,31 +47,26 @@ def _numbers(text: str) -> list[float]:
     return [float(w.rstrip("%")) for w in text.split()]
 
 
+def _switches() -> tuple[object, ...]:
+    """Every module switch and timed function the profile replaces while it runs."""
+    return (
+        _newton.CHORD_PREDICT,
+        _newton.FRESH_FIRST_ON,
+        _solvers.COMPILED_GMRES,
+        serve_profile._slices.COMPILED_ASSEMBLY,
+        _folded.FoldedSlices.evaluate,
+        _newton._factorise,
+        _newton._fresh_blocks,
+        _fused.FusedSlices.solve_many,
+        _field._affine_prefix,
+    )
+
+
 @pytest.fixture(scope="module")
 def tables() -> dict[str, serve_profile.Table]:
-    before = (
-        _newton.CHORD_PREDICT,
-        _newton.FRESH_FIRST_ON,
-        _solvers.COMPILED_GMRES,
-        serve_profile._slices.COMPILED_ASSEMBLY,
-        _folded.FoldedSlices.evaluate,
-        _newton._factorise,
-        _newton._fresh_blocks,
-        _fused.FusedSlices.solve_many,
-        _field._affine_prefix,
-    )
+    before = _switches()
     out = serve_profile.run(quick=True)
-    after = (
-        _newton.CHORD_PREDICT,
-        _newton.FRESH_FIRST_ON,
-        _solvers.COMPILED_GMRES,
-        serve_profile._slices.COMPILED_ASSEMBLY,
-        _folded.FoldedSlices.evaluate,
-        _newton._factorise,
-        _newton._fresh_blocks,
-        _fused.FusedSlices.solve_many,
-        _field._affine_prefix,
-    )
+    after = _switches()
     assert after == before  # every switch and timed function put back
     return out
 
