@@ -913,6 +913,24 @@ def test_each_member_on_the_folded_kernels_equals_itself_alone_to_the_bit(
     assert not np.array_equal(out.members.values[1], out.members.values[0])  # members of their own
 
 
+@pytest.mark.usefixtures("stacked_run")
+@pytest.mark.parametrize("switch", ["CHORD_PREDICT", "FRESH_FIRST_ON"])
+def test_slice_newtons_chord_switches_reach_the_stacked_run(breathers, membrane, monkeypatch, switch: str) -> None:
+    """The chord rules' module switches (``_newton.CHORD_PREDICT``, ``_newton.FRESH_FIRST_ON``) are read when a
+    stacked run counts each member's slow chords, as slice-Newton reads them for one model: with a switch turned,
+    every member of the stack still equals itself served alone with it (a copy taken at import kept the default
+    for the stack)."""
+    import latticedft._serve._newton as newton
+
+    monkeypatch.setattr(newton, switch, False if switch == "CHORD_PREDICT" else 1)
+    for ens, test in (breathers, membrane):
+        out = ldft.serve(ens, test, solver="lu", progress=False)
+        assert out.complete
+        for k in range(3):
+            own = ldft.serve(ens.member(k), test, solver="lu", progress=False)
+            np.testing.assert_array_equal(out.members.values[k], own.field.values)
+
+
 def test_a_stack_that_cannot_fold_keeps_the_torch_evaluation(breathers) -> None:
     """The folded kernels serve a stack only where they serve every member: a stack of networks, of polynomials
     whose coefficients do not fold (``folded_max_powers``), or with ``compiled_kernels=False`` keeps the torch

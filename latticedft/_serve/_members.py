@@ -23,7 +23,8 @@ import torch
 
 from .._action import CellDerivatives
 from .._contract import AbstractLagrangian
-from ._newton import CHORD_PREDICT, FRESH_FIRST_ON, FRESH_FIRST_RETRY, _chord_pays
+from . import _newton
+from ._newton import FRESH_FIRST_RETRY, _chord_pays
 from ._slices import _SliceSystem, first_singular, member_abs_max, member_block_sizes, singular_message
 from ._solvers import SolverRefused, factor_members, members_solve
 
@@ -154,8 +155,10 @@ class _Slice:
         converged = self.active & ((res <= self.rtol * self.rscale) | self.small)
         fresh, first_stale = self.fresh, self.first_stale
         for k in np.nonzero(converged)[0]:
-            if first_stale[k] or fresh[k] or (CHORD_PREDICT and self.first[k]):
-                slow = it >= FRESH_FIRST_ON or (CHORD_PREDICT and self.refreshed[k])
+            # read at call time, as slice-Newton's own loop reads them: the switches reach a stack too
+            predict = _newton.CHORD_PREDICT
+            if first_stale[k] or fresh[k] or (predict and self.first[k]):
+                slow = it >= _newton.FRESH_FIRST_ON or (predict and self.refreshed[k])
                 fresh[k] = fresh[k] + 1 if fresh[k] and not first_stale[k] else int(slow)
             self.done[k] = res[k]
         self.its[converged] = it
